@@ -1,0 +1,155 @@
+"""The acceptance check every training run ends with (SPEC §5).
+
+A near-zero training loss does not mean a stabilising pair: the authors' code reached one with a
+controller that failed every test state. Three cheap checks separated good runs from bad ones:
+
+1. the trained condition on a dense set of states *not used for training* (maximum violation and
+   violating fraction over X_delta);
+2. the closed-loop Jacobian at x* on the true model, Hurwitz for every xi sample and for their mean;
+3. a batched Newton root search for other closed-loop equilibria in X_delta (where Vdot = 0, so the
+   decrease condition must fail around them).
+
+A run passes when the condition holds at every validation state, every Jacobian is Hurwitz and no
+other equilibrium is found.
+"""
+
+from __future__ import annotations
+
+import math
+
+import torch
+from torch import Tensor
+
+from drlyap.conditions import Condition, DecreaseTerms, decrease_terms
+from drlyap.networks import Controller, Lyapunov
+from drlyap.systems import UncertainSystem
+
+
+def sample_region(system: UncertainSystem, count: int, delta: float, generator: torch.Generator) -> Tensor:
+    """``count`` local states ``(count, n)`` uniform in X minus the open delta-ball around x* (float64)."""
+    lo, hi = system.local_box()
+    out = torch.empty(0, system.n, dtype=torch.float64)
+    for _ in range(100):
+        z = lo + (hi - lo) * torch.rand(2 * count, system.n, generator=generator, dtype=torch.float64)
+        out = torch.cat([out, z[z.norm(dim=-1) >= delta]])
+        if out.shape[0] >= count:
+            return out[:count]
+    raise ValueError(f"delta = {delta} leaves (almost) nothing of the state box; choose a smaller delta")
+
+
+def validation_states(system: UncertainSystem, delta: float, per_axis: int = 200, count: int = 40000) -> Tensor:
+    """A dense set of local states in X_delta: a cell-centred grid for n <= 3, else a Sobol set."""
+    lo, hi = system.local_box()
+    if system.n <= 3:
+        per = per_axis if system.n <= 2 else 40
+        axes = [lo[i] + (hi[i] - lo[i]) * (torch.arange(per, dtype=torch.float64) + 0.5) / per for i in range(system.n)]
+        z = torch.cartesian_prod(*axes).reshape(-1, system.n)
+    else:
+        sobol = torch.quasirandom.SobolEngine(system.n, scramble=True, seed=12345)
+        z = lo + (hi - lo) * sobol.draw(count, dtype=torch.float64)
+    return z[z.norm(dim=-1) >= delta]
+
+
+def condition_residual(system: UncertainSystem, lyapunov: Lyapunov, controller: Controller, condition: Condition,
+                       z: Tensor, xi_samples: Tensor, decay_rate: float, exp_rate: float,
+                       chunk: int = 20000) -> Tensor:
+    """The condition's per-state residual at local states ``z (B, n)``, chunked, without gradients.
+
+    For a uniform condition the Lipschitz term uses the maximum over *all* of ``z``.
+    """
+    dtype = next(lyapunov.parameters()).dtype
+    with torch.no_grad():
+        parts = [decrease_terms(system, lyapunov, controller, z[i:i + chunk].to(dtype), xi_samples.to(dtype),
+                                decay_rate, exp_rate) for i in range(0, z.shape[0], chunk)]
+    terms = DecreaseTerms(vdot=torch.cat([p.vdot for p in parts]), lip=torch.cat([p.lip for p in parts]),
+                          decay=torch.cat([p.decay for p in parts]))
+    return condition.residual(terms)
+
+
+def closed_loop_rhs(system: UncertainSystem, controller: Controller, z: Tensor, xi: Tensor) -> Tensor:
+    """True closed-loop vector field in local coordinates: ``z (B, n)``, ``xi (B, k)`` -> ``(B, n)``."""
+    return system.true_dynamics(system.to_user(z), controller(z), xi)
+
+
+def batched_jacobian(system: UncertainSystem, controller: Controller, z: Tensor, xi: Tensor) -> tuple[Tensor, Tensor]:
+    """Closed-loop field ``(B, n)`` and its Jacobian ``(B, n, n)`` at local states ``z (B, n)``."""
+    with torch.enable_grad():
+        z = z.detach().requires_grad_(True)
+        f = closed_loop_rhs(system, controller, z, xi)
+        rows = [torch.autograd.grad(f[:, i].sum(), z, retain_graph=True)[0] for i in range(system.n)]
+    return f.detach(), torch.stack(rows, dim=1)
+
+
+def jacobian_check(system: UncertainSystem, controller: Controller, xi_samples: Tensor) -> dict:
+    """Eigenvalues of the true closed-loop Jacobian at x* for each xi sample and their mean."""
+    dtype = next(controller.parameters()).dtype
+    xis = torch.cat([xi_samples, xi_samples.mean(0, keepdim=True)]).to(dtype)
+    z = torch.zeros(xis.shape[0], system.n, dtype=dtype)
+    _, jac = batched_jacobian(system, controller, z, xis)
+    eig = torch.linalg.eigvals(jac.double())
+    max_real = eig.real.amax(-1)
+    return {
+        "max_real_eigenvalue": [float(v) for v in max_real],
+        "hurwitz": bool((max_real < 0).all()),
+        "labels": [f"xi_{i}" for i in range(xi_samples.shape[0])] + ["mean"],
+    }
+
+
+def find_equilibria(system: UncertainSystem, controller: Controller, xi_samples: Tensor, delta: float,
+                    starts_per_axis: int = 24, iterations: int = 40, seed: int = 0) -> list[dict]:
+    """Other closed-loop equilibria in X_delta, by a damped Newton search from a grid of starts.
+
+    Runs for every xi sample and the mean at once (batched over starts x samples). Returns one entry
+    per distinct root: local state, user state, which xi, residual norm.
+    """
+    dtype = next(controller.parameters()).dtype
+    lo, hi = (b.to(dtype) for b in system.local_box())
+    per = max(2, int(round(starts_per_axis ** (2 / max(system.n, 2)))) if system.n > 2 else starts_per_axis)
+    axes = [lo[i] + (hi[i] - lo[i]) * (torch.arange(per, dtype=dtype) + 0.5) / per for i in range(system.n)]
+    starts = torch.cartesian_prod(*axes).reshape(-1, system.n)
+    xis = torch.cat([xi_samples, xi_samples.mean(0, keepdim=True)]).to(dtype)
+    s, q = starts.shape[0], xis.shape[0]
+    z = starts.repeat(q, 1)
+    xi = xis.repeat_interleave(s, dim=0)
+    width = hi - lo
+    with torch.no_grad():
+        scale = closed_loop_rhs(system, controller, starts, xis[-1].expand(s, -1)).norm(dim=-1).median()
+    for _ in range(iterations):
+        f, jac = batched_jacobian(system, controller, z, xi)
+        step = torch.linalg.lstsq(jac, -f.unsqueeze(-1)).solution.squeeze(-1)
+        step = torch.nan_to_num(step)
+        limit = 0.1 * width
+        step = torch.maximum(torch.minimum(step, limit), -limit)
+        z = torch.minimum(torch.maximum(z + step, lo), hi)
+    with torch.no_grad():
+        f = closed_loop_rhs(system, controller, z, xi)
+    residual = f.norm(dim=-1) / max(float(scale), 1e-300)
+    keep = (residual < 1e-6) & (z.norm(dim=-1) >= delta)
+    found: list[dict] = []
+    for zi, qi, ri in zip(z[keep], (torch.arange(s * q) // s)[keep], residual[keep]):
+        if any(e["xi_index"] == int(qi) and torch.allclose(torch.tensor(e["local"], dtype=dtype), zi,
+                                                            atol=1e-3 * float(width.max())) for e in found):
+            continue
+        found.append({"local": zi.tolist(), "state": system.to_user(zi[None])[0].tolist(), "xi_index": int(qi),
+                      "xi_label": "mean" if qi == q - 1 else f"xi_{int(qi)}", "relative_residual": float(ri)})
+    return found
+
+
+def acceptance_check(system: UncertainSystem, lyapunov: Lyapunov, controller: Controller, condition: Condition,
+                     xi_samples: Tensor, decay_rate: float, exp_rate: float, delta: float,
+                     validation: Tensor | None = None) -> dict:
+    """Run all three checks; ``passed`` is True only if all of them pass."""
+    z = validation_states(system, delta) if validation is None else validation
+    residual = condition_residual(system, lyapunov, controller, condition, z, xi_samples, decay_rate, exp_rate)
+    max_violation = float(residual.max())
+    jac = jacobian_check(system, controller, xi_samples)
+    equilibria = find_equilibria(system, controller, xi_samples, delta)
+    passed = (max_violation <= 0) and jac["hurwitz"] and not equilibria
+    return {
+        "passed": bool(passed and math.isfinite(max_violation)),
+        "validation_states": int(z.shape[0]),
+        "max_violation": max_violation,
+        "violating_fraction": float((residual > 0).double().mean()),
+        "jacobian": jac,
+        "other_equilibria": equilibria,
+    }

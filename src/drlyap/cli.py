@@ -1,0 +1,190 @@
+"""The ``drlyap`` command line (click). Every command has ``--help``."""
+
+from __future__ import annotations
+
+import json
+import os
+import sys
+from pathlib import Path
+
+import click
+import torch
+
+from drlyap.systems import get_system, system_names
+
+
+def _setup_threads() -> None:
+    # The two shared cores of a laptop-class machine: one torch thread unless the user says otherwise.
+    torch.set_num_threads(int(os.environ.get("DRLYAP_THREADS", "1")))
+
+
+def _floats(text: str | None, what: str) -> list[float] | None:
+    if text is None:
+        return None
+    try:
+        values = [float(v) for v in text.split(",") if v.strip()]
+    except ValueError:
+        raise click.BadParameter(f"{what} must be comma-separated numbers, got {text!r}") from None
+    if not values or not all(torch.isfinite(torch.tensor(values))):
+        raise click.BadParameter(f"{what} must be finite numbers, got {text!r}")
+    return values
+
+
+def _ints(text: str, what: str) -> list[int]:
+    try:
+        values = [int(v) for v in text.split(",") if v.strip()]
+    except ValueError:
+        raise click.BadParameter(f"{what} must be comma-separated integers, got {text!r}") from None
+    if not values:
+        raise click.BadParameter(f"{what} is empty")
+    return values
+
+
+def _fail(err: Exception) -> None:
+    raise click.ClickException(str(err))
+
+
+@click.group(context_settings={"help_option_names": ["-h", "--help"]})
+@click.version_option(package_name="drlyap")
+def main() -> None:
+    """Distributionally robust neural controllers with Lyapunov certificates.
+
+    Train a controller pi and certificate V on an uncertain system from a few samples of its
+    parameters, then evaluate the closed loop on the true, shifted system.
+    """
+    _setup_threads()
+
+
+@main.command()
+@click.option("--json", "as_json", is_flag=True, help="Print one JSON object.")
+def systems(as_json: bool) -> None:
+    """List the built-in systems with their dimensions and parameters."""
+    described = [get_system(name).describe() for name in system_names()]
+    if as_json:
+        click.echo(json.dumps(described, indent=2))
+        return
+    for d in described:
+        params = ", ".join(f"{k}={v:g}" for k, v in d["parameters"].items())
+        click.echo(f"{d['name']}: n={d['n']} states {d['states']}, m={d['m']} inputs {d['inputs']}, "
+                   f"k={d['k']} uncertain {d['uncertain']}")
+        click.echo(f"    parameters: {params}; x* = {[round(v, 4) for v in d['equilibrium']]}; "
+                   f"U = {d['input_box']}; test xi = {d['test_xi']}")
+
+
+@main.command()
+@click.argument("system")
+@click.option("--method", type=click.Choice(["baseline", "dr"]), default="dr", show_default=True,
+              help="baseline: nominal condition at the mean xi sample; dr: distributionally robust.")
+@click.option("--loss", type=click.Choice(["pointwise", "uniform"]), default="pointwise", show_default=True,
+              help="DR condition: per-state (pointwise) or over the whole region (uniform).")
+@click.option("--radius", type=float, default=None, help="Wasserstein radius r [system default].")
+@click.option("--eps", type=float, default=None, help="Risk level eps in (0, 1) [system default].")
+@click.option("--gamma", type=float, default=None, help="Decay rate gamma in Vdot + gamma||x-x*|| <= 0.")
+@click.option("--exp-rate", type=float, default=0.0, show_default=True,
+              help="alpha of the exponential variant (adds alpha V inside the condition).")
+@click.option("--xi-samples", default=None,
+              help="Explicit xi samples 'a,b;c,d;...' (one sample per ';'); default: drawn from the system.")
+@click.option("--iters", type=int, default=3000, show_default=True, help="Iteration cap.")
+@click.option("--seed", type=int, default=0, show_default=True)
+@click.option("--device", default="cpu", show_default=True, help="cpu or cuda.")
+@click.option("--warm-start", type=click.Path(path_type=Path), default=None,
+              help="Start from the networks of this run directory (e.g. a baseline run).")
+@click.option("--out", type=click.Path(path_type=Path), required=True, help="Run directory to create.")
+@click.option("--quiet", is_flag=True, help="No progress bar.")
+def train(system: str, method: str, loss: str, radius: float | None, eps: float | None, gamma: float | None,
+          exp_rate: float, xi_samples: str | None, iters: int, seed: int, device: str, warm_start: Path | None,
+          out: Path, quiet: bool) -> None:
+    """Train a controller and Lyapunov certificate for SYSTEM and save a run directory."""
+    from drlyap.rundir import load_run, save_run
+    from drlyap.training import TrainConfig
+    from drlyap.training import train as train_pair
+
+    try:
+        sys_ = get_system(system)
+        samples = None
+        if xi_samples is not None:
+            samples = [_floats(part, "--xi-samples") for part in xi_samples.split(";") if part.strip()]
+        cfg = TrainConfig(system=system, method=method, loss=loss, wasserstein_radius=radius, risk_level=eps,
+                          decay_rate=gamma, exp_rate=exp_rate, xi_samples=samples, iters=iters, seed=seed,
+                          device=device)
+        if out.exists():
+            raise ValueError(f"{out} already exists; choose another --out or remove it")
+        init = None
+        if warm_start is not None:
+            prior = load_run(warm_start, sys_)
+            init = (prior.lyapunov_net, prior.controller_net)
+        result = train_pair(cfg, sys_, progress=not quiet, init=init)
+        save_run(out, result)
+    except ValueError as err:
+        _fail(err)
+    m = result.metrics
+    click.echo(f"{system} {method}: {m['status']} ({m['iterations']} iterations, {m['train_time_s']:.1f} s)")
+    acc = m["acceptance"]
+    click.echo(f"  acceptance: {'PASSED' if m['passed'] else 'NOT PASSED'}; max violation {acc['max_violation']:.3g} "
+               f"on {100 * acc['violating_fraction']:.2f}% of {acc['validation_states']} validation states; "
+               f"Hurwitz at x*: {acc['jacobian']['hurwitz']}; other equilibria: {len(acc['other_equilibria'])}")
+    click.echo(f"  saved {out}")
+
+
+@main.command()
+@click.argument("run_dir", type=click.Path(path_type=Path))
+@click.option("--xi", required=True, help="Parameter shift, comma-separated in the system's uncertain order.")
+@click.option("--n-init", type=int, default=200, show_default=True, help="Number of initial states.")
+@click.option("--seed", type=int, default=0, show_default=True, help="Seed of the initial states.")
+@click.option("--horizon", type=float, default=None, help="Simulated time [system default].")
+@click.option("--json", "as_json", is_flag=True, help="Print one JSON object.")
+def evaluate(run_dir: Path, xi: str, n_init: int, seed: int, horizon: float | None, as_json: bool) -> None:
+    """Simulate RUN_DIR's controller on the true model at parameter shift --xi."""
+    from drlyap.experiments import evaluate_run
+    from drlyap.rundir import load_run
+    from drlyap.simulation import initial_states
+
+    try:
+        run = load_run(run_dir)
+        shift = run.system.check_xi(_floats(xi, "--xi"))
+        if horizon is not None and horizon <= 0:
+            raise ValueError(f"--horizon must be > 0, got {horizon}")
+        x0 = initial_states(run.system, n_init, torch.Generator().manual_seed(seed))
+        result = evaluate_run(run, shift, x0, horizon)
+    except ValueError as err:
+        _fail(err)
+    result["run_dir"] = str(run_dir)
+    if as_json:
+        click.echo(json.dumps(result))
+        return
+    click.echo(f"{run.system.name} ({run.config.method}) at xi = {shift.tolist()}: "
+               f"{result['n_success']}/{result['n']} stabilised ({100 * result['success_rate']:.1f}%)")
+    if result["worst_v_increase"] is not None:
+        click.echo(f"  worst one-step increase of V along successful trajectories: {result['worst_v_increase']:.3g}")
+
+
+@main.command()
+@click.argument("system", type=click.Choice(["pendulum", "mountain-car"]))
+@click.option("--seeds", default="0", show_default=True, help="Comma-separated training seeds.")
+@click.option("--out", type=click.Path(path_type=Path), default=None, help="Output directory [runs/reproduce-SYSTEM].")
+@click.option("--iters", type=int, default=None, help="Iteration cap per training run [3000].")
+@click.option("--device", default="cpu", show_default=True)
+@click.option("--json", "as_json", is_flag=True, help="Print one JSON object with both methods' results.")
+def reproduce(system: str, seeds: str, out: Path | None, iters: int | None, device: str, as_json: bool) -> None:
+    """Reproduce the paper's experiment: baseline vs DR at the paper's test shift."""
+    from drlyap.experiments import format_table
+    from drlyap.experiments import reproduce as run_reproduce
+
+    seed_list = _ints(seeds, "--seeds")
+    out = out or Path("runs") / f"reproduce-{system}"
+    log = (lambda s: click.echo(s, err=True)) if as_json else click.echo
+    try:
+        report = run_reproduce(system, seed_list, out, iters=iters, progress=sys.stderr.isatty(), device=device,
+                               log=log)
+    except ValueError as err:
+        _fail(err)
+    if as_json:
+        click.echo(json.dumps(report))
+        return
+    click.echo("")
+    click.echo(format_table(report))
+    click.echo(f"\nwrote {out} (report.md, report.json, seed*/figures)")
+
+
+if __name__ == "__main__":
+    main()

@@ -1,0 +1,137 @@
+"""The paper's experiments end to end: train baseline and DR, evaluate on the true shifted model.
+
+``reproduce`` trains, for each seed, the baseline (nominal condition at the mean of the xi samples)
+and the DR pair with the system's paper settings, evaluates both at the paper's test shift on the
+paper's 10 initial states and on 200 more, prints a table, and draws the paper's figures.
+"""
+
+from __future__ import annotations
+
+import json
+import time
+from collections.abc import Sequence
+from pathlib import Path
+
+import torch
+
+from drlyap import plotting
+from drlyap.rundir import Run, atomic_dir, load_run, save_run
+from drlyap.simulation import evaluate, initial_states, simulate
+from drlyap.systems import UncertainSystem, get_system
+from drlyap.training import TrainConfig, train
+
+METHODS = ("baseline", "dr")
+
+# Where the paper's Figs. 3a/3b start: the downward pendulum; for the mountain car, the valley floor.
+REFERENCE_STATES = {"pendulum": (torch.pi, 0.0), "pendulum-u9": (torch.pi, 0.0), "mountain-car": (-torch.pi / 6, 0.0)}
+
+
+def test_initial_states(system: UncertainSystem, seed: int, n_paper: int = 10, n_more: int = 200) -> tuple:
+    """The evaluation initial states for a seed: ``n_paper`` as in the paper and ``n_more`` others."""
+    gen = torch.Generator().manual_seed(20_000 + seed)
+    return initial_states(system, n_paper, gen), initial_states(system, n_more, gen)
+
+
+def evaluate_run(run: Run, xi: torch.Tensor | None, x0: torch.Tensor, horizon: float | None = None) -> dict:
+    """Evaluate a loaded run from ``x0`` on the true model at ``xi`` (see :func:`simulation.evaluate`)."""
+    return evaluate(run.system, run.controller, x0, xi, lyapunov=run.lyapunov, horizon=horizon)
+
+
+def summary_row(result: dict) -> dict:
+    return {k: result[k] for k in ("n", "n_success", "success_rate", "worst_v_increase")}
+
+
+def reproduce(system_name: str, seeds: Sequence[int], out: Path, iters: int | None = None, progress: bool = True,
+              device: str = "cpu", log=print) -> dict:
+    """Run the paper's experiment for ``system_name`` and write everything under ``out`` (atomically).
+
+    Returns a JSON-friendly dict with per-seed, per-method results and the paths of the figures.
+    """
+    system = get_system(system_name)
+    if system.test_xi is None:
+        raise ValueError(f"{system_name} declares no test shift; reproduce needs one")
+    if not seeds:
+        raise ValueError("need at least one seed")
+    xi_test = torch.tensor(system.test_xi, dtype=torch.float64)
+    report: dict = {"system": system_name, "test_xi": list(system.test_xi), "seeds": list(seeds), "results": []}
+
+    def fill(tmp: Path) -> None:
+        for seed in seeds:
+            x_paper, x_more = test_initial_states(system, seed)
+            runs: dict[str, Run] = {}
+            for method in METHODS:
+                cfg = TrainConfig(system=system_name, method=method, seed=seed, device=device)
+                if iters is not None:
+                    cfg.iters = iters
+                tic = time.perf_counter()
+                result = train(cfg, system, progress=progress)
+                run_dir = save_run(tmp / f"seed{seed}" / method, result)
+                run = load_run(run_dir)
+                paper = evaluate_run(run, xi_test, x_paper)
+                more = evaluate_run(run, xi_test, x_more)
+                run.metrics["evaluations"] = {"paper_10": paper, "more_200": more}
+                run.save_metrics()
+                runs[method] = run
+                row = {"seed": seed, "method": method, "passed_acceptance": result.metrics["passed"],
+                       "acceptance_status": result.metrics["status"],
+                       "max_violation": result.metrics["acceptance"]["max_violation"],
+                       "violating_fraction": result.metrics["acceptance"]["violating_fraction"],
+                       "hurwitz": result.metrics["acceptance"]["jacobian"]["hurwitz"],
+                       "other_equilibria": len(result.metrics["acceptance"]["other_equilibria"]),
+                       "iterations": result.metrics["iterations"], "train_time_s": time.perf_counter() - tic,
+                       "paper_10": summary_row(paper), "more_200": summary_row(more),
+                       "run_dir": str(Path(out) / f"seed{seed}" / method)}
+                report["results"].append(row)
+                log(format_row(row))
+            figures = draw_figures(system, runs, xi_test, x_paper, tmp / f"seed{seed}" / "figures", seed)
+            report.setdefault("figures", {})[str(seed)] = [str(Path(out) / f"seed{seed}" / "figures" / f.name)
+                                                          for f in figures]
+        (tmp / "report.json").write_text(json.dumps(report, indent=2) + "\n")
+        (tmp / "report.md").write_text(format_table(report) + "\n")
+
+    atomic_dir(Path(out), fill, overwrite=False)
+    return report
+
+
+def draw_figures(system: UncertainSystem, runs: dict[str, Run], xi: torch.Tensor, x0: torch.Tensor, folder: Path,
+                 seed: int) -> list[Path]:
+    """Figs. 2/5 (phase portraits of both controllers) and 3a/3b (V(t), u(t) from the reference state)."""
+    folder.mkdir(parents=True, exist_ok=True)
+    trajs, ok, levels = {}, {}, {}
+    for method, run in runs.items():
+        trajs[method] = simulate(system, run.controller, x0, xi)
+        ok[method] = run.metrics["evaluations"]["paper_10"]["success"]
+        levels[method] = plotting.lyapunov_grid(system, run.lyapunov)
+    shift = ", ".join(f"{n}{v:+g}" for n, v in zip(system.uncertain, xi.tolist()))
+    phase = plotting.phase_portraits(system, trajs, ok, folder / "trajectories.png",
+                                     f"{system.name}, true model at {shift} (seed {seed})", levels)
+    start = torch.tensor([REFERENCE_STATES.get(system.name, system.test_box[0])], dtype=torch.float64)
+    series = {}
+    for method, run in runs.items():
+        traj = simulate(system, run.controller, start, xi)
+        series[method] = (traj.t, run.lyapunov(traj.x[:, 0]), traj.u[:, 0, 0])
+    where = ", ".join(f"{v:.3g}" for v in start[0].tolist())
+    ts = plotting.time_series(series, folder / "certificate_and_input.png",
+                              f"{system.name} from ({where}), true model at {shift} (seed {seed})")
+    return [phase, ts]
+
+
+def format_row(row: dict) -> str:
+    p, m = row["paper_10"], row["more_200"]
+    return (f"seed {row['seed']} {row['method']:>8}: paper states {p['n_success']:>2}/{p['n']}, "
+            f"more {m['n_success']:>3}/{m['n']}, acceptance {'PASSED' if row['passed_acceptance'] else 'not passed'} "
+            f"(max violation {row['max_violation']:.3g}, violating {100 * row['violating_fraction']:.2f}%, "
+            f"Hurwitz {row['hurwitz']}, other equilibria {row['other_equilibria']}), {row['train_time_s']:.0f}s")
+
+
+def format_table(report: dict) -> str:
+    lines = [f"## {report['system']} at test shift xi = {report['test_xi']}", "",
+             "| seed | method | paper 10 | 200 more | acceptance | max violation | violating % | Hurwitz | other eq. | train s |",
+             "|---|---|---|---|---|---|---|---|---|---|"]
+    for r in report["results"]:
+        lines.append(f"| {r['seed']} | {r['method']} | {r['paper_10']['n_success']}/{r['paper_10']['n']} | "
+                     f"{r['more_200']['n_success']}/{r['more_200']['n']} | "
+                     f"{'passed' if r['passed_acceptance'] else 'not passed'} | {r['max_violation']:.3g} | "
+                     f"{100 * r['violating_fraction']:.2f} | {r['hurwitz']} | {r['other_equilibria']} | "
+                     f"{r['train_time_s']:.0f} |")
+    return "\n".join(lines)

@@ -1,0 +1,123 @@
+"""The certificate V and the controller pi, pinned at the equilibrium by construction.
+
+Both act on local coordinates ``z = x - x*`` (angles wrapped, see :mod:`drlyap.systems`)::
+
+    V(z)  = || phi(z) - phi(0) ||^2 + alpha_hat ||z / s||^2        (V(0) = 0, V > 0 elsewhere)
+    pi(z) = u* + sat( varphi(z) - varphi(0) )                         (pi(0) = u*)
+
+``phi`` and ``varphi`` are tanh MLPs whose first layer sees ``z / s``, with ``s`` the half-widths of
+the state box, so every coordinate enters on the same scale; the quadratic term uses the same
+scaled coordinates (the paper writes ``alpha_hat ||x||^2``; scaling keeps V meaningful when the
+coordinates have very different units, as in the mountain car). ``sat`` is the paper's clamp to the input
+box U with a *straight-through* gradient: the forward value is exactly ``clamp(., u_min, u_max)``,
+the backward pass treats it as the identity, so a saturated controller still receives gradient
+(a smooth tanh saturation was measured to freeze saturated controllers at initialisation). The
+verifier bounds the real clamp. The input gradient of V is written out (one manual backward pass
+through phi) so that training differentiates it once more with a single ordinary backward.
+"""
+
+from __future__ import annotations
+
+from collections.abc import Sequence
+
+import torch
+from torch import Tensor, nn
+
+
+class TanhMLP(nn.Module):
+    """A fully connected network with tanh hidden activations and a linear output layer."""
+
+    def __init__(self, sizes: Sequence[int], input_scale: Sequence[float] | None = None) -> None:
+        super().__init__()
+        if len(sizes) < 2 or any(int(s) < 1 for s in sizes):
+            raise ValueError(f"layer sizes must be >= 2 positive integers, got {list(sizes)}")
+        self.sizes = [int(s) for s in sizes]
+        self.layers = nn.ModuleList(nn.Linear(a, b) for a, b in zip(self.sizes[:-1], self.sizes[1:]))
+        scale = torch.ones(self.sizes[0]) if input_scale is None else torch.as_tensor(input_scale, dtype=torch.float32)
+        self.register_buffer("input_scale", scale)  # inputs are divided by this before the first layer
+
+    def forward(self, z: Tensor) -> Tensor:
+        """``z (B, in) -> (B, out)``."""
+        h = z / self.input_scale
+        for layer in self.layers[:-1]:
+            h = torch.tanh(layer(h))
+        return self.layers[-1](h)
+
+    def forward_with_hidden(self, z: Tensor) -> tuple[Tensor, list[Tensor]]:
+        """Output and the list of hidden activations (needed for the manual input gradient)."""
+        hidden = []
+        h = z / self.input_scale
+        for layer in self.layers[:-1]:
+            h = torch.tanh(layer(h))
+            hidden.append(h)
+        return self.layers[-1](h), hidden
+
+    def vjp(self, hidden: list[Tensor], v: Tensor) -> Tensor:
+        """``J(z)^T v`` for a cotangent ``v (B, out)``, given the hidden activations at ``z``."""
+        g = v @ self.layers[-1].weight
+        for layer, h in zip(reversed(self.layers[:-1]), reversed(hidden)):
+            g = (g * (1 - h * h)) @ layer.weight
+        return g / self.input_scale
+
+
+class Lyapunov(nn.Module):
+    """``V(z) = ||phi(z) - phi(0)||^2 + alpha_hat ||z / s||^2``, with ``phi: R^n -> R^p`` a tanh MLP."""
+
+    def __init__(self, n: int, hidden: Sequence[int] = (32, 32), out: int = 8, alpha_hat: float = 1.0,
+                 input_scale: Sequence[float] | None = None) -> None:
+        super().__init__()
+        if alpha_hat <= 0:
+            raise ValueError(f"alpha_hat must be > 0 so that V is positive definite, got {alpha_hat}")
+        self.phi = TanhMLP([n, *hidden, out], input_scale)
+        self.alpha_hat = float(alpha_hat)
+
+    def _anchor(self, z: Tensor) -> Tensor:
+        return self.phi(torch.zeros(1, z.shape[1], dtype=z.dtype, device=z.device))
+
+    def forward(self, z: Tensor) -> Tensor:
+        """``z (B, n) -> V (B,)``."""
+        d = self.phi(z) - self._anchor(z)
+        zs = z / self.phi.input_scale
+        return (d * d).sum(-1) + self.alpha_hat * (zs * zs).sum(-1)
+
+    def value_and_grad(self, z: Tensor) -> tuple[Tensor, Tensor]:
+        """``V (B,)`` and ``grad V (B, n)`` at ``z (B, n)``, differentiable in the weights."""
+        out, hidden = self.phi.forward_with_hidden(z)
+        d = out - self._anchor(z)
+        zs = z / self.phi.input_scale
+        value = (d * d).sum(-1) + self.alpha_hat * (zs * zs).sum(-1)
+        grad = self.phi.vjp(hidden, 2 * d) + 2 * self.alpha_hat * zs / self.phi.input_scale
+        return value, grad
+
+
+def saturate(v: Tensor, low: Tensor, high: Tensor) -> Tensor:
+    """``clamp(v, low, high)`` for ``v (B, m)`` with a straight-through (identity) gradient."""
+    clamped = torch.maximum(torch.minimum(v, high), low)
+    return v + (clamped - v).detach()
+
+
+class Controller(nn.Module):
+    """``pi(z) = u* + sat(varphi(z) - varphi(0))`` with outputs inside the input box U."""
+
+    def __init__(self, n: int, input_box: tuple[Sequence[float], Sequence[float]], u_star: Sequence[float],
+                 hidden: Sequence[int] = (32, 32), init_gain: float = 10.0,
+                 input_scale: Sequence[float] | None = None) -> None:
+        super().__init__()
+        m = len(u_star)
+        self.varphi = TanhMLP([n, *hidden, m], input_scale)
+        with torch.no_grad():
+            self.varphi.layers[-1].weight.mul_(init_gain)
+        lo, hi = (torch.as_tensor(b, dtype=torch.float32) for b in input_box)
+        us = torch.as_tensor(u_star, dtype=torch.float32)
+        self.register_buffer("u_star", us)
+        self.register_buffer("room_low", lo - us)
+        self.register_buffer("room_high", hi - us)
+
+    def raw(self, z: Tensor) -> Tensor:
+        """The unsaturated offset ``varphi(z) - varphi(0)``, ``(B, m)``."""
+        anchor = self.varphi(torch.zeros(1, z.shape[1], dtype=z.dtype, device=z.device))
+        return self.varphi(z) - anchor
+
+    def forward(self, z: Tensor) -> Tensor:
+        """``z (B, n) -> u (B, m)``."""
+        return self.u_star + saturate(self.raw(z), self.room_low, self.room_high)

@@ -1,0 +1,96 @@
+"""Figures: phase portraits of closed-loop trajectories and certificate / input time series.
+
+All functions take already simulated data and write one PNG; they never simulate or train.
+"""
+
+from __future__ import annotations
+
+from collections.abc import Mapping, Sequence
+from pathlib import Path
+
+import matplotlib
+
+matplotlib.use("Agg")
+import matplotlib.pyplot as plt  # noqa: E402
+import torch  # noqa: E402
+from torch import Tensor  # noqa: E402
+
+from drlyap.simulation import Trajectories  # noqa: E402
+from drlyap.systems import UncertainSystem  # noqa: E402
+
+
+def _display_states(system: UncertainSystem, x: Tensor) -> Tensor:
+    """States ``(T, B, n)`` with angles wrapped into the box; NaN breaks lines at wrap jumps."""
+    shape = x.shape
+    shown = system.to_user(system.to_local(x.reshape(-1, system.n))).reshape(shape).clone()
+    if system.angle_dims and shape[0] > 1:
+        idx = list(system.angle_dims)
+        jump = (shown[1:, :, idx] - shown[:-1, :, idx]).abs().amax(-1) > 3.0
+        shown[1:][jump] = float("nan")
+    return shown
+
+
+def phase_portraits(system: UncertainSystem, panels: Mapping[str, Trajectories], success: Mapping[str, Sequence[bool]],
+                    path: Path, title: str = "", levels: Mapping[str, tuple[Tensor, Tensor, Tensor]] | None = None) -> Path:
+    """One phase-plane panel per controller (first two state coordinates): trajectories, starts
+    (green dots), ends (red crosses), x* (black star); optional V contours ``(X, Y, V)`` per panel."""
+    fig, axes = plt.subplots(1, len(panels), figsize=(5.2 * len(panels), 4.4), squeeze=False)
+    lo, hi = system.state_box
+    for ax, (label, traj) in zip(axes[0], panels.items()):
+        if levels and label in levels:
+            gx, gy, gv = levels[label]
+            ax.contour(gx, gy, gv, levels=12, colors="0.8", linewidths=0.6)
+        x = _display_states(system, traj.x)
+        ok = list(success[label])
+        for b in range(x.shape[1]):
+            ax.plot(x[:, b, 0], x[:, b, 1], lw=0.9, color="tab:blue" if ok[b] else "tab:orange")
+        ax.plot(traj.x[0, :, 0], traj.x[0, :, 1], "o", color="tab:green", ms=5, label="start")
+        ax.plot(x[-1, :, 0], x[-1, :, 1], "x", color="tab:red", ms=7, label="end")
+        ax.plot(*system.equilibrium[:2], "*", color="black", ms=11, label="x*")
+        ax.set_xlim(lo[0], hi[0])
+        ax.set_ylim(lo[1], hi[1])
+        ax.set_xlabel(system.state_names[0])
+        ax.set_ylabel(system.state_names[1])
+        ax.set_title(f"{label}: {sum(ok)}/{len(ok)} stabilised")
+        ax.legend(loc="upper right", fontsize=8)
+    if title:
+        fig.suptitle(title)
+    fig.tight_layout()
+    fig.savefig(path, dpi=110)
+    plt.close(fig)
+    return path
+
+
+def time_series(series: Mapping[str, tuple[Tensor, Tensor, Tensor]], path: Path, title: str = "",
+                value_label: str = "V(x(t))", input_label: str = "u(t)") -> Path:
+    """Two panels: certificate (or value) along the trajectory and the input, per controller.
+
+    ``series[label] = (t (T,), value (T,), u (T,))``.
+    """
+    fig, (a, b) = plt.subplots(1, 2, figsize=(11, 4))
+    for label, (t, value, u) in series.items():
+        a.plot(t, value, label=label)
+        b.plot(t, u, label=label)
+    a.set_xlabel("t")
+    a.set_ylabel(value_label)
+    a.set_yscale("symlog", linthresh=1e-3)
+    b.set_xlabel("t")
+    b.set_ylabel(input_label)
+    a.legend()
+    b.legend()
+    if title:
+        fig.suptitle(title)
+    fig.tight_layout()
+    fig.savefig(path, dpi=110)
+    plt.close(fig)
+    return path
+
+
+def lyapunov_grid(system: UncertainSystem, lyapunov, per_axis: int = 120) -> tuple[Tensor, Tensor, Tensor]:
+    """``(X, Y, V)`` on a grid of the first two coordinates (others at x*), for contour plots."""
+    lo, hi = system.state_box
+    gx, gy = torch.meshgrid(torch.linspace(lo[0], hi[0], per_axis, dtype=torch.float64),
+                            torch.linspace(lo[1], hi[1], per_axis, dtype=torch.float64), indexing="xy")
+    x = torch.tensor(system.equilibrium, dtype=torch.float64).repeat(gx.numel(), 1)
+    x[:, 0], x[:, 1] = gx.reshape(-1), gy.reshape(-1)
+    return gx, gy, lyapunov(x).reshape(gx.shape)

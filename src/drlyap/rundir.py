@@ -1,0 +1,179 @@
+"""Run directories: the unit every command reads and writes.
+
+Layout (all written into a temporary sibling and renamed into place at the end, so an interrupted
+or failed run never leaves a directory that looks complete)::
+
+    RUN_DIR/
+      run.json        kind, drlyap version, system description (marks the directory complete)
+      config.json     the exact TrainConfig the run used
+      weights.pt      state dicts of the certificate and the controller
+      metrics.json    acceptance check, training summary, xi samples, later evaluations
+      history.csv     iteration, loss, seconds
+      figures/        PNG figures written by commands that plot
+"""
+
+from __future__ import annotations
+
+import csv
+import json
+import os
+import shutil
+import tempfile
+from collections.abc import Callable
+from dataclasses import dataclass
+from pathlib import Path
+
+import torch
+from torch import Tensor
+
+from drlyap.networks import Controller, Lyapunov
+from drlyap.systems import UncertainSystem, get_system
+from drlyap.training import TrainConfig, TrainResult, build_networks
+
+FORMAT_VERSION = 1
+
+
+class RunDirError(ValueError):
+    """A run directory is missing, incomplete, or does not fit the request."""
+
+
+def _write_json(path: Path, data: dict) -> None:
+    path.write_text(json.dumps(data, indent=2, sort_keys=False) + "\n")
+
+
+def atomic_dir(out: Path, fill: Callable[[Path], None], overwrite: bool = False) -> Path:
+    """Create ``out`` by filling a temporary sibling and renaming it into place.
+
+    ``fill(tmp)`` writes the contents. If it raises (or the process is interrupted) the temporary
+    directory is removed and ``out`` is untouched.
+    """
+    out = Path(out)
+    if out.exists() and not overwrite:
+        raise RunDirError(f"{out} already exists; choose another --out or remove it")
+    out.parent.mkdir(parents=True, exist_ok=True)
+    tmp = Path(tempfile.mkdtemp(prefix=f".{out.name}.tmp-", dir=out.parent))
+    try:
+        fill(tmp)
+        if out.exists():
+            shutil.rmtree(out)
+        os.replace(tmp, out)
+    except BaseException:
+        shutil.rmtree(tmp, ignore_errors=True)
+        raise
+    return out
+
+
+def save_run(out: Path, result: TrainResult, overwrite: bool = False,
+             extra: Callable[[Path], None] | None = None) -> Path:
+    """Write a trained pair as a run directory at ``out`` (atomically); ``extra(tmp)`` may add files."""
+
+    def fill(tmp: Path) -> None:
+        _write_json(tmp / "config.json", result.config.to_dict())
+        torch.save({"lyapunov": result.lyapunov.state_dict(), "controller": result.controller.state_dict()},
+                   tmp / "weights.pt")
+        _write_json(tmp / "metrics.json", result.metrics)
+        with open(tmp / "history.csv", "w", newline="") as fh:
+            writer = csv.DictWriter(fh, fieldnames=["iteration", "loss", "time_s"])
+            writer.writeheader()
+            writer.writerows(result.history)
+        (tmp / "figures").mkdir()
+        if extra is not None:
+            extra(tmp)
+        _write_json(tmp / "run.json", {"kind": "lyapunov", "format": FORMAT_VERSION,
+                                       "system": result.system.describe()})
+
+    return atomic_dir(out, fill, overwrite)
+
+
+@dataclass
+class Run:
+    """A loaded run: the system, the networks and the record. Callables take user coordinates.
+
+    ``run.controller(x)`` maps states ``x (B, n)`` (user coordinates, angles in any branch) to inputs
+    ``(B, m)``; ``run.lyapunov(x)`` to certificate values ``(B,)``. Both accept any float tensor and
+    return float64.
+    """
+
+    path: Path
+    system: UncertainSystem
+    config: TrainConfig
+    metrics: dict
+    lyapunov_net: Lyapunov
+    controller_net: Controller
+
+    @property
+    def xi_samples(self) -> Tensor:
+        """The training samples of xi, ``(N, k)``."""
+        return torch.as_tensor(self.metrics["xi_samples"], dtype=torch.float64)
+
+    @property
+    def xi_train(self) -> Tensor:
+        """The samples the condition used: all of them for DR, their mean for the baseline."""
+        return torch.as_tensor(self.metrics["xi_train"], dtype=torch.float64)
+
+    def _check(self, x: Tensor) -> Tensor:
+        x = torch.as_tensor(x)
+        if x.ndim != 2 or x.shape[1] != self.system.n:
+            raise ValueError(f"{self.system.name} states must have shape (B, {self.system.n}), got {tuple(x.shape)}")
+        return x.to(torch.float64)
+
+    @torch.no_grad()
+    def controller(self, x: Tensor) -> Tensor:
+        z = self.system.to_local(self._check(x))
+        return self.controller_net(z.float()).double()
+
+    @torch.no_grad()
+    def lyapunov(self, x: Tensor) -> Tensor:
+        z = self.system.to_local(self._check(x))
+        return self.lyapunov_net(z.float()).double()
+
+    def save_metrics(self) -> None:
+        """Rewrite ``metrics.json`` (atomically, via a temporary file)."""
+        tmp = self.path / ".metrics.json.tmp"
+        _write_json(tmp, self.metrics)
+        os.replace(tmp, self.path / "metrics.json")
+
+
+def read_run_kind(path: Path) -> dict:
+    """The ``run.json`` of a complete run directory, or a clear error."""
+    path = Path(path)
+    if not path.is_dir():
+        raise RunDirError(f"run directory {path} does not exist")
+    marker = path / "run.json"
+    if not marker.is_file():
+        raise RunDirError(f"{path} is not a complete drlyap run directory (no run.json)")
+    try:
+        return json.loads(marker.read_text())
+    except json.JSONDecodeError as err:
+        raise RunDirError(f"{marker} is not valid JSON: {err}") from err
+
+
+def load_run(path: str | os.PathLike, system: UncertainSystem | None = None) -> Run:
+    """Load a Lyapunov run directory.
+
+    ``system`` is needed for a user-defined system that is not registered by name; its name must
+    match the one the run was trained on.
+    """
+    path = Path(path)
+    info = read_run_kind(path)
+    if info.get("kind") != "lyapunov":
+        raise RunDirError(f"{path} holds a {info.get('kind')!r} run, not a Lyapunov controller/certificate pair")
+    try:
+        config = TrainConfig.from_dict(json.loads((path / "config.json").read_text()))
+        metrics = json.loads((path / "metrics.json").read_text())
+        weights = torch.load(path / "weights.pt", map_location="cpu", weights_only=True)
+    except (OSError, json.JSONDecodeError, RuntimeError) as err:
+        raise RunDirError(f"cannot read run directory {path}: {err}") from err
+    if system is None:
+        system = get_system(config.system)
+    elif system.name != config.system:
+        raise RunDirError(f"{path} was trained on system {config.system!r}, not {system.name!r}")
+    if info["system"]["n"] != system.n or info["system"]["m"] != system.m:
+        raise RunDirError(f"{path} has dimensions n={info['system']['n']}, m={info['system']['m']}; "
+                          f"system {system.name} has n={system.n}, m={system.m}")
+    lyapunov, controller = build_networks(system, config)
+    lyapunov.load_state_dict(weights["lyapunov"])
+    controller.load_state_dict(weights["controller"])
+    lyapunov.eval()
+    controller.eval()
+    return Run(path, system, config, metrics, lyapunov, controller)

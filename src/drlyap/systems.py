@@ -1,0 +1,333 @@
+"""Uncertain control-affine systems, declared once by their true parametric dynamics.
+
+A system is written as ``xdot = F(x, u, p)`` with physical parameters ``p``. Some of them are
+uncertain: the uncertainty ``xi`` is the deviation of those parameters from their nominal values,
+so the *true model* at a shift ``xi`` is ``F(x, u, p0 + E xi)`` (``E`` picks the uncertain
+entries). The *design model* of the paper is the first-order expansion at ``p0``::
+
+    xdot = f(x, u) + W(x, u) xi,   f = F(., ., p0),   W = dF/dp_uncertain at p0,
+
+derived here by autodiff, so the dynamics are written once. A user may also hand ``W`` in.
+
+Coordinates: users see states in their own coordinates ``x``. Networks, losses and the verifier
+work in *local* coordinates ``z = x - x*`` with angle coordinates wrapped into ``[-pi, pi)``.
+"""
+
+from __future__ import annotations
+
+import math
+from collections.abc import Callable, Sequence
+from dataclasses import dataclass, field
+
+import torch
+from torch import Tensor
+
+Dynamics = Callable[[Tensor, Tensor, Tensor], Tensor]
+"""``F(x (B, n), u (B, m), p (B, P)) -> xdot (B, n)``, batched, written with torch ops."""
+
+Perturbation = Callable[[Tensor, Tensor], Tensor]
+"""``W(x (B, n), u (B, m)) -> (B, n, k)``: a hand-given design-model perturbation matrix."""
+
+XiSampler = Callable[[int, torch.Generator], Tensor]
+"""``sample(N, generator) -> (N, k)``: draws training samples of the uncertainty."""
+
+
+def _as_pair(box: Sequence[Sequence[float]], what: str, dim: int | None = None) -> tuple[tuple[float, ...], tuple[float, ...]]:
+    try:
+        low, high = (tuple(float(v) for v in side) for side in box)
+    except (TypeError, ValueError) as err:
+        raise ValueError(f"{what} must be a pair (low, high) of number sequences, got {box!r}") from err
+    if len(low) != len(high) or (dim is not None and len(low) != dim):
+        raise ValueError(f"{what} needs low and high of length {dim or len(low)}, got {len(low)} and {len(high)}")
+    for i, (lo, hi) in enumerate(zip(low, high)):
+        if not (math.isfinite(lo) and math.isfinite(hi)):
+            raise ValueError(f"{what} has a non-finite bound in coordinate {i}: [{lo}, {hi}]")
+        if not lo < hi:
+            raise ValueError(f"{what} is empty or inverted in coordinate {i}: low {lo} must be < high {hi}")
+    return low, high
+
+
+@dataclass(frozen=True)
+class UncertainSystem:
+    """An uncertain control-affine system ``xdot = F(x, u, p)``.
+
+    Attributes:
+        name: registry name (``pendulum``).
+        state_names, input_names: one label per coordinate (used in plots and errors).
+        param_names, nominal_params: all physical parameters ``p0`` in the order ``dynamics`` unpacks.
+        uncertain: names of the uncertain parameters; ``xi`` is ordered the same way.
+        dynamics: the true model ``F`` (see :data:`Dynamics`).
+        state_box: ``(low, high)`` of the region X in user coordinates.
+        input_box: ``(low, high)`` of the input set U.
+        equilibrium: ``x*`` in user coordinates; ``equilibrium_input`` is ``u*`` (``F(x*, u*, p) = 0``).
+        angle_dims: indices of angle coordinates (wrapped into ``[x*_i - pi, x*_i + pi)``).
+        test_box: region the paper draws evaluation initial states from (defaults to ``state_box``).
+        perturbation: optional hand-given ``W``; by default ``W`` is derived by autodiff.
+        xi_sampler: the training distribution of ``xi`` used by ``reproduce``.
+        test_xi: the paper's out-of-distribution test shift.
+        defaults: training defaults for this system (overrides of :class:`drlyap.training.TrainConfig`).
+        sim_dt, horizon: integration step and simulated time (system time units) for evaluation.
+        success_tol: a trajectory succeeds when, over the last ``settle_fraction`` of the horizon, every
+            coordinate of ``x - x*`` (angles wrapped) stays within ``success_tol`` times the box half-width.
+    """
+
+    name: str
+    state_names: tuple[str, ...]
+    input_names: tuple[str, ...]
+    param_names: tuple[str, ...]
+    nominal_params: tuple[float, ...]
+    uncertain: tuple[str, ...]
+    dynamics: Dynamics
+    state_box: tuple[tuple[float, ...], tuple[float, ...]]
+    input_box: tuple[tuple[float, ...], tuple[float, ...]]
+    equilibrium: tuple[float, ...]
+    equilibrium_input: tuple[float, ...] | None = None
+    angle_dims: tuple[int, ...] = ()
+    test_box: tuple[tuple[float, ...], tuple[float, ...]] | None = None
+    perturbation: Perturbation | None = None
+    xi_sampler: XiSampler | None = None
+    test_xi: tuple[float, ...] | None = None
+    defaults: dict = field(default_factory=dict)
+    sim_dt: float = 0.01
+    horizon: float = 20.0
+    success_tol: float = 0.02
+    settle_fraction: float = 0.1
+    description: str = ""
+
+    def __post_init__(self) -> None:
+        n, m = len(self.state_names), len(self.input_names)
+        set_ = object.__setattr__
+        set_(self, "state_box", _as_pair(self.state_box, f"{self.name}: state_box", n))
+        set_(self, "input_box", _as_pair(self.input_box, f"{self.name}: input_box", m))
+        set_(self, "test_box", _as_pair(self.test_box or self.state_box, f"{self.name}: test_box", n))
+        if len(self.nominal_params) != len(self.param_names):
+            raise ValueError(f"{self.name}: {len(self.param_names)} parameter names but "
+                             f"{len(self.nominal_params)} nominal values")
+        unknown = [u for u in self.uncertain if u not in self.param_names]
+        if unknown or not self.uncertain:
+            raise ValueError(f"{self.name}: uncertain parameters {unknown or '()'} must be a non-empty "
+                             f"subset of {self.param_names}")
+        if len(self.equilibrium) != n:
+            raise ValueError(f"{self.name}: equilibrium has {len(self.equilibrium)} entries, state has {n}")
+        u_star = self.equilibrium_input if self.equilibrium_input is not None else (0.0,) * m
+        if len(u_star) != m:
+            raise ValueError(f"{self.name}: equilibrium_input has {len(u_star)} entries, input has {m}")
+        set_(self, "equilibrium_input", tuple(float(v) for v in u_star))
+        lo, hi = self.input_box
+        if not all(a < b < c for a, b, c in zip(lo, u_star, hi)):
+            raise ValueError(f"{self.name}: equilibrium input {u_star} must lie strictly inside U = [{lo}, {hi}]")
+        slo, shi = self.state_box
+        if not all(a < b < c for a, b, c in zip(slo, self.equilibrium, shi)):
+            raise ValueError(f"{self.name}: equilibrium {self.equilibrium} must lie strictly inside X")
+        if any(not 0 <= d < n for d in self.angle_dims):
+            raise ValueError(f"{self.name}: angle_dims {self.angle_dims} must index state coordinates 0..{n - 1}")
+        if self.test_xi is not None and len(self.test_xi) != self.k:
+            raise ValueError(f"{self.name}: test_xi needs {self.k} values ({', '.join(self.uncertain)})")
+        residual = self.true_dynamics(
+            torch.tensor([self.equilibrium], dtype=torch.float64),
+            torch.tensor([u_star], dtype=torch.float64),
+        )
+        if residual.abs().max() > 1e-9:
+            raise ValueError(f"{self.name}: F(x*, u*, p0) = {residual.tolist()[0]} is not zero; "
+                             "the equilibrium must be an equilibrium of the nominal system")
+
+    # ----------------------------------------------------------------- dimensions
+    @property
+    def n(self) -> int:
+        """State dimension."""
+        return len(self.state_names)
+
+    @property
+    def m(self) -> int:
+        """Input dimension."""
+        return len(self.input_names)
+
+    @property
+    def k(self) -> int:
+        """Number of uncertain parameters (length of ``xi``)."""
+        return len(self.uncertain)
+
+    def _tensor(self, values: Sequence[float], like: Tensor) -> Tensor:
+        return torch.as_tensor(values, dtype=like.dtype, device=like.device)
+
+    @property
+    def uncertain_index(self) -> list[int]:
+        return [self.param_names.index(u) for u in self.uncertain]
+
+    # ----------------------------------------------------------------- coordinates
+    def local_box(self) -> tuple[Tensor, Tensor]:
+        """The region X in local coordinates, ``(low (n,), high (n,))`` in float64."""
+        lo, hi = (torch.tensor(b, dtype=torch.float64) for b in self.state_box)
+        x_star = torch.tensor(self.equilibrium, dtype=torch.float64)
+        return lo - x_star, hi - x_star
+
+    def to_local(self, x: Tensor) -> Tensor:
+        """User coordinates ``x (B, n)`` to local ``z = x - x*`` with angles wrapped into [-pi, pi)."""
+        z = x - self._tensor(self.equilibrium, x)
+        if self.angle_dims:
+            idx = list(self.angle_dims)
+            z = z.clone()
+            z[:, idx] = torch.remainder(z[:, idx] + math.pi, 2 * math.pi) - math.pi
+        return z
+
+    def to_user(self, z: Tensor) -> Tensor:
+        """Local ``z (B, n)`` back to user coordinates."""
+        return z + self._tensor(self.equilibrium, z)
+
+    # ----------------------------------------------------------------- parameters
+    def params(self, xi: Tensor | None, like: Tensor) -> Tensor:
+        """Physical parameters ``p0 + E xi`` as ``(B, P)``; ``xi`` is ``(k,)`` or ``(B, k)``."""
+        p = self._tensor(self.nominal_params, like).expand(like.shape[0], -1).clone()
+        if xi is not None:
+            xi = torch.as_tensor(xi, dtype=like.dtype, device=like.device)
+            p[:, self.uncertain_index] = p[:, self.uncertain_index] + xi
+        return p
+
+    def check_xi(self, xi: Sequence[float] | Tensor) -> Tensor:
+        """Validate a parameter shift and return it as a float64 ``(k,)`` tensor."""
+        t = torch.as_tensor(xi, dtype=torch.float64).reshape(-1)
+        if t.numel() != self.k:
+            raise ValueError(f"{self.name} takes {self.k} xi value(s) ({', '.join(self.uncertain)}), got {t.numel()}")
+        if not torch.isfinite(t).all():
+            raise ValueError(f"xi must be finite, got {t.tolist()}")
+        return t
+
+    # ----------------------------------------------------------------- models
+    def true_dynamics(self, x: Tensor, u: Tensor, xi: Tensor | None = None) -> Tensor:
+        """True model ``F(x, u, p0 + E xi)``: ``x (B, n)``, ``u (B, m)``, ``xi`` ``(k,)`` or ``(B, k)`` -> ``(B, n)``."""
+        return self.dynamics(x, u, self.params(xi, x))
+
+    def design_model(self, x: Tensor, u: Tensor) -> tuple[Tensor, Tensor]:
+        """Design model terms ``f (B, n)`` and ``W (B, n, k)`` at ``x (B, n)``, ``u (B, m)``.
+
+        Differentiable with respect to ``x`` and ``u`` (for training through the controller).
+        """
+        if self.perturbation is not None:
+            return self.true_dynamics(x, u), self.perturbation(x, u)
+        graph = torch.is_grad_enabled()
+        p = self.params(None, x).requires_grad_(True)
+        with torch.enable_grad():
+            f = self.dynamics(x, u, p)
+            rows = [torch.autograd.grad(f[:, i].sum(), p, create_graph=graph, retain_graph=True,
+                                        allow_unused=True)[0] for i in range(self.n)]
+        rows = [torch.zeros_like(p) if r is None else r for r in rows]
+        if not graph:
+            f = f.detach()
+        w = torch.stack(rows, dim=1)[:, :, self.uncertain_index]
+        return f, w
+
+    def weighted_design(self, x: Tensor, u: Tensor, grad_v: Tensor) -> tuple[Tensor, Tensor]:
+        """``(grad_v . f (B,), W^T grad_v (B, k))`` for a covector ``grad_v (B, n)``.
+
+        One vector-Jacobian product instead of the full ``W``: this is the hot path of training.
+        Differentiable (second order) in ``x``, ``u`` and ``grad_v``.
+        """
+        if self.perturbation is not None:
+            f, w = self.true_dynamics(x, u), self.perturbation(x, u)
+            return (grad_v * f).sum(-1), torch.einsum("bn,bnk->bk", grad_v, w)
+        graph = torch.is_grad_enabled()
+        p = self.params(None, x).requires_grad_(True)
+        with torch.enable_grad():
+            s = (grad_v * self.dynamics(x, u, p)).sum(-1)
+            (gp,) = torch.autograd.grad(s.sum(), p, create_graph=graph)
+        if not graph:
+            s = s.detach()
+        return s, gp[:, self.uncertain_index]
+
+    def sample_xi(self, count: int, generator: torch.Generator) -> Tensor:
+        """``count`` training samples ``(count, k)`` from the system's declared distribution."""
+        if self.xi_sampler is None:
+            raise ValueError(f"{self.name} declares no xi distribution; pass xi samples explicitly")
+        return self.xi_sampler(count, generator).to(torch.float64).reshape(count, self.k)
+
+    def describe(self) -> dict:
+        """A JSON-friendly summary (used by ``drlyap systems`` and saved in run directories)."""
+        return {
+            "name": self.name, "n": self.n, "m": self.m, "k": self.k,
+            "states": list(self.state_names), "inputs": list(self.input_names),
+            "parameters": dict(zip(self.param_names, self.nominal_params)),
+            "uncertain": list(self.uncertain), "state_box": [list(b) for b in self.state_box],
+            "input_box": [list(b) for b in self.input_box], "equilibrium": list(self.equilibrium),
+            "angle_dims": list(self.angle_dims), "test_box": [list(b) for b in self.test_box],
+            "test_xi": list(self.test_xi) if self.test_xi is not None else None,
+            "description": self.description,
+        }
+
+
+# --------------------------------------------------------------------------- built-ins
+def _pendulum(x: Tensor, u: Tensor, p: Tensor) -> Tensor:
+    theta, omega = x.unbind(-1)
+    m, l, b, g = p.unbind(-1)
+    return torch.stack([omega, (m * g * l * torch.sin(theta) - b * omega + u[:, 0]) / (m * l * l)], dim=-1)
+
+
+def _pendulum_xi(count: int, gen: torch.Generator) -> Tensor:
+    mass = torch.rand(count, generator=gen, dtype=torch.float64) * 0.12 - 0.04  # U(-0.04, 0.08)
+    damping = torch.randn(count, generator=gen, dtype=torch.float64) * 0.02  # N(0, 0.02)
+    return torch.stack([mass, damping], dim=-1)
+
+
+def _mountain_car(x: Tensor, u: Tensor, p: Tensor) -> Tensor:
+    pos, vel = x.unbind(-1)
+    power, slope = p.unbind(-1)
+    return torch.stack([vel, -slope * torch.cos(3 * pos) + power * u[:, 0]], dim=-1)
+
+
+def _mountain_car_xi(count: int, gen: torch.Generator) -> Tensor:
+    return (torch.randn(count, generator=gen, dtype=torch.float64) * 0.0002).reshape(count, 1)  # N(0, 0.0002)
+
+
+def pendulum(u_max: float = 15.0) -> UncertainSystem:
+    """The paper's inverted pendulum (theta = 0 upright), uncertain mass and damping, ``|u| <= u_max``."""
+    return UncertainSystem(
+        name="pendulum" if u_max == 15.0 else f"pendulum-u{u_max:g}",
+        state_names=("theta", "theta_dot"), input_names=("torque",),
+        param_names=("mass", "length", "damping", "gravity"), nominal_params=(1.0, 1.0, 0.13, 9.81),
+        uncertain=("mass", "damping"), dynamics=_pendulum,
+        state_box=((-math.pi, -8.0), (math.pi, 8.0)), input_box=((-u_max,), (u_max,)),
+        equilibrium=(0.0, 0.0), angle_dims=(0,), test_box=((-math.pi, -6.0), (math.pi, 6.0)),
+        xi_sampler=_pendulum_xi, test_xi=(0.1, 0.05),
+        defaults={"n_states": 3600, "wasserstein_radius": 0.01, "risk_level": 0.1, "n_xi": 5,
+                  "decay_rate": 1.0, "alpha_hat": 1.0, "delta": 0.5, "margin": 0.1},
+        sim_dt=0.01, horizon=20.0,
+        description="Inverted pendulum (paper Sec. VII-A): m=1, l=1, b=0.13, g=9.81; xi = (mass, damping) shift.",
+    )
+
+
+def mountain_car() -> UncertainSystem:
+    """The paper's continuous mountain car, equilibrium at the hill top (pi/6, 0), uncertain power."""
+    return UncertainSystem(
+        name="mountain-car", state_names=("position", "velocity"), input_names=("force",),
+        param_names=("power", "slope"), nominal_params=(0.0015, 0.0025), uncertain=("power",),
+        dynamics=_mountain_car, state_box=((-2.0, -0.4), (2.0, 0.4)), input_box=((-2.0,), (2.0,)),
+        equilibrium=(math.pi / 6, 0.0), test_box=((-1.0, -0.1), (1.0, 0.1)),
+        xi_sampler=_mountain_car_xi, test_xi=(-0.0003,),
+        defaults={"n_states": 1600, "wasserstein_radius": 1e-4, "risk_level": 0.1, "n_xi": 3,
+                  "decay_rate": 0.003, "alpha_hat": 1.0, "delta": 0.1, "margin": 0.01},
+        sim_dt=0.5, horizon=1500.0,
+        description="Mountain car (paper Sec. VII-B): p=0.0015, |u|<=2, goal (pi/6, 0); xi = power shift.",
+    )
+
+
+_REGISTRY: dict[str, Callable[[], UncertainSystem]] = {
+    "pendulum": pendulum,
+    "pendulum-u9": lambda: pendulum(9.0),
+    "mountain-car": mountain_car,
+}
+
+
+def register_system(name: str, factory: Callable[[], UncertainSystem]) -> None:
+    """Make a user-defined system available by name to the CLI and :func:`get_system`."""
+    _REGISTRY[name] = factory
+
+
+def system_names() -> list[str]:
+    return sorted(_REGISTRY)
+
+
+def get_system(name: str) -> UncertainSystem:
+    """A registered system by name; the error lists the valid names."""
+    try:
+        return _REGISTRY[name]()
+    except KeyError:
+        raise ValueError(f"unknown system {name!r}; valid: {', '.join(system_names())}") from None

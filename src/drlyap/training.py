@@ -1,0 +1,264 @@
+"""Training a controller and its Lyapunov certificate (paper Sec. V, SPEC §3 and §5).
+
+One :class:`TrainConfig` describes a run. :func:`train` samples the training states uniformly in
+X minus the delta-ball, trains both networks with Adam on the chosen condition's loss (batched over
+states and xi samples), and runs the acceptance check of :mod:`drlyap.checks` every
+``check_every`` iterations. It stops as soon as the check passes or at ``iters``, and returns the
+best checkpoint (passing first, then smallest validation violation). A diverging loss (NaN/inf)
+stops training with the last good weights and says so.
+"""
+
+from __future__ import annotations
+
+import copy
+import dataclasses
+import math
+import time
+from dataclasses import dataclass, field
+
+import torch
+from torch import Tensor
+
+from drlyap.checks import acceptance_check, sample_region, validation_states
+from drlyap.conditions import Condition, decrease_terms, make_condition
+from drlyap.networks import Controller, Lyapunov
+from drlyap.systems import UncertainSystem, get_system
+
+
+@dataclass
+class TrainConfig:
+    """Everything a training run depends on (saved verbatim as ``config.json``).
+
+    ``None`` fields take the system's paper defaults (``UncertainSystem.defaults``).
+    """
+
+    system: str = "pendulum"
+    method: str = "dr"  # "baseline" (nominal condition at the sample mean) or "dr"
+    loss: str = "pointwise"  # DR loss: "pointwise" or "uniform"
+    wasserstein_radius: float | None = None  # r
+    risk_level: float | None = None  # eps
+    decay_rate: float | None = None  # gamma in Vdot + gamma ||x - x*|| <= 0
+    exp_rate: float = 0.0  # alpha of the exponential variant (adds alpha V inside the hinge)
+    n_states: int | None = None  # M training states
+    n_xi: int | None = None  # N samples of xi drawn from the system's distribution
+    xi_samples: list[list[float]] | None = None  # explicit samples (N, k); overrides n_xi
+    delta: float | None = None  # radius of the excluded ball around x* (local coordinates)
+    lr: float = 0.002
+    iters: int = 3000  # iteration cap
+    check_every: int = 250  # acceptance check period (iterations)
+    seed: int = 0
+    device: str = "cpu"
+    lyapunov_hidden: list[int] = field(default_factory=lambda: [32, 32])
+    lyapunov_out: int = 8
+    alpha_hat: float | None = None
+    controller_hidden: list[int] = field(default_factory=lambda: [32, 32])
+    init_gain: float = 10.0  # scale of the controller's output layer at initialisation
+    margin: float | None = None  # training hinge is (residual + margin)_+: pushes the condition past zero
+    resample: bool = True  # draw a fresh uniform batch of n_states every iteration (False: one fixed set)
+
+    def resolved(self, system: UncertainSystem) -> TrainConfig:
+        """A copy with ``None`` fields filled from the system's defaults, validated."""
+        cfg = copy.deepcopy(self)
+        base = {"wasserstein_radius": 0.01, "risk_level": 0.1, "n_states": 3600, "n_xi": 5, "decay_rate": 1.0,
+                "delta": 0.1, "alpha_hat": 1.0, "margin": 0.0}
+        base.update(system.defaults)
+        for key, value in base.items():
+            if getattr(cfg, key) is None:
+                setattr(cfg, key, value)
+        cfg.validate(system)
+        return cfg
+
+    def validate(self, system: UncertainSystem) -> None:
+        problems = []
+        if self.method not in ("baseline", "dr"):
+            problems.append(f"method {self.method!r} (valid: baseline, dr)")
+        if self.loss not in ("pointwise", "uniform"):
+            problems.append(f"loss {self.loss!r} (valid: pointwise, uniform)")
+        for name in ("wasserstein_radius", "decay_rate", "exp_rate", "margin", "alpha_hat"):
+            value = getattr(self, name)
+            if not (math.isfinite(value) and value >= 0):
+                problems.append(f"{name} = {value} (must be finite and >= 0)")
+        if not 0 < self.risk_level < 1:
+            problems.append(f"risk_level = {self.risk_level} (must be in (0, 1))")
+        for name in ("n_states", "n_xi", "iters", "check_every"):
+            if int(getattr(self, name)) < 1:
+                problems.append(f"{name} = {getattr(self, name)} (must be >= 1)")
+        if not (math.isfinite(self.lr) and self.lr > 0):
+            problems.append(f"lr = {self.lr} (must be > 0)")
+        if not (math.isfinite(self.delta) and self.delta >= 0):
+            problems.append(f"delta = {self.delta} (must be >= 0)")
+        if self.xi_samples is not None:
+            xi = torch.as_tensor(self.xi_samples, dtype=torch.float64)
+            if xi.ndim != 2 or xi.shape[1] != system.k or xi.shape[0] < 1:
+                problems.append(f"xi_samples must be (N, {system.k}) for {system.name}, got shape {tuple(xi.shape)}")
+            elif not torch.isfinite(xi).all():
+                problems.append("xi_samples contain NaN or inf")
+        if problems:
+            raise ValueError("invalid training config: " + "; ".join(problems))
+
+    def to_dict(self) -> dict:
+        return dataclasses.asdict(self)
+
+    @classmethod
+    def from_dict(cls, data: dict) -> TrainConfig:
+        known = {f.name for f in dataclasses.fields(cls)}
+        unknown = sorted(set(data) - known)
+        if unknown:
+            raise ValueError(f"unknown config keys {unknown}; valid: {sorted(known)}")
+        return cls(**data)
+
+
+@dataclass
+class TrainResult:
+    """What :func:`train` returns: the networks, the data, and the record of the run."""
+
+    config: TrainConfig
+    system: UncertainSystem
+    lyapunov: Lyapunov
+    controller: Controller
+    xi_samples: Tensor  # (N, k) float64
+    condition: Condition
+    history: list[dict]
+    metrics: dict
+
+
+def build_networks(system: UncertainSystem, cfg: TrainConfig) -> tuple[Lyapunov, Controller]:
+    """Fresh networks for ``cfg``; inputs are scaled by the state box's half-widths."""
+    lo, hi = system.local_box()
+    scale = ((hi - lo) / 2).tolist()
+    lyapunov = Lyapunov(system.n, cfg.lyapunov_hidden, cfg.lyapunov_out, cfg.alpha_hat, scale)
+    controller = Controller(system.n, system.input_box, system.equilibrium_input, cfg.controller_hidden,
+                            cfg.init_gain, scale)
+    return lyapunov, controller
+
+
+def resolve_device(name: str) -> torch.device:
+    """``cpu``, ``cuda`` or ``cuda:N``; a clear error when the device is not available."""
+    try:
+        device = torch.device(name)
+    except RuntimeError as err:
+        raise ValueError(f"unknown device {name!r}; valid: cpu, cuda, cuda:N") from err
+    if device.type == "cuda" and not torch.cuda.is_available():
+        raise ValueError("device 'cuda' requested but no CUDA GPU is available here; use --device cpu")
+    if device.type not in ("cpu", "cuda"):
+        raise ValueError(f"unsupported device {name!r}; valid: cpu, cuda")
+    return device
+
+
+def draw_xi_samples(system: UncertainSystem, cfg: TrainConfig) -> Tensor:
+    """The training samples of xi: explicit ones from the config, else drawn with the run's seed."""
+    if cfg.xi_samples is not None:
+        return torch.as_tensor(cfg.xi_samples, dtype=torch.float64)
+    gen = torch.Generator().manual_seed(10_000 + cfg.seed)
+    return system.sample_xi(int(cfg.n_xi), gen)
+
+
+def train(cfg: TrainConfig, system: UncertainSystem | None = None, progress: bool = True,
+          init: tuple[Lyapunov, Controller] | None = None) -> TrainResult:
+    """Train a pair for ``cfg``; ``init`` warm-starts from given networks (copied, not modified)."""
+    system = system or get_system(cfg.system)
+    cfg = cfg.resolved(system)
+    device = resolve_device(cfg.device)
+    torch.manual_seed(cfg.seed)
+    gen = torch.Generator().manual_seed(cfg.seed)
+
+    xi_all = draw_xi_samples(system, cfg)
+    xi_train = xi_all.mean(0, keepdim=True) if cfg.method == "baseline" else xi_all
+    condition = make_condition(cfg.method, cfg.loss, cfg.wasserstein_radius, cfg.risk_level)
+    lyapunov, controller = (copy.deepcopy(init[0]), copy.deepcopy(init[1])) if init else build_networks(system, cfg)
+    lyapunov.to(device)
+    controller.to(device)
+    z_train = sample_region(system, int(cfg.n_states), cfg.delta, gen).float().to(device)
+    xi_dev = xi_train.float().to(device)
+    z_val = validation_states(system, cfg.delta).float().to(device)
+
+    params = list(lyapunov.parameters()) + list(controller.parameters())
+    opt = torch.optim.Adam(params, lr=cfg.lr)
+    history: list[dict] = []
+    checks: list[dict] = []
+    best: tuple | None = None
+    last_good = (copy.deepcopy(lyapunov.state_dict()), copy.deepcopy(controller.state_dict()))
+    status = "iteration cap reached without passing the acceptance check"
+    start = time.perf_counter()
+
+    check_time = 0.0
+
+    def run_check(iteration: int) -> dict:
+        nonlocal best, check_time
+        tic = time.perf_counter()
+        check = acceptance_check(system, lyapunov, controller, condition, xi_train.to(device), cfg.decay_rate,
+                                 cfg.exp_rate, cfg.delta, validation=z_val)
+        check["iteration"] = iteration
+        checks.append({k: check[k] for k in ("iteration", "passed", "max_violation", "violating_fraction")}
+                      | {"hurwitz": check["jacobian"]["hurwitz"], "n_other_equilibria": len(check["other_equilibria"])})
+        score = (check["passed"], check["jacobian"]["hurwitz"], not check["other_equilibria"],
+                 -check["violating_fraction"], -check["max_violation"])
+        if best is None or score > best[0]:
+            best = (score, copy.deepcopy(lyapunov.state_dict()), copy.deepcopy(controller.state_dict()), check)
+        check_time += time.perf_counter() - tic
+        return check
+
+    bar = _progress(cfg.iters, progress, f"{cfg.system} {cfg.method}")
+    iteration = 0
+    try:
+        for iteration in range(1, cfg.iters + 1):
+            if cfg.resample and iteration > 1:
+                z_train = sample_region(system, int(cfg.n_states), cfg.delta, gen).float().to(device)
+            terms = decrease_terms(system, lyapunov, controller, z_train, xi_dev, cfg.decay_rate, cfg.exp_rate)
+            loss = condition.loss(terms, cfg.margin)
+            if not torch.isfinite(loss):
+                lyapunov.load_state_dict(last_good[0])
+                controller.load_state_dict(last_good[1])
+                status = f"diverged: loss became {float(loss)} at iteration {iteration}; kept the last good weights"
+                break
+            if iteration % 50 == 1:
+                last_good = (copy.deepcopy(lyapunov.state_dict()), copy.deepcopy(controller.state_dict()))
+            opt.zero_grad(set_to_none=True)
+            loss.backward()
+            opt.step()
+            if iteration % 10 == 0 or iteration == 1:
+                history.append({"iteration": iteration, "loss": float(loss.detach()), "time_s": time.perf_counter() - start})
+                bar.set_postfix(loss=f"{float(loss.detach()):.2e}")
+            bar.update(1)
+            if iteration % cfg.check_every == 0 or iteration == cfg.iters:
+                if run_check(iteration)["passed"]:
+                    status = f"passed the acceptance check at iteration {iteration}"
+                    break
+    finally:
+        bar.close()
+    if best is None or (checks and checks[-1]["iteration"] != iteration):
+        run_check(iteration)
+    _, v_state, c_state, check = best
+    lyapunov.load_state_dict(v_state)
+    controller.load_state_dict(c_state)
+    elapsed = time.perf_counter() - start
+    metrics = {
+        "status": status,
+        "passed": bool(check["passed"]),
+        "iterations": iteration,
+        "best_iteration": check["iteration"],
+        "train_time_s": elapsed,
+        "check_time_s": check_time,
+        "ms_per_iteration": 1000 * (elapsed - check_time) / max(iteration, 1),
+        "final_loss": history[-1]["loss"] if history else None,
+        "acceptance": check,
+        "checks": checks,
+        "condition": condition.describe(),
+        "xi_samples": xi_all.tolist(),
+        "xi_train": xi_train.tolist(),
+    }
+    return TrainResult(cfg, system, lyapunov.cpu(), controller.cpu(), xi_all, condition, history, metrics)
+
+
+class _NoBar:
+    def update(self, n: int = 1) -> None: ...
+    def set_postfix(self, **kw: object) -> None: ...
+    def close(self) -> None: ...
+
+
+def _progress(total: int, enabled: bool, desc: str):
+    if not enabled:
+        return _NoBar()
+    from tqdm.auto import tqdm
+
+    return tqdm(total=total, desc=desc, leave=False, dynamic_ncols=True)
