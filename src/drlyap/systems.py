@@ -303,7 +303,7 @@ def mountain_car() -> UncertainSystem:
         equilibrium=(math.pi / 6, 0.0), test_box=((-1.0, -0.1), (1.0, 0.1)),
         xi_sampler=_mountain_car_xi, test_xi=(-0.0003,),
         defaults={"n_states": 1600, "wasserstein_radius": 1e-4, "risk_level": 0.1, "n_xi": 3,
-                  "decay_rate": 0.003, "alpha_hat": 1.0, "delta": 0.1, "margin": 0.01},
+                  "decay_rate": 0.001, "alpha_hat": 1.0, "delta": 0.1, "margin": 0.003},
         sim_dt=0.5, horizon=1500.0,
         description="Mountain car (paper Sec. VII-B): p=0.0015, |u|<=2, goal (pi/6, 0); xi = power shift.",
     )

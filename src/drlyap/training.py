@@ -209,7 +209,7 @@ def train(cfg: TrainConfig, system: UncertainSystem | None = None, progress: boo
             if not torch.isfinite(loss):
                 lyapunov.load_state_dict(last_good[0])
                 controller.load_state_dict(last_good[1])
-                status = f"diverged: loss became {float(loss)} at iteration {iteration}; kept the last good weights"
+                status = f"diverged: loss became {float(loss.detach())} at iteration {iteration}; kept the last good weights"
                 break
             if iteration % 50 == 1:
                 last_good = (copy.deepcopy(lyapunov.state_dict()), copy.deepcopy(controller.state_dict()))

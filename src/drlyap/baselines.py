@@ -1,0 +1,400 @@
+"""Classical baseline (LQR) and one loader for every kind of run (Lyapunov, LQR, RL).
+
+LQR design (:func:`lqr_design`): the TRUE model ``F(x, u, p0 + E xi)`` is linearised at ``x*, u*``
+with autograd Jacobians, ``A = dF/dx``, ``B = dF/du``, at the nominal parameters (``xi = 0``) unless
+a shift is given. The continuous algebraic Riccati equation ``A^T P + P A - P B R^-1 B^T P + Q = 0``
+is solved with :func:`scipy.linalg.solve_continuous_are` and ``K = R^-1 B^T P``.
+
+Default weights (Bryson's rule on the boxes): ``Q = diag(1 / h_x^2)`` with ``h_x`` the half-widths of
+the state box, ``R = diag(1 / h_u^2)`` with ``h_u`` the half-widths of the input box. For the
+pendulum that is ``Q = diag(1/pi^2, 1/64)``, ``R = 1/225`` (``1/81`` for ``pendulum-u9``).
+
+Controller: ``u = clamp(u* - K z, U)`` with ``z = x - x*`` and angles wrapped into ``[-pi, pi)``
+(:meth:`UncertainSystem.to_local`), so the feedback is discontinuous on the circle exactly like the
+learned controllers. Certificate: the quadratic Lyapunov function ``V(x) = z^T P z`` of the
+unsaturated linearisation (a certificate only near ``x*``; along large-angle trajectories it may rise).
+
+Run directory of kind ``lqr`` (written atomically)::
+
+    RUN_DIR/
+      run.json       {"kind": "lqr", "format": 1, "system": system.describe()}
+      config.json    system, Q, R, xi used for the design
+      lqr.json       K, P, A, B, closed-loop eigenvalues of A - B K
+      metrics.json   samples (0), train_time_s, closed-loop eigenvalues, optional evaluations
+      figures/
+
+:func:`load_policy_run` loads any run directory (``lyapunov``, ``lqr``, ``rl``) into a
+:class:`PolicyRun` with a common interface: ``controller(x)`` and ``certificate(x)`` in user
+coordinates, ``samples`` and ``train_time_s`` for comparisons.
+"""
+
+from __future__ import annotations
+
+import json
+import math
+import os
+import time
+from collections.abc import Callable, Sequence
+from dataclasses import dataclass, field
+from pathlib import Path
+
+import numpy as np
+import torch
+from torch import Tensor
+
+from drlyap.rundir import FORMAT_VERSION, RunDirError, atomic_dir, load_run, read_run_kind
+from drlyap.systems import UncertainSystem, get_system
+
+
+# --------------------------------------------------------------------------- linearisation and LQR
+def linearize(system: UncertainSystem, xi: Sequence[float] | Tensor | None = None) -> tuple[Tensor, Tensor]:
+    """``A (n, n)``, ``B (n, m)``: Jacobians of the true model at ``x*, u*`` (float64, autograd)."""
+    x_star = torch.tensor([system.equilibrium], dtype=torch.float64)
+    u_star = torch.tensor([system.equilibrium_input], dtype=torch.float64)
+    shift = None if xi is None else system.check_xi(xi)
+    a, b = torch.autograd.functional.jacobian(lambda x, u: system.true_dynamics(x, u, shift)[0], (x_star, u_star))
+    return a[:, 0, :].detach(), b[:, 0, :].detach()
+
+
+def default_weights(system: UncertainSystem) -> tuple[Tensor, Tensor]:
+    """Bryson's rule: ``Q = diag(1 / half-width(X)^2)``, ``R = diag(1 / half-width(U)^2)``."""
+    slo, shi = (torch.tensor(b, dtype=torch.float64) for b in system.state_box)
+    ulo, uhi = (torch.tensor(b, dtype=torch.float64) for b in system.input_box)
+    return torch.diag(4.0 / (shi - slo) ** 2), torch.diag(4.0 / (uhi - ulo) ** 2)
+
+
+@dataclass
+class LQRDesign:
+    """An LQR design: weights, linearisation, gain and Riccati solution (all float64 tensors)."""
+
+    system: UncertainSystem
+    Q: Tensor
+    R: Tensor
+    A: Tensor
+    B: Tensor
+    K: Tensor  # (m, n)
+    P: Tensor  # (n, n)
+    xi: list[float] | None = None
+
+    @property
+    def closed_loop_eigenvalues(self) -> list[complex]:
+        return [complex(v) for v in np.linalg.eigvals((self.A - self.B @ self.K).numpy())]
+
+    def controller(self, x: Tensor) -> Tensor:
+        """``u = clamp(u* - K z, U)`` for user-coordinate states ``x (B, n)`` -> ``(B, m)`` float64."""
+        z = self.system.to_local(_check_states(self.system, x))
+        u_star = torch.tensor(self.system.equilibrium_input, dtype=torch.float64)
+        lo, hi = (torch.tensor(b, dtype=torch.float64) for b in self.system.input_box)
+        return torch.clamp(u_star - z @ self.K.T, lo, hi)
+
+    def certificate(self, x: Tensor) -> Tensor:
+        """``V = z^T P z`` ``(B,)``."""
+        z = self.system.to_local(_check_states(self.system, x))
+        return torch.einsum("bi,ij,bj->b", z, self.P, z)
+
+
+def _check_states(system: UncertainSystem, x: Tensor) -> Tensor:
+    x = torch.as_tensor(x)
+    if x.ndim != 2 or x.shape[1] != system.n:
+        raise ValueError(f"{system.name} states must have shape (B, {system.n}), got {tuple(x.shape)}")
+    return x.to(torch.float64)
+
+
+def _diag_weights(values: Sequence[float] | Tensor | None, size: int, default: Tensor, what: str) -> Tensor:
+    if values is None:
+        return default
+    t = torch.as_tensor(values, dtype=torch.float64)
+    if t.ndim == 1:
+        t = torch.diag(t)
+    if t.shape != (size, size) or not torch.isfinite(t).all():
+        raise ValueError(f"{what} must be {size} diagonal entries or a {size}x{size} matrix, got shape {tuple(t.shape)}")
+    return t
+
+
+def lqr_design(system: UncertainSystem, Q: Sequence[float] | Tensor | None = None, R: Sequence[float] | Tensor | None = None,
+               xi: Sequence[float] | Tensor | None = None) -> LQRDesign:
+    """LQR for ``system`` linearised at ``x*, u*`` (nominal parameters unless ``xi`` is given).
+
+    ``Q``/``R``: diagonals or full matrices (default :func:`default_weights`). Raises ``ValueError``
+    when the Riccati equation has no stabilising solution (e.g. an uncontrollable linearisation).
+    """
+    from scipy.linalg import solve_continuous_are
+
+    q0, r0 = default_weights(system)
+    q = _diag_weights(Q, system.n, q0, "Q")
+    r = _diag_weights(R, system.m, r0, "R")
+    if np.linalg.eigvalsh(q.numpy()).min() < 0:
+        raise ValueError("Q must be positive semidefinite")
+    if np.linalg.eigvalsh(r.numpy()).min() <= 0:
+        raise ValueError("R must be positive definite")
+    a, b = linearize(system, xi)
+    try:
+        p = solve_continuous_are(a.numpy(), b.numpy(), q.numpy(), r.numpy())
+    except (np.linalg.LinAlgError, ValueError) as err:
+        raise ValueError(f"no stabilising LQR solution for {system.name}: {err}") from err
+    p_t = torch.as_tensor(p, dtype=torch.float64)
+    p_t = (p_t + p_t.T) / 2
+    k = torch.linalg.solve(r, b.T @ p_t)
+    design = LQRDesign(system, q, r, a, b, k, p_t, None if xi is None else system.check_xi(xi).tolist())
+    if max(v.real for v in design.closed_loop_eigenvalues) >= 0:
+        raise ValueError(f"LQR for {system.name} does not stabilise the linearisation: "
+                         f"eigenvalues {design.closed_loop_eigenvalues}")
+    return design
+
+
+def _write_json(path: Path, data: dict) -> None:
+    path.write_text(json.dumps(data, indent=2) + "\n")
+
+
+def save_lqr_run(out: str | os.PathLike, design: LQRDesign, metrics: dict | None = None, overwrite: bool = False,
+                 design_time_s: float = 0.0) -> Path:
+    """Write an LQR design as a run directory of kind ``lqr`` (atomically)."""
+    system = design.system
+    eigs = design.closed_loop_eigenvalues
+
+    def fill(tmp: Path) -> None:
+        _write_json(tmp / "config.json", {"system": system.name, "Q": design.Q.tolist(), "R": design.R.tolist(),
+                                          "xi": design.xi, "weights": "Bryson: 1/half-width^2 (default) or user-given"})
+        _write_json(tmp / "lqr.json", {"K": design.K.tolist(), "P": design.P.tolist(), "A": design.A.tolist(),
+                                       "B": design.B.tolist(),
+                                       "closed_loop_eigenvalues": [[v.real, v.imag] for v in eigs]})
+        _write_json(tmp / "metrics.json", {"samples": 0, "train_time_s": design_time_s,
+                                           "closed_loop_eigenvalues": [[v.real, v.imag] for v in eigs]}
+                    | (metrics or {}))
+        (tmp / "figures").mkdir()
+        _write_json(tmp / "run.json", {"kind": "lqr", "format": FORMAT_VERSION, "system": system.describe()})
+
+    return atomic_dir(Path(out), fill, overwrite)
+
+
+def train_lqr(system_name: str, out: str | os.PathLike, Q: Sequence[float] | None = None, R: Sequence[float] | None = None,
+              evaluate_test: bool = True, n_init: int = 200, seed: int = 0) -> dict:
+    """Design LQR for a registered system, optionally evaluate it at the system's test shift, save a run dir.
+
+    Returns the metrics dict written to ``metrics.json``.
+    """
+    from drlyap.simulation import evaluate, initial_states
+
+    system = get_system(system_name)
+    if Path(out).exists():
+        raise RunDirError(f"{out} already exists; choose another --out or remove it")
+    tic = time.perf_counter()
+    design = lqr_design(system, Q, R)
+    elapsed = time.perf_counter() - tic
+    metrics: dict = {"samples": 0, "train_time_s": elapsed}
+    if evaluate_test and system.test_xi is not None:
+        x0 = initial_states(system, n_init, torch.Generator().manual_seed(seed))
+        xi = torch.tensor(system.test_xi, dtype=torch.float64)
+        metrics["evaluations"] = {"test_xi": evaluate(system, design.controller, x0, xi, lyapunov=design.certificate)}
+    save_lqr_run(out, design, metrics, design_time_s=elapsed)
+    return json.loads((Path(out) / "metrics.json").read_text())
+
+
+# --------------------------------------------------------------------------- common loader
+@dataclass
+class PolicyRun:
+    """Any run directory, loaded: ``controller(x)`` ``(B, n) -> (B, m)`` and ``certificate(x)`` ``(B,)``
+    (or None) in user coordinates, float64.
+
+    ``certificate``: V for Lyapunov runs, ``z^T P z`` for LQR, the negated critic value for RL (so that
+    *decreasing* is the good direction for all of them).
+
+    ``samples``: what training consumed. Lyapunov: model evaluations at training states,
+    ``n_states * iterations`` when states are redrawn every iteration (the default), else ``n_states``
+    (the paper's count); ``distinct_states`` in ``info`` always holds ``n_states``. RL: environment
+    steps. LQR: 0 (one linearisation).
+    """
+
+    path: Path
+    kind: str
+    system: UncertainSystem
+    controller: Callable[[Tensor], Tensor]
+    certificate: Callable[[Tensor], Tensor] | None
+    samples: int | None
+    train_time_s: float | None
+    label: str
+    config: dict = field(default_factory=dict)
+    metrics: dict = field(default_factory=dict)
+    info: dict = field(default_factory=dict)
+
+
+def load_lqr_run(path: str | os.PathLike, system: UncertainSystem | None = None) -> PolicyRun:
+    path = Path(path)
+    info = read_run_kind(path)
+    if info.get("kind") != "lqr":
+        raise RunDirError(f"{path} holds a {info.get('kind')!r} run, not an LQR run")
+    try:
+        config = json.loads((path / "config.json").read_text())
+        gains = json.loads((path / "lqr.json").read_text())
+        metrics = json.loads((path / "metrics.json").read_text())
+    except (OSError, json.JSONDecodeError) as err:
+        raise RunDirError(f"cannot read run directory {path}: {err}") from err
+    system = system or get_system(config["system"])
+    if system.name != config["system"]:
+        raise RunDirError(f"{path} was designed for system {config['system']!r}, not {system.name!r}")
+    t = {k: torch.tensor(gains[k], dtype=torch.float64) for k in ("K", "P", "A", "B")}
+    if t["K"].shape != (system.m, system.n) or t["P"].shape != (system.n, system.n):
+        raise RunDirError(f"{path}: K/P shapes {tuple(t['K'].shape)}/{tuple(t['P'].shape)} do not fit {system.name}")
+    design = LQRDesign(system, torch.tensor(config["Q"], dtype=torch.float64), torch.tensor(config["R"], dtype=torch.float64),
+                       t["A"], t["B"], t["K"], t["P"], config.get("xi"))
+    return PolicyRun(path, "lqr", system, design.controller, design.certificate, 0, metrics.get("train_time_s"), "lqr",
+                     config, metrics, {"design": design})
+
+
+def _lyapunov_policy_run(path: Path, system: UncertainSystem | None) -> PolicyRun:
+    run = load_run(path, system)
+    cfg = run.config
+    iters = int(run.metrics.get("iterations", 0) or 0)
+    samples = int(cfg.n_states) * (iters if cfg.resample else 1)
+    label = f"lyapunov-{cfg.method}" + (f"-{cfg.loss}" if cfg.method == "dr" else "")
+    return PolicyRun(path, "lyapunov", run.system, run.controller, run.lyapunov, samples,
+                     run.metrics.get("train_time_s"), label, cfg.to_dict(), run.metrics,
+                     {"run": run, "distinct_states": int(cfg.n_states), "iterations": iters})
+
+
+def load_policy_run(path: str | os.PathLike, system: UncertainSystem | None = None) -> PolicyRun:
+    """Load a run directory of any kind (``lyapunov``, ``lqr``, ``rl``) as a :class:`PolicyRun`."""
+    path = Path(path)
+    kind = read_run_kind(path).get("kind")
+    if kind == "lyapunov":
+        return _lyapunov_policy_run(path, system)
+    if kind == "lqr":
+        return load_lqr_run(path, system)
+    if kind == "rl":
+        from drlyap.rl import load_rl_run
+
+        return load_rl_run(path, system)
+    raise RunDirError(f"{path} holds a run of unknown kind {kind!r}; valid: lyapunov, lqr, rl")
+
+
+# --------------------------------------------------------------------------- comparison
+def figure_starts(system: UncertainSystem) -> list[tuple[float, ...]]:
+    """Start states of the comparison figures: the paper's Figs. 3/4 states for the pendulums
+    ((pi, 0) and (-pi/2, 5.5)); otherwise the low corner and the centre of the test box."""
+    if system.name.startswith("pendulum"):
+        return [(math.pi, 0.0), (-math.pi / 2, 5.5)]
+    lo, hi = system.test_box
+    return [tuple(lo), tuple((a + b) / 2 for a, b in zip(lo, hi))]
+
+
+def monotonicity(system: UncertainSystem, x: Tensor, values: Tensor, success: Tensor, rel_tol: float = 1e-4) -> dict:
+    """How often a certificate increases along successful trajectories.
+
+    ``x (T, B, n)`` states, ``values (T, B)`` certificate along them, ``success (B,)``. A step counts
+    as an increase when ``v(t+1) - v(t) > rel_tol * (max_t v - min_t v)`` of that trajectory (so that
+    float32 rounding of a network near x* is not counted). Steps where an angle crosses the wrap
+    (the certificate lives on the box, not the circle) are left out. Returns ``increase_fraction``
+    (increasing steps / counted steps over successful trajectories), ``monotone_fraction`` (successful
+    trajectories with no increase) and ``counted_steps``; None values without successful trajectories.
+    """
+    dv = values[1:] - values[:-1]
+    valid = torch.isfinite(dv)
+    if system.angle_dims:
+        z = system.to_local(x.reshape(-1, system.n)).reshape(x.shape)
+        idx = list(system.angle_dims)
+        valid &= ((z[1:, :, idx] - z[:-1, :, idx]) - (x[1:, :, idx] - x[:-1, :, idx])).abs().amax(-1) <= 1.0
+    span = (values.amax(0) - values.amin(0)).clamp_min(0)
+    increase = (dv > rel_tol * span) & valid
+    ok = success.bool()
+    if not ok.any():
+        return {"increase_fraction": None, "monotone_fraction": None, "counted_steps": 0}
+    counted = int(valid[:, ok].sum())
+    return {"increase_fraction": float(increase[:, ok].sum()) / max(counted, 1),
+            "monotone_fraction": float((~increase[:, ok].any(0)).double().mean()),
+            "counted_steps": counted}
+
+
+def score_run(run: PolicyRun, x0: Tensor, xi: Tensor, horizon: float | None = None) -> dict:
+    """Simulate ``run`` from ``x0`` on the true model at ``xi``: success (as :func:`simulation.evaluate`),
+    certificate monotonicity along successful trajectories, samples and training time."""
+    from drlyap.simulation import normalized_deviation, simulate
+
+    system = run.system
+    tic = time.perf_counter()
+    traj = simulate(system, run.controller, x0, xi, horizon=horizon)
+    dev = normalized_deviation(system, traj.x)
+    settle = max(1, int(round(system.settle_fraction * (dev.shape[0] - 1))))
+    tail = dev[-settle - 1:]
+    success = torch.isfinite(tail).all(0) & (tail.amax(0) <= system.success_tol)
+    row = {"run_dir": str(run.path), "kind": run.kind, "label": run.label, "system": system.name,
+           "n": int(x0.shape[0]), "n_success": int(success.sum()), "success_rate": float(success.double().mean()),
+           "success": success.tolist(), "samples": run.samples, "train_time_s": run.train_time_s}
+    if run.certificate is not None:
+        values = run.certificate(traj.x.reshape(-1, system.n)).reshape(dev.shape)
+        row["certificate"] = monotonicity(system, traj.x, values, success)
+    else:
+        row["certificate"] = {"increase_fraction": None, "monotone_fraction": None, "counted_steps": 0}
+    row["simulation_s"] = time.perf_counter() - tic
+    return row
+
+
+def compare_runs(paths: Sequence[str | os.PathLike], xi: Sequence[float], n_init: int = 200, seed: int = 0,
+                 out: str | os.PathLike | None = None, horizon: float | None = None) -> dict:
+    """Score every run directory at the shift ``xi`` from the same ``n_init`` initial states (drawn from
+    each system's test box with ``seed``); with ``out``, write compare.json, compare.md and figures."""
+    from drlyap.simulation import initial_states
+
+    if not paths:
+        raise ValueError("give at least one run directory")
+    if n_init < 1:
+        raise ValueError(f"--n-init must be >= 1, got {n_init}")
+    if out is not None and Path(out).exists():
+        raise RunDirError(f"{out} already exists; choose another --out or remove it")
+    runs = [load_policy_run(p) for p in paths]
+    shifts = [run.system.check_xi(xi) for run in runs]
+    rows = []
+    for run, shift in zip(runs, shifts):
+        x0 = initial_states(run.system, n_init, torch.Generator().manual_seed(seed))
+        rows.append(score_run(run, x0, shift, horizon))
+    report = {"xi": [float(v) for v in xi], "n_init": n_init, "seed": seed, "rows": rows}
+    if out is not None:
+        def fill(tmp: Path) -> None:
+            figures = compare_figures(runs, shifts, tmp / "figures", horizon)
+            report["figures"] = [str(Path(out) / "figures" / f.name) for f in figures]
+            (tmp / "compare.json").write_text(json.dumps(report, indent=2) + "\n")
+            (tmp / "compare.md").write_text(format_comparison(report) + "\n")
+
+        atomic_dir(Path(out), fill)
+    return report
+
+
+def compare_figures(runs: Sequence[PolicyRun], shifts: Sequence[Tensor], folder: Path,
+                    horizon: float | None = None) -> list[Path]:
+    """Like the paper's Figs. 3/4: certificate (V, z^T P z, or negated value) and input over time, one
+    figure per start state of :func:`figure_starts` (of the first run's system)."""
+    from drlyap import plotting
+    from drlyap.simulation import simulate
+
+    folder.mkdir(parents=True, exist_ok=True)
+    paths = []
+    for i, start in enumerate(figure_starts(runs[0].system)):
+        series = {}
+        for run, shift in zip(runs, shifts):
+            x0 = torch.tensor([start], dtype=torch.float64)
+            if x0.shape[1] != run.system.n:
+                continue
+            traj = simulate(run.system, run.controller, x0, shift, horizon=horizon)
+            value = run.certificate(traj.x[:, 0]) if run.certificate is not None else torch.full_like(traj.t, float("nan"))
+            series[f"{run.label} ({run.path.name})"] = (traj.t, value, traj.u[:, 0, 0])
+        where = ", ".join(f"{v:.3g}" for v in start)
+        shift = ", ".join(f"{v:+g}" for v in shifts[0].tolist())
+        paths.append(plotting.time_series(series, folder / f"certificate_and_input_{i}.png",
+                                          f"{runs[0].system.name} from ({where}), true model at xi = ({shift})",
+                                          value_label="certificate: V, z'Pz or -value"))
+    return paths
+
+
+def format_comparison(report: dict) -> str:
+    """A markdown table of a :func:`compare_runs` report."""
+    lines = [f"## comparison at xi = {report['xi']} ({report['n_init']} initial states, seed {report['seed']})", "",
+             "| run | kind | system | success | samples | train s | certificate increases | monotone trajectories |",
+             "|---|---|---|---|---|---|---|---|"]
+    for r in report["rows"]:
+        c = r["certificate"]
+        inc = "-" if c["increase_fraction"] is None else f"{100 * c['increase_fraction']:.2f}%"
+        mono = "-" if c["monotone_fraction"] is None else f"{100 * c['monotone_fraction']:.0f}%"
+        t = "-" if r["train_time_s"] is None else f"{r['train_time_s']:.1f}"
+        lines.append(f"| {r['run_dir']} | {r['label']} | {r['system']} | {r['n_success']}/{r['n']} "
+                     f"({100 * r['success_rate']:.1f}%) | {r['samples'] if r['samples'] is not None else '-'} | {t} | "
+                     f"{inc} | {mono} |")
+    return "\n".join(lines)

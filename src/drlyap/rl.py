@@ -1,0 +1,175 @@
+"""Reinforcement-learning baselines (SAC, PPO from stable-baselines3) on the true-model environments.
+
+stable-baselines3 is an optional extra (``pip install drlyap[rl]``); it is imported lazily, so the
+rest of drlyap works without it.
+
+:func:`train_rl` trains on :class:`drlyap.envs.UncertainSystemEnv` at the nominal parameters
+(``xi = 0``: the agent sees the true model at the nominal parameters, as the paper's RL baselines
+do) and writes a run directory of kind ``rl`` (atomically)::
+
+    RUN_DIR/
+      run.json       {"kind": "rl", "format": 1, "system": system.describe()}
+      config.json    algo, steps, seed, env settings (dt, episode steps), hyperparameters, wall time
+      model.zip      the stable-baselines3 model
+      metrics.json   samples (= steps, environment transitions), train_time_s, ms per 1000 steps,
+                     returns of the last training episodes
+
+Using a trained agent as a feedback (:func:`load_rl_run`): ``controller(x)`` maps user-coordinate
+states through :func:`drlyap.envs.observe` (wrap, clip to X) to the deterministic action
+(``model.predict(obs, deterministic=True)``, clipped to U). In simulation the action is re-evaluated
+at every RK4 stage (continuous feedback), whereas training held it for the env's ``dt``.
+``certificate(x)`` is the NEGATED critic value, so that decreasing is the good direction as for V:
+SAC ``-min(Q1, Q2)(s, pi(s))``, PPO ``-V(s)``.
+"""
+
+from __future__ import annotations
+
+import json
+import os
+import time
+from pathlib import Path
+
+import numpy as np
+import torch
+
+from drlyap.rundir import FORMAT_VERSION, RunDirError, atomic_dir, read_run_kind
+from drlyap.systems import UncertainSystem, get_system
+
+ALGOS = ("sac", "ppo")
+
+# Defaults that finish in a few minutes on one CPU thread for the pendulum (see ``drlyap rl train --help``).
+DEFAULT_STEPS = {"sac": 20_000, "ppo": 100_000}
+DEFAULT_HYPER = {
+    # rl-zoo's Pendulum-v1 settings, single environment.
+    "sac": {"learning_rate": 1e-3, "buffer_size": 100_000, "learning_starts": 1000, "batch_size": 256,
+            "gamma": 0.98, "policy_kwargs": {"net_arch": [64, 64]}},
+    "ppo": {"learning_rate": 1e-3, "n_steps": 1024, "batch_size": 64, "n_epochs": 10, "gamma": 0.98,
+            "gae_lambda": 0.95, "use_sde": True, "sde_sample_freq": 4, "policy_kwargs": {"net_arch": [64, 64]}},
+}
+
+
+def _sb3():
+    try:
+        import stable_baselines3
+    except ImportError as err:  # pragma: no cover - exercised only without the extra
+        raise ValueError("RL baselines need stable-baselines3: pip install 'drlyap[rl]'") from err
+    return stable_baselines3
+
+
+def _algo_class(algo: str):
+    sb3 = _sb3()
+    if algo not in ALGOS:
+        raise ValueError(f"unknown algorithm {algo!r}; valid: {', '.join(ALGOS)}")
+    return {"sac": sb3.SAC, "ppo": sb3.PPO}[algo]
+
+
+def train_rl(system_name: str, algo: str, steps: int | None, seed: int, out: str | os.PathLike,
+             hyperparameters: dict | None = None, overwrite: bool = False) -> dict:
+    """Train ``algo`` (``sac`` or ``ppo``) for ``steps`` environment steps and save a run directory.
+
+    ``hyperparameters`` override the defaults (``DEFAULT_HYPER``) passed to the SB3 constructor.
+    Returns the metrics written to ``metrics.json``.
+    """
+    from stable_baselines3.common.monitor import Monitor
+
+    from drlyap.envs import make_env
+
+    cls = _algo_class(algo)
+    system = get_system(system_name)
+    steps = int(steps if steps is not None else DEFAULT_STEPS[algo])
+    if steps < 1:
+        raise ValueError(f"steps must be >= 1, got {steps}")
+    out = Path(out)
+    if out.exists() and not overwrite:
+        raise RunDirError(f"{out} already exists; choose another --out or remove it")
+    hyper = {**DEFAULT_HYPER[algo], **(hyperparameters or {})}
+    env = Monitor(make_env(system_name))
+    env.reset(seed=seed)
+    env.action_space.seed(seed)
+    try:
+        model = cls("MlpPolicy", env, seed=seed, device="cpu", verbose=0, **hyper)
+    except TypeError as err:
+        raise ValueError(f"invalid {algo} hyperparameters {hyper}: {err}") from err
+    tic = time.perf_counter()
+    model.learn(total_timesteps=steps)
+    wall = time.perf_counter() - tic
+    base = env.unwrapped
+    returns = [float(r) for r in env.get_episode_rewards()]
+    config = {"system": system.name, "algo": algo, "steps": steps, "seed": seed, "wall_time_s": wall,
+              "xi_train": base.xi.tolist(), "env": {"dt": base.dt, "episode_steps": base.max_steps,
+                                                    "reward_state_weights": base.state_weights.tolist(),
+                                                    "reward_input_weights": base.input_weights.tolist()},
+              "hyperparameters": hyper}
+    metrics = {"samples": steps, "train_time_s": wall, "ms_per_1000_steps": 1e6 * wall / steps,
+               "episodes": len(returns), "last_returns": returns[-10:],
+               "mean_last_returns": float(np.mean(returns[-10:])) if returns else None}
+
+    def fill(tmp: Path) -> None:
+        (tmp / "config.json").write_text(json.dumps(config, indent=2) + "\n")
+        model.save(tmp / "model.zip")
+        (tmp / "metrics.json").write_text(json.dumps(metrics, indent=2) + "\n")
+        (tmp / "figures").mkdir()
+        (tmp / "run.json").write_text(json.dumps({"kind": "rl", "format": FORMAT_VERSION,
+                                                  "system": system.describe()}, indent=2) + "\n")
+
+    atomic_dir(out, fill, overwrite)
+    return metrics
+
+
+class RLPolicy:
+    """A trained SB3 agent as a deterministic feedback and a (negated) value certificate."""
+
+    def __init__(self, system: UncertainSystem, algo: str, model) -> None:
+        self.system, self.algo, self.model = system, algo, model
+        self._low, self._high = (np.array(b, dtype=np.float64) for b in system.input_box)
+
+    def _obs(self, x: torch.Tensor) -> np.ndarray:
+        from drlyap.envs import observe
+
+        x = torch.as_tensor(x)
+        if x.ndim != 2 or x.shape[1] != self.system.n:
+            raise ValueError(f"{self.system.name} states must have shape (B, {self.system.n}), got {tuple(x.shape)}")
+        return observe(self.system, x)
+
+    def controller(self, x: torch.Tensor) -> torch.Tensor:
+        action, _ = self.model.predict(self._obs(x), deterministic=True)
+        u = np.clip(np.asarray(action, dtype=np.float64).reshape(-1, self.system.m), self._low, self._high)
+        return torch.from_numpy(u)
+
+    @torch.no_grad()
+    def certificate(self, x: torch.Tensor) -> torch.Tensor:
+        policy = self.model.policy
+        obs, _ = policy.obs_to_tensor(self._obs(x))
+        if self.algo == "sac":
+            action = policy.actor(obs, deterministic=True)
+            value = torch.min(torch.cat(policy.critic(obs, action), dim=1), dim=1).values
+        else:
+            value = policy.predict_values(obs).reshape(-1)
+        return -value.double().cpu()
+
+
+def load_rl_run(path: str | os.PathLike, system: UncertainSystem | None = None):
+    """Load a run directory of kind ``rl`` as a :class:`drlyap.baselines.PolicyRun`."""
+    from drlyap.baselines import PolicyRun
+
+    path = Path(path)
+    info = read_run_kind(path)
+    if info.get("kind") != "rl":
+        raise RunDirError(f"{path} holds a {info.get('kind')!r} run, not an RL run")
+    try:
+        config = json.loads((path / "config.json").read_text())
+        metrics = json.loads((path / "metrics.json").read_text())
+    except (OSError, json.JSONDecodeError) as err:
+        raise RunDirError(f"cannot read run directory {path}: {err}") from err
+    system = system or get_system(config["system"])
+    if system.name != config["system"]:
+        raise RunDirError(f"{path} was trained on system {config['system']!r}, not {system.name!r}")
+    algo = config["algo"]
+    cls = _algo_class(algo)
+    try:
+        model = cls.load(path / "model.zip", device="cpu")
+    except (OSError, ValueError, KeyError) as err:
+        raise RunDirError(f"cannot load the {algo} model of {path}: {err}") from err
+    agent = RLPolicy(system, algo, model)
+    return PolicyRun(path, "rl", system, agent.controller, agent.certificate, int(config["steps"]),
+                     metrics.get("train_time_s"), f"rl-{algo}", config, metrics, {"agent": agent})

@@ -1,0 +1,60 @@
+import json
+
+import pytest
+from click.testing import CliRunner
+
+from drlyap.cli import main
+
+
+@pytest.fixture(scope="module")
+def run_dir(tmp_path_factory):
+    out = tmp_path_factory.mktemp("cli") / "run"
+    result = CliRunner().invoke(main, ["train", "pendulum", "--method", "baseline", "--iters", "10", "--quiet",
+                                       "--out", str(out)])
+    assert result.exit_code == 0, result.output
+    assert "acceptance" in result.output
+    return out
+
+
+def test_every_command_has_help():
+    runner = CliRunner()
+    for args in ([], ["systems"], ["train"], ["evaluate"], ["reproduce"]):
+        result = runner.invoke(main, [*args, "--help"])
+        assert result.exit_code == 0 and "Usage" in result.output
+
+
+def test_systems_lists_built_ins():
+    result = CliRunner().invoke(main, ["systems", "--json"])
+    names = {d["name"] for d in json.loads(result.output)}
+    assert {"pendulum", "mountain-car"} <= names
+
+
+def test_evaluate_json(run_dir):
+    result = CliRunner().invoke(main, ["evaluate", str(run_dir), "--xi", "0.1,0.05", "--n-init", "5", "--horizon",
+                                       "1", "--json"])
+    assert result.exit_code == 0, result.output
+    data = json.loads(result.output)
+    assert data["n"] == 5 and 0 <= data["n_success"] <= 5 and data["success_rate"] == data["n_success"] / 5
+
+
+@pytest.mark.parametrize("args, message", [
+    (["train", "nope", "--out", "x"], "unknown system 'nope'"),
+    (["evaluate", "/nonexistent/run", "--xi", "0.1,0.05"], "does not exist"),
+    (["train", "pendulum", "--eps", "2", "--iters", "1", "--out", "OUT"], "risk_level"),
+])
+def test_errors_name_the_problem(tmp_path, args, message):
+    args = [str(tmp_path / "o") if a == "OUT" else a for a in args]
+    result = CliRunner().invoke(main, args)
+    assert result.exit_code != 0 and message in result.output
+    assert not (tmp_path / "o").exists()
+
+
+@pytest.mark.parametrize("xi, message", [("0.1", "takes 2 xi value"), ("0.1,nan", "finite"), ("a,b", "numbers")])
+def test_evaluate_rejects_bad_xi(run_dir, xi, message):
+    result = CliRunner().invoke(main, ["evaluate", str(run_dir), "--xi", xi])
+    assert result.exit_code != 0 and message in result.output
+
+
+def test_train_refuses_to_overwrite(run_dir):
+    result = CliRunner().invoke(main, ["train", "pendulum", "--iters", "1", "--out", str(run_dir)])
+    assert result.exit_code != 0 and "already exists" in result.output

@@ -1,0 +1,35 @@
+import torch
+
+from drlyap.networks import Controller, Lyapunov, saturate
+
+
+def test_pinned_at_equilibrium_and_positive_definite():
+    torch.manual_seed(0)
+    v = Lyapunov(2, (16, 16), 4, alpha_hat=0.5, input_scale=(3.0, 8.0)).double()
+    c = Controller(2, ((-2.0,), (3.0,)), (0.5,), (16,), init_gain=10.0).double()
+    zero = torch.zeros(1, 2, dtype=torch.float64)
+    assert v(zero).item() == 0.0
+    assert torch.allclose(c(zero), torch.tensor([[0.5]], dtype=torch.float64))
+    z = torch.randn(500, 2, dtype=torch.float64) * 3
+    assert (v(z) > 0).all()
+    u = c(z)
+    assert (u >= -2.0).all() and (u <= 3.0).all()
+
+
+def test_manual_input_gradient_matches_autograd():
+    torch.manual_seed(1)
+    v = Lyapunov(3, (8, 8), 5, alpha_hat=0.2, input_scale=(1.0, 2.0, 0.5)).double()
+    z = torch.randn(40, 3, dtype=torch.float64, requires_grad=True)
+    value, grad = v.value_and_grad(z)
+    (auto,) = torch.autograd.grad(v(z).sum(), z)
+    assert torch.allclose(value, v(z))
+    assert torch.allclose(grad, auto, atol=1e-12)
+
+
+def test_saturation_is_a_clamp_with_straight_through_gradient():
+    x = torch.tensor([[-5.0], [0.3], [5.0]], requires_grad=True)
+    low, high = torch.tensor([-1.0]), torch.tensor([2.0])
+    y = saturate(x, low, high)
+    assert torch.equal(y.detach(), torch.tensor([[-1.0], [0.3], [2.0]]))
+    y.sum().backward()
+    assert torch.equal(x.grad, torch.ones(3, 1))

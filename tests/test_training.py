@@ -1,0 +1,110 @@
+import json
+import math
+
+import pytest
+import torch
+
+from drlyap.checks import find_equilibria, jacobian_check, sample_region
+from drlyap.rundir import RunDirError, load_run, save_run
+from drlyap.systems import pendulum
+from drlyap.training import TrainConfig, build_networks, train
+
+
+def test_training_states_avoid_the_delta_ball_and_fill_the_box():
+    p = pendulum()
+    z = sample_region(p, 2000, 0.5, torch.Generator().manual_seed(0))
+    lo, hi = p.local_box()
+    assert z.shape == (2000, 2) and (z.norm(dim=-1) >= 0.5).all()
+    assert (z >= lo).all() and (z <= hi).all()
+
+
+def test_tiny_training_run_round_trips_through_a_run_directory(tmp_path, tiny_config):
+    result = train(tiny_config(), progress=False)
+    m = result.metrics
+    assert m["iterations"] == 20 and "acceptance" in m and isinstance(m["passed"], bool)
+    assert set(m["acceptance"]) >= {"max_violation", "violating_fraction", "jacobian", "other_equilibria"}
+    out = save_run(tmp_path / "run", result)
+    run = load_run(out)
+    x = torch.tensor([[0.3, -1.0], [2.0, 4.0]], dtype=torch.float64)
+    with torch.no_grad():
+        z = run.system.to_local(x).float()
+        assert torch.allclose(run.controller(x), result.controller(z).double())
+        assert torch.allclose(run.lyapunov(x), result.lyapunov(z).double())
+    # user coordinates: the angle branch does not matter, V(x*) = 0 and pi(x*) = u*
+    assert torch.allclose(run.controller(x + torch.tensor([2 * math.pi, 0.0], dtype=torch.float64)), run.controller(x),
+                          atol=1e-5)
+    star = torch.zeros(1, 2, dtype=torch.float64)
+    assert run.lyapunov(star).item() == 0.0 and run.controller(star).item() == 0.0
+    saved = json.loads((out / "config.json").read_text())
+    assert saved["wasserstein_radius"] == 0.01 and saved["n_states"] == 256
+    with pytest.raises(ValueError, match="shape"):
+        run.controller(torch.zeros(3))
+
+
+def test_interrupted_save_leaves_no_run_directory(tmp_path, tiny_config):
+    result = train(tiny_config(iters=2, check_every=2), progress=False)
+
+    def boom(tmp):
+        raise KeyboardInterrupt
+
+    with pytest.raises(KeyboardInterrupt):
+        save_run(tmp_path / "run", result, extra=boom)
+    assert list(tmp_path.iterdir()) == []
+
+
+def test_run_directory_errors(tmp_path, tiny_config):
+    with pytest.raises(RunDirError, match="does not exist"):
+        load_run(tmp_path / "missing")
+    (tmp_path / "half").mkdir()
+    with pytest.raises(RunDirError, match="not a complete"):
+        load_run(tmp_path / "half")
+    out = save_run(tmp_path / "run", train(tiny_config(iters=2, check_every=2), progress=False))
+    with pytest.raises(RunDirError, match="already exists"):
+        save_run(out, train(tiny_config(iters=2, check_every=2), progress=False))
+    from drlyap.systems import mountain_car
+
+    with pytest.raises(RunDirError, match="trained on system 'pendulum'"):
+        load_run(out, mountain_car())
+
+
+def test_divergence_stops_with_last_good_weights(tiny_config):
+    result = train(tiny_config(lr=1e30, iters=40, check_every=40), progress=False)
+    assert result.metrics["status"].startswith("diverged")
+    assert all(torch.isfinite(p).all() for p in result.controller.parameters())
+
+
+@pytest.mark.parametrize("field, value, message", [
+    ("method", "magic", "method"), ("risk_level", 1.5, "risk_level"), ("n_states", 0, "n_states"),
+    ("xi_samples", [[0.1]], "xi_samples must be"), ("xi_samples", [[0.1, float("nan")]], "NaN"),
+    ("decay_rate", -1.0, "decay_rate"), ("device", "tpu", "device"),
+])
+def test_bad_config_is_rejected_before_training(tiny_config, field, value, message):
+    with pytest.raises(ValueError, match=message):
+        train(tiny_config(**{field: value}), progress=False)
+
+
+def test_acceptance_checks_flag_a_bad_controller():
+    """A zero controller: x* is unstable (not Hurwitz) and the hanging state is another equilibrium."""
+    p = pendulum()
+    _, controller = build_networks(p, TrainConfig(lyapunov_hidden=[4], controller_hidden=[4]).resolved(p))
+    with torch.no_grad():
+        for param in controller.parameters():
+            param.zero_()
+    xi = torch.zeros(1, 2)
+    assert not jacobian_check(p, controller, xi)["hurwitz"]
+    found = find_equilibria(p, controller, xi, delta=0.5)
+    assert found and all(abs(abs(e["state"][0]) - math.pi) < 1e-3 for e in found)
+
+
+def test_a_pd_like_controller_passes_the_jacobian_and_equilibrium_checks():
+    p = pendulum()
+    _, controller = build_networks(p, TrainConfig(lyapunov_hidden=[4], controller_hidden=[2]).resolved(p))
+    with torch.no_grad():  # varphi(z) ~ -K z through a nearly linear tanh layer
+        first, last = controller.varphi.layers
+        first.weight.copy_(torch.tensor([[0.01 * math.pi, 0.0], [0.0, 0.01 * 8.0]]))
+        first.bias.zero_()
+        last.weight.copy_(torch.tensor([[-30.0 / 0.01, -8.0 / 0.01]]))
+        last.bias.zero_()
+    xi = torch.tensor([[0.1, 0.05], [0.0, 0.0]])
+    assert jacobian_check(p, controller, xi)["hurwitz"]
+    assert find_equilibria(p, controller, xi, delta=0.5) == []
