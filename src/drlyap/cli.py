@@ -140,7 +140,7 @@ def evaluate(run_dir: Path, xi: str, n_init: int, seed: int, horizon: float | No
     from drlyap.simulation import initial_states
 
     try:
-        run = load_run(run_dir)
+        run = load_run(run_dir) if _run_kind(run_dir) == "lyapunov" else _policy_run_as_run(run_dir)
         shift = run.system.check_xi(_floats(xi, "--xi"))
         if horizon is not None and horizon <= 0:
             raise ValueError(f"--horizon must be > 0, got {horizon}")
@@ -161,7 +161,8 @@ def evaluate(run_dir: Path, xi: str, n_init: int, seed: int, horizon: float | No
 @main.command()
 @click.argument("system", type=click.Choice(["pendulum", "mountain-car"]))
 @click.option("--seeds", default="0", show_default=True, help="Comma-separated training seeds.")
-@click.option("--out", type=click.Path(path_type=Path), default=None, help="Output directory [runs/reproduce-SYSTEM].")
+@click.option("--out", type=click.Path(path_type=Path), default=None,
+              help="Output directory [first free runs/reproduce-SYSTEM, -2, -3, ...].")
 @click.option("--iters", type=int, default=None, help="Iteration cap per training run [3000].")
 @click.option("--device", default="cpu", show_default=True)
 @click.option("--json", "as_json", is_flag=True, help="Print one JSON object with both methods' results.")
@@ -171,7 +172,11 @@ def reproduce(system: str, seeds: str, out: Path | None, iters: int | None, devi
     from drlyap.experiments import reproduce as run_reproduce
 
     seed_list = _ints(seeds, "--seeds")
-    out = out or Path("runs") / f"reproduce-{system}"
+    if out is None:  # first free runs/reproduce-SYSTEM[-K], so that running the quickstart twice just works
+        out = Path("runs") / f"reproduce-{system}"
+        k = 2
+        while out.exists():
+            out, k = Path("runs") / f"reproduce-{system}-{k}", k + 1
     log = (lambda s: click.echo(s, err=True)) if as_json else click.echo
     try:
         report = run_reproduce(system, seed_list, out, iters=iters, progress=sys.stderr.isatty(), device=device,
@@ -184,6 +189,119 @@ def reproduce(system: str, seeds: str, out: Path | None, iters: int | None, devi
     click.echo("")
     click.echo(format_table(report))
     click.echo(f"\nwrote {out} (report.md, report.json, seed*/figures)")
+
+
+def _run_kind(run_dir: Path) -> str | None:
+    from drlyap.rundir import read_run_kind
+
+    return read_run_kind(run_dir).get("kind")
+
+
+def _policy_run_as_run(run_dir: Path):
+    """A non-Lyapunov run (LQR, RL) shaped like :class:`drlyap.rundir.Run` for ``evaluate``."""
+    from types import SimpleNamespace
+
+    from drlyap.baselines import load_policy_run
+
+    run = load_policy_run(run_dir)
+    return SimpleNamespace(system=run.system, controller=run.controller, lyapunov=run.certificate,
+                           config=SimpleNamespace(method=run.label), metrics=run.metrics)
+
+
+@main.command()
+@click.argument("system")
+@click.option("--out", type=click.Path(path_type=Path), required=True, help="Run directory to create.")
+@click.option("--q", "q_diag", default=None, help="Diagonal of Q, comma-separated [1/half-width(X)^2].")
+@click.option("--r", "r_diag", default=None, help="Diagonal of R, comma-separated [1/half-width(U)^2].")
+@click.option("--n-init", type=int, default=200, show_default=True,
+              help="Initial states of the evaluation at the system's test shift saved in metrics.json.")
+@click.option("--seed", type=int, default=0, show_default=True, help="Seed of those initial states.")
+def lqr(system: str, out: Path, q_diag: str | None, r_diag: str | None, n_init: int, seed: int) -> None:
+    """LQR baseline for SYSTEM: linearise the true model at x*, u* (nominal parameters), solve the
+    Riccati equation, save a run directory of kind lqr (K, P) with u = clamp(u* - K z, U)."""
+    from drlyap.baselines import train_lqr
+
+    try:
+        if n_init < 1:
+            raise ValueError(f"--n-init must be >= 1, got {n_init}")
+        metrics = train_lqr(system, out, _floats(q_diag, "--q"), _floats(r_diag, "--r"), n_init=n_init, seed=seed)
+        gains = json.loads((out / "lqr.json").read_text())
+    except ValueError as err:
+        _fail(err)
+    click.echo(f"{system} LQR: K = {gains['K']}, closed-loop eigenvalues "
+               f"{[complex(*v) for v in gains['closed_loop_eigenvalues']]}")
+    ev = metrics.get("evaluations", {}).get("test_xi")
+    if ev is not None:
+        click.echo(f"  at the test shift xi = {ev['xi']}: {ev['n_success']}/{ev['n']} stabilised "
+                   f"({100 * ev['success_rate']:.1f}%)")
+    click.echo(f"  saved {out}")
+
+
+@main.group()
+def rl() -> None:
+    """Reinforcement-learning baselines (SAC, PPO; needs the extra drlyap[rl])."""
+
+
+@rl.command("train")
+@click.argument("system")
+@click.option("--algo", type=click.Choice(["sac", "ppo"]), default="sac", show_default=True)
+@click.option("--steps", type=int, default=None,
+              help="Environment steps [sac: 20000, ppo: 100000; each about 1.5-2 minutes on one CPU thread "
+                   "for the pendulum: about 4.3 ms per SAC step, 1.0 ms per PPO step].")
+@click.option("--seed", type=int, default=0, show_default=True)
+@click.option("--out", type=click.Path(path_type=Path), required=True, help="Run directory to create.")
+def rl_train(system: str, algo: str, steps: int | None, seed: int, out: Path) -> None:
+    """Train SAC or PPO (stable-baselines3) on SYSTEM's true model at nominal parameters.
+
+    The environment (drlyap.envs) steps the true model with RK4 (pendulum: dt 0.05 s, 10 s episodes)
+    and rewards -(theta^2 + 0.1 thetadot^2 + 0.001 u^2) (other systems: the normalised analogue).
+    """
+    from drlyap.rl import train_rl
+
+    try:
+        metrics = train_rl(system, algo, steps, seed, out)
+    except ValueError as err:
+        _fail(err)
+    last = metrics["mean_last_returns"]
+    click.echo(f"{system} {algo}: {metrics['samples']} steps in {metrics['train_time_s']:.1f} s "
+               f"({metrics['ms_per_1000_steps']:.0f} ms per 1000 steps); mean return of the last episodes "
+               f"{'-' if last is None else f'{last:.1f}'}")
+    click.echo(f"  saved {out}")
+
+
+@main.command()
+@click.argument("run_dirs", nargs=-1, required=True, type=click.Path(path_type=Path))
+@click.option("--xi", required=True, help="Parameter shift, comma-separated in the system's uncertain order.")
+@click.option("--n-init", type=int, default=200, show_default=True, help="Number of initial states.")
+@click.option("--seed", type=int, default=0, show_default=True, help="Seed of the initial states.")
+@click.option("--horizon", type=float, default=None, help="Simulated time [system default].")
+@click.option("--out", type=click.Path(path_type=Path), default=None,
+              help="Write compare.json, compare.md and figures (certificate and input over time) here.")
+@click.option("--json", "as_json", is_flag=True, help="Print one JSON object.")
+def compare(run_dirs: tuple[Path, ...], xi: str, n_init: int, seed: int, horizon: float | None, out: Path | None,
+            as_json: bool) -> None:
+    """Compare runs of any kind (lyapunov, lqr, rl) at parameter shift --xi on the true model.
+
+    Per run: success rate; samples used in training (Lyapunov: model evaluations at training states,
+    n_states x iterations with the default resampling; RL: environment steps; LQR: 0); training wall
+    time; and how often the certificate (V, z'Pz for LQR, the negated critic value for RL) increases
+    along successful trajectories (a step counts when it rises by more than 1e-4 of that trajectory's
+    range; lower is better, 0 means monotone).
+    """
+    from drlyap.baselines import compare_runs, format_comparison
+
+    try:
+        if horizon is not None and horizon <= 0:
+            raise ValueError(f"--horizon must be > 0, got {horizon}")
+        report = compare_runs(list(run_dirs), _floats(xi, "--xi"), n_init, seed, out, horizon)
+    except ValueError as err:
+        _fail(err)
+    if as_json:
+        click.echo(json.dumps(report))
+        return
+    click.echo(format_comparison(report))
+    if out is not None:
+        click.echo(f"\nwrote {out} (compare.md, compare.json, figures/)")
 
 
 if __name__ == "__main__":

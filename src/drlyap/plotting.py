@@ -69,11 +69,11 @@ def time_series(series: Mapping[str, tuple[Tensor, Tensor, Tensor]], path: Path,
     """
     fig, (a, b) = plt.subplots(1, 2, figsize=(11, 4))
     for label, (t, value, u) in series.items():
-        a.plot(t, value, label=label)
+        a.plot(t, value.clamp_min(1e-12), label=label)
         b.plot(t, u, label=label)
     a.set_xlabel("t")
     a.set_ylabel(value_label)
-    a.set_yscale("symlog", linthresh=1e-3)
+    a.set_yscale("log")
     b.set_xlabel("t")
     b.set_ylabel(input_label)
     a.legend()
