@@ -57,9 +57,9 @@ def condition_residual(system: UncertainSystem, lyapunov: Lyapunov, controller: 
 
     For a uniform condition the Lipschitz term uses the maximum over *all* of ``z``.
     """
-    dtype = next(lyapunov.parameters()).dtype
+    ref = next(lyapunov.parameters())
     with torch.no_grad():
-        parts = [decrease_terms(system, lyapunov, controller, z[i:i + chunk].to(dtype), xi_samples.to(dtype),
+        parts = [decrease_terms(system, lyapunov, controller, z[i:i + chunk].to(ref), xi_samples.to(ref),
                                 decay_rate, exp_rate) for i in range(0, z.shape[0], chunk)]
     terms = DecreaseTerms(vdot=torch.cat([p.vdot for p in parts]), lip=torch.cat([p.lip for p in parts]),
                           decay=torch.cat([p.decay for p in parts]))
@@ -82,11 +82,11 @@ def batched_jacobian(system: UncertainSystem, controller: Controller, z: Tensor,
 
 def jacobian_check(system: UncertainSystem, controller: Controller, xi_samples: Tensor) -> dict:
     """Eigenvalues of the true closed-loop Jacobian at x* for each xi sample and their mean."""
-    dtype = next(controller.parameters()).dtype
-    xis = torch.cat([xi_samples, xi_samples.mean(0, keepdim=True)]).to(dtype)
-    z = torch.zeros(xis.shape[0], system.n, dtype=dtype)
+    ref = next(controller.parameters())
+    xis = torch.cat([xi_samples, xi_samples.mean(0, keepdim=True)]).to(ref)
+    z = torch.zeros(xis.shape[0], system.n, dtype=ref.dtype, device=ref.device)
     _, jac = batched_jacobian(system, controller, z, xis)
-    eig = torch.linalg.eigvals(jac.double())
+    eig = torch.linalg.eigvals(jac.double().cpu())
     max_real = eig.real.amax(-1)
     return {
         "max_real_eigenvalue": [float(v) for v in max_real],
@@ -102,12 +102,14 @@ def find_equilibria(system: UncertainSystem, controller: Controller, xi_samples:
     Runs for every xi sample and the mean at once (batched over starts x samples). Returns one entry
     per distinct root: local state, user state, which xi, residual norm.
     """
-    dtype = next(controller.parameters()).dtype
-    lo, hi = (b.to(dtype) for b in system.local_box())
+    ref = next(controller.parameters())
+    dtype = ref.dtype
+    lo, hi = (b.to(ref) for b in system.local_box())
     per = max(2, int(round(starts_per_axis ** (2 / max(system.n, 2)))) if system.n > 2 else starts_per_axis)
-    axes = [lo[i] + (hi[i] - lo[i]) * (torch.arange(per, dtype=dtype) + 0.5) / per for i in range(system.n)]
+    axes = [lo[i] + (hi[i] - lo[i]) * (torch.arange(per, dtype=dtype, device=ref.device) + 0.5) / per
+            for i in range(system.n)]
     starts = torch.cartesian_prod(*axes).reshape(-1, system.n)
-    xis = torch.cat([xi_samples, xi_samples.mean(0, keepdim=True)]).to(dtype)
+    xis = torch.cat([xi_samples, xi_samples.mean(0, keepdim=True)]).to(ref)
     s, q = starts.shape[0], xis.shape[0]
     z = starts.repeat(q, 1)
     xi = xis.repeat_interleave(s, dim=0)
@@ -126,7 +128,8 @@ def find_equilibria(system: UncertainSystem, controller: Controller, xi_samples:
     residual = f.norm(dim=-1) / max(float(scale), 1e-300)
     keep = (residual < 1e-6) & (z.norm(dim=-1) >= delta)
     found: list[dict] = []
-    for zi, qi, ri in zip(z[keep], (torch.arange(s * q) // s)[keep], residual[keep]):
+    index = (torch.arange(s * q, device=z.device) // s)[keep].cpu()
+    for zi, qi, ri in zip(z[keep].cpu(), index, residual[keep].cpu()):
         if any(e["xi_index"] == int(qi) and torch.allclose(torch.tensor(e["local"], dtype=dtype), zi,
                                                             atol=1e-3 * float(width.max())) for e in found):
             continue
