@@ -14,6 +14,11 @@ Controller: ``u = clamp(u* - K z, U)`` with ``z = x - x*`` and angles wrapped in
 learned controllers. Certificate: the quadratic Lyapunov function ``V(x) = z^T P z`` of the
 unsaturated linearisation (a certificate only near ``x*``; along large-angle trajectories it may rise).
 
+Comparison (:func:`compare_runs`, ``drlyap compare``): runs of any kind simulated on the true model at
+one shift from the same initial states; success as :func:`drlyap.simulation.evaluate`, samples and
+training time, and how often the certificate increases along successful trajectories
+(:func:`monotonicity`), plus figures of certificate and input over time (the paper's Figs. 3/4).
+
 Run directory of kind ``lqr`` (written atomically)::
 
     RUN_DIR/
@@ -318,7 +323,8 @@ def score_run(run: PolicyRun, x0: Tensor, xi: Tensor, horizon: float | None = No
     success = torch.isfinite(tail).all(0) & (tail.amax(0) <= system.success_tol)
     row = {"run_dir": str(run.path), "kind": run.kind, "label": run.label, "system": system.name,
            "n": int(x0.shape[0]), "n_success": int(success.sum()), "success_rate": float(success.double().mean()),
-           "success": success.tolist(), "samples": run.samples, "train_time_s": run.train_time_s}
+           "success": success.tolist(), "samples": run.samples, "train_time_s": run.train_time_s,
+           "distinct_states": run.info.get("distinct_states")}
     if run.certificate is not None:
         values = run.certificate(traj.x.reshape(-1, system.n)).reshape(dev.shape)
         row["certificate"] = monotonicity(system, traj.x, values, success)

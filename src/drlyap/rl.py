@@ -70,11 +70,11 @@ def train_rl(system_name: str, algo: str, steps: int | None, seed: int, out: str
     ``hyperparameters`` override the defaults (``DEFAULT_HYPER``) passed to the SB3 constructor.
     Returns the metrics written to ``metrics.json``.
     """
+    cls = _algo_class(algo)  # first: a clear error without stable-baselines3
     from stable_baselines3.common.monitor import Monitor
 
     from drlyap.envs import make_env
 
-    cls = _algo_class(algo)
     system = get_system(system_name)
     steps = int(steps if steps is not None else DEFAULT_STEPS[algo])
     if steps < 1:
@@ -123,29 +123,39 @@ class RLPolicy:
         self.system, self.algo, self.model = system, algo, model
         self._low, self._high = (np.array(b, dtype=np.float64) for b in system.input_box)
 
-    def _obs(self, x: torch.Tensor) -> np.ndarray:
-        from drlyap.envs import observe
-
+    def _obs(self, x: torch.Tensor) -> torch.Tensor:
+        """The env's observation map (:func:`drlyap.envs.observe`) in torch: wrap angles, clip to X, float32."""
         x = torch.as_tensor(x)
         if x.ndim != 2 or x.shape[1] != self.system.n:
             raise ValueError(f"{self.system.name} states must have shape (B, {self.system.n}), got {tuple(x.shape)}")
-        return observe(self.system, x)
+        shown = self.system.to_user(self.system.to_local(x.to(torch.float64))).float()
+        low, high = (torch.tensor(b, dtype=torch.float32) for b in self.system.state_box)
+        return torch.minimum(torch.maximum(shown, low), high)
 
+    @torch.no_grad()
     def controller(self, x: torch.Tensor) -> torch.Tensor:
-        action, _ = self.model.predict(self._obs(x), deterministic=True)
-        u = np.clip(np.asarray(action, dtype=np.float64).reshape(-1, self.system.m), self._low, self._high)
-        return torch.from_numpy(u)
+        """Deterministic action (as ``model.predict(obs, deterministic=True)``), clipped to U, float64."""
+        policy = self.model.policy
+        obs = self._obs(x)
+        low, high = torch.from_numpy(self._low), torch.from_numpy(self._high)
+        if self.algo == "sac":  # tanh-squashed actor in [-1, 1], rescaled to U
+            scaled = policy.actor(obs, deterministic=True).double()
+            u = low + 0.5 * (scaled + 1.0) * (high - low)
+        else:
+            u = policy._predict(obs, deterministic=True).double()
+        return torch.minimum(torch.maximum(u.reshape(-1, self.system.m), low), high)
 
     @torch.no_grad()
     def certificate(self, x: torch.Tensor) -> torch.Tensor:
+        """Negated critic value: SAC ``-min(Q1, Q2)(s, pi(s))``, PPO ``-V(s)``; ``(B,)`` float64."""
         policy = self.model.policy
-        obs, _ = policy.obs_to_tensor(self._obs(x))
+        obs = self._obs(x)
         if self.algo == "sac":
             action = policy.actor(obs, deterministic=True)
             value = torch.min(torch.cat(policy.critic(obs, action), dim=1), dim=1).values
         else:
             value = policy.predict_values(obs).reshape(-1)
-        return -value.double().cpu()
+        return -value.double()
 
 
 def load_rl_run(path: str | os.PathLike, system: UncertainSystem | None = None):

@@ -154,8 +154,12 @@ def draw_xi_samples(system: UncertainSystem, cfg: TrainConfig) -> Tensor:
 
 
 def train(cfg: TrainConfig, system: UncertainSystem | None = None, progress: bool = True,
-          init: tuple[Lyapunov, Controller] | None = None) -> TrainResult:
-    """Train a pair for ``cfg``; ``init`` warm-starts from given networks (copied, not modified)."""
+          init: tuple[Lyapunov, Controller] | None = None, extra_states: Tensor | None = None) -> TrainResult:
+    """Train a pair for ``cfg``.
+
+    ``init`` warm-starts from given networks (copied, not modified). ``extra_states`` ``(E, n)`` are
+    local states (e.g. counterexamples found by the verifier) added to every training batch.
+    """
     system = system or get_system(cfg.system)
     cfg = cfg.resolved(system)
     device = resolve_device(cfg.device)
@@ -168,7 +172,17 @@ def train(cfg: TrainConfig, system: UncertainSystem | None = None, progress: boo
     lyapunov, controller = (copy.deepcopy(init[0]), copy.deepcopy(init[1])) if init else build_networks(system, cfg)
     lyapunov.to(device)
     controller.to(device)
-    z_train = sample_region(system, int(cfg.n_states), cfg.delta, gen).float().to(device)
+    if extra_states is not None:
+        extra_states = torch.as_tensor(extra_states, dtype=torch.float64)
+        if extra_states.ndim != 2 or extra_states.shape[1] != system.n or not torch.isfinite(extra_states).all():
+            raise ValueError(f"extra_states must be a finite (E, {system.n}) tensor of local states")
+        extra_states = extra_states.float().to(device)
+
+    def batch() -> Tensor:
+        z = sample_region(system, int(cfg.n_states), cfg.delta, gen).float().to(device)
+        return z if extra_states is None else torch.cat([z, extra_states])
+
+    z_train = batch()
     xi_dev = xi_train.float().to(device)
     z_val = validation_states(system, cfg.delta).float().to(device)
 
@@ -203,7 +217,7 @@ def train(cfg: TrainConfig, system: UncertainSystem | None = None, progress: boo
     try:
         for iteration in range(1, cfg.iters + 1):
             if cfg.resample and iteration > 1:
-                z_train = sample_region(system, int(cfg.n_states), cfg.delta, gen).float().to(device)
+                z_train = batch()
             terms = decrease_terms(system, lyapunov, controller, z_train, xi_dev, cfg.decay_rate, cfg.exp_rate)
             loss = condition.loss(terms, cfg.margin)
             if not torch.isfinite(loss):

@@ -1,0 +1,381 @@
+"""Soundness and behaviour of the interval / branch-and-bound verifier (drlyap.verification)."""
+
+import copy
+import json
+import math
+
+import pytest
+import torch
+from click.testing import CliRunner
+from hypothesis import given, settings
+from hypothesis import strategies as st
+
+from drlyap import systems
+from drlyap.conditions import DRPointwise, Nominal, decrease_terms
+from drlyap.networks import Controller, Lyapunov, TanhMLP
+from drlyap.systems import UncertainSystem
+from drlyap.training import TrainConfig, build_networks
+from drlyap.verification import (
+    ConditionSpec,
+    Dual,
+    Interval,
+    PairBounds,
+    _NetBounds,
+    box_bounds,
+    certified_roa,
+    uniform_margin,
+    verify_condition,
+)
+
+F64 = torch.float64
+
+
+def _boxes(n, count, lo, hi, max_width, seed):
+    g = torch.Generator().manual_seed(seed)
+    lo, hi = torch.as_tensor(lo, dtype=F64), torch.as_tensor(hi, dtype=F64)
+    centre = lo + (hi - lo) * torch.rand(count, n, generator=g, dtype=F64)
+    half = max_width * (hi - lo) * torch.rand(count, n, generator=g, dtype=F64) / 2
+    return torch.maximum(centre - half, lo), torch.minimum(centre + half, hi), g
+
+
+def _samples(lo, hi, g, k=16):
+    return lo + (hi - lo) * torch.rand(k, *lo.shape, generator=g, dtype=F64)
+
+
+def _encloses(enc, values, atol=0.0):
+    return bool(((enc.lo - atol <= values) & (values <= enc.hi + atol)).all())
+
+
+def _dual_box(lo, hi):
+    n = lo.shape[-1]
+    eye = torch.eye(n, dtype=F64).expand(lo.shape[0], n, n)
+    return Dual(Interval(lo, hi), Interval(eye, eye))
+
+
+# ------------------------------------------------------------------ (a) elementary enclosures
+_interval = st.tuples(st.floats(-5, 5), st.floats(0, 3)).map(lambda t: (t[0], t[0] + t[1]))
+
+
+@settings(max_examples=150, deadline=None)
+@given(a=_interval, b=_interval, frac=st.lists(st.floats(0, 1), min_size=2, max_size=2))
+def test_interval_arithmetic_encloses_point_results(a, b, frac):
+    x = a[0] + frac[0] * (a[1] - a[0])
+    y = b[0] + frac[1] * (b[1] - b[0])
+    ia = Interval(torch.tensor([a[0]], dtype=F64), torch.tensor([a[1]], dtype=F64))
+    ib = Interval(torch.tensor([b[0]], dtype=F64), torch.tensor([b[1]], dtype=F64))
+    tx, ty = torch.tensor([x], dtype=F64), torch.tensor([y], dtype=F64)
+    checks = [(ia + ib, tx + ty), (ia - ib, tx - ty), (ia * ib, tx * ty), (-ia, -tx), (ia.square(), tx * tx),
+              (ia ** 3, tx ** 3), (ia ** 4, tx ** 4), (torch.sin(ia), torch.sin(tx)), (torch.cos(ia), torch.cos(tx)),
+              (torch.tanh(ia), torch.tanh(tx)), (torch.exp(ia), torch.exp(tx)), (2.5 * ia - 1.0, 2.5 * tx - 1.0),
+              (ia.abs().sqrt(), tx.abs().sqrt()), (ty * ia, ty * tx), (ty - ia, ty - tx), (torch.mul(ia, ty), tx * ty),
+              (torch.stack([ia, ib], dim=-1), torch.stack([tx, ty], dim=-1))]
+    if b[0] > 0.01:
+        checks.append((ia / ib, tx / ty))
+        checks.append((1.0 / ib, 1.0 / ty))
+    for enc, value in checks:
+        assert _encloses(enc, value), (enc, value)
+        assert bool((enc.lo <= enc.hi).all())
+
+
+def test_sin_cos_enclose_extrema_and_division_by_zero_interval_raises():
+    iv = Interval(torch.tensor([1.0, -4.0, 3.0]), torch.tensor([2.0, -1.0, 3.2])).lo.to(F64)
+    box = Interval(iv, torch.tensor([2.0, -1.0, 3.2], dtype=F64))
+    s, c = box.sin(), box.cos()
+    assert s.hi[0] == 1.0 and s.lo[1] == -1.0 and c.lo[2] == -1.0
+    with pytest.raises(ValueError, match="contains 0"):
+        box / Interval(torch.tensor([-1.0], dtype=F64), torch.tensor([1.0], dtype=F64))
+
+
+def test_dual_gradient_encloses_autograd():
+    lo, hi, g = _boxes(2, 64, [-2, -2], [2, 2], 0.3, 0)
+    z = _dual_box(lo, hi)
+    a, b = z.unbind(-1)
+    out = torch.sin(a) * b ** 2 / (2.0 + torch.cos(b)) - torch.tanh(a * b) + torch.exp(-a)
+    for p in _samples(lo, hi, g):
+        p = p.requires_grad_(True)
+        x, y = p.unbind(-1)
+        val = torch.sin(x) * y ** 2 / (2.0 + torch.cos(y)) - torch.tanh(x * y) + torch.exp(-x)
+        (grad,) = torch.autograd.grad(val.sum(), p)
+        assert _encloses(out.v, val.detach()) and _encloses(out.d, grad)
+
+
+def test_mlp_value_and_jacobian_enclosures():
+    torch.manual_seed(0)
+    net = TanhMLP([3, 16, 16, 4], input_scale=[1.0, 2.0, 0.5]).double()
+    nb = _NetBounds(net)
+    lo, hi, g = _boxes(3, 50, [-1, -2, -0.5], [1, 2, 0.5], 0.2, 1)
+    out, _ = nb.forward(_dual_box(lo, hi))
+    for p in _samples(lo, hi, g, 8):
+        jac = torch.autograd.functional.jacobian(lambda q: net(q).sum(0), p)  # (4, B, 3)
+        assert _encloses(out.v, net(p).detach())
+        assert _encloses(out.d, jac.permute(1, 0, 2))
+
+
+def _random_pair(system, gain=10.0, seed=0):
+    torch.manual_seed(seed)
+    cfg = TrainConfig(system=system.name, lyapunov_hidden=[16], lyapunov_out=4, controller_hidden=[16],
+                      init_gain=gain).resolved(system)
+    return build_networks(system, cfg)
+
+
+@pytest.mark.parametrize("make", [systems.pendulum, systems.mountain_car])
+def test_pair_and_dynamics_enclosures(make):
+    """V, grad V, its Hessian, the clamped controller, f, W and the true model enclose sampled values."""
+    system = make()
+    lyap, ctrl = _random_pair(system, gain=300.0)  # large gain: the clamp is active on much of the box
+    l64, c64 = copy.deepcopy(lyap).double(), copy.deepcopy(ctrl).double()
+    pb = PairBounds(system, lyap, ctrl)
+    box_lo, box_hi = system.local_box()
+    lo, hi, g = _boxes(system.n, 80, box_lo, box_hi, 0.05, 2)
+    z = _dual_box(lo, hi)
+    value, grad = pb.value_and_grad(z)
+    u = pb.control(z)
+    f, w = pb.dynamics(z + pb.x_star, u, None, want_w=True)
+    xi = torch.tensor(system.test_xi, dtype=F64)
+    ft, _ = pb.dynamics(z + pb.x_star, u, xi)
+    saturated = 0
+    for p in _samples(lo, hi, g, 8):
+        p = p.requires_grad_(True)
+        v, gv = l64.value_and_grad(p)
+        hess = torch.stack([torch.autograd.grad(gv[:, i].sum(), p, retain_graph=True)[0] for i in range(system.n)], 1)
+        raw = c64.raw(p)
+        uu = c64.u_star + torch.clamp(raw, c64.room_low, c64.room_high)  # the real clamp, with its real derivative
+        du = torch.autograd.grad(uu.sum(), p)[0]
+        saturated += int(((raw <= c64.room_low) | (raw >= c64.room_high)).sum())
+        x = system.to_user(p.detach())
+        f_true, w_true = system.design_model(x, uu.detach())
+        assert _encloses(value.v, v.detach()) and _encloses(grad.v, gv.detach()) and _encloses(grad.d, hess)
+        assert _encloses(u.v, uu.detach()) and _encloses(u.d[:, 0], du)
+        assert _encloses(f.v, f_true) and _encloses(w.v, w_true)
+        assert _encloses(ft.v, system.true_dynamics(x, uu.detach(), xi))
+    assert saturated > 0
+
+
+# ------------------------------------------------------------------ hand-made pairs on a small pendulum box
+def _pend(x, u, p):
+    theta, omega = x.unbind(-1)
+    m, l, b, g = p.unbind(-1)
+    return torch.stack([omega, (m * g * l * torch.sin(theta) - b * omega + u[:, 0]) / (m * l * l)], dim=-1)
+
+
+def small_pendulum(box=((-0.6, -1.2), (0.6, 1.2))) -> UncertainSystem:
+    """A user-defined system (the pendulum on a small box) to show the verifier runs user dynamics."""
+    return UncertainSystem(
+        name="small-pendulum", state_names=("theta", "omega"), input_names=("torque",),
+        param_names=("mass", "length", "damping", "gravity"), nominal_params=(1.0, 1.0, 0.13, 9.81),
+        uncertain=("mass", "damping"), dynamics=_pend, state_box=box,
+        input_box=((-15.0,), (15.0,)), equilibrium=(0.0, 0.0), angle_dims=(0,))
+
+
+def linear_pair(system, sign=1.0, eps=1e-2):
+    """V ~ z^T P z (Lyapunov matrix of the LQR-like closed loop) and pi ~ -K z, realised with tanh networks."""
+    g, b = 9.81, 0.13
+    k = torch.tensor([[g + 4.0, 4.0 - b]], dtype=F64)  # closed-loop poles at -2, -2 (nominal model)
+    a_cl = torch.tensor([[0.0, 1.0], [g, -b]], dtype=F64) - torch.tensor([[0.0], [1.0]], dtype=F64) @ k
+    # solve A^T P + P A = -I by vectorisation
+    eye = torch.eye(2, dtype=F64)
+    at = a_cl.T.contiguous()
+    lhs = torch.kron(eye, at) + torch.kron(at, eye)
+    p = torch.linalg.solve(lhs, -eye.reshape(-1)).reshape(2, 2)
+    p = (p + p.T) / 2
+    lo, hi = system.local_box()
+    s = ((hi - lo) / 2).float()
+    alpha_hat = 1e-3
+    chol = torch.linalg.cholesky(p - alpha_hat * torch.diag(1 / s.double() ** 2)).T  # P = L^T L + alpha S^-2
+    lyap = Lyapunov(2, hidden=[2], out=2, alpha_hat=alpha_hat, input_scale=s.tolist())
+    ctrl = Controller(2, system.input_box, system.equilibrium_input, hidden=[1], input_scale=s.tolist())
+    with torch.no_grad():
+        lyap.phi.layers[0].weight.copy_((eps * chol * s.double()).float())
+        lyap.phi.layers[0].bias.zero_()
+        lyap.phi.layers[1].weight.copy_(torch.eye(2) / eps)
+        lyap.phi.layers[1].bias.zero_()
+        ctrl.varphi.layers[0].weight.copy_((eps * k * s.double()).float())
+        ctrl.varphi.layers[0].bias.zero_()
+        ctrl.varphi.layers[1].weight.fill_(-sign / eps)
+        ctrl.varphi.layers[1].bias.zero_()
+    return lyap, ctrl
+
+
+XI = torch.tensor([[0.02, 0.01], [-0.03, 0.0], [0.05, -0.02]], dtype=F64)
+
+
+def _specs():
+    return [ConditionSpec("nominal", XI.mean(0, keepdim=True), 0.05),
+            ConditionSpec("pointwise", XI, 0.05, 0.0, 1e-3, 0.1),
+            ConditionSpec("pointwise", XI, 0.05, 0.1, 1e-3, 0.5),  # general-eps CVaR and the exponential term
+            ConditionSpec("true", torch.tensor([[0.1, 0.05]], dtype=F64), 0.05)]
+
+
+@pytest.mark.parametrize("spec", _specs(), ids=lambda s: s.kind)
+def test_box_bounds_enclose_the_residual(spec):
+    """The combined bound over random boxes encloses the residual sampled by the ordinary code path."""
+    for system, (lyap, ctrl) in [(small_pendulum(), linear_pair(small_pendulum())),
+                                 (systems.pendulum(), _random_pair(systems.pendulum(), 30.0, 3))]:
+        pb = PairBounds(system, lyap, ctrl)
+        box_lo, box_hi = system.local_box()
+        lo, hi, g = _boxes(2, 60, box_lo, box_hi, 0.1, 4)
+        lb, ub, _ = box_bounds(lambda z, pb=pb: spec.components(pb, z), lo, hi)
+        upper, lower = spec.combine(ub), spec.combine_lower(lb)
+        for p in _samples(lo, hi, g, 8):
+            res = spec.exact(system, lyap, ctrl, p)
+            assert bool((lower <= res).all() and (res <= upper).all())
+
+
+def test_exact_residual_matches_conditions_module():
+    system = small_pendulum()
+    lyap, ctrl = linear_pair(system)
+    z = torch.tensor([[0.3, -0.5], [-0.2, 0.9]], dtype=F64)
+    terms = decrease_terms(system, lyap.double(), ctrl.double(), z, XI, 0.05)
+    spec = ConditionSpec("pointwise", XI, 0.05, 0.0, 1e-3, 0.1)
+    assert torch.allclose(spec.exact(system, lyap, ctrl, z), DRPointwise(1e-3, 0.1).residual(terms))
+    nominal = ConditionSpec("nominal", XI[:1], 0.05)
+    terms1 = decrease_terms(system, lyap, ctrl, z, XI[:1], 0.05)
+    assert torch.allclose(nominal.exact(system, lyap, ctrl, z), Nominal().residual(terms1))
+
+
+# ------------------------------------------------------------------ (b), (c), (d) branch and bound
+def _dense_region(system, delta, per=200):
+    lo, hi = system.local_box()
+    axes = [lo[i] + (hi[i] - lo[i]) * (torch.arange(per, dtype=F64) + 0.5) / per for i in range(system.n)]
+    z = torch.cartesian_prod(*axes)
+    g = torch.Generator().manual_seed(7)
+    z = torch.cat([z, lo + (hi - lo) * torch.rand(20000, system.n, generator=g, dtype=F64)])
+    return z[z.norm(dim=-1) >= delta]
+
+
+@pytest.mark.parametrize("spec", _specs(), ids=lambda s: s.kind)
+def test_hand_made_pair_verifies_and_dense_sampling_agrees(spec):
+    system = small_pendulum()
+    lyap, ctrl = linear_pair(system)
+    result = verify_condition(system, lyap, ctrl, spec, delta=0.2, time_limit=20)
+    assert result.status == "verified", result
+    assert result.verified_fraction == 1.0 and result.counterexample is None
+    assert result.sup_bounds[1] <= 0
+    res = spec.exact(system, lyap, ctrl, _dense_region(system, 0.2))
+    assert float(res.max()) <= 0
+    assert result.sup_bounds[0] <= float(res.max()) + 1e-9  # the reported lower end is attained
+
+
+def test_dense_violations_lie_in_unverified_boxes_of_a_mixed_case():
+    """The linear pair on a larger box holds near x* only: every densely sampled violating state lies in a
+    box left unverified, so no verified box contains a violation."""
+    system = small_pendulum(((-1.5, -3.0), (1.5, 3.0)))
+    lyap, ctrl = linear_pair(system)
+    spec = ConditionSpec("pointwise", XI, 0.05, 0.0, 1e-3, 0.1)
+    result = verify_condition(system, lyap, ctrl, spec, delta=0.2, time_limit=20, min_width=1e-2, keep_boxes=10**6)
+    z = _dense_region(system, 0.2, per=150)
+    res = spec.exact(system, lyap, ctrl, z)
+    bad = z[res > 0]
+    assert result.status == ("violated" if bad.shape[0] else "verified")
+    assert result.n_unverified == len(result.unverified_boxes)
+    x_star = torch.tensor(system.equilibrium, dtype=F64)
+    lo = torch.tensor([b["lo"] for b in result.unverified_boxes], dtype=F64).reshape(-1, 2) - x_star
+    hi = torch.tensor([b["hi"] for b in result.unverified_boxes], dtype=F64).reshape(-1, 2) - x_star
+    covered = ((lo[None] <= bad[:, None]) & (bad[:, None] <= hi[None])).all(-1).any(-1)
+    assert bool(covered.all()), bad[~covered]
+    assert 0 < result.verified_fraction < 1 and result.counterexample_value > 0
+
+
+def test_wrong_way_controller_is_violated_with_a_real_counterexample():
+    system = small_pendulum()
+    lyap, ctrl = linear_pair(system, sign=-1.0)  # pushes away from the equilibrium
+    spec = ConditionSpec("pointwise", XI, 0.05, 0.0, 1e-3, 0.1)
+    result = verify_condition(system, lyap, ctrl, spec, delta=0.2, time_limit=20)
+    assert result.status == "violated"
+    z = torch.tensor([result.counterexample_local], dtype=F64)
+    assert math.hypot(*result.counterexample_local) >= 0.2
+    assert torch.allclose(system.to_user(z), torch.tensor([result.counterexample], dtype=F64))
+    terms = decrease_terms(system, lyap.double(), ctrl.double(), z, XI, 0.05)
+    assert float(DRPointwise(1e-3, 0.1).residual(terms)[0].detach()) > 0
+    assert result.counterexample_value > 0 and result.verified_fraction < 1
+
+
+def test_budget_exhaustion_is_unknown_not_verified():
+    system = small_pendulum()
+    lyap, ctrl = linear_pair(system)
+    spec = ConditionSpec("nominal", XI[:1], 0.05)
+    result = verify_condition(system, lyap, ctrl, spec, delta=0.2, max_boxes=10, grid=[2, 2])
+    assert result.status == "unknown" and result.stopped == "box budget" and result.verified_fraction < 1
+
+
+def test_uniform_margin_brackets_sampled_value():
+    system = small_pendulum()
+    lyap, ctrl = linear_pair(system)
+    r, eps = 1e-3, 0.1
+    out = uniform_margin(system, lyap, ctrl, XI, 0.05, 0.0, r, eps, delta=0.2, time_limit=5)
+    z = _dense_region(system, 0.2, per=100)
+    with torch.no_grad():
+        terms = decrease_terms(system, lyap.double(), ctrl.double(), z, XI, 0.05)
+    sampled = r / eps * float(terms.lip.max()) + float((terms.vdot + terms.decay[:, None]).max())
+    assert out["margin_lower"] <= out["margin_upper"]
+    assert sampled <= out["margin_upper"] + 1e-12
+    assert out["status"] in ("verified", "unknown", "violated")
+
+
+def test_certified_roa_is_a_sublevel_set_inside_the_box_where_the_condition_holds():
+    system = small_pendulum()
+    lyap, ctrl = linear_pair(system)
+    spec = ConditionSpec("pointwise", XI, 0.05, 0.0, 1e-3, 0.1)
+    roa = certified_roa(system, lyap, ctrl, spec, delta=0.2, time_limit=10, samples_per_axis=100)
+    assert roa["certified"] and roa["level"] > roa["ball_max_upper"] and 0 < roa["share_of_box"] < 1
+    l64 = copy.deepcopy(lyap).double()
+    lo, hi = system.local_box()
+    t = torch.linspace(0, 1, 400, dtype=F64)
+    edges = torch.cat([torch.stack([lo[0] + (hi[0] - lo[0]) * t, torch.full_like(t, float(s))], -1) for s in (lo[1], hi[1])]
+                      + [torch.stack([torch.full_like(t, float(s)), lo[1] + (hi[1] - lo[1]) * t], -1) for s in (lo[0], hi[0])])
+    with torch.no_grad():
+        assert float(l64(edges).min()) > roa["level"]
+        z = _dense_region(system, 0.2)
+        inside = z[l64(z) <= roa["level"]]
+    assert inside.shape[0] > 0 and float(spec.exact(system, lyap, ctrl, inside).max()) <= 0
+
+
+def test_user_dynamics_with_unsupported_ops_fail_clearly():
+    def weird(x, u, p):
+        return torch.stack([torch.atan(x[:, 0]), x[:, 1] * p[:, 0] + u[:, 0]], dim=-1)
+
+    system = UncertainSystem(name="weird", state_names=("a", "b"), input_names=("u",), param_names=("k",),
+                             nominal_params=(1.0,), uncertain=("k",), dynamics=weird,
+                             state_box=((-1.0, -1.0), (1.0, 1.0)), input_box=((-1.0,), (1.0,)), equilibrium=(0.0, 0.0))
+    lyap, ctrl = _random_pair(system)
+    with pytest.raises(TypeError, match="does not support"):
+        verify_condition(system, lyap, ctrl, ConditionSpec("nominal", torch.zeros(1, 1), 0.0), delta=0.1)
+
+
+# ------------------------------------------------------------------ runs and CLI
+def test_cli_verify_on_a_run_directory(tmp_path, tiny_config):
+    from drlyap.cli import main
+    from drlyap.rundir import save_run
+    from drlyap.training import train
+
+    result = train(tiny_config(iters=5, check_every=5), progress=False)
+    save_run(tmp_path / "run", result)
+    runner = CliRunner()
+    out = runner.invoke(main, ["verify", str(tmp_path / "run"), "--time-limit", "2", "--xi", "0.1,0.05", "--json"])
+    assert out.exit_code == 0, out.output
+    data = json.loads(out.output)
+    assert data["status"] in ("verified", "violated", "unknown")
+    assert {"trained", "uniform", "true_model", "roa"} <= set(data)
+    assert data["uniform"]["margin_lower"] <= data["uniform"]["margin_upper"]
+    if data["counterexample"] is not None:
+        assert data["counterexample_value"] > 0
+    text = runner.invoke(main, ["verify", str(tmp_path / "run"), "--time-limit", "1", "--roa"])
+    assert text.exit_code == 0 and "uniform DR condition" in text.output and "region of attraction" in text.output
+    bad = runner.invoke(main, ["verify", str(tmp_path / "run"), "--xi", "1"])
+    assert bad.exit_code != 0 and "takes 2 xi" in bad.output
+    missing = runner.invoke(main, ["verify", str(tmp_path / "nope")])
+    assert missing.exit_code != 0 and "does not exist" in missing.output
+
+
+def test_verify_run_on_a_uniform_run_reports_the_margin(tmp_path, tiny_config):
+    from drlyap.rundir import load_run, save_run
+    from drlyap.training import train
+    from drlyap.verification import verify_run
+
+    result = train(tiny_config(iters=5, check_every=5, loss="uniform"), progress=False)
+    save_run(tmp_path / "uni", result)
+    out = verify_run(load_run(tmp_path / "uni"), time_limit=2, roa=True, uniform_time=1)
+    assert out["trained"] == out["uniform"] and "margin_upper" in out["trained"]
+    assert out["trained"]["margin_lower"] <= out["trained"]["margin_upper"]
+    assert "error" in out["roa"] and out["status"] in ("verified", "violated", "unknown")
+    json.dumps(out, allow_nan=False)
