@@ -5,8 +5,15 @@ import torch
 from hypothesis import given, settings
 from hypothesis import strategies as st
 
-from drlyap.conditions import (DecreaseTerms, DRPointwise, DRUniform, Nominal, cvar_bound, make_condition,
-                               wasserstein_radius_guarantee)
+from drlyap.conditions import (
+    DecreaseTerms,
+    DRPointwise,
+    DRUniform,
+    Nominal,
+    cvar_bound,
+    make_condition,
+    wasserstein_radius_guarantee,
+)
 
 
 def brute_force_cvar(h, eps):
