@@ -58,3 +58,18 @@ def test_evaluate_rejects_bad_xi(run_dir, xi, message):
 def test_train_refuses_to_overwrite(run_dir):
     result = CliRunner().invoke(main, ["train", "pendulum", "--iters", "1", "--out", str(run_dir)])
     assert result.exit_code != 0 and "already exists" in result.output
+
+
+def test_reproduce_end_to_end_writes_table_json_and_figures(tmp_path):
+    from drlyap.experiments import reproduce
+
+    out = tmp_path / "rep"
+    report = reproduce("pendulum", [0], out, iters=2, progress=False, log=lambda s: None, n_more=4, sweep=(1, 2))
+    assert {r["method"] for r in report["results"]} == {"baseline", "dr"}
+    for r in report["results"]:
+        assert r["paper_10"]["n"] == 10 and r["more_200"]["n"] == 4 and set(r["sweep_200"]) == {1, 2}
+        assert (out / "seed0" / r["method"] / "run.json").is_file()
+    assert (out / "report.md").is_file() and (out / "shift_sweep.png").is_file()
+    assert (out / "seed0" / "figures" / "trajectories.png").is_file()
+    assert (out / "seed0" / "figures" / "certificate_and_input.png").is_file()
+    assert not [p for p in tmp_path.iterdir() if p.name.startswith(".")]  # no temporary leftovers

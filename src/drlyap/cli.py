@@ -91,9 +91,13 @@ def systems(as_json: bool) -> None:
               help="Start from the networks of this run directory (e.g. a baseline run).")
 @click.option("--out", type=click.Path(path_type=Path), required=True, help="Run directory to create.")
 @click.option("--quiet", is_flag=True, help="No progress bar.")
+@click.option("--cegis", is_flag=True,
+              help="Counterexample-guided training: verify after training, add counterexamples and falsified "
+                   "states, continue training (iters/2 per round) until verified or --cegis-rounds.")
+@click.option("--cegis-rounds", type=int, default=5, show_default=True, help="Retraining rounds of --cegis.")
 def train(system: str, method: str, loss: str, radius: float | None, eps: float | None, gamma: float | None,
           exp_rate: float, xi_samples: str | None, iters: int, seed: int, device: str, warm_start: Path | None,
-          out: Path, quiet: bool) -> None:
+          out: Path, quiet: bool, cegis: bool, cegis_rounds: int) -> None:
     """Train a controller and Lyapunov certificate for SYSTEM and save a run directory."""
     from drlyap.rundir import load_run, save_run
     from drlyap.training import TrainConfig
@@ -113,7 +117,24 @@ def train(system: str, method: str, loss: str, radius: float | None, eps: float 
         if warm_start is not None:
             prior = load_run(warm_start, sys_)
             init = (prior.lyapunov_net, prior.controller_net)
-        result = train_pair(cfg, sys_, progress=not quiet, init=init)
+        if cegis:
+            from drlyap.cegis import train_cegis
+
+            if cegis_rounds < 0:
+                raise ValueError(f"--cegis-rounds must be >= 0, got {cegis_rounds}")
+
+            def show_round(e: dict) -> None:
+                v = e["verification"]
+                line = (f"  cegis round {e['round']}: {v['status'].upper()}, verified {100 * v['verified_fraction']:.4f}% "
+                        f"of X_delta ({v['time_s']:.2f} s)")
+                if "counterexamples_added" in e:
+                    line += (f"; added {e['counterexamples_added']} counterexamples (+{e['neighbours_added']} neighbours, "
+                             f"{e['box_centres_added']} box centres)")
+                click.echo(line)
+
+            result, _ = train_cegis(cfg, sys_, rounds=cegis_rounds, progress=not quiet, init=init, log=show_round)
+        else:
+            result = train_pair(cfg, sys_, progress=not quiet, init=init)
         save_run(out, result)
     except ValueError as err:
         _fail(err)
@@ -123,6 +144,10 @@ def train(system: str, method: str, loss: str, radius: float | None, eps: float 
     click.echo(f"  acceptance: {'PASSED' if m['passed'] else 'NOT PASSED'}; max violation {acc['max_violation']:.3g} "
                f"on {100 * acc['violating_fraction']:.2f}% of {acc['validation_states']} validation states; "
                f"Hurwitz at x*: {acc['jacobian']['hurwitz']}; other equilibria: {len(acc['other_equilibria'])}")
+    if "cegis" in m:
+        c = m["cegis"]
+        click.echo(f"  cegis: {'VERIFIED' if c['verified'] else 'NOT VERIFIED'} after {c['retraining_rounds']} retraining "
+                   f"round(s), {c['total_iterations']} iterations, {c['total_time_s']:.1f} s (kept round {c['returned_round']})")
     click.echo(f"  saved {out}")
 
 

@@ -8,7 +8,6 @@ paper's 10 initial states and on 200 more, prints a table, and draws the paper's
 from __future__ import annotations
 
 import json
-import time
 from collections.abc import Sequence
 from pathlib import Path
 
@@ -21,6 +20,7 @@ from drlyap.systems import UncertainSystem, get_system
 from drlyap.training import TrainConfig, train
 
 METHODS = ("baseline", "dr")
+SWEEP = (1, 2, 3, 4, 5)  # evaluation shifts, as multiples of the paper's test shift
 
 # Where the paper's Figs. 3a/3b start: the downward pendulum; for the mountain car, the valley floor.
 REFERENCE_STATES = {"pendulum": (torch.pi, 0.0), "pendulum-u9": (torch.pi, 0.0), "mountain-car": (-torch.pi / 6, 0.0)}
@@ -42,7 +42,7 @@ def summary_row(result: dict) -> dict:
 
 
 def reproduce(system_name: str, seeds: Sequence[int], out: Path, iters: int | None = None, progress: bool = True,
-              device: str = "cpu", log=print) -> dict:
+              device: str = "cpu", log=print, n_more: int = 200, sweep: Sequence[int] = SWEEP) -> dict:
     """Run the paper's experiment for ``system_name`` and write everything under ``out`` (atomically).
 
     Returns a JSON-friendly dict with per-seed, per-method results and the paths of the figures.
@@ -53,17 +53,17 @@ def reproduce(system_name: str, seeds: Sequence[int], out: Path, iters: int | No
     if not seeds:
         raise ValueError("need at least one seed")
     xi_test = torch.tensor(system.test_xi, dtype=torch.float64)
-    report: dict = {"system": system_name, "test_xi": list(system.test_xi), "seeds": list(seeds), "results": []}
+    report: dict = {"system": system_name, "test_xi": list(system.test_xi), "seeds": list(seeds), "sweep": list(sweep),
+                    "results": []}
 
     def fill(tmp: Path) -> None:
         for seed in seeds:
-            x_paper, x_more = test_initial_states(system, seed)
+            x_paper, x_more = test_initial_states(system, seed, n_more=n_more)
             runs: dict[str, Run] = {}
             for method in METHODS:
                 cfg = TrainConfig(system=system_name, method=method, seed=seed, device=device)
                 if iters is not None:
                     cfg.iters = iters
-                tic = time.perf_counter()
                 result = train(cfg, system, progress=progress)
                 run_dir = save_run(tmp / f"seed{seed}" / method, result)
                 run = load_run(run_dir)
@@ -72,20 +72,23 @@ def reproduce(system_name: str, seeds: Sequence[int], out: Path, iters: int | No
                 run.metrics["evaluations"] = {"paper_10": paper, "more_200": more}
                 run.save_metrics()
                 runs[method] = run
+                swept = {k: evaluate_run(run, k * xi_test, x_more)["n_success"] for k in sweep}
                 row = {"seed": seed, "method": method, "passed_acceptance": result.metrics["passed"],
                        "acceptance_status": result.metrics["status"],
                        "max_violation": result.metrics["acceptance"]["max_violation"],
                        "violating_fraction": result.metrics["acceptance"]["violating_fraction"],
                        "hurwitz": result.metrics["acceptance"]["jacobian"]["hurwitz"],
                        "other_equilibria": len(result.metrics["acceptance"]["other_equilibria"]),
-                       "iterations": result.metrics["iterations"], "train_time_s": time.perf_counter() - tic,
-                       "paper_10": summary_row(paper), "more_200": summary_row(more),
+                       "iterations": result.metrics["iterations"], "train_time_s": result.metrics["train_time_s"],
+                       "paper_10": summary_row(paper), "more_200": summary_row(more), "sweep_200": swept,
                        "run_dir": str(Path(out) / f"seed{seed}" / method)}
                 report["results"].append(row)
                 log(format_row(row))
             figures = draw_figures(system, runs, xi_test, x_paper, tmp / f"seed{seed}" / "figures", seed)
             report.setdefault("figures", {})[str(seed)] = [str(Path(out) / f"seed{seed}" / "figures" / f.name)
                                                           for f in figures]
+        report["figures"]["sweep"] = str(Path(out) / "shift_sweep.png")
+        plotting.sweep_plot(system.name, sweep, report["results"], tmp / "shift_sweep.png", list(system.test_xi))
         (tmp / "report.json").write_text(json.dumps(report, indent=2) + "\n")
         (tmp / "report.md").write_text(format_table(report) + "\n")
 
@@ -134,4 +137,10 @@ def format_table(report: dict) -> str:
                      f"{'passed' if r['passed_acceptance'] else 'not passed'} | {r['max_violation']:.3g} | "
                      f"{100 * r['violating_fraction']:.2f} | {r['hurwitz']} | {r['other_equilibria']} | "
                      f"{r['train_time_s']:.0f} |")
+    factors = report["sweep"]
+    lines += ["", f"Success on the {report['results'][0]['more_200']['n']} more states at k x the test shift:", "",
+              "| seed | method | " + " | ".join(f"k={k}" for k in factors) + " |",
+              "|---|---|" + "---|" * len(factors)]
+    for r in report["results"]:
+        lines.append(f"| {r['seed']} | {r['method']} | " + " | ".join(str(r["sweep_200"][k]) for k in factors) + " |")
     return "\n".join(lines)

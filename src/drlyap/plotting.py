@@ -94,3 +94,29 @@ def lyapunov_grid(system: UncertainSystem, lyapunov, per_axis: int = 120) -> tup
     x = torch.tensor(system.equilibrium, dtype=torch.float64).repeat(gx.numel(), 1)
     x[:, 0], x[:, 1] = gx.reshape(-1), gy.reshape(-1)
     return gx, gy, lyapunov(x).reshape(gx.shape)
+
+
+def sweep_plot(system_name: str, factors: Sequence[int], results: Sequence[dict], path: Path,
+               test_xi: Sequence[float]) -> Path:
+    """Success rate against the size of the parameter shift (multiples of the test shift), per method;
+    one thin line per seed and the mean as a thick line."""
+    fig, ax = plt.subplots(figsize=(6, 4))
+    colors = {"baseline": "tab:orange", "dr": "tab:blue"}
+    for method, color in colors.items():
+        rows = [r for r in results if r["method"] == method]
+        if not rows:
+            continue
+        rates = torch.tensor([[r["sweep_200"][k] / r["more_200"]["n"] for k in factors] for r in rows])
+        for line in rates:
+            ax.plot(factors, line, color=color, alpha=0.3, lw=0.8)
+        ax.plot(factors, rates.mean(0), color=color, lw=2.5, marker="o", label=f"{method} (mean of {len(rows)} seeds)")
+    ax.set_xlabel(f"shift = k x test shift {list(test_xi)}")
+    ax.set_ylabel("success rate on the true model")
+    ax.set_ylim(-0.02, 1.02)
+    ax.set_xticks(list(factors))
+    ax.set_title(f"{system_name}: robustness to larger parameter shifts")
+    ax.legend()
+    fig.tight_layout()
+    fig.savefig(path, dpi=110)
+    plt.close(fig)
+    return path

@@ -1,0 +1,264 @@
+"""Counterexample-guided training (SPEC §6: "a falsifier that searches for violating states and adds them").
+
+:func:`train_cegis` alternates training and sound verification:
+
+1. an ordinary :func:`drlyap.training.train` run;
+2. per round, the branch-and-bound verifier of :mod:`drlyap.verification` checks the trained condition on
+   the whole of X_delta (the networks read as float64, like :func:`drlyap.verification.verify_run`). If it is
+   proved, CEGIS stops;
+3. otherwise new training states are collected, in local coordinates:
+
+   * the verifier's counterexample and the centres of (at most ``max_boxes``) unverified boxes,
+   * a gradient falsifier (:func:`falsify`): a few steps of projected gradient ascent on the condition's
+     residual (:func:`drlyap.conditions.decrease_terms` + ``condition.residual``, float64 networks) from random
+     states of X_delta and from the unverified boxes' centres, projected back into X_delta after every step;
+
+   the states with a positive residual (the *counterexamples*), with ``neighbours`` jittered copies each, and
+   the unverified box centres are added (deduplicated, at most ``max_extra``, the newest kept) to the
+   accumulated ``extra_states`` that :func:`train` appends to every batch (``replicate`` times, to weigh them);
+4. training continues from the current networks (``init=``) for ``iters_per_round`` iterations (default
+   ``cfg.iters // 2``; the acceptance check inside ``train`` may stop it earlier), with explicit xi samples
+   (the same ones as the first run) and a per-round seed (fresh batches), and the result is verified again.
+
+The pair returned is the best one seen (verified first, then the largest verified fraction), so a round
+that makes things worse does not lose a better earlier pair. ``metrics["cegis"]`` records every round.
+Only per-state conditions are supported (DR pointwise and the baseline's nominal condition): the uniform
+DR condition has no per-state residual to falsify.
+"""
+
+from __future__ import annotations
+
+import copy
+import dataclasses
+import math
+import time
+from types import SimpleNamespace
+
+import torch
+from torch import Tensor
+
+from drlyap.checks import sample_region
+from drlyap.conditions import Condition, decrease_terms
+from drlyap.networks import Controller, Lyapunov
+from drlyap.systems import UncertainSystem, get_system
+from drlyap.training import TrainConfig, TrainResult, train
+from drlyap.verification import ConditionSpec, run_condition, verify_condition
+
+F64 = torch.float64
+
+
+def _spec_for(result: TrainResult) -> ConditionSpec:
+    """The verifier's spec of the condition ``result`` was trained on (reuses :func:`run_condition`)."""
+    view = SimpleNamespace(config=result.config, xi_train=torch.as_tensor(result.metrics["xi_train"], dtype=F64))
+    return run_condition(view)
+
+
+def residual_at(system: UncertainSystem, lyapunov: Lyapunov, controller: Controller, condition: Condition,
+                z: Tensor, xi: Tensor, decay_rate: float, exp_rate: float) -> Tensor:
+    """The condition's residual at local states ``z (B, n)`` with float64 copies of the networks."""
+    lyap, ctrl = copy.deepcopy(lyapunov).to(F64), copy.deepcopy(controller).to(F64)
+    with torch.no_grad():
+        terms = decrease_terms(system, lyap, ctrl, z.to(F64), xi.to(F64), decay_rate, exp_rate)
+        return condition.residual(terms)
+
+
+def project_region(system: UncertainSystem, z: Tensor, delta: float) -> Tensor:
+    """Project local states onto X_delta: clamp into the box, push states inside the delta-ball to its sphere."""
+    lo, hi = system.local_box()
+    z = torch.minimum(torch.maximum(z, lo), hi)
+    norm = z.norm(dim=-1, keepdim=True)
+    inside = (norm < delta) & (norm > 0)
+    if bool(inside.any()):
+        pushed = torch.minimum(torch.maximum(z * (delta * (1 + 1e-9) / norm.clamp_min(1e-300)), lo), hi)
+        z = torch.where(inside, pushed, z)
+    return z
+
+
+def falsify(system: UncertainSystem, lyapunov: Lyapunov, controller: Controller, condition: Condition, xi: Tensor,
+            decay_rate: float, exp_rate: float, delta: float, starts: Tensor, steps: int = 30,
+            step_size: float = 0.02) -> tuple[Tensor, Tensor]:
+    """Projected gradient ascent on the residual from ``starts (B, n)`` (local states), batched.
+
+    Each step moves every state by ``step_size`` (a fraction of the box width, shrinking over the steps) along
+    its normalised gradient (per coordinate scaled by the box width), then projects into X_delta. Returns the
+    best state found per start and its residual (float64). The controller's saturation has a straight-through
+    gradient, so ascent in saturated regions is only a heuristic; the residuals returned are exact evaluations.
+    """
+    lyap, ctrl = copy.deepcopy(lyapunov).to(F64), copy.deepcopy(controller).to(F64)
+    for p in list(lyap.parameters()) + list(ctrl.parameters()):
+        p.requires_grad_(False)
+    lo, hi = system.local_box()
+    width = hi - lo
+    xi = xi.to(F64)
+    z = project_region(system, starts.to(F64).clone(), delta)
+
+    def evaluate(states: Tensor, grad: bool) -> tuple[Tensor, Tensor | None]:
+        with torch.enable_grad():
+            s = states.detach().requires_grad_(grad)
+            terms = decrease_terms(system, lyap, ctrl, s, xi, decay_rate, exp_rate)
+            res = condition.residual(terms)
+            if res.shape[0] != s.shape[0]:
+                raise ValueError("the falsifier needs a per-state condition (pointwise or nominal)")
+            g = torch.autograd.grad(res.sum(), s)[0] if grad else None
+        return res.detach(), g
+
+    best_z, best_r = z.clone(), evaluate(z, False)[0]
+    for k in range(steps):
+        _, g = evaluate(z, True)
+        direction = g * width
+        direction = direction / direction.norm(dim=-1, keepdim=True).clamp_min(1e-300)
+        rate = step_size * (1 - k / max(steps, 1)) + 1e-3 * step_size
+        z = project_region(system, z + rate * direction * width, delta)
+        r, _ = evaluate(z, False)
+        better = r > best_r
+        best_z[better], best_r[better] = z[better], r[better]
+    return best_z, best_r
+
+
+def _dedupe(z: Tensor, scale: Tensor, resolution: float = 1e-6) -> Tensor:
+    if z.shape[0] == 0:
+        return z
+    keys = torch.round(z / (scale * resolution)).to(torch.int64)
+    _, idx = torch.unique(keys, dim=0, return_inverse=True)
+    first = torch.full((int(idx.max()) + 1,), z.shape[0], dtype=torch.int64)
+    first = first.scatter_reduce(0, idx, torch.arange(z.shape[0]), reduce="amin")
+    return z[first.sort().values]
+
+
+def collect_counterexamples(system: UncertainSystem, lyapunov: Lyapunov, controller: Controller, condition: Condition,
+                            spec: ConditionSpec, delta: float, verification: dict, generator: torch.Generator,
+                            n_random: int = 512, max_boxes: int = 200, steps: int = 30,
+                            neighbours: int = 3) -> dict:
+    """New training states from a failed verification: counterexamples (residual > 0) and unverified box centres.
+
+    ``verification`` is :meth:`VerificationResult.to_dict` (states in user coordinates). Returns local states:
+    ``counterexamples`` (each re-evaluated, residual > 0), ``neighbours`` (jittered copies of them, in X_delta),
+    ``box_centres`` (unverified boxes, in X_delta, any residual) and the counts.
+    """
+    x_star = torch.as_tensor(system.equilibrium, dtype=F64)
+    lo, hi = system.local_box()
+    scale = hi - lo
+    cand = []
+    if verification.get("counterexample_local") is not None:
+        cand.append(torch.as_tensor([verification["counterexample_local"]], dtype=F64))
+    boxes = verification.get("unverified_boxes") or []
+    centres = torch.empty(0, system.n, dtype=F64)
+    if boxes:
+        blo = torch.as_tensor([b["lo"] for b in boxes[:max_boxes]], dtype=F64) - x_star
+        bhi = torch.as_tensor([b["hi"] for b in boxes[:max_boxes]], dtype=F64) - x_star
+        centres = (blo + bhi) / 2
+        centres = centres[centres.norm(dim=-1) >= delta]
+        cand.append(centres)
+    starts = torch.cat([*cand, sample_region(system, n_random, delta, generator)]) if n_random else torch.cat(cand)
+    tic = time.perf_counter()
+    found, values = falsify(system, lyapunov, controller, condition, spec.xi, spec.decay_rate, spec.exp_rate, delta,
+                            starts, steps=steps)
+    falsify_time = time.perf_counter() - tic
+    pool = torch.cat([starts, found])
+    res = residual_at(system, lyapunov, controller, condition, pool, spec.xi, spec.decay_rate, spec.exp_rate)
+    cex = _dedupe(pool[res > 0], scale)
+    near = torch.empty(0, system.n, dtype=F64)
+    if neighbours and cex.shape[0]:
+        noise = 0.01 * scale * torch.randn(cex.shape[0] * neighbours, system.n, generator=generator, dtype=F64)
+        near = project_region(system, cex.repeat(neighbours, 1) + noise, delta)
+    return {"counterexamples": cex, "neighbours": near, "box_centres": centres,
+            "max_residual": float(res.max()) if res.numel() else -math.inf,
+            "falsifier_starts": int(starts.shape[0]), "falsifier_violations": int((values > 0).sum()),
+            "falsify_time_s": falsify_time}
+
+
+def _summary(ver: dict) -> dict:
+    keys = ("condition", "status", "verified_fraction", "boxes_processed", "time_s", "stopped", "counterexample",
+            "counterexample_value", "n_unverified", "n_counterexample_boxes", "sup_bounds")
+    out = {k: ver.get(k) for k in keys}
+    out["sup_bounds"] = [v if math.isfinite(v) else None for v in (out["sup_bounds"] or [])]
+    return out
+
+
+def train_cegis(cfg: TrainConfig, system: UncertainSystem | None = None, rounds: int = 5,
+                verify_time_limit: float = 30.0, progress: bool = True,
+                init: tuple[Lyapunov, Controller] | None = None, iters_per_round: int | None = None,
+                max_extra: int = 2000, replicate: int = 2, max_boxes: int = 200, n_random: int = 512,
+                falsifier_steps: int = 30, neighbours: int = 3, min_width: float = 1e-4,
+                log=None) -> tuple[TrainResult, list[dict]]:
+    """Train with counterexample-guided rounds (see the module docstring).
+
+    Returns the best :class:`TrainResult` (its ``config`` is the first run's resolved config, its
+    ``metrics["cegis"]`` the record) and the list of rounds. Each round dict has ``round``, ``verification``
+    (summary), ``verified``, ``verified_fraction``, times, counts of states added and, when states were added,
+    ``counterexamples`` (a float64 ``(C, n)`` tensor of the violating local states found; not in the metrics).
+    ``log(round_dict)`` is called after each verification.
+    """
+    if rounds < 0:
+        raise ValueError(f"rounds must be >= 0, got {rounds}")
+    if not (verify_time_limit > 0):
+        raise ValueError(f"verify_time_limit must be > 0, got {verify_time_limit}")
+    if max_extra < 1 or replicate < 1:
+        raise ValueError("max_extra and replicate must be >= 1")
+    system = system or get_system(cfg.system)
+    start = time.perf_counter()
+    result = train(cfg, system, progress=progress, init=init)
+    base_cfg = result.config
+    spec = _spec_for(result)
+    if spec.kind not in ("pointwise", "nominal"):
+        raise ValueError("CEGIS needs a per-state condition (method dr with loss pointwise, or baseline); "
+                         "the uniform DR condition has no per-state residual to falsify")
+    iters_round = int(iters_per_round or max(1, base_cfg.iters // 2))
+    if iters_round < 1:
+        raise ValueError(f"iters_per_round must be >= 1, got {iters_round}")
+    delta = float(base_cfg.delta)
+    lo, hi = system.local_box()
+    gen = torch.Generator().manual_seed(base_cfg.seed + 7919)
+    extra = torch.empty(0, system.n, dtype=F64)
+    record: list[dict] = []
+    best: tuple | None = None
+    total_iters = result.metrics["iterations"]
+    train_time = time.perf_counter() - start
+    for r in range(rounds + 1):
+        tic = time.perf_counter()
+        ver = verify_condition(system, result.lyapunov, result.controller, spec, delta, time_limit=verify_time_limit,
+                               min_width=min_width, keep_boxes=max_boxes).to_dict()
+        entry: dict = {"round": r, "verification": _summary(ver), "verified": ver["status"] == "verified",
+                       "status": ver["status"], "verified_fraction": ver["verified_fraction"],
+                       "verify_time_s": time.perf_counter() - tic, "train_time_s": train_time,
+                       "train_iterations": result.metrics["iterations"], "acceptance_passed": result.metrics["passed"]}
+        score = (entry["verified"], ver["verified_fraction"], -(ver["counterexample_value"] or 0.0))
+        if best is None or score > best[0]:
+            best = (score, result, r)
+        if entry["verified"] or r == rounds:
+            record.append(entry)
+            if log is not None:
+                log(entry)
+            break
+        found = collect_counterexamples(system, result.lyapunov, result.controller, result.condition, spec, delta, ver,
+                                        gen, n_random=n_random, max_boxes=max_boxes, steps=falsifier_steps,
+                                        neighbours=neighbours)
+        new = torch.cat([found["counterexamples"], found["neighbours"], found["box_centres"]])
+        extra = _dedupe(torch.cat([extra, new]), hi - lo)[-max_extra:]
+        entry.update({"counterexamples_added": int(found["counterexamples"].shape[0]),
+                      "neighbours_added": int(found["neighbours"].shape[0]),
+                      "box_centres_added": int(found["box_centres"].shape[0]),
+                      "falsifier_max_residual": found["max_residual"], "falsify_time_s": found["falsify_time_s"],
+                      "extra_states": int(extra.shape[0]), "counterexamples": found["counterexamples"]})
+        record.append(entry)
+        if log is not None:
+            log(entry)
+        round_cfg = dataclasses.replace(base_cfg, iters=iters_round, seed=base_cfg.seed + 1000 * (r + 1),
+                                        xi_samples=result.xi_samples.tolist())
+        tic = time.perf_counter()
+        result = train(round_cfg, system, progress=progress, init=(result.lyapunov, result.controller),
+                       extra_states=extra.repeat(replicate, 1))
+        train_time = time.perf_counter() - tic
+        total_iters += result.metrics["iterations"]
+    _, chosen, chosen_round = best
+    metrics = dict(chosen.metrics)
+    final = record[chosen_round] if chosen_round < len(record) else record[-1]
+    metrics["cegis"] = {
+        "rounds": [{k: v for k, v in e.items() if k != "counterexamples"} for e in record],
+        "final": final["verification"], "verified": final["verified"], "returned_round": chosen_round,
+        "retraining_rounds": len(record) - 1, "max_rounds": rounds, "iters_per_round": iters_round,
+        "total_iterations": total_iters, "extra_states": int(extra.shape[0]), "replicate": replicate,
+        "verify_time_limit_s": verify_time_limit, "total_time_s": time.perf_counter() - start,
+    }
+    out = dataclasses.replace(chosen, config=base_cfg, metrics=metrics)
+    return out, record
