@@ -63,7 +63,7 @@ def test_run_directory_errors(tmp_path, tiny_config):
         save_run(out, train(tiny_config(iters=2, check_every=2), progress=False))
     from drlyap.systems import mountain_car
 
-    with pytest.raises(RunDirError, match="trained on system 'pendulum'"):
+    with pytest.raises(RunDirError, match="made for system 'pendulum'"):
         load_run(out, mountain_car())
 
 

@@ -47,7 +47,7 @@ import numpy as np
 import torch
 from torch import Tensor
 
-from drlyap.rundir import FORMAT_VERSION, RunDirError, atomic_dir, load_run, read_run_kind
+from drlyap.rundir import FORMAT_VERSION, RunDirError, atomic_dir, load_run, read_run_json, read_run_kind, run_system
 from drlyap.systems import UncertainSystem, get_system
 
 
@@ -225,18 +225,8 @@ class PolicyRun:
 
 def load_lqr_run(path: str | os.PathLike, system: UncertainSystem | None = None) -> PolicyRun:
     path = Path(path)
-    info = read_run_kind(path)
-    if info.get("kind") != "lqr":
-        raise RunDirError(f"{path} holds a {info.get('kind')!r} run, not an LQR run")
-    try:
-        config = json.loads((path / "config.json").read_text())
-        gains = json.loads((path / "lqr.json").read_text())
-        metrics = json.loads((path / "metrics.json").read_text())
-    except (OSError, json.JSONDecodeError) as err:
-        raise RunDirError(f"cannot read run directory {path}: {err}") from err
-    system = system or get_system(config["system"])
-    if system.name != config["system"]:
-        raise RunDirError(f"{path} was designed for system {config['system']!r}, not {system.name!r}")
+    config, gains, metrics = read_run_json(path, "lqr", "config.json", "lqr.json", "metrics.json")
+    system = run_system(path, config["system"], system)
     t = {k: torch.tensor(gains[k], dtype=torch.float64) for k in ("K", "P", "A", "B")}
     if t["K"].shape != (system.m, system.n) or t["P"].shape != (system.n, system.n):
         raise RunDirError(f"{path}: K/P shapes {tuple(t['K'].shape)}/{tuple(t['P'].shape)} do not fit {system.name}")

@@ -385,5 +385,107 @@ def verify(run_dir: Path, delta: float | None, xi: str | None, time_limit: float
                        f"V on the delta-ball <= {r['ball_max_upper']:.4g})")
 
 
+@main.command("guarantee")
+@click.argument("run_dir", type=click.Path(path_type=Path))
+@click.option("--dist", "dist", default="train", show_default=True,
+              help="Distribution of xi: 'train' (the system's own), 'normal:M1,M2;S1,S2', 'uniform:L1,L2;H1,H2' "
+                   "or 'point:V1,V2'.")
+@click.option("--n", "n", type=int, default=1000, show_default=True, help="Number of draws of xi.")
+@click.option("--method", type=click.Choice(["sampling", "verifier"]), default="sampling", show_default=True,
+              help="sampling: dense grid of X_delta per draw (optimistic); verifier: branch and bound per distinct "
+                   "draw (unknown counts as failing).")
+@click.option("--eps-bar", type=float, default=0.05, show_default=True, help="Confidence slack eps_bar of the lemma.")
+@click.option("--seed", type=int, default=0, show_default=True, help="Seed of the draws.")
+@click.option("--time-limit", type=float, default=5.0, show_default=True, help="Seconds per draw (--method verifier).")
+@click.option("--radius-constants", default=None,
+              help="c1,c2,rho of eq. wasserstein_r_guarantee: also report r_N(eps_bar) for the run's k and N.")
+@click.option("--json", "as_json", is_flag=True, help="Print one JSON object.")
+def guarantee_cmd(run_dir: Path, dist: str, n: int, method: str, eps_bar: float, seed: int, time_limit: float,
+                  radius_constants: str | None, as_json: bool) -> None:
+    """Estimate P(sup_x Vdot + gamma||x - x*|| <= 0) on the true model under a distribution of xi, next to the
+    bound (1 - eps)(1 - eps_bar) of the paper's lemma."""
+    from drlyap.guarantee import guarantee
+    from drlyap.rundir import load_run
+
+    try:
+        constants = None
+        if radius_constants is not None:
+            constants = _floats(radius_constants, "--radius-constants")
+            if len(constants) != 3:
+                raise ValueError(f"--radius-constants takes c1,c2,rho, got {radius_constants!r}")
+        run = load_run(run_dir)
+        result = guarantee(run, dist, n, method=method, seed=seed, eps_bar=eps_bar, time_limit=time_limit,
+                           radius_constants=constants)
+    except ValueError as err:
+        _fail(err)
+    if as_json:
+        click.echo(json.dumps(result))
+        return
+    lo, hi = result["interval_clopper_pearson"]
+    click.echo(f"{result['system']} ({result['method']}), xi ~ {dist}, {n} draws ({result['n_distinct']} distinct), "
+               f"check: {method}")
+    click.echo(f"  decrease holds on the true model over X_delta for {result['holds']}/{n} draws: "
+               f"{100 * result['fraction']:.2f}% (95% Clopper-Pearson [{100 * lo:.2f}%, {100 * hi:.2f}%])")
+    if result["unknown"]:
+        click.echo(f"  {result['unknown']} distinct draws unknown (time limit), counted as failing")
+    worst = result["worst_sup_residual"]
+    if worst is not None:
+        click.echo(f"  worst sup_x residual over the draws: {worst:.4g}")
+    click.echo(f"  lemma bound (1 - eps)(1 - eps_bar) = (1 - {result['eps']:g})(1 - {result['eps_bar']:g}) = "
+               f"{result['bound']:.4f}" + ("" if result["bound_applies"] else " (baseline run: the lemma does not apply)"))
+    click.echo(f"  the bound assumes r = r_N(eps_bar) (run: r = {result['radius']:g}, N = {result['n_xi']}) and a "
+               "light-tailed true distribution")
+    rg = result.get("radius_guarantee")
+    if rg is not None:
+        click.echo(f"  r_N(eps_bar) = {rg['r_N']:.4g} for c1={rg['c1']:g}, c2={rg['c2']:g}, rho={rg['rho']:g}, k={rg['k']}, "
+                   f"N={rg['N']}: the run's radius is {'enough' if rg['radius_sufficient'] else 'too small'}")
+
+
+@main.command()
+@click.argument("run_dir", type=click.Path(path_type=Path))
+@click.option("--spacing", type=float, default=None, help="Grid spacing in local state units [about 20000 cells].")
+@click.option("--xi", default=None, help="Check plain decrease on the true model at this shift instead.")
+@click.option("--verify-time", type=float, default=10.0, show_default=True,
+              help="Seconds for the branch and bound on the same condition, for comparison (0: skip).")
+@click.option("--json", "as_json", is_flag=True, help="Print one JSON object.")
+def lipschitz(run_dir: Path, spacing: float | None, xi: str | None, verify_time: float, as_json: bool) -> None:
+    """Lipschitz covering check of RUN_DIR's condition on a grid of X_delta (the paper's covering argument).
+
+    Certified when the residual at every cell centre is <= -L * rho (L: a sound Lipschitz constant from interval
+    gradient bounds, rho: the covering radius); compare with the branch and bound of `drlyap verify`.
+    """
+    from drlyap.guarantee import lipschitz_covering
+    from drlyap.rundir import load_run
+
+    try:
+        if verify_time < 0:
+            raise ValueError(f"--verify-time must be >= 0, got {verify_time}")
+        run = load_run(run_dir)
+        shift = None if xi is None else run.system.check_xi(_floats(xi, "--xi"))
+        result = lipschitz_covering(run, spacing=spacing, xi=shift, verify_time=verify_time)
+    except ValueError as err:
+        _fail(err)
+    if as_json:
+        click.echo(json.dumps(result))
+        return
+    click.echo(f"{run.system.name} ({run.config.method}), {result['condition']}, delta = {result['delta']:g}")
+    click.echo(f"  grid: {result['cells']} cells ({' x '.join(map(str, result['per_axis']))}), spacing <= "
+               f"{result['spacing']:.4g}, covering radius rho = {result['covering_radius']:.4g}")
+    click.echo(f"  max residual at the cell centres: {result['max_residual']:.4g} (in X_delta: "
+               f"{result['max_residual_in_x_delta']:.4g})")
+    click.echo(f"  Lipschitz constant: {result['lipschitz_sound']:.4g} (sound, interval gradient bounds); "
+               f"{result['lipschitz_sampled']:.4g} (largest sampled gradient)")
+    click.echo(f"  covering certificate: {'CERTIFIED' if result['certified'] else 'NOT CERTIFIED'} "
+               f"(needs max residual <= -L rho = {result['required_max_residual']:.4g}); with {result['safety']:g} x the "
+               f"sampled L: {'holds' if result['certified_estimate'] else 'fails'}")
+    if result["spacing_needed"] is not None:
+        click.echo(f"  spacing needed with this L and maximum: {result['spacing_needed']:.3g} "
+                   f"(about {result['samples_needed']:.3g} samples)")
+    ver = result["verifier"]
+    if ver is not None:
+        click.echo(f"  branch and bound: {ver['status'].upper()}, verified {100 * ver['verified_fraction']:.4f}% "
+                   f"({ver['boxes_processed']} boxes, {ver['time_s']:.2f} s)")
+
+
 if __name__ == "__main__":
     main()

@@ -30,6 +30,15 @@ def _display_states(system: UncertainSystem, x: Tensor) -> Tensor:
     return shown
 
 
+def _save(fig, path: Path, title: str = "") -> Path:
+    if title:
+        fig.suptitle(title)
+    fig.tight_layout()
+    fig.savefig(path, dpi=110)
+    plt.close(fig)
+    return path
+
+
 def phase_portraits(system: UncertainSystem, panels: Mapping[str, Trajectories], success: Mapping[str, Sequence[bool]],
                     path: Path, title: str = "", levels: Mapping[str, tuple[Tensor, Tensor, Tensor]] | None = None) -> Path:
     """One phase-plane panel per controller (first two state coordinates): trajectories, starts
@@ -53,12 +62,7 @@ def phase_portraits(system: UncertainSystem, panels: Mapping[str, Trajectories],
         ax.set_ylabel(system.state_names[1])
         ax.set_title(f"{label}: {sum(ok)}/{len(ok)} stabilised")
         ax.legend(loc="upper right", fontsize=8)
-    if title:
-        fig.suptitle(title)
-    fig.tight_layout()
-    fig.savefig(path, dpi=110)
-    plt.close(fig)
-    return path
+    return _save(fig, path, title)
 
 
 def time_series(series: Mapping[str, tuple[Tensor, Tensor, Tensor]], path: Path, title: str = "",
@@ -78,12 +82,7 @@ def time_series(series: Mapping[str, tuple[Tensor, Tensor, Tensor]], path: Path,
     b.set_ylabel(input_label)
     a.legend()
     b.legend()
-    if title:
-        fig.suptitle(title)
-    fig.tight_layout()
-    fig.savefig(path, dpi=110)
-    plt.close(fig)
-    return path
+    return _save(fig, path, title)
 
 
 def lyapunov_grid(system: UncertainSystem, lyapunov, per_axis: int = 120) -> tuple[Tensor, Tensor, Tensor]:
@@ -116,7 +115,4 @@ def sweep_plot(system_name: str, factors: Sequence[int], results: Sequence[dict]
     ax.set_xticks(list(factors))
     ax.set_title(f"{system_name}: robustness to larger parameter shifts")
     ax.legend()
-    fig.tight_layout()
-    fig.savefig(path, dpi=110)
-    plt.close(fig)
-    return path
+    return _save(fig, path)

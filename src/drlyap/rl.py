@@ -32,7 +32,7 @@ from pathlib import Path
 import numpy as np
 import torch
 
-from drlyap.rundir import FORMAT_VERSION, RunDirError, atomic_dir, read_run_kind
+from drlyap.rundir import FORMAT_VERSION, RunDirError, atomic_dir, read_run_json, run_system
 from drlyap.systems import UncertainSystem, get_system
 
 ALGOS = ("sac", "ppo")
@@ -163,17 +163,8 @@ def load_rl_run(path: str | os.PathLike, system: UncertainSystem | None = None):
     from drlyap.baselines import PolicyRun
 
     path = Path(path)
-    info = read_run_kind(path)
-    if info.get("kind") != "rl":
-        raise RunDirError(f"{path} holds a {info.get('kind')!r} run, not an RL run")
-    try:
-        config = json.loads((path / "config.json").read_text())
-        metrics = json.loads((path / "metrics.json").read_text())
-    except (OSError, json.JSONDecodeError) as err:
-        raise RunDirError(f"cannot read run directory {path}: {err}") from err
-    system = system or get_system(config["system"])
-    if system.name != config["system"]:
-        raise RunDirError(f"{path} was trained on system {config['system']!r}, not {system.name!r}")
+    config, metrics = read_run_json(path, "rl", "config.json", "metrics.json")
+    system = run_system(path, config["system"], system)
     algo = config["algo"]
     cls = _algo_class(algo)
     try:

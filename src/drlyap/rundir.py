@@ -148,6 +148,27 @@ def read_run_kind(path: Path) -> dict:
         raise RunDirError(f"{marker} is not valid JSON: {err}") from err
 
 
+def read_run_json(path: str | os.PathLike, kind: str, *names: str) -> list[dict]:
+    """Check that ``path`` is a complete run directory of ``kind`` and parse its JSON files ``names``."""
+    path = Path(path)
+    info = read_run_kind(path)
+    if info.get("kind") != kind:
+        raise RunDirError(f"{path} holds a {info.get('kind')!r} run, not a {kind!r} run")
+    try:
+        return [json.loads((path / name).read_text()) for name in names]
+    except (OSError, json.JSONDecodeError) as err:
+        raise RunDirError(f"cannot read run directory {path}: {err}") from err
+
+
+def run_system(path: str | os.PathLike, name: str, system: UncertainSystem | None) -> UncertainSystem:
+    """The system a run was made for: the registered one, or ``system`` if its name matches."""
+    if system is None:
+        return get_system(name)
+    if system.name != name:
+        raise RunDirError(f"{path} was made for system {name!r}, not {system.name!r}")
+    return system
+
+
 def load_run(path: str | os.PathLike, system: UncertainSystem | None = None) -> Run:
     """Load a Lyapunov run directory.
 
@@ -155,19 +176,13 @@ def load_run(path: str | os.PathLike, system: UncertainSystem | None = None) -> 
     match the one the run was trained on.
     """
     path = Path(path)
-    info = read_run_kind(path)
-    if info.get("kind") != "lyapunov":
-        raise RunDirError(f"{path} holds a {info.get('kind')!r} run, not a Lyapunov controller/certificate pair")
+    info, raw_config, metrics = read_run_json(path, "lyapunov", "run.json", "config.json", "metrics.json")
     try:
-        config = TrainConfig.from_dict(json.loads((path / "config.json").read_text()))
-        metrics = json.loads((path / "metrics.json").read_text())
+        config = TrainConfig.from_dict(raw_config)
         weights = torch.load(path / "weights.pt", map_location="cpu", weights_only=True)
-    except (OSError, json.JSONDecodeError, RuntimeError) as err:
+    except (OSError, RuntimeError) as err:
         raise RunDirError(f"cannot read run directory {path}: {err}") from err
-    if system is None:
-        system = get_system(config.system)
-    elif system.name != config.system:
-        raise RunDirError(f"{path} was trained on system {config.system!r}, not {system.name!r}")
+    system = run_system(path, config.system, system)
     if info["system"]["n"] != system.n or info["system"]["m"] != system.m:
         raise RunDirError(f"{path} has dimensions n={info['system']['n']}, m={info['system']['m']}; "
                           f"system {system.name} has n={system.n}, m={system.m}")
