@@ -95,9 +95,11 @@ def systems(as_json: bool) -> None:
               help="Counterexample-guided training: verify after training, add counterexamples and falsified "
                    "states, continue training (iters/2 per round) until verified or --cegis-rounds.")
 @click.option("--cegis-rounds", type=int, default=5, show_default=True, help="Retraining rounds of --cegis.")
+@click.option("--cegis-time-limit", type=float, default=30.0, show_default=True,
+              help="Seconds per verification of --cegis.")
 def train(system: str, method: str, loss: str, radius: float | None, eps: float | None, gamma: float | None,
           exp_rate: float, xi_samples: str | None, iters: int, seed: int, device: str, warm_start: Path | None,
-          out: Path, quiet: bool, cegis: bool, cegis_rounds: int) -> None:
+          out: Path, quiet: bool, cegis: bool, cegis_rounds: int, cegis_time_limit: float) -> None:
     """Train a controller and Lyapunov certificate for SYSTEM and save a run directory."""
     from drlyap.rundir import load_run, save_run
     from drlyap.training import TrainConfig
@@ -120,8 +122,9 @@ def train(system: str, method: str, loss: str, radius: float | None, eps: float 
         if cegis:
             from drlyap.cegis import train_cegis
 
-            if cegis_rounds < 0:
-                raise ValueError(f"--cegis-rounds must be >= 0, got {cegis_rounds}")
+            if cegis_rounds < 0 or not cegis_time_limit > 0:
+                raise ValueError(f"--cegis-rounds must be >= 0 and --cegis-time-limit > 0, got {cegis_rounds} and "
+                                 f"{cegis_time_limit}")
 
             def show_round(e: dict) -> None:
                 v = e["verification"]
@@ -132,7 +135,8 @@ def train(system: str, method: str, loss: str, radius: float | None, eps: float 
                              f"{e['box_centres_added']} box centres)")
                 click.echo(line)
 
-            result, _ = train_cegis(cfg, sys_, rounds=cegis_rounds, progress=not quiet, init=init, log=show_round)
+            result, _ = train_cegis(cfg, sys_, rounds=cegis_rounds, verify_time_limit=cegis_time_limit, progress=not quiet,
+                                    init=init, log=show_round)
         else:
             result = train_pair(cfg, sys_, progress=not quiet, init=init)
         save_run(out, result)

@@ -156,7 +156,8 @@ def guarantee(run, dist: str, n: int, method: str = "sampling", seed: int = 0, e
     """Fraction of ``n`` draws of xi from ``dist`` for which plain decrease holds on the true model over X_delta.
 
     ``method``: ``sampling`` (dense grid, optimistic) or ``verifier`` (branch and bound per distinct draw with
-    ``time_limit`` seconds each; unknown counts as failing). ``radius_constants = (c1, c2, rho)`` adds ``r_N(eps_bar)``
+    ``time_limit`` seconds each; unknown counts as failing). ``worst_sup_residual`` is the largest residual found
+    over all draws (sampling: on the grid; verifier: at evaluated box centres), a lower estimate of the worst sup. ``radius_constants = (c1, c2, rho)`` adds ``r_N(eps_bar)``
     (:func:`drlyap.conditions.wasserstein_radius_guarantee`) for the run's k and N. Returns a JSON-friendly dict.
     """
     if method not in ("sampling", "verifier"):
@@ -187,8 +188,7 @@ def guarantee(run, dist: str, n: int, method: str = "sampling", seed: int = 0, e
                                    stop_at_counterexample=True)
             flags.append(res.status == "verified")
             unknown += res.status == "unknown"
-            sups.append(res.counterexample_value if res.counterexample_value is not None else
-                        (res.sup_bounds[1] if res.status == "verified" else math.nan))
+            sups.append(res.sup_bounds[0] if res.sup_bounds else math.nan)
         sup = torch.tensor(sups, dtype=F64)
         holds_distinct = torch.tensor(flags, dtype=torch.bool)
         states = None

@@ -72,12 +72,13 @@ def time_series(series: Mapping[str, tuple[Tensor, Tensor, Tensor]], path: Path,
     ``series[label] = (t (T,), value (T,), u (T,))``.
     """
     fig, (a, b) = plt.subplots(1, 2, figsize=(11, 4))
+    positive = all(bool((value > 0).all()) for _, value, _ in series.values())
     for label, (t, value, u) in series.items():
-        a.plot(t, value.clamp_min(1e-12), label=label)
+        a.plot(t, value, label=label)
         b.plot(t, u, label=label)
     a.set_xlabel("t")
     a.set_ylabel(value_label)
-    a.set_yscale("log")
+    a.set_yscale("log" if positive else "symlog")
     b.set_xlabel("t")
     b.set_ylabel(input_label)
     a.legend()
