@@ -302,15 +302,12 @@ def monotonicity(system: UncertainSystem, x: Tensor, values: Tensor, success: Te
 def score_run(run: PolicyRun, x0: Tensor, xi: Tensor, horizon: float | None = None) -> dict:
     """Simulate ``run`` from ``x0`` on the true model at ``xi``: success (as :func:`simulation.evaluate`),
     certificate monotonicity along successful trajectories, samples and training time."""
-    from drlyap.simulation import normalized_deviation, simulate
+    from drlyap.simulation import simulate, success_mask
 
     system = run.system
     tic = time.perf_counter()
     traj = simulate(system, run.controller, x0, xi, horizon=horizon)
-    dev = normalized_deviation(system, traj.x)
-    settle = max(1, int(round(system.settle_fraction * (dev.shape[0] - 1))))
-    tail = dev[-settle - 1:]
-    success = torch.isfinite(tail).all(0) & (tail.amax(0) <= system.success_tol)
+    success, dev = success_mask(system, traj.x)
     row = {"run_dir": str(run.path), "kind": run.kind, "label": run.label, "system": system.name,
            "n": int(x0.shape[0]), "n_success": int(success.sum()), "success_rate": float(success.double().mean()),
            "success": success.tolist(), "samples": run.samples, "train_time_s": run.train_time_s,
@@ -324,10 +321,28 @@ def score_run(run: PolicyRun, x0: Tensor, xi: Tensor, horizon: float | None = No
     return row
 
 
+def certify(run: PolicyRun, xi: Tensor, time_limit: float) -> dict:
+    """What a run *proves* at the shift ``xi``: for a Lyapunov pair, the sound verifier's verdict on
+    ``Vdot + decay <= 0`` on the true model over the whole X_delta (:func:`verification.verify_run`);
+    LQR's ``z'Pz`` and RL critics carry no verified region here."""
+    if run.kind != "lyapunov":
+        return {"status": "none", "verified_fraction": None,
+                "note": "quadratic certificate of the linearisation only" if run.kind == "lqr" else "no certificate"}
+    from drlyap.verification import verify_run
+
+    result = verify_run(run.info["run"], xi=xi, time_limit=time_limit)
+    return {"status": result["status"], "verified_fraction": result["verified_fraction"],
+            "counterexample": result["counterexample"], "time_s": result["time_s"]}
+
+
 def compare_runs(paths: Sequence[str | os.PathLike], xi: Sequence[float], n_init: int = 200, seed: int = 0,
-                 out: str | os.PathLike | None = None, horizon: float | None = None) -> dict:
+                 out: str | os.PathLike | None = None, horizon: float | None = None,
+                 certify_time_limit: float | None = 10.0) -> dict:
     """Score every run directory at the shift ``xi`` from the same ``n_init`` initial states (drawn from
-    each system's test box with ``seed``); with ``out``, write compare.json, compare.md and figures."""
+    each system's test box with ``seed``); with ``out``, write compare.json, compare.md and figures.
+
+    ``certify_time_limit`` (seconds per run; None skips it) runs the verifier on each Lyapunov pair at ``xi``.
+    """
     from drlyap.simulation import initial_states
 
     if not paths:
@@ -341,7 +356,10 @@ def compare_runs(paths: Sequence[str | os.PathLike], xi: Sequence[float], n_init
     rows = []
     for run, shift in zip(runs, shifts):
         x0 = initial_states(run.system, n_init, torch.Generator().manual_seed(seed))
-        rows.append(score_run(run, x0, shift, horizon))
+        row = score_run(run, x0, shift, horizon)
+        if certify_time_limit is not None:
+            row["certified"] = certify(run, shift, certify_time_limit)
+        rows.append(row)
     report = {"xi": [float(v) for v in xi], "n_init": n_init, "seed": seed, "rows": rows}
     if out is not None:
         def fill(tmp: Path) -> None:
@@ -383,14 +401,22 @@ def compare_figures(runs: Sequence[PolicyRun], shifts: Sequence[Tensor], folder:
 def format_comparison(report: dict) -> str:
     """A markdown table of a :func:`compare_runs` report."""
     lines = [f"## comparison at xi = {report['xi']} ({report['n_init']} initial states, seed {report['seed']})", "",
-             "| run | kind | system | success | samples | train s | certificate increases | monotone trajectories |",
-             "|---|---|---|---|---|---|---|---|"]
+             "| run | kind | system | success | samples | train s | certificate increases | monotone trajectories "
+             "| verified decrease at xi |",
+             "|---|---|---|---|---|---|---|---|---|"]
     for r in report["rows"]:
         c = r["certificate"]
         inc = "-" if c["increase_fraction"] is None else f"{100 * c['increase_fraction']:.2f}%"
         mono = "-" if c["monotone_fraction"] is None else f"{100 * c['monotone_fraction']:.0f}%"
         t = "-" if r["train_time_s"] is None else f"{r['train_time_s']:.1f}"
+        cert = r.get("certified")
+        if cert is None:
+            proof = "not checked"
+        elif cert["verified_fraction"] is None:
+            proof = cert["status"]
+        else:
+            proof = f"{cert['status']} ({100 * cert['verified_fraction']:.2f}% of X_delta)"
         lines.append(f"| {r['run_dir']} | {r['label']} | {r['system']} | {r['n_success']}/{r['n']} "
                      f"({100 * r['success_rate']:.1f}%) | {r['samples'] if r['samples'] is not None else '-'} | {t} | "
-                     f"{inc} | {mono} |")
+                     f"{inc} | {mono} | {proof} |")
     return "\n".join(lines)

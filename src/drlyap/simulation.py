@@ -81,6 +81,14 @@ def normalized_deviation(system: UncertainSystem, x: Tensor) -> Tensor:
     return (z.abs() / half).amax(-1).reshape(x.shape[:-1])
 
 
+def success_mask(system: UncertainSystem, x: Tensor) -> tuple[Tensor, Tensor]:
+    """Per-trajectory success ``(B,)`` and normalised deviation ``(T, B)`` for states ``x (T, B, n)``."""
+    dev = normalized_deviation(system, x)
+    settle = max(1, int(round(system.settle_fraction * (dev.shape[0] - 1))))
+    tail = dev[-settle - 1:]
+    return torch.isfinite(tail).all(0) & (tail.amax(0) <= system.success_tol), dev
+
+
 def initial_states(system: UncertainSystem, count: int, generator: torch.Generator,
                    box: tuple | None = None) -> Tensor:
     """``count`` initial states ``(count, n)`` uniform in ``box`` (default: the system's test box)."""
@@ -102,10 +110,7 @@ def evaluate(system: UncertainSystem, policy: Policy, x0: Tensor, xi: Tensor | N
     excluded; None without ``lyapunov``), and the settings used.
     """
     traj = simulate(system, policy, x0, xi, dt, horizon)
-    dev = normalized_deviation(system, traj.x)  # (T, B)
-    settle = max(1, int(round(system.settle_fraction * (dev.shape[0] - 1))))
-    tail = dev[-settle - 1:]
-    success = torch.isfinite(tail).all(0) & (tail.amax(0) <= system.success_tol)
+    success, dev = success_mask(system, traj.x)
     worst = None
     if lyapunov is not None:
         v = lyapunov(traj.x.reshape(-1, system.n)).reshape(dev.shape)
