@@ -288,7 +288,8 @@ def pendulum(u_max: float = 15.0) -> UncertainSystem:
         equilibrium=(0.0, 0.0), angle_dims=(0,), test_box=((-math.pi, -6.0), (math.pi, 6.0)),
         xi_sampler=_pendulum_xi, test_xi=(0.1, 0.05),
         defaults={"n_states": 3600, "wasserstein_radius": 0.01, "risk_level": 0.1, "n_xi": 5,
-                  "decay_rate": 1.0, "alpha_hat": 1.0, "delta": 0.5, "margin": 0.1},
+                  "decay_rate": 1.0, "alpha_hat": 1.0, "delta": 0.5, "margin": 0.1,
+                  "lyapunov_hidden": [16, 16], "controller_hidden": [16, 16]},
         sim_dt=0.01, horizon=20.0,
         description="Inverted pendulum (paper Sec. VII-A): m=1, l=1, b=0.13, g=9.81; xi = (mass, damping) shift.",
     )

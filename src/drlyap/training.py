@@ -14,7 +14,7 @@ import copy
 import dataclasses
 import math
 import time
-from dataclasses import dataclass, field
+from dataclasses import dataclass
 
 import torch
 from torch import Tensor
@@ -48,10 +48,10 @@ class TrainConfig:
     check_every: int = 250  # acceptance check period (iterations)
     seed: int = 0
     device: str = "cpu"
-    lyapunov_hidden: list[int] = field(default_factory=lambda: [32, 32])
+    lyapunov_hidden: list[int] | None = None
     lyapunov_out: int = 8
     alpha_hat: float | None = None
-    controller_hidden: list[int] = field(default_factory=lambda: [32, 32])
+    controller_hidden: list[int] | None = None
     init_gain: float = 10.0  # scale of the controller's output layer at initialisation
     margin: float | None = None  # training hinge is (residual + margin)_+: pushes the condition past zero
     resample: bool = True  # draw a fresh uniform batch of n_states every iteration (False: one fixed set)
@@ -60,7 +60,8 @@ class TrainConfig:
         """A copy with ``None`` fields filled from the system's defaults, validated."""
         cfg = copy.deepcopy(self)
         base = {"wasserstein_radius": 0.01, "risk_level": 0.1, "n_states": 3600, "n_xi": 5, "decay_rate": 1.0,
-                "delta": 0.1, "alpha_hat": 1.0, "margin": 0.0}
+                "delta": 0.1, "alpha_hat": 1.0, "margin": 0.0, "lyapunov_hidden": [32, 32],
+                "controller_hidden": [32, 32]}
         base.update(system.defaults)
         for key, value in base.items():
             if getattr(cfg, key) is None:
