@@ -42,7 +42,7 @@ from drlyap.conditions import Condition, decrease_terms
 from drlyap.networks import Controller, Lyapunov
 from drlyap.systems import UncertainSystem, get_system
 from drlyap.training import TrainConfig, TrainResult, train
-from drlyap.verification import ConditionSpec, run_condition, verify_condition
+from drlyap.verification import ConditionSpec, _jsonable, run_condition, verify_condition
 
 F64 = torch.float64
 
@@ -149,7 +149,13 @@ def collect_counterexamples(system: UncertainSystem, lyapunov: Lyapunov, control
         centres = (blo + bhi) / 2
         centres = centres[centres.norm(dim=-1) >= delta]
         cand.append(centres)
-    starts = torch.cat([*cand, sample_region(system, n_random, delta, generator)]) if n_random else torch.cat(cand)
+    if n_random:
+        cand.append(sample_region(system, n_random, delta, generator))
+    starts = torch.cat(cand) if cand else torch.empty(0, system.n, dtype=F64)
+    if starts.shape[0] == 0:
+        empty = torch.empty(0, system.n, dtype=F64)
+        return {"counterexamples": empty, "neighbours": empty, "box_centres": centres, "max_residual": None,
+                "falsifier_starts": 0, "falsifier_violations": 0, "falsify_time_s": 0.0}
     tic = time.perf_counter()
     found, values = falsify(system, lyapunov, controller, condition, spec.xi, spec.decay_rate, spec.exp_rate, delta,
                             starts, steps=steps)
@@ -162,7 +168,7 @@ def collect_counterexamples(system: UncertainSystem, lyapunov: Lyapunov, control
         noise = 0.01 * scale * torch.randn(cex.shape[0] * neighbours, system.n, generator=generator, dtype=F64)
         near = project_region(system, cex.repeat(neighbours, 1) + noise, delta)
     return {"counterexamples": cex, "neighbours": near, "box_centres": centres,
-            "max_residual": float(res.max()) if res.numel() else -math.inf,
+            "max_residual": float(res.max()),
             "falsifier_starts": int(starts.shape[0]), "falsifier_violations": int((values > 0).sum()),
             "falsify_time_s": falsify_time}
 
@@ -183,8 +189,9 @@ def train_cegis(cfg: TrainConfig, system: UncertainSystem | None = None, rounds:
                 log=None) -> tuple[TrainResult, list[dict]]:
     """Train with counterexample-guided rounds (see the module docstring).
 
-    Returns the best :class:`TrainResult` (its ``config`` is the first run's resolved config, its
-    ``metrics["cegis"]`` the record) and the list of rounds. Each round dict has ``round``, ``verification``
+    Returns the best :class:`TrainResult` (its ``config`` is the first run's resolved config, its ``history``
+    the training of every round up to it, iterations counted on, its ``metrics["cegis"]`` the record)
+    and the list of rounds. Each round dict has ``round``, ``verification``
     (summary), ``verified``, ``verified_fraction``, times, counts of states added and, when states were added,
     ``counterexamples`` (a float64 ``(C, n)`` tensor of the violating local states found; not in the metrics).
     ``log(round_dict)`` is called after each verification.
@@ -195,17 +202,17 @@ def train_cegis(cfg: TrainConfig, system: UncertainSystem | None = None, rounds:
         raise ValueError(f"verify_time_limit must be > 0, got {verify_time_limit}")
     if max_extra < 1 or replicate < 1:
         raise ValueError("max_extra and replicate must be >= 1")
+    if iters_per_round is not None and iters_per_round < 1:
+        raise ValueError(f"iters_per_round must be >= 1, got {iters_per_round}")
+    if cfg.method == "dr" and cfg.loss != "pointwise":
+        raise ValueError("CEGIS needs a per-state condition (method dr with loss pointwise, or baseline); "
+                         "the uniform DR condition has no per-state residual to falsify")
     system = system or get_system(cfg.system)
     start = time.perf_counter()
     result = train(cfg, system, progress=progress, init=init)
     base_cfg = result.config
     spec = _spec_for(result)
-    if spec.kind not in ("pointwise", "nominal"):
-        raise ValueError("CEGIS needs a per-state condition (method dr with loss pointwise, or baseline); "
-                         "the uniform DR condition has no per-state residual to falsify")
-    iters_round = int(iters_per_round or max(1, base_cfg.iters // 2))
-    if iters_round < 1:
-        raise ValueError(f"iters_per_round must be >= 1, got {iters_round}")
+    iters_round = int(iters_per_round if iters_per_round is not None else max(1, base_cfg.iters // 2))
     delta = float(base_cfg.delta)
     lo, hi = system.local_box()
     gen = torch.Generator().manual_seed(base_cfg.seed + 7919)
@@ -213,6 +220,7 @@ def train_cegis(cfg: TrainConfig, system: UncertainSystem | None = None, rounds:
     record: list[dict] = []
     best: tuple | None = None
     total_iters = result.metrics["iterations"]
+    history = list(result.history)  # all rounds' training, iterations and seconds counted from the first run
     train_time = time.perf_counter() - start
     for r in range(rounds + 1):
         tic = time.perf_counter()
@@ -224,7 +232,7 @@ def train_cegis(cfg: TrainConfig, system: UncertainSystem | None = None, rounds:
                        "train_iterations": result.metrics["iterations"], "acceptance_passed": result.metrics["passed"]}
         score = (entry["verified"], ver["verified_fraction"], -(ver["counterexample_value"] or 0.0))
         if best is None or score > best[0]:
-            best = (score, result, r)
+            best = (score, result, r, list(history))
         if entry["verified"] or r == rounds:
             record.append(entry)
             if log is not None:
@@ -233,7 +241,8 @@ def train_cegis(cfg: TrainConfig, system: UncertainSystem | None = None, rounds:
         found = collect_counterexamples(system, result.lyapunov, result.controller, result.condition, spec, delta, ver,
                                         gen, n_random=n_random, max_boxes=max_boxes, steps=falsifier_steps,
                                         neighbours=neighbours)
-        new = torch.cat([found["counterexamples"], found["neighbours"], found["box_centres"]])
+        # newest last, the counterexamples at the very end: the cap keeps the tail
+        new = torch.cat([found["box_centres"], found["neighbours"], found["counterexamples"]])
         extra = _dedupe(torch.cat([extra, new]), hi - lo)[-max_extra:]
         entry.update({"counterexamples_added": int(found["counterexamples"].shape[0]),
                       "neighbours_added": int(found["neighbours"].shape[0]),
@@ -249,16 +258,19 @@ def train_cegis(cfg: TrainConfig, system: UncertainSystem | None = None, rounds:
         result = train(round_cfg, system, progress=progress, init=(result.lyapunov, result.controller),
                        extra_states=extra.repeat(replicate, 1))
         train_time = time.perf_counter() - tic
+        offset_t = history[-1]["time_s"] if history else 0.0
+        history += [{"iteration": h["iteration"] + total_iters, "loss": h["loss"], "time_s": h["time_s"] + offset_t}
+                    for h in result.history]
         total_iters += result.metrics["iterations"]
-    _, chosen, chosen_round = best
+    _, chosen, chosen_round, chosen_history = best
     metrics = dict(chosen.metrics)
     final = record[chosen_round] if chosen_round < len(record) else record[-1]
-    metrics["cegis"] = {
+    metrics["cegis"] = _jsonable({
         "rounds": [{k: v for k, v in e.items() if k != "counterexamples"} for e in record],
         "final": final["verification"], "verified": final["verified"], "returned_round": chosen_round,
         "retraining_rounds": len(record) - 1, "max_rounds": rounds, "iters_per_round": iters_round,
         "total_iterations": total_iters, "extra_states": int(extra.shape[0]), "replicate": replicate,
         "verify_time_limit_s": verify_time_limit, "total_time_s": time.perf_counter() - start,
-    }
-    out = dataclasses.replace(chosen, config=base_cfg, metrics=metrics)
+    })
+    out = dataclasses.replace(chosen, config=base_cfg, metrics=metrics, history=chosen_history)
     return out, record

@@ -123,7 +123,9 @@ def wilson(successes: int, n: int, confidence: float = 0.95) -> tuple[float, flo
     p = successes / n
     centre = (p + z * z / (2 * n)) / (1 + z * z / n)
     half = z * math.sqrt(p * (1 - p) / n + z * z / (4 * n * n)) / (1 + z * z / n)
-    return max(0.0, centre - half), min(1.0, centre + half)
+    lo = 0.0 if successes == 0 else max(0.0, min(p, centre - half))
+    hi = 1.0 if successes == n else min(1.0, max(p, centre + half))
+    return lo, hi
 
 
 # =========================================================================== the probability
@@ -157,7 +159,8 @@ def guarantee(run, dist: str, n: int, method: str = "sampling", seed: int = 0, e
 
     ``method``: ``sampling`` (dense grid, optimistic) or ``verifier`` (branch and bound per distinct draw with
     ``time_limit`` seconds each; unknown counts as failing). ``worst_sup_residual`` is the largest residual found
-    over all draws (sampling: on the grid; verifier: at evaluated box centres), a lower estimate of the worst sup. ``radius_constants = (c1, c2, rho)`` adds ``r_N(eps_bar)``
+    over all draws (sampling: on the grid; verifier: at evaluated box centres), a lower estimate of the worst sup.
+    ``radius_constants = (c1, c2, rho)`` adds ``r_N(eps_bar)``
     (:func:`drlyap.conditions.wasserstein_radius_guarantee`) for the run's k and N. Returns a JSON-friendly dict.
     """
     if method not in ("sampling", "verifier"):
@@ -170,6 +173,14 @@ def guarantee(run, dist: str, n: int, method: str = "sampling", seed: int = 0, e
         raise ValueError(f"time limit must be > 0, got {time_limit}")
     start = time.perf_counter()
     cfg, system = run.config, run.system
+    radius_guarantee = None
+    if radius_constants is not None:
+        if len(radius_constants) != 3:
+            raise ValueError("radius constants are c1, c2, rho")
+        c1, c2, rho = (float(v) for v in radius_constants)
+        n_xi = int(run.xi_samples.shape[0])
+        radius_guarantee = {"c1": c1, "c2": c2, "rho": rho, "k": system.k, "N": n_xi, "eps_bar": eps_bar,
+                            "r_N": wasserstein_radius_guarantee(c1, c2, rho, system.k, n_xi, eps_bar)}
     sampler, description = parse_distribution(dist, system.k, system)
     xi = sampler(n, torch.Generator().manual_seed(seed)).to(F64).reshape(n, system.k)
     distinct, inverse = torch.unique(xi, dim=0, return_inverse=True)
@@ -220,13 +231,10 @@ def guarantee(run, dist: str, n: int, method: str = "sampling", seed: int = 0, e
                           "branch and bound per draw: unknown (time limit) counts as failing (conservative)"),
         "seed": seed, "time_s": 0.0,
     }
-    if radius_constants is not None:
-        if len(radius_constants) != 3:
-            raise ValueError("radius constants are c1, c2, rho")
-        c1, c2, rho = (float(v) for v in radius_constants)
-        r_n = wasserstein_radius_guarantee(c1, c2, rho, system.k, out["n_xi"], eps_bar)
-        out["radius_guarantee"] = {"c1": c1, "c2": c2, "rho": rho, "k": system.k, "N": out["n_xi"], "eps_bar": eps_bar,
-                                   "r_N": r_n, "run_radius": out["radius"], "radius_sufficient": out["radius"] >= r_n}
+    if radius_guarantee is not None:
+        radius_guarantee["run_radius"] = out["radius"]
+        radius_guarantee["radius_sufficient"] = out["radius"] >= radius_guarantee["r_N"]
+        out["radius_guarantee"] = radius_guarantee
     out["time_s"] = time.perf_counter() - start
     return _jsonable(out)
 
