@@ -194,8 +194,11 @@ def evaluate(run_dir: Path, xi: str, n_init: int, seed: int, horizon: float | No
               help="Output directory [first free runs/reproduce-SYSTEM, -2, -3, ...].")
 @click.option("--iters", type=int, default=None, help="Iteration cap per training run [3000].")
 @click.option("--device", default="cpu", show_default=True)
+@click.option("--cegis-rounds", type=int, default=0, show_default=True,
+              help="Train both pairs counterexample-guided with up to this many verifier rounds (0: plain training).")
 @click.option("--json", "as_json", is_flag=True, help="Print one JSON object with both methods' results.")
-def reproduce(system: str, seeds: str, out: Path | None, iters: int | None, device: str, as_json: bool) -> None:
+def reproduce(system: str, seeds: str, out: Path | None, iters: int | None, device: str, cegis_rounds: int,
+              as_json: bool) -> None:
     """Reproduce the paper's experiment: baseline vs DR at the paper's test shift."""
     from drlyap.experiments import format_table
     from drlyap.experiments import reproduce as run_reproduce
@@ -208,8 +211,10 @@ def reproduce(system: str, seeds: str, out: Path | None, iters: int | None, devi
             out, k = Path("runs") / f"reproduce-{system}-{k}", k + 1
     log = (lambda s: click.echo(s, err=True)) if as_json else click.echo
     try:
+        if cegis_rounds < 0:
+            raise ValueError(f"--cegis-rounds must be >= 0, got {cegis_rounds}")
         report = run_reproduce(system, seed_list, out, iters=iters, progress=sys.stderr.isatty(), device=device,
-                               log=log)
+                               log=log, cegis_rounds=cegis_rounds)
     except ValueError as err:
         _fail(err)
     if as_json:

@@ -42,10 +42,13 @@ def summary_row(result: dict) -> dict:
 
 
 def reproduce(system_name: str, seeds: Sequence[int], out: Path, iters: int | None = None, progress: bool = True,
-              device: str = "cpu", log=print, n_more: int = 200, sweep: Sequence[int] = SWEEP) -> dict:
+              device: str = "cpu", log=print, n_more: int = 200, sweep: Sequence[int] = SWEEP,
+              cegis_rounds: int = 0) -> dict:
     """Run the paper's experiment for ``system_name`` and write everything under ``out`` (atomically).
 
     Returns a JSON-friendly dict with per-seed, per-method results and the paths of the figures.
+    With ``cegis_rounds > 0`` both pairs are trained counterexample-guided (:func:`drlyap.cegis.train_cegis`)
+    until the verifier proves their condition or the rounds run out.
     """
     system = get_system(system_name)
     if system.test_xi is None:
@@ -54,7 +57,7 @@ def reproduce(system_name: str, seeds: Sequence[int], out: Path, iters: int | No
         raise ValueError("need at least one seed")
     xi_test = torch.tensor(system.test_xi, dtype=torch.float64)
     report: dict = {"system": system_name, "test_xi": list(system.test_xi), "seeds": list(seeds), "sweep": list(sweep),
-                    "results": []}
+                    "cegis_rounds": cegis_rounds, "results": []}
 
     def fill(tmp: Path) -> None:
         for seed in seeds:
@@ -64,7 +67,12 @@ def reproduce(system_name: str, seeds: Sequence[int], out: Path, iters: int | No
                 cfg = TrainConfig(system=system_name, method=method, seed=seed, device=device)
                 if iters is not None:
                     cfg.iters = iters
-                result = train(cfg, system, progress=progress)
+                if cegis_rounds > 0:
+                    from drlyap.cegis import train_cegis
+
+                    result, _ = train_cegis(cfg, system, rounds=cegis_rounds, progress=progress)
+                else:
+                    result = train(cfg, system, progress=progress)
                 run_dir = save_run(tmp / f"seed{seed}" / method, result)
                 run = load_run(run_dir)
                 paper = evaluate_run(run, xi_test, x_paper)
@@ -79,7 +87,9 @@ def reproduce(system_name: str, seeds: Sequence[int], out: Path, iters: int | No
                        "violating_fraction": result.metrics["acceptance"]["violating_fraction"],
                        "hurwitz": result.metrics["acceptance"]["jacobian"]["hurwitz"],
                        "other_equilibria": len(result.metrics["acceptance"]["other_equilibria"]),
-                       "iterations": result.metrics["iterations"], "train_time_s": result.metrics["train_time_s"],
+                       "iterations": result.metrics["iterations"],
+                       "train_time_s": result.metrics.get("cegis", {}).get("total_time_s", result.metrics["train_time_s"]),
+                       "verified": result.metrics.get("cegis", {}).get("final", {}).get("status"),
                        "paper_10": summary_row(paper), "more_200": summary_row(more), "sweep_200": swept,
                        "run_dir": str(Path(out) / f"seed{seed}" / method)}
                 report["results"].append(row)
@@ -131,12 +141,15 @@ def format_table(report: dict) -> str:
     lines = [f"## {report['system']} at test shift xi = {report['test_xi']}", "",
              "| seed | method | paper 10 | 200 more | acceptance | max violation | violating % | Hurwitz | other eq. | train s |",
              "|---|---|---|---|---|---|---|---|---|---|"]
+    if report["cegis_rounds"]:
+        lines[2] += " trained condition after CEGIS |"
+        lines[3] += "---|"
     for r in report["results"]:
         lines.append(f"| {r['seed']} | {r['method']} | {r['paper_10']['n_success']}/{r['paper_10']['n']} | "
                      f"{r['more_200']['n_success']}/{r['more_200']['n']} | "
                      f"{'passed' if r['passed_acceptance'] else 'not passed'} | {r['max_violation']:.3g} | "
                      f"{100 * r['violating_fraction']:.2f} | {r['hurwitz']} | {r['other_equilibria']} | "
-                     f"{r['train_time_s']:.0f} |")
+                     f"{r['train_time_s']:.0f} |" + (f" {r['verified']} |" if report["cegis_rounds"] else ""))
     factors = report["sweep"]
     lines += ["", f"Success on the {report['results'][0]['more_200']['n']} more states at k x the test shift:", "",
               "| seed | method | " + " | ".join(f"k={k}" for k in factors) + " |",
