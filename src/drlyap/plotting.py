@@ -79,6 +79,10 @@ def time_series(series: Mapping[str, tuple[Tensor, Tensor, Tensor]], path: Path,
     a.set_xlabel("t")
     a.set_ylabel(value_label)
     a.set_yscale("log" if positive else "symlog")
+    if positive:  # at most ten decades: a certificate that reaches 1e-35 would flatten all the others
+        low = min(float(v.min()) for _, v, _ in series.values())
+        high = max(float(v.max()) for _, v, _ in series.values())
+        a.set_ylim(bottom=max(low, 1e-10 * high))
     b.set_xlabel("t")
     b.set_ylabel(input_label)
     a.legend()
