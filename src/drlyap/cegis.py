@@ -42,7 +42,7 @@ from drlyap.conditions import Condition, decrease_terms
 from drlyap.networks import Controller, Lyapunov
 from drlyap.systems import UncertainSystem, get_system
 from drlyap.training import TrainConfig, TrainResult, train
-from drlyap.verification import ConditionSpec, _jsonable, run_condition, verify_condition
+from drlyap.verification import ConditionSpec, jsonable, run_condition, verify_condition
 
 F64 = torch.float64
 
@@ -265,7 +265,7 @@ def train_cegis(cfg: TrainConfig, system: UncertainSystem | None = None, rounds:
     _, chosen, chosen_round, chosen_history = best
     metrics = dict(chosen.metrics)
     final = record[chosen_round] if chosen_round < len(record) else record[-1]
-    metrics["cegis"] = _jsonable({
+    metrics["cegis"] = jsonable({
         "rounds": [{k: v for k, v in e.items() if k != "counterexamples"} for e in record],
         "final": final["verification"], "verified": final["verified"], "returned_round": chosen_round,
         "retraining_rounds": len(record) - 1, "max_rounds": rounds, "iters_per_round": iters_round,

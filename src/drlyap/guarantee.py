@@ -38,9 +38,9 @@ from drlyap.verification import (
     Dual,
     Interval,
     PairBounds,
-    _grid,
-    _inside_ball,
-    _jsonable,
+    box_grid,
+    inside_ball,
+    jsonable,
     run_condition,
     verify_condition,
 )
@@ -236,7 +236,7 @@ def guarantee(run, dist: str, n: int, method: str = "sampling", seed: int = 0, e
         radius_guarantee["radius_sufficient"] = out["radius"] >= radius_guarantee["r_N"]
         out["radius_guarantee"] = radius_guarantee
     out["time_s"] = time.perf_counter() - start
-    return _jsonable(out)
+    return jsonable(out)
 
 
 # =========================================================================== Lipschitz covering
@@ -282,8 +282,8 @@ def lipschitz_covering(run, spacing: float | None = None, n_samples: int = 20000
     cells = math.prod(per_axis)
     if cells > 2_000_000:
         raise ValueError(f"spacing {spacing} gives {cells} cells; choose a larger spacing")
-    glo, ghi = _grid(lo, hi, per_axis)
-    keep = ~_inside_ball(glo, ghi, delta)
+    glo, ghi = box_grid(lo, hi, per_axis)
+    keep = ~inside_ball(glo, ghi, delta)
     glo, ghi = glo[keep], ghi[keep]
     rho = float(((ghi - glo) / 2).norm(dim=-1).max()) * (1 + 1e-12)
     pb = PairBounds(system, run.lyapunov_net, run.controller_net)
@@ -339,7 +339,7 @@ def lipschitz_covering(run, spacing: float | None = None, n_samples: int = 20000
                            "boxes_processed": ver.boxes_processed, "time_s": ver.time_s,
                            "counterexample": ver.counterexample, "counterexample_value": ver.counterexample_value}
     out["time_s"] = time.perf_counter() - start
-    return _jsonable(out)
+    return jsonable(out)
 
 
 def _residual_with_grad(spec: ConditionSpec, system: UncertainSystem, lyap, ctrl, z: Tensor) -> Tensor:

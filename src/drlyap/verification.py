@@ -783,7 +783,8 @@ def box_bounds(objective: Callable, lo: Tensor, hi: Tensor) -> tuple[Tensor, Ten
     return lower, upper, at
 
 
-def _grid(lo: Tensor, hi: Tensor, per_axis: Sequence[int]) -> tuple[Tensor, Tensor]:
+def box_grid(lo: Tensor, hi: Tensor, per_axis: Sequence[int]) -> tuple[Tensor, Tensor]:
+    """Split the box ``[lo, hi]`` (n,) into ``prod(per_axis)`` cells: their ``(lo, hi)``, each ``(C, n)``."""
     axes_lo, axes_hi = [], []
     for i, k in enumerate(per_axis):
         edges = lo[i] + (hi[i] - lo[i]) * torch.arange(k + 1, dtype=F64) / k
@@ -808,7 +809,7 @@ def _near_dist(lo: Tensor, hi: Tensor) -> Tensor:
     return torch.sqrt((gap * gap).sum(-1))
 
 
-def _inside_ball(lo: Tensor, hi: Tensor, delta: float) -> Tensor:
+def inside_ball(lo: Tensor, hi: Tensor, delta: float) -> Tensor:
     """Boxes that lie entirely in the open ball ``||z|| < delta`` (conservatively)."""
     return _far_dist(lo, hi) * (1 + 1e-12) < delta
 
@@ -902,8 +903,8 @@ def verify_condition(system: UncertainSystem, lyapunov: Lyapunov, controller: Co
 
     box_lo, box_hi = system.local_box()
     scale = box_hi - box_lo
-    lo, hi = _grid(box_lo, box_hi, grid or _default_grid(system.n))
-    keep = ~_inside_ball(lo, hi, delta)
+    lo, hi = box_grid(box_lo, box_hi, grid or _default_grid(system.n))
+    keep = ~inside_ball(lo, hi, delta)
     lo, hi = lo[keep], hi[keep]
     region = _region_volume(box_lo, box_hi, delta)
     processed = verified_count = 0
@@ -972,7 +973,7 @@ def verify_condition(system: UncertainSystem, lyapunov: Lyapunov, controller: Co
         split = rest & ~small
         if split.any():
             nlo, nhi = _split(clo[split], chi[split], scale)
-            keep = ~_inside_ball(nlo, nhi, delta)
+            keep = ~inside_ball(nlo, nhi, delta)
             lo, hi = torch.cat([lo, nlo[keep]]), torch.cat([hi, nhi[keep]])
     if lo.shape[0]:
         unverified_vol += float((hi - lo).prod(-1).sum())
@@ -1075,10 +1076,10 @@ def uniform_margin(system: UncertainSystem, lyapunov: Lyapunov, controller: Cont
     spec = ConditionSpec("uniform", xi_samples, decay_rate, exp_rate, radius, risk_level)
     pb = PairBounds(system, lyapunov, controller)
     box_lo, box_hi = system.local_box()
-    lo, hi = _grid(box_lo, box_hi, _default_grid(system.n))
+    lo, hi = box_grid(box_lo, box_hi, _default_grid(system.n))
     lower, upper, info = maximize(
         lambda z: spec.components(pb, z), lo, hi, box_hi - box_lo,
-        centre_ok=lambda c: c.norm(dim=-1) >= delta * (1 + 1e-12), box_ok=lambda a, b: ~_inside_ball(a, b, delta),
+        centre_ok=lambda c: c.norm(dim=-1) >= delta * (1 + 1e-12), box_ok=lambda a, b: ~inside_ball(a, b, delta),
         time_limit=time_limit, rel_tol=rel_tol, min_width=min_width)
     coef = radius / risk_level
     m_up = _up(coef * upper[0], 8 * EPS) + spec_cvar(upper[1:], risk_level, up=True)
@@ -1104,7 +1105,7 @@ def _faces(lo: Tensor, hi: Tensor, per_axis: Sequence[int]) -> tuple[Tensor, Ten
         per = list(per_axis)
         per[i] = 1
         for side in (lo[i], hi[i]):
-            flo, fhi = _grid(lo, hi, per)
+            flo, fhi = box_grid(lo, hi, per)
             flo[:, i] = side
             fhi[:, i] = side
             out_lo.append(flo)
@@ -1146,7 +1147,7 @@ def certified_roa(system: UncertainSystem, lyapunov: Lyapunov, controller: Contr
     if delta > 0:
         blo = torch.maximum(box_lo, torch.full_like(box_lo, -delta))
         bhi = torch.minimum(box_hi, torch.full_like(box_hi, delta))
-        glo, ghi = _grid(blo, bhi, grid)
+        glo, ghi = box_grid(blo, bhi, grid)
         _, up, _ = maximize(vobj, glo, ghi, scale, time_limit=time_limit / 4,
                             box_ok=lambda a, b: _near_dist(a, b) < delta, min_width=min_width)
         ball_max_upper = float(up[0])
@@ -1157,8 +1158,8 @@ def certified_roa(system: UncertainSystem, lyapunov: Lyapunov, controller: Contr
     def objective(z):
         return cat([spec.components(pb, z), pb.value(z).unsqueeze(-1)], -1)
 
-    lo, hi = _grid(box_lo, box_hi, grid)
-    keep = ~_inside_ball(lo, hi, delta)
+    lo, hi = box_grid(box_lo, box_hi, grid)
+    keep = ~inside_ball(lo, hi, delta)
     lo, hi = lo[keep], hi[keep]
     processed = 0
     deadline = start + time_limit
@@ -1196,7 +1197,7 @@ def certified_roa(system: UncertainSystem, lyapunov: Lyapunov, controller: Contr
         split = open_ & ~small & (v_lb <= level)
         if split.any():
             nlo, nhi = _split(clo[split], chi[split], scale)
-            keep = ~_inside_ball(nlo, nhi, delta)
+            keep = ~inside_ball(nlo, nhi, delta)
             lo, hi = torch.cat([lo, nlo[keep]]), torch.cat([hi, nhi[keep]])
     c = float(_down(_t(level), REL1)) if math.isfinite(level) else level
     share = 0.0
@@ -1281,15 +1282,15 @@ def verify_run(run, delta: float | None = None, xi: Sequence[float] | Tensor | N
     out["counterexample"] = main.get("counterexample")
     out["counterexample_value"] = main.get("counterexample_value")
     out["time_s"] = main["time_s"]
-    return _jsonable(out)
+    return jsonable(out)
 
 
-def _jsonable(obj):
+def jsonable(obj):
     """Non-finite floats become None (strict JSON); containers are copied."""
     if isinstance(obj, dict):
-        return {k: _jsonable(v) for k, v in obj.items()}
+        return {k: jsonable(v) for k, v in obj.items()}
     if isinstance(obj, (list, tuple)):
-        return [_jsonable(v) for v in obj]
+        return [jsonable(v) for v in obj]
     if isinstance(obj, float) and not math.isfinite(obj):
         return None
     return obj
