@@ -32,7 +32,7 @@ def ms_per_iteration(system_name: str, blocks: int = 5, per_block: int = 40) -> 
     xi = draw_xi_samples(system, cfg).float()
     z = sample_region(system, cfg.n_states, cfg.delta, torch.Generator().manual_seed(0)).float()
     cond = make_condition("dr", "pointwise", cfg.wasserstein_radius, cfg.risk_level)
-    opt = torch.optim.Adam([*lyapunov.parameters(), *controller.parameters()], lr=cfg.lr)
+    opt = torch.optim.Adam([*lyapunov.parameters(), *controller.parameters()], lr=cfg.lr, fused=True)
 
     def step() -> None:
         loss = cond.loss(decrease_terms(system, lyapunov, controller, z, xi, cfg.decay_rate), cfg.margin)

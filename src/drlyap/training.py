@@ -188,7 +188,7 @@ def train(cfg: TrainConfig, system: UncertainSystem | None = None, progress: boo
     z_val = validation_states(system, cfg.delta).float().to(device)
 
     params = list(lyapunov.parameters()) + list(controller.parameters())
-    opt = torch.optim.Adam(params, lr=cfg.lr)
+    opt = torch.optim.Adam(params, lr=cfg.lr, fused=True)
     history: list[dict] = []
     checks: list[dict] = []
     best: tuple | None = None
