@@ -1,0 +1,52 @@
+"""Hand-made certificate/controller pairs on a small pendulum box, shared by the verification tests."""
+
+import torch
+
+from drlyap.networks import Controller, Lyapunov
+from drlyap.systems import UncertainSystem
+
+F64 = torch.float64
+
+
+def _pend(x, u, p):
+    theta, omega = x.unbind(-1)
+    m, l, b, g = p.unbind(-1)
+    return torch.stack([omega, (m * g * l * torch.sin(theta) - b * omega + u[:, 0]) / (m * l * l)], dim=-1)
+
+
+def small_pendulum(box=((-0.6, -1.2), (0.6, 1.2))) -> UncertainSystem:
+    """A user-defined system (the pendulum on a small box) to show the verifier runs user dynamics."""
+    return UncertainSystem(
+        name="small-pendulum", state_names=("theta", "omega"), input_names=("torque",),
+        param_names=("mass", "length", "damping", "gravity"), nominal_params=(1.0, 1.0, 0.13, 9.81),
+        uncertain=("mass", "damping"), dynamics=_pend, state_box=box,
+        input_box=((-15.0,), (15.0,)), equilibrium=(0.0, 0.0), angle_dims=(0,))
+
+
+def linear_pair(system, sign=1.0, eps=1e-2):
+    """V ~ z^T P z (Lyapunov matrix of the LQR-like closed loop) and pi ~ -K z, realised with tanh networks."""
+    g, b = 9.81, 0.13
+    k = torch.tensor([[g + 4.0, 4.0 - b]], dtype=F64)  # closed-loop poles at -2, -2 (nominal model)
+    a_cl = torch.tensor([[0.0, 1.0], [g, -b]], dtype=F64) - torch.tensor([[0.0], [1.0]], dtype=F64) @ k
+    # solve A^T P + P A = -I by vectorisation
+    eye = torch.eye(2, dtype=F64)
+    at = a_cl.T.contiguous()
+    lhs = torch.kron(eye, at) + torch.kron(at, eye)
+    p = torch.linalg.solve(lhs, -eye.reshape(-1)).reshape(2, 2)
+    p = (p + p.T) / 2
+    lo, hi = system.local_box()
+    s = ((hi - lo) / 2).float()
+    alpha_hat = 1e-3
+    chol = torch.linalg.cholesky(p - alpha_hat * torch.diag(1 / s.double() ** 2)).T  # P = L^T L + alpha S^-2
+    lyap = Lyapunov(2, hidden=[2], out=2, alpha_hat=alpha_hat, input_scale=s.tolist())
+    ctrl = Controller(2, system.input_box, system.equilibrium_input, hidden=[1], input_scale=s.tolist())
+    with torch.no_grad():
+        lyap.phi.layers[0].weight.copy_((eps * chol * s.double()).float())
+        lyap.phi.layers[0].bias.zero_()
+        lyap.phi.layers[1].weight.copy_(torch.eye(2) / eps)
+        lyap.phi.layers[1].bias.zero_()
+        ctrl.varphi.layers[0].weight.copy_((eps * k * s.double()).float())
+        ctrl.varphi.layers[0].bias.zero_()
+        ctrl.varphi.layers[1].weight.fill_(-sign / eps)
+        ctrl.varphi.layers[1].bias.zero_()
+    return lyap, ctrl
