@@ -10,18 +10,9 @@ import pytest
 import torch
 from click.testing import CliRunner
 
-from drlyap.baselines import (
-    compare_runs,
-    default_weights,
-    linearize,
-    load_policy_run,
-    lqr_design,
-    monotonicity,
-    save_lqr_run,
-    score_run,
-    train_lqr,
-)
+from drlyap.baselines import default_weights, linearize, load_policy_run, lqr_design, save_lqr_run, train_lqr
 from drlyap.cli import main
+from drlyap.comparison import compare_runs, monotonicity, score_run
 from drlyap.rundir import RunDirError, save_run
 from drlyap.simulation import evaluate, initial_states
 from drlyap.systems import get_system

@@ -326,7 +326,7 @@ def compare(run_dirs: tuple[Path, ...], xi: str, n_init: int, seed: int, horizon
     range; lower is better, 0 means monotone); and what each run proves: for Lyapunov pairs the sound
     verifier's verdict on the decrease condition on the true model at --xi over the whole region.
     """
-    from drlyap.baselines import compare_runs, format_comparison
+    from drlyap.comparison import compare_runs, format_comparison
 
     try:
         if horizon is not None and horizon <= 0:

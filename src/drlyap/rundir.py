@@ -37,7 +37,8 @@ class RunDirError(ValueError):
     """A run directory is missing, incomplete, or does not fit the request."""
 
 
-def _write_json(path: Path, data: dict) -> None:
+def write_json(path: Path, data: dict) -> None:
+    """Write ``data`` as indented JSON."""
     path.write_text(json.dumps(data, indent=2, sort_keys=False) + "\n")
 
 
@@ -68,10 +69,10 @@ def save_run(out: Path, result: TrainResult, overwrite: bool = False,
     """Write a trained pair as a run directory at ``out`` (atomically); ``extra(tmp)`` may add files."""
 
     def fill(tmp: Path) -> None:
-        _write_json(tmp / "config.json", result.config.to_dict())
+        write_json(tmp / "config.json", result.config.to_dict())
         torch.save({"lyapunov": result.lyapunov.state_dict(), "controller": result.controller.state_dict()},
                    tmp / "weights.pt")
-        _write_json(tmp / "metrics.json", result.metrics)
+        write_json(tmp / "metrics.json", result.metrics)
         with open(tmp / "history.csv", "w", newline="") as fh:
             writer = csv.DictWriter(fh, fieldnames=["iteration", "loss", "time_s"])
             writer.writeheader()
@@ -79,7 +80,7 @@ def save_run(out: Path, result: TrainResult, overwrite: bool = False,
         (tmp / "figures").mkdir()
         if extra is not None:
             extra(tmp)
-        _write_json(tmp / "run.json", {"kind": "lyapunov", "format": FORMAT_VERSION,
+        write_json(tmp / "run.json", {"kind": "lyapunov", "format": FORMAT_VERSION,
                                        "system": result.system.describe()})
 
     return atomic_dir(out, fill, overwrite)
@@ -130,7 +131,7 @@ class Run:
     def save_metrics(self) -> None:
         """Rewrite ``metrics.json`` (atomically, via a temporary file)."""
         tmp = self.path / ".metrics.json.tmp"
-        _write_json(tmp, self.metrics)
+        write_json(tmp, self.metrics)
         os.replace(tmp, self.path / "metrics.json")
 
 

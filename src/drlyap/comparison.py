@@ -1,0 +1,182 @@
+"""Comparing controllers of any kind (Lyapunov pairs, LQR, RL) on the true model (``drlyap compare``).
+
+Every run is simulated from the same initial states at one shift; the table reports success (as
+:func:`drlyap.simulation.evaluate`), samples and training time, how often the certificate increases
+along successful trajectories (:func:`monotonicity`), and what each run *proves*: the sound verifier's
+verdict for Lyapunov pairs (:func:`certify`). Figures follow the paper's Figs. 3/4.
+"""
+
+from __future__ import annotations
+
+import json
+import math
+import os
+import time
+from collections.abc import Sequence
+from pathlib import Path
+
+import torch
+from torch import Tensor
+
+from drlyap.baselines import PolicyRun, load_policy_run
+from drlyap.rundir import RunDirError, atomic_dir
+from drlyap.systems import UncertainSystem
+
+
+def figure_starts(system: UncertainSystem) -> list[tuple[float, ...]]:
+    """Start states of the comparison figures: the paper's Figs. 3/4 states for the pendulums
+    ((pi, 0) and (-pi/2, 5.5)); otherwise the low corner and the centre of the test box."""
+    if system.name.startswith("pendulum"):
+        return [(math.pi, 0.0), (-math.pi / 2, 5.5)]
+    lo, hi = system.test_box
+    return [tuple(lo), tuple((a + b) / 2 for a, b in zip(lo, hi))]
+
+
+def monotonicity(system: UncertainSystem, x: Tensor, values: Tensor, success: Tensor, rel_tol: float = 1e-4) -> dict:
+    """How often a certificate increases along successful trajectories.
+
+    ``x (T, B, n)`` states, ``values (T, B)`` certificate along them, ``success (B,)``. A step counts
+    as an increase when ``v(t+1) - v(t) > rel_tol * (max_t v - min_t v)`` of that trajectory (so that
+    float32 rounding of a network near x* is not counted). Steps where an angle crosses the wrap
+    (the certificate lives on the box, not the circle) are left out. Returns ``increase_fraction``
+    (increasing steps / counted steps over successful trajectories), ``monotone_fraction`` (successful
+    trajectories with no increase) and ``counted_steps``; None values without successful trajectories.
+    """
+    dv = values[1:] - values[:-1]
+    valid = torch.isfinite(dv)
+    if system.angle_dims:
+        z = system.to_local(x.reshape(-1, system.n)).reshape(x.shape)
+        idx = list(system.angle_dims)
+        valid &= ((z[1:, :, idx] - z[:-1, :, idx]) - (x[1:, :, idx] - x[:-1, :, idx])).abs().amax(-1) <= 1.0
+    span = (values.amax(0) - values.amin(0)).clamp_min(0)
+    increase = (dv > rel_tol * span) & valid
+    ok = success.bool()
+    if not ok.any():
+        return {"increase_fraction": None, "monotone_fraction": None, "counted_steps": 0}
+    counted = int(valid[:, ok].sum())
+    return {"increase_fraction": float(increase[:, ok].sum()) / max(counted, 1),
+            "monotone_fraction": float((~increase[:, ok].any(0)).double().mean()),
+            "counted_steps": counted}
+
+
+def score_run(run: PolicyRun, x0: Tensor, xi: Tensor, horizon: float | None = None) -> dict:
+    """Simulate ``run`` from ``x0`` on the true model at ``xi``: success (as :func:`simulation.evaluate`),
+    certificate monotonicity along successful trajectories, samples and training time."""
+    from drlyap.simulation import simulate, success_mask
+
+    system = run.system
+    tic = time.perf_counter()
+    traj = simulate(system, run.controller, x0, xi, horizon=horizon)
+    success, dev = success_mask(system, traj.x)
+    row = {"run_dir": str(run.path), "kind": run.kind, "label": run.label, "system": system.name,
+           "n": int(x0.shape[0]), "n_success": int(success.sum()), "success_rate": float(success.double().mean()),
+           "success": success.tolist(), "samples": run.samples, "train_time_s": run.train_time_s,
+           "distinct_states": run.info.get("distinct_states")}
+    if run.certificate is not None:
+        values = run.certificate(traj.x.reshape(-1, system.n)).reshape(dev.shape)
+        row["certificate"] = monotonicity(system, traj.x, values, success)
+    else:
+        row["certificate"] = {"increase_fraction": None, "monotone_fraction": None, "counted_steps": 0}
+    row["simulation_s"] = time.perf_counter() - tic
+    return row
+
+
+def certify(run: PolicyRun, xi: Tensor, time_limit: float) -> dict:
+    """What a run *proves* at the shift ``xi``: for a Lyapunov pair, the sound verifier's verdict on
+    ``Vdot + decay <= 0`` on the true model over the whole X_delta (:func:`verification.verify_run`);
+    LQR's ``z'Pz`` and RL critics carry no verified region here."""
+    if run.kind != "lyapunov":
+        return {"status": "none", "verified_fraction": None,
+                "note": "quadratic certificate of the linearisation only" if run.kind == "lqr" else "no certificate"}
+    from drlyap.verification import verify_run
+
+    result = verify_run(run.info["run"], xi=xi, time_limit=time_limit)
+    return {"status": result["status"], "verified_fraction": result["verified_fraction"],
+            "counterexample": result["counterexample"], "time_s": result["time_s"]}
+
+
+def compare_runs(paths: Sequence[str | os.PathLike], xi: Sequence[float], n_init: int = 200, seed: int = 0,
+                 out: str | os.PathLike | None = None, horizon: float | None = None,
+                 certify_time_limit: float | None = 10.0) -> dict:
+    """Score every run directory at the shift ``xi`` from the same ``n_init`` initial states (drawn from
+    each system's test box with ``seed``); with ``out``, write compare.json, compare.md and figures.
+
+    ``certify_time_limit`` (seconds per run; None skips it) runs the verifier on each Lyapunov pair at ``xi``.
+    """
+    from drlyap.simulation import initial_states
+
+    if not paths:
+        raise ValueError("give at least one run directory")
+    if n_init < 1:
+        raise ValueError(f"--n-init must be >= 1, got {n_init}")
+    if out is not None and Path(out).exists():
+        raise RunDirError(f"{out} already exists; choose another --out or remove it")
+    runs = [load_policy_run(p) for p in paths]
+    shifts = [run.system.check_xi(xi) for run in runs]
+    rows = []
+    for run, shift in zip(runs, shifts):
+        x0 = initial_states(run.system, n_init, torch.Generator().manual_seed(seed))
+        row = score_run(run, x0, shift, horizon)
+        if certify_time_limit is not None:
+            row["certified"] = certify(run, shift, certify_time_limit)
+        rows.append(row)
+    report = {"xi": [float(v) for v in xi], "n_init": n_init, "seed": seed, "rows": rows}
+    if out is not None:
+        def fill(tmp: Path) -> None:
+            figures = compare_figures(runs, shifts, tmp / "figures", horizon)
+            report["figures"] = [str(Path(out) / "figures" / f.name) for f in figures]
+            (tmp / "compare.json").write_text(json.dumps(report, indent=2) + "\n")
+            (tmp / "compare.md").write_text(format_comparison(report) + "\n")
+
+        atomic_dir(Path(out), fill)
+    return report
+
+
+def compare_figures(runs: Sequence[PolicyRun], shifts: Sequence[Tensor], folder: Path,
+                    horizon: float | None = None) -> list[Path]:
+    """Like the paper's Figs. 3/4: certificate (V, z^T P z, or negated value) and input over time, one
+    figure per start state of :func:`figure_starts` (of the first run's system)."""
+    from drlyap import plotting
+    from drlyap.simulation import simulate
+
+    folder.mkdir(parents=True, exist_ok=True)
+    paths = []
+    for i, start in enumerate(figure_starts(runs[0].system)):
+        series = {}
+        for run, shift in zip(runs, shifts):
+            x0 = torch.tensor([start], dtype=torch.float64)
+            if x0.shape[1] != run.system.n:
+                continue
+            traj = simulate(run.system, run.controller, x0, shift, horizon=horizon)
+            value = run.certificate(traj.x[:, 0]) if run.certificate is not None else torch.full_like(traj.t, float("nan"))
+            series[f"{run.label} ({run.path.name})"] = (traj.t, value, traj.u[:, 0, 0])
+        where = ", ".join(f"{v:.3g}" for v in start)
+        shift = ", ".join(f"{v:+g}" for v in shifts[0].tolist())
+        paths.append(plotting.time_series(series, folder / f"certificate_and_input_{i}.png",
+                                          f"{runs[0].system.name} from ({where}), true model at xi = ({shift})",
+                                          value_label="certificate: V, z'Pz or -value"))
+    return paths
+
+
+def format_comparison(report: dict) -> str:
+    """A markdown table of a :func:`compare_runs` report."""
+    lines = [f"## comparison at xi = {report['xi']} ({report['n_init']} initial states, seed {report['seed']})", "",
+             "| run | kind | system | success | samples | train s | certificate increases | monotone trajectories "
+             "| verified decrease at xi |",
+             "|---|---|---|---|---|---|---|---|---|"]
+    for r in report["rows"]:
+        c = r["certificate"]
+        inc = "-" if c["increase_fraction"] is None else f"{100 * c['increase_fraction']:.2f}%"
+        mono = "-" if c["monotone_fraction"] is None else f"{100 * c['monotone_fraction']:.0f}%"
+        t = "-" if r["train_time_s"] is None else f"{r['train_time_s']:.1f}"
+        cert = r.get("certified")
+        if cert is None:
+            proof = "not checked"
+        elif cert["verified_fraction"] is None:
+            proof = cert["status"]
+        else:
+            proof = f"{cert['status']} ({100 * cert['verified_fraction']:.2f}% of X_delta)"
+        lines.append(f"| {r['run_dir']} | {r['label']} | {r['system']} | {r['n_success']}/{r['n']} "
+                     f"({100 * r['success_rate']:.1f}%) | {r['samples'] if r['samples'] is not None else '-'} | {t} | "
+                     f"{inc} | {mono} | {proof} |")
+    return "\n".join(lines)
