@@ -313,7 +313,7 @@ def rl_train(system: str, algo: str, steps: int | None, seed: int, out: Path) ->
 @click.option("--out", type=click.Path(path_type=Path), default=None,
               help="Write compare.json, compare.md and figures (certificate and input over time) here.")
 @click.option("--certify-time", type=float, default=10.0, show_default=True,
-              help="Seconds of sound verification per Lyapunov run at --xi (0 skips it).")
+              help="Seconds of sound verification per check of a Lyapunov or LQR run at --xi (0 skips it).")
 @click.option("--json", "as_json", is_flag=True, help="Print one JSON object.")
 def compare(run_dirs: tuple[Path, ...], xi: str, n_init: int, seed: int, horizon: float | None, out: Path | None,
             certify_time: float, as_json: bool) -> None:
@@ -323,8 +323,9 @@ def compare(run_dirs: tuple[Path, ...], xi: str, n_init: int, seed: int, horizon
     n_states x iterations with the default resampling; RL: environment steps; LQR: 0); training wall
     time; and how often the certificate (V, z'Pz for LQR, the negated critic value for RL) increases
     along successful trajectories (a step counts when it rises by more than 1e-4 of that trajectory's
-    range; lower is better, 0 means monotone); and what each run proves: for Lyapunov pairs the sound
-    verifier's verdict on the decrease condition on the true model at --xi over the whole region.
+    range; lower is better, 0 means monotone); and what each run proves on the true model at --xi,
+    by the sound verifier over the whole region: the decrease condition (learned pairs with their
+    own gamma, LQR's z'Pz with gamma = 0) and the certified region of attraction (a sublevel set).
     """
     from drlyap.comparison import compare_runs, format_comparison
 

@@ -82,17 +82,36 @@ def score_run(run: PolicyRun, x0: Tensor, xi: Tensor, horizon: float | None = No
 
 
 def certify(run: PolicyRun, xi: Tensor, time_limit: float) -> dict:
-    """What a run *proves* at the shift ``xi``: for a Lyapunov pair, the sound verifier's verdict on
-    ``Vdot + decay <= 0`` on the true model over the whole X_delta (:func:`verification.verify_run`);
-    LQR's ``z'Pz`` and RL critics carry no verified region here."""
-    if run.kind != "lyapunov":
-        return {"status": "none", "verified_fraction": None,
-                "note": "quadratic certificate of the linearisation only" if run.kind == "lqr" else "no certificate"}
-    from drlyap.verification import verify_run
+    """What a run *proves* at the shift ``xi`` on the true model, by the sound verifier over X_delta:
+    the decrease condition and the largest certified sublevel set (region of attraction).
 
-    result = verify_run(run.info["run"], xi=xi, time_limit=time_limit)
-    return {"status": result["status"], "verified_fraction": result["verified_fraction"],
-            "counterexample": result["counterexample"], "time_s": result["time_s"]}
+    Lyapunov pairs: ``Vdot + gamma||z|| (+ alpha V) <= 0`` with the run's own gamma and delta
+    (:func:`verification.verify_run`). LQR: ``d/dt z'Pz <= 0`` (gamma = 0: the condition with a decay term
+    depends on the scale of P) with the system's default delta. RL critics: nothing is proved.
+    """
+    from drlyap.networks import LinearController, QuadraticLyapunov
+    from drlyap.training import TrainConfig
+    from drlyap.verification import ConditionSpec, certified_roa, verify_condition, verify_run
+
+    if run.kind == "lyapunov":
+        result = verify_run(run.info["run"], xi=xi, time_limit=time_limit, roa=True)
+        roa = result["roa"] or {}
+        return {"status": result["status"], "verified_fraction": result["verified_fraction"],
+                "counterexample": result["counterexample"], "time_s": result["time_s"],
+                "roa_certified": roa.get("certified"), "roa_share": roa.get("share_of_box"), "decay_rate": None}
+    if run.kind == "lqr":
+        system, design = run.system, run.info["design"]
+        lyapunov = QuadraticLyapunov(design.P)
+        controller = LinearController(design.K, system.input_box, system.equilibrium_input)
+        spec = ConditionSpec("true", xi, decay_rate=0.0)
+        delta = TrainConfig(system=system.name).resolved(system).delta
+        result = verify_condition(system, lyapunov, controller, spec, delta, time_limit=time_limit).to_dict()
+        roa = certified_roa(system, lyapunov, controller, spec, delta, time_limit=time_limit)
+        return {"status": result["status"], "verified_fraction": result["verified_fraction"],
+                "counterexample": result["counterexample"], "time_s": result["time_s"],
+                "roa_certified": roa.get("certified"), "roa_share": roa.get("share_of_box"), "decay_rate": 0.0}
+    return {"status": "none", "verified_fraction": None, "roa_certified": None, "roa_share": None,
+            "note": "no certificate"}
 
 
 def compare_runs(paths: Sequence[str | os.PathLike], xi: Sequence[float], n_init: int = 200, seed: int = 0,
@@ -162,8 +181,8 @@ def format_comparison(report: dict) -> str:
     """A markdown table of a :func:`compare_runs` report."""
     lines = [f"## comparison at xi = {report['xi']} ({report['n_init']} initial states, seed {report['seed']})", "",
              "| run | kind | system | success | samples | train s | certificate increases | monotone trajectories "
-             "| verified decrease at xi |",
-             "|---|---|---|---|---|---|---|---|---|"]
+             "| verified decrease at xi | certified region of attraction at xi |",
+             "|---|---|---|---|---|---|---|---|---|---|"]
     for r in report["rows"]:
         c = r["certificate"]
         inc = "-" if c["increase_fraction"] is None else f"{100 * c['increase_fraction']:.2f}%"
@@ -171,12 +190,15 @@ def format_comparison(report: dict) -> str:
         t = "-" if r["train_time_s"] is None else f"{r['train_time_s']:.1f}"
         cert = r.get("certified")
         if cert is None:
-            proof = "not checked"
+            proof, roa = "not checked", "not checked"
         elif cert["verified_fraction"] is None:
-            proof = cert["status"]
+            proof, roa = cert["status"], "none"
         else:
             proof = f"{cert['status']} ({100 * cert['verified_fraction']:.2f}% of X_delta)"
+            if cert.get("decay_rate") == 0.0:
+                proof += ", gamma = 0"
+            roa = "none" if not cert["roa_certified"] else f"{100 * cert['roa_share']:.1f}% of the box"
         lines.append(f"| {r['run_dir']} | {r['label']} | {r['system']} | {r['n_success']}/{r['n']} "
                      f"({100 * r['success_rate']:.1f}%) | {r['samples'] if r['samples'] is not None else '-'} | {t} | "
-                     f"{inc} | {mono} | {proof} |")
+                     f"{inc} | {mono} | {proof} | {roa} |")
     return "\n".join(lines)

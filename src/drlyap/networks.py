@@ -121,3 +121,41 @@ class Controller(nn.Module):
     def forward(self, z: Tensor) -> Tensor:
         """``z (B, n) -> u (B, m)``."""
         return self.u_star + saturate(self.raw(z), self.room_low, self.room_high)
+
+
+class QuadraticLyapunov(nn.Module):
+    """``V(z) = z^T P z`` with a symmetric positive definite ``P (n, n)`` (e.g. LQR's Riccati solution).
+
+    The same interface as :class:`Lyapunov`, so the conditions and the verifier accept it.
+    """
+
+    def __init__(self, P: Tensor) -> None:
+        super().__init__()
+        P = torch.as_tensor(P, dtype=torch.float64)
+        self.register_buffer("P", (P + P.T) / 2)
+
+    def forward(self, z: Tensor) -> Tensor:
+        """``z (B, n) -> V (B,)``."""
+        return ((z @ self.P) * z).sum(-1)
+
+    def value_and_grad(self, z: Tensor) -> tuple[Tensor, Tensor]:
+        pz = z @ self.P
+        return (pz * z).sum(-1), 2 * pz
+
+
+class LinearController(nn.Module):
+    """``pi(z) = u* + clamp(-K z, U - u*)`` with a gain ``K (m, n)`` (e.g. LQR); same interface as
+    :class:`Controller`."""
+
+    def __init__(self, K: Tensor, input_box: tuple[Sequence[float], Sequence[float]], u_star: Sequence[float]) -> None:
+        super().__init__()
+        lo, hi = (torch.as_tensor(b, dtype=torch.float64) for b in input_box)
+        us = torch.as_tensor(u_star, dtype=torch.float64)
+        self.register_buffer("K", torch.as_tensor(K, dtype=torch.float64))
+        self.register_buffer("u_star", us)
+        self.register_buffer("room_low", lo - us)
+        self.register_buffer("room_high", hi - us)
+
+    def forward(self, z: Tensor) -> Tensor:
+        """``z (B, n) -> u (B, m)``."""
+        return self.u_star + torch.maximum(torch.minimum(-z @ self.K.T, self.room_high), self.room_low)

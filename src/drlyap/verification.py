@@ -56,7 +56,7 @@ import torch
 from torch import Tensor
 
 from drlyap.conditions import DRPointwise, Nominal, cvar_bound, decrease_terms
-from drlyap.networks import Controller, Lyapunov, TanhMLP
+from drlyap.networks import Controller, LinearController, Lyapunov, QuadraticLyapunov, TanhMLP
 from drlyap.systems import UncertainSystem
 
 F64 = torch.float64
@@ -600,13 +600,19 @@ class _NetBounds:
 
 
 class PairBounds:
-    """Enclosures of V, grad V, pi and the design/true dynamics for one trained pair."""
+    """Enclosures of V, grad V, pi and the design/true dynamics for one pair: the trained networks, or a
+    quadratic certificate / linear saturated controller (:class:`QuadraticLyapunov`, :class:`LinearController`)."""
 
-    def __init__(self, system: UncertainSystem, lyapunov: Lyapunov, controller: Controller) -> None:
+    def __init__(self, system: UncertainSystem, lyapunov: Lyapunov | QuadraticLyapunov,
+                 controller: Controller | LinearController) -> None:
         self.system = system
-        self.phi = _NetBounds(lyapunov.phi)
-        self.alpha_hat = float(lyapunov.alpha_hat)
-        self.varphi = _NetBounds(controller.varphi)
+        self.P = lyapunov.P.detach().to(F64).clone() if isinstance(lyapunov, QuadraticLyapunov) else None
+        self.K = controller.K.detach().to(F64).clone() if isinstance(controller, LinearController) else None
+        if self.P is None:
+            self.phi = _NetBounds(lyapunov.phi)
+            self.alpha_hat = float(lyapunov.alpha_hat)
+        if self.K is None:
+            self.varphi = _NetBounds(controller.varphi)
         self.u_star = controller.u_star.detach().to(F64).clone()
         self.room_low = controller.room_low.detach().to(F64).clone()
         self.room_high = controller.room_high.detach().to(F64).clone()
@@ -614,6 +620,9 @@ class PairBounds:
         self.p0 = _t(system.nominal_params)
 
     def value_and_grad(self, z):
+        if self.P is not None:
+            pz = z.linear(self.P)
+            return (z * pz).sum(-1), pz * 2.0
         out, hidden = self.phi.forward(z)
         d = out - self.phi.anchor
         zs = z / Interval.const(self.phi.scale)
@@ -622,12 +631,16 @@ class PairBounds:
         return value, grad
 
     def value(self, z):
+        if self.P is not None:
+            return (z * z.linear(self.P)).sum(-1)
         out, _ = self.phi.forward(z)
         d = out - self.phi.anchor
         zs = z / Interval.const(self.phi.scale)
         return d.square().sum(-1) + zs.square().sum(-1) * self.alpha_hat
 
     def control(self, z):
+        if self.K is not None:
+            return z.linear(-self.K).clamp(self.room_low, self.room_high) + self.u_star
         raw, _ = self.varphi.forward(z)
         raw = raw - self.varphi.anchor
         return raw.clamp(self.room_low, self.room_high) + self.u_star
