@@ -118,8 +118,9 @@ def find_equilibria(system: UncertainSystem, controller: Controller, xi_samples:
         scale = closed_loop_rhs(system, controller, starts, xis[-1].expand(s, -1)).norm(dim=-1).median()
     for _ in range(iterations):
         f, jac = batched_jacobian(system, controller, z, xi)
-        step = torch.linalg.lstsq(jac, -f.unsqueeze(-1)).solution.squeeze(-1)
-        step = torch.nan_to_num(step)
+        # tiny n x n least-squares solves: on the CPU in float64 (CUDA's lstsq assumes full rank)
+        step = torch.linalg.lstsq(jac.double().cpu(), -f.double().cpu().unsqueeze(-1)).solution.squeeze(-1)
+        step = torch.nan_to_num(step).to(z)
         limit = 0.1 * width
         step = torch.maximum(torch.minimum(step, limit), -limit)
         z = torch.minimum(torch.maximum(z + step, lo), hi)
@@ -140,10 +141,16 @@ def find_equilibria(system: UncertainSystem, controller: Controller, xi_samples:
 
 def acceptance_check(system: UncertainSystem, lyapunov: Lyapunov, controller: Controller, condition: Condition,
                      xi_samples: Tensor, decay_rate: float, exp_rate: float, delta: float,
-                     validation: Tensor | None = None) -> dict:
-    """Run all three checks; ``passed`` is True only if all of them pass."""
+                     validation: Tensor | None = None, xi_condition: Tensor | None = None) -> dict:
+    """Run all three checks; ``passed`` is True only if all of them pass.
+
+    ``xi_samples (N, k)``: every sample; the Jacobian and equilibrium checks run at each of them and at
+    their mean. ``xi_condition``: the samples the condition uses (default ``xi_samples``; the baseline's
+    condition uses only the mean).
+    """
     z = validation_states(system, delta) if validation is None else validation
-    residual = condition_residual(system, lyapunov, controller, condition, z, xi_samples, decay_rate, exp_rate)
+    xi_condition = xi_samples if xi_condition is None else xi_condition
+    residual = condition_residual(system, lyapunov, controller, condition, z, xi_condition, decay_rate, exp_rate)
     max_violation = float(residual.max())
     jac = jacobian_check(system, controller, xi_samples)
     equilibria = find_equilibria(system, controller, xi_samples, delta)

@@ -201,8 +201,8 @@ def train(cfg: TrainConfig, system: UncertainSystem | None = None, progress: boo
     def run_check(iteration: int) -> dict:
         nonlocal best, check_time
         tic = time.perf_counter()
-        check = acceptance_check(system, lyapunov, controller, condition, xi_train.to(device), cfg.decay_rate,
-                                 cfg.exp_rate, cfg.delta, validation=z_val)
+        check = acceptance_check(system, lyapunov, controller, condition, xi_all.to(device), cfg.decay_rate,
+                                 cfg.exp_rate, cfg.delta, validation=z_val, xi_condition=xi_train.to(device))
         check["iteration"] = iteration
         checks.append({k: check[k] for k in ("iteration", "passed", "max_violation", "violating_fraction")}
                       | {"hurwitz": check["jacobian"]["hurwitz"], "n_other_equilibria": len(check["other_equilibria"])})
