@@ -43,7 +43,17 @@ import numpy as np
 import torch
 from torch import Tensor
 
-from drlyap.rundir import FORMAT_VERSION, RunDirError, atomic_dir, load_run, read_run_json, read_run_kind, run_system, write_json
+from drlyap.rundir import (
+    FORMAT_VERSION,
+    RunDirError,
+    atomic_dir,
+    ensure_new,
+    load_run,
+    read_run_json,
+    read_run_kind,
+    run_system,
+    write_json,
+)
 from drlyap.systems import UncertainSystem, get_system
 
 
@@ -173,8 +183,7 @@ def train_lqr(system_name: str, out: str | os.PathLike, Q: Sequence[float] | Non
     from drlyap.simulation import evaluate, initial_states
 
     system = get_system(system_name)
-    if Path(out).exists():
-        raise RunDirError(f"{out} already exists; choose another --out or remove it")
+    ensure_new(out)
     tic = time.perf_counter()
     design = lqr_design(system, Q, R)
     elapsed = time.perf_counter() - tic
@@ -231,11 +240,12 @@ def load_lqr_run(path: str | os.PathLike, system: UncertainSystem | None = None)
 def _lyapunov_policy_run(path: Path, system: UncertainSystem | None) -> PolicyRun:
     run = load_run(path, system)
     cfg = run.config
-    iters = int(run.metrics.get("iterations", 0) or 0)
+    cegis = run.metrics.get("cegis") or {}  # counterexample-guided runs: count every round
+    iters = int(cegis.get("total_iterations") or run.metrics.get("iterations") or 0)
     samples = int(cfg.n_states) * (iters if cfg.resample else 1)
     label = f"lyapunov-{cfg.method}" + (f"-{cfg.loss}" if cfg.method == "dr" else "")
     return PolicyRun(path, "lyapunov", run.system, run.controller, run.lyapunov, samples,
-                     run.metrics.get("train_time_s"), label, cfg.to_dict(), run.metrics,
+                     cegis.get("total_time_s", run.metrics.get("train_time_s")), label, cfg.to_dict(), run.metrics,
                      {"run": run, "distinct_states": int(cfg.n_states), "iterations": iters})
 
 

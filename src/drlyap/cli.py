@@ -15,7 +15,10 @@ from drlyap.systems import get_system, system_names
 
 def _setup_threads() -> None:
     # The two shared cores of a laptop-class machine: one torch thread unless the user says otherwise.
-    torch.set_num_threads(int(os.environ.get("DRLYAP_THREADS", "1")))
+    value = os.environ.get("DRLYAP_THREADS", "1")
+    if not value.isdigit() or int(value) < 1:
+        raise click.ClickException(f"DRLYAP_THREADS must be a positive integer, got {value!r}")
+    torch.set_num_threads(int(value))
 
 
 def _floats(text: str | None, what: str) -> list[float] | None:
@@ -101,7 +104,7 @@ def train(system: str, method: str, loss: str, radius: float | None, eps: float 
           exp_rate: float, xi_samples: str | None, iters: int, seed: int, device: str, warm_start: Path | None,
           out: Path, quiet: bool, cegis: bool, cegis_rounds: int, cegis_time_limit: float) -> None:
     """Train a controller and Lyapunov certificate for SYSTEM and save a run directory."""
-    from drlyap.rundir import load_run, save_run
+    from drlyap.rundir import ensure_new, load_run, save_run
     from drlyap.training import TrainConfig
     from drlyap.training import train as train_pair
 
@@ -113,8 +116,7 @@ def train(system: str, method: str, loss: str, radius: float | None, eps: float 
         cfg = TrainConfig(system=system, method=method, loss=loss, wasserstein_radius=radius, risk_level=eps,
                           decay_rate=gamma, exp_rate=exp_rate, xi_samples=samples, iters=iters, seed=seed,
                           device=device)
-        if out.exists():
-            raise ValueError(f"{out} already exists; choose another --out or remove it")
+        ensure_new(out)
         init = None
         if warm_start is not None:
             prior = load_run(warm_start, sys_)
@@ -387,8 +389,12 @@ def verify(run_dir: Path, delta: float | None, xi: str | None, time_limit: float
     if "margin_upper" not in trained:
         show(trained, f"  trained condition ({trained['condition']})")
     uni = result["uniform"]
-    click.echo(f"  uniform DR condition: {uni['status'].upper()}; margin in [{uni['margin_lower']:.4g}, "
-               f"{uni['margin_upper']:.4g}] (<= 0 required), (r/eps) L_h <= {uni['lipschitz_term'][1]:.4g}")
+
+    def num(value) -> str:  # bounds left unbounded by a time limit come back as None
+        return "unbounded" if value is None else f"{value:.4g}"
+
+    click.echo(f"  uniform DR condition: {uni['status'].upper()}; margin in [{num(uni['margin_lower'])}, "
+               f"{num(uni['margin_upper'])}] (<= 0 required), (r/eps) L_h <= {num(uni['lipschitz_term'][1])}")
     if "true_model" in result:
         show(result["true_model"], f"  true model at xi = {result['true_model']['xi']}")
     if result["roa"] is not None:
@@ -396,7 +402,9 @@ def verify(run_dir: Path, delta: float | None, xi: str | None, time_limit: float
         if "error" in r:
             click.echo(f"  region of attraction: {r['error']}")
         else:
-            click.echo(f"  region of attraction: {'CERTIFIED' if r['certified'] else 'NOT CERTIFIED'} {{V <= {r['level']:.4g}}}, "
+            model = "true model at --xi" if "true_model" in result else "design model, trained condition"
+            click.echo(f"  region of attraction ({model}): {'CERTIFIED' if r['certified'] else 'NOT CERTIFIED'} "
+                       f"{{V <= {r['level']:.4g}}}, "
                        f"{100 * r['share_of_box']:.2f}% of the box (limited by {r['limited_by']}; "
                        f"V on the delta-ball <= {r['ball_max_upper']:.4g})")
 
@@ -448,7 +456,8 @@ def guarantee_cmd(run_dir: Path, dist: str, n: int, method: str, eps_bar: float,
     if worst is not None:
         click.echo(f"  worst sup_x residual over the draws: {worst:.4g}")
     click.echo(f"  lemma bound (1 - eps)(1 - eps_bar) = (1 - {result['eps']:g})(1 - {result['eps_bar']:g}) = "
-               f"{result['bound']:.4f}" + ("" if result["bound_applies"] else " (baseline run: the lemma does not apply)"))
+               f"{result['bound']:.4f}"
+               + ("" if result["bound_applies"] else " (not for this run: it needs the uniform DR condition)"))
     click.echo(f"  the bound assumes r = r_N(eps_bar) (run: r = {result['radius']:g}, N = {result['n_xi']}) and a "
                "light-tailed true distribution")
     rg = result.get("radius_guarantee")

@@ -19,7 +19,7 @@ import torch
 from torch import Tensor
 
 from drlyap.baselines import PolicyRun, load_policy_run
-from drlyap.rundir import RunDirError, atomic_dir
+from drlyap.rundir import atomic_dir, ensure_new
 from drlyap.systems import UncertainSystem
 
 
@@ -128,8 +128,8 @@ def compare_runs(paths: Sequence[str | os.PathLike], xi: Sequence[float], n_init
         raise ValueError("give at least one run directory")
     if n_init < 1:
         raise ValueError(f"--n-init must be >= 1, got {n_init}")
-    if out is not None and Path(out).exists():
-        raise RunDirError(f"{out} already exists; choose another --out or remove it")
+    if out is not None:
+        ensure_new(out)
     runs = [load_policy_run(p) for p in paths]
     shifts = [run.system.check_xi(xi) for run in runs]
     rows = []

@@ -209,6 +209,8 @@ def guarantee(run, dist: str, n: int, method: str = "sampling", seed: int = 0, e
     bound = (1 - eps) * (1 - eps_bar)
     per_draw = sup[inverse]
     finite = per_draw[torch.isfinite(per_draw)]
+    uniform = cfg.method == "dr" and cfg.loss == "uniform"
+    why = "baseline" if cfg.method == "baseline" else "pointwise DR (a per-state condition)"
     out = {
         "run_dir": str(getattr(run, "path", "")), "system": system.name, "method": cfg.method,
         "distribution": dist, "distribution_parsed": description, "n": n, "n_distinct": int(distinct.shape[0]),
@@ -216,11 +218,11 @@ def guarantee(run, dist: str, n: int, method: str = "sampling", seed: int = 0, e
         "interval_clopper_pearson": list(clopper_pearson(k_ok, n, confidence)),
         "interval_wilson": list(wilson(k_ok, n, confidence)),
         "eps": eps, "eps_bar": eps_bar, "bound": bound,
-        "bound_applies": cfg.method == "dr",
+        "bound_applies": uniform,
         "bound_note": ("(1 - eps)(1 - eps_bar) of lemma dr_controller_guarantee; it assumes a light-tailed true "
                        "distribution, the Wasserstein radius r = r_N(eps_bar) of eq. wasserstein_r_guarantee and a pair "
-                       "that satisfies the DR constraint" + ("" if cfg.method == "dr" else
-                                                             "; this is a baseline run, so the lemma does not apply")),
+                       "that satisfies the uniform DR constraint (sup over x inside the probability)" + (
+                           "" if uniform else f"; this is a {why} run, so the lemma does not apply")),
         "radius": float(cfg.wasserstein_radius), "n_xi": int(run.xi_samples.shape[0]),
         "worst_sup_residual": float(finite.max()) if finite.numel() else None,
         "sup_residual_quantiles": ({q: float(finite.quantile(float(q))) for q in ("0.05", "0.5", "0.95")}

@@ -32,7 +32,7 @@ from pathlib import Path
 import numpy as np
 import torch
 
-from drlyap.rundir import FORMAT_VERSION, RunDirError, atomic_dir, read_run_json, run_system
+from drlyap.rundir import FORMAT_VERSION, RunDirError, atomic_dir, ensure_new, read_run_json, run_system
 from drlyap.systems import UncertainSystem, get_system
 
 ALGOS = ("sac", "ppo")
@@ -80,8 +80,8 @@ def train_rl(system_name: str, algo: str, steps: int | None, seed: int, out: str
     if steps < 1:
         raise ValueError(f"steps must be >= 1, got {steps}")
     out = Path(out)
-    if out.exists() and not overwrite:
-        raise RunDirError(f"{out} already exists; choose another --out or remove it")
+    if not overwrite:
+        ensure_new(out)
     hyper = {**DEFAULT_HYPER[algo], **(hyperparameters or {})}
     env = Monitor(make_env(system_name))
     env.reset(seed=seed)

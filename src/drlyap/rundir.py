@@ -16,6 +16,7 @@ from __future__ import annotations
 
 import csv
 import json
+import math
 import os
 import shutil
 import tempfile
@@ -37,9 +38,27 @@ class RunDirError(ValueError):
     """A run directory is missing, incomplete, or does not fit the request."""
 
 
+def jsonable(obj):
+    """Non-finite floats become None (strict JSON); containers are copied."""
+    if isinstance(obj, dict):
+        return {k: jsonable(v) for k, v in obj.items()}
+    if isinstance(obj, (list, tuple)):
+        return [jsonable(v) for v in obj]
+    if isinstance(obj, float) and not math.isfinite(obj):
+        return None
+    return obj
+
+
 def write_json(path: Path, data: dict) -> None:
-    """Write ``data`` as indented JSON."""
+    """Write ``data`` as indented strict JSON (NaN and inf become null)."""
+    data = jsonable(data)
     path.write_text(json.dumps(data, indent=2, sort_keys=False) + "\n")
+
+
+def ensure_new(out: str | os.PathLike) -> None:
+    """Refuse an output directory that already exists (checked before long work starts)."""
+    if Path(out).exists():
+        raise RunDirError(f"{out} already exists; choose another --out or remove it")
 
 
 def atomic_dir(out: Path, fill: Callable[[Path], None], overwrite: bool = False) -> Path:
@@ -49,8 +68,8 @@ def atomic_dir(out: Path, fill: Callable[[Path], None], overwrite: bool = False)
     directory is removed and ``out`` is untouched.
     """
     out = Path(out)
-    if out.exists() and not overwrite:
-        raise RunDirError(f"{out} already exists; choose another --out or remove it")
+    if not overwrite:
+        ensure_new(out)
     out.parent.mkdir(parents=True, exist_ok=True)
     tmp = Path(tempfile.mkdtemp(prefix=f".{out.name}.tmp-", dir=out.parent))
     try:
@@ -188,8 +207,14 @@ def load_run(path: str | os.PathLike, system: UncertainSystem | None = None) -> 
         raise RunDirError(f"{path} has dimensions n={info['system']['n']}, m={info['system']['m']}; "
                           f"system {system.name} has n={system.n}, m={system.m}")
     lyapunov, controller = build_networks(system, config)
-    lyapunov.load_state_dict(weights["lyapunov"])
-    controller.load_state_dict(weights["controller"])
+    try:
+        lyapunov.load_state_dict(weights["lyapunov"])
+        controller.load_state_dict(weights["controller"])
+    except (KeyError, RuntimeError) as err:
+        raise RunDirError(f"{path}: weights.pt does not fit config.json ({str(err).splitlines()[0]})") from err
+    missing = [key for key in ("xi_samples", "xi_train") if key not in metrics]
+    if missing:
+        raise RunDirError(f"{path}: metrics.json lacks {missing}")
     lyapunov.eval()
     controller.eval()
     return Run(path, system, config, metrics, lyapunov, controller)

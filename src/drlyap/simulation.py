@@ -48,14 +48,20 @@ def simulate(system: UncertainSystem, policy: Policy, x0: Tensor, xi: Tensor | N
 
     The input is held at ``policy(x)`` inside each RK4 stage (continuous-time feedback).
     """
-    dt = float(dt or system.sim_dt)
-    horizon = float(horizon or system.horizon)
-    if dt <= 0 or horizon <= 0:
+    dt = float(system.sim_dt if dt is None else dt)
+    horizon = float(system.horizon if horizon is None else horizon)
+    if not (dt > 0 and horizon > 0):
         raise ValueError(f"dt and horizon must be > 0, got dt={dt}, horizon={horizon}")
     if x0.ndim != 2 or x0.shape[1] != system.n:
         raise ValueError(f"initial states must have shape (B, {system.n}), got {tuple(x0.shape)}")
     if not torch.isfinite(x0).all():
         raise ValueError("initial states contain NaN or inf")
+    if xi is not None:
+        xi = torch.as_tensor(xi, dtype=x0.dtype)
+        if xi.ndim == 1:
+            xi = system.check_xi(xi).to(x0.dtype)
+        elif xi.shape != (x0.shape[0], system.k) or not torch.isfinite(xi).all():
+            raise ValueError(f"xi must be (k,) or (B, k) = ({x0.shape[0]}, {system.k}) and finite, got {tuple(xi.shape)}")
     steps = max(1, round(horizon / dt))
 
     def rhs(x: Tensor) -> Tensor:
@@ -131,7 +137,7 @@ def evaluate(system: UncertainSystem, policy: Policy, x0: Tensor, xi: Tensor | N
         "final_distance": dev[-1].tolist(),
         "worst_v_increase": worst,
         "xi": None if xi is None else torch.as_tensor(xi).reshape(-1).tolist(),
-        "dt": float(dt or system.sim_dt),
-        "horizon": float(horizon or system.horizon),
+        "dt": float(system.sim_dt if dt is None else dt),
+        "horizon": float(system.horizon if horizon is None else horizon),
         "success_tol": system.success_tol,
     }

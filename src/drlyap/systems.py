@@ -123,10 +123,15 @@ class UncertainSystem:
             raise ValueError(f"{self.name}: angle_dims {self.angle_dims} must index state coordinates 0..{n - 1}")
         if self.test_xi is not None and len(self.test_xi) != self.k:
             raise ValueError(f"{self.name}: test_xi needs {self.k} values ({', '.join(self.uncertain)})")
-        residual = self.true_dynamics(
-            torch.tensor([self.equilibrium], dtype=torch.float64),
-            torch.tensor([u_star], dtype=torch.float64),
-        )
+        x_star = torch.tensor([self.equilibrium], dtype=torch.float64)
+        residual = self.true_dynamics(x_star, torch.tensor([u_star], dtype=torch.float64))
+        if tuple(residual.shape) != (1, n):
+            raise ValueError(f"{self.name}: dynamics must return shape (B, {n}) for B states, got {tuple(residual.shape)} "
+                             "for B = 1")
+        if self.perturbation is not None:
+            w = self.perturbation(x_star, torch.tensor([u_star], dtype=torch.float64))
+            if tuple(w.shape) != (1, n, self.k):
+                raise ValueError(f"{self.name}: perturbation must return shape (B, {n}, {self.k}), got {tuple(w.shape)}")
         if residual.abs().max() > 1e-9:
             raise ValueError(f"{self.name}: F(x*, u*, p0) = {residual.tolist()[0]} is not zero; "
                              "the equilibrium must be an equilibrium of the nominal system")

@@ -89,7 +89,11 @@ class TrainConfig:
         if not (math.isfinite(self.delta) and self.delta >= 0):
             problems.append(f"delta = {self.delta} (must be >= 0)")
         if self.xi_samples is not None:
-            xi = torch.as_tensor(self.xi_samples, dtype=torch.float64)
+            try:
+                xi = torch.as_tensor(self.xi_samples, dtype=torch.float64)
+            except (TypeError, ValueError) as err:
+                raise ValueError(f"invalid training config: xi_samples must be an (N, {system.k}) array of numbers "
+                                 f"({err})") from None
             if xi.ndim != 2 or xi.shape[1] != system.k or xi.shape[0] < 1:
                 problems.append(f"xi_samples must be (N, {system.k}) for {system.name}, got shape {tuple(xi.shape)}")
             elif not torch.isfinite(xi).all():
@@ -170,7 +174,14 @@ def train(cfg: TrainConfig, system: UncertainSystem | None = None, progress: boo
     xi_all = draw_xi_samples(system, cfg)
     xi_train = xi_all.mean(0, keepdim=True) if cfg.method == "baseline" else xi_all
     condition = make_condition(cfg.method, cfg.loss, cfg.wasserstein_radius, cfg.risk_level)
-    lyapunov, controller = (copy.deepcopy(init[0]), copy.deepcopy(init[1])) if init else build_networks(system, cfg)
+    lyapunov, controller = build_networks(system, cfg)
+    if init:
+        if (init[0].phi.sizes != lyapunov.phi.sizes or init[0].alpha_hat != lyapunov.alpha_hat
+                or init[1].varphi.sizes != controller.varphi.sizes):
+            raise ValueError(f"warm-start networks (V {init[0].phi.sizes}, alpha_hat {init[0].alpha_hat}; pi "
+                             f"{init[1].varphi.sizes}) do not match the config (V {lyapunov.phi.sizes}, alpha_hat "
+                             f"{lyapunov.alpha_hat}; pi {controller.varphi.sizes})")
+        lyapunov, controller = copy.deepcopy(init[0]), copy.deepcopy(init[1])
     lyapunov.to(device)
     controller.to(device)
     if extra_states is not None:

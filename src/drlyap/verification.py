@@ -57,6 +57,7 @@ from torch import Tensor
 
 from drlyap.conditions import DRPointwise, Nominal, cvar_bound, decrease_terms
 from drlyap.networks import Controller, LinearController, Lyapunov, QuadraticLyapunov, TanhMLP
+from drlyap.rundir import jsonable
 from drlyap.systems import UncertainSystem
 
 F64 = torch.float64
@@ -1260,6 +1261,9 @@ def verify_run(run, delta: float | None = None, xi: Sequence[float] | Tensor | N
     delta = float(cfg.delta if delta is None else delta)
     if not (math.isfinite(delta) and delta >= 0):
         raise ValueError(f"delta must be finite and >= 0, got {delta}")
+    box_lo, box_hi = run.system.local_box()
+    if _region_volume(box_lo, box_hi, delta) <= 0:
+        raise ValueError(f"delta = {delta} covers the whole state box: X_delta is empty, nothing to verify")
     system, lyap, ctrl = run.system, run.lyapunov_net, run.controller_net
     trained_spec = run_condition(run)
     out: dict = {"run_dir": str(run.path), "system": system.name, "method": cfg.method,
@@ -1296,14 +1300,3 @@ def verify_run(run, delta: float | None = None, xi: Sequence[float] | Tensor | N
     out["counterexample_value"] = main.get("counterexample_value")
     out["time_s"] = main["time_s"]
     return jsonable(out)
-
-
-def jsonable(obj):
-    """Non-finite floats become None (strict JSON); containers are copied."""
-    if isinstance(obj, dict):
-        return {k: jsonable(v) for k, v in obj.items()}
-    if isinstance(obj, (list, tuple)):
-        return [jsonable(v) for v in obj]
-    if isinstance(obj, float) and not math.isfinite(obj):
-        return None
-    return obj
