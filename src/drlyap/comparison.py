@@ -20,6 +20,7 @@ from torch import Tensor
 
 from drlyap.baselines import PolicyRun, load_policy_run
 from drlyap.rundir import atomic_dir, ensure_new
+from drlyap.simulation import wrap_steps
 from drlyap.systems import UncertainSystem
 
 
@@ -43,11 +44,7 @@ def monotonicity(system: UncertainSystem, x: Tensor, values: Tensor, success: Te
     trajectories with no increase) and ``counted_steps``; None values without successful trajectories.
     """
     dv = values[1:] - values[:-1]
-    valid = torch.isfinite(dv)
-    if system.angle_dims:
-        z = system.to_local(x.reshape(-1, system.n)).reshape(x.shape)
-        idx = list(system.angle_dims)
-        valid &= ((z[1:, :, idx] - z[:-1, :, idx]) - (x[1:, :, idx] - x[:-1, :, idx])).abs().amax(-1) <= 1.0
+    valid = torch.isfinite(dv) & ~wrap_steps(system, x)
     span = (values.amax(0) - values.amin(0)).clamp_min(0)
     increase = (dv > rel_tol * span) & valid
     ok = success.bool()

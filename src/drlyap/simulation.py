@@ -87,6 +87,16 @@ def normalized_deviation(system: UncertainSystem, x: Tensor) -> Tensor:
     return (z.abs() / half).amax(-1).reshape(x.shape[:-1])
 
 
+def wrap_steps(system: UncertainSystem, x: Tensor) -> Tensor:
+    """``(T-1, B)``: True where a step of ``x (T, B, n)`` crosses the angle wrap of the box around x*
+    (a certificate on the box jumps there; it is not a change along the trajectory)."""
+    if not system.angle_dims:
+        return torch.zeros(x.shape[0] - 1, x.shape[1], dtype=torch.bool, device=x.device)
+    idx = list(system.angle_dims)
+    z = system.to_local(x.reshape(-1, system.n)).reshape(x.shape)
+    return ((z[1:, :, idx] - z[:-1, :, idx]) - (x[1:, :, idx] - x[:-1, :, idx])).abs().amax(-1) > 1.0
+
+
 def success_mask(system: UncertainSystem, x: Tensor) -> tuple[Tensor, Tensor]:
     """Per-trajectory success ``(B,)`` and normalised deviation ``(T, B)`` for states ``x (T, B, n)``."""
     dev = normalized_deviation(system, x)
@@ -120,13 +130,7 @@ def evaluate(system: UncertainSystem, policy: Policy, x0: Tensor, xi: Tensor | N
     worst = None
     if lyapunov is not None:
         v = lyapunov(traj.x.reshape(-1, system.n)).reshape(dev.shape)
-        dv = v[1:] - v[:-1]
-        if system.angle_dims:
-            jump = (traj.x[1:, :, list(system.angle_dims)] - traj.x[:-1, :, list(system.angle_dims)])
-            z_before = system.to_local(traj.x[:-1].reshape(-1, system.n)).reshape(traj.x[:-1].shape)
-            z_after = system.to_local(traj.x[1:].reshape(-1, system.n)).reshape(traj.x[1:].shape)
-            wrapped = ((z_after - z_before)[..., list(system.angle_dims)] - jump).abs().amax(-1) > 1.0
-            dv = dv.masked_fill(wrapped, float("-inf"))
+        dv = (v[1:] - v[:-1]).masked_fill(wrap_steps(system, traj.x), float("-inf"))
         if success.any():
             worst = float(dv[:, success].max())
     return {
