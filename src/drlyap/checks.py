@@ -80,10 +80,15 @@ def batched_jacobian(system: UncertainSystem, controller: Controller, z: Tensor,
     return f.detach(), torch.stack(rows, dim=1)
 
 
+def with_mean(xi_samples: Tensor) -> Tensor:
+    """The samples ``(N, k)`` followed by their mean: ``(N + 1, k)``."""
+    return torch.cat([xi_samples, xi_samples.mean(0, keepdim=True)])
+
+
 def jacobian_check(system: UncertainSystem, controller: Controller, xi_samples: Tensor) -> dict:
     """Eigenvalues of the true closed-loop Jacobian at x* for each xi sample and their mean."""
     ref = next(controller.parameters())
-    xis = torch.cat([xi_samples, xi_samples.mean(0, keepdim=True)]).to(ref)
+    xis = with_mean(xi_samples).to(ref)
     z = torch.zeros(xis.shape[0], system.n, dtype=ref.dtype, device=ref.device)
     _, jac = batched_jacobian(system, controller, z, xis)
     eig = torch.linalg.eigvals(jac.double().cpu())
@@ -109,7 +114,7 @@ def find_equilibria(system: UncertainSystem, controller: Controller, xi_samples:
     axes = [lo[i] + (hi[i] - lo[i]) * (torch.arange(per, dtype=dtype, device=ref.device) + 0.5) / per
             for i in range(system.n)]
     starts = torch.cartesian_prod(*axes).reshape(-1, system.n)
-    xis = torch.cat([xi_samples, xi_samples.mean(0, keepdim=True)]).to(ref)
+    xis = with_mean(xi_samples).to(ref)
     s, q = starts.shape[0], xis.shape[0]
     z = starts.repeat(q, 1)
     xi = xis.repeat_interleave(s, dim=0)

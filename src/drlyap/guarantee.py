@@ -311,7 +311,7 @@ def lipschitz_covering(run, spacing: float | None = None, n_samples: int = 20000
     for i in range(0, centres.shape[0], 20000):
         zc = centres[i:i + 20000].clone().requires_grad_(True)
         with torch.enable_grad():
-            res = _residual_with_grad(spec, system, lyap, ctrl, zc)
+            res = spec.residual(system, lyap, ctrl, zc)
             (g,) = torch.autograd.grad(res.sum(), zc)
         l_sampled = max(l_sampled, float(g.norm(dim=-1).max()))
         exact_max = max(exact_max, float(res.detach().max()))
@@ -344,16 +344,3 @@ def lipschitz_covering(run, spacing: float | None = None, n_samples: int = 20000
     return jsonable(out)
 
 
-def _residual_with_grad(spec: ConditionSpec, system: UncertainSystem, lyap, ctrl, z: Tensor) -> Tensor:
-    """``spec``'s residual at ``z`` through the ordinary torch code path, differentiable in ``z`` (float64 nets)."""
-    from drlyap.conditions import DRPointwise, Nominal, decrease_terms
-
-    if spec.kind == "true":
-        value, grad = lyap.value_and_grad(z)
-        f = system.true_dynamics(system.to_user(z), ctrl(z), spec.xi[0])
-        out = (grad * f).sum(-1) + spec.decay_rate * z.norm(dim=-1)
-        return out + spec.exp_rate * value if spec.exp_rate else out
-    terms = decrease_terms(system, lyap, ctrl, z, spec.xi, spec.decay_rate, spec.exp_rate)
-    if spec.kind == "nominal":
-        return Nominal().residual(terms)
-    return DRPointwise(spec.radius, spec.risk_level).residual(terms)

@@ -757,19 +757,24 @@ class ConditionSpec:
         """The residual at local states ``z (B, n)`` by the ordinary torch code path, with the networks and
         states cast to ``dtype`` (float64 by default: the arithmetic the bounds are about)."""
         lyap, ctrl = copy.deepcopy(lyapunov).to(dtype), copy.deepcopy(controller).to(dtype)
-        z = torch.as_tensor(z).to(dtype)
         with torch.no_grad():
-            if self.kind == "true":
-                value, grad = lyap.value_and_grad(z)
-                fx = system.true_dynamics(system.to_user(z), ctrl(z), self.xi[0].to(dtype))
-                out = (grad * fx).sum(-1) + self.decay_rate * z.norm(dim=-1)
-                return out + self.exp_rate * value if self.exp_rate else out
-            terms = decrease_terms(system, lyap, ctrl, z, self.xi.to(dtype), self.decay_rate, self.exp_rate)
-            if self.kind == "nominal":
-                return Nominal().residual(terms)
-            if self.kind == "pointwise":
-                return DRPointwise(self.radius, self.risk_level).residual(terms)
-            raise ValueError("the uniform condition has no per-state residual")
+            return self.residual(system, lyap, ctrl, torch.as_tensor(z).to(dtype))
+
+    def residual(self, system: UncertainSystem, lyapunov: Lyapunov, controller: Controller, z: Tensor) -> Tensor:
+        """The residual at local states ``z (B, n)`` with the given networks as they are (dtype of ``z``),
+        differentiable in ``z`` and the weights."""
+        xi = self.xi.to(z)
+        if self.kind == "true":
+            value, grad = lyapunov.value_and_grad(z)
+            fx = system.true_dynamics(system.to_user(z), controller(z), xi[0])
+            out = (grad * fx).sum(-1) + self.decay_rate * z.norm(dim=-1)
+            return out + self.exp_rate * value if self.exp_rate else out
+        terms = decrease_terms(system, lyapunov, controller, z, xi, self.decay_rate, self.exp_rate)
+        if self.kind == "nominal":
+            return Nominal().residual(terms)
+        if self.kind == "pointwise":
+            return DRPointwise(self.radius, self.risk_level).residual(terms)
+        raise ValueError("the uniform condition has no per-state residual")
 
 
 # =========================================================================== box bounds
