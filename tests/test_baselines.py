@@ -197,8 +197,9 @@ def test_lqr_pair_is_verifiable_and_its_region_of_attraction_is_certified():
     is certified on the pendulum at the test shift."""
     import math
 
+    from drlyap.conditions import TrueDecrease
     from drlyap.networks import LinearController, QuadraticLyapunov
-    from drlyap.verification import ConditionSpec, certified_roa, verify_condition
+    from drlyap.verification import certified_roa, verify_condition
 
     system = get_system("pendulum")
     design = lqr_design(system)
@@ -207,7 +208,7 @@ def test_lqr_pair_is_verifiable_and_its_region_of_attraction_is_certified():
     x = torch.tensor([[0.3, -1.0], [3.0, 5.0], [-2.0 * math.pi + 0.1, 0.0]], dtype=torch.float64)
     assert torch.allclose(controller(system.to_local(x)), design.controller(x))
     assert torch.allclose(lyapunov(system.to_local(x)), design.certificate(x))
-    spec = ConditionSpec("true", torch.tensor([0.1, 0.05]), decay_rate=0.0)
+    spec = TrueDecrease(torch.tensor([[0.1, 0.05]]), decay_rate=0.0)
     result = verify_condition(system, lyapunov, controller, spec, 0.5, time_limit=10)
     assert result.status == "violated"  # saturation: z'Pz is not a certificate on the whole box
     cex = torch.tensor([result.counterexample], dtype=torch.float64)

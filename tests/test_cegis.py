@@ -6,8 +6,8 @@ import pytest
 import torch
 from click.testing import CliRunner
 
-from drlyap.cegis import collect_counterexamples, falsify, project_region, residual_at, train_cegis
-from drlyap.checks import sample_region
+from drlyap.cegis import collect_counterexamples, falsify, train_cegis
+from drlyap.regions import Region
 from drlyap.systems import get_system
 from drlyap.training import train
 from drlyap.verification import verify_condition
@@ -16,7 +16,7 @@ from drlyap.verification import verify_condition
 def test_projection_lands_in_x_delta():
     system = get_system("pendulum")
     z = torch.tensor([[0.0, 0.1], [10.0, -20.0], [0.01, 0.0], [-3.0, 0.2]], dtype=torch.float64)
-    p = project_region(system, z, 0.5)
+    p = Region.of(system, 0.5).project(z)
     lo, hi = system.local_box()
     assert bool((p >= lo).all() and (p <= hi).all() and (p.norm(dim=-1) >= 0.5).all())
     assert torch.equal(p[3], z[3])
@@ -26,24 +26,20 @@ def test_falsifier_and_collected_states_really_violate(tiny_config):
     result = train(tiny_config(iters=10, check_every=10), progress=False)
     system, lyap, ctrl, cond = result.system, result.lyapunov, result.controller, result.condition
     cfg = result.config
-    xi = torch.as_tensor(result.metrics["xi_train"], dtype=torch.float64)
-    starts = sample_region(system, 64, cfg.delta, torch.Generator().manual_seed(1))
-    before = residual_at(system, lyap, ctrl, cond, starts, xi, cfg.decay_rate, cfg.exp_rate)
-    found, values = falsify(system, lyap, ctrl, cond, xi, cfg.decay_rate, cfg.exp_rate, cfg.delta, starts, steps=10)
+    region = Region.of(system, cfg.delta)
+    starts = region.sample(64, torch.Generator().manual_seed(1))
+    before = cond.exact(system, lyap, ctrl, starts)
+    found, values = falsify(system, lyap, ctrl, cond, region, starts, steps=10)
     assert bool((values >= before - 1e-12).all())  # never worse than the start
-    assert torch.allclose(values, residual_at(system, lyap, ctrl, cond, found, xi, cfg.decay_rate, cfg.exp_rate))
+    assert torch.allclose(values, cond.exact(system, lyap, ctrl, found))
     assert bool((found.norm(dim=-1) >= cfg.delta).all())
-    from drlyap.cegis import _spec_for
-
-    spec = _spec_for(result)
-    ver = verify_condition(system, lyap, ctrl, spec, cfg.delta, time_limit=1.0, keep_boxes=50).to_dict()
+    ver = verify_condition(system, lyap, ctrl, cond, region, time_limit=1.0, keep_boxes=50).to_dict()
     assert ver["status"] != "verified"
-    got = collect_counterexamples(system, lyap, ctrl, cond, spec, cfg.delta, ver, torch.Generator().manual_seed(0),
+    got = collect_counterexamples(system, lyap, ctrl, cond, region, ver, torch.Generator().manual_seed(0),
                                   n_random=64, steps=5)
     cex = got["counterexamples"]
     assert cex.shape[0] > 0
-    assert bool((residual_at(system, lyap, ctrl, cond, cex, xi, cfg.decay_rate, cfg.exp_rate) > 0).all())
-    assert bool((spec.exact(system, lyap, ctrl, cex) > 0).all())  # the verifier's own float64 path agrees
+    assert bool((cond.exact(system, lyap, ctrl, cex) > 0).all())  # one condition object: training's and the verifier's
     assert got["neighbours"].shape[0] == 3 * cex.shape[0]
 
 
@@ -59,9 +55,7 @@ def test_tiny_cegis_run_records_rounds_and_saves_metrics(tmp_path, tiny_config):
         assert first["counterexamples_added"] > 0 and first["extra_states"] <= 300
         # the counterexamples violate the condition of the pair they were found for (training is deterministic)
         again = train(cfg, progress=False)
-        xi = torch.as_tensor(again.metrics["xi_train"], dtype=torch.float64)
-        res = residual_at(again.system, again.lyapunov, again.controller, again.condition, first["counterexamples"], xi,
-                          again.config.decay_rate, again.config.exp_rate)
+        res = again.condition.exact(again.system, again.lyapunov, again.controller, first["counterexamples"])
         assert bool((res > 0).all())
     cegis = result.metrics["cegis"]
     assert len(cegis["rounds"]) == len(rounds) and cegis["final"]["status"] in ("verified", "violated", "unknown")

@@ -9,9 +9,10 @@ from click.testing import CliRunner
 
 from drlyap import systems
 from drlyap.conditions import wasserstein_radius_guarantee
-from drlyap.guarantee import clopper_pearson, guarantee, lipschitz_covering, parse_distribution, wilson
+from drlyap.guarantee import clopper_pearson, guarantee, parse_distribution, wilson
 from drlyap.rundir import Run
 from drlyap.training import TrainConfig
+from drlyap.verification import lipschitz_covering
 from handmade import linear_pair, small_pendulum
 
 F64 = torch.float64

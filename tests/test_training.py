@@ -4,7 +4,8 @@ import math
 import pytest
 import torch
 
-from drlyap.checks import find_equilibria, jacobian_check, sample_region
+from drlyap.checks import find_equilibria, jacobian_check
+from drlyap.regions import Region
 from drlyap.rundir import RunDirError, load_run, save_run
 from drlyap.systems import pendulum
 from drlyap.training import TrainConfig, build_networks, train
@@ -12,7 +13,7 @@ from drlyap.training import TrainConfig, build_networks, train
 
 def test_training_states_avoid_the_delta_ball_and_fill_the_box():
     p = pendulum()
-    z = sample_region(p, 2000, 0.5, torch.Generator().manual_seed(0))
+    z = Region.of(p, 0.5).sample(2000, torch.Generator().manual_seed(0))
     lo, hi = p.local_box()
     assert z.shape == (2000, 2) and (z.norm(dim=-1) >= 0.5).all()
     assert (z >= lo).all() and (z <= hi).all()

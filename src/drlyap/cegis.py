@@ -10,7 +10,7 @@
 
    * the verifier's counterexample and the centres of (at most ``max_boxes``) unverified boxes,
    * a gradient falsifier (:func:`falsify`): a few steps of projected gradient ascent on the condition's
-     residual (:func:`drlyap.conditions.decrease_terms` + ``condition.residual``, float64 networks) from random
+     residual (``condition.evaluate``, float64 networks) from random
      states of X_delta and from the unverified boxes' centres, projected back into X_delta after every step;
 
    the states with a positive residual (the *counterexamples*), with ``neighbours`` jittered copies each, and
@@ -32,73 +32,42 @@ import copy
 import dataclasses
 import math
 import time
-from types import SimpleNamespace
 
 import torch
 from torch import Tensor
 
-from drlyap.checks import sample_region
-from drlyap.conditions import Condition, decrease_terms
+from drlyap.conditions import Condition
+from drlyap.io import jsonable
 from drlyap.networks import Controller, Lyapunov
+from drlyap.regions import Region
 from drlyap.systems import UncertainSystem, get_system
 from drlyap.training import TrainConfig, TrainResult, train
-from drlyap.verification import ConditionSpec, jsonable, run_condition, verify_condition
+from drlyap.verification import verify_condition
 
 F64 = torch.float64
 
 
-def _spec_for(result: TrainResult) -> ConditionSpec:
-    """The verifier's spec of the condition ``result`` was trained on (reuses :func:`run_condition`)."""
-    view = SimpleNamespace(config=result.config, xi_train=torch.as_tensor(result.metrics["xi_train"], dtype=F64))
-    return run_condition(view)
-
-
-def residual_at(system: UncertainSystem, lyapunov: Lyapunov, controller: Controller, condition: Condition,
-                z: Tensor, xi: Tensor, decay_rate: float, exp_rate: float) -> Tensor:
-    """The condition's residual at local states ``z (B, n)`` with float64 copies of the networks."""
-    lyap, ctrl = copy.deepcopy(lyapunov).to(F64), copy.deepcopy(controller).to(F64)
-    with torch.no_grad():
-        terms = decrease_terms(system, lyap, ctrl, z.to(F64), xi.to(F64), decay_rate, exp_rate)
-        return condition.residual(terms)
-
-
-def project_region(system: UncertainSystem, z: Tensor, delta: float) -> Tensor:
-    """Project local states onto X_delta: clamp into the box, push states inside the delta-ball to its sphere."""
-    lo, hi = system.local_box()
-    z = torch.minimum(torch.maximum(z, lo), hi)
-    norm = z.norm(dim=-1, keepdim=True)
-    inside = (norm < delta) & (norm > 0)
-    if bool(inside.any()):
-        pushed = torch.minimum(torch.maximum(z * (delta * (1 + 1e-9) / norm.clamp_min(1e-300)), lo), hi)
-        z = torch.where(inside, pushed, z)
-    return z
-
-
-def falsify(system: UncertainSystem, lyapunov: Lyapunov, controller: Controller, condition: Condition, xi: Tensor,
-            decay_rate: float, exp_rate: float, delta: float, starts: Tensor, steps: int = 30,
-            step_size: float = 0.02) -> tuple[Tensor, Tensor]:
-    """Projected gradient ascent on the residual from ``starts (B, n)`` (local states), batched.
+def falsify(system: UncertainSystem, lyapunov: Lyapunov, controller: Controller, condition: Condition, region: Region,
+            starts: Tensor, steps: int = 30, step_size: float = 0.02) -> tuple[Tensor, Tensor]:
+    """Projected gradient ascent on the condition's residual from ``starts (B, n)`` (local states), batched.
 
     Each step moves every state by ``step_size`` (a fraction of the box width, shrinking over the steps) along
     its normalised gradient (per coordinate scaled by the box width), then projects into X_delta. Returns the
     best state found per start and its residual (float64). The controller's saturation has a straight-through
     gradient, so ascent in saturated regions is only a heuristic; the residuals returned are exact evaluations.
     """
+    if not condition.per_state:
+        raise ValueError("the falsifier needs a per-state condition (pointwise, nominal or plain decrease)")
     lyap, ctrl = copy.deepcopy(lyapunov).to(F64), copy.deepcopy(controller).to(F64)
     for p in list(lyap.parameters()) + list(ctrl.parameters()):
         p.requires_grad_(False)
-    lo, hi = system.local_box()
-    width = hi - lo
-    xi = xi.to(F64)
-    z = project_region(system, starts.to(F64).clone(), delta)
+    width = region.scale
+    z = region.project(starts.to(F64).clone())
 
     def evaluate(states: Tensor, grad: bool) -> tuple[Tensor, Tensor | None]:
         with torch.enable_grad():
             s = states.detach().requires_grad_(grad)
-            terms = decrease_terms(system, lyap, ctrl, s, xi, decay_rate, exp_rate)
-            res = condition.residual(terms)
-            if res.shape[0] != s.shape[0]:
-                raise ValueError("the falsifier needs a per-state condition (pointwise or nominal)")
+            res = condition.evaluate(system, lyap, ctrl, s)
             g = torch.autograd.grad(res.sum(), s)[0] if grad else None
         return res.detach(), g
 
@@ -108,7 +77,7 @@ def falsify(system: UncertainSystem, lyapunov: Lyapunov, controller: Controller,
         direction = g * width
         direction = direction / direction.norm(dim=-1, keepdim=True).clamp_min(1e-300)
         rate = step_size * (1 - k / max(steps, 1)) + 1e-3 * step_size
-        z = project_region(system, z + rate * direction * width, delta)
+        z = region.project(z + rate * direction * width)
         r, _ = evaluate(z, False)
         better = r > best_r
         best_z[better], best_r[better] = z[better], r[better]
@@ -126,7 +95,7 @@ def _dedupe(z: Tensor, scale: Tensor, resolution: float = 1e-6) -> Tensor:
 
 
 def collect_counterexamples(system: UncertainSystem, lyapunov: Lyapunov, controller: Controller, condition: Condition,
-                            spec: ConditionSpec, delta: float, verification: dict, generator: torch.Generator,
+                            region: Region, verification: dict, generator: torch.Generator,
                             n_random: int = 512, max_boxes: int = 200, steps: int = 30,
                             neighbours: int = 3) -> dict:
     """New training states from a failed verification: counterexamples (residual > 0) and unverified box centres.
@@ -136,8 +105,7 @@ def collect_counterexamples(system: UncertainSystem, lyapunov: Lyapunov, control
     ``box_centres`` (unverified boxes, in X_delta, any residual) and the counts.
     """
     x_star = torch.as_tensor(system.equilibrium, dtype=F64)
-    lo, hi = system.local_box()
-    scale = hi - lo
+    scale = region.scale
     cand = []
     if verification.get("counterexample_local") is not None:
         cand.append(torch.as_tensor([verification["counterexample_local"]], dtype=F64))
@@ -147,26 +115,25 @@ def collect_counterexamples(system: UncertainSystem, lyapunov: Lyapunov, control
         blo = torch.as_tensor([b["lo"] for b in boxes[:max_boxes]], dtype=F64) - x_star
         bhi = torch.as_tensor([b["hi"] for b in boxes[:max_boxes]], dtype=F64) - x_star
         centres = (blo + bhi) / 2
-        centres = centres[centres.norm(dim=-1) >= delta]
+        centres = centres[region.in_region(centres)]
         cand.append(centres)
     if n_random:
-        cand.append(sample_region(system, n_random, delta, generator))
+        cand.append(region.sample(n_random, generator))
     starts = torch.cat(cand) if cand else torch.empty(0, system.n, dtype=F64)
     if starts.shape[0] == 0:
         empty = torch.empty(0, system.n, dtype=F64)
         return {"counterexamples": empty, "neighbours": empty, "box_centres": centres, "max_residual": None,
                 "falsifier_starts": 0, "falsifier_violations": 0, "falsify_time_s": 0.0}
     tic = time.perf_counter()
-    found, values = falsify(system, lyapunov, controller, condition, spec.xi, spec.decay_rate, spec.exp_rate, delta,
-                            starts, steps=steps)
+    found, values = falsify(system, lyapunov, controller, condition, region, starts, steps=steps)
     falsify_time = time.perf_counter() - tic
     pool = torch.cat([starts, found])
-    res = residual_at(system, lyapunov, controller, condition, pool, spec.xi, spec.decay_rate, spec.exp_rate)
+    res = condition.exact(system, lyapunov, controller, pool)
     cex = _dedupe(pool[res > 0], scale)
     near = torch.empty(0, system.n, dtype=F64)
     if neighbours and cex.shape[0]:
         noise = 0.01 * scale * torch.randn(cex.shape[0] * neighbours, system.n, generator=generator, dtype=F64)
-        near = project_region(system, cex.repeat(neighbours, 1) + noise, delta)
+        near = region.project(cex.repeat(neighbours, 1) + noise)
     return {"counterexamples": cex, "neighbours": near, "box_centres": centres,
             "max_residual": float(res.max()),
             "falsifier_starts": int(starts.shape[0]), "falsifier_violations": int((values > 0).sum()),
@@ -211,10 +178,9 @@ def train_cegis(cfg: TrainConfig, system: UncertainSystem | None = None, rounds:
     start = time.perf_counter()
     result = train(cfg, system, progress=progress, init=init)
     base_cfg = result.config
-    spec = _spec_for(result)
+    condition = result.condition
     iters_round = int(iters_per_round if iters_per_round is not None else max(1, base_cfg.iters // 2))
-    delta = float(base_cfg.delta)
-    lo, hi = system.local_box()
+    region = Region.of(system, float(base_cfg.delta))
     gen = torch.Generator().manual_seed(base_cfg.seed + 7919)
     extra = torch.empty(0, system.n, dtype=F64)
     record: list[dict] = []
@@ -224,7 +190,7 @@ def train_cegis(cfg: TrainConfig, system: UncertainSystem | None = None, rounds:
     train_time = time.perf_counter() - start
     for r in range(rounds + 1):
         tic = time.perf_counter()
-        ver = verify_condition(system, result.lyapunov, result.controller, spec, delta, time_limit=verify_time_limit,
+        ver = verify_condition(system, result.lyapunov, result.controller, condition, region, time_limit=verify_time_limit,
                                min_width=min_width, keep_boxes=max_boxes).to_dict()
         entry: dict = {"round": r, "verification": _summary(ver), "verified": ver["status"] == "verified",
                        "status": ver["status"], "verified_fraction": ver["verified_fraction"],
@@ -238,12 +204,12 @@ def train_cegis(cfg: TrainConfig, system: UncertainSystem | None = None, rounds:
             if log is not None:
                 log(entry)
             break
-        found = collect_counterexamples(system, result.lyapunov, result.controller, result.condition, spec, delta, ver,
+        found = collect_counterexamples(system, result.lyapunov, result.controller, condition, region, ver,
                                         gen, n_random=n_random, max_boxes=max_boxes, steps=falsifier_steps,
                                         neighbours=neighbours)
         # newest last, the counterexamples at the very end: the cap keeps the tail
         new = torch.cat([found["box_centres"], found["neighbours"], found["counterexamples"]])
-        extra = _dedupe(torch.cat([extra, new]), hi - lo)[-max_extra:]
+        extra = _dedupe(torch.cat([extra, new]), region.scale)[-max_extra:]
         entry.update({"counterexamples_added": int(found["counterexamples"].shape[0]),
                       "neighbours_added": int(found["neighbours"].shape[0]),
                       "box_centres_added": int(found["box_centres"].shape[0]),

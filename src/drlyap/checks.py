@@ -20,48 +20,23 @@ import math
 import torch
 from torch import Tensor
 
-from drlyap.conditions import Condition, DecreaseTerms, decrease_terms
+from drlyap.conditions import Condition, DecreaseTerms
 from drlyap.networks import Controller, Lyapunov
+from drlyap.regions import Region
 from drlyap.systems import UncertainSystem
 
 
-def sample_region(system: UncertainSystem, count: int, delta: float, generator: torch.Generator) -> Tensor:
-    """``count`` local states ``(count, n)`` uniform in X minus the open delta-ball around x* (float64)."""
-    lo, hi = system.local_box()
-    out = torch.empty(0, system.n, dtype=torch.float64)
-    for _ in range(100):
-        z = lo + (hi - lo) * torch.rand(2 * count, system.n, generator=generator, dtype=torch.float64)
-        out = torch.cat([out, z[z.norm(dim=-1) >= delta]])
-        if out.shape[0] >= count:
-            return out[:count]
-    raise ValueError(f"delta = {delta} leaves (almost) nothing of the state box; choose a smaller delta")
-
-
-def validation_states(system: UncertainSystem, delta: float, per_axis: int = 200, count: int = 40000) -> Tensor:
-    """A dense set of local states in X_delta: a cell-centred grid for n <= 3, else a Sobol set."""
-    lo, hi = system.local_box()
-    if system.n <= 3:
-        per = per_axis if system.n <= 2 else 40
-        axes = [lo[i] + (hi[i] - lo[i]) * (torch.arange(per, dtype=torch.float64) + 0.5) / per for i in range(system.n)]
-        z = torch.cartesian_prod(*axes).reshape(-1, system.n)
-    else:
-        sobol = torch.quasirandom.SobolEngine(system.n, scramble=True, seed=12345)
-        z = lo + (hi - lo) * sobol.draw(count, dtype=torch.float64)
-    return z[z.norm(dim=-1) >= delta]
-
-
 def condition_residual(system: UncertainSystem, lyapunov: Lyapunov, controller: Controller, condition: Condition,
-                       z: Tensor, xi_samples: Tensor, decay_rate: float, exp_rate: float,
-                       chunk: int = 20000) -> Tensor:
-    """The condition's per-state residual at local states ``z (B, n)``, chunked, without gradients.
+                       z: Tensor, chunk: int = 20000) -> Tensor:
+    """The condition's residual at local states ``z (B, n)``, chunked, without gradients.
 
     For a uniform condition the Lipschitz term uses the maximum over *all* of ``z``.
     """
     ref = next(lyapunov.parameters())
     with torch.no_grad():
-        parts = [decrease_terms(system, lyapunov, controller, z[i:i + chunk].to(ref), xi_samples.to(ref),
-                                decay_rate, exp_rate) for i in range(0, z.shape[0], chunk)]
-    terms = DecreaseTerms(vdot=torch.cat([p.vdot for p in parts]), lip=torch.cat([p.lip for p in parts]),
+        parts = [condition.terms(system, lyapunov, controller, z[i:i + chunk].to(ref)) for i in range(0, z.shape[0], chunk)]
+    terms = DecreaseTerms(vdot=torch.cat([p.vdot for p in parts]),
+                          lip=None if parts[0].lip is None else torch.cat([p.lip for p in parts]),
                           decay=torch.cat([p.decay for p in parts]))
     return condition.residual(terms)
 
@@ -145,20 +120,18 @@ def find_equilibria(system: UncertainSystem, controller: Controller, xi_samples:
 
 
 def acceptance_check(system: UncertainSystem, lyapunov: Lyapunov, controller: Controller, condition: Condition,
-                     xi_samples: Tensor, decay_rate: float, exp_rate: float, delta: float,
-                     validation: Tensor | None = None, xi_condition: Tensor | None = None) -> dict:
+                     xi_samples: Tensor, region: Region, validation: Tensor | None = None) -> dict:
     """Run all three checks; ``passed`` is True only if all of them pass.
 
     ``xi_samples (N, k)``: every sample; the Jacobian and equilibrium checks run at each of them and at
-    their mean. ``xi_condition``: the samples the condition uses (default ``xi_samples``; the baseline's
-    condition uses only the mean).
+    their mean (the condition uses its own samples: the baseline's only the mean). ``validation``: the
+    states of the first check (default: ``region.grid()``).
     """
-    z = validation_states(system, delta) if validation is None else validation
-    xi_condition = xi_samples if xi_condition is None else xi_condition
-    residual = condition_residual(system, lyapunov, controller, condition, z, xi_condition, decay_rate, exp_rate)
+    z = region.grid() if validation is None else validation
+    residual = condition_residual(system, lyapunov, controller, condition, z)
     max_violation = float(residual.max())
     jac = jacobian_check(system, controller, xi_samples)
-    equilibria = find_equilibria(system, controller, xi_samples, delta)
+    equilibria = find_equilibria(system, controller, xi_samples, region.delta)
     passed = (max_violation <= 0) and jac["hurwitz"] and not equilibria
     return {
         "passed": bool(passed and math.isfinite(max_violation)),

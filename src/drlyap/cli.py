@@ -327,7 +327,8 @@ def compare(run_dirs: tuple[Path, ...], xi: str, n_init: int, seed: int, horizon
     along successful trajectories (a step counts when it rises by more than 1e-4 of that trajectory's
     range; lower is better, 0 means monotone); and what each run proves on the true model at --xi,
     by the sound verifier over the whole region: the decrease condition (learned pairs with their
-    own gamma, LQR's z'Pz with gamma = 0) and the certified region of attraction (a sublevel set).
+    own gamma, LQR's z'Pz with a scale-free decay alpha z'Pz) and the certified region of attraction (a sublevel
+    set of the certificate from which every trajectory converges to x*).
     """
     from drlyap.comparison import compare_runs, format_comparison
 
@@ -479,8 +480,8 @@ def lipschitz(run_dir: Path, spacing: float | None, xi: str | None, verify_time:
     Certified when the residual at every cell centre is <= -L * rho (L: a sound Lipschitz constant from interval
     gradient bounds, rho: the covering radius); compare with the branch and bound of `drlyap verify`.
     """
-    from drlyap.guarantee import lipschitz_covering
     from drlyap.rundir import load_run
+    from drlyap.verification import lipschitz_covering
 
     try:
         if verify_time < 0:

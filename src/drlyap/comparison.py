@@ -83,12 +83,14 @@ def certify(run: PolicyRun, xi: Tensor, time_limit: float) -> dict:
     the decrease condition and the largest certified sublevel set (region of attraction).
 
     Lyapunov pairs: ``Vdot + gamma||z|| (+ alpha V) <= 0`` with the run's own gamma and delta
-    (:func:`verification.verify_run`). LQR: ``d/dt z'Pz <= 0`` (gamma = 0: the condition with a decay term
-    depends on the scale of P) with the system's default delta. RL critics: nothing is proved.
+    (:func:`verification.verify_run`). LQR: ``d/dt z'Pz + alpha z'Pz <= 0``, a decay that does not depend on
+    the scale of P, with alpha half the rate ``lambda_min(Q + K'RK) / lambda_max(P)`` that the linearisation
+    guarantees, and the system's default delta. RL critics: nothing is proved.
     """
+    from drlyap.conditions import TrueDecrease
     from drlyap.networks import LinearController, QuadraticLyapunov
     from drlyap.training import TrainConfig
-    from drlyap.verification import ConditionSpec, certified_roa, verify_condition, verify_run
+    from drlyap.verification import certified_roa, verify_condition, verify_run
 
     if run.kind == "lyapunov":
         result = verify_run(run.info["run"], xi=xi, time_limit=time_limit, roa=True)
@@ -100,13 +102,18 @@ def certify(run: PolicyRun, xi: Tensor, time_limit: float) -> dict:
         system, design = run.system, run.info["design"]
         lyapunov = QuadraticLyapunov(design.P)
         controller = LinearController(design.K, system.input_box, system.equilibrium_input)
-        spec = ConditionSpec("true", xi, decay_rate=0.0)
+        # scale-free decay alpha V: half the rate z'(Q + K'RK)z / z'Pz >= lambda_min / lambda_max of the linearisation
+        rate = float(torch.linalg.eigvalsh(design.Q + design.K.T @ design.R @ design.K).min()
+                     / torch.linalg.eigvalsh(design.P).max())
+        alpha = 0.5 * max(rate, 0.0)
+        condition = TrueDecrease(xi[None], decay_rate=0.0, exp_rate=alpha)
         delta = TrainConfig(system=system.name).resolved(system).delta
-        result = verify_condition(system, lyapunov, controller, spec, delta, time_limit=time_limit).to_dict()
-        roa = certified_roa(system, lyapunov, controller, spec, delta, time_limit=time_limit)
+        result = verify_condition(system, lyapunov, controller, condition, delta, time_limit=time_limit).to_dict()
+        roa = certified_roa(system, lyapunov, controller, condition, delta, time_limit=time_limit)
         return {"status": result["status"], "verified_fraction": result["verified_fraction"],
                 "counterexample": result["counterexample"], "time_s": result["time_s"],
-                "roa_certified": roa.get("certified"), "roa_share": roa.get("share_of_box"), "decay_rate": 0.0}
+                "roa_certified": roa.get("certified"), "roa_share": roa.get("share_of_box"), "decay_rate": 0.0,
+                "exp_rate": alpha}
     return {"status": "none", "verified_fraction": None, "roa_certified": None, "roa_share": None,
             "note": "no certificate"}
 
@@ -192,8 +199,8 @@ def format_comparison(report: dict) -> str:
             proof, roa = cert["status"], "none"
         else:
             proof = f"{cert['status']} ({100 * cert['verified_fraction']:.2f}% of X_delta)"
-            if cert.get("decay_rate") == 0.0:
-                proof += ", gamma = 0"
+            if cert.get("exp_rate") is not None:
+                proof += f", decay {cert['exp_rate']:.3g} V"
             roa = "none" if not cert["roa_certified"] else f"{100 * cert['roa_share']:.1f}% of the box"
         lines.append(f"| {r['run_dir']} | {r['label']} | {r['system']} | {r['n_success']}/{r['n']} "
                      f"({100 * r['success_rate']:.1f}%) | {r['samples'] if r['samples'] is not None else '-'} | {t} | "

@@ -1,28 +1,39 @@
-"""Lyapunov decrease conditions and their training losses (paper Sec. IV-V, SPEC §3).
+"""Lyapunov decrease conditions: one object each, for training, checks, CEGIS and the verifier (SPEC §3).
 
-Every condition is a swappable piece with two methods:
+A condition knows its samples of xi, its decay term and, for the DR conditions, the Wasserstein radius
+r and risk level eps. It computes, from a batch of local states ``z (B, n)``:
 
-* ``residual(terms) -> (B,)``: a per-state quantity; the condition holds at the states of the batch
-  if and only if every entry is ``<= 0``. The verifier bounds exactly this quantity.
-* ``loss(terms) -> scalar``: the training loss, zero exactly when the condition holds at every
-  state of the batch (the mean of the positive parts of the residual, or of one scalar residual).
+* ``terms(system, lyapunov, controller, z)`` -> :class:`DecreaseTerms` (the per-state ingredients);
+* ``components(terms) -> (B, Q)`` and ``combine(components) -> (B,)``: the residual is
+  ``combine(components(terms))``; ``combine`` is non-decreasing in every component, so upper bounds of
+  the components give an upper bound of the residual. The condition holds at the states of the batch
+  if and only if every entry of the residual is ``<= 0``;
+* ``loss(terms, margin)``: the training loss, the mean of ``(residual + margin)_+`` (zero exactly when the
+  condition holds at every state of the batch for ``margin = 0``).
 
-The per-state ingredients are collected once in :class:`DecreaseTerms` from the design model
-``xdot = f(x, u) + W(x, u) xi``:
+All of it is written with torch operations that also run on the enclosure types of
+:mod:`drlyap.enclosures`: the verifier calls ``terms`` and ``components`` of the *same object* on boxes,
+so what is proved is exactly what training minimised (no second encoding of any formula).
 
-* ``vdot[i, j] = grad V(x_i) . (f(x_i, pi(x_i)) + W(x_i, pi(x_i)) xi_j)``   (``eq: V_dot_uncertain``)
-* ``lip[i] = || W(x_i, pi(x_i))^T grad V(x_i) ||``                       (the Lipschitz constant of Vdot in xi)
-* ``decay[i] = gamma ||z_i|| + alpha V(z_i)``                               (``alpha > 0``: the exponential variant)
+Per-state ingredients (:func:`decrease_terms`):
+
+* ``vdot[i, j] = grad V(x_i) . xdot(x_i, pi(x_i), xi_j)`` on the design model ``f + W xi_j``
+  (``eq: V_dot_uncertain``) or, for :class:`TrueDecrease`, on the true model ``F(x, u, p0 + xi_j)``;
+* ``lip[i] = || W(x_i, pi(x_i))^T grad V(x_i) ||`` (the Lipschitz constant of Vdot in xi; design model only);
+* ``decay[i] = gamma ||z_i|| + alpha V(z_i)`` (``alpha > 0``: the exponential variant).
 """
 
 from __future__ import annotations
 
+import copy
 import math
 from dataclasses import dataclass
 
 import torch
+import torch.nn.functional as F  # noqa: N812
 from torch import Tensor
 
+from drlyap.enclosures import is_enclosure, norm
 from drlyap.networks import Controller, Lyapunov
 from drlyap.systems import UncertainSystem
 
@@ -32,22 +43,44 @@ class DecreaseTerms:
     """Per-state terms of the decrease conditions for a batch of B states and N samples of xi."""
 
     vdot: Tensor  # (B, N) Lyapunov derivative under each sample
-    lip: Tensor  # (B,) ||W^T grad V||
+    lip: Tensor | None  # (B,) ||W^T grad V|| (design model; None on the true model)
     decay: Tensor  # (B,) gamma ||z|| + alpha V
 
 
+def euclidean_norm(x: Tensor) -> Tensor:
+    """``||x||`` along the last axis. Smoothed at 0 (``sqrt(|x|^2 + 1e-30)``) only where gradients flow in
+    training; exact on plain tensors and on enclosures (with a Clarke-gradient enclosure at 0)."""
+    if is_enclosure(x):
+        return norm(x, -1)
+    if x.requires_grad:
+        return torch.sqrt(x.square().sum(-1) + 1e-30)
+    return torch.linalg.vector_norm(x, dim=-1)
+
+
 def decrease_terms(system: UncertainSystem, lyapunov: Lyapunov, controller: Controller, z: Tensor,
-                   xi_samples: Tensor, decay_rate: float, exp_rate: float = 0.0) -> DecreaseTerms:
-    """Evaluate :class:`DecreaseTerms` at local states ``z (B, n)`` for ``xi_samples (N, k)``."""
+                   xi_samples: Tensor, decay_rate: float, exp_rate: float = 0.0, model: str = "design",
+                   with_lip: bool = True) -> DecreaseTerms:
+    """Evaluate :class:`DecreaseTerms` at local states ``z (B, n)`` for ``xi_samples (N, k)``.
+
+    ``model``: ``design`` (``f + W xi``, the training model) or ``true`` (``F(x, u, p0 + xi)``). ``z`` may be a
+    tensor or an enclosure (then ``xi_samples`` may also be an interval ``(N, k)`` on the true model).
+    ``with_lip=False`` skips ``lip`` (None). Zero decay rates add no norm term.
+    """
     value, grad_v = lyapunov.value_and_grad(z)
     x = system.to_user(z)
     u = controller(z)
-    gf, gw = system.weighted_design(x, u, grad_v)
-    vdot = gf[:, None] + gw @ xi_samples.T
-    lip = torch.sqrt((gw * gw).sum(-1) + 1e-30)
-    decay = decay_rate * torch.sqrt((z * z).sum(-1) + 1e-30)
+    if model == "design":
+        gf, gw = system.weighted_design(x, u, grad_v)
+        vdot = gf.unsqueeze(-1) + F.linear(gw, xi_samples)
+        lip = euclidean_norm(gw) if with_lip else None
+    elif model == "true":
+        vdot = torch.stack([(grad_v * system.true_dynamics(x, u, xi)).sum(-1) for xi in xi_samples], -1)
+        lip = None
+    else:
+        raise ValueError(f"unknown model {model!r}; valid: design, true")
+    decay = euclidean_norm(z) * decay_rate if decay_rate else value * 0.0
     if exp_rate:
-        decay = decay + exp_rate * value
+        decay = decay + value * exp_rate
     return DecreaseTerms(vdot=vdot, lip=lip, decay=decay)
 
 
@@ -57,7 +90,7 @@ def cvar_bound(h: Tensor, risk_level: float) -> Tensor:
     With ``h`` sorted decreasingly and ``j = ceil(eps N)``:
     ``(1 / (N eps)) sum_{i < j} (h_i - h_j) + h_j``, which equals
     ``(1/eps) inf_t [ mean_i (h_i + t)_+ - t eps ]`` (``eq: prop_1_eq2``) and reduces to ``max_i h_i``
-    when ``eps <= 1/N``. ``h`` is ``(..., N)``; returns ``(...)``.
+    when ``eps <= 1/N``. ``h`` is ``(..., N)``; returns ``(...)``. Non-decreasing in every entry of ``h``.
     """
     n = h.shape[-1]
     if not 0 < risk_level < 1:
@@ -71,97 +104,241 @@ def cvar_bound(h: Tensor, risk_level: float) -> Tensor:
 
 
 class Condition:
-    """Base class: a decrease condition over a batch of states."""
+    """Base class: a decrease condition over a batch of states (see the module docstring).
+
+    ``xi_samples (N, k)``: the samples of xi the condition uses; ``decay_rate`` gamma and ``exp_rate`` alpha of
+    the decay term. ``per_state``: whether ``residual`` has one entry per state (all but the uniform DR
+    condition). ``model``: ``design`` or ``true``.
+    """
 
     name = "condition"
+    label = "condition"
+    model = "design"
+    per_state = True
+    uses_lip = False  # whether the components need ||W^T grad V|| (the DR conditions)
+
+    def __init__(self, xi_samples: Tensor | None = None, decay_rate: float = 0.0, exp_rate: float = 0.0) -> None:
+        if xi_samples is not None and not is_enclosure(xi_samples):
+            xi_samples = torch.as_tensor(xi_samples, dtype=torch.float64)
+            if xi_samples.ndim <= 1:
+                xi_samples = xi_samples.reshape(1, -1)
+            if xi_samples.ndim != 2 or xi_samples.numel() == 0 or not bool(torch.isfinite(xi_samples).all()):
+                raise ValueError(f"xi samples must be a finite (N, k) array, got shape {tuple(xi_samples.shape)}")
+        for what, value in (("decay rate", decay_rate), ("exp rate", exp_rate)):
+            if not (math.isfinite(value) and value >= 0):
+                raise ValueError(f"{what} must be finite and >= 0, got {value}")
+        self.xi = xi_samples
+        self.decay_rate, self.exp_rate = float(decay_rate), float(exp_rate)
+        self._xi_cache: dict = {}
+
+    def _xi_for(self, z) -> Tensor:
+        if self.xi is None:
+            raise ValueError(f"the {self.label} condition was built without xi samples")
+        if is_enclosure(z) or is_enclosure(self.xi):
+            return self.xi
+        key = (z.dtype, z.device)
+        if key not in self._xi_cache:
+            self._xi_cache[key] = self.xi.to(dtype=z.dtype, device=z.device)
+        return self._xi_cache[key]
+
+    def terms(self, system: UncertainSystem, lyapunov: Lyapunov, controller: Controller, z: Tensor) -> DecreaseTerms:
+        """:func:`decrease_terms` at local states ``z (B, n)`` (a tensor or an enclosure)."""
+        return decrease_terms(system, lyapunov, controller, z, self._xi_for(z), self.decay_rate, self.exp_rate,
+                              self.model, with_lip=self.uses_lip)
+
+    def components(self, terms: DecreaseTerms) -> Tensor:
+        raise NotImplementedError
+
+    def combine(self, components: Tensor) -> Tensor:
+        raise NotImplementedError
 
     def residual(self, terms: DecreaseTerms) -> Tensor:
-        raise NotImplementedError
+        """The residual ``(B,)``: the condition holds at a state iff its entry is ``<= 0``."""
+        return self.combine(self.components(terms))
+
+    def evaluate(self, system: UncertainSystem, lyapunov: Lyapunov, controller: Controller, z: Tensor) -> Tensor:
+        """``residual(terms(...))`` at local states ``z (B, n)``."""
+        return self.residual(self.terms(system, lyapunov, controller, z))
+
+    def exact(self, system: UncertainSystem, lyapunov: Lyapunov, controller: Controller, z: Tensor,
+              dtype: torch.dtype = torch.float64) -> Tensor:
+        """The residual at local states ``z (B, n)`` by the ordinary torch code path, with copies of the
+        networks and the states cast to ``dtype`` (float64 by default: the arithmetic the verifier's claims
+        are about), without gradients."""
+        lyap, ctrl = copy.deepcopy(lyapunov).to(dtype), copy.deepcopy(controller).to(dtype)
+        with torch.no_grad():
+            return self.evaluate(system, lyap, ctrl, torch.as_tensor(z).to(dtype))
 
     def loss(self, terms: DecreaseTerms, margin: float = 0.0) -> Tensor:
         """Mean of ``(residual + margin)_+``; with ``margin = 0`` it is zero iff the condition holds."""
         return torch.relu(self.residual(terms) + margin).mean()
 
+    def per_sample(self, decay_rate: float = 0.0, exp_rate: float = 0.0) -> PlainDecrease | None:
+        """The plain decrease condition, on the same model and samples, that this condition implies for every
+        sample separately (with the given decay), or None when it implies none (a CVaR over several samples):
+        what a trajectory statement ("V decreases along the flow of each sample's model") can rest on."""
+        return None
+
     def describe(self) -> dict:
-        return {"name": self.name}
+        return {"name": self.name, "decay_rate": self.decay_rate, "exp_rate": self.exp_rate}
 
 
 class Nominal(Condition):
     """``Vdot(x, xi_bar) + gamma ||x|| <= 0`` at the mean sample (``eq: clf_loss``): the baseline.
 
-    ``terms`` must be built with the single sample ``xi_bar`` (shape ``(1, k)``).
+    ``xi_samples`` is the single sample ``xi_bar`` (shape ``(1, k)``).
     """
 
     name = "nominal"
+    label = "nominal (baseline)"
 
-    def residual(self, terms: DecreaseTerms) -> Tensor:
+    def __init__(self, xi_samples: Tensor | None = None, decay_rate: float = 0.0, exp_rate: float = 0.0) -> None:
+        super().__init__(xi_samples, decay_rate, exp_rate)
+        if self.xi is not None and self.xi.shape[0] != 1:
+            raise ValueError(f"the nominal condition takes exactly one xi (the sample mean), got {self.xi.shape[0]}")
+
+    def components(self, terms: DecreaseTerms) -> Tensor:
         if terms.vdot.shape[1] != 1:
             raise ValueError("the nominal condition takes exactly one xi (the sample mean)")
-        return terms.vdot[:, 0] + terms.decay
+        return terms.vdot + terms.decay.unsqueeze(-1)
+
+    def combine(self, components: Tensor) -> Tensor:
+        return components[..., 0]
+
+    def per_sample(self, decay_rate: float = 0.0, exp_rate: float = 0.0) -> PlainDecrease | None:
+        return PlainDecrease(self.xi, decay_rate, exp_rate, self.model)
 
 
-class DRPointwise(Condition):
+class PlainDecrease(Condition):
+    """Plain decrease ``Vdot(x, xi_j) + decay(x) <= 0`` for every sample j, on the ``model`` given
+    (``design``: ``f + W xi``; ``true``: ``F(x, u, p0 + xi)``).
+
+    ``xi_samples`` ``(N, k)``; on enclosures it may be an interval box, and the condition is then proved for
+    every shift in the box.
+    """
+
+    name = "plain"
+
+    def __init__(self, xi_samples: Tensor | None = None, decay_rate: float = 0.0, exp_rate: float = 0.0,
+                 model: str = "design") -> None:
+        super().__init__(xi_samples, decay_rate, exp_rate)
+        if model not in ("design", "true"):
+            raise ValueError(f"unknown model {model!r}; valid: design, true")
+        self.model = model
+        self.label = "true model at xi" if model == "true" else "design model at the samples"
+
+    def components(self, terms: DecreaseTerms) -> Tensor:
+        return terms.vdot + terms.decay.unsqueeze(-1)
+
+    def combine(self, components: Tensor) -> Tensor:
+        return components.max(dim=-1).values if components.shape[-1] > 1 else components[..., 0]
+
+    def per_sample(self, decay_rate: float = 0.0, exp_rate: float = 0.0) -> PlainDecrease | None:
+        return PlainDecrease(self.xi, decay_rate, exp_rate, self.model)
+
+    def describe(self) -> dict:
+        return super().describe() | {"model": self.model}
+
+
+class TrueDecrease(PlainDecrease):
+    """Plain decrease on the TRUE model at given shifts ``xi (N, k)`` (usually one): the condition that
+    simulation tests, proved over the whole region."""
+
+    name = "true"
+
+    def __init__(self, xi_samples: Tensor | None = None, decay_rate: float = 0.0, exp_rate: float = 0.0) -> None:
+        super().__init__(xi_samples, decay_rate, exp_rate, model="true")
+
+
+class _DR(Condition):
+    uses_lip = True
+
+    def __init__(self, wasserstein_radius: float, risk_level: float, xi_samples: Tensor | None = None,
+                 decay_rate: float = 0.0, exp_rate: float = 0.0) -> None:
+        super().__init__(xi_samples, decay_rate, exp_rate)
+        if not (math.isfinite(wasserstein_radius) and wasserstein_radius >= 0):
+            raise ValueError(f"Wasserstein radius must be finite and >= 0, got {wasserstein_radius}")
+        if not 0 < risk_level < 1:
+            raise ValueError(f"risk level eps must be in (0, 1), got {risk_level}")
+        self.r, self.eps = float(wasserstein_radius), float(risk_level)
+
+    def with_radius(self, wasserstein_radius: float):
+        """The same condition at another Wasserstein radius."""
+        return type(self)(wasserstein_radius, self.eps, self.xi, self.decay_rate, self.exp_rate)
+
+    def describe(self) -> dict:
+        return super().describe() | {"wasserstein_radius": self.r, "risk_level": self.eps}
+
+
+class DRPointwise(_DR):
     """Pointwise DR condition (``eq: point_ccp`` / ``eq: point_dr_lf_loss``) at every state x::
 
         (r/eps) ||W^T grad V(x)|| + CVaR_eps_j( Vdot(x, xi_j) ) + decay(x) <= 0
 
-    (``CVaR`` is :func:`cvar_bound`: ``max_j`` when ``eps <= 1/N``).
+    (``CVaR`` is :func:`cvar_bound`: ``max_j`` when ``eps <= 1/N``). Components: ``Vdot_j + decay + (r/eps) lip``.
     """
 
     name = "pointwise"
+    label = "DR pointwise"
 
-    def __init__(self, wasserstein_radius: float, risk_level: float) -> None:
-        self.r, self.eps = float(wasserstein_radius), float(risk_level)
+    def components(self, terms: DecreaseTerms) -> Tensor:
+        return terms.vdot + (terms.decay + terms.lip * self.r / self.eps).unsqueeze(-1)
 
-    def residual(self, terms: DecreaseTerms) -> Tensor:
-        return self.r / self.eps * terms.lip + cvar_bound(terms.vdot + terms.decay[:, None], self.eps)
+    def combine(self, components: Tensor) -> Tensor:
+        return cvar_bound(components, self.eps)
 
-    def describe(self) -> dict:
-        return {"name": self.name, "wasserstein_radius": self.r, "risk_level": self.eps}
+    def per_sample(self, decay_rate: float = 0.0, exp_rate: float = 0.0) -> PlainDecrease | None:
+        if self.xi is None or self.eps * self.xi.shape[0] > 1:  # the CVaR is then not the max over samples
+            return None
+        return PlainDecrease(self.xi, decay_rate, exp_rate, self.model)
 
 
-class DRUniform(Condition):
+class DRUniform(_DR):
     """Uniform DR condition (``eq: dr_clf_constraint_relaxed``) over the states of the batch::
 
         (r/eps) max_x ||W^T grad V(x)|| + CVaR_eps_j( h(xi_j) ) <= 0,  h(xi) = max_x (Vdot(x, xi) + decay(x))
 
-    For ``eps <= 1/N`` the per-state residual ``(r/eps) L_h + max_j Vdot(x, xi_j) + decay(x)`` has all
-    entries <= 0 exactly when the condition holds, and its hinge mean is the training loss (the paper's
-    ``eq: dr_lf_loss`` with the sum over states moved outside the max, so that a zero loss means the
-    condition holds at every training state). For ``eps > 1/N`` the CVaR of the per-sample suprema does
-    not split over states, so the residual is the single exact value (shape ``(1,)``) and the loss its
-    positive part.
+    Components per state: ``(lip, Vdot_j + decay)``; :meth:`margin` combines their suprema over a set of
+    states. For ``eps <= 1/N`` the per-state residual ``(r/eps) L_h + max_j Vdot(x, xi_j) + decay(x)`` (with
+    ``L_h`` the batch maximum) has all entries <= 0 exactly when the condition holds, and its hinge mean is
+    the training loss (the paper's ``eq: dr_lf_loss`` with the sum over states moved outside the max, so
+    that a zero loss means the condition holds at every training state). For ``eps > 1/N`` the CVaR of the
+    per-sample suprema does not split over states, so the residual is the single margin (shape ``(1,)``).
     """
 
     name = "uniform"
+    label = "DR uniform"
+    per_state = False
 
-    def __init__(self, wasserstein_radius: float, risk_level: float) -> None:
-        self.r, self.eps = float(wasserstein_radius), float(risk_level)
+    def components(self, terms: DecreaseTerms) -> Tensor:
+        return torch.cat([terms.lip.unsqueeze(-1), terms.vdot + terms.decay.unsqueeze(-1)], -1)
 
-    def residual(self, terms: DecreaseTerms) -> Tensor:
-        shifted = terms.vdot + terms.decay[:, None]
-        lip_term = self.r / self.eps * terms.lip.max()
-        n = shifted.shape[1]
-        if self.eps <= 1.0 / n:
+    def margin(self, suprema: Tensor) -> Tensor:
+        """The condition's left side from the suprema ``(..., 1 + N)`` of the components over the states."""
+        return suprema[..., 0] * self.r / self.eps + cvar_bound(suprema[..., 1:], self.eps)
+
+    def combine(self, components: Tensor) -> Tensor:
+        lip_term = components[:, 0].max() * self.r / self.eps
+        shifted = components[:, 1:]
+        if self.eps <= 1.0 / shifted.shape[1]:
             return lip_term + shifted.max(dim=1).values
-        return (lip_term + cvar_bound(shifted.max(dim=0).values, self.eps)).reshape(1)
-
-    def describe(self) -> dict:
-        return {"name": self.name, "wasserstein_radius": self.r, "risk_level": self.eps}
+        return self.margin(components.amax(0)).reshape(1)
 
 
-def make_condition(method: str, loss: str, wasserstein_radius: float, risk_level: float) -> Condition:
-    """The condition for a training method (``baseline`` or ``dr``) and DR loss (``pointwise``/``uniform``)."""
+def make_condition(method: str, loss: str, wasserstein_radius: float, risk_level: float,
+                   xi_samples: Tensor | None = None, decay_rate: float = 0.0, exp_rate: float = 0.0) -> Condition:
+    """The condition for a training method (``baseline`` or ``dr``) and DR loss (``pointwise``/``uniform``).
+
+    ``xi_samples``: the samples the condition uses (for the baseline: their mean, shape ``(1, k)``).
+    """
     if method == "baseline":
-        return Nominal()
+        return Nominal(xi_samples, decay_rate, exp_rate)
     if method != "dr":
         raise ValueError(f"unknown method {method!r}; valid: baseline, dr")
-    if wasserstein_radius < 0 or not math.isfinite(wasserstein_radius):
-        raise ValueError(f"Wasserstein radius must be finite and >= 0, got {wasserstein_radius}")
     if loss == "pointwise":
-        return DRPointwise(wasserstein_radius, risk_level)
+        return DRPointwise(wasserstein_radius, risk_level, xi_samples, decay_rate, exp_rate)
     if loss == "uniform":
-        return DRUniform(wasserstein_radius, risk_level)
+        return DRUniform(wasserstein_radius, risk_level, xi_samples, decay_rate, exp_rate)
     raise ValueError(f"unknown DR loss {loss!r}; valid: pointwise, uniform")
 
 

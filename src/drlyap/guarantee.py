@@ -5,7 +5,7 @@ TRUE model ``F(x, u, p0 + xi)`` for ``xi`` drawn from a distribution (:func:`par
 (Clopper-Pearson) and a Wilson 95% interval, next to the bound ``(1 - eps)(1 - eps_bar)`` of
 ``lemma: dr_controller_guarantee``. Two ways to decide one draw:
 
-* ``sampling``: the condition at every state of a dense grid of X_delta (:func:`drlyap.checks.validation_states`),
+* ``sampling``: the condition at every state of a dense grid of X_delta (:meth:`drlyap.regions.Region.grid`),
   batched over draws. A draw can pass the grid and still fail between grid points, so this fraction is an
   optimistic estimate;
 * ``verifier``: the branch and bound of :mod:`drlyap.verification` for each distinct draw (time-limited).
@@ -15,9 +15,7 @@ The bound assumes what the lemma assumes: a light-tailed true distribution, a ra
 ``eq: wasserstein_r_guarantee`` (which needs the constants c1, c2, rho of Esfahani & Kuhn; pass them to get
 ``r_N`` and compare it with the run's radius), and a pair that satisfies the DR constraint (a DR run).
 
-:func:`lipschitz_covering` is the covering argument of ``lemma: nominal_nn_lf`` / ``proposition: dr_controller_LF``
-made concrete on a grid: if the residual ``c`` is ``L``-Lipschitz and every cell of a grid that meets X_delta has
-``c(centre) <= -L rho`` (``rho`` = half the cell diagonal), then ``c <= 0`` on all of X_delta.
+The covering argument of ``lemma: nominal_nn_lf`` lives in :mod:`drlyap.verification.covering`.
 """
 
 from __future__ import annotations
@@ -30,20 +28,11 @@ from collections.abc import Callable, Sequence
 import torch
 from torch import Tensor
 
-from drlyap.checks import validation_states
-from drlyap.conditions import wasserstein_radius_guarantee
+from drlyap.conditions import TrueDecrease, wasserstein_radius_guarantee
+from drlyap.io import jsonable
+from drlyap.regions import Region
 from drlyap.systems import UncertainSystem
-from drlyap.verification import (
-    ConditionSpec,
-    Dual,
-    Interval,
-    PairBounds,
-    box_grid,
-    inside_ball,
-    jsonable,
-    run_condition,
-    verify_condition,
-)
+from drlyap.verification import verify_condition
 
 F64 = torch.float64
 Sampler = Callable[[int, torch.Generator], Tensor]
@@ -130,25 +119,16 @@ def wilson(successes: int, n: int, confidence: float = 0.95) -> tuple[float, flo
 
 # =========================================================================== the probability
 def true_model_sup(system: UncertainSystem, lyapunov, controller, xi: Tensor, z: Tensor, decay_rate: float,
-                   exp_rate: float = 0.0, budget: int = 2_000_000) -> Tensor:
+                   exp_rate: float = 0.0, draws_per_chunk: int = 128) -> Tensor:
     """``max_z Vdot(z, xi_d) + decay(z)`` on the true model for each draw ``xi (D, k)`` over states ``z (S, n)``
-    (float64 networks), batched over draws. Returns ``(D,)``."""
+    (float64 networks): the components of :class:`drlyap.conditions.TrueDecrease`, maximised over the states.
+    Returns ``(D,)``."""
     lyap, ctrl = copy.deepcopy(lyapunov).to(F64), copy.deepcopy(controller).to(F64)
-    z = z.to(F64)
+    out = []
     with torch.no_grad():
-        value, grad = lyap.value_and_grad(z)
-        u = ctrl(z)
-        x = system.to_user(z)
-        decay = decay_rate * z.norm(dim=-1) + (exp_rate * value if exp_rate else 0.0)
-        s = z.shape[0]
-        step = max(1, budget // max(s, 1))
-        out = []
-        for i in range(0, xi.shape[0], step):
-            chunk = xi[i:i + step].to(F64)
-            d = chunk.shape[0]
-            f = system.true_dynamics(x.repeat(d, 1), u.repeat(d, 1), chunk.repeat_interleave(s, dim=0))
-            vdot = (grad.repeat(d, 1) * f).sum(-1).reshape(d, s)
-            out.append((vdot + decay).amax(-1))
+        for i in range(0, xi.shape[0], draws_per_chunk):
+            condition = TrueDecrease(xi[i:i + draws_per_chunk].to(F64), decay_rate, exp_rate)
+            out.append(condition.components(condition.terms(system, lyap, ctrl, z.to(F64))).amax(0))
     return torch.cat(out)
 
 
@@ -187,15 +167,15 @@ def guarantee(run, dist: str, n: int, method: str = "sampling", seed: int = 0, e
     delta = float(cfg.delta)
     unknown = 0
     if method == "sampling":
-        z = validation_states(system, delta)
+        z = Region.of(system, delta).grid()
         sup = true_model_sup(system, run.lyapunov_net, run.controller_net, distinct, z, cfg.decay_rate, cfg.exp_rate)
         holds_distinct = sup <= 0
         states = int(z.shape[0])
     else:
         sups, flags = [], []
         for d in distinct:
-            spec = ConditionSpec("true", d[None], cfg.decay_rate, cfg.exp_rate)
-            res = verify_condition(system, run.lyapunov_net, run.controller_net, spec, delta, time_limit=time_limit,
+            condition = TrueDecrease(d[None], cfg.decay_rate, cfg.exp_rate)
+            res = verify_condition(system, run.lyapunov_net, run.controller_net, condition, delta, time_limit=time_limit,
                                    stop_at_counterexample=True)
             flags.append(res.status == "verified")
             unknown += res.status == "unknown"
@@ -239,108 +219,3 @@ def guarantee(run, dist: str, n: int, method: str = "sampling", seed: int = 0, e
         out["radius_guarantee"] = radius_guarantee
     out["time_s"] = time.perf_counter() - start
     return jsonable(out)
-
-
-# =========================================================================== Lipschitz covering
-def lipschitz_covering(run, spacing: float | None = None, n_samples: int = 20000, xi: Sequence[float] | None = None,
-                       safety: float = 1.5, verify_time: float = 0.0, batch: int = 2048) -> dict:
-    """The covering certificate of ``lemma: nominal_nn_lf`` on a grid of X_delta, next to the branch and bound.
-
-    The state box is cut into cells of side at most ``spacing`` (local units, the same on every axis; default:
-    about ``n_samples`` cells); cells entirely inside the open delta-ball are dropped, the rest cover X_delta.
-    With ``rho`` = the largest half cell diagonal and ``c`` the run's condition residual (or plain decrease on
-    the true model at ``xi``):
-
-    * ``max_residual``: sound upper bound of ``max c`` at the cell centres (interval evaluation; centres of cells
-      that straddle the sphere may lie inside the ball, where c is not required to be <= 0 but still counts);
-      ``max_residual_in_x_delta`` the largest float64 value at centres in X_delta;
-    * ``lipschitz_sound``: a sound Lipschitz constant of ``c`` on the union of the cells: the largest norm of the
-      verifier's interval enclosure of the (Clarke) gradient of the residual's components over any cell (the
-      residual is a max / CVaR of its components, so it is no steeper than the steepest one);
-    * ``lipschitz_sampled``: the largest gradient norm at the cell centres (autograd), an estimate from below;
-    * ``certified``: ``max_residual <= -lipschitz_sound * rho`` (sound: then ``c <= 0`` on X_delta);
-      ``certified_estimate`` the same with ``safety * lipschitz_sampled`` (not sound);
-    * ``spacing_needed``: the spacing at which the same test would pass with the same ``L`` and maximum
-      (``None`` when the maximum is >= 0), and ``samples_needed`` the resulting number of cells.
-
-    With ``verify_time > 0`` the branch and bound runs on the same condition for comparison.
-    """
-    start = time.perf_counter()
-    cfg, system = run.config, run.system
-    spec = run_condition(run) if xi is None else run_condition(run, xi)
-    if spec.kind == "uniform":
-        raise ValueError("the uniform DR condition has no per-state residual; the covering check needs one")
-    delta = float(cfg.delta)
-    lo, hi = system.local_box()
-    width = hi - lo
-    n = system.n
-    if spacing is None:
-        if n_samples < 1:
-            raise ValueError(f"n_samples must be >= 1, got {n_samples}")
-        spacing = float((width.prod() / n_samples) ** (1.0 / n))
-    if not (math.isfinite(spacing) and spacing > 0):
-        raise ValueError(f"spacing must be > 0, got {spacing}")
-    per_axis = [max(1, math.ceil(float(w) / spacing - 1e-9)) for w in width]
-    cells = math.prod(per_axis)
-    if cells > 2_000_000:
-        raise ValueError(f"spacing {spacing} gives {cells} cells; choose a larger spacing")
-    glo, ghi = box_grid(lo, hi, per_axis)
-    keep = ~inside_ball(glo, ghi, delta)
-    glo, ghi = glo[keep], ghi[keep]
-    rho = float(((ghi - glo) / 2).norm(dim=-1).max()) * (1 + 1e-12)
-    pb = PairBounds(system, run.lyapunov_net, run.controller_net)
-    max_res, l_sound = -math.inf, 0.0
-    for i in range(0, glo.shape[0], batch):
-        clo, chi = glo[i:i + batch], ghi[i:i + batch]
-        b = clo.shape[0]
-        eye = torch.eye(n, dtype=F64).expand(b, n, n)
-        over = spec.components(pb, Dual(Interval(clo, chi), Interval(eye, eye)))
-        if over.d is not None:
-            slope = torch.maximum(over.d.lo.abs(), over.d.hi.abs())  # (B, Q, n)
-            norms = torch.sqrt((slope * slope).sum(-1)) * (1 + 1e-12)
-            l_sound = max(l_sound, float(torch.nan_to_num(norms, nan=math.inf).max()))
-        centre = (clo + chi) / 2
-        at = spec.components(pb, Interval(centre, centre))
-        max_res = max(max_res, float(spec.combine(at.hi).max()))
-    # sampled gradient norms at the centres (float64 autograd through the ordinary code path)
-    centres = (glo + ghi) / 2
-    lyap, ctrl = copy.deepcopy(run.lyapunov_net).to(F64), copy.deepcopy(run.controller_net).to(F64)
-    for p in list(lyap.parameters()) + list(ctrl.parameters()):
-        p.requires_grad_(False)
-    l_sampled, exact_max, region_max = 0.0, -math.inf, -math.inf
-    for i in range(0, centres.shape[0], 20000):
-        zc = centres[i:i + 20000].clone().requires_grad_(True)
-        with torch.enable_grad():
-            res = spec.residual(system, lyap, ctrl, zc)
-            (g,) = torch.autograd.grad(res.sum(), zc)
-        l_sampled = max(l_sampled, float(g.norm(dim=-1).max()))
-        exact_max = max(exact_max, float(res.detach().max()))
-        inside = zc.detach().norm(dim=-1) >= delta
-        if bool(inside.any()):
-            region_max = max(region_max, float(res.detach()[inside].max()))
-    needed = -l_sound * rho
-    out = {
-        "condition": spec.label, "delta": delta, "spacing": spacing, "per_axis": per_axis, "cells": int(glo.shape[0]),
-        "covering_radius": rho, "max_residual": max_res, "max_residual_float64": exact_max,
-        "max_residual_in_x_delta": region_max,
-        "lipschitz_sound": l_sound, "lipschitz_sampled": l_sampled, "safety": safety,
-        "required_max_residual": needed, "certified": bool(max_res <= needed),
-        "certified_estimate": bool(max_res <= -safety * l_sampled * rho),
-        "spacing_needed": None, "samples_needed": None,
-        "lipschitz_note": ("lipschitz_sound: interval enclosure of the gradient over every cell (sound); "
-                           "lipschitz_sampled: max gradient norm at the centres (an estimate from below)"),
-    }
-    if max_res < 0 and l_sound > 0:
-        h_needed = 2 * (-max_res) / (l_sound * math.sqrt(n))  # rho = h sqrt(n) / 2 for equal sides
-        out["spacing_needed"] = h_needed
-        out["samples_needed"] = float(math.prod(math.ceil(float(w) / h_needed) for w in width))
-    out["verifier"] = None
-    if verify_time > 0:
-        ver = verify_condition(system, run.lyapunov_net, run.controller_net, spec, delta, time_limit=verify_time)
-        out["verifier"] = {"status": ver.status, "verified_fraction": ver.verified_fraction,
-                           "boxes_processed": ver.boxes_processed, "time_s": ver.time_s,
-                           "counterexample": ver.counterexample, "counterexample_value": ver.counterexample_value}
-    out["time_s"] = time.perf_counter() - start
-    return jsonable(out)
-
-

@@ -14,6 +14,10 @@ the backward pass treats it as the identity, so a saturated controller still rec
 (a smooth tanh saturation was measured to freeze saturated controllers at initialisation). The
 verifier bounds the real clamp. The input gradient of V is written out (one manual backward pass
 through phi) so that training differentiates it once more with a single ordinary backward.
+
+Every forward and gradient method here also runs on the enclosure types of :mod:`drlyap.enclosures`
+(the verifier passes boxes instead of tensors): the verifier bounds these networks by running this
+very code, not a copy of it.
 """
 
 from __future__ import annotations
@@ -21,7 +25,23 @@ from __future__ import annotations
 from collections.abc import Sequence
 
 import torch
+import torch.nn.functional as F  # noqa: N812
 from torch import Tensor, nn
+
+from drlyap.enclosures import constant_like, is_enclosure
+
+
+def origin_like(z) -> object:
+    """The local origin ``z = 0`` (the state x*) as a batch of one, of the same kind as ``z (B, n)``."""
+    zero = torch.zeros(1, z.shape[1], dtype=z.dtype, device=z.device)
+    return constant_like(z, zero)
+
+
+def clamp(v, low: Tensor, high: Tensor):
+    """``min(max(v, low), high)`` elementwise for ``v (B, m)`` (a tensor or an enclosure)."""
+    if is_enclosure(v):
+        return v.clamp(low, high)
+    return torch.maximum(torch.minimum(v, high), low)
 
 
 class TanhMLP(nn.Module):
@@ -54,9 +74,9 @@ class TanhMLP(nn.Module):
 
     def vjp(self, hidden: list[Tensor], v: Tensor) -> Tensor:
         """``J(z)^T v`` for a cotangent ``v (B, out)``, given the hidden activations at ``z``."""
-        g = v @ self.layers[-1].weight
+        g = F.linear(v, self.layers[-1].weight.T)
         for layer, h in zip(reversed(self.layers[:-1]), reversed(hidden)):
-            g = (g * (1 - h * h)) @ layer.weight
+            g = F.linear(g * (1 - h.square()), layer.weight.T)
         return g / self.input_scale
 
 
@@ -71,28 +91,29 @@ class Lyapunov(nn.Module):
         self.phi = TanhMLP([n, *hidden, out], input_scale)
         self.alpha_hat = float(alpha_hat)
 
-    def _anchor(self, z: Tensor) -> Tensor:
-        return self.phi(torch.zeros(1, z.shape[1], dtype=z.dtype, device=z.device))
-
     def forward(self, z: Tensor) -> Tensor:
         """``z (B, n) -> V (B,)``."""
-        d = self.phi(z) - self._anchor(z)
+        d = self.phi(z) - self.phi(origin_like(z))
         zs = z / self.phi.input_scale
-        return (d * d).sum(-1) + self.alpha_hat * (zs * zs).sum(-1)
+        return d.square().sum(-1) + zs.square().sum(-1) * self.alpha_hat
 
     def value_and_grad(self, z: Tensor) -> tuple[Tensor, Tensor]:
         """``V (B,)`` and ``grad V (B, n)`` at ``z (B, n)``, differentiable in the weights."""
         out, hidden = self.phi.forward_with_hidden(z)
-        d = out - self._anchor(z)
+        d = out - self.phi(origin_like(z))
         zs = z / self.phi.input_scale
-        value = (d * d).sum(-1) + self.alpha_hat * (zs * zs).sum(-1)
-        grad = self.phi.vjp(hidden, 2 * d) + 2 * self.alpha_hat * zs / self.phi.input_scale
+        value = d.square().sum(-1) + zs.square().sum(-1) * self.alpha_hat
+        grad = self.phi.vjp(hidden, d * 2.0) + zs / self.phi.input_scale * (2.0 * self.alpha_hat)
         return value, grad
 
 
 def saturate(v: Tensor, low: Tensor, high: Tensor) -> Tensor:
-    """``clamp(v, low, high)`` for ``v (B, m)`` with a straight-through (identity) gradient."""
-    clamped = torch.maximum(torch.minimum(v, high), low)
+    """``clamp(v, low, high)`` for ``v (B, m)`` with a straight-through (identity) gradient.
+
+    On enclosures it is the real clamp (what is verified is the forward value)."""
+    if is_enclosure(v):
+        return clamp(v, low, high)
+    clamped = clamp(v, low, high)
     return v + (clamped - v).detach()
 
 
@@ -115,8 +136,7 @@ class Controller(nn.Module):
 
     def raw(self, z: Tensor) -> Tensor:
         """The unsaturated offset ``varphi(z) - varphi(0)``, ``(B, m)``."""
-        anchor = self.varphi(torch.zeros(1, z.shape[1], dtype=z.dtype, device=z.device))
-        return self.varphi(z) - anchor
+        return self.varphi(z) - self.varphi(origin_like(z))
 
     def forward(self, z: Tensor) -> Tensor:
         """``z (B, n) -> u (B, m)``."""
@@ -136,11 +156,12 @@ class QuadraticLyapunov(nn.Module):
 
     def forward(self, z: Tensor) -> Tensor:
         """``z (B, n) -> V (B,)``."""
-        return ((z @ self.P) * z).sum(-1)
+        return (F.linear(z, self.P) * z).sum(-1)
 
     def value_and_grad(self, z: Tensor) -> tuple[Tensor, Tensor]:
-        pz = z @ self.P
-        return (pz * z).sum(-1), 2 * pz
+        """``V (B,)`` and ``grad V = 2 P z (B, n)``."""
+        pz = F.linear(z, self.P)
+        return (pz * z).sum(-1), pz * 2.0
 
 
 class LinearController(nn.Module):
@@ -158,4 +179,4 @@ class LinearController(nn.Module):
 
     def forward(self, z: Tensor) -> Tensor:
         """``z (B, n) -> u (B, m)``."""
-        return self.u_star + torch.maximum(torch.minimum(-z @ self.K.T, self.room_high), self.room_low)
+        return self.u_star + clamp(F.linear(z, -self.K), self.room_low, self.room_high)

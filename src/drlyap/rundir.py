@@ -16,7 +16,6 @@ from __future__ import annotations
 
 import csv
 import json
-import math
 import os
 import shutil
 import tempfile
@@ -27,6 +26,7 @@ from pathlib import Path
 import torch
 from torch import Tensor
 
+from drlyap.io import jsonable, write_json  # noqa: F401  (re-exported)
 from drlyap.networks import Controller, Lyapunov
 from drlyap.systems import UncertainSystem, get_system
 from drlyap.training import TrainConfig, TrainResult, build_networks
@@ -36,23 +36,6 @@ FORMAT_VERSION = 1
 
 class RunDirError(ValueError):
     """A run directory is missing, incomplete, or does not fit the request."""
-
-
-def jsonable(obj):
-    """Non-finite floats become None (strict JSON); containers are copied."""
-    if isinstance(obj, dict):
-        return {k: jsonable(v) for k, v in obj.items()}
-    if isinstance(obj, (list, tuple)):
-        return [jsonable(v) for v in obj]
-    if isinstance(obj, float) and not math.isfinite(obj):
-        return None
-    return obj
-
-
-def write_json(path: Path, data: dict) -> None:
-    """Write ``data`` as indented strict JSON (NaN and inf become null)."""
-    data = jsonable(data)
-    path.write_text(json.dumps(data, indent=2, sort_keys=False) + "\n")
 
 
 def ensure_new(out: str | os.PathLike) -> None:

@@ -22,6 +22,8 @@ from dataclasses import dataclass, field
 import torch
 from torch import Tensor
 
+from drlyap.enclosures import Dual, Interval, is_enclosure, lift
+
 Dynamics = Callable[[Tensor, Tensor, Tensor], Tensor]
 """``F(x (B, n), u (B, m), p (B, P)) -> xdot (B, n)``, batched, written with torch ops."""
 
@@ -180,13 +182,29 @@ class UncertainSystem:
         return z + self._tensor(self.equilibrium, z)
 
     # ----------------------------------------------------------------- parameters
-    def params(self, xi: Tensor | None, like: Tensor) -> Tensor:
-        """Physical parameters ``p0 + E xi`` as ``(B, P)``; ``xi`` is ``(k,)`` or ``(B, k)``."""
+    def params(self, xi: Tensor | Interval | None, like: Tensor) -> Tensor:
+        """Physical parameters ``p0 + E xi`` as ``(B, P)``; ``xi`` is ``(k,)`` or ``(B, k)``.
+
+        On enclosures (``like`` an :class:`~drlyap.enclosures.Interval` or ``Dual``) the result is an exact
+        enclosure of ``p0 + E xi`` of the same level; ``xi`` may then also be an interval box ``(k,)``.
+        """
+        if is_enclosure(like):
+            return self._param_enclosure(xi, like)
         p = self._tensor(self.nominal_params, like).expand(like.shape[0], -1).clone()
         if xi is not None:
             xi = torch.as_tensor(xi, dtype=like.dtype, device=like.device)
             p[:, self.uncertain_index] = p[:, self.uncertain_index] + xi
         return p
+
+    def _param_enclosure(self, xi: Tensor | Interval | None, like) -> Interval:
+        p = torch.tensor(self.nominal_params, dtype=torch.float64).expand(like.shape[0], -1)
+        lo, hi = p.clone(), p.clone()
+        if xi is not None:
+            idx = self.uncertain_index
+            box = xi if isinstance(xi, Interval) else Interval.const(xi)
+            lo[:, idx] = (Interval.const(p[:, idx]) + box.lo).lo
+            hi[:, idx] = (Interval.const(p[:, idx]) + box.hi).hi
+        return lift(Interval(lo, hi), like.level)
 
     def check_xi(self, xi: Sequence[float] | Tensor) -> Tensor:
         """Validate a parameter shift and return it as a float64 ``(k,)`` tensor."""
@@ -229,7 +247,9 @@ class UncertainSystem:
         """
         if self.perturbation is not None:
             f, w = self.true_dynamics(x, u), self.perturbation(x, u)
-            return (grad_v * f).sum(-1), torch.einsum("bn,bnk->bk", grad_v, w)
+            return (grad_v * f).sum(-1), (grad_v.unsqueeze(-1) * w).sum(-2)
+        if is_enclosure(x):
+            return self._weighted_design_forward(x, u, grad_v)
         graph = torch.is_grad_enabled()
         p = self.params(None, x).requires_grad_(True)
         with torch.enable_grad():
@@ -238,6 +258,23 @@ class UncertainSystem:
         if not graph:
             s = s.detach()
         return s, gp[:, self.uncertain_index]
+
+    def _weighted_design_forward(self, x, u, grad_v):
+        """:meth:`weighted_design` on enclosures: forward-mode derivatives in the uncertain parameters."""
+        level = max(x.level, u.level if is_enclosure(u) else 0, grad_v.level)
+        batch = x.shape[0]
+        p = torch.tensor(self.nominal_params, dtype=torch.float64).expand(batch, -1)
+        e = torch.zeros(batch, len(self.nominal_params), self.k, dtype=torch.float64)
+        for j, i in enumerate(self.uncertain_index):
+            e[:, i, j] = 1.0
+        seeded = Dual(lift(Interval.const(p), level), lift(Interval.const(e), level))
+        out = lift(self.dynamics(Dual(lift(x, level), None), Dual(lift(u, level), None), seeded), level + 1)
+        if tuple(out.shape) != (batch, self.n):
+            raise ValueError(f"{self.name}: dynamics returned shape {tuple(out.shape)} on enclosures, "
+                             f"expected {(batch, self.n)}")
+        w = out.d if out.d is not None else out.v.zeros_ext(self.k)  # None: F does not depend on p
+        gv = lift(grad_v, level)
+        return (gv * out.v).sum(-1), (gv.unsqueeze(-1) * w).sum(-2)
 
     def sample_xi(self, count: int, generator: torch.Generator) -> Tensor:
         """``count`` training samples ``(count, k)`` from the system's declared distribution."""

@@ -19,9 +19,10 @@ from dataclasses import dataclass
 import torch
 from torch import Tensor
 
-from drlyap.checks import acceptance_check, sample_region, validation_states
-from drlyap.conditions import Condition, decrease_terms, make_condition
+from drlyap.checks import acceptance_check
+from drlyap.conditions import Condition, make_condition
 from drlyap.networks import Controller, Lyapunov
+from drlyap.regions import Region
 from drlyap.systems import UncertainSystem, get_system
 
 
@@ -173,7 +174,9 @@ def train(cfg: TrainConfig, system: UncertainSystem | None = None, progress: boo
 
     xi_all = draw_xi_samples(system, cfg)
     xi_train = xi_all.mean(0, keepdim=True) if cfg.method == "baseline" else xi_all
-    condition = make_condition(cfg.method, cfg.loss, cfg.wasserstein_radius, cfg.risk_level)
+    condition = make_condition(cfg.method, cfg.loss, cfg.wasserstein_radius, cfg.risk_level, xi_train, cfg.decay_rate,
+                               cfg.exp_rate)
+    region = Region.of(system, cfg.delta)
     lyapunov, controller = build_networks(system, cfg)
     if init:
         if (init[0].phi.sizes != lyapunov.phi.sizes or init[0].alpha_hat != lyapunov.alpha_hat
@@ -191,12 +194,11 @@ def train(cfg: TrainConfig, system: UncertainSystem | None = None, progress: boo
         extra_states = extra_states.float().to(device)
 
     def batch() -> Tensor:
-        z = sample_region(system, int(cfg.n_states), cfg.delta, gen).float().to(device)
+        z = region.sample(int(cfg.n_states), gen).float().to(device)
         return z if extra_states is None else torch.cat([z, extra_states])
 
     z_train = batch()
-    xi_dev = xi_train.float().to(device)
-    z_val = validation_states(system, cfg.delta).float().to(device)
+    z_val = region.grid().float().to(device)
 
     params = list(lyapunov.parameters()) + list(controller.parameters())
     opt = torch.optim.Adam(params, lr=cfg.lr, fused=True)
@@ -212,8 +214,7 @@ def train(cfg: TrainConfig, system: UncertainSystem | None = None, progress: boo
     def run_check(iteration: int) -> dict:
         nonlocal best, check_time
         tic = time.perf_counter()
-        check = acceptance_check(system, lyapunov, controller, condition, xi_all.to(device), cfg.decay_rate,
-                                 cfg.exp_rate, cfg.delta, validation=z_val, xi_condition=xi_train.to(device))
+        check = acceptance_check(system, lyapunov, controller, condition, xi_all.to(device), region, validation=z_val)
         check["iteration"] = iteration
         checks.append({k: check[k] for k in ("iteration", "passed", "max_violation", "violating_fraction")}
                       | {"hurwitz": check["jacobian"]["hurwitz"], "n_other_equilibria": len(check["other_equilibria"])})
@@ -230,7 +231,7 @@ def train(cfg: TrainConfig, system: UncertainSystem | None = None, progress: boo
         for iteration in range(1, cfg.iters + 1):
             if cfg.resample and iteration > 1:
                 z_train = batch()
-            terms = decrease_terms(system, lyapunov, controller, z_train, xi_dev, cfg.decay_rate, cfg.exp_rate)
+            terms = condition.terms(system, lyapunov, controller, z_train)
             loss = condition.loss(terms, cfg.margin)
             if not torch.isfinite(loss):
                 lyapunov.load_state_dict(last_good[0])

@@ -1,0 +1,162 @@
+"""The state region a certificate is trained and proved on: X_delta, the state box minus a ball around x*.
+
+One :class:`Region` object serves every consumer: training samples its states from it, the acceptance
+check builds its validation grid from it, CEGIS projects falsified states into it, and the verifier takes
+its starting boxes, its ball test and its volume from it. Everything is in local coordinates
+``z = x - x*`` (see :meth:`drlyap.systems.UncertainSystem.to_local`), float64.
+"""
+
+from __future__ import annotations
+
+import math
+from collections.abc import Sequence
+
+import torch
+from torch import Tensor
+
+F64 = torch.float64
+
+
+def box_grid(lo: Tensor, hi: Tensor, per_axis: Sequence[int]) -> tuple[Tensor, Tensor]:
+    """Split the box ``[lo, hi]`` (n,) into ``prod(per_axis)`` cells: their ``(lo, hi)``, each ``(C, n)``."""
+    axes_lo, axes_hi = [], []
+    for i, k in enumerate(per_axis):
+        edges = lo[i] + (hi[i] - lo[i]) * torch.arange(k + 1, dtype=F64) / k
+        edges[-1] = hi[i]
+        axes_lo.append(edges[:-1])
+        axes_hi.append(edges[1:])
+    glo = torch.cartesian_prod(*axes_lo).reshape(-1, len(per_axis))
+    ghi = torch.cartesian_prod(*axes_hi).reshape(-1, len(per_axis))
+    return glo, ghi
+
+
+def default_grid(n: int, target: int = 256) -> list[int]:
+    """Boxes per axis for a starting grid of about ``target`` boxes in ``n`` dimensions."""
+    return [max(2, int(round(target ** (1.0 / n))))] * n
+
+
+def far_dist(lo: Tensor, hi: Tensor) -> Tensor:
+    """Largest distance from the origin to a point of each box ``(B,)``."""
+    return torch.sqrt(torch.maximum(lo * lo, hi * hi).sum(-1))
+
+
+def near_dist(lo: Tensor, hi: Tensor) -> Tensor:
+    """Smallest distance from the origin to a point of each box ``(B,)``."""
+    gap = torch.clamp(torch.maximum(lo, -hi), min=0.0)
+    return torch.sqrt((gap * gap).sum(-1))
+
+
+def inside_ball(lo: Tensor, hi: Tensor, radius: float) -> Tensor:
+    """Boxes that lie entirely in the open ball ``||z|| < radius`` (conservatively)."""
+    return far_dist(lo, hi) * (1 + 1e-12) < radius
+
+
+def split(lo: Tensor, hi: Tensor, scale: Tensor) -> tuple[Tensor, Tensor]:
+    """Bisect each box ``(B, n)`` along its widest side (widths relative to ``scale``): ``(2B, n)`` boxes."""
+    dim = ((hi - lo) / scale).argmax(-1)
+    rows = torch.arange(lo.shape[0])
+    mid = (lo[rows, dim] + hi[rows, dim]) / 2
+    hi1, lo2 = hi.clone(), lo.clone()
+    hi1[rows, dim] = mid
+    lo2[rows, dim] = mid
+    return torch.cat([lo, lo2]), torch.cat([hi1, hi])
+
+
+def ball_volume(radius: float, n: int) -> float:
+    return math.pi ** (n / 2) / math.gamma(n / 2 + 1) * radius ** n
+
+
+class Region:
+    """``X_delta = {z in [lo, hi] : ||z|| >= delta}`` in local coordinates.
+
+    ``lo``, ``hi``: ``(n,)`` float64 corners of the state box (local coordinates); ``delta >= 0`` the radius of
+    the excluded open ball around x* (``z = 0``).
+    """
+
+    def __init__(self, lo: Tensor, hi: Tensor, delta: float) -> None:
+        self.lo, self.hi = torch.as_tensor(lo, dtype=F64), torch.as_tensor(hi, dtype=F64)
+        if not (math.isfinite(delta) and delta >= 0):
+            raise ValueError(f"delta must be finite and >= 0, got {delta}")
+        self.delta = float(delta)
+        if self.volume() <= 0:
+            raise ValueError(f"delta = {delta} covers the whole state box: X_delta is empty")
+
+    @classmethod
+    def of(cls, system, delta: float) -> Region:
+        """The region of a system (:class:`drlyap.systems.UncertainSystem`) for a ball radius ``delta``."""
+        lo, hi = system.local_box()
+        return cls(lo, hi, delta)
+
+    @property
+    def n(self) -> int:
+        return int(self.lo.shape[0])
+
+    @property
+    def scale(self) -> Tensor:
+        """Side lengths of the box ``(n,)`` (widths are measured relative to them)."""
+        return self.hi - self.lo
+
+    def with_delta(self, delta: float) -> Region:
+        return Region(self.lo, self.hi, delta)
+
+    # ------------------------------------------------------------------ points
+    def contains(self, z: Tensor) -> Tensor:
+        """``(B,)``: states ``z (B, n)`` in X_delta."""
+        return ((z >= self.lo) & (z <= self.hi)).all(-1) & (z.norm(dim=-1) >= self.delta)
+
+    def sample(self, count: int, generator: torch.Generator) -> Tensor:
+        """``count`` states ``(count, n)`` uniform in X_delta (rejection sampling)."""
+        out = torch.empty(0, self.n, dtype=F64)
+        for _ in range(100):
+            z = self.lo + self.scale * torch.rand(2 * count, self.n, generator=generator, dtype=F64)
+            out = torch.cat([out, z[z.norm(dim=-1) >= self.delta]])
+            if out.shape[0] >= count:
+                return out[:count]
+        raise ValueError(f"delta = {self.delta} leaves (almost) nothing of the state box; choose a smaller delta")
+
+    def grid(self, per_axis: int = 200, count: int = 40000) -> Tensor:
+        """A dense set of states of X_delta: a cell-centred grid for n <= 3, else a scrambled Sobol set."""
+        if self.n <= 3:
+            per = per_axis if self.n <= 2 else 40
+            axes = [self.lo[i] + self.scale[i] * (torch.arange(per, dtype=F64) + 0.5) / per for i in range(self.n)]
+            z = torch.cartesian_prod(*axes).reshape(-1, self.n)
+        else:
+            sobol = torch.quasirandom.SobolEngine(self.n, scramble=True, seed=12345)
+            z = self.lo + self.scale * sobol.draw(count, dtype=F64)
+        return z[z.norm(dim=-1) >= self.delta]
+
+    def project(self, z: Tensor) -> Tensor:
+        """Project states ``z (B, n)`` onto X_delta: clamp into the box, push states inside the ball to its sphere."""
+        z = torch.minimum(torch.maximum(z, self.lo), self.hi)
+        norm = z.norm(dim=-1, keepdim=True)
+        inside = (norm < self.delta) & (norm > 0)
+        if bool(inside.any()):
+            pushed = z * (self.delta * (1 + 1e-9) / norm.clamp_min(1e-300))
+            z = torch.where(inside, torch.minimum(torch.maximum(pushed, self.lo), self.hi), z)
+        return z
+
+    # ------------------------------------------------------------------ boxes
+    def boxes(self, per_axis: Sequence[int] | None = None) -> tuple[Tensor, Tensor]:
+        """A grid of boxes ``(lo, hi)``, each ``(C, n)``, covering X_delta (boxes inside the ball dropped)."""
+        lo, hi = box_grid(self.lo, self.hi, per_axis or default_grid(self.n))
+        return self.keep(lo, hi)
+
+    def keep(self, lo: Tensor, hi: Tensor) -> tuple[Tensor, Tensor]:
+        """The boxes that meet X_delta (those entirely inside the open ball are dropped)."""
+        keep = ~inside_ball(lo, hi, self.delta)
+        return lo[keep], hi[keep]
+
+    def in_region(self, points: Tensor) -> Tensor:
+        """``(B,)``: points (e.g. box centres) outside the open ball, with a hair of slack inward."""
+        return points.norm(dim=-1) >= self.delta * (1 + 1e-12)
+
+    def volume(self) -> float:
+        """Volume of X_delta (exact if the ball lies inside the box, else estimated by sampling)."""
+        box = float(self.scale.prod())
+        if self.delta <= 0:
+            return box
+        if bool((-self.lo >= self.delta).all() and (self.hi >= self.delta).all()):
+            return box - ball_volume(self.delta, self.n)
+        g = torch.Generator().manual_seed(0)
+        z = self.lo + self.scale * torch.rand(200_000, self.n, generator=g, dtype=F64)
+        return box * float((z.norm(dim=-1) >= self.delta).double().mean())

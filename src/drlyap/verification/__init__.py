@@ -1,0 +1,37 @@
+"""Sound verification of the learned decrease condition by branch and bound (SPEC §5, §6).
+
+For a trained pair (V, pi) and a decrease condition of :mod:`drlyap.conditions`, the verifier proves
+``residual(z) <= 0`` for every local state ``z`` of X_delta (the state box minus the open delta-ball, a
+:class:`drlyap.regions.Region`), or finds a state where it fails. It bounds exactly the objects training
+uses: the condition's own ``terms``/``components`` and the networks' and the system's own code, run on
+the enclosure types of :mod:`drlyap.enclosures` (float64, outward rounded), so a verified box and a zero
+loss are about the same formula.
+
+Modules:
+
+* :mod:`~drlyap.verification.bounds` -- bounds of a function over boxes (interval and mean-value forms);
+* :mod:`~drlyap.verification.branch_and_bound` -- :func:`verify_condition`, :func:`maximize`, :func:`uniform_margin`;
+* :mod:`~drlyap.verification.roa` -- :func:`certified_roa` (regions of attraction reaching x*, or practical
+  stability where the proof inside the ball fails) and :func:`local_decrease`;
+* :mod:`~drlyap.verification.covering` -- the paper's Lipschitz covering check;
+* :mod:`~drlyap.verification.runs` -- :func:`run_condition`, :func:`verify_run` on run directories.
+"""
+
+from drlyap.enclosures import Dual, Interval, norm
+from drlyap.verification.bounds import box_bounds, combine_lower, combine_upper, condition_objective
+from drlyap.verification.branch_and_bound import (
+    VerificationResult,
+    as_region,
+    maximize,
+    uniform_margin,
+    verify_condition,
+)
+from drlyap.verification.covering import lipschitz_covering
+from drlyap.verification.roa import certified_roa, local_decrease
+from drlyap.verification.runs import run_condition, verify_run
+
+__all__ = [
+    "Dual", "Interval", "VerificationResult", "as_region", "box_bounds", "certified_roa", "combine_lower",
+    "combine_upper", "condition_objective", "lipschitz_covering", "local_decrease", "maximize", "norm",
+    "run_condition", "uniform_margin", "verify_condition", "verify_run",
+]

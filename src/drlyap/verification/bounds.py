@@ -1,0 +1,81 @@
+"""Bounds of a function over boxes, from the function's own code run on enclosures.
+
+:func:`box_bounds` bounds any batched function of local states over boxes ``[lo, hi]`` in two ways and keeps
+the tighter: the plain interval bound, and the mean-value form ``f(centre) + [grad f over the box] .
+(box - centre)`` (the gradient enclosure comes from dual numbers; for the controller's clamp and the norms
+it is an enclosure of the Clarke generalised gradient, for which the mean-value theorem still holds).
+
+:func:`condition_objective` is the function the verifier bounds for a decrease condition: the condition's
+own ``components(terms(...))`` (:mod:`drlyap.conditions`), evaluated by the networks' and the system's own
+code on enclosures.
+"""
+
+from __future__ import annotations
+
+from collections.abc import Callable
+
+import torch
+from torch import Tensor
+
+from drlyap.conditions import Condition
+from drlyap.enclosures import EPS, F64, REL1, Dual, Interval, _down, _up, is_enclosure
+from drlyap.networks import Controller, Lyapunov
+from drlyap.systems import UncertainSystem
+
+Objective = Callable[[object], object]
+"""``objective(z)``: ``z`` an enclosure of local states ``(B, n)`` -> an enclosure ``(B, Q)``."""
+
+
+def condition_objective(condition: Condition, system: UncertainSystem, lyapunov: Lyapunov,
+                        controller: Controller) -> Objective:
+    """``z -> condition.components(condition.terms(system, lyapunov, controller, z))`` on enclosures."""
+
+    def objective(z):
+        out = condition.components(condition.terms(system, lyapunov, controller, z))
+        if not is_enclosure(out):
+            raise ValueError("the system's dynamics did not return an enclosure; write it with torch ops on its inputs")
+        return out
+
+    return objective
+
+
+def value_objective(lyapunov: Lyapunov) -> Objective:
+    """``z -> V(z)`` as ``(B, 1)``."""
+    return lambda z: lyapunov(z).unsqueeze(-1)
+
+
+def box_bounds(objective: Objective, lo: Tensor, hi: Tensor) -> tuple[Tensor, Tensor, Interval]:
+    """Lower and upper bounds ``(B, Q)`` of ``objective`` over the boxes ``[lo, hi] (B, n)``.
+
+    The tighter of the plain interval bound and the mean-value form; also returns the enclosure of the
+    objective at the box centres (an :class:`Interval` ``(B, Q)``).
+    """
+    batch, n = lo.shape
+    centre = (lo + hi) / 2
+    rad = _up(torch.maximum(hi - centre, centre - lo), REL1)
+    eye = torch.eye(n, dtype=F64).expand(batch, n, n)
+    over = objective(Dual(Interval(lo, hi), Interval(eye, eye)))
+    at = objective(Interval(centre, centre))
+    if over.d is None:
+        spread = torch.zeros_like(at.lo)
+    else:
+        slope = torch.maximum(over.d.lo.abs(), over.d.hi.abs())
+        spread = _up((slope * rad.unsqueeze(1)).sum(-1), 4 * (n + 2) * EPS)
+    upper = torch.minimum(over.v.hi, _up(at.hi + spread, REL1))
+    lower = torch.maximum(over.v.lo, _down(at.lo - spread, REL1))
+    upper = torch.where(torch.isnan(upper), torch.inf, upper)
+    lower = torch.where(torch.isnan(lower), -torch.inf, lower)
+    return lower, upper, at
+
+
+def combine_upper(condition: Condition, upper: Tensor) -> Tensor:
+    """An upper bound ``(B,)`` of the residual from upper bounds ``(B, Q)`` of its components (the combination
+    is non-decreasing in each component; its float64 evaluation is padded outward)."""
+    out = condition.combine(upper)
+    return _up(out, 64 * EPS, upper.abs().amax(-1))
+
+
+def combine_lower(condition: Condition, lower: Tensor) -> Tensor:
+    """A lower bound ``(B,)`` of the residual from lower bounds ``(B, Q)`` of its components."""
+    out = condition.combine(lower)
+    return _down(out, 64 * EPS, lower.abs().amax(-1))

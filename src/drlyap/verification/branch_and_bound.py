@@ -1,0 +1,282 @@
+"""Branch and bound over boxes of X_delta: prove a decrease condition, or find where it fails; suprema.
+
+:func:`verify_condition` proves ``residual(z) <= 0`` for every local state ``z`` of a region X_delta (the
+state box minus the open delta-ball) for a per-state condition of :mod:`drlyap.conditions`, or finds a
+state where it fails (re-checked by the ordinary torch code path). :func:`maximize` bounds suprema of
+functions over a union of boxes; :func:`uniform_margin` uses it for the uniform DR condition.
+
+The networks are the stored weights read as float64 numbers and evaluated in exact real arithmetic;
+every bound is computed in float64 with outward rounding (:mod:`drlyap.enclosures`), so it encloses the
+real value. Boxes whose upper bound is ``<= 0`` are verified, a box whose centre violates the condition
+is a counterexample, the rest are bisected along their widest normalised side until a time limit, box
+budget or minimum box size is reached.
+
+Limits: the claim is about the float64 reading of the weights in real arithmetic (training and simulation
+run float32; counterexamples report the residual both ways). A box straddling the sphere ``||z|| = delta``
+is bounded as a whole, so a violation just inside the ball keeps it unverified down to the minimum box
+size (the verdict is then ``unknown``, never wrong). Costs grow exponentially with the state dimension.
+"""
+
+from __future__ import annotations
+
+import math
+import time
+from collections.abc import Callable, Sequence
+from dataclasses import asdict, dataclass, field
+
+import torch
+from torch import Tensor
+
+from drlyap.conditions import Condition, DRUniform
+from drlyap.enclosures import EPS, F64, _down, _up
+from drlyap.networks import Controller, Lyapunov
+from drlyap.regions import Region, inside_ball, split
+from drlyap.systems import UncertainSystem
+from drlyap.verification.bounds import box_bounds, combine_lower, combine_upper, condition_objective
+
+
+def as_region(system: UncertainSystem, delta: float | Region) -> Region:
+    """``delta`` itself if it is a :class:`Region`, else the system's region with that ball radius."""
+    return delta if isinstance(delta, Region) else Region.of(system, float(delta))
+
+
+@dataclass
+class VerificationResult:
+    """Outcome of a branch-and-bound verification of a decrease condition over ``X_delta``.
+
+    ``status``: ``verified`` (proved at every state of X_delta), ``violated`` (a state where the residual is
+    > 0, re-checked by direct evaluation) or ``unknown`` (budget or time ran out, or boxes reached the
+    minimum size). ``verified_fraction`` is a lower bound of the share of X_delta's volume covered by
+    verified boxes (unverified boxes count whole, even where they overlap the delta-ball).
+    ``sup_bounds``: ``[lower, upper]`` of the maximum of the residual over X_delta found on the way (the lower
+    end from evaluated box centres, the upper end the largest bound of a leaf box; exact bounds only when
+    the run finished). Counterexample states are in user coordinates, ``counterexample_local`` in local ones;
+    ``counterexample_value`` is the residual there in float64, ``counterexample_value_float32`` with the
+    networks in float32 as training and simulation run them.
+    """
+
+    condition: str
+    status: str
+    verified_fraction: float
+    delta: float
+    boxes_processed: int
+    boxes_verified: int
+    time_s: float
+    counterexample: list[float] | None = None
+    counterexample_local: list[float] | None = None
+    counterexample_value: float | None = None
+    counterexample_value_float32: float | None = None
+    n_counterexample_boxes: int = 0
+    n_unverified: int = 0
+    unverified_boxes: list[dict] = field(default_factory=list)
+    sup_bounds: list[float] = field(default_factory=list)
+    stopped: str = ""
+
+    def to_dict(self) -> dict:
+        return asdict(self)
+
+
+def verify_condition(system: UncertainSystem, lyapunov: Lyapunov, controller: Controller, condition: Condition,
+                     delta: float | Region, time_limit: float = 30.0, max_boxes: int = 2_000_000, min_width: float = 1e-4,
+                     grid: Sequence[int] | None = None, batch: int = 4096, keep_boxes: int = 50,
+                     stop_at_counterexample: bool = False, violation_width: float = 1e-2) -> VerificationResult:
+    """Prove ``residual(z) <= 0`` on X_delta by branch and bound, or find where it fails.
+
+    ``min_width``: boxes whose widest side (relative to the state box) is below it are not split further.
+    ``violation_width``: a box whose centre is a confirmed counterexample is still split (to sharpen the
+    verified fraction) until its widest relative side is below this. ``max_boxes``: budget of processed
+    boxes. ``grid``: boxes per axis at the start. ``keep_boxes``: how many unverified boxes to list.
+    ``stop_at_counterexample``: return at the first confirmed one (the fraction then counts every box not
+    yet verified as unverified).
+    """
+    if not condition.per_state:
+        raise ValueError("use uniform_margin for the uniform condition")
+    region = as_region(system, delta)
+    delta = region.delta
+    start = time.perf_counter()
+    objective = condition_objective(condition, system, lyapunov, controller)
+    scale = region.scale
+    lo, hi = region.boxes(grid)
+    volume = region.volume()
+    processed = verified_count = 0
+    unverified_vol = 0.0
+    leaves_lo: list[Tensor] = []
+    leaves_hi: list[Tensor] = []
+    sup_lo, sup_hi = -math.inf, -math.inf
+    cex: tuple[float, Tensor] | None = None
+    n_cex_boxes = 0
+    stopped = "finished"
+    while lo.shape[0]:
+        if time.perf_counter() - start > time_limit:
+            stopped = "time limit"
+            break
+        if processed >= max_boxes:
+            stopped = "box budget"
+            break
+        clo, chi, lo, hi = lo[:batch], hi[:batch], lo[batch:], hi[batch:]
+        _, ub_c, at = box_bounds(objective, clo, chi)
+        processed += clo.shape[0]
+        ub = combine_upper(condition, ub_c)
+        centre = (clo + chi) / 2
+        centre_lb = combine_lower(condition, at.lo)
+        in_region = region.in_region(centre)
+        if in_region.any():
+            sup_lo = max(sup_lo, float(centre_lb[in_region].max()))
+        ok = ub <= 0
+        verified_count += int(ok.sum())
+        if ok.any():
+            sup_hi = max(sup_hi, float(ub[ok].max()))
+        bad = ~ok & in_region & (centre_lb > 0)
+        if bad.any():
+            values = condition.exact(system, lyapunov, controller, centre[bad])
+            confirmed = values > 0
+            if confirmed.any():
+                best = int(values.argmax())
+                if cex is None or float(values[best]) > cex[0]:
+                    cex = (float(values[best]), centre[bad][best])
+                n_cex_boxes += int(confirmed.sum())
+                idx = bad.nonzero().squeeze(-1)[confirmed]
+                bad = torch.zeros_like(bad)
+                bad[idx] = True
+            else:
+                bad = torch.zeros_like(bad)
+        if bad.any() and stop_at_counterexample:
+            stopped = "counterexample"
+            unverified_vol += float((chi[~ok] - clo[~ok]).prod(-1).sum())
+            leaves_lo.append(clo[~ok])
+            leaves_hi.append(chi[~ok])
+            sup_hi = math.inf
+            break
+        rel_width = ((chi - clo) / scale).amax(-1)
+        bad = bad & (rel_width < violation_width)  # violating boxes still wide enough are split like the rest
+        if bad.any():
+            unverified_vol += float((chi[bad] - clo[bad]).prod(-1).sum())
+            sup_hi = max(sup_hi, float(ub[bad].max()))
+            leaves_lo.append(clo[bad])
+            leaves_hi.append(chi[bad])
+        rest = ~ok & ~bad
+        small = rest & (rel_width < min_width)
+        if small.any():
+            unverified_vol += float((chi[small] - clo[small]).prod(-1).sum())
+            sup_hi = max(sup_hi, float(ub[small].max()))
+            leaves_lo.append(clo[small])
+            leaves_hi.append(chi[small])
+        divide = rest & ~small
+        if divide.any():
+            nlo, nhi = region.keep(*split(clo[divide], chi[divide], scale))
+            lo, hi = torch.cat([lo, nlo]), torch.cat([hi, nhi])
+    if lo.shape[0]:
+        unverified_vol += float((hi - lo).prod(-1).sum())
+        leaves_lo.append(lo)
+        leaves_hi.append(hi)
+        sup_hi = math.inf
+    left_lo = torch.cat(leaves_lo) if leaves_lo else torch.empty(0, system.n, dtype=F64)
+    left_hi = torch.cat(leaves_hi) if leaves_hi else torch.empty(0, system.n, dtype=F64)
+    if cex is not None:
+        status = "violated"
+    elif left_lo.shape[0] == 0:
+        status = "verified"
+    else:
+        status = "unknown"
+    fraction = max(0.0, min(1.0, 1.0 - unverified_vol / volume)) if volume > 0 else 1.0
+    if status == "verified":
+        fraction = 1.0
+    boxes = [{"lo": system.to_user(a[None])[0].tolist(), "hi": system.to_user(b[None])[0].tolist()}
+             for a, b in zip(left_lo[:keep_boxes], left_hi[:keep_boxes])]
+    result = VerificationResult(
+        condition=condition.label, status=status, verified_fraction=fraction, delta=float(delta),
+        boxes_processed=processed, boxes_verified=verified_count, time_s=time.perf_counter() - start,
+        n_unverified=int(left_lo.shape[0]), unverified_boxes=boxes, n_counterexample_boxes=n_cex_boxes,
+        sup_bounds=[sup_lo, sup_hi], stopped=stopped)
+    if cex is not None:
+        result.counterexample_value = cex[0]
+        result.counterexample_value_float32 = float(condition.exact(system, lyapunov, controller, cex[1][None],
+                                                                    torch.float32)[0])
+        result.counterexample_local = cex[1].tolist()
+        result.counterexample = system.to_user(cex[1][None])[0].tolist()
+    return result
+
+
+# =========================================================================== suprema
+def maximize(objective: Callable, lo: Tensor, hi: Tensor, scale: Tensor, *, centre_ok: Callable | None = None,
+             box_ok: Callable | None = None, time_limit: float = 2.0, rel_tol: float = 1e-3, abs_tol: float = 1e-9,
+             min_width: float = 1e-4, max_boxes: int = 1_000_000, batch: int = 4096) -> tuple[Tensor, Tensor, dict]:
+    """Bounds ``lower <= sup <= upper`` (each ``(Q,)``) of every component of ``objective`` over a union of boxes.
+
+    The upper bound is sound over the boxes (kept by ``box_ok``); the lower bound comes from box centres
+    accepted by ``centre_ok`` (points of the set). Boxes that may still raise some component's supremum
+    by more than the tolerance are split, widest side first, until time, budget or minimum size.
+    """
+    start = time.perf_counter()
+    closed: Tensor | None = None
+    best: Tensor | None = None
+    processed = 0
+    stopped = "finished"
+    if box_ok is not None:
+        keep = box_ok(lo, hi)
+        lo, hi = lo[keep], hi[keep]
+    while lo.shape[0]:
+        if time.perf_counter() - start > time_limit or processed >= max_boxes:
+            stopped = "time limit" if processed < max_boxes else "box budget"
+            break
+        clo, chi, lo, hi = lo[:batch], hi[:batch], lo[batch:], hi[batch:]
+        _, ub, at = box_bounds(objective, clo, chi)
+        processed += clo.shape[0]
+        centre = (clo + chi) / 2
+        good = centre_ok(centre) if centre_ok is not None else torch.ones(clo.shape[0], dtype=torch.bool)
+        if good.any():
+            cand = at.lo[good].amax(0)
+            best = cand if best is None else torch.maximum(best, cand)
+        ref = best if best is not None else torch.full_like(ub[0], -torch.inf)
+        tol = torch.clamp(rel_tol * ref.abs(), min=abs_tol)
+        refine = (ub > ref + tol).any(-1) & (((chi - clo) / scale).amax(-1) >= min_width)
+        done = ~refine
+        if done.any():
+            cand = ub[done].amax(0)
+            closed = cand if closed is None else torch.maximum(closed, cand)
+        if refine.any():
+            nlo, nhi = split(clo[refine], chi[refine], scale)
+            if box_ok is not None:
+                keep = box_ok(nlo, nhi)
+                nlo, nhi = nlo[keep], nhi[keep]
+            lo, hi = torch.cat([lo, nlo]), torch.cat([hi, nhi])
+    if lo.shape[0]:
+        _, ub, _ = box_bounds(objective, lo, hi) if lo.shape[0] <= 4 * batch else (None, None, None)
+        if ub is None:
+            rest = torch.full_like(closed if closed is not None else best, torch.inf)
+        else:
+            rest = ub.amax(0)
+        closed = rest if closed is None else torch.maximum(closed, rest)
+    if closed is None:
+        raise ValueError("the set to maximise over is empty")
+    if best is None:
+        best = torch.full_like(closed, -torch.inf)
+    return best, closed, {"boxes_processed": processed, "time_s": time.perf_counter() - start, "stopped": stopped}
+
+
+def uniform_margin(system: UncertainSystem, lyapunov: Lyapunov, controller: Controller, condition: DRUniform,
+                   delta: float | Region, time_limit: float = 3.0, rel_tol: float = 1e-3, min_width: float = 1e-4) -> dict:
+    """Bounds of the uniform DR condition's left side over X_delta (``eq: dr_clf_constraint_relaxed``)::
+
+        margin = (r/eps) sup_z ||W^T grad V(z)|| + CVaR_eps_j sup_z (Vdot_j(z) + decay(z))
+
+    ``margin_upper`` is a sound upper bound (the condition is proved when it is <= 0); ``margin_lower`` is a
+    value attained by evaluated states (the condition fails when it is > 0).
+    """
+    region = as_region(system, delta)
+    delta = region.delta
+    lo, hi = region.boxes()
+    lower, upper, info = maximize(
+        condition_objective(condition, system, lyapunov, controller), lo, hi, region.scale,
+        centre_ok=region.in_region, box_ok=lambda a, b: ~inside_ball(a, b, delta),
+        time_limit=time_limit, rel_tol=rel_tol, min_width=min_width)
+    coef = condition.r / condition.eps
+    m_up = float(_up(condition.margin(upper), 64 * EPS, upper.abs().amax() * (1 + coef)))
+    m_lo = float(_down(condition.margin(lower), 64 * EPS, lower.abs().amax() * (1 + coef)))
+    status = "verified" if m_up <= 0 else ("violated" if m_lo > 0 else "unknown")
+    return {"condition": "DR uniform", "status": status, "margin_upper": m_up, "margin_lower": m_lo,
+            "lipschitz_sup": [float(lower[0]), float(upper[0])],
+            "h_sup": [[float(a), float(b)] for a, b in zip(lower[1:], upper[1:])],
+            "lipschitz_term": [coef * float(lower[0]), coef * float(upper[0])], "delta": float(delta), **info}
+
+

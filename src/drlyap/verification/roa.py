@@ -1,0 +1,268 @@
+"""Certified regions of attraction: sublevel sets of V on which V provably decreases all the way to x*.
+
+:func:`certified_roa` looks for the largest level ``c`` such that ``S = {z in box : V(z) <= c}``
+
+1. lies inside the state box (``V > c`` on the box boundary), and
+2. satisfies the condition's decrease on ``S`` outside the delta-ball (branch and bound, as
+   :func:`drlyap.verification.verify_condition`), and
+3. inside the delta-ball, ``Vdot < 0`` except at x* (:func:`local_decrease`): a second-order proof on a
+   cube around x* and a branch and bound on the rest of the ball.
+
+With all three, ``Vdot < 0`` on ``S`` minus x*, so ``S`` is forward invariant and every trajectory that
+starts in it converges to x* (Lyapunov / LaSalle): ``S`` is a **region of attraction** of the model the
+condition is about (the true model at ``xi``, or the design model at each training sample).
+
+Where 3 cannot be proved, only **practical stability** is claimed: if ``c`` exceeds an upper bound ``c0``
+of V on the delta-ball, trajectories from ``S`` stay in ``S`` and end up in ``{V <= c0}``. Nothing is
+called a region of attraction unless it converges to x*.
+
+The local proof (:func:`local_decrease`). For one sample's model ``q(z) = grad V(z) . F(z, pi(z))``:
+``q(0) = 0`` and ``grad q(0) = H_V(0) F(0) = 0`` (``grad V(0) = 0`` by the construction of V, and x* is an
+equilibrium of the model: checked to 1e-9 of the dynamics' scale, as the system declares it at build),
+so by Taylor's theorem ``q(z) = z^T H_q(s z) z / 2`` for some ``s`` in [0, 1]. On a cube ``C`` around x*
+the verifier encloses ``H_q`` over the whole cube (nested dual numbers running the networks' and the
+system's own code); if every symmetric matrix in that interval matrix is negative definite (centre's
+largest eigenvalue plus the radius matrix's Frobenius norm < 0), then ``q < 0`` on ``C`` minus x*. The cube
+is shrunk until this holds (the controller must be unsaturated there); the rest of the delta-ball is
+proved with plain decrease plus a small decay ``gamma_in ||z||`` (strict decrease away from x*).
+"""
+
+from __future__ import annotations
+
+import math
+import time
+
+import torch
+from torch import Tensor
+
+from drlyap.conditions import Condition, PlainDecrease
+from drlyap.enclosures import F64, REL1, Dual, Interval, _down
+from drlyap.networks import Controller, Lyapunov
+from drlyap.regions import Region, box_grid, default_grid, near_dist, split
+from drlyap.systems import UncertainSystem
+from drlyap.verification.bounds import box_bounds, combine_lower, combine_upper, condition_objective, value_objective
+from drlyap.verification.branch_and_bound import as_region, maximize, verify_condition
+
+
+def _faces(lo: Tensor, hi: Tensor, per_axis: list[int]) -> tuple[Tensor, Tensor]:
+    """Boxes covering the boundary of the box ``[lo, hi]`` (one coordinate pinned per face)."""
+    out_lo, out_hi = [], []
+    for i in range(lo.shape[0]):
+        per = list(per_axis)
+        per[i] = 1
+        for side in (lo[i], hi[i]):
+            flo, fhi = box_grid(lo, hi, per)
+            flo[:, i] = side
+            fhi[:, i] = side
+            out_lo.append(flo)
+            out_hi.append(fhi)
+    return torch.cat(out_lo), torch.cat(out_hi)
+
+
+def _hessian_negative(system: UncertainSystem, lyapunov: Lyapunov, controller: Controller, plain: PlainDecrease,
+                      half_width: Tensor) -> tuple[bool, float, str]:
+    """Is ``z^T H_q z < 0`` for every Hessian of every sample's ``q = Vdot`` over the cube ``|z_i| <= half_width_i``?
+
+    Returns (proved, the bound ``lambda`` with ``q(z) <= lambda ||z||^2 / 2`` on the cube, reason)."""
+    n = system.n
+    lo, hi = (-half_width)[None], half_width[None]
+    eye = torch.eye(n, dtype=F64)[None]
+    first = Dual(Interval(lo, hi), Interval(eye, eye))
+    z = Dual(first, Dual(Interval(eye, eye), None))
+    try:
+        terms = plain.terms(system, lyapunov, controller, z)
+    except TypeError as err:  # e.g. the controller saturates on the cube (clamp has no second derivative)
+        return False, math.nan, str(err)
+    vdot = terms.vdot  # (1, N) nested duals; decay is not part of q
+    hess = vdot.d.d  # (1, N, n, n) interval
+    worst = -math.inf
+    for j in range(hess.shape[1]):
+        hlo, hhi = hess.lo[0, j], hess.hi[0, j]
+        centre, radius = (hlo + hhi) / 2, (hhi - hlo) / 2
+        centre, radius = (centre + centre.T) / 2, (radius + radius.T) / 2
+        if not bool(torch.isfinite(centre).all() and torch.isfinite(radius).all()):
+            return False, math.nan, "non-finite Hessian enclosure"
+        top = float(torch.linalg.eigvalsh(centre).max())
+        spread = float(torch.linalg.matrix_norm(radius))
+        pad = 1e-12 * (float(torch.linalg.matrix_norm(centre)) + spread) + 1e-300
+        worst = max(worst, top + spread + pad)
+    return worst < 0, worst, "" if worst < 0 else "Hessian not provably negative definite"
+
+
+def local_decrease(system: UncertainSystem, lyapunov: Lyapunov, controller: Controller, condition: Condition,
+                   region: Region, time_limit: float = 10.0, min_width: float = 1e-4) -> dict:
+    """Prove ``Vdot < 0`` on the delta-ball minus x* for every sample of ``condition``'s model (see the module
+    docstring). Returns ``proved``, the cube half-width ``cube`` of the second-order proof, its bound
+    ``hessian_bound``, the ring verification's status and ``reason`` when it fails."""
+    start = time.perf_counter()
+    out: dict = {"proved": False, "cube": None, "hessian_bound": None, "ring": None, "reason": ""}
+    plain = condition.per_sample()
+    if plain is None:
+        out["reason"] = "the condition implies no per-sample decrease (a CVaR over several samples)"
+        return out
+    delta = region.delta
+    if delta <= 0:
+        out.update(proved=True, reason="no ball to cover (delta = 0)")
+        return out
+    # x* must be an equilibrium of every sample's model: F(x*, pi(x*)) = 0 (up to rounding)
+    zero = torch.zeros(system.n, system.n, dtype=F64)  # n copies of x*, one per unit covector below
+    x_star = system.to_user(Interval(zero, zero))
+    u_star = controller(Interval(zero, zero))
+    unit = Interval(torch.eye(system.n, dtype=F64), torch.eye(system.n, dtype=F64))
+    scale = float(region.scale.abs().max())
+    for xi in plain.xi:
+        if plain.model == "true":
+            f = system.true_dynamics(x_star, u_star, xi)
+        else:  # e_i . (f + W xi) for each unit covector e_i: the design model's field at x*
+            gf, gw = system.weighted_design(x_star, u_star, unit)
+            f = gf + (gw * Interval.const(xi)).sum(-1)
+        size = float(torch.maximum(f.lo.abs(), f.hi.abs()).max())
+        if size > 1e-9 * max(scale, 1.0):
+            out["reason"] = f"x* is not an equilibrium of the model at xi = {xi.tolist()} (|F(x*)| up to {size:.3g})"
+            return out
+    half = torch.minimum(torch.minimum(-region.lo, region.hi), torch.full_like(region.lo, delta))
+    bound = math.nan
+    for _ in range(40):
+        ok, bound, reason = _hessian_negative(system, lyapunov, controller, plain, half)
+        if ok:
+            break
+        half = half / 2
+        if float(half.max()) < 1e-7 * delta:
+            out["reason"] = f"second-order proof failed on every cube down to {float(half.max()):.3g} ({reason})"
+            return out
+    out["cube"] = half.tolist()
+    out["hessian_bound"] = bound
+    r_in = float(half.min())
+    if bool((half >= delta).all()):  # the cube covers the ball
+        out.update(proved=True, time_s=time.perf_counter() - start)
+        return out
+    # the rest of the ball: strict decrease Vdot + gamma_in ||z|| <= 0 on (ball-box) minus the r_in-ball
+    gamma_in = 0.25 * abs(bound) / 2 * r_in
+    ring_plain = PlainDecrease(plain.xi, gamma_in, 0.0, plain.model)
+    ring = Region(torch.maximum(region.lo, torch.full_like(region.lo, -delta)),
+                  torch.minimum(region.hi, torch.full_like(region.hi, delta)), r_in)
+    left = max(0.5, time_limit - (time.perf_counter() - start))
+    res = verify_condition(system, lyapunov, controller, ring_plain, ring, time_limit=left, min_width=min_width,
+                           stop_at_counterexample=True)
+    out["ring"] = {"status": res.status, "decay_rate": gamma_in, "inner_radius": r_in, "boxes": res.boxes_processed,
+                   "verified_fraction": res.verified_fraction}
+    out["proved"] = res.status == "verified"
+    if not out["proved"]:
+        out["reason"] = f"decrease between the cube and the delta-ball: {res.status}"
+    out["time_s"] = time.perf_counter() - start
+    return out
+
+
+def certified_roa(system: UncertainSystem, lyapunov: Lyapunov, controller: Controller, condition: Condition,
+                  delta: float | Region, time_limit: float = 10.0, min_width: float = 1e-4,
+                  samples_per_axis: int = 400, batch: int = 4096) -> dict:
+    """The largest level ``c`` (up to the search's resolution) with ``S = {V <= c}`` certified (module docstring).
+
+    Returns a JSON-friendly dict: ``level`` c; ``kind``: ``"region of attraction"`` (every trajectory of the
+    condition's model from S converges to x*), ``"practical stability"`` (trajectories from S end up in
+    ``{V <= practical_level}``) or None; ``certified`` (True only for a region of attraction); ``local`` (the
+    proof inside the ball); ``boundary_min_lower``, ``ball_max_upper``, ``share_of_box`` (share of the box
+    volume in S), ``limited_by``, a ``counterexample`` that limited the level, times and boxes.
+    """
+    start = time.perf_counter()
+    region = as_region(system, delta)
+    delta = region.delta
+    box_lo, box_hi, scale = region.lo, region.hi, region.scale
+    grid = default_grid(system.n)
+    vobj = value_objective(lyapunov)
+
+    # 1. min of V on the boundary of the box
+    flo, fhi = _faces(box_lo, box_hi, grid)
+    _, neg_up, _ = maximize(lambda z: -vobj(z), flo, fhi, scale, time_limit=time_limit / 4, min_width=min_width)
+    boundary_min_lower = float(-neg_up[0])
+    # 2. max of V on the delta-ball
+    ball_max_upper = 0.0
+    if delta > 0:
+        blo = torch.maximum(box_lo, torch.full_like(box_lo, -delta))
+        bhi = torch.minimum(box_hi, torch.full_like(box_hi, delta))
+        glo, ghi = box_grid(blo, bhi, grid)
+        _, up, _ = maximize(vobj, glo, ghi, scale, time_limit=time_limit / 4,
+                            box_ok=lambda a, b: near_dist(a, b) < delta, min_width=min_width)
+        ball_max_upper = float(up[0])
+    # 3. the decrease condition on the sublevel set outside the ball
+    level = boundary_min_lower
+    limited_by = "box boundary"
+    components = condition_objective(condition, system, lyapunov, controller)
+
+    def objective(z):
+        return torch.cat([components(z), vobj(z)], -1)
+
+    lo, hi = region.boxes(grid)
+    processed = 0
+    deadline = start + time_limit
+    cex = None
+    while lo.shape[0]:
+        if time.perf_counter() > deadline:
+            v_min = -math.inf
+            if lo.shape[0] <= 16 * batch:
+                v_min = min(float(box_bounds(vobj, lo[i:i + batch], hi[i:i + batch])[0].min())
+                            for i in range(0, lo.shape[0], batch))
+            if v_min < level:
+                level, limited_by = v_min, "time limit"
+            break
+        clo, chi, lo, hi = lo[:batch], hi[:batch], lo[batch:], hi[batch:]
+        lb, ub, at = box_bounds(objective, clo, chi)
+        processed += clo.shape[0]
+        v_lb = lb[:, -1]
+        active = v_lb <= level
+        res_ub = combine_upper(condition, ub[:, :-1])
+        centre = (clo + chi) / 2
+        open_ = active & (res_ub > 0)
+        bad = open_ & region.in_region(centre) & (combine_lower(condition, at.lo[:, :-1]) > 0)
+        if bad.any():
+            values = condition.exact(system, lyapunov, controller, centre[bad])
+            if (values > 0).any():
+                v_at = at.hi[:, -1][bad][values > 0]
+                j = int(v_at.argmin())
+                if float(v_at[j]) < level:
+                    level, limited_by = float(v_at[j]), "counterexample"
+                    cex = centre[bad][values > 0][j]
+        small = open_ & (((chi - clo) / scale).amax(-1) < min_width)
+        if small.any() and float(v_lb[small].min()) < level:
+            level, limited_by = float(v_lb[small].min()), "unverified box at minimum size"
+        divide = open_ & ~small & (v_lb <= level)
+        if divide.any():
+            nlo, nhi = region.keep(*split(clo[divide], chi[divide], scale))
+            lo, hi = torch.cat([lo, nlo]), torch.cat([hi, nhi])
+    c = float(_down(torch.tensor(level, dtype=F64), REL1)) if math.isfinite(level) else level
+    # 4. inside the ball
+    left = max(1.0, deadline - time.perf_counter())
+    local = local_decrease(system, lyapunov, controller, condition, region, time_limit=left, min_width=min_width)
+    if c > 0 and local["proved"]:
+        kind = "region of attraction"
+    elif c > 0 and c > ball_max_upper:
+        kind = "practical stability"
+    else:
+        kind = None
+    share = _share_of_box(lyapunov, region, c, samples_per_axis) if c > 0 else 0.0
+    return {"level": c, "kind": kind, "certified": kind == "region of attraction",
+            "practical_level": ball_max_upper if kind == "practical stability" else None,
+            "contains_ball": c > ball_max_upper, "limited_by": limited_by, "local": local,
+            "boundary_min_lower": boundary_min_lower, "ball_max_upper": ball_max_upper, "share_of_box": share,
+            "counterexample": None if cex is None else system.to_user(cex[None])[0].tolist(),
+            "boxes_processed": processed, "time_s": time.perf_counter() - start, "delta": float(delta),
+            "condition": condition.label}
+
+
+def _share_of_box(lyapunov: Lyapunov, region: Region, level: float, samples_per_axis: int) -> float:
+    """Share of the box volume in ``{V <= level}``: on a grid for n <= 3, else from 100,000 uniform samples."""
+    import copy
+
+    n = region.n
+    if n <= 3:
+        per = samples_per_axis if n <= 2 else 60
+        axes = [region.lo[i] + region.scale[i] * (torch.arange(per, dtype=F64) + 0.5) / per for i in range(n)]
+        z = torch.cartesian_prod(*axes).reshape(-1, n)
+    else:
+        g = torch.Generator().manual_seed(0)
+        z = region.lo + region.scale * torch.rand(100_000, n, generator=g, dtype=F64)
+    lyap = copy.deepcopy(lyapunov).to(F64)
+    with torch.no_grad():
+        values = torch.cat([lyap(z[i:i + 50_000]) for i in range(0, z.shape[0], 50_000)])
+    return float((values <= level).double().mean())
+
