@@ -2,6 +2,7 @@
 
 import math
 
+import pytest
 import torch
 
 import drlyap
@@ -17,8 +18,8 @@ def test_readme_user_system_round_trip(tmp_path):
         nominal_params=(0.5,), uncertain=("friction",), dynamics=cart,
         state_box=((-1, -1), (1, 1)), input_box=((-2,), (2,)), equilibrium=(0.0, 0.0),
         xi_sampler=lambda n, g: 0.1 * torch.randn(n, 1, generator=g, dtype=torch.float64))
-    result = drlyap.train(drlyap.TrainConfig(system="cart", iters=30, check_every=30, n_states=256), system=sys_,
-                          progress=False)
+    result = drlyap.train(drlyap.TrainConfig(system="cart", iters=30, check_every=30, n_states=256, verify=False),
+                          system=sys_, progress=False)
     drlyap.save_run(tmp_path / "cart", result)
     drlyap.register_system("cart", lambda: sys_)
     run = drlyap.load_run(tmp_path / "cart")
@@ -29,9 +30,20 @@ def test_readme_user_system_round_trip(tmp_path):
 
 
 def test_load_run_returns_controller_and_certificate_in_user_coordinates(tmp_path, tiny_config):
-    result = drlyap.train(tiny_config(system="mountain-car"), progress=False)
+    result = drlyap.train(tiny_config(system="mountain-car", verify=False), progress=False)
     run = drlyap.load_run(drlyap.save_run(tmp_path / "mc", result))
     x_star = torch.tensor([[math.pi / 6, 0.0]], dtype=torch.float64)
     assert abs(run.lyapunov(x_star).item()) < 1e-6
     assert abs(run.controller(x_star).item()) < 1e-6
     assert run.system.name == "mountain-car"
+
+
+def test_train_proves_by_default_and_says_so_when_it_cannot(tiny_config):
+    """drlyap.train ends with the verifier's verdict in metrics["certificate"]; an unproved run warns."""
+    with pytest.warns(UserWarning, match="NOT verified"):
+        result = drlyap.train(tiny_config(iters=10, check_every=10, verify_rounds=0, verify_time=1.0), progress=False)
+    cert = result.metrics["certificate"]
+    assert cert["status"] in ("violated", "unknown") and cert["condition"] == "DR pointwise"
+    assert 0 <= cert["verified_fraction"] < 1 and cert["rounds"] == 0
+    plain = drlyap.train(tiny_config(iters=10, check_every=10, verify=False), progress=False)
+    assert plain.metrics["certificate"]["status"] == "not checked" and "cegis" not in plain.metrics

@@ -79,15 +79,21 @@ def test_cegis_rejects_bad_arguments_before_training(tiny_config):
         train_cegis(tiny_config(iters=5, check_every=5), rounds=-1, progress=False)
 
 
-def test_cli_train_cegis(tmp_path):
+def test_cli_train_proves_by_default(tmp_path):
     from drlyap.cli import main
 
     runner = CliRunner()
-    out = runner.invoke(main, ["train", "pendulum", "--iters", "4", "--quiet", "--cegis", "--cegis-rounds", "1",
-                               "--cegis-time-limit", "1", "--out", str(tmp_path / "run")])
+    out = runner.invoke(main, ["train", "pendulum", "--iters", "4", "--quiet", "--verify-rounds", "1",
+                               "--verify-time", "1", "--out", str(tmp_path / "run")])
     assert out.exit_code == 0, out.output
-    assert "cegis round 0:" in out.output and "cegis:" in out.output
+    assert "proof round 0:" in out.output and "proof round 1:" in out.output
+    last = out.output.strip().splitlines()[-1]
     metrics = json.loads((tmp_path / "run" / "metrics.json").read_text())
     assert "cegis" in metrics and metrics["cegis"]["max_rounds"] == 1
-    bad = runner.invoke(main, ["train", "pendulum", "--cegis", "--cegis-rounds", "-1", "--out", str(tmp_path / "x")])
-    assert bad.exit_code != 0 and "--cegis-rounds" in bad.output
+    status = metrics["certificate"]["status"]
+    assert last.startswith("certificate: ") and (("NOT VERIFIED (" + status + ")") in last or status == "verified")
+    plain = runner.invoke(main, ["train", "pendulum", "--iters", "4", "--quiet", "--no-verify", "--out", str(tmp_path / "p")])
+    assert plain.exit_code == 0 and plain.output.strip().splitlines()[-1].startswith("certificate: NOT CHECKED")
+    assert "cegis" not in json.loads((tmp_path / "p" / "metrics.json").read_text())
+    bad = runner.invoke(main, ["train", "pendulum", "--verify-rounds", "-1", "--out", str(tmp_path / "x")])
+    assert bad.exit_code != 0 and "verify_rounds" in bad.output

@@ -9,7 +9,7 @@ from drlyap.cli import main
 @pytest.fixture(scope="module")
 def run_dir(tmp_path_factory):
     out = tmp_path_factory.mktemp("cli") / "run"
-    result = CliRunner().invoke(main, ["train", "pendulum", "--method", "baseline", "--iters", "10", "--quiet",
+    result = CliRunner().invoke(main, ["train", "pendulum", "--method", "baseline", "--iters", "10", "--quiet", "--no-verify",
                                        "--out", str(out)])
     assert result.exit_code == 0, result.output
     assert "acceptance" in result.output
@@ -64,7 +64,8 @@ def test_reproduce_end_to_end_writes_table_json_and_figures(tmp_path):
     from drlyap.experiments import reproduce
 
     out = tmp_path / "rep"
-    report = reproduce("pendulum", [0], out, iters=2, progress=False, log=lambda s: None, n_more=4, sweep=(1, 2))
+    report = reproduce("pendulum", [0], out, iters=2, progress=False, log=lambda s: None, n_more=4, sweep=(1, 2),
+                       verify=False)
     assert {r["method"] for r in report["results"]} == {"baseline", "dr"}
     for r in report["results"]:
         assert r["paper_10"]["n"] == 10 and r["more_200"]["n"] == 4 and set(r["sweep_200"]) == {1, 2}

@@ -153,7 +153,7 @@ def train_cegis(cfg: TrainConfig, system: UncertainSystem | None = None, rounds:
                 init: tuple[Lyapunov, Controller] | None = None, iters_per_round: int | None = None,
                 max_extra: int = 2000, replicate: int = 2, max_boxes: int = 200, n_random: int = 512,
                 falsifier_steps: int = 30, neighbours: int = 3, min_width: float = 1e-4,
-                log=None) -> tuple[TrainResult, list[dict]]:
+                log=None, time_budget: float | None = None) -> tuple[TrainResult, list[dict]]:
     """Train with counterexample-guided rounds (see the module docstring).
 
     Returns the best :class:`TrainResult` (its ``config`` is the first run's resolved config, its ``history``
@@ -161,8 +161,11 @@ def train_cegis(cfg: TrainConfig, system: UncertainSystem | None = None, rounds:
     and the list of rounds. Each round dict has ``round``, ``verification``
     (summary), ``verified``, ``verified_fraction``, times, counts of states added and, when states were added,
     ``counterexamples`` (a float64 ``(C, n)`` tensor of the violating local states found; not in the metrics).
-    ``log(round_dict)`` is called after each verification.
+    ``log(round_dict)`` is called after each verification. ``time_budget`` (seconds, from the start): no new
+    retraining round starts once it is spent.
     """
+    if time_budget is not None and not time_budget > 0:
+        raise ValueError(f"time_budget must be > 0 seconds, got {time_budget}")
     if rounds < 0:
         raise ValueError(f"rounds must be >= 0, got {rounds}")
     if not (verify_time_limit > 0):
@@ -199,7 +202,10 @@ def train_cegis(cfg: TrainConfig, system: UncertainSystem | None = None, rounds:
         score = (entry["verified"], ver["verified_fraction"], -(ver["counterexample_value"] or 0.0))
         if best is None or score > best[0]:
             best = (score, result, r, list(history))
-        if entry["verified"] or r == rounds:
+        out_of_time = time_budget is not None and time.perf_counter() - start > time_budget
+        if entry["verified"] or r == rounds or out_of_time:
+            if out_of_time and not entry["verified"] and r < rounds:
+                entry["stopped"] = "time budget"
             record.append(entry)
             if log is not None:
                 log(entry)
@@ -240,3 +246,65 @@ def train_cegis(cfg: TrainConfig, system: UncertainSystem | None = None, rounds:
     })
     out = dataclasses.replace(chosen, config=base_cfg, metrics=metrics, history=chosen_history)
     return out, record
+
+
+def certificate_summary(verification: dict, condition_label: str, delta: float, rounds: int | None = None) -> dict:
+    """``metrics["certificate"]``: what the verifier proved about a run's trained condition.
+
+    ``status`` is ``verified`` (proved at every state of X_delta = the state box minus the open ball of radius
+    ``delta`` around x*), ``violated`` (a counterexample state, re-checked) or ``unknown`` (time or box budget
+    ran out); ``verified_fraction`` a lower bound of the share of X_delta proved.
+    """
+    return jsonable({
+        "status": verification["status"], "condition": condition_label, "region": "state box minus the open ball "
+        f"||x - x*|| < {delta:g}", "delta": delta, "verified_fraction": verification.get("verified_fraction"),
+        "time_s": verification.get("time_s"), "boxes": verification.get("boxes_processed"),
+        "counterexample": verification.get("counterexample"), "rounds": rounds,
+        "margin_upper": verification.get("margin_upper"),
+    })
+
+
+def train_certified(cfg: TrainConfig, system: UncertainSystem | None = None, progress: bool = True,
+                    init: tuple[Lyapunov, Controller] | None = None, log=None, warn: bool = True) -> TrainResult:
+    """Train a pair and, unless ``cfg.verify`` is False, prove its trained condition: the default way to train.
+
+    Per-state conditions (baseline, DR pointwise) run :func:`train_cegis` with ``cfg.verify_rounds`` retraining
+    rounds, ``cfg.verify_time`` seconds per proof and an optional total ``cfg.verify_budget``; the uniform DR
+    condition is bounded once (:func:`drlyap.verification.uniform_margin`, no per-state residual to retrain on).
+    ``metrics["certificate"]`` records the verdict (:func:`certificate_summary`); with ``warn`` a run that is
+    not verified raises a :class:`UserWarning` saying so.
+    """
+    import warnings
+
+    from drlyap.verification import uniform_margin
+
+    system = system or get_system(cfg.system)
+    if not cfg.verify:
+        result = train(cfg, system, progress=progress, init=init)
+        result.metrics["certificate"] = {"status": "not checked", "condition": result.condition.label}
+        return result
+    if cfg.verify_rounds < 0 or not cfg.verify_time > 0:
+        raise ValueError(f"verify_rounds must be >= 0 and verify_time > 0, got {cfg.verify_rounds} and {cfg.verify_time}")
+    uniform = cfg.method == "dr" and cfg.loss == "uniform"
+    if uniform:
+        result = train(cfg, system, progress=progress, init=init)
+        delta = float(result.config.delta)
+        ver = uniform_margin(system, result.lyapunov, result.controller, result.condition, delta,
+                             time_limit=cfg.verify_time)
+        ver["boxes_processed"] = ver.get("boxes_processed")
+        ver["verified_fraction"] = None
+        result.metrics["certificate"] = certificate_summary(ver, result.condition.label, delta)
+    else:
+        result, rounds = train_cegis(cfg, system, rounds=int(cfg.verify_rounds), verify_time_limit=cfg.verify_time,
+                                     progress=progress, init=init, log=log, time_budget=cfg.verify_budget)
+        final = result.metrics["cegis"]["final"]
+        result.metrics["certificate"] = certificate_summary(final, result.condition.label, float(result.config.delta),
+                                                            rounds=result.metrics["cegis"]["retraining_rounds"])
+    cert = result.metrics["certificate"]
+    if warn and cert["status"] != "verified":
+        share = cert.get("verified_fraction")
+        detail = "" if share is None else f"; {100 * share:.4f}% of X_delta proved"
+        warnings.warn(f"drlyap: the trained {cert['condition']} condition of this {cfg.system} {cfg.method} run is NOT "
+                      f"verified ({cert['status']}{detail}){'' if uniform else '; raise verify_rounds'}",
+                      stacklevel=2)
+    return result

@@ -94,19 +94,24 @@ def systems(as_json: bool) -> None:
               help="Start from the networks of this run directory (e.g. a baseline run).")
 @click.option("--out", type=click.Path(path_type=Path), required=True, help="Run directory to create.")
 @click.option("--quiet", is_flag=True, help="No progress bar.")
-@click.option("--cegis", is_flag=True,
-              help="Counterexample-guided training: verify after training, add counterexamples and falsified "
-                   "states, continue training (iters/2 per round) until verified or --cegis-rounds.")
-@click.option("--cegis-rounds", type=int, default=5, show_default=True, help="Retraining rounds of --cegis.")
-@click.option("--cegis-time-limit", type=float, default=30.0, show_default=True,
-              help="Seconds per verification of --cegis.")
+@click.option("--verify/--no-verify", default=True, show_default=True,
+              help="Prove the trained condition after training, retraining on counterexamples (CEGIS) until it is "
+                   "proved or the rounds/budget run out. --no-verify: training and the acceptance check only.")
+@click.option("--verify-rounds", type=int, default=5, show_default=True, help="Retraining rounds at most.")
+@click.option("--verify-time", type=float, default=30.0, show_default=True, help="Seconds per proof.")
+@click.option("--verify-budget", type=float, default=None, help="Total seconds for the retraining rounds [no limit].")
 def train(system: str, method: str, loss: str, radius: float | None, eps: float | None, gamma: float | None,
           exp_rate: float, xi_samples: str | None, iters: int, seed: int, device: str, warm_start: Path | None,
-          out: Path, quiet: bool, cegis: bool, cegis_rounds: int, cegis_time_limit: float) -> None:
-    """Train a controller and Lyapunov certificate for SYSTEM and save a run directory."""
+          out: Path, quiet: bool, verify: bool, verify_rounds: int, verify_time: float,
+          verify_budget: float | None) -> None:
+    """Train a controller and Lyapunov certificate for SYSTEM, prove the trained condition, save a run directory.
+
+    The last line says whether the condition is VERIFIED (proved at every state of the box minus the
+    delta-ball), VIOLATED (a counterexample) or UNKNOWN (budget ran out).
+    """
+    from drlyap.cegis import train_certified
     from drlyap.rundir import ensure_new, load_run, save_run
     from drlyap.training import TrainConfig
-    from drlyap.training import train as train_pair
 
     try:
         sys_ = get_system(system)
@@ -115,46 +120,73 @@ def train(system: str, method: str, loss: str, radius: float | None, eps: float 
             samples = [_floats(part, "--xi-samples") for part in xi_samples.split(";") if part.strip()]
         cfg = TrainConfig(system=system, method=method, loss=loss, wasserstein_radius=radius, risk_level=eps,
                           decay_rate=gamma, exp_rate=exp_rate, xi_samples=samples, iters=iters, seed=seed,
-                          device=device)
+                          device=device, verify=verify, verify_rounds=verify_rounds, verify_time=verify_time,
+                          verify_budget=verify_budget)
+        cfg.resolved(sys_)  # refuse a bad config before anything runs
         ensure_new(out)
         init = None
         if warm_start is not None:
             prior = load_run(warm_start, sys_)
             init = (prior.lyapunov_net, prior.controller_net)
-        if cegis:
-            from drlyap.cegis import train_cegis
 
-            if cegis_rounds < 0 or not cegis_time_limit > 0:
-                raise ValueError(f"--cegis-rounds must be >= 0 and --cegis-time-limit > 0, got {cegis_rounds} and "
-                                 f"{cegis_time_limit}")
+        def show_round(e: dict) -> None:
+            v = e["verification"]
+            line = (f"  proof round {e['round']}: {v['status'].upper()}, {100 * v['verified_fraction']:.4f}% of X_delta "
+                    f"proved ({v['time_s']:.2f} s)")
+            if "counterexamples_added" in e:
+                line += (f"; retraining with {e['counterexamples_added']} counterexamples (+{e['neighbours_added']} "
+                         f"neighbours, {e['box_centres_added']} box centres)")
+            click.echo(line, err=True)
 
-            def show_round(e: dict) -> None:
-                v = e["verification"]
-                line = (f"  cegis round {e['round']}: {v['status'].upper()}, verified {100 * v['verified_fraction']:.4f}% "
-                        f"of X_delta ({v['time_s']:.2f} s)")
-                if "counterexamples_added" in e:
-                    line += (f"; added {e['counterexamples_added']} counterexamples (+{e['neighbours_added']} neighbours, "
-                             f"{e['box_centres_added']} box centres)")
-                click.echo(line)
-
-            result, _ = train_cegis(cfg, sys_, rounds=cegis_rounds, verify_time_limit=cegis_time_limit, progress=not quiet,
-                                    init=init, log=show_round)
-        else:
-            result = train_pair(cfg, sys_, progress=not quiet, init=init)
+        result = train_certified(cfg, sys_, progress=not quiet, init=init, log=show_round, warn=False)
         save_run(out, result)
     except ValueError as err:
         _fail(err)
     m = result.metrics
-    click.echo(f"{system} {method}: {m['status']} ({m['iterations']} iterations, {m['train_time_s']:.1f} s)")
+    c = m.get("cegis")
+    iterations, seconds = (c["total_iterations"], c["total_time_s"]) if c else (m["iterations"], m["train_time_s"])
+    click.echo(f"{system} {method}: {m['status']} ({iterations} iterations, {seconds:.1f} s in all)")
     acc = m["acceptance"]
     click.echo(f"  acceptance: {'PASSED' if m['passed'] else 'NOT PASSED'}; max violation {acc['max_violation']:.3g} "
                f"on {100 * acc['violating_fraction']:.2f}% of {acc['validation_states']} validation states; "
                f"Hurwitz at x*: {acc['jacobian']['hurwitz']}; other equilibria: {len(acc['other_equilibria'])}")
-    if "cegis" in m:
-        c = m["cegis"]
-        click.echo(f"  cegis: {'VERIFIED' if c['verified'] else 'NOT VERIFIED'} after {c['retraining_rounds']} retraining "
-                   f"round(s), {c['total_iterations']} iterations, {c['total_time_s']:.1f} s (kept round {c['returned_round']})")
+    if c:
+        click.echo(f"  proof: {c['retraining_rounds']} retraining round(s) (kept round {c['returned_round']})")
     click.echo(f"  saved {out}")
+    click.echo(certificate_line(m["certificate"]))
+
+
+def roa_line(r: dict, true_model: bool) -> str:
+    """What a :func:`drlyap.verification.certified_roa` result proves, named for what it is."""
+    if "error" in r:
+        return f"region of attraction: {r['error']}"
+    model = "the true model at --xi" if true_model else "the design model at each training sample"
+    size = f"{100 * r['share_of_box']:.2f}% of the box, limited by {r['limited_by']}"
+    if r["kind"] == "region of attraction":
+        return (f"region of attraction: CERTIFIED {{V <= {r['level']:.4g}}} ({size}): every trajectory of {model} "
+                "that starts there converges to x*")
+    if r["kind"] == "practical stability":
+        return (f"region of attraction: NOT CERTIFIED ({r['local']['reason']}); practical stability instead: "
+                f"trajectories of {model} from {{V <= {r['level']:.4g}}} ({size}) end up in "
+                f"{{V <= {r['practical_level']:.4g}}}")
+    return (f"region of attraction: NOT CERTIFIED (largest proved level {r['level']:.4g}, limited by {r['limited_by']}; "
+            f"inside the ball: {r['local']['reason'] or 'proved'})")
+
+
+def certificate_line(cert: dict) -> str:
+    """The one line that says what was proved about a run's trained condition."""
+    status = cert["status"]
+    if status == "not checked":
+        return f"certificate: NOT CHECKED ({cert['condition']} condition; run `drlyap verify RUN`)"
+    where = cert.get("region", "X_delta")
+    if status == "verified":
+        return (f"certificate: VERIFIED - the {cert['condition']} condition holds at every state of the {where} "
+                f"(proof {cert['time_s']:.2f} s, {cert['boxes']} boxes)")
+    share = cert.get("verified_fraction")
+    proved = "" if share is None else f"; {100 * share:.4f}% of it proved"
+    cex = cert.get("counterexample")
+    extra = f"; counterexample x = {[round(v, 5) for v in cex]}" if cex else ""
+    return f"certificate: NOT VERIFIED ({status}) - the {cert['condition']} condition on the {where}{proved}{extra}"
 
 
 @main.command()
@@ -196,11 +228,12 @@ def evaluate(run_dir: Path, xi: str, n_init: int, seed: int, horizon: float | No
               help="Output directory [first free runs/reproduce-SYSTEM, -2, -3, ...].")
 @click.option("--iters", type=int, default=None, help="Iteration cap per training run [3000].")
 @click.option("--device", default="cpu", show_default=True)
-@click.option("--cegis-rounds", type=int, default=0, show_default=True,
-              help="Train both pairs counterexample-guided with up to this many verifier rounds (0: plain training).")
+@click.option("--verify/--no-verify", default=True, show_default=True,
+              help="Prove each pair's trained condition, retraining on counterexamples until proved (as `train`).")
+@click.option("--verify-rounds", type=int, default=5, show_default=True, help="Retraining rounds at most.")
 @click.option("--json", "as_json", is_flag=True, help="Print one JSON object with both methods' results.")
-def reproduce(system: str, seeds: str, out: Path | None, iters: int | None, device: str, cegis_rounds: int,
-              as_json: bool) -> None:
+def reproduce(system: str, seeds: str, out: Path | None, iters: int | None, device: str, verify: bool,
+              verify_rounds: int, as_json: bool) -> None:
     """Reproduce the paper's experiment: baseline vs DR at the paper's test shift."""
     from drlyap.experiments import format_table
     from drlyap.experiments import reproduce as run_reproduce
@@ -213,10 +246,10 @@ def reproduce(system: str, seeds: str, out: Path | None, iters: int | None, devi
             out, k = Path("runs") / f"reproduce-{system}-{k}", k + 1
     log = (lambda s: click.echo(s, err=True)) if as_json else click.echo
     try:
-        if cegis_rounds < 0:
-            raise ValueError(f"--cegis-rounds must be >= 0, got {cegis_rounds}")
+        if verify_rounds < 0:
+            raise ValueError(f"--verify-rounds must be >= 0, got {verify_rounds}")
         report = run_reproduce(system, seed_list, out, iters=iters, progress=sys.stderr.isatty(), device=device,
-                               log=log, cegis_rounds=cegis_rounds)
+                               log=log, verify=verify, verify_rounds=verify_rounds)
     except ValueError as err:
         _fail(err)
     if as_json:
@@ -399,15 +432,7 @@ def verify(run_dir: Path, delta: float | None, xi: str | None, time_limit: float
     if "true_model" in result:
         show(result["true_model"], f"  true model at xi = {result['true_model']['xi']}")
     if result["roa"] is not None:
-        r = result["roa"]
-        if "error" in r:
-            click.echo(f"  region of attraction: {r['error']}")
-        else:
-            model = "true model at --xi" if "true_model" in result else "design model, trained condition"
-            click.echo(f"  region of attraction ({model}): {'CERTIFIED' if r['certified'] else 'NOT CERTIFIED'} "
-                       f"{{V <= {r['level']:.4g}}}, "
-                       f"{100 * r['share_of_box']:.2f}% of the box (limited by {r['limited_by']}; "
-                       f"V on the delta-ball <= {r['ball_max_upper']:.4g})")
+        click.echo("  " + roa_line(result["roa"], "true_model" in result))
 
 
 @main.command("guarantee")

@@ -14,10 +14,11 @@ from pathlib import Path
 import torch
 
 from drlyap import plotting
+from drlyap.cegis import train_certified
 from drlyap.rundir import Run, atomic_dir, load_run, save_run
 from drlyap.simulation import evaluate, initial_states, simulate
 from drlyap.systems import UncertainSystem, get_system
-from drlyap.training import TrainConfig, train
+from drlyap.training import TrainConfig
 
 METHODS = ("baseline", "dr")
 SWEEP = (1, 2, 3, 4, 5)  # evaluation shifts, as multiples of the paper's test shift
@@ -43,12 +44,12 @@ def summary_row(result: dict) -> dict:
 
 def reproduce(system_name: str, seeds: Sequence[int], out: Path, iters: int | None = None, progress: bool = True,
               device: str = "cpu", log=print, n_more: int = 200, sweep: Sequence[int] = SWEEP,
-              cegis_rounds: int = 0) -> dict:
+              verify: bool = True, verify_rounds: int = 5) -> dict:
     """Run the paper's experiment for ``system_name`` and write everything under ``out`` (atomically).
 
-    Returns a JSON-friendly dict with per-seed, per-method results and the paths of the figures.
-    With ``cegis_rounds > 0`` both pairs are trained counterexample-guided (:func:`drlyap.cegis.train_cegis`)
-    until the verifier proves their condition or the rounds run out.
+    Returns a JSON-friendly dict with per-seed, per-method results and the paths of the figures. Both pairs
+    are trained as :func:`drlyap.cegis.train_certified` does: with ``verify``, counterexample-guided rounds
+    (at most ``verify_rounds``) until the verifier proves their trained condition.
     """
     system = get_system(system_name)
     if system.test_xi is None:
@@ -57,22 +58,18 @@ def reproduce(system_name: str, seeds: Sequence[int], out: Path, iters: int | No
         raise ValueError("need at least one seed")
     xi_test = torch.tensor(system.test_xi, dtype=torch.float64)
     report: dict = {"system": system_name, "test_xi": list(system.test_xi), "seeds": list(seeds), "sweep": list(sweep),
-                    "cegis_rounds": cegis_rounds, "results": []}
+                    "verify": verify, "verify_rounds": verify_rounds, "results": []}
 
     def fill(tmp: Path) -> None:
         for seed in seeds:
             x_paper, x_more = test_initial_states(system, seed, n_more=n_more)
             runs: dict[str, Run] = {}
             for method in METHODS:
-                cfg = TrainConfig(system=system_name, method=method, seed=seed, device=device)
+                cfg = TrainConfig(system=system_name, method=method, seed=seed, device=device, verify=verify,
+                                  verify_rounds=verify_rounds)
                 if iters is not None:
                     cfg.iters = iters
-                if cegis_rounds > 0:
-                    from drlyap.cegis import train_cegis
-
-                    result, _ = train_cegis(cfg, system, rounds=cegis_rounds, progress=progress)
-                else:
-                    result = train(cfg, system, progress=progress)
+                result = train_certified(cfg, system, progress=progress, warn=False)
                 run_dir = save_run(tmp / f"seed{seed}" / method, result)
                 run = load_run(run_dir)
                 paper = evaluate_run(run, xi_test, x_paper)
@@ -89,7 +86,7 @@ def reproduce(system_name: str, seeds: Sequence[int], out: Path, iters: int | No
                        "other_equilibria": len(result.metrics["acceptance"]["other_equilibria"]),
                        "iterations": result.metrics["iterations"],
                        "train_time_s": result.metrics.get("cegis", {}).get("total_time_s", result.metrics["train_time_s"]),
-                       "verified": result.metrics.get("cegis", {}).get("final", {}).get("status"),
+                       "certificate": result.metrics["certificate"]["status"],
                        "paper_10": summary_row(paper), "more_200": summary_row(more), "sweep_200": swept,
                        "run_dir": str(Path(out) / f"seed{seed}" / method)}
                 report["results"].append(row)
@@ -134,22 +131,22 @@ def format_row(row: dict) -> str:
     return (f"seed {row['seed']} {row['method']:>8}: paper states {p['n_success']:>2}/{p['n']}, "
             f"more {m['n_success']:>3}/{m['n']}, acceptance {'PASSED' if row['passed_acceptance'] else 'not passed'} "
             f"(max violation {row['max_violation']:.3g}, violating {100 * row['violating_fraction']:.2f}%, "
-            f"Hurwitz {row['hurwitz']}, other equilibria {row['other_equilibria']}), {row['train_time_s']:.0f}s")
+            f"Hurwitz {row['hurwitz']}, other equilibria {row['other_equilibria']}), {row['train_time_s']:.0f}s, "
+            f"certificate {row['certificate'].upper()}")
 
 
 def format_table(report: dict) -> str:
     lines = [f"## {report['system']} at test shift xi = {report['test_xi']}", "",
              "| seed | method | paper 10 | 200 more | acceptance | max violation | violating % | Hurwitz | other eq. | train s |",
              "|---|---|---|---|---|---|---|---|---|---|"]
-    if report["cegis_rounds"]:
-        lines[2] += " trained condition after CEGIS |"
-        lines[3] += "---|"
+    lines[2] += " trained condition (verifier) |"
+    lines[3] += "---|"
     for r in report["results"]:
         lines.append(f"| {r['seed']} | {r['method']} | {r['paper_10']['n_success']}/{r['paper_10']['n']} | "
                      f"{r['more_200']['n_success']}/{r['more_200']['n']} | "
                      f"{'passed' if r['passed_acceptance'] else 'not passed'} | {r['max_violation']:.3g} | "
                      f"{100 * r['violating_fraction']:.2f} | {r['hurwitz']} | {r['other_equilibria']} | "
-                     f"{r['train_time_s']:.0f} |" + (f" {r['verified']} |" if report["cegis_rounds"] else ""))
+                     f"{r['train_time_s']:.0f} | {r['certificate']} |")
     factors = report["sweep"]
     lines += ["", f"Success on the {report['results'][0]['more_200']['n']} more states at k x the test shift:", "",
               "| seed | method | " + " | ".join(f"k={k}" for k in factors) + " |",

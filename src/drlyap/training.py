@@ -56,6 +56,11 @@ class TrainConfig:
     init_gain: float = 10.0  # scale of the controller's output layer at initialisation
     margin: float | None = None  # training hinge is (residual + margin)_+: pushes the condition past zero
     resample: bool = True  # draw a fresh uniform batch of n_states every iteration (False: one fixed set)
+    # proof after training (drlyap.cegis.train_certified; drlyap.training.train ignores these)
+    verify: bool = True  # prove the trained condition, with counterexample-guided rounds until it is proved
+    verify_rounds: int = 5  # retraining rounds at most
+    verify_time: float = 30.0  # seconds per proof
+    verify_budget: float | None = None  # total seconds for the rounds (None: no limit beyond the rounds)
 
     def resolved(self, system: UncertainSystem) -> TrainConfig:
         """A copy with ``None`` fields filled from the system's defaults, validated."""
@@ -82,6 +87,10 @@ class TrainConfig:
                 problems.append(f"{name} = {value} (must be finite and >= 0)")
         if not 0 < self.risk_level < 1:
             problems.append(f"risk_level = {self.risk_level} (must be in (0, 1))")
+        if int(self.verify_rounds) < 0 or not (math.isfinite(self.verify_time) and self.verify_time > 0):
+            problems.append(f"verify_rounds = {self.verify_rounds} (>= 0) / verify_time = {self.verify_time} (> 0)")
+        if self.verify_budget is not None and not (math.isfinite(self.verify_budget) and self.verify_budget > 0):
+            problems.append(f"verify_budget = {self.verify_budget} (must be > 0 seconds or None)")
         for name in ("n_states", "n_xi", "iters", "check_every"):
             if int(getattr(self, name)) < 1:
                 problems.append(f"{name} = {getattr(self, name)} (must be >= 1)")

@@ -1,0 +1,103 @@
+"""Regions of attraction that reach x*, checked independently by simulation on the true model; and the case
+where only practical stability is proved (the equilibrium moves with xi)."""
+
+import math
+
+import torch
+
+from drlyap.conditions import DRPointwise, TrueDecrease
+from drlyap.networks import LinearController, QuadraticLyapunov
+from drlyap.regions import Region
+from drlyap.simulation import simulate
+from drlyap.systems import UncertainSystem
+from drlyap.verification import certified_roa, local_decrease
+from handmade import linear_pair, small_pendulum
+
+F64 = torch.float64
+XI = torch.tensor([[0.02, 0.01], [-0.03, 0.0], [0.05, -0.02]], dtype=F64)
+
+
+def _inside(system, lyap, level, count, seed):
+    lo, hi = system.local_box()
+    g = torch.Generator().manual_seed(seed)
+    z = lo + (hi - lo) * torch.rand(20 * count, system.n, generator=g, dtype=F64)
+    with torch.no_grad():
+        v = lyap.double()(z)
+    return z[v <= level][:count]
+
+
+def test_every_certified_set_converges_to_x_star_on_the_true_model():
+    """Sample states in each certified {V <= c} (true model at several shifts), simulate the true closed loop:
+    every trajectory converges to x* and V never rises above c."""
+    system = small_pendulum()
+    lyap, ctrl = linear_pair(system)
+    l64, c64 = lyap.double(), ctrl.double()
+    for xi in ([0.1, 0.05], [0.0, 0.0], [-0.05, 0.1]):
+        condition = TrueDecrease(torch.tensor([xi], dtype=F64), 0.05)
+        roa = certified_roa(system, lyap, ctrl, condition, 0.2, time_limit=10, samples_per_axis=100)
+        assert roa["kind"] == "region of attraction" and roa["certified"] and roa["local"]["proved"], roa
+        level = roa["level"]
+        z0 = _inside(system, l64, level, 200, seed=len(xi))
+        assert z0.shape[0] >= 100
+        x0 = system.to_user(z0)
+        traj = simulate(system, lambda x: c64(system.to_local(x)), x0, torch.tensor(xi, dtype=F64), dt=0.005,
+                        horizon=12.0)
+        with torch.no_grad():
+            v = l64(system.to_local(traj.x.reshape(-1, 2))).reshape(traj.x.shape[:2])
+        assert float(v.max()) <= level * (1 + 1e-9)
+        assert float(system.to_local(traj.x[-1]).norm(dim=-1).max()) < 1e-3
+
+
+def test_design_model_roa_for_the_dr_condition_proves_the_ball_too():
+    system = small_pendulum()
+    lyap, ctrl = linear_pair(system)
+    local = local_decrease(system, lyap, ctrl, DRPointwise(1e-3, 0.1, XI, 0.05),
+                           Region.of(system, 0.2))
+    assert local["proved"] and local["hessian_bound"] < 0
+    # with eps N > 1 the CVaR is not a max over samples: no per-sample trajectory claim
+    local = local_decrease(system, lyap, ctrl, DRPointwise(1e-3, 0.5, XI, 0.05),
+                           Region.of(system, 0.2))
+    assert not local["proved"] and "per-sample" in local["reason"]
+
+
+def _offset_integrator() -> UncertainSystem:
+    def dyn(x, u, p):
+        c, d = p.unbind(-1)
+        return torch.stack([x[:, 1], -c * x[:, 1] + u[:, 0] + d], -1)
+
+    return UncertainSystem(
+        name="offset-integrator", state_names=("q", "v"), input_names=("f",), param_names=("damping", "offset"),
+        nominal_params=(0.5, 0.0), uncertain=("offset",), dynamics=dyn, state_box=((-1, -1), (1, 1)),
+        input_box=((-5,), (5,)), equilibrium=(0.0, 0.0))
+
+
+def _lqr_like_pair(system):
+    k = torch.tensor([[2.0, 2.0]], dtype=F64)
+    a_cl = torch.tensor([[0.0, 1.0], [0.0, -0.5]], dtype=F64) - torch.tensor([[0.0], [1.0]], dtype=F64) @ k
+    eye = torch.eye(2, dtype=F64)
+    lhs = torch.kron(eye, a_cl.T.contiguous()) + torch.kron(a_cl.T.contiguous(), eye)
+    p = torch.linalg.solve(lhs, -eye.reshape(-1)).reshape(2, 2)
+    return QuadraticLyapunov((p + p.T) / 2), LinearController(k, system.input_box, system.equilibrium_input)
+
+
+def test_a_moved_equilibrium_is_practical_stability_not_a_region_of_attraction():
+    """A constant disturbance (uncertain offset) moves the closed loop's equilibrium away from x*: decrease holds
+    outside the ball (the old annulus-only certificate) but not inside, so the claim is practical stability."""
+    system = _offset_integrator()
+    lyap, ctrl = _lqr_like_pair(system)
+    condition = TrueDecrease(torch.tensor([[0.05]], dtype=F64), 0.01)
+    roa = certified_roa(system, lyap, ctrl, condition, 0.3, time_limit=10, samples_per_axis=100)
+    assert roa["level"] > roa["ball_max_upper"] > 0  # the annulus-only certificate exists...
+    assert roa["kind"] == "practical stability" and not roa["certified"]  # ...and is not called an ROA
+    assert "not an equilibrium" in roa["local"]["reason"]
+    # and indeed the true closed loop settles away from x*, inside {V <= practical_level}
+    z0 = _inside(system, lyap, roa["level"], 50, seed=3)
+    traj = simulate(system, lambda x: ctrl(system.to_local(x)), system.to_user(z0), torch.tensor([0.05], dtype=F64),
+                    dt=0.01, horizon=20.0)
+    end = traj.x[-1]
+    assert float(end.norm(dim=-1).min()) > 1e-3
+    assert float(lyap(end).max()) <= roa["practical_level"]
+    # at xi = 0 the same pair has a region of attraction
+    nominal = certified_roa(system, lyap, ctrl, TrueDecrease(torch.zeros(1, 1, dtype=F64), 0.01), 0.3, time_limit=10,
+                            samples_per_axis=100)
+    assert nominal["kind"] == "region of attraction" and math.isfinite(nominal["level"])
