@@ -97,7 +97,8 @@ def certify(run: PolicyRun, xi: Tensor, time_limit: float) -> dict:
         roa = result["roa"] or {}
         return {"status": result["status"], "verified_fraction": result["verified_fraction"],
                 "counterexample": result["counterexample"], "time_s": result["time_s"],
-                "roa_certified": roa.get("certified"), "roa_share": roa.get("share_of_box"), "decay_rate": None}
+                "roa_certified": roa.get("certified"), "roa_kind": roa.get("kind"), "roa_share": roa.get("share_of_box"),
+                "decay_rate": None}
     if run.kind == "lqr":
         system, design = run.system, run.info["design"]
         lyapunov = QuadraticLyapunov(design.P)
@@ -112,8 +113,8 @@ def certify(run: PolicyRun, xi: Tensor, time_limit: float) -> dict:
         roa = certified_roa(system, lyapunov, controller, condition, delta, time_limit=time_limit)
         return {"status": result["status"], "verified_fraction": result["verified_fraction"],
                 "counterexample": result["counterexample"], "time_s": result["time_s"],
-                "roa_certified": roa.get("certified"), "roa_share": roa.get("share_of_box"), "decay_rate": 0.0,
-                "exp_rate": alpha}
+                "roa_certified": roa.get("certified"), "roa_kind": roa.get("kind"), "roa_share": roa.get("share_of_box"),
+                "decay_rate": 0.0, "exp_rate": alpha}
     return {"status": "none", "verified_fraction": None, "roa_certified": None, "roa_share": None,
             "note": "no certificate"}
 
@@ -201,7 +202,12 @@ def format_comparison(report: dict) -> str:
             proof = f"{cert['status']} ({100 * cert['verified_fraction']:.2f}% of X_delta)"
             if cert.get("exp_rate") is not None:
                 proof += f", decay {cert['exp_rate']:.3g} V"
-            roa = "none" if not cert["roa_certified"] else f"{100 * cert['roa_share']:.1f}% of the box"
+            if cert["roa_certified"]:
+                roa = f"{100 * cert['roa_share']:.1f}% of the box"
+            elif cert.get("roa_kind") == "practical stability":
+                roa = f"none (practical stability on {100 * cert['roa_share']:.1f}% of the box)"
+            else:
+                roa = "none"
         lines.append(f"| {r['run_dir']} | {r['label']} | {r['system']} | {r['n_success']}/{r['n']} "
                      f"({100 * r['success_rate']:.1f}%) | {r['samples'] if r['samples'] is not None else '-'} | {t} | "
                      f"{inc} | {mono} | {proof} | {roa} |")
