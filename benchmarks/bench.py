@@ -6,7 +6,8 @@
 Rows:
 - ms per DR training iteration (pointwise loss, 3600 states x 5 samples for the pendulum, 1600 x 3
   for the mountain car), forward + backward + Adam step, median over repeated timed blocks;
-- time and iterations until a DR pair passes the acceptance check (seed 0, paper settings);
+- time and iterations until a DR pair passes the acceptance check (seed 0, paper settings), and until its
+  trained condition is proved (the default `drlyap train`: training + counterexample-guided proof rounds);
 - simulated trajectory-steps per second (RK4 on the true model, 1000 trajectories).
 Run it on an otherwise idle machine: the numbers are wall-clock.
 """
@@ -19,23 +20,25 @@ import time
 
 import torch
 
-from drlyap.conditions import decrease_terms, make_condition
+from drlyap.cegis import train_certified
+from drlyap.conditions import make_condition
+from drlyap.regions import Region
 from drlyap.simulation import initial_states, simulate
 from drlyap.systems import get_system
-from drlyap.training import TrainConfig, build_networks, draw_xi_samples, sample_region, train
+from drlyap.training import TrainConfig, build_networks, draw_xi_samples, train
 
 
 def ms_per_iteration(system_name: str, blocks: int = 5, per_block: int = 40) -> float:
     system = get_system(system_name)
     cfg = TrainConfig(system=system_name).resolved(system)
     lyapunov, controller = build_networks(system, cfg)
-    xi = draw_xi_samples(system, cfg).float()
-    z = sample_region(system, cfg.n_states, cfg.delta, torch.Generator().manual_seed(0)).float()
-    cond = make_condition("dr", "pointwise", cfg.wasserstein_radius, cfg.risk_level)
+    xi = draw_xi_samples(system, cfg)
+    z = Region.of(system, cfg.delta).sample(cfg.n_states, torch.Generator().manual_seed(0)).float()
+    cond = make_condition("dr", "pointwise", cfg.wasserstein_radius, cfg.risk_level, xi, cfg.decay_rate)
     opt = torch.optim.Adam([*lyapunov.parameters(), *controller.parameters()], lr=cfg.lr, fused=True)
 
     def step() -> None:
-        loss = cond.loss(decrease_terms(system, lyapunov, controller, z, xi, cfg.decay_rate), cfg.margin)
+        loss = cond.loss(cond.terms(system, lyapunov, controller, z), cfg.margin)
         opt.zero_grad(set_to_none=True)
         loss.backward()
         opt.step()
@@ -54,6 +57,12 @@ def ms_per_iteration(system_name: str, blocks: int = 5, per_block: int = 40) -> 
 def time_to_pass(system_name: str) -> tuple[float, int, bool]:
     result = train(TrainConfig(system=system_name, method="dr", seed=0), progress=False)
     return result.metrics["train_time_s"], result.metrics["iterations"], result.metrics["passed"]
+
+
+def time_to_proof(system_name: str) -> tuple[float, int, str]:
+    tic = time.perf_counter()
+    result = train_certified(TrainConfig(system=system_name, method="dr", seed=0), progress=False, warn=False)
+    return time.perf_counter() - tic, result.metrics["cegis"]["total_iterations"], result.metrics["certificate"]["status"]
 
 
 def sim_steps_per_second(system_name: str, count: int = 1000) -> float:
@@ -83,6 +92,8 @@ def main() -> None:
             seconds, iters, passed = time_to_pass(name)
             rows.append((f"{name}: time to DR pair (seed 0)", f"{seconds:.1f} s, {iters} it, "
                          f"{'passed' if passed else 'NOT passed'}"))
+            seconds, iters, status = time_to_proof(name)
+            rows.append((f"{name}: time to a proved DR pair (seed 0, default train)", f"{seconds:.1f} s, {iters} it, {status}"))
         rows.append((f"{name}: simulated trajectory-steps/s", f"{sim_steps_per_second(name):,.0f}"))
     width = max(len(r[0]) for r in rows)
     print(f"torch {torch.__version__}, {args.threads} thread(s)")
