@@ -111,10 +111,8 @@ def saturate(v: Tensor, low: Tensor, high: Tensor) -> Tensor:
     """``clamp(v, low, high)`` for ``v (B, m)`` with a straight-through (identity) gradient.
 
     On enclosures it is the real clamp (what is verified is the forward value)."""
-    if is_enclosure(v):
-        return clamp(v, low, high)
     clamped = clamp(v, low, high)
-    return v + (clamped - v).detach()
+    return clamped if is_enclosure(v) else v + (clamped - v).detach()
 
 
 class Controller(nn.Module):
@@ -128,8 +126,9 @@ class Controller(nn.Module):
         self.varphi = TanhMLP([n, *hidden, m], input_scale)
         with torch.no_grad():
             self.varphi.layers[-1].weight.mul_(init_gain)
-        lo, hi = (torch.as_tensor(b, dtype=torch.float32) for b in input_box)
-        us = torch.as_tensor(u_star, dtype=torch.float32)
+        # float64 buffers: the verifier reads u* and U exactly (a float32 u* would move the equilibrium)
+        lo, hi = (torch.as_tensor(b, dtype=torch.float64) for b in input_box)
+        us = torch.as_tensor(u_star, dtype=torch.float64)
         self.register_buffer("u_star", us)
         self.register_buffer("room_low", lo - us)
         self.register_buffer("room_high", hi - us)
@@ -140,7 +139,10 @@ class Controller(nn.Module):
 
     def forward(self, z: Tensor) -> Tensor:
         """``z (B, n) -> u (B, m)``."""
-        return self.u_star + saturate(self.raw(z), self.room_low, self.room_high)
+        u_star, low, high = self.u_star, self.room_low, self.room_high
+        if not is_enclosure(z):  # computed in the dtype of the states (float32 in training)
+            u_star, low, high = u_star.to(z.dtype), low.to(z.dtype), high.to(z.dtype)
+        return u_star + saturate(self.raw(z), low, high)
 
 
 class QuadraticLyapunov(nn.Module):
