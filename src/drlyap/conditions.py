@@ -134,12 +134,18 @@ class Condition:
     def _xi_for(self, z) -> Tensor:
         if self.xi is None:
             raise ValueError(f"the {self.label} condition was built without xi samples")
-        if is_enclosure(z) or is_enclosure(self.xi):
+        if is_enclosure(z):
             return self.xi
+        if is_enclosure(self.xi):
+            return self._xi_box_on_points(z)
         key = (z.dtype, z.device)
         if key not in self._xi_cache:
             self._xi_cache[key] = self.xi.to(dtype=z.dtype, device=z.device)
         return self._xi_cache[key]
+
+    def _xi_box_on_points(self, z: Tensor) -> Tensor:
+        raise ValueError(f"the {self.label} condition takes an interval box of xi on enclosures only; "
+                         "on plain states use PlainDecrease / TrueDecrease (evaluated at the box's corners)")
 
     def terms(self, system: UncertainSystem, lyapunov: Lyapunov, controller: Controller, z: Tensor) -> DecreaseTerms:
         """:func:`decrease_terms` at local states ``z (B, n)`` (a tensor or an enclosure)."""
@@ -213,8 +219,9 @@ class PlainDecrease(Condition):
     """Plain decrease ``Vdot(x, xi_j) + decay(x) <= 0`` for every sample j, on the ``model`` given
     (``design``: ``f + W xi``; ``true``: ``F(x, u, p0 + xi)``).
 
-    ``xi_samples`` ``(N, k)``; on enclosures it may be an interval box, and the condition is then proved for
-    every shift in the box.
+    ``xi_samples`` ``(N, k)`` may be an :class:`~drlyap.enclosures.Interval` box: on enclosures the condition is
+    then proved for every shift in the box; on plain states it is evaluated at the box's corners (a real
+    evaluation at real shifts, so a positive residual is a genuine violation).
     """
 
     name = "plain"
@@ -226,6 +233,15 @@ class PlainDecrease(Condition):
             raise ValueError(f"unknown model {model!r}; valid: design, true")
         self.model = model
         self.label = "true model at xi" if model == "true" else "design model at the samples"
+
+    def _xi_box_on_points(self, z: Tensor) -> Tensor:
+        """On plain states, an interval box of xi ``(N, k)`` is evaluated at its ``N 2^k`` corners ``(N 2^k, k)``:
+        the residual (the max over them) is then a real value at real shifts, a lower bound of the maximum
+        over the box (what the verifier's counterexample check needs)."""
+        lo, hi = self.xi.lo.to(dtype=z.dtype, device=z.device), self.xi.hi.to(dtype=z.dtype, device=z.device)
+        k = lo.shape[-1]
+        pick = torch.cartesian_prod(*[torch.tensor([False, True], device=z.device)] * k).reshape(-1, k)
+        return torch.where(pick[None], hi[:, None], lo[:, None]).reshape(-1, k)
 
     def components(self, terms: DecreaseTerms) -> Tensor:
         return terms.vdot + terms.decay.unsqueeze(-1)

@@ -14,7 +14,9 @@ Modules:
 * :mod:`~drlyap.verification.roa` -- :func:`certified_roa` (regions of attraction reaching x*, or practical
   stability where the proof inside the ball fails) and :func:`local_decrease`;
 * :mod:`~drlyap.verification.covering` -- the paper's Lipschitz covering check;
-* :mod:`~drlyap.verification.runs` -- :func:`run_condition`, :func:`verify_run` on run directories.
+* :mod:`~drlyap.verification.runs` -- :func:`run_condition`, :func:`verify_run` on run directories;
+* :mod:`~drlyap.verification.robustness` -- :func:`certified_radius` (the largest proved Wasserstein radius),
+  :func:`certified_shift_box` (the largest proved box of shifts on the true model), :func:`run_robustness`.
 """
 
 from drlyap.enclosures import Dual, Interval, norm
@@ -28,10 +30,18 @@ from drlyap.verification.branch_and_bound import (
 )
 from drlyap.verification.covering import lipschitz_covering
 from drlyap.verification.roa import certified_roa, local_decrease
+from drlyap.verification.robustness import (
+    certified_radius,
+    certified_shift_box,
+    run_robustness,
+    shift_box_condition,
+    shift_scale,
+)
 from drlyap.verification.runs import run_condition, verify_run
 
 __all__ = [
     "Dual", "Interval", "VerificationResult", "as_region", "box_bounds", "certified_roa", "combine_lower",
-    "combine_upper", "condition_objective", "lipschitz_covering", "local_decrease", "maximize", "norm",
-    "run_condition", "uniform_margin", "verify_condition", "verify_run",
+    "certified_radius", "certified_shift_box", "combine_upper", "condition_objective", "lipschitz_covering",
+    "local_decrease", "maximize", "norm", "run_condition", "run_robustness", "shift_box_condition", "shift_scale",
+    "uniform_margin", "verify_condition", "verify_run",
 ]

@@ -1,0 +1,362 @@
+"""Certified robustness: the largest Wasserstein radius, and the largest box of parameter shifts, that a pair
+(V, pi) provably tolerates over a region X_delta.
+
+Both are found by bisection on *proofs* of the branch-and-bound verifier (:func:`verify_condition`); every
+number reported as certified was proved, never sampled.
+
+**Wasserstein radius** (:func:`certified_radius`). The pointwise DR residual is, at a state z,
+``rho(z, r) = CVaR_eps_j(Vdot_j(z) + decay(z)) + (r/eps) ||W^T grad V(z)||`` (the r-term adds the same
+amount to every sample, and the CVaR is translation-equivariant), so it is non-decreasing in r: a proof at
+r covers every smaller radius, and the condition holds for exactly ``r <= r_true = eps inf_z (-rho(z, 0) /
+lip(z))``. A dense set of states gives the sampled ratio ``r_s >= r_true`` (a real state violates the
+condition for every r > r_s); the search proves r = 0, then guesses just below r_s, and bisects
+(geometrically) on proofs until the bracket ``[proved, unproved)`` is within a relative tolerance. The
+direct route -- a branch and bound on the ratio itself -- would need a sound lower bound of
+``-rho / lip`` on boxes where lip may vanish; the bisection reuses the verifier unchanged and, started
+from the sampled ratio, usually needs two or three proofs.
+
+**Shift box** (:func:`certified_shift_box`). The largest s such that plain decrease on the TRUE model,
+``grad V . F(x, pi(x), p0 + xi) + decay <= 0``, is proved for every xi in the box ``[-s scale, s scale]`` at
+once (:class:`TrueDecrease` with an :class:`Interval` of xi; the boxes are nested, so proofs are monotone in
+s). Corners of the box evaluated at dense states give the sampled upper end.
+
+:func:`run_robustness` applies both to a run directory.
+"""
+
+from __future__ import annotations
+
+import copy
+import math
+import time
+from collections.abc import Callable
+
+import torch
+from torch import Tensor
+
+from drlyap.conditions import DRPointwise, TrueDecrease
+from drlyap.enclosures import F64, Interval
+from drlyap.networks import Controller, Lyapunov
+from drlyap.regions import Region
+from drlyap.systems import UncertainSystem
+from drlyap.verification.branch_and_bound import as_region, verify_condition
+
+
+# --------------------------------------------------------------------------- dense states
+def dense_states(region: Region, per_axis: int = 200, sphere: int = 2000, seed: int = 0) -> Tensor:
+    """States ``(B, n)`` of X_delta for the sampled upper ends: the region's grid plus ``sphere`` states on
+    the sphere ``||z|| = delta`` inside the box (violations often sit just outside the ball)."""
+    z = region.grid(per_axis)
+    if region.delta > 0 and sphere > 0:
+        g = torch.Generator().manual_seed(seed)
+        d = torch.randn(sphere, region.n, generator=g, dtype=F64)
+        s = d / d.norm(dim=-1, keepdim=True) * region.delta * (1 + 1e-9)
+        s = s[((s >= region.lo) & (s <= region.hi)).all(-1)]
+        z = torch.cat([z, s])
+    return z
+
+
+class _Pair:
+    """Float64 copies of the networks for sampled evaluations (the arithmetic the verifier's claims are about)."""
+
+    def __init__(self, system: UncertainSystem, lyapunov: Lyapunov, controller: Controller) -> None:
+        self.system = system
+        self.lyapunov, self.controller = copy.deepcopy(lyapunov).to(F64), copy.deepcopy(controller).to(F64)
+
+    def residual(self, condition, z: Tensor, batch: int = 8192) -> Tensor:
+        with torch.no_grad():
+            return torch.cat([condition.evaluate(self.system, self.lyapunov, self.controller, z[i:i + batch])
+                              for i in range(0, z.shape[0], batch)])
+
+    def terms(self, condition, z: Tensor, batch: int = 8192) -> tuple[Tensor, Tensor]:
+        """``(residual (B,), lip (B,))`` of a DR condition at ``z``."""
+        res, lip = [], []
+        with torch.no_grad():
+            for i in range(0, z.shape[0], batch):
+                t = condition.terms(self.system, self.lyapunov, self.controller, z[i:i + batch])
+                res.append(condition.residual(t))
+                lip.append(t.lip)
+        return torch.cat(res), torch.cat(lip)
+
+
+# --------------------------------------------------------------------------- the search
+def _largest_proved(prove: Callable[[float], dict], refute: Callable[[float], dict | None], guess: float | None,
+                    start: float, tol: float, cap: float, max_proofs: int, total_time: float) -> dict:
+    """Largest v in ``[0, cap]`` with ``prove(v)['status'] == 'verified'``, for a property monotone in v.
+
+    ``refute(v)``: a cheap witness that v fails (a real evaluation), or None. ``guess``: a sampled upper end
+    (the property fails just above it), or None (then grow geometrically from ``start``). Returns the
+    bracket ``proved <= v* < unproved``, what decided the upper end, and the probes made.
+    """
+    clock = time.perf_counter()
+    probes: list[dict] = []
+    proofs = 0
+
+    def probe(v: float) -> dict:
+        nonlocal proofs
+        res = refute(v)
+        if res is None:
+            res = prove(v)
+            proofs += 1
+            res["by"] = "verifier"
+        else:
+            res["by"] = "sampled state"
+        res["value"] = v
+        probes.append({"value": v, "status": res["status"], "by": res["by"], "time_s": res.get("time_s")})
+        return res
+
+    def out(lo, hi_res, stopped, reason=None) -> dict:
+        hi = None if hi_res is None else hi_res["value"]
+        return {"certified": lo, "unproved": hi, "unproved_status": None if hi_res is None else hi_res["status"],
+                "unproved_by": None if hi_res is None else hi_res["by"],
+                "witness": None if hi_res is None else hi_res.get("witness"),
+                "relative_gap": (hi / lo - 1) if (lo and hi is not None) else None,
+                "stopped": stopped, "reason": reason, "proofs": proofs, "probes": probes,
+                "time_s": time.perf_counter() - clock}
+
+    first = probe(0.0)
+    if first["status"] != "verified":
+        return out(None, first, "not provable at 0",
+                   f"the condition is {first['status']} already at 0 ({first['by']})")
+    lo, hi_res = 0.0, None
+
+    def over_budget() -> bool:
+        return proofs >= max_proofs or time.perf_counter() - clock > total_time
+
+    if guess is not None and math.isfinite(guess) and guess > 0:
+        for v in (min(guess * (1 - tol / 2), cap), min(guess * (1 + tol / 4), cap)):
+            if v <= lo:
+                continue
+            res = probe(v)
+            if res["status"] == "verified":
+                lo = v
+            else:
+                hi_res = res
+                break
+    v = start
+    while hi_res is None:  # grow until a probe fails or the cap
+        if lo > 0:
+            v = lo * 4
+        if lo >= cap:
+            return out(lo, None, "cap", f"proved up to the cap {cap:g}")
+        v = min(v, cap)
+        if over_budget():
+            return out(lo, None, "budget", "time or proof budget ran out while growing")
+        res = probe(v)
+        if res["status"] == "verified":
+            lo = v
+        else:
+            hi_res = res
+    while lo == 0 or hi_res["value"] / lo - 1 > tol:
+        if over_budget():
+            return out(lo, hi_res, "budget")
+        hi = hi_res["value"]
+        mid = math.sqrt(lo * hi) if lo > 0 else hi / 16
+        if mid <= 1e-300:
+            return out(lo, hi_res, "vanishing", "unproved at every value tried above 0")
+        res = probe(mid)
+        if res["status"] == "verified":
+            lo = mid
+        else:
+            hi_res = res
+    return out(lo, hi_res, "tolerance")
+
+
+def _prover(system, lyapunov, controller, region, time_limit, min_width, make) -> Callable[[float], dict]:
+    def prove(v: float) -> dict:
+        try:
+            r = verify_condition(system, lyapunov, controller, make(v), region, time_limit=time_limit,
+                                 min_width=min_width, stop_at_counterexample=True)
+        except ValueError as err:  # e.g. the dynamics are undefined for some shift in the box (a zero mass)
+            return {"status": "error", "error": str(err), "time_s": None}
+        res = {"status": r.status, "time_s": r.time_s, "verified_fraction": r.verified_fraction}
+        if r.counterexample is not None:
+            res["witness"] = {"state": r.counterexample, "residual": r.counterexample_value}
+        return res
+
+    return prove
+
+
+# --------------------------------------------------------------------------- radius
+def certified_radius(system: UncertainSystem, lyapunov: Lyapunov, controller: Controller, condition: DRPointwise,
+                     region: float | Region, tol: float = 0.01, time_limit: float = 10.0, total_time: float = 120.0,
+                     max_proofs: int = 40, min_width: float = 1e-4, cap: float = 1e6) -> dict:
+    """The largest Wasserstein radius r for which the pointwise DR condition (at the condition's risk level
+    eps, samples and decay) is proved over the region X_delta.
+
+    ``condition``: a :class:`DRPointwise` (its own radius is only reported; the search sets r with
+    :meth:`~DRPointwise.with_radius`). ``tol``: relative width of the final bracket ``[r*, r_unproved)``.
+    ``time_limit``: seconds per proof; ``total_time``/``max_proofs``: budget of the whole search (the bracket
+    found so far is returned, with ``stopped`` saying why). ``cap``: largest radius tried.
+
+    Returns a JSON-friendly dict: ``radius`` (r*, proved: the condition holds for every r <= r*; None when it
+    is not provable even at r = 0, with ``reason``), ``unproved`` (the smallest radius tried that is not
+    proved, ``unproved_status`` ``violated``/``unknown``/``error`` and ``unproved_by`` ``verifier`` or
+    ``sampled state``, with the ``witness`` state where the residual is > 0), ``sampled_upper``
+    (``eps min_z -rho(z, 0)/lip(z)`` over dense states: the condition fails above it), ``proofs``, ``probes``
+    and ``time_s``.
+    """
+    if not isinstance(condition, DRPointwise):
+        raise ValueError(f"certified_radius needs a DRPointwise condition, got {type(condition).__name__}")
+    if not tol > 0:
+        raise ValueError(f"tol must be > 0, got {tol}")
+    region = as_region(system, region)
+    clock = time.perf_counter()
+    pair = _Pair(system, lyapunov, controller)
+    z = dense_states(region)
+    res0, lip = pair.terms(condition.with_radius(0.0), z)
+    positive = lip > 0
+    sampled = math.inf
+    at = None
+    if bool((res0 <= 0).all()) and bool(positive.any()):
+        ratio = torch.where(positive, -res0 / torch.where(positive, lip, 1.0), torch.inf)
+        i = int(ratio.argmin())
+        sampled, at = condition.eps * float(ratio[i]), z[i]
+
+    def refute(r: float) -> dict | None:
+        if r == 0.0:
+            bad = res0 > 0
+            if bad.any():
+                i = int(res0.argmax())
+                return {"status": "violated", "witness": _witness(system, z[i], float(res0[i]))}
+            return None
+        if at is None or r <= sampled:
+            return None
+        value = float(pair.residual(condition.with_radius(r), at[None])[0])
+        return {"status": "violated", "witness": _witness(system, at, value)} if value > 0 else None
+
+    prove = _prover(system, lyapunov, controller, region, time_limit, min_width, condition.with_radius)
+    start = condition.r if condition.r > 0 else 1e-3
+    found = _largest_proved(prove, refute, sampled, start, tol, cap, max_proofs, total_time)
+    found["time_s"] = time.perf_counter() - clock
+    radius = found.pop("certified")
+    return {"quantity": "wasserstein_radius", "radius": radius, **found,
+            "sampled_upper": sampled if math.isfinite(sampled) else None, "risk_level": condition.eps,
+            "n_samples": int(condition.xi.shape[0]), "decay_rate": condition.decay_rate,
+            "exp_rate": condition.exp_rate, "condition_radius": condition.r, "delta": region.delta}
+
+
+def _witness(system: UncertainSystem, z: Tensor, value: float) -> dict:
+    return {"state": system.to_user(z[None])[0].tolist(), "residual": value}
+
+
+# --------------------------------------------------------------------------- shift box
+def shift_scale(system: UncertainSystem, xi_samples: Tensor | None = None) -> Tensor:
+    """Per uncertain parameter, the unit of the shift box ``(k,)``: ``|test_xi|`` where the system declares a
+    nonzero test shift, else the standard deviation of ``xi_samples (N, k)`` where it is > 0, else 10% of
+    ``|nominal value|`` (1 if that is 0)."""
+    scale = torch.zeros(system.k, dtype=F64)
+    nominal = torch.tensor(system.nominal_params, dtype=F64)[system.uncertain_index]
+    std = None
+    if xi_samples is not None and torch.as_tensor(xi_samples).shape[0] > 1:
+        std = torch.as_tensor(xi_samples, dtype=F64).std(0)
+    for i in range(system.k):
+        test = abs(system.test_xi[i]) if system.test_xi is not None else 0.0
+        if test > 0:
+            scale[i] = test
+        elif std is not None and float(std[i]) > 0:
+            scale[i] = std[i]
+        else:
+            scale[i] = 0.1 * abs(float(nominal[i])) or 1.0
+    return scale
+
+
+def shift_box_condition(scale: Tensor, s: float, decay_rate: float, exp_rate: float = 0.0) -> TrueDecrease:
+    """Plain decrease on the true model for every xi in ``[-s scale, s scale]`` (an interval ``(1, k)``)."""
+    half = torch.as_tensor(scale, dtype=F64).reshape(1, -1) * s
+    return TrueDecrease(Interval(-half, half), decay_rate, exp_rate)
+
+
+def certified_shift_box(system: UncertainSystem, lyapunov: Lyapunov, controller: Controller, decay_rate: float,
+                        exp_rate: float, region: float | Region, scale: Tensor, tol: float = 0.01,
+                        time_limit: float = 10.0, total_time: float = 120.0, max_proofs: int = 40,
+                        min_width: float = 1e-4, cap: float = 1e3) -> dict:
+    """The largest s such that decrease on the TRUE model, ``grad V . F(x, pi(x), p0 + xi) + decay_rate ||z||
+    + exp_rate V <= 0``, is proved over X_delta for every shift xi in the box ``[-s scale, s scale]``.
+
+    ``scale (k,)``: the box's half-widths at s = 1, in the uncertain parameters' units (see
+    :func:`shift_scale`). Other arguments as :func:`certified_radius`. Returns ``s`` (None when not provable
+    even at xi = 0, with ``reason``), ``box`` (``{parameter: [low, high]}`` at s*, in the parameters' units),
+    the bracket ``unproved`` / ``unproved_status`` / ``unproved_by`` / ``witness`` (a state and the corner
+    shifts of the box there), ``sampled_upper`` (the smallest s at which a corner of the box violates the
+    condition at a dense state, found by bisection on samples), ``proofs``, ``probes``, ``time_s``.
+    """
+    scale = torch.as_tensor(scale, dtype=F64).reshape(-1)
+    if scale.shape[0] != system.k or not bool((scale > 0).all() and torch.isfinite(scale).all()):
+        raise ValueError(f"scale must be {system.k} finite positive value(s) ({', '.join(system.uncertain)}), "
+                         f"got {scale.tolist()}")
+    if not tol > 0:
+        raise ValueError(f"tol must be > 0, got {tol}")
+    region = as_region(system, region)
+    clock = time.perf_counter()
+    pair = _Pair(system, lyapunov, controller)
+    z = dense_states(region)
+
+    def make(s: float) -> TrueDecrease:
+        return shift_box_condition(scale, s, decay_rate, exp_rate)
+
+    def refute(s: float) -> dict | None:
+        res = pair.residual(make(s), z)  # the max over the box's corners at each state
+        bad = ~(res <= 0)  # non-finite counts as a failure
+        if not bad.any():
+            return None
+        i = int(torch.where(bad, torch.nan_to_num(res, nan=math.inf), -math.inf).argmax())
+        return {"status": "violated", "witness": _witness(system, z[i], float(res[i]))}
+
+    sampled = _sampled_threshold(refute, cap, tol / 8)
+    prove = _prover(system, lyapunov, controller, region, time_limit, min_width, make)
+    found = _largest_proved(prove, refute, sampled, 1.0, tol, cap, max_proofs, total_time)
+    found["time_s"] = time.perf_counter() - clock
+    s = found.pop("certified")
+    box = None if s is None else {name: [-s * float(w), s * float(w)] for name, w in zip(system.uncertain, scale)}
+    return {"quantity": "shift_box", "s": s, "box": box, **found, "scale": scale.tolist(),
+            "parameters": list(system.uncertain), "sampled_upper": sampled,
+            "decay_rate": float(decay_rate), "exp_rate": float(exp_rate), "delta": region.delta}
+
+
+def _sampled_threshold(refute: Callable[[float], dict | None], cap: float, tol: float) -> float | None:
+    """The smallest s (to ``tol`` relative) at which ``refute`` finds a violation, by growth then bisection on
+    samples; None if none is found up to ``cap``. Not a proof of anything: a guess for the proof search."""
+    if refute(0.0) is not None:
+        return 0.0
+    lo, hi = 0.0, 1.0
+    while refute(hi) is None:
+        lo, hi = hi, hi * 2
+        if hi > cap:
+            return None
+    for _ in range(60):
+        if lo > 0 and hi / lo - 1 <= tol:
+            break
+        mid = math.sqrt(lo * hi) if lo > 0 else hi / 2
+        if refute(mid) is None:
+            lo = mid
+        else:
+            hi = mid
+    return hi
+
+
+# --------------------------------------------------------------------------- run directories
+def run_radius_condition(run) -> DRPointwise:
+    """The DR pointwise condition a run's radius is certified for: the run's samples ``run.xi_samples`` (all N,
+    also for a baseline run, which trained on their mean), ``risk_level``, ``decay_rate`` and ``exp_rate``; its
+    radius is the configured ``wasserstein_radius`` (only a starting point of the search)."""
+    cfg = run.config
+    return DRPointwise(cfg.wasserstein_radius, cfg.risk_level, run.xi_samples, cfg.decay_rate, cfg.exp_rate)
+
+
+def run_robustness(run, delta: float | None = None, tol: float = 0.01, time_limit: float = 10.0,
+                   total_time: float = 120.0, scale: Tensor | None = None) -> dict:
+    """:func:`certified_radius` (with :func:`run_radius_condition`) and :func:`certified_shift_box` (the run's
+    decay, ``scale`` default :func:`shift_scale` of the run's samples) for a loaded Lyapunov run over its
+    X_delta (``delta`` default the run's). Returns ``{"radius": ..., "shift_box": ..., "trained_radius",
+    "method"}``."""
+    cfg = run.config
+    delta = float(cfg.delta if delta is None else delta)
+    region = Region.of(run.system, delta)
+    system, lyap, ctrl = run.system, run.lyapunov_net, run.controller_net
+    radius = certified_radius(system, lyap, ctrl, run_radius_condition(run), region, tol=tol, time_limit=time_limit,
+                              total_time=total_time)
+    scale = shift_scale(system, run.xi_samples) if scale is None else scale
+    box = certified_shift_box(system, lyap, ctrl, cfg.decay_rate, cfg.exp_rate, region, scale, tol=tol,
+                              time_limit=time_limit, total_time=total_time)
+    return {"method": cfg.method, "trained_radius": cfg.wasserstein_radius if cfg.method == "dr" else None,
+            "delta": delta, "radius": radius, "shift_box": box}
