@@ -388,21 +388,35 @@ def compare(run_dirs: tuple[Path, ...], xi: str, n_init: int, seed: int, horizon
 @click.option("--xi", default=None, help="Also verify plain decrease on the true model at this shift (comma-separated).")
 @click.option("--time-limit", type=float, default=30.0, show_default=True, help="Seconds per branch and bound.")
 @click.option("--roa/--no-roa", default=False, show_default=True, help="Certify a sublevel set of V as region of attraction.")
+@click.option("--max-radius", is_flag=True,
+              help="Also find the largest Wasserstein radius for which the DR pointwise condition (the run's eps, "
+                   "samples, gamma) is proved, and the largest box of shifts for which decrease on the true model "
+                   "is proved (bisection on proofs; each proof gets --time-limit seconds).")
+@click.option("--radius-tol", type=float, default=0.01, show_default=True,
+              help="Relative width of the bracket [certified, unproved) that --max-radius stops at.")
 @click.option("--json", "as_json", is_flag=True, help="Print one JSON object.")
-def verify(run_dir: Path, delta: float | None, xi: str | None, time_limit: float, roa: bool, as_json: bool) -> None:
+def verify(run_dir: Path, delta: float | None, xi: str | None, time_limit: float, roa: bool, max_radius: bool,
+           radius_tol: float, as_json: bool) -> None:
     """Prove the decrease condition of RUN_DIR on the whole state box minus the delta-ball, or find a counterexample.
 
     Sound interval bounds (mean-value form) with branch and bound, in float64 with outward rounding.
     """
+    from drlyap.io import jsonable
     from drlyap.rundir import load_run
-    from drlyap.verification import verify_run
+    from drlyap.verification import run_robustness, verify_run
+    from drlyap.verification.robustness import robustness_lines
 
     try:
         if time_limit <= 0:
             raise ValueError(f"--time-limit must be > 0, got {time_limit}")
+        if not radius_tol > 0:
+            raise ValueError(f"--radius-tol must be > 0, got {radius_tol}")
         run = load_run(run_dir)
         shift = None if xi is None else run.system.check_xi(_floats(xi, "--xi"))
         result = verify_run(run, delta=delta, xi=shift, time_limit=time_limit, roa=roa)
+        if max_radius:
+            result["robustness"] = jsonable(run_robustness(run, delta=delta, tol=radius_tol, time_limit=time_limit,
+                                                           total_time=8 * time_limit))
     except ValueError as err:
         _fail(err)
     if as_json:
@@ -433,6 +447,9 @@ def verify(run_dir: Path, delta: float | None, xi: str | None, time_limit: float
         show(result["true_model"], f"  true model at xi = {result['true_model']['xi']}")
     if result["roa"] is not None:
         click.echo("  " + roa_line(result["roa"], "true_model" in result))
+    if "robustness" in result:
+        for line in robustness_lines(result["robustness"]):
+            click.echo(f"  {line}")
 
 
 @main.command("guarantee")

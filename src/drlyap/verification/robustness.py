@@ -43,9 +43,16 @@ from drlyap.verification.branch_and_bound import as_region, verify_condition
 
 # --------------------------------------------------------------------------- dense states
 def dense_states(region: Region, per_axis: int = 200, sphere: int = 2000, seed: int = 0) -> Tensor:
-    """States ``(B, n)`` of X_delta for the sampled upper ends: the region's grid plus ``sphere`` states on
-    the sphere ``||z|| = delta`` inside the box (violations often sit just outside the ball)."""
-    z = region.grid(per_axis)
+    """States ``(B, n)`` of X_delta for the sampled upper ends: a grid with the box's faces (``per_axis`` points
+    per axis, ends included, for n <= 3; else the region's Sobol set) plus ``sphere`` states on the sphere
+    ``||z|| = delta`` inside the box (violations often sit on the faces or just outside the ball)."""
+    if region.n <= 3:
+        per = per_axis if region.n <= 2 else 40
+        axes = [torch.linspace(float(a), float(b), per, dtype=F64) for a, b in zip(region.lo, region.hi)]
+        z = torch.cartesian_prod(*axes).reshape(-1, region.n)
+        z = z[region.contains(z)]
+    else:
+        z = region.grid(per_axis)
     if region.delta > 0 and sphere > 0:
         g = torch.Generator().manual_seed(seed)
         d = torch.randn(sphere, region.n, generator=g, dtype=F64)
@@ -80,12 +87,15 @@ class _Pair:
 
 # --------------------------------------------------------------------------- the search
 def _largest_proved(prove: Callable[[float], dict], refute: Callable[[float], dict | None], guess: float | None,
-                    start: float, tol: float, cap: float, max_proofs: int, total_time: float) -> dict:
+                    start: float, tol: float, cap: float, max_proofs: int, total_time: float,
+                    reguess: Callable[[dict], float | None] | None = None) -> dict:
     """Largest v in ``[0, cap]`` with ``prove(v)['status'] == 'verified'``, for a property monotone in v.
 
     ``refute(v)``: a cheap witness that v fails (a real evaluation), or None. ``guess``: a sampled upper end
-    (the property fails just above it), or None (then grow geometrically from ``start``). Returns the
-    bracket ``proved <= v* < unproved``, what decided the upper end, and the probes made.
+    (the property fails just above it), or None (then grow geometrically from ``start``). ``reguess(res)``: a
+    new sampled upper end from the witness of a failed proof (the verifier's counterexample), or None; the
+    next probe is then just below it. Returns the bracket ``proved <= v* < unproved``, what decided the upper
+    end, and the probes made.
     """
     clock = time.perf_counter()
     probes: list[dict] = []
@@ -150,7 +160,11 @@ def _largest_proved(prove: Callable[[float], dict], refute: Callable[[float], di
         if over_budget():
             return out(lo, hi_res, "budget")
         hi = hi_res["value"]
-        mid = math.sqrt(lo * hi) if lo > 0 else hi / 16
+        mid = math.sqrt(lo * hi) if lo > 0 else hi / 4
+        again = reguess(hi_res) if reguess is not None and hi_res.get("witness") and not hi_res.get("reguessed") else None
+        hi_res["reguessed"] = True
+        if again is not None and lo < again * (1 - tol / 2) < hi:
+            mid = again * (1 - tol / 2)
         if mid <= 1e-300:
             return out(lo, hi_res, "vanishing", "unproved at every value tried above 0")
         res = probe(mid)
@@ -204,31 +218,44 @@ def certified_radius(system: UncertainSystem, lyapunov: Lyapunov, controller: Co
     pair = _Pair(system, lyapunov, controller)
     z = dense_states(region)
     res0, lip = pair.terms(condition.with_radius(0.0), z)
-    positive = lip > 0
-    sampled = math.inf
-    at = None
-    if bool((res0 <= 0).all()) and bool(positive.any()):
-        ratio = torch.where(positive, -res0 / torch.where(positive, lip, 1.0), torch.inf)
-        i = int(ratio.argmin())
-        sampled, at = condition.eps * float(ratio[i]), z[i]
+    best: dict = {"sampled": math.inf, "at": None}  # the smallest sampled ratio and its state
+
+    def take(states: Tensor, r0: Tensor, lips: Tensor) -> None:
+        positive = lips > 0
+        if bool((r0 <= 0).all()) and bool(positive.any()):
+            ratio = torch.where(positive, -r0 / torch.where(positive, lips, 1.0), torch.inf)
+            i = int(ratio.argmin())
+            if condition.eps * float(ratio[i]) < best["sampled"]:
+                best["sampled"], best["at"] = condition.eps * float(ratio[i]), states[i]
+
+    take(z, res0, lip)
+    first_guess = best["sampled"]
 
     def refute(r: float) -> dict | None:
         if r == 0.0:
-            bad = res0 > 0
-            if bad.any():
+            if bool((res0 > 0).any()):
                 i = int(res0.argmax())
                 return {"status": "violated", "witness": _witness(system, z[i], float(res0[i]))}
             return None
-        if at is None or r <= sampled:
+        at = best["at"]
+        if at is None or r <= best["sampled"]:
             return None
         value = float(pair.residual(condition.with_radius(r), at[None])[0])
         return {"status": "violated", "witness": _witness(system, at, value)} if value > 0 else None
 
+    def reguess(res: dict) -> float | None:  # the ratio at the verifier's counterexample
+        state = system.to_local(torch.tensor([res["witness"]["state"]], dtype=F64))
+        r0, lips = pair.terms(condition.with_radius(0.0), state)
+        before = best["sampled"]
+        take(state, r0, lips)
+        return best["sampled"] if best["sampled"] < before else None
+
     prove = _prover(system, lyapunov, controller, region, time_limit, min_width, condition.with_radius)
     start = condition.r if condition.r > 0 else 1e-3
-    found = _largest_proved(prove, refute, sampled, start, tol, cap, max_proofs, total_time)
+    found = _largest_proved(prove, refute, first_guess, start, tol, cap, max_proofs, total_time, reguess)
     found["time_s"] = time.perf_counter() - clock
     radius = found.pop("certified")
+    sampled = best["sampled"]
     return {"quantity": "wasserstein_radius", "radius": radius, **found,
             "sampled_upper": sampled if math.isfinite(sampled) else None, "risk_level": condition.eps,
             "n_samples": int(condition.xi.shape[0]), "decay_rate": condition.decay_rate,
@@ -289,12 +316,12 @@ def certified_shift_box(system: UncertainSystem, lyapunov: Lyapunov, controller:
     region = as_region(system, region)
     clock = time.perf_counter()
     pair = _Pair(system, lyapunov, controller)
-    z = dense_states(region)
+    states = {"z": dense_states(region)}
 
     def make(s: float) -> TrueDecrease:
         return shift_box_condition(scale, s, decay_rate, exp_rate)
 
-    def refute(s: float) -> dict | None:
+    def refute_at(z: Tensor, s: float) -> dict | None:
         res = pair.residual(make(s), z)  # the max over the box's corners at each state
         bad = ~(res <= 0)  # non-finite counts as a failure
         if not bad.any():
@@ -302,9 +329,17 @@ def certified_shift_box(system: UncertainSystem, lyapunov: Lyapunov, controller:
         i = int(torch.where(bad, torch.nan_to_num(res, nan=math.inf), -math.inf).argmax())
         return {"status": "violated", "witness": _witness(system, z[i], float(res[i]))}
 
+    def refute(s: float) -> dict | None:
+        return refute_at(states["z"], s)
+
+    def reguess(res: dict) -> float | None:  # the threshold at the verifier's counterexample
+        state = system.to_local(torch.tensor([res["witness"]["state"]], dtype=F64))
+        states["z"] = torch.cat([states["z"], state])
+        return _sampled_threshold(lambda s: refute_at(state, s), cap, tol / 8)
+
     sampled = _sampled_threshold(refute, cap, tol / 8)
     prove = _prover(system, lyapunov, controller, region, time_limit, min_width, make)
-    found = _largest_proved(prove, refute, sampled, 1.0, tol, cap, max_proofs, total_time)
+    found = _largest_proved(prove, refute, sampled, 1.0, tol, cap, max_proofs, total_time, reguess)
     found["time_s"] = time.perf_counter() - clock
     s = found.pop("certified")
     box = None if s is None else {name: [-s * float(w), s * float(w)] for name, w in zip(system.uncertain, scale)}
@@ -348,7 +383,8 @@ def run_robustness(run, delta: float | None = None, tol: float = 0.01, time_limi
     """:func:`certified_radius` (with :func:`run_radius_condition`) and :func:`certified_shift_box` (the run's
     decay, ``scale`` default :func:`shift_scale` of the run's samples) for a loaded Lyapunov run over its
     X_delta (``delta`` default the run's). Returns ``{"radius": ..., "shift_box": ..., "trained_radius",
-    "method"}``."""
+    "method", "delta"}``; for a baseline run also ``radius_training_sample``: the radius of the DR condition
+    around the single sample it trained on (``run.xi_train``, the mean of the samples; N = 1)."""
     cfg = run.config
     delta = float(cfg.delta if delta is None else delta)
     region = Region.of(run.system, delta)
@@ -358,5 +394,67 @@ def run_robustness(run, delta: float | None = None, tol: float = 0.01, time_limi
     scale = shift_scale(system, run.xi_samples) if scale is None else scale
     box = certified_shift_box(system, lyap, ctrl, cfg.decay_rate, cfg.exp_rate, region, scale, tol=tol,
                               time_limit=time_limit, total_time=total_time)
-    return {"method": cfg.method, "trained_radius": cfg.wasserstein_radius if cfg.method == "dr" else None,
-            "delta": delta, "radius": radius, "shift_box": box}
+    out = {"method": cfg.method, "trained_radius": cfg.wasserstein_radius if cfg.method == "dr" else None,
+           "delta": delta, "radius": radius, "shift_box": box}
+    if cfg.method == "baseline":  # also around the one sample it trained on (the mean: a ball around a point mass)
+        own = DRPointwise(cfg.wasserstein_radius, cfg.risk_level, run.xi_train, cfg.decay_rate, cfg.exp_rate)
+        out["radius_training_sample"] = certified_radius(system, lyap, ctrl, own, region, tol=tol,
+                                                         time_limit=time_limit, total_time=total_time)
+    return out
+
+
+def robustness_lines(result: dict) -> list[str]:
+    """Human-readable lines for a :func:`run_robustness` result (what ``drlyap verify --max-radius`` prints)."""
+    lines = []
+    rad, box = result.get("radius"), result.get("shift_box")
+    if rad is not None:
+        decay = f"gamma={rad['decay_rate']:g}" + (f", alpha={rad['exp_rate']:g}" if rad["exp_rate"] else "")
+        at = f"eps={rad['risk_level']:g}, N={rad['n_samples']}, {decay}"
+        trained = (f"run trained at r={result['trained_radius']:g}" if result.get("trained_radius") is not None
+                   else f"{result.get('method', 'run')} run: radius of the DR condition at its N samples")
+        if rad["radius"] is None:
+            lines.append(f"certified Wasserstein radius: NONE at {at} ({trained}): {rad['reason']}"
+                         + _witness_text(rad))
+        else:
+            lines.append(f"certified Wasserstein radius: r* in [{rad['radius']:.4g}, {_upper(rad)}) at {at} ({trained}); "
+                         f"{_why(rad)}; {rad['proofs']} proofs, {rad['time_s']:.1f} s")
+    own = result.get("radius_training_sample")
+    if own is not None:
+        at = f"eps={own['risk_level']:g}, N=1"
+        if own["radius"] is None:
+            lines.append(f"  around its training sample (the mean, {at}): NONE: {own['reason']}" + _witness_text(own))
+        else:
+            lines.append(f"  around its training sample (the mean, {at}): r* in [{own['radius']:.4g}, {_upper(own)}); "
+                         f"{_why(own)}; {own['proofs']} proofs, {own['time_s']:.1f} s")
+    if box is not None:
+        decay = f"gamma={box['decay_rate']:g}" + (f", alpha={box['exp_rate']:.3g}" if box["exp_rate"] else "")
+        if box["s"] is None:
+            lines.append(f"certified shift box: NONE (true model, decrease with {decay}): {box['reason']}"
+                         + _witness_text(box))
+        else:
+            parts = ", ".join(f"{name} in [{lo:.4g}, {hi:.4g}]" for name, (lo, hi) in box["box"].items())
+            unit = ", ".join(f"{w:.3g}" for w in box["scale"])
+            lines.append(f"certified shift box: {parts} (true model, decrease with {decay}; s* = {box['s']:.4g} x "
+                         f"({unit}), s in [{box['s']:.4g}, {_upper(box)}); {_why(box)}; {box['proofs']} proofs, "
+                         f"{box['time_s']:.1f} s)")
+    return lines
+
+
+def _upper(res: dict) -> str:
+    return "unbounded" if res["unproved"] is None else f"{res['unproved']:.4g}"
+
+
+def _why(res: dict) -> str:
+    if res["unproved"] is None:
+        return f"nothing unproved found ({res['stopped']})"
+    text = f"upper end {res['unproved_status']} ({res['unproved_by']})"
+    if res["stopped"] != "tolerance":
+        text += f", stopped: {res['stopped']}"
+    return text
+
+
+def _witness_text(res: dict) -> str:
+    w = res.get("witness")
+    if not w:
+        return ""
+    return f" at x = {[round(v, 5) for v in w['state']]} (residual {w['residual']:.3g} > 0)"
