@@ -178,6 +178,10 @@ def test_compare_and_evaluate_cli(tmp_path):
     assert "| lqr |" in res.output and "lyapunov-dr-pointwise" in res.output
     report = json.loads((out / "compare.json").read_text())
     assert [r["samples"] for r in report["rows"]] == [0, 0, 3600 * 7]
+    assert "certified radius; shift box" in res.output
+    robust = [r["certified"]["robustness"] for r in report["rows"]]
+    assert robust[0]["radius"] is None and robust[0]["shift_scale"] == [0.1, 0.05]  # LQR: no Wasserstein condition
+    assert "radius" in robust[2] and "shift_box_s" in robust[2]
     assert len(report["figures"]) == 2 and all((out / "figures" / f"certificate_and_input_{i}.png").is_file()
                                                for i in range(2))
     assert (out / "compare.md").is_file()

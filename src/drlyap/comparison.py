@@ -86,19 +86,32 @@ def certify(run: PolicyRun, xi: Tensor, time_limit: float) -> dict:
     (:func:`verification.verify_run`). LQR: ``d/dt z'Pz + alpha z'Pz <= 0``, a decay that does not depend on
     the scale of P, with alpha half the rate ``lambda_min(Q + K'RK) / lambda_max(P)`` that the linearisation
     guarantees, and the system's default delta. RL critics: nothing is proved.
+
+    ``robustness`` (None when nothing is proved): the certified Wasserstein radius of the DR pointwise condition at
+    the run's samples (Lyapunov pairs; None for LQR, which has no samples) and the certified box of shifts for
+    decrease on the true model with the row's decay (:mod:`drlyap.verification.robustness`; each proof
+    ``time_limit`` seconds, each search at most 4x that).
     """
     from drlyap.conditions import TrueDecrease
     from drlyap.networks import LinearController, QuadraticLyapunov
     from drlyap.training import TrainConfig
-    from drlyap.verification import certified_roa, verify_condition, verify_run
+    from drlyap.verification import (
+        certified_roa,
+        certified_shift_box,
+        run_robustness,
+        shift_scale,
+        verify_condition,
+        verify_run,
+    )
 
     if run.kind == "lyapunov":
         result = verify_run(run.info["run"], xi=xi, time_limit=time_limit, roa=True)
         roa = result["roa"] or {}
+        robust = run_robustness(run.info["run"], time_limit=time_limit, total_time=4 * time_limit)
         return {"status": result["status"], "verified_fraction": result["verified_fraction"],
                 "counterexample": result["counterexample"], "time_s": result["time_s"],
                 "roa_certified": roa.get("certified"), "roa_kind": roa.get("kind"), "roa_share": roa.get("share_of_box"),
-                "decay_rate": None}
+                "decay_rate": None, "robustness": _robust_summary(robust["radius"], robust["shift_box"])}
     if run.kind == "lqr":
         system, design = run.system, run.info["design"]
         lyapunov = QuadraticLyapunov(design.P)
@@ -111,12 +124,37 @@ def certify(run: PolicyRun, xi: Tensor, time_limit: float) -> dict:
         delta = TrainConfig(system=system.name).resolved(system).delta
         result = verify_condition(system, lyapunov, controller, condition, delta, time_limit=time_limit).to_dict()
         roa = certified_roa(system, lyapunov, controller, condition, delta, time_limit=time_limit)
+        box = certified_shift_box(system, lyapunov, controller, 0.0, alpha, delta, shift_scale(system),
+                                  time_limit=time_limit, total_time=4 * time_limit)
         return {"status": result["status"], "verified_fraction": result["verified_fraction"],
                 "counterexample": result["counterexample"], "time_s": result["time_s"],
                 "roa_certified": roa.get("certified"), "roa_kind": roa.get("kind"), "roa_share": roa.get("share_of_box"),
-                "decay_rate": 0.0, "exp_rate": alpha}
+                "decay_rate": 0.0, "exp_rate": alpha, "robustness": _robust_summary(None, box)}
     return {"status": "none", "verified_fraction": None, "roa_certified": None, "roa_share": None,
-            "note": "no certificate"}
+            "note": "no certificate", "robustness": None}
+
+
+def _robust_summary(radius: dict | None, box: dict) -> dict:
+    """The numbers of a certified radius / shift box search that the comparison keeps."""
+    out = {"shift_box_s": box["s"], "shift_box": box["box"], "shift_scale": box["scale"],
+           "shift_decay": [box["decay_rate"], box["exp_rate"]], "time_s": box["time_s"]}
+    if radius is not None:
+        out.update(radius=radius["radius"], radius_unproved=radius["unproved"], risk_level=radius["risk_level"],
+                   n_samples=radius["n_samples"], radius_reason=radius["reason"])
+        out["time_s"] += radius["time_s"]
+    else:
+        out.update(radius=None, radius_reason="no Wasserstein condition (no samples)")
+    return out
+
+
+def _robust_cell(cert: dict | None) -> str:
+    rob = (cert or {}).get("robustness")
+    if not rob:
+        return "-"
+    r = "r* -" if rob["radius"] is None else f"r* {rob['radius']:.3g}"
+    scale = ", ".join(f"{w:.3g}" for w in rob["shift_scale"])
+    s = "none" if rob["shift_box_s"] is None else f"{rob['shift_box_s']:.3g}"
+    return f"{r}; shift box {s} x ({scale})"
 
 
 def compare_runs(paths: Sequence[str | os.PathLike], xi: Sequence[float], n_init: int = 200, seed: int = 0,
@@ -186,8 +224,8 @@ def format_comparison(report: dict) -> str:
     """A markdown table of a :func:`compare_runs` report."""
     lines = [f"## comparison at xi = {report['xi']} ({report['n_init']} initial states, seed {report['seed']})", "",
              "| run | kind | system | success | samples | train s | certificate increases | monotone trajectories "
-             "| verified decrease at xi | certified region of attraction at xi |",
-             "|---|---|---|---|---|---|---|---|---|---|"]
+             "| verified decrease at xi | certified region of attraction at xi | certified radius; shift box |",
+             "|---|---|---|---|---|---|---|---|---|---|---|"]
     for r in report["rows"]:
         c = r["certificate"]
         inc = "-" if c["increase_fraction"] is None else f"{100 * c['increase_fraction']:.2f}%"
@@ -210,5 +248,5 @@ def format_comparison(report: dict) -> str:
                 roa = "none"
         lines.append(f"| {r['run_dir']} | {r['label']} | {r['system']} | {r['n_success']}/{r['n']} "
                      f"({100 * r['success_rate']:.1f}%) | {r['samples'] if r['samples'] is not None else '-'} | {t} | "
-                     f"{inc} | {mono} | {proof} | {roa} |")
+                     f"{inc} | {mono} | {proof} | {roa} | {_robust_cell(cert)} |")
     return "\n".join(lines)
