@@ -151,10 +151,13 @@ def _robust_cell(cert: dict | None) -> str:
     rob = (cert or {}).get("robustness")
     if not rob:
         return "-"
-    r = "r* -" if rob["radius"] is None else f"r* {rob['radius']:.3g}"
+    if rob["radius"] is not None:
+        r = f"r* {rob['radius']:.3g} (eps {rob['risk_level']:g}, N {rob['n_samples']})"
+    else:
+        r = "r* none" if "n_samples" in rob else "r* n/a"
     scale = ", ".join(f"{w:.3g}" for w in rob["shift_scale"])
-    s = "none" if rob["shift_box_s"] is None else f"{rob['shift_box_s']:.3g}"
-    return f"{r}; shift box {s} x ({scale})"
+    s = "none" if rob["shift_box_s"] is None else f"{rob['shift_box_s']:.3g} x ({scale})"
+    return f"{r}; shift box {s}"
 
 
 def compare_runs(paths: Sequence[str | os.PathLike], xi: Sequence[float], n_init: int = 200, seed: int = 0,
