@@ -136,7 +136,7 @@ def certify(run: PolicyRun, xi: Tensor, time_limit: float) -> dict:
 
 def _robust_summary(radius: dict | None, box: dict) -> dict:
     """The numbers of a certified radius / shift box search that the comparison keeps."""
-    out = {"shift_box_s": box["s"], "shift_box": box["box"], "shift_scale": box["scale"],
+    out = {"shift_box_s": box["s"], "shift_box": box["box"], "shift_box_reason": box["reason"], "shift_scale": box["scale"],
            "shift_decay": [box["decay_rate"], box["exp_rate"]], "time_s": box["time_s"]}
     if radius is not None:
         out.update(radius=radius["radius"], radius_unproved=radius["unproved"], risk_level=radius["risk_level"],
