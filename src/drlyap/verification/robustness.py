@@ -413,11 +413,11 @@ def robustness_lines(result: dict) -> list[str]:
         trained = (f"run trained at r={result['trained_radius']:g}" if result.get("trained_radius") is not None
                    else f"{result.get('method', 'run')} run: radius of the DR condition at its N samples")
         if rad["radius"] is None:
-            lines.append(f"certified Wasserstein radius: NONE at {at} ({trained}): {rad['reason']}"
+            lines.append(f"certified Wasserstein radius (DR pointwise over X_delta): NONE at {at} ({trained}): {rad['reason']}"
                          + _witness_text(rad))
         else:
-            lines.append(f"certified Wasserstein radius: r* in [{rad['radius']:.4g}, {_upper(rad)}) at {at} ({trained}); "
-                         f"{_why(rad)}; {rad['proofs']} proofs, {rad['time_s']:.1f} s")
+            lines.append(f"certified Wasserstein radius (DR pointwise over X_delta): r* in [{rad['radius']:.4g}, "
+                         f"{_upper(rad)}) at {at} ({trained}); {_why(rad)}; {rad['proofs']} proofs, {rad['time_s']:.1f} s")
     own = result.get("radius_training_sample")
     if own is not None:
         at = f"eps={own['risk_level']:g}, N=1"
@@ -429,14 +429,14 @@ def robustness_lines(result: dict) -> list[str]:
     if box is not None:
         decay = f"gamma={box['decay_rate']:g}" + (f", alpha={box['exp_rate']:.3g}" if box["exp_rate"] else "")
         if box["s"] is None:
-            lines.append(f"certified shift box: NONE (true model, decrease with {decay}): {box['reason']}"
+            lines.append(f"certified shift box: NONE (decrease on the true model over X_delta with {decay}): {box['reason']}"
                          + _witness_text(box))
         else:
             parts = ", ".join(f"{name} in [{lo:.4g}, {hi:.4g}]" for name, (lo, hi) in box["box"].items())
             unit = ", ".join(f"{w:.3g}" for w in box["scale"])
-            lines.append(f"certified shift box: {parts} (true model, decrease with {decay}; s* = {box['s']:.4g} x "
-                         f"({unit}), s in [{box['s']:.4g}, {_upper(box)}); {_why(box)}; {box['proofs']} proofs, "
-                         f"{box['time_s']:.1f} s)")
+            lines.append(f"certified shift box: {parts} (decrease on the true model over X_delta for every xi in the "
+                         f"box, with {decay}; s* = {box['s']:.4g} x ({unit}), s in [{box['s']:.4g}, {_upper(box)}); "
+                         f"{_why(box)}; {box['proofs']} proofs, {box['time_s']:.1f} s)")
     return lines
 
 
