@@ -125,7 +125,9 @@ def draw_figures(system: UncertainSystem, runs: dict[str, Run], xi: torch.Tensor
         series[method] = (traj.t, run.lyapunov(traj.x[:, 0]), traj.u[:, 0, 0])
     where = ", ".join(f"{v:.3g}" for v in start[0].tolist())
     ts = plotting.time_series(series, folder / "certificate_and_input.png",
-                              f"{system.name} from ({where}), true model at {shift} (seed {seed})")
+                              f"{system.name} from ({where}), true model at {shift} (seed {seed})",
+                              input_label=plotting.input_label(system), time_label=plotting.time_label(system),
+                              limits=plotting.input_limits(system))
     return [phase, ts]
 
 

@@ -70,6 +70,17 @@ def input_limits(system: UncertainSystem, j: int = 0) -> list[tuple[float, str]]
     return [(hi[j], f"u_max = {hi[j]:g}{unit}"), (lo[j], f"u_min = {lo[j]:g}{unit}")]
 
 
+def input_limits_of(systems: Sequence[UncertainSystem], j: int = 0) -> list[tuple[float, str]]:
+    """:func:`input_limits` of several systems drawn on one plot: each distinct bound once, named by its
+    system when the systems' bounds differ (``pendulum-u9: u_max = 9 N m``)."""
+    distinct: dict[tuple, UncertainSystem] = {}
+    for system in systems:
+        distinct.setdefault(tuple(b[j] for b in system.input_box), system)
+    if len(distinct) <= 1:
+        return input_limits(systems[0], j) if systems else []
+    return [(value, f"{system.name}: {text}") for system in distinct.values() for value, text in input_limits(system, j)]
+
+
 def shift_text(system: UncertainSystem, xi: Sequence[float] | Tensor | None) -> str:
     """``xi = (mass +0.1, damping +0.05)``, or ``nominal model (xi = 0)``."""
     if xi is None:
@@ -209,11 +220,13 @@ def time_series_figure(series: Mapping[str, tuple[Tensor, Tensor, Tensor]], titl
         low = min(float(v.min()) for _, v, _ in series.values())
         high = max(float(v.max()) for _, v, _ in series.values())
         a.set_ylim(bottom=max(low, 1e-10 * high))
-    for (value, text), color in zip(limits, ("tab:red", "tab:purple")):
+    colors = ("tab:red", "tab:brown", "tab:pink", "tab:purple")
+    for i, (value, text) in enumerate(limits):  # one colour per (u_max, u_min) pair
+        color = colors[(i // 2) % len(colors)]
         b.axhline(value, ls="--", lw=1.2, color=color, label=text)
-        b.annotate(text, (1.0, value), xycoords=("axes fraction", "data"), xytext=(-4, 3 if value > 0 else -3),
-                   textcoords="offset points", ha="right", va="bottom" if value > 0 else "top", color=color,
-                   fontsize=8)
+        upper = i % 2 == 0  # u_max above its line, u_min below
+        b.annotate(text, (1.0, value), xycoords=("axes fraction", "data"), xytext=(-4, 3 if upper else -3),
+                   textcoords="offset points", ha="right", va="bottom" if upper else "top", color=color, fontsize=8)
     if limits:
         values = [v for v, _ in limits] + [float(u.min()) for _, _, u in series.values()] + \
             [float(u.max()) for _, _, u in series.values()]
@@ -257,15 +270,17 @@ def decrease_map(system: UncertainSystem, grid: tuple[Tensor, Tensor, Tensor], r
     """Two heatmaps over the first two coordinates (others at x*): V, and the decrease residual
     ``residual (same shape as V; NaN where excluded, e.g. the delta-ball)`` on a colour scale centred at
     0, where it is > 0 (the condition fails) outlined in black and counted in the title."""
-    gx, gy, gv = grid
+    gx, gy, gv = (g.detach().cpu() for g in grid)
+    residual = residual.detach().cpu()
+    px, py = gx.numpy(), gy.numpy()  # matplotlib takes arrays
     fig, (a, b) = plt.subplots(1, 2, figsize=(12, 5.2), layout="constrained")
     v_top = float(gv.max())
-    m = a.pcolormesh(gx, gy, gv.clamp_min(1e-4 * v_top), shading="auto", cmap="viridis",
+    m = a.pcolormesh(px, py, gv.clamp_min(1e-4 * v_top).numpy(), shading="auto", cmap="viridis",
                      norm=LogNorm(vmin=max(float(gv.min()), 1e-4 * v_top), vmax=v_top))
     fig.colorbar(m, ax=a, label="V(x) (log scale)")
     finite = residual[torch.isfinite(residual)]
     norm = TwoSlopeNorm(vcenter=0.0, vmin=min(-1e-12, float(finite.min())), vmax=max(1e-12, float(finite.max())))
-    r = b.pcolormesh(gx, gy, residual, shading="auto", cmap="RdBu_r", norm=norm)
+    r = b.pcolormesh(px, py, residual.numpy(), shading="auto", cmap="RdBu_r", norm=norm)
     fig.colorbar(r, ax=b, label=f"{condition} (> 0: fails)")
     fails = residual > 0  # NaN (the excluded delta-ball) is not a failure
     if delta:
@@ -274,7 +289,7 @@ def decrease_map(system: UncertainSystem, grid: tuple[Tensor, Tensor, Tensor], r
             ax.plot(system.equilibrium[0] + delta * torch.cos(t), system.equilibrium[1] + delta * torch.sin(t), ":",
                     color="black", lw=0.9)
     if bool(fails.any()):
-        b.contour(gx, gy, fails.double(), levels=[0.5], colors="black", linewidths=1.0)
+        b.contour(px, py, fails.double().numpy(), levels=[0.5], colors="black", linewidths=1.0)
     share = float(fails.double().sum() / max(1, finite.numel()))
     for ax in (a, b):
         ax.plot(*system.equilibrium[:2], "*", color="white" if ax is a else "black", ms=10)
