@@ -91,7 +91,7 @@ def test_sweep_plot_shows_every_seed(tmp_path):
 
 def test_plot_command_writes_figures(run_dir, tmp_path):
     out = tmp_path / "figs"
-    result = CliRunner().invoke(main, ["plot", str(run_dir), "--n-init", "3", "--out", str(out), "--json"])
+    result = CliRunner().invoke(main, ["plot", str(run_dir), "--n-init", "3", "--horizon", "2", "--out", str(out), "--json"])
     assert result.exit_code == 0, result.output
     data = json.loads(result.output)
     assert data["xi"] == [0.1, 0.05] and data["region"] is None and len(data["figures"]) == 3
@@ -107,7 +107,7 @@ def test_plot_uses_a_stored_certificate(run_dir, tmp_path):
                               "roa": {"level": 1.5, "certified": False, "ball_max_upper": 2.0}}
     metrics_path.write_text(json.dumps(metrics))
     try:
-        result = CliRunner().invoke(main, ["plot", str(run_dir), "--n-init", "2", "--out", str(tmp_path)])
+        result = CliRunner().invoke(main, ["plot", str(run_dir), "--n-init", "2", "--horizon", "1", "--out", str(tmp_path)])
     finally:
         metrics_path.write_text(original)
     assert result.exit_code == 0, result.output
@@ -118,3 +118,12 @@ def test_plot_uses_a_stored_certificate(run_dir, tmp_path):
 def test_plot_rejects_bad_xi(run_dir, tmp_path):
     result = CliRunner().invoke(main, ["plot", str(run_dir), "--xi", "0.1", "--out", str(tmp_path)])
     assert result.exit_code != 0 and "takes 2 xi value" in result.output
+
+
+def test_plot_roa_computes_the_set_now(run_dir, tmp_path):
+    result = CliRunner().invoke(main, ["plot", str(run_dir), "--n-init", "1", "--horizon", "1", "--roa", "--time-limit", "2",
+                                       "--out", str(tmp_path), "--json"])
+    assert result.exit_code == 0, result.output
+    region = json.loads(result.output)["region"]
+    if region is not None:  # a 10-iteration pair may certify nothing
+        assert ("region of attraction" in region["label"]) == region["certified"]

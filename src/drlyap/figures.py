@@ -16,7 +16,7 @@ from torch import Tensor
 
 from drlyap import plotting
 from drlyap.rundir import Run, load_run
-from drlyap.simulation import initial_states, simulate, success_mask
+from drlyap.simulation import Trajectories, initial_states, simulate, success_mask
 
 
 def stored_region(run: Run) -> dict | None:
@@ -61,10 +61,11 @@ def decrease_residual(run: Run, x: Tensor, xi: Tensor | None) -> Tensor:
 
 def plot_run(run_dir: str | os.PathLike, xi: Sequence[float] | None = None, n_init: int = 20, seed: int = 0,
              roa: bool | None = None, out: str | os.PathLike | None = None, time_limit: float = 30.0,
-             per_axis: int = 160) -> dict:
+             per_axis: int = 160, horizon: float | None = None) -> dict:
     """Write the figures of one Lyapunov run to ``out`` (default ``RUN_DIR/figures``) and return what was drawn.
 
-    ``xi``: the shift of the true model (default: the system's test shift, or the nominal model).
+    ``xi``: the shift of the true model (default: the system's test shift, or the nominal model); ``horizon``:
+    simulated time (default: the system's).
     ``roa``: True computes the certified sublevel set now (:func:`drlyap.verification.verify_run` at ``xi``),
     False draws none, None uses ``metrics["certificate"]["roa"]`` when the run has one.
     Returns ``{"run_dir", "xi", "n", "n_success", "region", "figures": [paths]}``.
@@ -83,20 +84,29 @@ def plot_run(run_dir: str | os.PathLike, xi: Sequence[float] | None = None, n_in
     if roa:
         from drlyap.verification import verify_run
 
-        found = verify_run(run, xi=shift, time_limit=time_limit, roa=True)["roa"]
-        found = dict(found, xi=None if shift is None else shift.tolist()) if found and "level" in found else None
+        found = verify_run(run, xi=shift, time_limit=time_limit, roa=True)["roa"] or {}
+        missing = found.get("error", "the verifier certified no sublevel set of V (level <= 0)")
+        found = dict(found, xi=None if shift is None else shift.tolist()) if "level" in found else None
     elif roa is None:
         found = stored_region(run)
+        missing = "none stored in metrics.json; --roa computes one"
     else:
-        found = None
+        found, missing = None, "--no-roa"
     region = region_to_draw(run, found)
+    if found is not None and region is None:
+        missing = f"the verifier's level is {found['level']}: no sublevel set certified"
 
     x0 = initial_states(system, n_init, torch.Generator().manual_seed(seed))
-    traj = simulate(system, run.controller, x0, shift)
+    starts = [tuple(float(v) for v in s) for s in getattr(system, "reference_states", ()) or ()] or \
+        [tuple(v) for v in x0[:3].tolist()]
+    both = simulate(system, run.controller, torch.cat([x0, torch.tensor(starts, dtype=torch.float64)]), shift,
+                    horizon=horizon)  # one simulation: the per-step cost dominates, not the batch
+    traj = Trajectories(both.t, both.x[:, :n_init], both.u[:, :n_init])
+    ref = Trajectories(both.t, both.x[:, n_init:], both.u[:, n_init:])
     success, _ = success_mask(system, traj.x)
     grid = plotting.lyapunov_grid(system, run.lyapunov, per_axis)
     if region is None:
-        note = "no certified set drawn" + (" (none stored; --roa computes one)" if roa is None else "")
+        note = f"no certified set drawn ({missing})"
     else:
         note = "shaded: " + ("certified" if region["certified"] else "not certified")
     title = (f"{system.name} ({run.config.method}), true model at {where}\n"
@@ -104,10 +114,7 @@ def plot_run(run_dir: str | os.PathLike, xi: Sequence[float] | None = None, n_in
     paths = [plotting.phase_portrait(system, traj, success.tolist(), folder / "phase_portrait.png", title, grid,
                                      region, run.config.delta)]
 
-    starts = [tuple(s) for s in getattr(system, "reference_states", ()) or ()] or \
-        [tuple(v) for v in x0[:3].tolist()]
     series = {}
-    ref = simulate(system, run.controller, torch.tensor(starts, dtype=torch.float64), shift)
     for i, start in enumerate(starts):
         text = ", ".join(f"{v:.3g}" for v in start)
         series[f"from ({text})"] = (ref.t, run.lyapunov(ref.x[:, i]), ref.u[:, i, 0])

@@ -278,6 +278,10 @@ def decrease_map(system: UncertainSystem, grid: tuple[Tensor, Tensor, Tensor], r
     m = a.pcolormesh(px, py, gv.clamp_min(1e-4 * v_top).numpy(), shading="auto", cmap="viridis",
                      norm=LogNorm(vmin=max(float(gv.min()), 1e-4 * v_top), vmax=v_top))
     fig.colorbar(m, ax=a, label="V(x) (log scale)")
+    levels = _contour_levels(gv)
+    if levels:
+        cs = a.contour(px, py, gv.numpy(), levels=levels, colors="white", linewidths=0.6)
+        a.clabel(cs, fmt=lambda v: f"V={v:.2g}", fontsize=7)
     finite = residual[torch.isfinite(residual)]
     norm = TwoSlopeNorm(vcenter=0.0, vmin=min(-1e-12, float(finite.min())), vmax=max(1e-12, float(finite.max())))
     r = b.pcolormesh(px, py, residual.numpy(), shading="auto", cmap="RdBu_r", norm=norm)
