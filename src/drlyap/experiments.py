@@ -116,8 +116,11 @@ def draw_figures(system: UncertainSystem, runs: dict[str, Run], xi: torch.Tensor
         ok[method] = run.metrics["evaluations"]["paper_10"]["success"]
         levels[method] = plotting.lyapunov_grid(system, run.lyapunov)
     shift = ", ".join(f"{n}{v:+g}" for n, v in zip(system.uncertain, xi.tolist()))
+    from drlyap.figures import region_to_draw, stored_region
+
+    regions = {method: region_to_draw(run, stored_region(run)) for method, run in runs.items()}
     phase = plotting.phase_portraits(system, trajs, ok, folder / "trajectories.png",
-                                     f"{system.name}, true model at {shift} (seed {seed})", levels)
+                                     f"{system.name}, true model at {shift} (seed {seed})", levels, regions)
     start = torch.tensor([REFERENCE_STATES.get(system.name, system.test_box[0])], dtype=torch.float64)
     series = {}
     for method, run in runs.items():

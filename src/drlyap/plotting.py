@@ -189,14 +189,19 @@ def phase_portraits(system: UncertainSystem, panels: Mapping[str, Trajectories],
     fig, axes = plt.subplots(1, len(panels), figsize=(5.6 * len(panels), 5.6), squeeze=False, layout="constrained")
     for ax, (label, traj) in zip(axes[0], panels.items()):
         ok = list(success[label])
-        draw_phase(ax, system, traj, ok, (levels or {}).get(label), (regions or {}).get(label))
+        region = (regions or {}).get(label)
+        if region:  # one legend for all panels: say whose set it is
+            region = {**region, "label": f"{label}: {region['label']}"}
+        draw_phase(ax, system, traj, ok, (levels or {}).get(label), region)
         ax.set_title(f"{label}: {sum(ok)}/{len(ok)} stabilised")
     handles = {}
     for ax in axes[0]:
         for h, lab in zip(*ax.get_legend_handles_labels()):
             key = lab.split(" (")[0] if lab.startswith(("stabilised", "not stabilised")) else lab
             handles.setdefault(key, h)
-    fig.legend(list(handles.values()), list(handles), loc="outside lower center", ncol=min(5, len(handles)), fontsize=8)
+    long = any(len(text) > 40 for text in handles)
+    fig.legend(list(handles.values()), list(handles), loc="outside lower center",
+               ncol=min(2 if long else 5, len(handles)), fontsize=8)
     if title:
         fig.suptitle(title)
     return _save(fig, path)
