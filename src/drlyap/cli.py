@@ -555,5 +555,40 @@ def lipschitz(run_dir: Path, spacing: float | None, xi: str | None, verify_time:
                    f"({ver['boxes_processed']} boxes, {ver['time_s']:.2f} s)")
 
 
+@main.command()
+@click.argument("run_dir", type=click.Path(path_type=Path))
+@click.option("--xi", default=None, help="Shift of the true model, comma-separated [the system's test shift, or nominal].")
+@click.option("--n-init", type=int, default=20, show_default=True, help="Number of trajectories in the phase portrait.")
+@click.option("--seed", type=int, default=0, show_default=True, help="Seed of their initial states.")
+@click.option("--roa/--no-roa", default=None,
+              help="Compute the certified sublevel set of V now at --xi (--roa) or draw none (--no-roa) "
+                   "[the one stored in metrics.json, if any].")
+@click.option("--time-limit", type=float, default=30.0, show_default=True, help="Seconds for --roa's branch and bound.")
+@click.option("--horizon", type=float, default=None, help="Simulated time [system default].")
+@click.option("--out", type=click.Path(path_type=Path), default=None, help="Folder for the PNGs [RUN_DIR/figures].")
+@click.option("--json", "as_json", is_flag=True, help="Print one JSON object with the written paths.")
+def plot(run_dir: Path, xi: str | None, n_init: int, seed: int, roa: bool | None, time_limit: float,
+         horizon: float | None, out: Path | None, as_json: bool) -> None:
+    """Figures of RUN_DIR on the true model: phase portrait with labelled level sets of V and the certified set,
+    V(t) and u(t) with the input limits, and heatmaps of V and of the decrease condition."""
+    from drlyap.figures import plot_run
+
+    try:
+        if time_limit <= 0:
+            raise ValueError(f"--time-limit must be > 0, got {time_limit}")
+        result = plot_run(run_dir, xi=_floats(xi, "--xi"), n_init=n_init, seed=seed, roa=roa, out=out,
+                          time_limit=time_limit, horizon=horizon)
+    except ValueError as err:
+        _fail(err)
+    if as_json:
+        click.echo(json.dumps(result))
+        return
+    region = result["region"]
+    click.echo(f"{result['n_success']}/{result['n']} trajectories stabilised; "
+               + (region["label"] if region else "no certified set drawn"))
+    for path in result["figures"]:
+        click.echo(f"wrote {path}")
+
+
 if __name__ == "__main__":
     main()

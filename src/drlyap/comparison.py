@@ -217,9 +217,12 @@ def compare_figures(runs: Sequence[PolicyRun], shifts: Sequence[Tensor], folder:
             series[f"{run.label} ({run.path.name})"] = (traj.t, value, traj.u[:, 0, 0])
         where = ", ".join(f"{v:.3g}" for v in start)
         shift = ", ".join(f"{v:+g}" for v in shifts[0].tolist())
+        system = runs[0].system
         paths.append(plotting.time_series(series, folder / f"certificate_and_input_{i}.png",
-                                          f"{runs[0].system.name} from ({where}), true model at xi = ({shift})",
-                                          value_label="certificate: V, z'Pz or -value"))
+                                          f"{system.name} from ({where}), true model at xi = ({shift})",
+                                          value_label="certificate: V, z'Pz or -value",
+                                          input_label=plotting.input_label(system), time_label=plotting.time_label(system),
+                                          limits=plotting.input_limits_of([run.system for run in runs])))
     return paths
 
 

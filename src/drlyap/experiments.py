@@ -15,6 +15,7 @@ import torch
 
 from drlyap import plotting
 from drlyap.cegis import train_certified
+from drlyap.figures import region_to_draw, stored_region
 from drlyap.rundir import Run, atomic_dir, load_run, save_run
 from drlyap.simulation import evaluate, initial_states, simulate
 from drlyap.systems import UncertainSystem, get_system
@@ -113,8 +114,9 @@ def draw_figures(system: UncertainSystem, runs: dict[str, Run], xi: torch.Tensor
         ok[method] = run.metrics["evaluations"]["paper_10"]["success"]
         levels[method] = plotting.lyapunov_grid(system, run.lyapunov)
     shift = ", ".join(f"{n}{v:+g}" for n, v in zip(system.uncertain, xi.tolist()))
+    regions = {method: region_to_draw(run, stored_region(run)) for method, run in runs.items()}
     phase = plotting.phase_portraits(system, trajs, ok, folder / "trajectories.png",
-                                     f"{system.name}, true model at {shift} (seed {seed})", levels)
+                                     f"{system.name}, true model at {shift} (seed {seed})", levels, regions)
     start = torch.tensor([REFERENCE_STATES.get(system.name, system.test_box[0])], dtype=torch.float64)
     series = {}
     for method, run in runs.items():
@@ -122,7 +124,9 @@ def draw_figures(system: UncertainSystem, runs: dict[str, Run], xi: torch.Tensor
         series[method] = (traj.t, run.lyapunov(traj.x[:, 0]), traj.u[:, 0, 0])
     where = ", ".join(f"{v:.3g}" for v in start[0].tolist())
     ts = plotting.time_series(series, folder / "certificate_and_input.png",
-                              f"{system.name} from ({where}), true model at {shift} (seed {seed})")
+                              f"{system.name} from ({where}), true model at {shift} (seed {seed})",
+                              input_label=plotting.input_label(system), time_label=plotting.time_label(system),
+                              limits=plotting.input_limits(system))
     return [phase, ts]
 
 

@@ -5,6 +5,7 @@ All functions take already simulated data and write one PNG; they never simulate
 
 from __future__ import annotations
 
+import textwrap
 from collections.abc import Mapping, Sequence
 from pathlib import Path
 
@@ -13,6 +14,8 @@ import matplotlib
 matplotlib.use("Agg")
 import matplotlib.pyplot as plt  # noqa: E402
 import torch  # noqa: E402
+from matplotlib.colors import LogNorm, TwoSlopeNorm  # noqa: E402
+from matplotlib.patches import Rectangle  # noqa: E402
 from torch import Tensor  # noqa: E402
 
 from drlyap.simulation import Trajectories  # noqa: E402
@@ -33,91 +36,307 @@ def _display_states(system: UncertainSystem, x: Tensor) -> Tensor:
 def _save(fig, path: Path, title: str = "") -> Path:
     if title:
         fig.suptitle(title)
-    fig.tight_layout()
+    if not fig.get_layout_engine():
+        fig.tight_layout()
     fig.savefig(path, dpi=110)
     plt.close(fig)
     return path
 
 
-def phase_portraits(system: UncertainSystem, panels: Mapping[str, Trajectories], success: Mapping[str, Sequence[bool]],
-                    path: Path, title: str = "", levels: Mapping[str, tuple[Tensor, Tensor, Tensor]] | None = None) -> Path:
-    """One phase-plane panel per controller (first two state coordinates): trajectories, starts
-    (green dots), ends (red crosses), x* (black star); optional V contours ``(X, Y, V)`` per panel."""
-    fig, axes = plt.subplots(1, len(panels), figsize=(5.2 * len(panels), 4.4), squeeze=False)
-    lo, hi = system.state_box
-    for ax, (label, traj) in zip(axes[0], panels.items()):
-        if levels and label in levels:
-            gx, gy, gv = levels[label]
-            ax.contour(gx, gy, gv, levels=12, colors="0.8", linewidths=0.6)
-        x = _display_states(system, traj.x)
-        ok = list(success[label])
-        for b in range(x.shape[1]):
-            ax.plot(x[:, b, 0], x[:, b, 1], lw=0.9, color="tab:blue" if ok[b] else "tab:orange")
-        ax.plot(traj.x[0, :, 0], traj.x[0, :, 1], "o", color="tab:green", ms=5, label="start")
-        ax.plot(x[-1, :, 0], x[-1, :, 1], "x", color="tab:red", ms=7, label="end")
-        ax.plot(*system.equilibrium[:2], "*", color="black", ms=11, label="x*")
-        ax.set_xlim(lo[0], hi[0])
-        ax.set_ylim(lo[1], hi[1])
-        ax.set_xlabel(system.state_names[0])
-        ax.set_ylabel(system.state_names[1])
-        ax.set_title(f"{label}: {sum(ok)}/{len(ok)} stabilised")
-        ax.legend(loc="upper right", fontsize=8)
-    return _save(fig, path, title)
+# --------------------------------------------------------------------------- labels
+def unit_label(name: str, unit: str = "") -> str:
+    """``theta [rad]``, or the bare name when the unit is unknown."""
+    return f"{name} [{unit}]" if unit else name
 
 
-def time_series(series: Mapping[str, tuple[Tensor, Tensor, Tensor]], path: Path, title: str = "",
-                value_label: str = "V(x(t))", input_label: str = "u(t)") -> Path:
-    """Two panels: certificate (or value) along the trajectory and the input, per controller.
+def state_label(system: UncertainSystem, i: int) -> str:
+    """Axis label of state coordinate ``i`` with its unit."""
+    return unit_label(system.state_names[i], system.state_units[i] if system.state_units else "")
 
-    ``series[label] = (t (T,), value (T,), u (T,))``.
+
+def input_label(system: UncertainSystem, j: int = 0) -> str:
+    """Axis label of input coordinate ``j`` with its unit."""
+    return unit_label(f"u(t) = {system.input_names[j]}", system.input_units[j] if system.input_units else "")
+
+
+def time_label(system: UncertainSystem) -> str:
+    return unit_label("t", system.time_unit)
+
+
+def input_limits(system: UncertainSystem, j: int = 0) -> list[tuple[float, str]]:
+    """The input set's bounds on coordinate ``j`` as ``[(value, label)]``: ``u_max`` first, then ``u_min``."""
+    unit = f" {system.input_units[j]}" if system.input_units else ""
+    lo, hi = system.input_box
+    return [(hi[j], f"u_max = {hi[j]:g}{unit}"), (lo[j], f"u_min = {lo[j]:g}{unit}")]
+
+
+def input_limits_of(systems: Sequence[UncertainSystem], j: int = 0) -> list[tuple[float, str]]:
+    """:func:`input_limits` of several systems drawn on one plot: each distinct bound once, named by its
+    system when the systems' bounds differ (``pendulum-u9: u_max = 9 N m``)."""
+    distinct: dict[tuple, UncertainSystem] = {}
+    for system in systems:
+        distinct.setdefault(tuple(b[j] for b in system.input_box), system)
+    if len(distinct) <= 1:
+        return input_limits(systems[0], j) if systems else []
+    return [(value, f"{system.name}: {text}") for system in distinct.values() for value, text in input_limits(system, j)]
+
+
+def shift_text(system: UncertainSystem, xi: Sequence[float] | Tensor | None) -> str:
+    """``xi = (mass +0.1, damping +0.05)``, or ``nominal model (xi = 0)``."""
+    if xi is None:
+        return "nominal model (xi = 0)"
+    values = torch.as_tensor(xi, dtype=torch.float64).reshape(-1).tolist()
+    return "xi = (" + ", ".join(f"{n} {v:+g}" for n, v in zip(system.uncertain, values)) + ")"
+
+
+def region_label(roa: Mapping | None, where: str) -> str:
+    """What a sublevel set ``{V <= c}`` drawn on a figure is, in words, for a verifier result ``roa``
+    (``level`` c, ``certified``, optionally ``kind`` and ``ball_max_upper`` c0) at ``where`` (a shift text).
+
+    "practical stability: ... converges to {V <= c0}" when ``kind`` says so; "certified region of
+    attraction" only when ``certified`` is true and ``kind`` (if given) says so; otherwise what was proved
+    and that it certifies nothing. An empty string when there is no level to draw.
     """
-    fig, (a, b) = plt.subplots(1, 2, figsize=(11, 4))
+    if not roa or roa.get("level") is None or not roa["level"] > 0:
+        return ""
+    c = float(roa["level"])
+    kind = roa.get("kind")
+    c0 = roa.get("converges_to", roa.get("ball_max_upper"))
+    inner = f"{{V <= {float(c0):.3g}}}" if c0 is not None else "the delta-ball"
+    if kind == "practical stability":
+        return f"practical stability at {where}: from {{V <= {c:.3g}}} converges to {inner}"
+    if roa.get("certified") and kind in (None, "region of attraction"):
+        return f"certified region of attraction {{V <= {c:.3g}}} at {where}"
+    bound = f", but V may reach {float(c0):.3g} on the delta-ball" if c0 is not None else ""
+    return f"not certified at {where}: decrease proved on {{V <= {c:.3g}}} outside the delta-ball{bound}"
+
+
+# --------------------------------------------------------------------------- phase portraits
+def _contour_levels(values: Tensor, count: int = 8) -> list[float]:
+    """Increasing V levels at quantiles of ``values`` (so that they spread over the plane), 2 digits."""
+    finite = values[torch.isfinite(values)].reshape(-1)
+    if finite.numel() == 0:
+        return []
+    qs = torch.quantile(finite[:: max(1, finite.numel() // 20000)],
+                        torch.linspace(0.03, 0.85, count, dtype=finite.dtype)).tolist()
+    levels = sorted({float(f"{q:.2g}") for q in qs if q > 0})
+    return levels
+
+
+def draw_phase(ax, system: UncertainSystem, traj: Trajectories | None, success: Sequence[bool] | None,
+               grid: tuple[Tensor, Tensor, Tensor] | None = None, region: Mapping | None = None,
+               delta: float | None = None) -> None:
+    """One phase-plane panel (first two state coordinates, others at x*) on ``ax``: labelled V contours of
+    ``grid = (X, Y, V)``, the set ``region = {"level": c, "label": str, "certified": bool}`` filled (green
+    when certified, grey hatched otherwise), trajectories coloured by success (one legend entry per
+    colour), starts, ends, x*, the delta-ball and the state box."""
+    lo, hi = system.state_box
+    if grid is not None:
+        gx, gy, gv = grid
+        levels = _contour_levels(gv)
+        if region and region.get("level"):
+            levels = [lv for lv in levels if abs(lv - region["level"]) > 0.05 * region["level"]]
+        if levels:
+            cs = ax.contour(gx, gy, gv, levels=levels, colors="0.55", linewidths=0.7)
+            ax.clabel(cs, fmt=lambda v: f"V={v:.2g}", fontsize=7, inline=True)
+        if region and region.get("level"):
+            c = float(region["level"])
+            ok = bool(region.get("certified"))
+            color = "tab:green" if ok else "0.4"
+            ax.contourf(gx, gy, gv, levels=[float(gv.min()) - 1.0, c], colors=[color], alpha=0.18 if ok else 0.12,
+                        hatches=[None] if ok else ["//"])
+            ax.contour(gx, gy, gv, levels=[c], colors=[color], linewidths=2.0, linestyles="solid" if ok else "dashed")
+            ax.plot([], [], color=color, lw=6, alpha=0.4, label=textwrap.fill(region["label"], 75))
+    if delta:
+        t = torch.linspace(0, 2 * torch.pi, 100)
+        ax.plot(system.equilibrium[0] + delta * torch.cos(t), system.equilibrium[1] + delta * torch.sin(t), ":",
+                color="black", lw=0.9, label=f"delta-ball (|x - x*| < {delta:g}, excluded from the proof)")
+    if traj is not None:
+        x = _display_states(system, traj.x)
+        ok = [bool(v) for v in (success if success is not None else [True] * x.shape[1])]
+        for flag, color, text in ((True, "tab:blue", "stabilised"), (False, "tab:orange", "not stabilised")):
+            idx = [b for b in range(x.shape[1]) if ok[b] == flag]
+            for i, b in enumerate(idx):
+                ax.plot(x[:, b, 0], x[:, b, 1], lw=0.9, color=color,
+                        label=f"{text} ({len(idx)} of {len(ok)})" if i == 0 else None)
+        ax.plot(x[0, :, 0], x[0, :, 1], "o", color="tab:green", ms=4, label="start")
+        ax.plot(x[-1, :, 0], x[-1, :, 1], "x", color="tab:red", ms=6, label="end")
+    ax.plot(*system.equilibrium[:2], "*", color="black", ms=11, label="x*")
+    ax.add_patch(Rectangle((lo[0], lo[1]), hi[0] - lo[0], hi[1] - lo[1], fill=False, lw=1.5, color="black"))
+    pad0, pad1 = 0.03 * (hi[0] - lo[0]), 0.03 * (hi[1] - lo[1])
+    ax.set_xlim(lo[0] - pad0, hi[0] + pad0)
+    ax.set_ylim(lo[1] - pad1, hi[1] + pad1)
+    ax.set_xlabel(state_label(system, 0))
+    ax.set_ylabel(state_label(system, 1))
+
+
+def phase_portrait(system: UncertainSystem, traj: Trajectories, success: Sequence[bool], path: Path, title: str = "",
+                   grid: tuple[Tensor, Tensor, Tensor] | None = None, region: Mapping | None = None,
+                   delta: float | None = None) -> Path:
+    """A single phase portrait (:func:`draw_phase`) with its legend below the axes."""
+    fig, ax = plt.subplots(figsize=(7.5, 7.2), layout="constrained")
+    draw_phase(ax, system, traj, success, grid, region, delta)
+    fig.legend(loc="outside lower center", ncol=2, fontsize=8)
+    if title:
+        ax.set_title(title, fontsize=10)
+    return _save(fig, path)
+
+
+def phase_portraits(system: UncertainSystem, panels: Mapping[str, Trajectories], success: Mapping[str, Sequence[bool]],
+                    path: Path, title: str = "", levels: Mapping[str, tuple[Tensor, Tensor, Tensor]] | None = None,
+                    regions: Mapping[str, Mapping] | None = None) -> Path:
+    """One phase-plane panel per controller (:func:`draw_phase`); one legend below the panels."""
+    fig, axes = plt.subplots(1, len(panels), figsize=(5.6 * len(panels), 5.6), squeeze=False, layout="constrained")
+    for ax, (label, traj) in zip(axes[0], panels.items()):
+        ok = list(success[label])
+        region = (regions or {}).get(label)
+        if region:  # one legend for all panels: say whose set it is
+            region = {**region, "label": f"{label}: {region['label']}"}
+        draw_phase(ax, system, traj, ok, (levels or {}).get(label), region)
+        ax.set_title(f"{label}: {sum(ok)}/{len(ok)} stabilised")
+    handles = {}
+    for ax in axes[0]:
+        for h, lab in zip(*ax.get_legend_handles_labels()):
+            key = lab.split(" (")[0] if lab.startswith(("stabilised", "not stabilised")) else lab
+            handles.setdefault(key, h)
+    long = any(len(text) > 40 for text in handles)
+    fig.legend(list(handles.values()), list(handles), loc="outside lower center",
+               ncol=min(2 if long else 5, len(handles)), fontsize=8)
+    if title:
+        fig.suptitle(title)
+    return _save(fig, path)
+
+
+# --------------------------------------------------------------------------- time series
+def time_series_figure(series: Mapping[str, tuple[Tensor, Tensor, Tensor]], title: str = "",
+                       value_label: str = "V(x(t))", input_label: str = "u(t)", time_label: str = "t",
+                       limits: Sequence[tuple[float, str]] = ()):
+    """The figure of :func:`time_series` (returned, not saved): axes 0 the certificate, axes 1 the input
+    with the input limits ``limits = [(value, label)]`` as dashed horizontal lines."""
+    fig, (a, b) = plt.subplots(1, 2, figsize=(11, 4.6), layout="constrained")
     positive = all(bool((value > 0).all()) for _, value, _ in series.values())
     for label, (t, value, u) in series.items():
         a.plot(t, value, label=label)
         b.plot(t, u, label=label)
-    a.set_xlabel("t")
+    a.set_xlabel(time_label)
     a.set_ylabel(value_label)
     a.set_yscale("log" if positive else "symlog")
     if positive:  # at most ten decades: a certificate that reaches 1e-35 would flatten all the others
         low = min(float(v.min()) for _, v, _ in series.values())
         high = max(float(v.max()) for _, v, _ in series.values())
         a.set_ylim(bottom=max(low, 1e-10 * high))
-    b.set_xlabel("t")
+    colors = ("tab:red", "tab:brown", "tab:pink", "tab:purple")
+    for i, (value, text) in enumerate(limits):  # one colour per (u_max, u_min) pair
+        color = colors[(i // 2) % len(colors)]
+        b.axhline(value, ls="--", lw=1.2, color=color, label=text)
+        upper = i % 2 == 0  # u_max above its line, u_min below
+        b.annotate(text, (1.0, value), xycoords=("axes fraction", "data"), xytext=(-4, 3 if upper else -3),
+                   textcoords="offset points", ha="right", va="bottom" if upper else "top", color=color, fontsize=8)
+    if limits:
+        values = [v for v, _ in limits] + [float(u.min()) for _, _, u in series.values()] + \
+            [float(u.max()) for _, _, u in series.values()]
+        span = max(values) - min(values)
+        b.set_ylim(min(values) - 0.1 * span, max(values) + 0.1 * span)
+    b.set_xlabel(time_label)
     b.set_ylabel(input_label)
-    a.legend()
-    b.legend()
-    return _save(fig, path, title)
+    fig.legend(handles=a.lines, loc="outside lower center", ncol=min(3, len(series)), fontsize=8)
+    if title:
+        fig.suptitle(title)
+    return fig
+
+
+def time_series(series: Mapping[str, tuple[Tensor, Tensor, Tensor]], path: Path, title: str = "",
+                value_label: str = "V(x(t))", input_label: str = "u(t)", time_label: str = "t",
+                limits: Sequence[tuple[float, str]] = ()) -> Path:
+    """Two panels: certificate (or value) along the trajectory and the input with its limits, per
+    controller or start state (one legend below both panels).
+
+    ``series[label] = (t (T,), value (T,), u (T,))``; ``limits`` as :func:`input_limits`.
+    """
+    return _save(time_series_figure(series, title, value_label, input_label, time_label, limits), path)
 
 
 def lyapunov_grid(system: UncertainSystem, lyapunov, per_axis: int = 120) -> tuple[Tensor, Tensor, Tensor]:
-    """``(X, Y, V)`` on a grid of the first two coordinates (others at x*), for contour plots."""
+    """``(X, Y, V)`` on a grid of the first two coordinates (others at x*), for contour plots.
+
+    An angle coordinate stops just short of the box's upper edge, where it wraps to the lower one.
+    """
     lo, hi = system.state_box
-    gx, gy = torch.meshgrid(torch.linspace(lo[0], hi[0], per_axis, dtype=torch.float64),
-                            torch.linspace(lo[1], hi[1], per_axis, dtype=torch.float64), indexing="xy")
+    ends = [hi[i] - (1e-9 * (hi[i] - lo[i]) if i in system.angle_dims else 0.0) for i in (0, 1)]
+    gx, gy = torch.meshgrid(torch.linspace(lo[0], ends[0], per_axis, dtype=torch.float64),
+                            torch.linspace(lo[1], ends[1], per_axis, dtype=torch.float64), indexing="xy")
     x = torch.tensor(system.equilibrium, dtype=torch.float64).repeat(gx.numel(), 1)
     x[:, 0], x[:, 1] = gx.reshape(-1), gy.reshape(-1)
     return gx, gy, lyapunov(x).reshape(gx.shape)
 
 
+def decrease_map(system: UncertainSystem, grid: tuple[Tensor, Tensor, Tensor], residual: Tensor, path: Path,
+                 title: str = "", condition: str = "Vdot + gamma |x - x*|", delta: float | None = None) -> Path:
+    """Two heatmaps over the first two coordinates (others at x*): V, and the decrease residual
+    ``residual (same shape as V; NaN where excluded, e.g. the delta-ball)`` on a colour scale centred at
+    0, where it is > 0 (the condition fails) outlined in black and counted in the title."""
+    gx, gy, gv = (g.detach().cpu() for g in grid)
+    residual = residual.detach().cpu()
+    px, py = gx.numpy(), gy.numpy()  # matplotlib takes arrays
+    fig, (a, b) = plt.subplots(1, 2, figsize=(12, 5.2), layout="constrained")
+    v_top = float(gv.max())
+    m = a.pcolormesh(px, py, gv.clamp_min(1e-4 * v_top).numpy(), shading="auto", cmap="viridis",
+                     norm=LogNorm(vmin=max(float(gv.min()), 1e-4 * v_top), vmax=v_top))
+    fig.colorbar(m, ax=a, label="V(x) (log scale)")
+    levels = _contour_levels(gv)
+    if levels:
+        cs = a.contour(px, py, gv.numpy(), levels=levels, colors="white", linewidths=0.6)
+        a.clabel(cs, fmt=lambda v: f"V={v:.2g}", fontsize=7)
+    finite = residual[torch.isfinite(residual)]
+    norm = TwoSlopeNorm(vcenter=0.0, vmin=min(-1e-12, float(finite.min())), vmax=max(1e-12, float(finite.max())))
+    r = b.pcolormesh(px, py, residual.numpy(), shading="auto", cmap="RdBu_r", norm=norm)
+    fig.colorbar(r, ax=b, label=f"{condition} (> 0: fails)")
+    fails = residual > 0  # NaN (the excluded delta-ball) is not a failure
+    if delta:
+        t = torch.linspace(0, 2 * torch.pi, 100)
+        for ax in (a, b):
+            ax.plot(system.equilibrium[0] + delta * torch.cos(t), system.equilibrium[1] + delta * torch.sin(t), ":",
+                    color="black", lw=0.9)
+    if bool(fails.any()):
+        b.contour(px, py, fails.double().numpy(), levels=[0.5], colors="black", linewidths=1.0)
+    share = float(fails.double().sum() / max(1, finite.numel()))
+    for ax in (a, b):
+        ax.plot(*system.equilibrium[:2], "*", color="white" if ax is a else "black", ms=10)
+        ax.set_xlabel(state_label(system, 0))
+        ax.set_ylabel(state_label(system, 1))
+    a.set_title("certificate V")
+    where = "outside the delta-ball" if delta else ""
+    top = float(finite.max()) if finite.numel() else float("nan")
+    verdict = (f"decrease fails (> 0, outlined) on {100 * share:.2f}% of the grid {where}" if share > 0
+               else f"decrease holds at every grid point {where}")
+    b.set_title(f"{verdict}\n(max {top:.3g} on the grid; grid values, not a proof)", fontsize=9)
+    if title:
+        fig.suptitle(title)
+    return _save(fig, path)
+
+
 def sweep_plot(system_name: str, factors: Sequence[int], results: Sequence[dict], path: Path,
                test_xi: Sequence[float]) -> Path:
-    """Success rate against the size of the parameter shift (multiples of the test shift), per method;
-    one thin line per seed and the mean as a thick line."""
-    fig, ax = plt.subplots(figsize=(6, 4))
+    """Success rate against the size of the parameter shift (multiples of the test shift), per method:
+    every seed as a dot (methods side by side), the min-max band over seeds and the mean as a line."""
+    fig, ax = plt.subplots(figsize=(7, 5), layout="constrained")
     colors = {"baseline": "tab:orange", "dr": "tab:blue"}
+    offsets = {"baseline": -0.08, "dr": 0.08}
     for method, color in colors.items():
         rows = [r for r in results if r["method"] == method]
         if not rows:
             continue
-        rates = torch.tensor([[r["sweep_200"][k] / r["more_200"]["n"] for k in factors] for r in rows])
+        rates = torch.tensor([[r["sweep_200"][k] / r["more_200"]["n"] for k in factors] for r in rows],
+                             dtype=torch.float64)
+        xs = torch.tensor([float(k) for k in factors]) + offsets[method]
+        ax.fill_between(xs, rates.amin(0), rates.amax(0), color=color, alpha=0.15, lw=0)
         for line in rates:
-            ax.plot(factors, line, color=color, alpha=0.3, lw=0.8)
-        ax.plot(factors, rates.mean(0), color=color, lw=2.5, marker="o", label=f"{method} (mean of {len(rows)} seeds)")
+            ax.plot(xs, line, "o", color=color, ms=4, alpha=0.7, mfc="none")
+        ax.plot(xs, rates.mean(0), color=color, lw=2, label=f"{method}: mean, min-max band, dots = {len(rows)} seeds")
     ax.set_xlabel(f"shift = k x test shift {list(test_xi)}")
     ax.set_ylabel("success rate on the true model")
-    ax.set_ylim(-0.02, 1.02)
+    ax.set_ylim(-0.03, 1.03)
     ax.set_xticks(list(factors))
     ax.set_title(f"{system_name}: robustness to larger parameter shifts")
-    ax.legend()
+    fig.legend(loc="outside lower center", fontsize=8)
     return _save(fig, path)

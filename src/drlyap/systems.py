@@ -71,6 +71,9 @@ class UncertainSystem:
         sim_dt, horizon: integration step and simulated time (system time units) for evaluation.
         success_tol: a trajectory succeeds when, over the last ``settle_fraction`` of the horizon, every
             coordinate of ``x - x*`` (angles wrapped) stays within ``success_tol`` times the box half-width.
+        state_units, input_units: one unit per coordinate (``("rad", "rad/s")``), or empty when unknown;
+            used on plot axes (``theta [rad]``).
+        time_unit: unit of time in ``dynamics`` (``s``; ``step`` for a model in time steps).
     """
 
     name: str
@@ -95,10 +98,20 @@ class UncertainSystem:
     success_tol: float = 0.02
     settle_fraction: float = 0.1
     description: str = ""
+    state_units: tuple[str, ...] = ()
+    input_units: tuple[str, ...] = ()
+    time_unit: str = "s"
 
     def __post_init__(self) -> None:
         n, m = len(self.state_names), len(self.input_names)
         set_ = object.__setattr__
+        for what, units, dim in (("state_units", self.state_units, n), ("input_units", self.input_units, m)):
+            if isinstance(units, str) or not all(isinstance(u, str) for u in units) or len(units) not in (0, dim):
+                raise ValueError(f"{self.name}: {what} must be empty or {dim} strings (one per coordinate), "
+                                 f"got {units!r}")
+            set_(self, what, tuple(units))
+        if not isinstance(self.time_unit, str):
+            raise ValueError(f"{self.name}: time_unit must be a string such as 's', got {self.time_unit!r}")
         set_(self, "state_box", _as_pair(self.state_box, f"{self.name}: state_box", n))
         set_(self, "input_box", _as_pair(self.input_box, f"{self.name}: input_box", m))
         set_(self, "test_box", _as_pair(self.test_box or self.state_box, f"{self.name}: test_box", n))
@@ -293,6 +306,7 @@ class UncertainSystem:
             "angle_dims": list(self.angle_dims), "test_box": [list(b) for b in self.test_box],
             "test_xi": list(self.test_xi) if self.test_xi is not None else None,
             "description": self.description,
+            "state_units": list(self.state_units), "input_units": list(self.input_units), "time_unit": self.time_unit,
         }
 
 
@@ -332,7 +346,7 @@ def pendulum(u_max: float = 15.0) -> UncertainSystem:
         defaults={"n_states": 3600, "wasserstein_radius": 0.01, "risk_level": 0.1, "n_xi": 5,
                   "decay_rate": 1.0, "alpha_hat": 1.0, "delta": 0.5, "margin": 0.1,
                   "lyapunov_hidden": [16, 16], "controller_hidden": [16, 16]},
-        sim_dt=0.01, horizon=20.0,
+        sim_dt=0.01, horizon=20.0, state_units=("rad", "rad/s"), input_units=("N m",), time_unit="s",
         description="Inverted pendulum (paper Sec. VII-A): m=1, l=1, b=0.13, g=9.81; xi = (mass, damping) shift.",
     )
 
@@ -347,8 +361,9 @@ def mountain_car() -> UncertainSystem:
         xi_sampler=_mountain_car_xi, test_xi=(-0.0003,),
         defaults={"n_states": 1600, "wasserstein_radius": 1e-4, "risk_level": 0.1, "n_xi": 3,
                   "decay_rate": 0.001, "alpha_hat": 1.0, "delta": 0.1, "margin": 0.003},
-        sim_dt=0.5, horizon=1500.0,
-        description="Mountain car (paper Sec. VII-B): p=0.0015, |u|<=2, goal (pi/6, 0); xi = power shift.",
+        sim_dt=0.5, horizon=1500.0, state_units=("u.", "u./step"), input_units=("u.",), time_unit="step",
+        description=("Mountain car (paper Sec. VII-B): p=0.0015, |u|<=2, goal (pi/6, 0); xi = power shift. "
+                     "Units are those of the model (u.), time in steps of the gym environment (1 step = 1 time unit)."),
     )
 
 
