@@ -65,5 +65,6 @@ def test_pendulum_reproduction_seed_0(tmp_path):
 
     report = reproduce("pendulum", [0], tmp_path / "rep", progress=False, log=lambda s: None)
     rows = {r["method"]: r for r in report["results"]}
-    assert rows["dr"]["certificate"] == "verified"
+    assert rows["dr"]["certificate"] == "verified" and rows["dr"]["true_model"] == "verified"
+    assert rows["dr"]["roa"].endswith("%")  # a region of attraction, as a share of the box
     assert rows["dr"]["paper_10"]["n_success"] == 10 and rows["dr"]["more_200"]["n_success"] >= 195

@@ -20,6 +20,7 @@ from drlyap.rundir import Run, atomic_dir, load_run, save_run
 from drlyap.simulation import evaluate, initial_states, simulate
 from drlyap.systems import UncertainSystem, get_system
 from drlyap.training import TrainConfig
+from drlyap.verification import verify_run
 
 METHODS = ("baseline", "dr")
 SWEEP = (1, 2, 3, 4, 5)  # evaluation shifts, as multiples of the paper's test shift
@@ -45,12 +46,15 @@ def summary_row(result: dict) -> dict:
 
 def reproduce(system_name: str, seeds: Sequence[int], out: Path, iters: int | None = None, progress: bool = True,
               device: str = "cpu", log=print, n_more: int = 200, sweep: Sequence[int] = SWEEP,
-              verify: bool = True, verify_rounds: int = 5) -> dict:
+              verify: bool = True, verify_rounds: int = 5, verify_time: float = 10.0) -> dict:
     """Run the paper's experiment for ``system_name`` and write everything under ``out`` (atomically).
 
     Returns a JSON-friendly dict with per-seed, per-method results and the paths of the figures. Both pairs
     are trained as :func:`drlyap.cegis.train_certified` does: with ``verify``, counterexample-guided rounds
-    (at most ``verify_rounds``) until the verifier proves their trained condition.
+    (at most ``verify_rounds``) until the verifier proves their trained condition; then each pair's decrease on
+    the true model at the test shift and its certified region of attraction there are proved
+    (:func:`drlyap.verification.verify_run`, ``verify_time`` seconds per check) and stored in its
+    ``metrics["certificate"]``.
     """
     system = get_system(system_name)
     if system.test_xi is None:
@@ -76,6 +80,11 @@ def reproduce(system_name: str, seeds: Sequence[int], out: Path, iters: int | No
                 paper = evaluate_run(run, xi_test, x_paper)
                 more = evaluate_run(run, xi_test, x_more)
                 run.metrics["evaluations"] = {"paper_10": paper, "more_200": more}
+                if verify:  # what the pair proves on the true model at the test shift (the figures draw its region)
+                    proof = verify_run(run, xi=xi_test, time_limit=verify_time, roa=True)
+                    run.metrics["certificate"]["true_model"] = {
+                        k: proof["true_model"][k] for k in ("status", "xi", "verified_fraction", "time_s", "counterexample")}
+                    run.metrics["certificate"]["roa"] = proof["roa"]
                 run.save_metrics()
                 runs[method] = run
                 swept = {k: evaluate_run(run, k * xi_test, x_more)["n_success"] for k in sweep}
@@ -88,6 +97,9 @@ def reproduce(system_name: str, seeds: Sequence[int], out: Path, iters: int | No
                        "iterations": result.metrics["iterations"],
                        "train_time_s": result.metrics.get("cegis", {}).get("total_time_s", result.metrics["train_time_s"]),
                        "certificate": result.metrics["certificate"]["status"],
+                       "true_model": run.metrics["certificate"].get("true_model", {}).get("status"),
+                       "true_model_fraction": run.metrics["certificate"].get("true_model", {}).get("verified_fraction"),
+                       "roa": _roa_cell(run.metrics["certificate"].get("roa")),
                        "paper_10": summary_row(paper), "more_200": summary_row(more), "sweep_200": swept,
                        "run_dir": str(Path(out) / f"seed{seed}" / method)}
                 report["results"].append(row)
@@ -102,6 +114,15 @@ def reproduce(system_name: str, seeds: Sequence[int], out: Path, iters: int | No
 
     atomic_dir(Path(out), fill, overwrite=False)
     return report
+
+
+def _roa_cell(roa: dict | None) -> str | None:
+    """A short name of a region-of-attraction result for the report table."""
+    if not roa or "level" not in roa:
+        return None
+    if roa.get("kind") == "region of attraction":
+        return f"{100 * roa['share_of_box']:.1f}%"
+    return roa.get("kind") or "none"
 
 
 def draw_figures(system: UncertainSystem, runs: dict[str, Run], xi: torch.Tensor, x0: torch.Tensor, folder: Path,
@@ -136,21 +157,30 @@ def format_row(row: dict) -> str:
             f"more {m['n_success']:>3}/{m['n']}, acceptance {'PASSED' if row['passed_acceptance'] else 'not passed'} "
             f"(max violation {row['max_violation']:.3g}, violating {100 * row['violating_fraction']:.2f}%, "
             f"Hurwitz {row['hurwitz']}, other equilibria {row['other_equilibria']}), {row['train_time_s']:.0f}s, "
-            f"certificate {row['certificate'].upper()}")
+            f"certificate {row['certificate'].upper()}; at the test shift: decrease {_true_cell(row)}, region of "
+            f"attraction {row['roa'] or '-'}")
+
+
+def _true_cell(row: dict) -> str:
+    if row.get("true_model") is None:
+        return "-"
+    if row["true_model"] == "verified":
+        return "verified"
+    return f"{row['true_model']} ({100 * (row['true_model_fraction'] or 0):.2f}% proved)"
 
 
 def format_table(report: dict) -> str:
     lines = [f"## {report['system']} at test shift xi = {report['test_xi']}", "",
              "| seed | method | paper 10 | 200 more | acceptance | max violation | violating % | Hurwitz | other eq. | train s |",
              "|---|---|---|---|---|---|---|---|---|---|"]
-    lines[2] += " trained condition (verifier) |"
-    lines[3] += "---|"
+    lines[2] += " trained condition (verifier) | decrease on the true model at the test shift | certified region of attraction |"
+    lines[3] += "---|---|---|"
     for r in report["results"]:
         lines.append(f"| {r['seed']} | {r['method']} | {r['paper_10']['n_success']}/{r['paper_10']['n']} | "
                      f"{r['more_200']['n_success']}/{r['more_200']['n']} | "
                      f"{'passed' if r['passed_acceptance'] else 'not passed'} | {r['max_violation']:.3g} | "
                      f"{100 * r['violating_fraction']:.2f} | {r['hurwitz']} | {r['other_equilibria']} | "
-                     f"{r['train_time_s']:.0f} | {r['certificate']} |")
+                     f"{r['train_time_s']:.0f} | {r['certificate']} | {_true_cell(r)} | {r['roa'] or '-'} |")
     factors = report["sweep"]
     lines += ["", f"Success on the {report['results'][0]['more_200']['n']} more states at k x the test shift:", "",
               "| seed | method | " + " | ".join(f"k={k}" for k in factors) + " |",
