@@ -22,10 +22,11 @@ class _LineBar:
 
     def __init__(self, total: int, desc: str, stream: TextIO, every: float) -> None:
         self.total, self.desc, self.stream, self.every = total, desc, stream, every
-        self.count, self.postfix = 0, ""
+        self.count, self.shown, self.postfix = 0, 0, ""
         self.start = self.last = time.monotonic()
 
     def _line(self) -> None:
+        self.shown = self.count
         pct = f" ({100 * self.count / self.total:.0f}%)" if self.total else ""
         extra = f" {self.postfix}" if self.postfix else ""
         print(f"{self.desc}: {self.count}/{self.total}{pct}{extra}, {time.monotonic() - self.start:.0f} s",
@@ -42,7 +43,7 @@ class _LineBar:
         self.postfix = " ".join(f"{k}={v}" for k, v in kw.items())
 
     def close(self) -> None:
-        if time.monotonic() - self.start >= self.every:  # short loops stay silent
+        if self.shown != self.count and time.monotonic() - self.start >= self.every:  # short loops stay silent
             self._line()
 
 
