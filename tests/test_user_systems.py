@@ -166,3 +166,34 @@ def test_progress_lines_when_piped_and_nothing_when_disabled():
     bar.update(3)
     bar.close()
     assert quiet.getvalue() == ""
+
+
+def test_reproduce_takes_a_user_file(user_runs):
+    tmp, file, _, _ = user_runs
+    result = invoke("reproduce", f"{file}:make", "--iters", "2", "--seeds", "0", "--json", "--out", tmp / "rep")
+    assert result.exit_code == 0, result.output
+    report = json.loads(result.stdout)
+    assert report["system"] == "user-dint" and report["test_xi"] == [-0.2]
+    assert load_run(tmp / "rep" / "seed0" / "dr").system.name == "user-dint"
+
+
+def test_run_kind_loaders_need_no_import_loop():
+    import ast
+    import inspect
+
+    import drlyap.baselines
+    import drlyap.rl
+
+    def imported(module) -> set[str]:
+        names = set()
+        for node in ast.walk(ast.parse(inspect.getsource(module))):
+            if isinstance(node, ast.ImportFrom) and node.module:
+                names.add(node.module)
+            elif isinstance(node, ast.Import):
+                names.update(a.name for a in node.names)
+        return names
+
+    assert "drlyap.rl" not in imported(drlyap.baselines) and "drlyap.baselines" not in imported(drlyap.rl)
+    from drlyap.rundir import LOADERS
+
+    assert {"lyapunov", "lqr", "rl"} <= set(LOADERS)

@@ -84,6 +84,9 @@ class UncertainSystem:
         test_xi: the paper's out-of-distribution test shift.
         reference_states: start states (user coordinates, each of length n) of the paper-like figures
             (``reproduce``'s certificate/input plot, ``compare``'s figures); empty: corner and centre of the test box.
+        rl_timing: ``(dt, episode_time)`` of the RL environment (default ``(sim_dt, horizon)``).
+        rl_reward_weights: ``(state (n,), input (m,))`` diagonal weights of the RL cost
+            ``-(sum w_i z_i^2 + sum w_j (u_j - u*_j)^2)``; default: 1/half-width^2 of the boxes (inputs x 0.001).
         defaults: training defaults for this system (overrides of :class:`drlyap.training.TrainConfig`).
         sim_dt, horizon: integration step and simulated time (system time units) for evaluation.
         success_tol: a trajectory succeeds when, over the last ``settle_fraction`` of the horizon, every
@@ -107,6 +110,8 @@ class UncertainSystem:
     xi_sampler: XiSampler | None = None
     test_xi: tuple[float, ...] | None = None
     reference_states: tuple[tuple[float, ...], ...] = ()
+    rl_timing: tuple[float, float] | None = None
+    rl_reward_weights: tuple[tuple[float, ...], tuple[float, ...]] | None = None
     defaults: dict = field(default_factory=dict)
     sim_dt: float = 0.01
     horizon: float = 20.0
@@ -141,6 +146,23 @@ class UncertainSystem:
                 raise ValueError(f"{self.name}: reference_states[{i}] has {len(r)} entries, state has {n} "
                                  f"({', '.join(self.state_names)})")
         set_(self, "reference_states", refs)
+        if self.rl_timing is not None:
+            timing = _finite(self.rl_timing, f"{self.name}: rl_timing", ("dt", "episode_time"))
+            if len(timing) != 2 or not 0 < timing[0] <= timing[1]:
+                raise ValueError(f"{self.name}: rl_timing must be (dt, episode_time) with 0 < dt <= episode_time, "
+                                 f"got {self.rl_timing}")
+            set_(self, "rl_timing", timing)
+        if self.rl_reward_weights is not None:
+            try:
+                wx, wu = self.rl_reward_weights
+            except (TypeError, ValueError) as err:
+                raise ValueError(f"{self.name}: rl_reward_weights must be (state weights, input weights)") from err
+            wx = _finite(wx, f"{self.name}: rl_reward_weights[0]", self.state_names)
+            wu = _finite(wu, f"{self.name}: rl_reward_weights[1]", self.input_names)
+            if len(wx) != n or len(wu) != m or min(wx + wu) < 0:
+                raise ValueError(f"{self.name}: rl_reward_weights needs {n} state and {m} input weights >= 0, "
+                                 f"got {self.rl_reward_weights}")
+            set_(self, "rl_reward_weights", (wx, wu))
         unknown = [u for u in self.uncertain if u not in self.param_names]
         if unknown or not self.uncertain:
             raise ValueError(f"{self.name}: uncertain parameters {unknown or '()'} must be a non-empty "
@@ -358,6 +380,7 @@ def pendulum(u_max: float = 15.0) -> UncertainSystem:
         state_box=((-math.pi, -8.0), (math.pi, 8.0)), input_box=((-u_max,), (u_max,)),
         equilibrium=(0.0, 0.0), angle_dims=(0,), test_box=((-math.pi, -6.0), (math.pi, 6.0)),
         xi_sampler=_pendulum_xi, test_xi=(0.1, 0.05), reference_states=((math.pi, 0.0), (-math.pi / 2, 5.5)),
+        rl_timing=(0.05, 10.0), rl_reward_weights=((1.0, 0.1), (0.001,)),  # the paper's RL cost, 200-step episodes
         defaults={"n_states": 3600, "wasserstein_radius": 0.01, "risk_level": 0.1, "n_xi": 5,
                   "decay_rate": 1.0, "alpha_hat": 1.0, "delta": 0.5, "margin": 0.1,
                   "lyapunov_hidden": [16, 16], "controller_hidden": [16, 16]},
@@ -374,6 +397,7 @@ def mountain_car() -> UncertainSystem:
         dynamics=_mountain_car, state_box=((-2.0, -0.4), (2.0, 0.4)), input_box=((-2.0,), (2.0,)),
         equilibrium=(math.pi / 6, 0.0), test_box=((-1.0, -0.1), (1.0, 0.1)),
         xi_sampler=_mountain_car_xi, test_xi=(-0.0003,), reference_states=((-math.pi / 6, 0.0),),
+        rl_timing=(1.0, 500.0),  # the gym mountain car's step
         defaults={"n_states": 1600, "wasserstein_radius": 1e-4, "risk_level": 0.1, "n_xi": 3,
                   "decay_rate": 0.001, "alpha_hat": 1.0, "delta": 0.1, "margin": 0.003},
         sim_dt=0.5, horizon=1500.0,
