@@ -246,7 +246,7 @@ def _policy_run_as_run(run_dir: Path):
     """A non-Lyapunov run (LQR, RL) shaped like :class:`drlyap.rundir.Run` for ``evaluate``."""
     from types import SimpleNamespace
 
-    from drlyap.baselines import load_policy_run
+    from drlyap.rundir import load_policy_run
 
     run = load_policy_run(run_dir)
     return SimpleNamespace(system=run.system, controller=run.controller, lyapunov=run.certificate,
