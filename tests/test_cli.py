@@ -25,7 +25,7 @@ def test_every_command_has_help():
 
 def test_systems_lists_built_ins():
     result = CliRunner().invoke(main, ["systems", "--json"])
-    names = {d["name"] for d in json.loads(result.output)}
+    names = {d["name"] for d in json.loads(result.stdout)}
     assert {"pendulum", "mountain-car"} <= names
 
 
@@ -33,7 +33,7 @@ def test_evaluate_json(run_dir):
     result = CliRunner().invoke(main, ["evaluate", str(run_dir), "--xi", "0.1,0.05", "--n-init", "5", "--horizon",
                                        "1", "--json"])
     assert result.exit_code == 0, result.output
-    data = json.loads(result.output)
+    data = json.loads(result.stdout)
     assert data["n"] == 5 and 0 <= data["n_success"] <= 5 and data["success_rate"] == data["n_success"] / 5
 
 

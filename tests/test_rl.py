@@ -73,15 +73,16 @@ def test_cli_accepts_rl_runs(runs, tmp_path):
     res = runner.invoke(main, ["evaluate", str(runs / "sac"), "--xi", "0.1,0.05", "--n-init", "3", "--horizon", "1",
                                "--json"])
     assert res.exit_code == 0, res.output
-    assert json.loads(res.output)["n"] == 3
+    assert json.loads(res.stdout)["n"] == 3
     res = runner.invoke(main, ["compare", str(runs / "ppo"), str(runs / "sac"), "--xi", "0.1,0.05", "--n-init", "3",
                                "--horizon", "1", "--json"])
     assert res.exit_code == 0, res.output
-    rows = json.loads(res.output)["rows"]
+    rows = json.loads(res.stdout)["rows"]
     assert [r["label"] for r in rows] == ["rl-ppo", "rl-sac"] and [r["samples"] for r in rows] == [200, 200]
-    res = runner.invoke(main, ["rl", "train", "pendulum", "--algo", "sac", "--steps", "60", "--out",
+    res = runner.invoke(main, ["rl", "train", "pendulum", "--algo", "sac", "--steps", "60", "--json", "--out",
                                str(tmp_path / "cli_sac")])
     assert res.exit_code == 0, res.output
+    assert json.loads(res.stdout)["metrics"]["samples"] == 60
     assert load_policy_run(tmp_path / "cli_sac").samples == 60
     res = runner.invoke(main, ["rl", "train", "pendulum", "--algo", "sac", "--steps", "0", "--out", str(tmp_path / "z")])
     assert res.exit_code != 0 and "steps must be >= 1" in res.output

@@ -25,9 +25,8 @@ Run directory of kind ``lqr`` (written atomically)::
       metrics.json   samples (0), train_time_s, closed-loop eigenvalues, optional evaluations
       figures/
 
-:func:`load_policy_run` loads any run directory (``lyapunov``, ``lqr``, ``rl``) into a
-:class:`PolicyRun` with a common interface: ``controller(x)`` and ``certificate(x)`` in user
-coordinates, ``samples`` and ``train_time_s`` for comparisons.
+:func:`drlyap.rundir.load_policy_run` loads any run directory (``lyapunov``, ``lqr``, ``rl``) into a
+:class:`drlyap.rundir.PolicyRun` with a common interface; this module registers the ``lqr`` loader.
 """
 
 from __future__ import annotations
@@ -35,26 +34,27 @@ from __future__ import annotations
 import json
 import os
 import time
-from collections.abc import Callable, Sequence
-from dataclasses import dataclass, field
+from collections.abc import Sequence
+from dataclasses import dataclass
 from pathlib import Path
 
 import numpy as np
 import torch
 from torch import Tensor
 
-from drlyap.rundir import (
-    FORMAT_VERSION,
+from drlyap.rundir import (  # noqa: F401  (PolicyRun, load_policy_run: re-exported for existing callers)
+    PolicyRun,
     RunDirError,
     atomic_dir,
     ensure_new,
-    load_run,
+    load_policy_run,
     read_run_json,
-    read_run_kind,
+    register_loader,
+    run_record,
     run_system,
     write_json,
 )
-from drlyap.systems import UncertainSystem, get_system
+from drlyap.systems import UncertainSystem, resolve_system, system_source
 
 
 # --------------------------------------------------------------------------- linearisation and LQR
@@ -154,8 +154,9 @@ def lqr_design(system: UncertainSystem, Q: Sequence[float] | Tensor | None = Non
 
 
 def save_lqr_run(out: str | os.PathLike, design: LQRDesign, metrics: dict | None = None, overwrite: bool = False,
-                 design_time_s: float = 0.0) -> Path:
-    """Write an LQR design as a run directory of kind ``lqr`` (atomically)."""
+                 design_time_s: float = 0.0, source: dict | None = None) -> Path:
+    """Write an LQR design as a run directory of kind ``lqr`` (atomically); ``source``: see
+    :func:`drlyap.rundir.run_record`."""
     system = design.system
     eigs = design.closed_loop_eigenvalues
 
@@ -169,20 +170,24 @@ def save_lqr_run(out: str | os.PathLike, design: LQRDesign, metrics: dict | None
                                            "closed_loop_eigenvalues": [[v.real, v.imag] for v in eigs]}
                     | (metrics or {}))
         (tmp / "figures").mkdir()
-        write_json(tmp / "run.json", {"kind": "lqr", "format": FORMAT_VERSION, "system": system.describe()})
+        write_json(tmp / "run.json", run_record("lqr", system, source))
 
     return atomic_dir(Path(out), fill, overwrite)
 
 
-def train_lqr(system_name: str, out: str | os.PathLike, Q: Sequence[float] | None = None, R: Sequence[float] | None = None,
-              evaluate_test: bool = True, n_init: int = 200, seed: int = 0) -> dict:
-    """Design LQR for a registered system, optionally evaluate it at the system's test shift, save a run dir.
+def train_lqr(system: str | UncertainSystem, out: str | os.PathLike, Q: Sequence[float] | None = None,
+              R: Sequence[float] | None = None, evaluate_test: bool = True, n_init: int = 200, seed: int = 0) -> dict:
+    """Design LQR for a system (an object, or a spec for :func:`drlyap.systems.resolve_system`), optionally
+    evaluate it at the system's test shift, save a run dir.
 
     Returns the metrics dict written to ``metrics.json``.
     """
     from drlyap.simulation import evaluate, initial_states
 
-    system = get_system(system_name)
+    source = None
+    if isinstance(system, str):
+        spec, system = system, resolve_system(system)
+        source = system_source(spec, system)
     ensure_new(out)
     tic = time.perf_counter()
     design = lqr_design(system, Q, R)
@@ -192,42 +197,15 @@ def train_lqr(system_name: str, out: str | os.PathLike, Q: Sequence[float] | Non
         x0 = initial_states(system, n_init, torch.Generator().manual_seed(seed))
         xi = torch.tensor(system.test_xi, dtype=torch.float64)
         metrics["evaluations"] = {"test_xi": evaluate(system, design.controller, x0, xi, lyapunov=design.certificate)}
-    save_lqr_run(out, design, metrics, design_time_s=elapsed)
+    save_lqr_run(out, design, metrics, design_time_s=elapsed, source=source)
     return json.loads((Path(out) / "metrics.json").read_text())
 
 
-# --------------------------------------------------------------------------- common loader
-@dataclass
-class PolicyRun:
-    """Any run directory, loaded: ``controller(x)`` ``(B, n) -> (B, m)`` and ``certificate(x)`` ``(B,)``
-    (or None) in user coordinates, float64.
-
-    ``certificate``: V for Lyapunov runs, ``z^T P z`` for LQR, the negated critic value for RL (so that
-    *decreasing* is the good direction for all of them).
-
-    ``samples``: what training consumed. Lyapunov: model evaluations at training states,
-    ``n_states * iterations`` when states are redrawn every iteration (the default), else ``n_states``
-    (the paper's count); ``distinct_states`` in ``info`` always holds ``n_states``. RL: environment
-    steps. LQR: 0 (one linearisation).
-    """
-
-    path: Path
-    kind: str
-    system: UncertainSystem
-    controller: Callable[[Tensor], Tensor]
-    certificate: Callable[[Tensor], Tensor] | None
-    samples: int | None
-    train_time_s: float | None
-    label: str
-    config: dict = field(default_factory=dict)
-    metrics: dict = field(default_factory=dict)
-    info: dict = field(default_factory=dict)
-
-
+# --------------------------------------------------------------------------- loader
 def load_lqr_run(path: str | os.PathLike, system: UncertainSystem | None = None) -> PolicyRun:
     path = Path(path)
-    config, gains, metrics = read_run_json(path, "lqr", "config.json", "lqr.json", "metrics.json")
-    system = run_system(path, config["system"], system)
+    info, config, gains, metrics = read_run_json(path, "lqr", "run.json", "config.json", "lqr.json", "metrics.json")
+    system = run_system(path, config["system"], system, info)
     t = {k: torch.tensor(gains[k], dtype=torch.float64) for k in ("K", "P", "A", "B")}
     if t["K"].shape != (system.m, system.n) or t["P"].shape != (system.n, system.n):
         raise RunDirError(f"{path}: K/P shapes {tuple(t['K'].shape)}/{tuple(t['P'].shape)} do not fit {system.name}")
@@ -237,28 +215,4 @@ def load_lqr_run(path: str | os.PathLike, system: UncertainSystem | None = None)
                      config, metrics, {"design": design})
 
 
-def _lyapunov_policy_run(path: Path, system: UncertainSystem | None) -> PolicyRun:
-    run = load_run(path, system)
-    cfg = run.config
-    cegis = run.metrics.get("cegis") or {}  # counterexample-guided runs: count every round
-    iters = int(cegis.get("total_iterations") or run.metrics.get("iterations") or 0)
-    samples = int(cfg.n_states) * (iters if cfg.resample else 1)
-    label = f"lyapunov-{cfg.method}" + (f"-{cfg.loss}" if cfg.method == "dr" else "")
-    return PolicyRun(path, "lyapunov", run.system, run.controller, run.lyapunov, samples,
-                     cegis.get("total_time_s", run.metrics.get("train_time_s")), label, cfg.to_dict(), run.metrics,
-                     {"run": run, "distinct_states": int(cfg.n_states), "iterations": iters})
-
-
-def load_policy_run(path: str | os.PathLike, system: UncertainSystem | None = None) -> PolicyRun:
-    """Load a run directory of any kind (``lyapunov``, ``lqr``, ``rl``) as a :class:`PolicyRun`."""
-    path = Path(path)
-    kind = read_run_kind(path).get("kind")
-    if kind == "lyapunov":
-        return _lyapunov_policy_run(path, system)
-    if kind == "lqr":
-        return load_lqr_run(path, system)
-    if kind == "rl":
-        from drlyap.rl import load_rl_run
-
-        return load_rl_run(path, system)
-    raise RunDirError(f"{path} holds a run of unknown kind {kind!r}; valid: lyapunov, lqr, rl")
+register_loader("lqr", load_lqr_run)

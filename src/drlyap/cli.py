@@ -4,13 +4,12 @@ from __future__ import annotations
 
 import json
 import os
-import sys
 from pathlib import Path
 
 import click
 import torch
 
-from drlyap.systems import get_system, system_names
+from drlyap.systems import get_system, resolve_system, system_names, system_source
 
 
 def _setup_threads() -> None:
@@ -100,12 +99,14 @@ def systems(as_json: bool) -> None:
 @click.option("--verify-rounds", type=int, default=5, show_default=True, help="Retraining rounds at most.")
 @click.option("--verify-time", type=float, default=30.0, show_default=True, help="Seconds per proof.")
 @click.option("--verify-budget", type=float, default=None, help="Total seconds for the retraining rounds [no limit].")
+@click.option("--json", "as_json", is_flag=True, help="Print one JSON object (run_dir, system, metrics) on stdout.")
 def train(system: str, method: str, loss: str, radius: float | None, eps: float | None, gamma: float | None,
           exp_rate: float, xi_samples: str | None, iters: int, seed: int, device: str, warm_start: Path | None,
           out: Path, quiet: bool, verify: bool, verify_rounds: int, verify_time: float,
-          verify_budget: float | None) -> None:
+          verify_budget: float | None, as_json: bool) -> None:
     """Train a controller and Lyapunov certificate for SYSTEM, prove the trained condition, save a run directory.
 
+    SYSTEM is a registered name, package.module:factory or path/to/file.py:factory (see `drlyap systems`).
     The last line says whether the condition is VERIFIED (proved at every state of the box minus the
     delta-ball), VIOLATED (a counterexample) or UNKNOWN (budget ran out).
     """
@@ -114,11 +115,11 @@ def train(system: str, method: str, loss: str, radius: float | None, eps: float 
     from drlyap.training import TrainConfig
 
     try:
-        sys_ = get_system(system)
+        sys_ = resolve_system(system)
         samples = None
         if xi_samples is not None:
             samples = [_floats(part, "--xi-samples") for part in xi_samples.split(";") if part.strip()]
-        cfg = TrainConfig(system=system, method=method, loss=loss, wasserstein_radius=radius, risk_level=eps,
+        cfg = TrainConfig(system=sys_.name, method=method, loss=loss, wasserstein_radius=radius, risk_level=eps,
                           decay_rate=gamma, exp_rate=exp_rate, xi_samples=samples, iters=iters, seed=seed,
                           device=device, verify=verify, verify_rounds=verify_rounds, verify_time=verify_time,
                           verify_budget=verify_budget)
@@ -139,13 +140,16 @@ def train(system: str, method: str, loss: str, radius: float | None, eps: float 
             click.echo(line, err=True)
 
         result = train_certified(cfg, sys_, progress=not quiet, init=init, log=show_round, warn=False)
-        save_run(out, result)
+        save_run(out, result, source=system_source(system, sys_))
     except ValueError as err:
         _fail(err)
     m = result.metrics
+    if as_json:
+        click.echo(json.dumps({"run_dir": str(out), "system": sys_.name, "method": method, "metrics": m}))
+        return
     c = m.get("cegis")
     iterations, seconds = (c["total_iterations"], c["total_time_s"]) if c else (m["iterations"], m["train_time_s"])
-    click.echo(f"{system} {method}: {m['status']} ({iterations} iterations, {seconds:.1f} s in all)")
+    click.echo(f"{sys_.name} {method}: {m['status']} ({iterations} iterations, {seconds:.1f} s in all)")
     acc = m["acceptance"]
     click.echo(f"  acceptance: {'PASSED' if m['passed'] else 'NOT PASSED'}; max violation {acc['max_violation']:.3g} "
                f"on {100 * acc['violating_fraction']:.2f}% of {acc['validation_states']} validation states; "
@@ -222,7 +226,7 @@ def evaluate(run_dir: Path, xi: str, n_init: int, seed: int, horizon: float | No
 
 
 @main.command()
-@click.argument("system", type=click.Choice(["pendulum", "mountain-car"]))
+@click.argument("system")
 @click.option("--seeds", default="0", show_default=True, help="Comma-separated training seeds.")
 @click.option("--out", type=click.Path(path_type=Path), default=None,
               help="Output directory [first free runs/reproduce-SYSTEM, -2, -3, ...].")
@@ -234,22 +238,26 @@ def evaluate(run_dir: Path, xi: str, n_init: int, seed: int, horizon: float | No
 @click.option("--json", "as_json", is_flag=True, help="Print one JSON object with both methods' results.")
 def reproduce(system: str, seeds: str, out: Path | None, iters: int | None, device: str, verify: bool,
               verify_rounds: int, as_json: bool) -> None:
-    """Reproduce the paper's experiment: baseline vs DR at the paper's test shift."""
+    """Reproduce the paper's experiment: baseline vs DR at SYSTEM's test shift, every pair proved.
+
+    SYSTEM is a registered name (pendulum, mountain-car), package.module:factory or path/to/file.py:factory;
+    it must declare a test shift (test_xi) and a training distribution (xi_sampler)."""
     from drlyap.experiments import format_table
     from drlyap.experiments import reproduce as run_reproduce
 
     seed_list = _ints(seeds, "--seeds")
-    if out is None:  # first free runs/reproduce-SYSTEM[-K], so that running the quickstart twice just works
-        out = Path("runs") / f"reproduce-{system}"
-        k = 2
-        while out.exists():
-            out, k = Path("runs") / f"reproduce-{system}-{k}", k + 1
     log = (lambda s: click.echo(s, err=True)) if as_json else click.echo
     try:
+        sys_ = resolve_system(system)
+        if out is None:  # first free runs/reproduce-SYSTEM[-K], so that running the quickstart twice just works
+            out = Path("runs") / f"reproduce-{sys_.name}"
+            k = 2
+            while out.exists():
+                out, k = Path("runs") / f"reproduce-{sys_.name}-{k}", k + 1
         if verify_rounds < 0:
             raise ValueError(f"--verify-rounds must be >= 0, got {verify_rounds}")
-        report = run_reproduce(system, seed_list, out, iters=iters, progress=sys.stderr.isatty(), device=device,
-                               log=log, verify=verify, verify_rounds=verify_rounds)
+        report = run_reproduce(sys_, seed_list, out, iters=iters, progress=True, device=device,
+                               log=log, verify=verify, verify_rounds=verify_rounds, source=system_source(system, sys_))
     except ValueError as err:
         _fail(err)
     if as_json:
@@ -270,7 +278,7 @@ def _policy_run_as_run(run_dir: Path):
     """A non-Lyapunov run (LQR, RL) shaped like :class:`drlyap.rundir.Run` for ``evaluate``."""
     from types import SimpleNamespace
 
-    from drlyap.baselines import load_policy_run
+    from drlyap.rundir import load_policy_run
 
     run = load_policy_run(run_dir)
     return SimpleNamespace(system=run.system, controller=run.controller, lyapunov=run.certificate,
@@ -285,9 +293,12 @@ def _policy_run_as_run(run_dir: Path):
 @click.option("--n-init", type=int, default=200, show_default=True,
               help="Initial states of the evaluation at the system's test shift saved in metrics.json.")
 @click.option("--seed", type=int, default=0, show_default=True, help="Seed of those initial states.")
-def lqr(system: str, out: Path, q_diag: str | None, r_diag: str | None, n_init: int, seed: int) -> None:
+@click.option("--json", "as_json", is_flag=True, help="Print one JSON object (run_dir, gains, metrics) on stdout.")
+def lqr(system: str, out: Path, q_diag: str | None, r_diag: str | None, n_init: int, seed: int, as_json: bool) -> None:
     """LQR baseline for SYSTEM: linearise the true model at x*, u* (nominal parameters), solve the
-    Riccati equation, save a run directory of kind lqr (K, P) with u = clamp(u* - K z, U)."""
+    Riccati equation, save a run directory of kind lqr (K, P) with u = clamp(u* - K z, U).
+
+    SYSTEM is a registered name, package.module:factory or path/to/file.py:factory."""
     from drlyap.baselines import train_lqr
 
     try:
@@ -295,9 +306,13 @@ def lqr(system: str, out: Path, q_diag: str | None, r_diag: str | None, n_init: 
             raise ValueError(f"--n-init must be >= 1, got {n_init}")
         metrics = train_lqr(system, out, _floats(q_diag, "--q"), _floats(r_diag, "--r"), n_init=n_init, seed=seed)
         gains = json.loads((out / "lqr.json").read_text())
+        name = json.loads((out / "run.json").read_text())["system"]["name"]
     except ValueError as err:
         _fail(err)
-    click.echo(f"{system} LQR: K = {gains['K']}, closed-loop eigenvalues "
+    if as_json:
+        click.echo(json.dumps({"run_dir": str(out), "system": name, "gains": gains, "metrics": metrics}))
+        return
+    click.echo(f"{name} LQR: K = {gains['K']}, closed-loop eigenvalues "
                f"{[complex(*v) for v in gains['closed_loop_eigenvalues']]}")
     ev = metrics.get("evaluations", {}).get("test_xi")
     if ev is not None:
@@ -320,8 +335,11 @@ def rl() -> None:
                    "PPO about 1.0-1.2 ms per step (100000 steps: about 2 min).")
 @click.option("--seed", type=int, default=0, show_default=True)
 @click.option("--out", type=click.Path(path_type=Path), required=True, help="Run directory to create.")
-def rl_train(system: str, algo: str, steps: int | None, seed: int, out: Path) -> None:
+@click.option("--json", "as_json", is_flag=True, help="Print one JSON object (run_dir, system, algo, metrics) on stdout.")
+def rl_train(system: str, algo: str, steps: int | None, seed: int, out: Path, as_json: bool) -> None:
     """Train SAC or PPO (stable-baselines3) on SYSTEM's true model at nominal parameters.
+
+    SYSTEM is a registered name, package.module:factory or path/to/file.py:factory.
 
     The environment (drlyap.envs) steps the true model with RK4 (pendulum: dt 0.05 s, 10 s episodes)
     and rewards -(theta^2 + 0.1 thetadot^2 + 0.001 u^2) (other systems: the normalised analogue).
@@ -330,10 +348,14 @@ def rl_train(system: str, algo: str, steps: int | None, seed: int, out: Path) ->
 
     try:
         metrics = train_rl(system, algo, steps, seed, out)
+        name = json.loads((out / "run.json").read_text())["system"]["name"]
     except ValueError as err:
         _fail(err)
+    if as_json:
+        click.echo(json.dumps({"run_dir": str(out), "system": name, "algo": algo, "metrics": metrics}))
+        return
     last = metrics["mean_last_returns"]
-    click.echo(f"{system} {algo}: {metrics['samples']} steps in {metrics['train_time_s']:.1f} s "
+    click.echo(f"{name} {algo}: {metrics['samples']} steps in {metrics['train_time_s']:.1f} s "
                f"({metrics['ms_per_1000_steps']:.0f} ms per 1000 steps); mean return of the last episodes "
                f"{'-' if last is None else f'{last:.1f}'}")
     click.echo(f"  saved {out}")
@@ -371,7 +393,7 @@ def compare(run_dirs: tuple[Path, ...], xi: str, n_init: int, seed: int, horizon
         if certify_time < 0:
             raise ValueError(f"--certify-time must be >= 0, got {certify_time}")
         report = compare_runs(list(run_dirs), _floats(xi, "--xi"), n_init, seed, out, horizon,
-                              certify_time if certify_time > 0 else None)
+                              certify_time if certify_time > 0 else None, progress=True)
     except ValueError as err:
         _fail(err)
     if as_json:

@@ -9,7 +9,6 @@ verdict for Lyapunov pairs (:func:`certify`). Figures follow the paper's Figs. 3
 from __future__ import annotations
 
 import json
-import math
 import os
 import time
 from collections.abc import Sequence
@@ -18,19 +17,10 @@ from pathlib import Path
 import torch
 from torch import Tensor
 
-from drlyap.baselines import PolicyRun, load_policy_run
-from drlyap.rundir import atomic_dir, ensure_new
+from drlyap.progress import progress as show_progress
+from drlyap.rundir import PolicyRun, atomic_dir, ensure_new, load_policy_run
 from drlyap.simulation import wrap_steps
 from drlyap.systems import UncertainSystem
-
-
-def figure_starts(system: UncertainSystem) -> list[tuple[float, ...]]:
-    """Start states of the comparison figures: the paper's Figs. 3/4 states for the pendulums
-    ((pi, 0) and (-pi/2, 5.5)); otherwise the low corner and the centre of the test box."""
-    if system.name.startswith("pendulum"):
-        return [(math.pi, 0.0), (-math.pi / 2, 5.5)]
-    lo, hi = system.test_box
-    return [tuple(lo), tuple((a + b) / 2 for a, b in zip(lo, hi))]
 
 
 def monotonicity(system: UncertainSystem, x: Tensor, values: Tensor, success: Tensor, rel_tol: float = 1e-4) -> dict:
@@ -162,11 +152,12 @@ def _robust_cell(cert: dict | None) -> str:
 
 def compare_runs(paths: Sequence[str | os.PathLike], xi: Sequence[float], n_init: int = 200, seed: int = 0,
                  out: str | os.PathLike | None = None, horizon: float | None = None,
-                 certify_time_limit: float | None = 10.0) -> dict:
+                 certify_time_limit: float | None = 10.0, progress: bool = True) -> dict:
     """Score every run directory at the shift ``xi`` from the same ``n_init`` initial states (drawn from
     each system's test box with ``seed``); with ``out``, write compare.json, compare.md and figures.
 
     ``certify_time_limit`` (seconds per run; None skips it) runs the verifier on each Lyapunov pair at ``xi``.
+    ``progress``: report scoring progress on stderr (:func:`drlyap.progress.progress`).
     """
     from drlyap.simulation import initial_states
 
@@ -179,12 +170,15 @@ def compare_runs(paths: Sequence[str | os.PathLike], xi: Sequence[float], n_init
     runs = [load_policy_run(p) for p in paths]
     shifts = [run.system.check_xi(xi) for run in runs]
     rows = []
+    bar = show_progress(len(runs), "compare: scoring runs", progress)
     for run, shift in zip(runs, shifts):
         x0 = initial_states(run.system, n_init, torch.Generator().manual_seed(seed))
         row = score_run(run, x0, shift, horizon)
         if certify_time_limit is not None:
             row["certified"] = certify(run, shift, certify_time_limit)
         rows.append(row)
+        bar.update(1)
+    bar.close()
     report = {"xi": [float(v) for v in xi], "n_init": n_init, "seed": seed, "rows": rows}
     if out is not None:
         def fill(tmp: Path) -> None:
@@ -200,13 +194,13 @@ def compare_runs(paths: Sequence[str | os.PathLike], xi: Sequence[float], n_init
 def compare_figures(runs: Sequence[PolicyRun], shifts: Sequence[Tensor], folder: Path,
                     horizon: float | None = None) -> list[Path]:
     """Like the paper's Figs. 3/4: certificate (V, z^T P z, or negated value) and input over time, one
-    figure per start state of :func:`figure_starts` (of the first run's system)."""
+    figure per start state of the first run's system (:meth:`UncertainSystem.figure_starts`)."""
     from drlyap import plotting
     from drlyap.simulation import simulate
 
     folder.mkdir(parents=True, exist_ok=True)
     paths = []
-    for i, start in enumerate(figure_starts(runs[0].system)):
+    for i, start in enumerate(runs[0].system.figure_starts()):
         series = {}
         for run, shift in zip(runs, shifts):
             x0 = torch.tensor([start], dtype=torch.float64)

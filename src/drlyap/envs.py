@@ -4,9 +4,9 @@
 design model) with fixed-step RK4, holding the action over each step (zero-order hold).
 
 * Parameter shift ``xi``: fixed per environment (constructor argument, default zeros).
-* Step ``dt`` and episode length: 0.05 s and 10 s (200 steps) for the pendulums (``system.sim_dt`` =
-  0.01 would make 1000-step episodes, too long for the RL budgets here); 1.0 and 500 s for the
-  mountain car (the gym mountain car's step); otherwise ``system.sim_dt`` and ``system.horizon``.
+* Step ``dt`` and episode length: ``system.rl_timing``, else ``system.sim_dt`` and ``system.horizon``
+  (pendulums: 0.05 s and 10 s, 200 steps, since ``sim_dt`` = 0.01 would make 1000-step episodes, too
+  long for the RL budgets here; mountain car: 1.0 and 500, the gym mountain car's step).
   The episode is *truncated* at the time limit; it never terminates early.
 * Observation: the state with angles wrapped into the box around x*, clipped into the state box
   (the physical state itself is never clipped; only what the agent sees), float32, observation space
@@ -14,9 +14,9 @@ design model) with fixed-step RK4, holding the action over each step (zero-order
   as a feedback ``x -> u`` on any state).
 * Action: the input box; actions outside it are clipped before they are applied.
 * Reward, in local coordinates ``z = x - x*`` (angles wrapped) and the applied input ``u``:
-  pendulums ``-(theta^2 + 0.1 thetadot^2 + 0.001 u^2)`` (the paper's); other systems
-  ``-(sum_i (z_i / h_i)^2 + 0.001 sum_j ((u_j - u*_j) / hu_j)^2)`` with ``h``/``hu`` the half-widths of the
-  state/input boxes. See :func:`reward_weights`.
+  ``system.rl_reward_weights`` when declared (pendulums: ``-(theta^2 + 0.1 thetadot^2 + 0.001 u^2)``, the
+  paper's), else ``-(sum_i (z_i / h_i)^2 + 0.001 sum_j ((u_j - u*_j) / hu_j)^2)`` with ``h``/``hu`` the
+  half-widths of the state/input boxes. See :func:`reward_weights`.
 * Reset: a state uniform in the system's test box (the evaluation region), from the env's seeded RNG.
 
 Registered ids (at import of this module): ``drlyap/Pendulum-v0``, ``drlyap/PendulumU9-v0`` and
@@ -37,22 +37,19 @@ from gymnasium import spaces
 from drlyap.simulation import rk4_step
 from drlyap.systems import UncertainSystem, get_system
 
-# system name -> (dt, episode time) for RL; other systems use (sim_dt, horizon).
-RL_TIMING = {"pendulum": (0.05, 10.0), "pendulum-u9": (0.05, 10.0), "mountain-car": (1.0, 500.0)}
-
 ENV_IDS = {"drlyap/Pendulum-v0": "pendulum", "drlyap/PendulumU9-v0": "pendulum-u9",
            "drlyap/MountainCar-v0": "mountain-car"}
 
 
 def rl_timing(system: UncertainSystem) -> tuple[float, float]:
     """``(dt, episode_time)`` the RL environment uses for ``system``."""
-    return RL_TIMING.get(system.name, (system.sim_dt, system.horizon))
+    return system.rl_timing if system.rl_timing is not None else (system.sim_dt, system.horizon)
 
 
 def reward_weights(system: UncertainSystem) -> tuple[np.ndarray, np.ndarray]:
     """Diagonal weights ``(state (n,), input (m,))`` of the quadratic cost in local coordinates."""
-    if system.name.startswith("pendulum"):
-        return np.array([1.0, 0.1]), np.array([0.001])
+    if system.rl_reward_weights is not None:
+        return tuple(np.array(w, dtype=np.float64) for w in system.rl_reward_weights)
     slo, shi = np.array(system.state_box[0]), np.array(system.state_box[1])
     ulo, uhi = np.array(system.input_box[0]), np.array(system.input_box[1])
     return 4.0 / (shi - slo) ** 2, 0.001 * 4.0 / (uhi - ulo) ** 2

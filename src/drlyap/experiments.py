@@ -16,17 +16,15 @@ import torch
 from drlyap import plotting
 from drlyap.cegis import train_certified
 from drlyap.figures import region_to_draw, stored_region
+from drlyap.progress import progress as show_progress
 from drlyap.rundir import Run, atomic_dir, load_run, save_run
 from drlyap.simulation import evaluate, initial_states, simulate
-from drlyap.systems import UncertainSystem, get_system
+from drlyap.systems import UncertainSystem, resolve_system, system_source
 from drlyap.training import TrainConfig
 from drlyap.verification import verify_run
 
 METHODS = ("baseline", "dr")
 SWEEP = (1, 2, 3, 4, 5)  # evaluation shifts, as multiples of the paper's test shift
-
-# Where the paper's Figs. 3a/3b start: the downward pendulum; for the mountain car, the valley floor.
-REFERENCE_STATES = {"pendulum": (torch.pi, 0.0), "pendulum-u9": (torch.pi, 0.0), "mountain-car": (-torch.pi / 6, 0.0)}
 
 
 def test_initial_states(system: UncertainSystem, seed: int, n_paper: int = 10, n_more: int = 200) -> tuple:
@@ -44,21 +42,29 @@ def summary_row(result: dict) -> dict:
     return {k: result[k] for k in ("n", "n_success", "success_rate", "worst_v_increase")}
 
 
-def reproduce(system_name: str, seeds: Sequence[int], out: Path, iters: int | None = None, progress: bool = True,
-              device: str = "cpu", log=print, n_more: int = 200, sweep: Sequence[int] = SWEEP,
-              verify: bool = True, verify_rounds: int = 5, verify_time: float = 10.0) -> dict:
-    """Run the paper's experiment for ``system_name`` and write everything under ``out`` (atomically).
+def reproduce(system: str | UncertainSystem, seeds: Sequence[int], out: Path, iters: int | None = None,
+              progress: bool = True, device: str = "cpu", log=print, n_more: int = 200, sweep: Sequence[int] = SWEEP,
+              verify: bool = True, verify_rounds: int = 5, verify_time: float = 10.0, source: dict | None = None) -> dict:
+    """Run the paper's experiment for ``system`` (an object, or a spec for
+    :func:`drlyap.systems.resolve_system`) and write everything under ``out`` (atomically).
 
-    Returns a JSON-friendly dict with per-seed, per-method results and the paths of the figures. Both pairs
-    are trained as :func:`drlyap.cegis.train_certified` does: with ``verify``, counterexample-guided rounds
-    (at most ``verify_rounds``) until the verifier proves their trained condition; then each pair's decrease on
-    the true model at the test shift and its certified region of attraction there are proved
+    Any system works that declares ``test_xi`` and an ``xi_sampler``. Returns a JSON-friendly dict with
+    per-seed, per-method results and the paths of the figures. Both pairs are trained as
+    :func:`drlyap.cegis.train_certified` does: with ``verify``, counterexample-guided rounds (at most
+    ``verify_rounds``) until the verifier proves their trained condition; then each pair's decrease on the
+    true model at the test shift and its certified region of attraction there are proved
     (:func:`drlyap.verification.verify_run`, ``verify_time`` seconds per check) and stored in its
-    ``metrics["certificate"]``.
+    ``metrics["certificate"]``. ``source`` (:func:`drlyap.systems.system_source`) is recorded in each run
+    directory; by default it is derived from a spec, or the registry name.
     """
-    system = get_system(system_name)
-    if system.test_xi is None:
-        raise ValueError(f"{system_name} declares no test shift; reproduce needs one")
+    if isinstance(system, str):
+        spec, system = system, resolve_system(system)
+        source = system_source(spec, system)
+    missing = [f for f in ("test_xi", "xi_sampler") if getattr(system, f) is None]
+    if missing:
+        raise ValueError(f"{system.name} declares no {' and no '.join(missing)}; reproduce needs a test shift "
+                         "(UncertainSystem.test_xi) and a training distribution (UncertainSystem.xi_sampler)")
+    system_name = system.name
     if not seeds:
         raise ValueError("need at least one seed")
     xi_test = torch.tensor(system.test_xi, dtype=torch.float64)
@@ -66,6 +72,7 @@ def reproduce(system_name: str, seeds: Sequence[int], out: Path, iters: int | No
                     "verify": verify, "verify_rounds": verify_rounds, "results": []}
 
     def fill(tmp: Path) -> None:
+        bar = show_progress(len(seeds) * len(METHODS) * (2 + len(sweep)), f"{system_name} evaluations", progress)
         for seed in seeds:
             x_paper, x_more = test_initial_states(system, seed, n_more=n_more)
             runs: dict[str, Run] = {}
@@ -75,10 +82,11 @@ def reproduce(system_name: str, seeds: Sequence[int], out: Path, iters: int | No
                 if iters is not None:
                     cfg.iters = iters
                 result = train_certified(cfg, system, progress=progress, warn=False)
-                run_dir = save_run(tmp / f"seed{seed}" / method, result)
-                run = load_run(run_dir)
+                run_dir = save_run(tmp / f"seed{seed}" / method, result, source=source)
+                run = load_run(run_dir, system)
                 paper = evaluate_run(run, xi_test, x_paper)
                 more = evaluate_run(run, xi_test, x_more)
+                bar.update(2)
                 run.metrics["evaluations"] = {"paper_10": paper, "more_200": more}
                 if verify:  # what the pair proves on the true model at the test shift (the figures draw its region)
                     proof = verify_run(run, xi=xi_test, time_limit=verify_time, roa=True)
@@ -87,7 +95,10 @@ def reproduce(system_name: str, seeds: Sequence[int], out: Path, iters: int | No
                     run.metrics["certificate"]["roa"] = proof["roa"]
                 run.save_metrics()
                 runs[method] = run
-                swept = {k: evaluate_run(run, k * xi_test, x_more)["n_success"] for k in sweep}
+                swept = {}
+                for k in sweep:
+                    swept[k] = evaluate_run(run, k * xi_test, x_more)["n_success"]
+                    bar.update(1)
                 row = {"seed": seed, "method": method, "passed_acceptance": result.metrics["passed"],
                        "acceptance_status": result.metrics["status"],
                        "max_violation": result.metrics["acceptance"]["max_violation"],
@@ -107,6 +118,7 @@ def reproduce(system_name: str, seeds: Sequence[int], out: Path, iters: int | No
             figures = draw_figures(system, runs, xi_test, x_paper, tmp / f"seed{seed}" / "figures", seed)
             report.setdefault("figures", {})[str(seed)] = [str(Path(out) / f"seed{seed}" / "figures" / f.name)
                                                           for f in figures]
+        bar.close()
         report["figures"]["sweep"] = str(Path(out) / "shift_sweep.png")
         plotting.sweep_plot(system.name, sweep, report["results"], tmp / "shift_sweep.png", list(system.test_xi))
         (tmp / "report.json").write_text(json.dumps(report, indent=2) + "\n")
@@ -138,7 +150,7 @@ def draw_figures(system: UncertainSystem, runs: dict[str, Run], xi: torch.Tensor
     regions = {method: region_to_draw(run, stored_region(run)) for method, run in runs.items()}
     phase = plotting.phase_portraits(system, trajs, ok, folder / "trajectories.png",
                                      f"{system.name}, true model at {shift} (seed {seed})", levels, regions)
-    start = torch.tensor([REFERENCE_STATES.get(system.name, system.test_box[0])], dtype=torch.float64)
+    start = torch.tensor([system.figure_starts()[0]], dtype=torch.float64)
     series = {}
     for method, run in runs.items():
         traj = simulate(system, run.controller, start, xi)

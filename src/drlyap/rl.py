@@ -32,8 +32,17 @@ from pathlib import Path
 import numpy as np
 import torch
 
-from drlyap.rundir import FORMAT_VERSION, RunDirError, atomic_dir, ensure_new, read_run_json, run_system
-from drlyap.systems import UncertainSystem, get_system
+from drlyap.rundir import (
+    PolicyRun,
+    RunDirError,
+    atomic_dir,
+    ensure_new,
+    read_run_json,
+    register_loader,
+    run_record,
+    run_system,
+)
+from drlyap.systems import UncertainSystem, resolve_system, system_source
 
 ALGOS = ("sac", "ppo")
 
@@ -63,9 +72,11 @@ def _algo_class(algo: str):
     return {"sac": sb3.SAC, "ppo": sb3.PPO}[algo]
 
 
-def train_rl(system_name: str, algo: str, steps: int | None, seed: int, out: str | os.PathLike,
+def train_rl(system: str | UncertainSystem, algo: str, steps: int | None, seed: int, out: str | os.PathLike,
              hyperparameters: dict | None = None, overwrite: bool = False) -> dict:
     """Train ``algo`` (``sac`` or ``ppo``) for ``steps`` environment steps and save a run directory.
+
+    ``system``: an object, or a spec for :func:`drlyap.systems.resolve_system` (recorded in ``run.json``).
 
     ``hyperparameters`` override the defaults (``DEFAULT_HYPER``) passed to the SB3 constructor.
     Returns the metrics written to ``metrics.json``.
@@ -73,9 +84,12 @@ def train_rl(system_name: str, algo: str, steps: int | None, seed: int, out: str
     cls = _algo_class(algo)  # first: a clear error without stable-baselines3
     from stable_baselines3.common.monitor import Monitor
 
-    from drlyap.envs import make_env
+    from drlyap.envs import UncertainSystemEnv
 
-    system = get_system(system_name)
+    source = None
+    if isinstance(system, str):
+        spec, system = system, resolve_system(system)
+        source = system_source(spec, system)
     steps = int(steps if steps is not None else DEFAULT_STEPS[algo])
     if steps < 1:
         raise ValueError(f"steps must be >= 1, got {steps}")
@@ -83,7 +97,7 @@ def train_rl(system_name: str, algo: str, steps: int | None, seed: int, out: str
     if not overwrite:
         ensure_new(out)
     hyper = {**DEFAULT_HYPER[algo], **(hyperparameters or {})}
-    env = Monitor(make_env(system_name))
+    env = Monitor(UncertainSystemEnv(system))
     env.reset(seed=seed)
     env.action_space.seed(seed)
     try:
@@ -109,8 +123,7 @@ def train_rl(system_name: str, algo: str, steps: int | None, seed: int, out: str
         model.save(tmp / "model.zip")
         (tmp / "metrics.json").write_text(json.dumps(metrics, indent=2) + "\n")
         (tmp / "figures").mkdir()
-        (tmp / "run.json").write_text(json.dumps({"kind": "rl", "format": FORMAT_VERSION,
-                                                  "system": system.describe()}, indent=2) + "\n")
+        (tmp / "run.json").write_text(json.dumps(run_record("rl", system, source), indent=2) + "\n")
 
     atomic_dir(out, fill, overwrite)
     return metrics
@@ -158,13 +171,11 @@ class RLPolicy:
         return -value.double()
 
 
-def load_rl_run(path: str | os.PathLike, system: UncertainSystem | None = None):
-    """Load a run directory of kind ``rl`` as a :class:`drlyap.baselines.PolicyRun`."""
-    from drlyap.baselines import PolicyRun
-
+def load_rl_run(path: str | os.PathLike, system: UncertainSystem | None = None) -> PolicyRun:
+    """Load a run directory of kind ``rl`` as a :class:`drlyap.rundir.PolicyRun`."""
     path = Path(path)
-    config, metrics = read_run_json(path, "rl", "config.json", "metrics.json")
-    system = run_system(path, config["system"], system)
+    info, config, metrics = read_run_json(path, "rl", "run.json", "config.json", "metrics.json")
+    system = run_system(path, config["system"], system, info)
     algo = config["algo"]
     cls = _algo_class(algo)
     try:
@@ -174,3 +185,6 @@ def load_rl_run(path: str | os.PathLike, system: UncertainSystem | None = None):
     agent = RLPolicy(system, algo, model)
     return PolicyRun(path, "rl", system, agent.controller, agent.certificate, int(config["steps"]),
                      metrics.get("train_time_s"), f"rl-{algo}", config, metrics, {"agent": agent})
+
+
+register_loader("rl", load_rl_run)

@@ -20,7 +20,7 @@ import os
 import shutil
 import tempfile
 from collections.abc import Callable
-from dataclasses import dataclass
+from dataclasses import dataclass, field
 from pathlib import Path
 
 import torch
@@ -28,7 +28,7 @@ from torch import Tensor
 
 from drlyap.io import jsonable, write_json  # noqa: F401  (re-exported)
 from drlyap.networks import Controller, Lyapunov
-from drlyap.systems import UncertainSystem, get_system
+from drlyap.systems import UncertainSystem, default_source, get_system, identity_mismatch, resolve_system
 from drlyap.training import TrainConfig, TrainResult, build_networks
 
 FORMAT_VERSION = 1
@@ -66,9 +66,19 @@ def atomic_dir(out: Path, fill: Callable[[Path], None], overwrite: bool = False)
     return out
 
 
+def run_record(kind: str, system: UncertainSystem, source: dict | None = None) -> dict:
+    """The ``run.json`` of a run of ``kind``: format, ``system.describe()`` and where the system came from
+    (``source``: :func:`drlyap.systems.system_source`; default :func:`drlyap.systems.default_source`)."""
+    return {"kind": kind, "format": FORMAT_VERSION, "system": system.describe(),
+            "system_source": source if source is not None else default_source(system)}
+
+
 def save_run(out: Path, result: TrainResult, overwrite: bool = False,
-             extra: Callable[[Path], None] | None = None) -> Path:
-    """Write a trained pair as a run directory at ``out`` (atomically); ``extra(tmp)`` may add files."""
+             extra: Callable[[Path], None] | None = None, source: dict | None = None) -> Path:
+    """Write a trained pair as a run directory at ``out`` (atomically); ``extra(tmp)`` may add files.
+
+    ``source`` records where the system came from (see :func:`run_record`) so that commands reload it.
+    """
 
     def fill(tmp: Path) -> None:
         write_json(tmp / "config.json", result.config.to_dict())
@@ -82,8 +92,7 @@ def save_run(out: Path, result: TrainResult, overwrite: bool = False,
         (tmp / "figures").mkdir()
         if extra is not None:
             extra(tmp)
-        write_json(tmp / "run.json", {"kind": "lyapunov", "format": FORMAT_VERSION,
-                                       "system": result.system.describe()})
+        write_json(tmp / "run.json", run_record("lyapunov", result.system, source))
 
     return atomic_dir(out, fill, overwrite)
 
@@ -163,12 +172,35 @@ def read_run_json(path: str | os.PathLike, kind: str, *names: str) -> list[dict]
         raise RunDirError(f"cannot read run directory {path}: {err}") from err
 
 
-def run_system(path: str | os.PathLike, name: str, system: UncertainSystem | None) -> UncertainSystem:
-    """The system a run was made for: the registered one, or ``system`` if its name matches."""
+def run_system(path: str | os.PathLike, name: str, system: UncertainSystem | None,
+               info: dict | None = None) -> UncertainSystem:
+    """The system a run was made for, never one with other dynamics.
+
+    ``name``: the system named by the run's config; ``info``: its ``run.json``. Without ``system``, it is
+    rebuilt from the recorded source (a registered name, module or file) or, for older runs, the registry.
+    The result must carry ``name`` and match the recorded description (dimensions, parameters, boxes,
+    equilibrium, uncertain names); a mismatch (e.g. an edited system file) is refused.
+    """
+    info = info or {}
+    recorded = info.get("system") or {}
+    if recorded.get("name", name) != name:
+        raise RunDirError(f"{path}: config.json names system {name!r} but run.json records {recorded['name']!r}; "
+                          "the run directory is inconsistent")
     if system is None:
-        return get_system(name)
+        source = info.get("system_source") or {}
+        spec = source.get("reload")
+        try:
+            system = resolve_system(spec) if spec else get_system(name)
+        except ValueError as err:
+            hint = f" (recorded source {source.get('spec')!r})" if spec else \
+                " (run.json records no source: pass the system, or register it with drlyap.register_system)"
+            raise RunDirError(f"cannot rebuild system {name!r} of {path}{hint}: {err}") from err
     if system.name != name:
         raise RunDirError(f"{path} was made for system {name!r}, not {system.name!r}")
+    diff = identity_mismatch(recorded, system)
+    if diff:
+        raise RunDirError(f"{path} was trained on other dynamics than system {name!r} has now; refusing to load it "
+                          f"({'; '.join(diff)})")
     return system
 
 
@@ -185,7 +217,7 @@ def load_run(path: str | os.PathLike, system: UncertainSystem | None = None) -> 
         weights = torch.load(path / "weights.pt", map_location="cpu", weights_only=True)
     except (OSError, RuntimeError) as err:
         raise RunDirError(f"cannot read run directory {path}: {err}") from err
-    system = run_system(path, config.system, system)
+    system = run_system(path, config.system, system, info)
     if info["system"]["n"] != system.n or info["system"]["m"] != system.m:
         raise RunDirError(f"{path} has dimensions n={info['system']['n']}, m={info['system']['m']}; "
                           f"system {system.name} has n={system.n}, m={system.m}")
@@ -201,3 +233,67 @@ def load_run(path: str | os.PathLike, system: UncertainSystem | None = None) -> 
     lyapunov.eval()
     controller.eval()
     return Run(path, system, config, metrics, lyapunov, controller)
+
+
+# --------------------------------------------------------------------------- runs of every kind
+@dataclass
+class PolicyRun:
+    """Any run directory, loaded: ``controller(x)`` ``(B, n) -> (B, m)`` and ``certificate(x)`` ``(B,)``
+    (or None) in user coordinates, float64.
+
+    ``certificate``: V for Lyapunov runs, ``z^T P z`` for LQR, the negated critic value for RL (so that
+    *decreasing* is the good direction for all of them).
+
+    ``samples``: what training consumed. Lyapunov: model evaluations at training states,
+    ``n_states * iterations`` when states are redrawn every iteration (the default), else ``n_states``
+    (the paper's count); ``distinct_states`` in ``info`` always holds ``n_states``. RL: environment
+    steps. LQR: 0 (one linearisation).
+    """
+
+    path: Path
+    kind: str
+    system: UncertainSystem
+    controller: Callable[[Tensor], Tensor]
+    certificate: Callable[[Tensor], Tensor] | None
+    samples: int | None
+    train_time_s: float | None
+    label: str
+    config: dict = field(default_factory=dict)
+    metrics: dict = field(default_factory=dict)
+    info: dict = field(default_factory=dict)
+
+
+PolicyLoader = Callable[[Path, "UncertainSystem | None"], PolicyRun]
+
+LOADERS: dict[str, PolicyLoader] = {}
+"""Run kind -> loader ``(path, system or None) -> PolicyRun``. ``lyapunov`` is registered here, ``lqr`` by
+:mod:`drlyap.baselines`, ``rl`` by :mod:`drlyap.rl` (both imported by ``drlyap/__init__``)."""
+
+
+def register_loader(kind: str, loader: PolicyLoader) -> None:
+    """Make :func:`load_policy_run` load run directories of ``kind`` with ``loader``."""
+    LOADERS[kind] = loader
+
+
+def load_policy_run(path: str | os.PathLike, system: UncertainSystem | None = None) -> PolicyRun:
+    """Load a run directory of any registered kind (``lyapunov``, ``lqr``, ``rl``) as a :class:`PolicyRun`."""
+    path = Path(path)
+    kind = read_run_kind(path).get("kind")
+    if kind not in LOADERS:
+        raise RunDirError(f"{path} holds a run of unknown kind {kind!r}; valid: {', '.join(sorted(LOADERS))}")
+    return LOADERS[kind](path, system)
+
+
+def _lyapunov_policy_run(path: Path, system: UncertainSystem | None) -> PolicyRun:
+    run = load_run(path, system)
+    cfg = run.config
+    cegis = run.metrics.get("cegis") or {}  # counterexample-guided runs: count every round
+    iters = int(cegis.get("total_iterations") or run.metrics.get("iterations") or 0)
+    samples = int(cfg.n_states) * (iters if cfg.resample else 1)
+    label = f"lyapunov-{cfg.method}" + (f"-{cfg.loss}" if cfg.method == "dr" else "")
+    return PolicyRun(path, "lyapunov", run.system, run.controller, run.lyapunov, samples,
+                     cegis.get("total_time_s", run.metrics.get("train_time_s")), label, cfg.to_dict(), run.metrics,
+                     {"run": run, "distinct_states": int(cfg.n_states), "iterations": iters})
+
+
+register_loader("lyapunov", _lyapunov_policy_run)

@@ -15,9 +15,14 @@ work in *local* coordinates ``z = x - x*`` with angle coordinates wrapped into `
 
 from __future__ import annotations
 
+import hashlib
+import importlib
+import importlib.util
 import math
+import sys
 from collections.abc import Callable, Sequence
 from dataclasses import dataclass, field
+from pathlib import Path
 
 import torch
 from torch import Tensor
@@ -32,6 +37,18 @@ Perturbation = Callable[[Tensor, Tensor], Tensor]
 
 XiSampler = Callable[[int, torch.Generator], Tensor]
 """``sample(N, generator) -> (N, k)``: draws training samples of the uncertainty."""
+
+
+def _finite(values: Sequence[float], what: str, names: Sequence[str]) -> tuple[float, ...]:
+    """``values`` as a tuple of finite floats, or an error naming the bad entries."""
+    try:
+        out = tuple(float(v) for v in values)
+    except (TypeError, ValueError) as err:
+        raise ValueError(f"{what} must be a sequence of numbers, got {values!r}") from err
+    bad = [f"{names[i] if i < len(names) else i}={v}" for i, v in enumerate(out) if not math.isfinite(v)]
+    if bad:
+        raise ValueError(f"{what} must be finite, got {', '.join(bad)}")
+    return out
 
 
 def _as_pair(box: Sequence[Sequence[float]], what: str, dim: int | None = None) -> tuple[tuple[float, ...], tuple[float, ...]]:
@@ -67,6 +84,11 @@ class UncertainSystem:
         perturbation: optional hand-given ``W``; by default ``W`` is derived by autodiff.
         xi_sampler: the training distribution of ``xi`` used by ``reproduce``.
         test_xi: the paper's out-of-distribution test shift.
+        reference_states: start states (user coordinates, each of length n) of the paper-like figures
+            (``reproduce``'s certificate/input plot, ``compare``'s figures); empty: corner and centre of the test box.
+        rl_timing: ``(dt, episode_time)`` of the RL environment (default ``(sim_dt, horizon)``).
+        rl_reward_weights: ``(state (n,), input (m,))`` diagonal weights of the RL cost
+            ``-(sum w_i z_i^2 + sum w_j (u_j - u*_j)^2)``; default: 1/half-width^2 of the boxes (inputs x 0.001).
         defaults: training defaults for this system (overrides of :class:`drlyap.training.TrainConfig`).
         sim_dt, horizon: integration step and simulated time (system time units) for evaluation.
         success_tol: a trajectory succeeds when, over the last ``settle_fraction`` of the horizon, every
@@ -92,6 +114,9 @@ class UncertainSystem:
     perturbation: Perturbation | None = None
     xi_sampler: XiSampler | None = None
     test_xi: tuple[float, ...] | None = None
+    reference_states: tuple[tuple[float, ...], ...] = ()
+    rl_timing: tuple[float, float] | None = None
+    rl_reward_weights: tuple[tuple[float, ...], tuple[float, ...]] | None = None
     defaults: dict = field(default_factory=dict)
     sim_dt: float = 0.01
     horizon: float = 20.0
@@ -118,6 +143,41 @@ class UncertainSystem:
         if len(self.nominal_params) != len(self.param_names):
             raise ValueError(f"{self.name}: {len(self.param_names)} parameter names but "
                              f"{len(self.nominal_params)} nominal values")
+        set_(self, "nominal_params", _finite(self.nominal_params, f"{self.name}: nominal_params", self.param_names))
+        set_(self, "equilibrium", _finite(self.equilibrium, f"{self.name}: equilibrium", self.state_names))
+        if self.equilibrium_input is not None:
+            set_(self, "equilibrium_input", _finite(self.equilibrium_input, f"{self.name}: equilibrium_input",
+                                                    self.input_names))
+        if self.test_xi is not None:
+            set_(self, "test_xi", _finite(self.test_xi, f"{self.name}: test_xi", self.uncertain))
+        try:
+            refs = tuple(_finite(r, f"{self.name}: reference_states[{i}]", self.state_names)
+                         for i, r in enumerate(self.reference_states))
+        except TypeError as err:
+            raise ValueError(f"{self.name}: reference_states must be a sequence of states of length {n}, "
+                             f"got {self.reference_states!r}") from err
+        for i, r in enumerate(refs):
+            if len(r) != n:
+                raise ValueError(f"{self.name}: reference_states[{i}] has {len(r)} entries, state has {n} "
+                                 f"({', '.join(self.state_names)})")
+        set_(self, "reference_states", refs)
+        if self.rl_timing is not None:
+            timing = _finite(self.rl_timing, f"{self.name}: rl_timing", ("dt", "episode_time"))
+            if len(timing) != 2 or not 0 < timing[0] <= timing[1]:
+                raise ValueError(f"{self.name}: rl_timing must be (dt, episode_time) with 0 < dt <= episode_time, "
+                                 f"got {self.rl_timing}")
+            set_(self, "rl_timing", timing)
+        if self.rl_reward_weights is not None:
+            try:
+                wx, wu = self.rl_reward_weights
+            except (TypeError, ValueError) as err:
+                raise ValueError(f"{self.name}: rl_reward_weights must be (state weights, input weights)") from err
+            wx = _finite(wx, f"{self.name}: rl_reward_weights[0]", self.state_names)
+            wu = _finite(wu, f"{self.name}: rl_reward_weights[1]", self.input_names)
+            if len(wx) != n or len(wu) != m or min(wx + wu) < 0:
+                raise ValueError(f"{self.name}: rl_reward_weights needs {n} state and {m} input weights >= 0, "
+                                 f"got {self.rl_reward_weights}")
+            set_(self, "rl_reward_weights", (wx, wu))
         unknown = [u for u in self.uncertain if u not in self.param_names]
         if unknown or not self.uncertain:
             raise ValueError(f"{self.name}: uncertain parameters {unknown or '()'} must be a non-empty "
@@ -147,9 +207,24 @@ class UncertainSystem:
             w = self.perturbation(x_star, torch.tensor([u_star], dtype=torch.float64))
             if tuple(w.shape) != (1, n, self.k):
                 raise ValueError(f"{self.name}: perturbation must return shape (B, {n}, {self.k}), got {tuple(w.shape)}")
-        if residual.abs().max() > 1e-9:
+        if not torch.isfinite(residual).all() or residual.abs().max() > 1e-9:
             raise ValueError(f"{self.name}: F(x*, u*, p0) = {residual.tolist()[0]} is not zero; "
                              "the equilibrium must be an equilibrium of the nominal system")
+        if self.xi_sampler is not None:
+            self._check_sampler()
+
+    def _check_sampler(self, count: int = 4) -> None:
+        """Call ``xi_sampler`` once with a seeded generator: it must give ``count`` finite rows of width k."""
+        try:
+            draw = torch.as_tensor(self.xi_sampler(count, torch.Generator().manual_seed(0)))
+        except Exception as err:
+            raise ValueError(f"{self.name}: xi_sampler({count}, generator) failed: {err!r}") from err
+        shape = tuple(draw.shape)
+        if shape != (count, self.k) and not (self.k == 1 and shape == (count,)):
+            raise ValueError(f"{self.name}: xi_sampler(N, generator) must return shape (N, {self.k}) (one column per "
+                             f"uncertain parameter: {', '.join(self.uncertain)}), got {shape} for N = {count}")
+        if not torch.isfinite(draw.to(torch.float64)).all():
+            raise ValueError(f"{self.name}: xi_sampler returned non-finite values {draw.tolist()}")
 
     # ----------------------------------------------------------------- dimensions
     @property
@@ -293,7 +368,19 @@ class UncertainSystem:
         """``count`` training samples ``(count, k)`` from the system's declared distribution."""
         if self.xi_sampler is None:
             raise ValueError(f"{self.name} declares no xi distribution; pass xi samples explicitly")
-        return self.xi_sampler(count, generator).to(torch.float64).reshape(count, self.k)
+        draw = torch.as_tensor(self.xi_sampler(count, generator)).to(torch.float64)
+        if draw.numel() != count * self.k or not torch.isfinite(draw).all():
+            raise ValueError(f"{self.name}: xi_sampler({count}, generator) must return {count} finite rows of "
+                             f"{self.k} values, got shape {tuple(draw.shape)}")
+        return draw.reshape(count, self.k)
+
+    def figure_starts(self) -> list[tuple[float, ...]]:
+        """Start states of the paper-like figures: ``reference_states``, else the low corner and the
+        centre of the test box (user coordinates)."""
+        if self.reference_states:
+            return list(self.reference_states)
+        lo, hi = self.test_box
+        return [tuple(lo), tuple((a + b) / 2 for a, b in zip(lo, hi))]
 
     def describe(self) -> dict:
         """A JSON-friendly summary (used by ``drlyap systems`` and saved in run directories)."""
@@ -303,6 +390,7 @@ class UncertainSystem:
             "parameters": dict(zip(self.param_names, self.nominal_params)),
             "uncertain": list(self.uncertain), "state_box": [list(b) for b in self.state_box],
             "input_box": [list(b) for b in self.input_box], "equilibrium": list(self.equilibrium),
+            "equilibrium_input": list(self.equilibrium_input),
             "angle_dims": list(self.angle_dims), "test_box": [list(b) for b in self.test_box],
             "test_xi": list(self.test_xi) if self.test_xi is not None else None,
             "description": self.description,
@@ -342,7 +430,8 @@ def pendulum(u_max: float = 15.0) -> UncertainSystem:
         uncertain=("mass", "damping"), dynamics=_pendulum,
         state_box=((-math.pi, -8.0), (math.pi, 8.0)), input_box=((-u_max,), (u_max,)),
         equilibrium=(0.0, 0.0), angle_dims=(0,), test_box=((-math.pi, -6.0), (math.pi, 6.0)),
-        xi_sampler=_pendulum_xi, test_xi=(0.1, 0.05),
+        xi_sampler=_pendulum_xi, test_xi=(0.1, 0.05), reference_states=((math.pi, 0.0), (-math.pi / 2, 5.5)),
+        rl_timing=(0.05, 10.0), rl_reward_weights=((1.0, 0.1), (0.001,)),  # the paper's RL cost, 200-step episodes
         defaults={"n_states": 3600, "wasserstein_radius": 0.01, "risk_level": 0.1, "n_xi": 5,
                   "decay_rate": 1.0, "alpha_hat": 1.0, "delta": 0.5, "margin": 0.1,
                   "lyapunov_hidden": [16, 16], "controller_hidden": [16, 16]},
@@ -358,7 +447,8 @@ def mountain_car() -> UncertainSystem:
         param_names=("power", "slope"), nominal_params=(0.0015, 0.0025), uncertain=("power",),
         dynamics=_mountain_car, state_box=((-2.0, -0.4), (2.0, 0.4)), input_box=((-2.0,), (2.0,)),
         equilibrium=(math.pi / 6, 0.0), test_box=((-1.0, -0.1), (1.0, 0.1)),
-        xi_sampler=_mountain_car_xi, test_xi=(-0.0003,),
+        xi_sampler=_mountain_car_xi, test_xi=(-0.0003,), reference_states=((-math.pi / 6, 0.0),),
+        rl_timing=(1.0, 500.0),  # the gym mountain car's step
         defaults={"n_states": 1600, "wasserstein_radius": 1e-4, "risk_level": 0.1, "n_xi": 3,
                   "decay_rate": 0.001, "alpha_hat": 1.0, "delta": 0.1, "margin": 0.003},
         sim_dt=0.5, horizon=1500.0, state_units=("u.", "u./step"), input_units=("u.",), time_unit="step",
@@ -389,3 +479,109 @@ def get_system(name: str) -> UncertainSystem:
         return _REGISTRY[name]()
     except KeyError:
         raise ValueError(f"unknown system {name!r}; valid: {', '.join(system_names())}") from None
+
+
+# --------------------------------------------------------------------------- user systems
+SPEC_FORMS = "a registered name, 'package.module:factory' or 'path/to/file.py:factory'"
+
+# Fields of describe() that fix the dynamics a run was trained on (compared when a run is reloaded).
+IDENTITY_KEYS = ("name", "n", "m", "k", "states", "inputs", "parameters", "uncertain", "state_box", "input_box",
+                 "equilibrium", "equilibrium_input", "angle_dims")
+
+
+def _import_file(path: Path):
+    """Import a Python file under a module name unique to its absolute path (no clash between files)."""
+    path = path.resolve()
+    if not path.is_file():
+        raise ValueError(f"system file {path} does not exist")
+    name = "drlyap_user_" + hashlib.sha1(str(path).encode()).hexdigest()[:12]
+    spec = importlib.util.spec_from_file_location(name, path)
+    if spec is None or spec.loader is None:
+        raise ValueError(f"cannot import {path} as a Python file")
+    module = importlib.util.module_from_spec(spec)
+    sys.modules[name] = module
+    try:
+        spec.loader.exec_module(module)
+    except Exception as err:
+        sys.modules.pop(name, None)
+        raise ValueError(f"importing system file {path} failed: {err!r}") from err
+    return module
+
+
+def _is_file_spec(target: str) -> bool:
+    return target.endswith(".py") or "/" in target or "\\" in target
+
+
+def resolve_system(spec: str) -> UncertainSystem:
+    """A system from a command-line spec: a registered name (``pendulum``), ``package.module:factory``
+    or ``path/to/file.py:factory``.
+
+    ``factory`` names an :class:`UncertainSystem` object or a zero-argument callable returning one.
+    A file is imported by path (under a module name unique to its absolute path), so it need not be
+    on ``sys.path``. Errors name the spec and the valid forms.
+    """
+    spec = str(spec).strip()
+    if ":" not in spec:
+        if spec in _REGISTRY:
+            return get_system(spec)
+        hint = " (add ':factory', the name of the system or of a function returning it)" if _is_file_spec(spec) else ""
+        raise ValueError(f"unknown system {spec!r}{hint}; valid: {', '.join(system_names())}, or {SPEC_FORMS}")
+    target, _, attr = spec.rpartition(":")
+    if not target or not attr.isidentifier():
+        raise ValueError(f"system spec {spec!r} must be {SPEC_FORMS}")
+    if _is_file_spec(target):
+        module = _import_file(Path(target))
+    else:
+        try:
+            module = importlib.import_module(target)
+        except ImportError as err:
+            raise ValueError(f"cannot import module {target!r} of system spec {spec!r}: {err}") from err
+    if not hasattr(module, attr):
+        raise ValueError(f"{target} has no attribute {attr!r} (system spec {spec!r})")
+    obj = getattr(module, attr)
+    if callable(obj) and not isinstance(obj, UncertainSystem):
+        try:
+            obj = obj()
+        except TypeError as err:
+            raise ValueError(f"{spec}: the factory must take no arguments ({err})") from err
+    if not isinstance(obj, UncertainSystem):
+        raise ValueError(f"{spec} gives a {type(obj).__name__}, not an UncertainSystem")
+    return obj
+
+
+def system_source(spec: str, system: UncertainSystem) -> dict:
+    """What a run directory records about where its system came from, so that it can be reloaded.
+
+    ``spec``: as given; ``reload``: the spec to reload with (file paths made absolute); ``path``: the
+    absolute file path, if any. The run's ``run.json`` also holds ``system.describe()``, compared on reload.
+    """
+    spec = str(spec).strip()
+    target, _, attr = spec.rpartition(":")
+    path = str(Path(target).resolve()) if target and _is_file_spec(target) else None
+    return {"spec": spec, "reload": f"{path}:{attr}" if path else spec, "path": path}
+
+
+def default_source(system: UncertainSystem) -> dict:
+    """The source of a system handed in as an object: its registered name when the registry builds the
+    same system, else nothing to reload from (loading such a run needs ``system=``)."""
+    if system.name in _REGISTRY and not identity_mismatch(get_system(system.name).describe(), system):
+        return system_source(system.name, system)
+    return {"spec": None, "reload": None, "path": None}
+
+
+def _same(a, b) -> bool:
+    if isinstance(a, dict) and isinstance(b, dict):
+        return a.keys() == b.keys() and all(_same(a[k], b[k]) for k in a)
+    if isinstance(a, (list, tuple)) and isinstance(b, (list, tuple)):
+        return len(a) == len(b) and all(_same(x, y) for x, y in zip(a, b))
+    if isinstance(a, (int, float)) and isinstance(b, (int, float)) and not isinstance(a, bool):
+        return math.isclose(a, b, rel_tol=1e-12, abs_tol=1e-300)
+    return a == b
+
+
+def identity_mismatch(recorded: dict, system: UncertainSystem) -> list[str]:
+    """The :data:`IDENTITY_KEYS` on which ``system.describe()`` differs from a ``recorded`` description
+    (keys absent from ``recorded``, e.g. in older runs, are not compared)."""
+    now = system.describe()
+    return [f"{key}: recorded {recorded[key]!r}, now {now[key]!r}" for key in IDENTITY_KEYS
+            if key in recorded and not _same(recorded[key], now[key])]

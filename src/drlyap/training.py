@@ -22,6 +22,7 @@ from torch import Tensor
 from drlyap.checks import acceptance_check
 from drlyap.conditions import Condition, make_condition
 from drlyap.networks import Controller, Lyapunov
+from drlyap.progress import progress as show_progress
 from drlyap.regions import Region
 from drlyap.systems import UncertainSystem, get_system
 
@@ -176,6 +177,9 @@ def train(cfg: TrainConfig, system: UncertainSystem | None = None, progress: boo
     local states (e.g. counterexamples found by the verifier) added to every training batch.
     """
     system = system or get_system(cfg.system)
+    if system.name != cfg.system:
+        raise ValueError(f"TrainConfig(system={cfg.system!r}) names another system than the one passed "
+                         f"({system.name!r}); set TrainConfig(system={system.name!r})")
     cfg = cfg.resolved(system)
     device = resolve_device(cfg.device)
     torch.manual_seed(cfg.seed)
@@ -234,7 +238,7 @@ def train(cfg: TrainConfig, system: UncertainSystem | None = None, progress: boo
         check_time += time.perf_counter() - tic
         return check
 
-    bar = _progress(cfg.iters, progress, f"{cfg.system} {cfg.method}")
+    bar = show_progress(cfg.iters, f"{cfg.system} {cfg.method}", progress)
     iteration = 0
     try:
         for iteration in range(1, cfg.iters + 1):
@@ -284,17 +288,3 @@ def train(cfg: TrainConfig, system: UncertainSystem | None = None, progress: boo
         "xi_train": xi_train.tolist(),
     }
     return TrainResult(cfg, system, lyapunov.cpu(), controller.cpu(), xi_all, condition, history, metrics)
-
-
-class _NoBar:
-    def update(self, n: int = 1) -> None: ...
-    def set_postfix(self, **kw: object) -> None: ...
-    def close(self) -> None: ...
-
-
-def _progress(total: int, enabled: bool, desc: str):
-    if not enabled:
-        return _NoBar()
-    from tqdm.auto import tqdm
-
-    return tqdm(total=total, desc=desc, leave=False, dynamic_ncols=True)

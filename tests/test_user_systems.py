@@ -1,0 +1,199 @@
+"""A user's own system, defined in a Python file, through every command; reloads that refuse other dynamics."""
+
+import io
+import json
+import math
+
+import pytest
+import torch
+from click.testing import CliRunner
+
+import drlyap
+from drlyap.cli import main
+from drlyap.progress import progress
+from drlyap.rundir import RunDirError, load_policy_run, load_run
+from drlyap.systems import UncertainSystem, get_system, resolve_system
+
+SYSTEM_FILE = '''
+import torch
+from drlyap import UncertainSystem
+
+
+def dynamics(x, u, p):
+    (c,) = p.unbind(-1)
+    return torch.stack([x[:, 1], -c * x[:, 1] + u[:, 0]], dim=-1)   # damped double integrator
+
+
+def make():
+    return UncertainSystem(
+        name=NAME, state_names=("q", "v"), input_names=("f",), param_names=("damping",),
+        nominal_params=(DAMPING,), uncertain=("damping",), dynamics=dynamics,
+        state_box=((-1.0, -1.0), (1.0, 1.0)), input_box=((-2.0,), (2.0,)), equilibrium=(0.0, 0.0),
+        xi_sampler=lambda n, g: 0.05 * torch.randn(n, 1, generator=g, dtype=torch.float64),
+        test_xi=(-0.2,), reference_states=((-0.8, 0.5),), horizon=5.0,
+        defaults={"n_states": 128, "lyapunov_hidden": [8, 8], "controller_hidden": [8, 8], "check_every": 20},
+    )
+'''
+
+
+def write_system(path, name="user-dint", damping=0.5):
+    path.write_text(SYSTEM_FILE.replace("NAME", repr(name)).replace("DAMPING", repr(damping)))
+    return path
+
+
+def invoke(*args):
+    result = CliRunner().invoke(main, [str(a) for a in args])
+    return result
+
+
+@pytest.fixture(scope="module")
+def user_runs(tmp_path_factory):
+    tmp = tmp_path_factory.mktemp("user")
+    file = write_system(tmp / "dint.py")
+    train = invoke("train", f"{file}:make", "--iters", "20", "--quiet", "--json", "--out", tmp / "run")
+    assert train.exit_code == 0, train.output
+    lqr = invoke("lqr", f"{file}:make", "--n-init", "5", "--json", "--out", tmp / "lqr")
+    assert lqr.exit_code == 0, lqr.output
+    return tmp, file, json.loads(train.stdout), json.loads(lqr.stdout)
+
+
+def test_user_file_system_trains_evaluates_verifies_and_compares(user_runs):
+    tmp, file, trained, lqr = user_runs
+    assert trained["system"] == "user-dint" and trained["metrics"]["iterations"] == 20
+    assert lqr["system"] == "user-dint" and len(lqr["gains"]["K"][0]) == 2
+    with pytest.raises(ValueError, match="unknown system"):
+        get_system("user-dint")  # nothing registered it: every command below rebuilds it from run.json
+    source = json.loads((tmp / "run" / "run.json").read_text())["system_source"]
+    assert source["path"] == str(file.resolve()) and source["reload"] == f"{file.resolve()}:make"
+
+    ev = invoke("evaluate", tmp / "run", "--xi", "-0.2", "--n-init", "4", "--horizon", "1", "--json")
+    assert ev.exit_code == 0, ev.output
+    assert json.loads(ev.stdout)["n"] == 4
+    ver = invoke("verify", tmp / "run", "--time-limit", "1", "--json")
+    assert ver.exit_code == 0, ver.output
+    assert json.loads(ver.stdout)["trained"]["status"] in {"verified", "violated", "unknown"}
+    cmp_ = invoke("compare", tmp / "run", tmp / "lqr", "--xi", "-0.2", "--n-init", "4", "--horizon", "1",
+                  "--certify-time", "0.5", "--json", "--out", tmp / "cmp")
+    assert cmp_.exit_code == 0, cmp_.output
+    rows = json.loads(cmp_.stdout)["rows"]
+    assert [r["kind"] for r in rows] == ["lyapunov", "lqr"] and all(r["system"] == "user-dint" for r in rows)
+    assert (tmp / "cmp" / "figures" / "certificate_and_input_0.png").is_file()  # from the declared reference state
+
+
+def test_a_changed_system_file_is_refused(user_runs, tmp_path):
+    tmp, file, _, _ = user_runs
+    original = file.read_text()
+    try:
+        write_system(file, damping=0.7)
+        for path in (tmp / "run", tmp / "lqr"):
+            with pytest.raises(RunDirError, match="other dynamics.*damping"):
+                load_policy_run(path)
+        result = invoke("evaluate", tmp / "run", "--xi", "-0.2", "--n-init", "2")
+        assert result.exit_code != 0 and "other dynamics" in result.output
+    finally:
+        file.write_text(original)
+    assert load_run(tmp / "run").system.nominal_params == (0.5,)
+
+
+def test_config_and_run_json_must_name_the_same_system(user_runs, tmp_path):
+    import shutil
+
+    tmp, _, _, _ = user_runs
+    shutil.copytree(tmp / "run", tmp_path / "run")
+    info = json.loads((tmp_path / "run" / "run.json").read_text())
+    info["system"]["name"] = "pendulum"
+    (tmp_path / "run" / "run.json").write_text(json.dumps(info))
+    with pytest.raises(RunDirError, match="inconsistent"):
+        load_run(tmp_path / "run")
+
+
+def test_train_refuses_a_config_naming_another_system(tmp_path):
+    system = resolve_system(f"{write_system(tmp_path / 'd.py', name='other')}:make")
+    with pytest.raises(ValueError, match="names another system"):
+        drlyap.train(drlyap.TrainConfig(system="pendulum", iters=1), system=system, progress=False)
+
+
+def test_resolve_system_forms_and_errors(tmp_path):
+    assert resolve_system("pendulum").name == "pendulum"
+    assert resolve_system("drlyap.systems:mountain_car").name == "mountain-car"
+    file = write_system(tmp_path / "s.py")
+    for spec, message in [("nope", "unknown system 'nope'"), (str(file), "add ':factory'"),
+                          (f"{file}:missing", "no attribute 'missing'"), (f"{tmp_path}/none.py:make", "does not exist"),
+                          ("no_such_module_xyz:make", "cannot import module"), (f"{file}:torch", "not an UncertainSystem")]:
+        with pytest.raises(ValueError, match=message):
+            resolve_system(spec)
+
+
+def _kwargs(**over):
+    base = dict(name="bad", state_names=("q", "v"), input_names=("f",), param_names=("c",), nominal_params=(0.5,),
+                uncertain=("c",), dynamics=lambda x, u, p: torch.stack([x[:, 1], -p[:, 0] * x[:, 1] + u[:, 0]], -1),
+                state_box=((-1, -1), (1, 1)), input_box=((-1,), (1,)), equilibrium=(0.0, 0.0))
+    return base | over
+
+
+@pytest.mark.parametrize("over, message", [
+    ({"nominal_params": (math.nan,)}, "nominal_params must be finite, got c=nan"),
+    ({"equilibrium": (0.0, math.inf)}, "equilibrium must be finite"),
+    ({"equilibrium_input": (math.nan,)}, "equilibrium_input must be finite"),
+    ({"test_xi": (math.inf,)}, "test_xi must be finite"),
+    ({"reference_states": ((0.1,),)}, r"reference_states\[0\] has 1 entries, state has 2"),
+    ({"xi_sampler": lambda n, g: torch.zeros(n, 2)}, r"xi_sampler\(N, generator\) must return shape \(N, 1\).*got \(4, 2\)"),
+    ({"xi_sampler": lambda n, g: torch.full((n, 1), math.nan)}, "xi_sampler returned non-finite"),
+])
+def test_bad_systems_are_refused_when_built(over, message):
+    with pytest.raises(ValueError, match=f"bad: {message}"):
+        UncertainSystem(**_kwargs(**over))
+
+
+def test_reproduce_needs_a_test_shift(tmp_path):
+    system = UncertainSystem(**_kwargs(name="no-test", xi_sampler=lambda n, g: torch.zeros(n, 1)))
+    from drlyap.experiments import reproduce
+
+    with pytest.raises(ValueError, match="declares no test_xi"):
+        reproduce(system, [0], tmp_path / "out")
+    assert not (tmp_path / "out").exists()
+
+
+def test_progress_lines_when_piped_and_nothing_when_disabled():
+    stream = io.StringIO()
+    bar = progress(3, "work", stream=stream, every=0.0)
+    bar.set_postfix(loss="1e-3")
+    bar.update(2)
+    bar.close()
+    assert "work: 2/3 (67%) loss=1e-3" in stream.getvalue()
+    quiet = io.StringIO()
+    bar = progress(3, "work", enabled=False, stream=quiet)
+    bar.update(3)
+    bar.close()
+    assert quiet.getvalue() == ""
+
+
+def test_reproduce_takes_a_user_file(user_runs):
+    tmp, file, _, _ = user_runs
+    result = invoke("reproduce", f"{file}:make", "--iters", "2", "--seeds", "0", "--json", "--out", tmp / "rep")
+    assert result.exit_code == 0, result.output
+    report = json.loads(result.stdout)
+    assert report["system"] == "user-dint" and report["test_xi"] == [-0.2]
+    assert load_run(tmp / "rep" / "seed0" / "dr").system.name == "user-dint"
+
+
+def test_run_kind_loaders_need_no_import_loop():
+    import ast
+    import inspect
+
+    import drlyap.baselines
+    import drlyap.rl
+
+    def imported(module) -> set[str]:
+        names = set()
+        for node in ast.walk(ast.parse(inspect.getsource(module))):
+            if isinstance(node, ast.ImportFrom) and node.module:
+                names.add(node.module)
+            elif isinstance(node, ast.Import):
+                names.update(a.name for a in node.names)
+        return names
+
+    assert "drlyap.rl" not in imported(drlyap.baselines) and "drlyap.baselines" not in imported(drlyap.rl)
+    from drlyap.rundir import LOADERS
+
+    assert {"lyapunov", "lqr", "rl"} <= set(LOADERS)
