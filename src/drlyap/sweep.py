@@ -487,6 +487,7 @@ def summarise(rows: Sequence[dict], factors: Sequence[float]) -> list[dict]:
             entry["success"] = {f"{k:g}": stats([r["success"][f"{k:g}"] for r in ok]) for k in factors}
             entry["trained_verified"] = sum(r["trained_condition"] == "verified" for r in ok)
             entry["test_verified"] = sum(r["test_decrease"] == "verified" for r in ok)
+            entry["test_verified_fraction"] = stats([float(r["test_verified_fraction"] or 0.0) for r in ok])
             entry["roa_share"] = stats([r["roa_share"] for r in ok])
             entry["passed_acceptance"] = sum(bool(r["passed_acceptance"]) for r in ok)
         out.append(entry)
@@ -553,6 +554,10 @@ def run_sweep(spec: SweepSpec, out: str | os.PathLike, backend: Backend | None =
     finally:
         if own:
             backend.close()
+    try:
+        (out / STAGING).rmdir()  # empty once every task has moved its directory into place
+    except OSError:
+        pass
     extra = {"backend": backend.name, "computed": sorted(computed), "reused": reused,
              "failed": sum(r["status"] != "ok" for r in rows.values()), "wall_s": time.perf_counter() - start}
     report = write_tables(out, spec, list(rows.values()), extra)
@@ -572,17 +577,18 @@ def format_summary(report: dict) -> str:
     factors = [f"{k:g}" for k in report["spec"]["shift_factors"]]
     lines = ["| method | eps | r | seeds | success at " + ", ".join(f"{k}x" for k in factors)
              + " (mean [min, max]) | trained condition verified | decrease at test shift verified "
-             "| certified ROA share (mean [min, max]) | failed |",
-             "|---|---|---|---|---|---|---|---|---|"]
+             "| share of X_delta proved at test shift (mean [min, max]) | certified ROA share (mean [min, max]) | failed |",
+             "|---|---|---|---|---|---|---|---|---|---|"]
     for s in report["summary"]:
         ok = s["n"] - s["failed"]
         if ok:
             succ = "; ".join(f"{v['mean']:.2f} [{v['min']:.2f}, {v['max']:.2f}]" for v in (s["success"][k] for k in factors))
-            roa = s["roa_share"]
+            roa, frac = s["roa_share"], s["test_verified_fraction"]
             cells = (f"{succ} | {s['trained_verified']}/{ok} | {s['test_verified']}/{ok} | "
+                     f"{100 * frac['mean']:.3f}% [{100 * frac['min']:.3f}, {100 * frac['max']:.3f}] | "
                      f"{100 * roa['mean']:.1f}% [{100 * roa['min']:.1f}, {100 * roa['max']:.1f}]")
         else:
-            cells = "- | - | - | -"
+            cells = "- | - | - | - | -"
         lines.append(f"| {s['method']} | {_num(s['eps'])} | {_num(s['radius'])} | {s['n']} | {cells} | {s['failed']} |")
     return "\n".join(lines)
 
