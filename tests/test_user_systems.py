@@ -179,6 +179,17 @@ def test_reproduce_takes_a_user_file(user_runs):
     assert load_run(tmp / "rep" / "seed0" / "dr").system.name == "user-dint"
 
 
+def test_sweep_takes_a_user_file(user_runs):
+    tmp, file, _, _ = user_runs
+    result = invoke("sweep", f"{file}:make", "--seeds", "0", "--radius", "0,0.01", "--iters", "10", "--verify-rounds",
+                    "1", "--verify-time-limit", "1", "--n-init", "4", "--shifts", "1", "--json", "--out", tmp / "sw")
+    assert result.exit_code == 0, result.output
+    report = json.loads(result.stdout)
+    assert report["failed"] == 0 and len(report["rows"]) == 2
+    run = load_run(tmp / "sw" / report["rows"][0]["name"])
+    assert run.system.name == "user-dint" and run.metrics["certificate"]["status"] in ("verified", "violated", "unknown")
+
+
 def test_run_kind_loaders_need_no_import_loop():
     import ast
     import inspect

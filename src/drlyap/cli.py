@@ -4,6 +4,7 @@ from __future__ import annotations
 
 import json
 import os
+import sys
 from pathlib import Path
 
 import click
@@ -610,6 +611,89 @@ def plot(run_dir: Path, xi: str | None, n_init: int, seed: int, roa: bool | None
                + (region["label"] if region else "no certified set drawn"))
     for path in result["figures"]:
         click.echo(f"wrote {path}")
+
+
+@main.command("sweep")
+@click.argument("system")
+@click.option("--seeds", default="0-4", show_default=True, help="Training seeds: '0-9', '0,2,5' or '0-4,10'.")
+@click.option("--radius", default=None, help="Wasserstein radii r, comma-separated [the system's default].")
+@click.option("--eps", default=None, help="Risk levels eps, comma-separated [the system's default].")
+@click.option("--method", default="dr", show_default=True,
+              help="dr, baseline or both (the baseline ignores r and eps: one run per seed).")
+@click.option("--out", type=click.Path(path_type=Path), default=None,
+              help="Sweep directory; rerunning the same sweep into it resumes it [runs/sweep-SYSTEM].")
+@click.option("--backend", type=click.Choice(["local", "ray"]), default="local", show_default=True,
+              help="local: worker processes on this machine; ray: one Ray task per combination (pip install drlyap[ray]).")
+@click.option("--workers", type=int, default=1, show_default=True,
+              help="Concurrent combinations (local processes, or CPUs of a local Ray), one torch thread each.")
+@click.option("--address", default=None, help="Ray cluster to join ('auto', 'ray://HOST:10001'); default: start Ray here.")
+@click.option("--iters", type=int, default=None, help="Iteration cap per training run [3000].")
+@click.option("--verify/--no-verify", default=True, show_default=True,
+              help="Prove each trained pair with counterexample-guided rounds, as `train` does.")
+@click.option("--verify-rounds", type=int, default=5, show_default=True, help="Retraining rounds at most per pair.")
+@click.option("--device", default="cpu", show_default=True, help="cpu or cuda (for every combination).")
+@click.option("--shifts", default="1,2,3,4,5", show_default=True, help="Evaluate at these multiples of the test shift.")
+@click.option("--n-init", type=int, default=200, show_default=True, help="Evaluation initial states per seed.")
+@click.option("--verify-time-limit", type=float, default=30.0, show_default=True, help="Seconds per branch and bound.")
+@click.option("--json", "as_json", is_flag=True, help="Print one JSON object (progress goes to stderr).")
+def sweep(system: str, seeds: str, radius: str | None, eps: str | None, method: str, out: Path | None, backend: str,
+          workers: int, address: str | None, iters: int | None, verify: bool, verify_rounds: int, device: str,
+          shifts: str, n_init: int, verify_time_limit: float, as_json: bool) -> None:
+    """Train, verify and evaluate every combination of seeds x radii x eps for SYSTEM; resumable.
+
+    One run directory per combination under --out, plus results.csv, results.json and figures/sweep.png.
+    Running the same command again continues an interrupted sweep and retries failed combinations.
+    """
+    from drlyap import sweep as sw
+
+    try:
+        sys_ = resolve_system(system)
+        defaults = _train_defaults(sys_)
+        spec = sw.SweepSpec(system=system, seeds=sw.parse_seeds(seeds),
+                            radii=sw.parse_values(radius, "--radius") if radius else [defaults["wasserstein_radius"]],
+                            eps=sw.parse_values(eps, "--eps") if eps else [defaults["risk_level"]],
+                            methods=sw.parse_methods(method), iters=iters, verify=verify, verify_rounds=verify_rounds,
+                            device=device,
+                            shift_factors=sw.parse_values(shifts, "--shifts"), n_init=n_init,
+                            verify_time_limit=verify_time_limit)
+        spec.validate()
+        out = out or Path("runs") / f"sweep-{sys_.name}"
+        total = len(spec.combinations())
+        log = (lambda s: click.echo(s, err=True)) if as_json else click.echo
+        bar = None
+        if sys.stderr.isatty() and not as_json:
+            from tqdm.auto import tqdm
+
+            bar = tqdm(total=total, desc=f"sweep {system}", dynamic_ncols=True)
+
+        def on_result(row: dict, done: int, total: int) -> None:
+            if bar is not None:
+                bar.update(1)
+                bar.write(sw.format_row(row))
+            else:
+                log(f"[{done}/{total}] {sw.format_row(row)}")
+
+        with sw.make_backend(backend, workers, address) as runner:
+            report = sw.run_sweep(spec, out, runner, on_result=on_result)
+        if bar is not None:
+            bar.close()
+    except ValueError as err:
+        _fail(err)
+    if as_json:
+        click.echo(json.dumps(report))
+        return
+    click.echo("")
+    click.echo(sw.format_summary(report))
+    click.echo(f"\n{len(report['computed'])} combination(s) run, {len(report['reused'])} reused from an earlier run, "
+               f"{report['failed']} failed; {report['wall_s']:.1f} s on the {report['backend']} backend")
+    click.echo(f"wrote {out} (results.csv, results.json, figures/sweep.png, one run directory per combination)")
+
+
+def _train_defaults(system) -> dict:
+    """The resolved training defaults of ``system`` (radius, risk level, ...)."""
+    from drlyap.training import TrainConfig
+
+    return TrainConfig(system=system.name).resolved(system).to_dict()
 
 
 if __name__ == "__main__":

@@ -340,3 +340,46 @@ def sweep_plot(system_name: str, factors: Sequence[int], results: Sequence[dict]
     ax.set_title(f"{system_name}: robustness to larger parameter shifts")
     fig.legend(loc="outside lower center", fontsize=8)
     return _save(fig, path)
+
+
+def against_radius(summary: Sequence[dict], factors: Sequence[float], path: Path, title: str = "") -> Path:
+    """A sweep's outcome against the Wasserstein radius r, one line per risk level eps (method ``dr``),
+    the baseline (which ignores r) as a dashed level; lines are means over seeds, bands their min-max.
+
+    ``summary`` is :func:`drlyap.sweep.summarise`'s list; panels: success at the first and last shift
+    factor, share of seeds whose decrease at the test shift is verified, share of X_delta where it is
+    proved (a lower bound when the branch and bound stopped on its time limit; its own y-range),
+    certified region of attraction.
+    """
+    path.parent.mkdir(parents=True, exist_ok=True)
+    first, last = f"{factors[0]:g}", f"{factors[-1]:g}"
+    panels = [(f"success at {first}x test shift", lambda s: s["success"][first]),
+              (f"success at {last}x test shift", lambda s: s["success"][last]),
+              ("decrease at test shift verified (share of seeds)",
+               lambda s: dict.fromkeys(("mean", "min", "max"), s["test_verified"] / (s["n"] - s["failed"]))),
+              ("share of X_delta where that decrease is proved", lambda s: s["test_verified_fraction"]),
+              ("certified ROA (share of the box)", lambda s: s["roa_share"])]
+    done = [s for s in summary if s["n"] > s["failed"]]
+    radii = sorted({s["radius"] for s in done if s["radius"] is not None}) or [0.0]
+    fig, axes = plt.subplots(1, len(panels), figsize=(3.9 * len(panels), 3.8), squeeze=False)
+    for ax, (label, get) in zip(axes[0], panels):
+        for eps in sorted({s["eps"] for s in done if s["method"] == "dr"}):
+            rows = sorted((s for s in done if s["method"] == "dr" and s["eps"] == eps), key=lambda s: s["radius"])
+            r = [s["radius"] for s in rows]
+            stats = [get(s) for s in rows]
+            line = ax.plot(r, [v["mean"] for v in stats], marker="o", label=f"DR eps={eps:g}")[0]
+            ax.fill_between(r, [v["min"] for v in stats], [v["max"] for v in stats], color=line.get_color(), alpha=0.2)
+        for s in (s for s in done if s["method"] == "baseline"):
+            v = get(s)
+            ax.axhline(v["mean"], color="black", ls="--", lw=1, label="baseline (no r)")
+            ax.axhspan(v["min"], v["max"], color="black", alpha=0.08)
+        ax.set_xlabel("Wasserstein radius r")
+        ax.set_title(label, fontsize=9)
+        if label.startswith("share of X_delta"):
+            ax.margins(y=0.1)
+        else:
+            ax.set_ylim(-0.03, 1.03)
+        ax.set_xticks(radii)
+        ax.tick_params(axis="x", labelrotation=45)
+    axes[0][0].legend(fontsize=8)
+    return _save(fig, path, title)
