@@ -7,8 +7,8 @@ import torch
 from drlyap.checks import find_equilibria, jacobian_check
 from drlyap.regions import Region
 from drlyap.rundir import RunDirError, load_run, save_run
-from drlyap.systems import pendulum
-from drlyap.training import TrainConfig, build_networks, train
+from drlyap.systems import mountain_car, pendulum
+from drlyap.training import TrainConfig, build_networks, train, training_region
 
 
 def test_training_states_avoid_the_delta_ball_and_fill_the_box():
@@ -109,3 +109,18 @@ def test_a_pd_like_controller_passes_the_jacobian_and_equilibrium_checks():
     xi = torch.tensor([[0.1, 0.05], [0.0, 0.0]])
     assert jacobian_check(p, controller, xi)["hurwitz"]
     assert find_equilibria(p, controller, xi, delta=0.5) == []
+
+
+def test_training_states_can_be_drawn_from_a_box_wider_than_x():
+    car = mountain_car()
+    region = training_region(car, [[-3.2, -0.4], [3.2, 0.4]])
+    z = Region.of(region, 0.1).sample(4000, torch.Generator().manual_seed(0))
+    x = car.to_user(z)
+    assert (x[:, 0] >= -3.2).all() and (x[:, 0] <= 3.2).all() and (x[:, 0].abs() > 2.0).any()
+    assert region.state_box[0] == (-3.2, -0.4) and car.state_box[0] == (-2.0, -0.4)  # X itself is untouched
+    assert training_region(car, None) is car
+
+
+def test_a_train_box_without_the_equilibrium_is_rejected(tiny_config):
+    with pytest.raises(ValueError, match="train_box"):
+        train(tiny_config(train_box=[[1.0, -1.0], [2.0, 1.0]]), progress=False)

@@ -62,13 +62,17 @@ class TrainConfig:
     verify_rounds: int = 5  # retraining rounds at most
     verify_time: float = 30.0  # seconds per proof
     verify_budget: float | None = None  # total seconds for the rounds (None: no limit beyond the rounds)
+    # Box ((low...), (high...)) in user coordinates the training states are drawn from; None: the
+    # system's X. Only where training samples: the networks' input scaling, the acceptance check, the
+    # verifier and the success criterion keep X.
+    train_box: list[list[float]] | None = None
 
     def resolved(self, system: UncertainSystem) -> TrainConfig:
         """A copy with ``None`` fields filled from the system's defaults, validated."""
         cfg = copy.deepcopy(self)
         base = {"wasserstein_radius": 0.01, "risk_level": 0.1, "n_states": 3600, "n_xi": 5, "decay_rate": 1.0,
                 "delta": 0.1, "alpha_hat": 1.0, "margin": 0.0, "lyapunov_hidden": [32, 32],
-                "controller_hidden": [32, 32]}
+                "controller_hidden": [32, 32], "train_box": None}
         base.update(system.defaults)
         for key, value in base.items():
             if getattr(cfg, key) is None:
@@ -99,6 +103,11 @@ class TrainConfig:
             problems.append(f"lr = {self.lr} (must be > 0)")
         if not (math.isfinite(self.delta) and self.delta >= 0):
             problems.append(f"delta = {self.delta} (must be >= 0)")
+        if self.train_box is not None:
+            try:
+                training_region(system, self.train_box)
+            except (TypeError, ValueError) as err:
+                problems.append(f"train_box: {err}")
         if self.xi_samples is not None:
             try:
                 xi = torch.as_tensor(self.xi_samples, dtype=torch.float64)
@@ -136,6 +145,15 @@ class TrainResult:
     condition: Condition
     history: list[dict]
     metrics: dict
+
+
+def training_region(system: UncertainSystem, train_box: list[list[float]] | None) -> UncertainSystem:
+    """``system`` with its state box replaced by ``train_box`` (user coordinates) for drawing training
+    states; ``system`` itself when ``train_box`` is None. Raises ValueError for a malformed box or
+    one that does not hold x* strictly inside."""
+    if train_box is None:
+        return system
+    return dataclasses.replace(system, state_box=tuple(tuple(float(v) for v in side) for side in train_box))
 
 
 def build_networks(system: UncertainSystem, cfg: TrainConfig) -> tuple[Lyapunov, Controller]:
@@ -206,8 +224,10 @@ def train(cfg: TrainConfig, system: UncertainSystem | None = None, progress: boo
             raise ValueError(f"extra_states must be a finite (E, {system.n}) tensor of local states")
         extra_states = extra_states.float().to(device)
 
+    sampling = region if cfg.train_box is None else Region.of(training_region(system, cfg.train_box), cfg.delta)
+
     def batch() -> Tensor:
-        z = region.sample(int(cfg.n_states), gen).float().to(device)
+        z = sampling.sample(int(cfg.n_states), gen).float().to(device)
         return z if extra_states is None else torch.cat([z, extra_states])
 
     z_train = batch()
