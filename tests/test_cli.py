@@ -74,3 +74,12 @@ def test_reproduce_end_to_end_writes_table_json_and_figures(tmp_path):
     assert (out / "seed0" / "figures" / "trajectories.png").is_file()
     assert (out / "seed0" / "figures" / "certificate_and_input.png").is_file()
     assert not [p for p in tmp_path.iterdir() if p.name.startswith(".")]  # no temporary leftovers
+
+
+def test_proved_shares_are_never_rounded_up_to_a_proof():
+    from drlyap.io import proved_percent
+
+    assert proved_percent(0.999996, verified=False) == "99.99%"  # rounded down: a lower bound, not "100.00%"
+    assert proved_percent(0.998449, verified=False) == "99.84%"
+    assert proved_percent(1.0, verified=False, decimals=4) == "> 99.9999%"  # a volume sum that reached 1.0
+    assert proved_percent(1.0, verified=True) == "100.00%"

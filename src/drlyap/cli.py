@@ -10,6 +10,7 @@ from pathlib import Path
 import click
 import torch
 
+from drlyap.io import proved_percent
 from drlyap.systems import get_system, resolve_system, system_names, system_source
 
 
@@ -41,6 +42,11 @@ def _ints(text: str, what: str) -> list[int]:
     if not values:
         raise click.BadParameter(f"{what} is empty")
     return values
+
+
+def _proved(result: dict) -> str:
+    """The proved share of a verification result, never rounded up to 100% unless it is verified."""
+    return proved_percent(result["verified_fraction"], result["status"] == "verified", 4)
 
 
 def _fail(err: Exception) -> None:
@@ -133,7 +139,7 @@ def train(system: str, method: str, loss: str, radius: float | None, eps: float 
 
         def show_round(e: dict) -> None:
             v = e["verification"]
-            line = (f"  proof round {e['round']}: {v['status'].upper()}, {100 * v['verified_fraction']:.4f}% of X_delta "
+            line = (f"  proof round {e['round']}: {v['status'].upper()}, {_proved(v)} of X_delta "
                     f"proved ({v['time_s']:.2f} s)")
             if "counterexamples_added" in e:
                 line += (f"; retraining with {e['counterexamples_added']} counterexamples (+{e['neighbours_added']} "
@@ -447,7 +453,7 @@ def verify(run_dir: Path, delta: float | None, xi: str | None, time_limit: float
         return
 
     def show(res: dict, title: str) -> None:
-        click.echo(f"{title}: {res['status'].upper()}; verified {100 * res['verified_fraction']:.4f}% of X_delta "
+        click.echo(f"{title}: {res['status'].upper()}; verified {_proved(res)} of X_delta "
                    f"({res['boxes_processed']} boxes, {res['time_s']:.2f} s, {res['stopped']})")
         if res["counterexample"] is not None:
             click.echo(f"  counterexample x = {[round(v, 6) for v in res['counterexample']]} with residual "
@@ -574,7 +580,7 @@ def lipschitz(run_dir: Path, spacing: float | None, xi: str | None, verify_time:
                    f"(about {result['samples_needed']:.3g} samples)")
     ver = result["verifier"]
     if ver is not None:
-        click.echo(f"  branch and bound: {ver['status'].upper()}, verified {100 * ver['verified_fraction']:.4f}% "
+        click.echo(f"  branch and bound: {ver['status'].upper()}, verified {_proved(ver)} "
                    f"({ver['boxes_processed']} boxes, {ver['time_s']:.2f} s)")
 
 

@@ -17,6 +17,7 @@ from pathlib import Path
 import torch
 from torch import Tensor
 
+from drlyap.io import proved_percent
 from drlyap.progress import progress as show_progress
 from drlyap.rundir import PolicyRun, atomic_dir, ensure_new, load_policy_run
 from drlyap.simulation import wrap_steps
@@ -237,7 +238,7 @@ def format_comparison(report: dict) -> str:
         elif cert["verified_fraction"] is None:
             proof, roa = cert["status"], "none"
         else:
-            proof = f"{cert['status']} ({100 * cert['verified_fraction']:.2f}% of X_delta)"
+            proof = f"{cert['status']} ({proved_percent(cert['verified_fraction'], cert['status'] == 'verified')} of X_delta)"
             if cert.get("exp_rate") is not None:
                 proof += f", decay {cert['exp_rate']:.3g} V"
             if cert["roa_certified"]:

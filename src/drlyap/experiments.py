@@ -16,6 +16,7 @@ import torch
 from drlyap import plotting
 from drlyap.cegis import train_certified
 from drlyap.figures import region_to_draw, stored_region
+from drlyap.io import proved_percent
 from drlyap.progress import progress as show_progress
 from drlyap.rundir import Run, atomic_dir, load_run, save_run
 from drlyap.simulation import evaluate, initial_states, simulate
@@ -178,7 +179,7 @@ def _true_cell(row: dict) -> str:
         return "-"
     if row["true_model"] == "verified":
         return "verified"
-    return f"{row['true_model']} ({100 * (row['true_model_fraction'] or 0):.2f}% proved)"
+    return f"{row['true_model']} ({proved_percent(row['true_model_fraction'] or 0, False)} proved)"
 
 
 def format_table(report: dict) -> str:

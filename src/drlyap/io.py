@@ -1,4 +1,4 @@
-"""I/O helpers with no drlyap dependencies: strict JSON for results and run directories."""
+"""I/O helpers with no drlyap dependencies: strict JSON for results and run directories, proved shares as text."""
 
 from __future__ import annotations
 
@@ -22,3 +22,14 @@ def write_json(path: Path, data: dict) -> None:
     """Write ``data`` as indented strict JSON (NaN and inf become null)."""
     data = jsonable(data)
     path.write_text(json.dumps(data, indent=2, sort_keys=False) + "\n")
+
+
+def proved_percent(fraction: float, verified: bool, decimals: int = 2) -> str:
+    """A proved share as ``"99.84%"``, rounded down, so a condition that is not verified never prints as
+    ``"100.00%"`` (``"> 99.99%"`` then): the printed number is a lower bound and must read as one. A verified
+    condition is proved on all of it: ``"100.00%"``."""
+    scale = 10 ** decimals
+    pct = 100.0 if verified else math.floor(100 * float(fraction) * scale) / scale
+    if not verified and pct >= 100:
+        return f"> {100 - 1 / scale:.{decimals}f}%"
+    return f"{pct:.{decimals}f}%"
