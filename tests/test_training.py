@@ -124,3 +124,8 @@ def test_training_states_can_be_drawn_from_a_box_wider_than_x():
 def test_a_train_box_without_the_equilibrium_is_rejected(tiny_config):
     with pytest.raises(ValueError, match="train_box"):
         train(tiny_config(train_box=[[1.0, -1.0], [2.0, 1.0]]), progress=False)
+
+
+def test_a_saved_config_with_an_unknown_key_is_refused_by_name():
+    with pytest.raises(ValueError, match=r"unknown config keys \['iterz'\]"):
+        TrainConfig.from_dict({"system": "pendulum", "iterz": 10})

@@ -2,6 +2,7 @@
 
 from __future__ import annotations
 
+import dataclasses
 import json
 import math
 from pathlib import Path
@@ -33,3 +34,13 @@ def proved_percent(fraction: float, verified: bool, decimals: int = 2) -> str:
     if not verified and pct >= 100:
         return f"> {100 - 1 / scale:.{decimals}f}%"
     return f"{pct:.{decimals}f}%"
+
+
+def from_fields(cls, data: dict, what: str, error: type[Exception] = ValueError):
+    """``cls(**data)`` for a dataclass, refusing keys it does not have with ``error`` naming them (and the valid
+    ones): a misspelt key in a saved config or sweep file is an error, not silently dropped."""
+    known = {f.name for f in dataclasses.fields(cls)}
+    unknown = sorted(set(data) - known)
+    if unknown:
+        raise error(f"unknown {what} keys {unknown}; valid: {sorted(known)}")
+    return cls(**data)

@@ -47,6 +47,7 @@ from pathlib import Path
 
 import torch
 
+from drlyap.io import from_fields
 from drlyap.rundir import jsonable, write_json
 from drlyap.training import TrainConfig
 
@@ -217,11 +218,7 @@ class SweepSpec:
 
     @classmethod
     def from_dict(cls, data: dict) -> SweepSpec:
-        known = {f.name for f in dataclasses.fields(cls)}
-        unknown = sorted(set(data) - known)
-        if unknown:
-            raise SweepError(f"unknown sweep keys {unknown}; valid: {sorted(known)}")
-        return cls(**data)
+        return from_fields(cls, data, "sweep", SweepError)
 
 
 # ----------------------------------------------------------------------------------------------- one task

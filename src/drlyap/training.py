@@ -21,6 +21,7 @@ from torch import Tensor
 
 from drlyap.checks import acceptance_check
 from drlyap.conditions import Condition, make_condition
+from drlyap.io import from_fields
 from drlyap.networks import Controller, Lyapunov
 from drlyap.progress import progress as show_progress
 from drlyap.regions import Region
@@ -126,11 +127,7 @@ class TrainConfig:
 
     @classmethod
     def from_dict(cls, data: dict) -> TrainConfig:
-        known = {f.name for f in dataclasses.fields(cls)}
-        unknown = sorted(set(data) - known)
-        if unknown:
-            raise ValueError(f"unknown config keys {unknown}; valid: {sorted(known)}")
-        return cls(**data)
+        return from_fields(cls, data, "config")
 
 
 @dataclass
