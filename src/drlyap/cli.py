@@ -247,7 +247,7 @@ def reproduce(system: str, seeds: str, out: Path | None, iters: int | None, devi
               verify_rounds: int, as_json: bool) -> None:
     """Reproduce the paper's experiment: baseline vs DR at SYSTEM's test shift, every pair proved.
 
-    SYSTEM is a registered name (pendulum, mountain-car), package.module:factory or path/to/file.py:factory;
+    SYSTEM is a registered name (`drlyap systems`), package.module:factory or path/to/file.py:factory;
     it must declare a test shift (test_xi) and a training distribution (xi_sampler)."""
     from drlyap.experiments import format_table
     from drlyap.experiments import reproduce as run_reproduce
