@@ -27,7 +27,6 @@ import torch.nn.functional as F  # noqa: N812
 from torch import Tensor
 
 F64 = torch.float64
-F64 = torch.float64
 EPS = 2.0 ** -52  # float64 machine epsilon (unit roundoff is EPS / 2)
 TINY = 1e-290  # absolute pad: covers underflow of any single operation
 REL1 = 4 * EPS  # relative pad of one correctly rounded operation (generous)
