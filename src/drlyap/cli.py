@@ -633,7 +633,7 @@ def plot(run_dir: Path, xi: str | None, n_init: int, seed: int, roa: bool | None
 @click.option("--workers", type=int, default=1, show_default=True,
               help="Concurrent combinations (local processes, or CPUs of a local Ray), one torch thread each.")
 @click.option("--address", default=None, help="Ray cluster to join ('auto', 'ray://HOST:10001'); default: start Ray here.")
-@click.option("--iters", type=int, default=None, help="Iteration cap per training run [3000].")
+@click.option("--iters", type=int, default=None, help="Iteration cap per training run [the system's default].")
 @click.option("--verify/--no-verify", default=True, show_default=True,
               help="Prove each trained pair with counterexample-guided rounds, as `train` does.")
 @click.option("--verify-rounds", type=int, default=5, show_default=True, help="Retraining rounds at most per pair.")
@@ -647,6 +647,7 @@ def sweep(system: str, seeds: str, radius: str | None, eps: str | None, method: 
           shifts: str, n_init: int, verify_time_limit: float, as_json: bool) -> None:
     """Train, verify and evaluate every combination of seeds x radii x eps for SYSTEM; resumable.
 
+    SYSTEM is a registered name (`drlyap systems`), package.module:factory or path/to/file.py:factory.
     One run directory per combination under --out, plus results.csv, results.json and figures/sweep.png.
     Running the same command again continues an interrupted sweep and retries failed combinations.
     """
@@ -659,18 +660,17 @@ def sweep(system: str, seeds: str, radius: str | None, eps: str | None, method: 
                             radii=sw.parse_values(radius, "--radius") if radius else [defaults["wasserstein_radius"]],
                             eps=sw.parse_values(eps, "--eps") if eps else [defaults["risk_level"]],
                             methods=sw.parse_methods(method), iters=iters, verify=verify, verify_rounds=verify_rounds,
-                            device=device,
-                            shift_factors=sw.parse_values(shifts, "--shifts"), n_init=n_init,
+                            device=device, shift_factors=sw.parse_values(shifts, "--shifts"), n_init=n_init,
                             verify_time_limit=verify_time_limit)
         spec.validate()
         out = out or Path("runs") / f"sweep-{sys_.name}"
         total = len(spec.combinations())
         log = (lambda s: click.echo(s, err=True)) if as_json else click.echo
         bar = None
-        if sys.stderr.isatty() and not as_json:
-            from tqdm.auto import tqdm
+        if sys.stderr.isatty() and not as_json:  # piped: the per-combination lines below are the progress
+            from drlyap.progress import progress
 
-            bar = tqdm(total=total, desc=f"sweep {system}", dynamic_ncols=True)
+            bar = progress(total, f"sweep {sys_.name}")
 
         def on_result(row: dict, done: int, total: int) -> None:
             if bar is not None:
