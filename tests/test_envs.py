@@ -38,7 +38,7 @@ def test_make_with_xi_and_timing():
     with pytest.raises(ValueError, match="takes 2 xi"):
         make_env("pendulum", xi=[0.1])
     with pytest.raises(ValueError, match="unknown system"):
-        make_env("cartpole")
+        make_env("no-such-system")
 
 
 def test_pendulum_reward_formula_wrapped():
