@@ -13,6 +13,10 @@ from drlyap.conditions import DRPointwise, Nominal, TrueDecrease
 from drlyap.enclosures import Affine, Dual, Interval, is_enclosure
 from drlyap.networks import Controller, Lyapunov, TanhMLP
 from drlyap.systems import get_system
+from drlyap.training import TrainConfig, build_networks
+from drlyap.verification import maximize, verify_condition
+from drlyap.verification.bounds import condition_objective
+from handmade import linear_pair, small_pendulum
 
 torch.set_num_threads(1)
 F64 = torch.float64
@@ -235,9 +239,6 @@ def test_dynamics_on_random_small_boxes_enclose_sampled_values(name):
 
 @pytest.mark.parametrize("name", ["cartpole", "quadrotor2d"])
 def test_decrease_condition_objective_on_affine_boxes(name):
-    from drlyap.training import TrainConfig, build_networks
-    from drlyap.verification.bounds import condition_objective
-
     system = get_system(name)
     torch.manual_seed(1)
     lyap, ctrl = build_networks(system, TrainConfig(system=name).resolved(system))
@@ -269,3 +270,58 @@ def test_affine_is_tighter_than_intervals_on_networks(n):
     assert bool((_width(va) <= (vi.hi - vi.lo) * 1.01).all())
     assert ratio_v > 2.0, ratio_v
     assert ratio_g > 10.0, ratio_g
+
+
+# ----------------------------------------------------------------------------------------- branch and bound
+XI = torch.tensor([[0.05, 0.02], [-0.02, -0.01], [0.08, 0.03]], dtype=F64)
+
+
+def _pendulum_region_points(system, delta, per=120):
+    lo, hi = system.local_box()
+    axes = [lo[i] + (hi[i] - lo[i]) * (torch.arange(per, dtype=F64) + 0.5) / per for i in range(system.n)]
+    z = torch.cat([torch.cartesian_prod(*axes),
+                   lo + (hi - lo) * torch.rand(20000, system.n, generator=torch.Generator().manual_seed(3), dtype=F64)])
+    return z[z.norm(dim=-1) >= delta]
+
+
+def test_branch_and_bound_with_affine_forms_verifies_with_fewer_boxes():
+    system = small_pendulum()
+    lyap, ctrl = linear_pair(system)
+    spec = DRPointwise(1e-3, 0.1, XI, 0.05)
+    mv = verify_condition(system, lyap, ctrl, spec, delta=0.2, time_limit=20)
+    af = verify_condition(system, lyap, ctrl, spec, delta=0.2, time_limit=20, enclosure="affine")
+    assert mv.status == af.status == "verified"
+    assert af.boxes_processed <= mv.boxes_processed
+    assert float(spec.exact(system, lyap, ctrl, _pendulum_region_points(system, 0.2)).max()) <= 0
+    with pytest.raises(ValueError, match="unknown enclosure"):
+        verify_condition(system, lyap, ctrl, spec, delta=0.2, enclosure="taylor")
+
+
+def test_branch_and_bound_with_affine_forms_leaves_every_violation_unverified():
+    system = small_pendulum(((-1.5, -3.0), (1.5, 3.0)))
+    lyap, ctrl = linear_pair(system)
+    spec = DRPointwise(1e-3, 0.1, XI, 0.05)
+    result = verify_condition(system, lyap, ctrl, spec, delta=0.2, time_limit=20, min_width=1e-2, keep_boxes=10**6,
+                              enclosure="affine")
+    z = _pendulum_region_points(system, 0.2, per=150)
+    bad = z[spec.exact(system, lyap, ctrl, z) > 0]
+    assert bad.shape[0] and result.status == "violated" and 0 < result.verified_fraction < 1
+    lo = torch.tensor([b["lo"] for b in result.unverified_boxes], dtype=F64).reshape(-1, 2)
+    hi = torch.tensor([b["hi"] for b in result.unverified_boxes], dtype=F64).reshape(-1, 2)
+    covered = ((lo[None] <= bad[:, None]) & (bad[:, None] <= hi[None])).all(-1).any(-1)
+    assert bool(covered.all()), bad[~covered]
+
+
+def test_maximize_with_affine_forms_bounds_sampled_values_at_4_states():
+    system = get_system("cartpole")
+    torch.manual_seed(5)
+    lyap, ctrl = build_networks(system, TrainConfig(system="cartpole").resolved(system))
+    spec = Nominal(torch.zeros(1, system.k, dtype=F64), 0.1)
+    lo, hi = system.local_box()
+    lo, hi = lo * 0.3, hi * 0.3
+    lower, upper, info = maximize(condition_objective(spec, system, lyap, ctrl), lo[None], hi[None], (hi - lo) / 2,
+                                  time_limit=3.0, enclosure="affine")
+    z = lo + (hi - lo) * torch.rand(20000, system.n, generator=torch.Generator().manual_seed(0), dtype=F64)
+    sampled = float(spec.exact(system, lyap, ctrl, z).max())
+    assert float(lower[0]) <= float(upper[0])
+    assert sampled <= float(upper[0]), (sampled, float(upper[0]), info)
