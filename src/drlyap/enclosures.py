@@ -8,10 +8,15 @@ exactly what training minimises (no second encoding of any formula).
 * :class:`Interval` -- batched interval tensors ``[lo, hi]`` (any shape), float64, outward rounded: every
   computed endpoint is widened by an error bound of the floating-point operation that produced it, so it
   encloses the real value.
+* :class:`Affine` -- batched affine forms (first-order Taylor models) ``c + sum_k g_k e_k + [r_lo, r_hi]``
+  over noise symbols ``e_k in [-1, 1]`` (one per box dimension, separate for every box of the batch):
+  linear operations are exact on the linear part, nonlinear ones are linearised with a sound error bound
+  pushed into the remainder ``[r_lo, r_hi]``; coefficients and remainders are outward rounded as intervals
+  are. Much tighter than intervals over boxes because correlations between the coordinates survive.
 * :class:`Dual` -- forward-mode dual numbers whose value and derivative are themselves enclosures
-  (intervals or duals). ``Dual(Interval)`` over a box encloses a function's value and gradient there;
+  (intervals, affine forms or duals). ``Dual(Interval)`` over a box encloses a function's value and gradient there;
   ``Dual(Dual(Interval))`` adds a second group of directions (e.g. parameter derivatives, or the Hessian).
-* Both implement ``__torch_function__`` and the Python operators, so code written with ``+ - * /``,
+* All implement ``__torch_function__`` and the Python operators, so code written with ``+ - * /``,
   ``**`` by an int, ``torch.sin/cos/tanh/exp/sqrt/square``, ``torch.stack/cat``, ``unbind``, indexing,
   ``torch.nn.functional.linear`` (so ``nn.Linear`` layers) and ``torch.linalg.vector_norm`` runs
   unchanged on them. Weights met in ``linear`` are read as float64 numbers (exactly).
@@ -47,7 +52,8 @@ def _up(x: Tensor, rel: float, mag: Tensor | None = None) -> Tensor:
 
 # =========================================================================== enclosure types
 class _Enclosure:
-    """Common operator plumbing and the ``__torch_function__`` bridge of :class:`Interval` and :class:`Dual`."""
+    """Common operator plumbing and the ``__torch_function__`` bridge of :class:`Interval`, :class:`Affine` and
+    :class:`Dual`."""
 
     level = 0
 
@@ -113,7 +119,7 @@ class _Enclosure:
 
     @property
     def device(self) -> torch.device:
-        return self.base.lo.device
+        return self.base.device
 
     @property
     def base(self) -> Interval:
@@ -178,7 +184,7 @@ class _Enclosure:
 
 
 def is_enclosure(x) -> bool:
-    """True for :class:`Interval` and :class:`Dual` (False for tensors and numbers)."""
+    """True for :class:`Interval`, :class:`Affine` and :class:`Dual` (False for tensors and numbers)."""
     return isinstance(x, _Enclosure)
 
 
@@ -206,7 +212,10 @@ def lift(x, level: int):
 
 def lift_pair(a, b):
     level = max(_level(a), _level(b), 0)
-    return lift(a, level), lift(b, level)
+    a, b = lift(a, level), lift(b, level)
+    if level == 0 and isinstance(a, Affine) != isinstance(b, Affine):  # an interval meets an affine form
+        a, b = Affine.const(a), Affine.const(b)
+    return a, b
 
 
 def _normdim(dim: int, ndim: int) -> int:
@@ -219,6 +228,8 @@ def stack(seq: Sequence, dim: int = 0):
     level = max(max(_level(s) for s in seq), 0)
     items = [lift(s, level) for s in seq]
     if level == 0:
+        if any(isinstance(s, Affine) for s in items):
+            return Affine.join([Affine.const(s) for s in items], _normdim(dim, items[0].ndim + 1), torch.stack)
         return Interval(torch.stack([s.lo for s in items], dim), torch.stack([s.hi for s in items], dim))
     d = _normdim(dim, items[0].ndim + 1)
     return Dual(stack([s.v for s in items], d), _stack_derivs(items, lambda ds: stack(ds, d)))
@@ -228,9 +239,25 @@ def cat(seq: Sequence, dim: int = 0):
     level = max(max(_level(s) for s in seq), 0)
     items = [lift(s, level) for s in seq]
     if level == 0:
+        if any(isinstance(s, Affine) for s in items):
+            return Affine.join([Affine.const(s) for s in items], _normdim(dim, items[0].ndim), torch.cat)
         return Interval(torch.cat([s.lo for s in items], dim), torch.cat([s.hi for s in items], dim))
     d = _normdim(dim, items[0].ndim)
     return Dual(cat([s.v for s in items], d), _stack_derivs(items, lambda ds: cat(ds, d)))
+
+
+def _fix_index(idx, ndim: int) -> tuple:
+    """``idx`` as a tuple without Ellipsis, so that it addresses the leading axes of a tensor that has
+    trailing extra axes (the directions of a dual number, the noise symbols of an affine form)."""
+    if not isinstance(idx, tuple):
+        idx = (idx,)
+    if any(i is None for i in idx):
+        raise IndexError("None (new axis) indexing is not supported on dual numbers and affine forms; use unsqueeze")
+    if any(i is Ellipsis for i in idx):
+        pos = idx.index(Ellipsis)
+        fill = ndim - (len(idx) - 1)
+        idx = idx[:pos] + (slice(None),) * fill + idx[pos + 1:]
+    return idx
 
 
 def _stack_derivs(items: list, join: Callable):
@@ -271,8 +298,15 @@ class Interval(_Enclosure):
         z = torch.zeros(*self.shape, k, dtype=F64)
         return Interval(z, z)
 
+    @property
+    def device(self) -> torch.device:
+        return self.lo.device
+
     def contains(self, x: Tensor) -> Tensor:
         return (self.lo <= x) & (x <= self.hi)
+
+    def to_interval(self) -> Interval:
+        return self
 
     def __repr__(self) -> str:
         return f"Interval(lo={self.lo}, hi={self.hi})"
@@ -419,6 +453,465 @@ class Interval(_Enclosure):
         return Interval(torch.clamp(self.lo, min=low, max=high), torch.clamp(self.hi, min=low, max=high))
 
 
+# --------------------------------------------------------------------------- affine forms
+def _point(x: Tensor) -> Interval:
+    return Interval(x, x)
+
+
+def _sum_up(t: Tensor, dim: int = -1) -> Tensor:
+    """An upper bound of the real sum of the non-negative ``t`` along ``dim``."""
+    return _up(t.sum(dim), 2 * (t.shape[dim] + 2) * EPS)
+
+
+def _hull(a: Interval, b: Interval) -> Interval:
+    return Interval(torch.minimum(a.lo, b.lo), torch.maximum(a.hi, b.hi))
+
+
+def _clip(x: Tensor, lo: Tensor, hi: Tensor) -> Tensor:
+    return torch.minimum(torch.maximum(x, lo), hi)
+
+
+def _secant(f: Callable, df: Callable, a: Tensor, b: Tensor) -> Tensor:
+    """The slope ``(f(b) - f(a)) / (b - a)`` in float64 (``df(a)`` where ``b == a``): any float is sound as the
+    slope of a linearisation (its error bound is computed for the slope actually used)."""
+    wide = b > a
+    sec = (f(b) - f(a)) / torch.where(wide, b - a, torch.ones_like(a))
+    return torch.where(wide, sec, df(a))
+
+
+def _convex_error(f: Callable, df: Callable, p: Tensor, q: Tensor, lam: Tensor, xt: Tensor,
+                  convex: bool = True) -> Interval:
+    """An interval containing ``e(x) = f(x) - lam x`` for every ``x`` in ``[p, q]`` where ``f`` is convex
+    (``convex=False``: concave) on ``[p, q]``.
+
+    ``f``, ``df``: the function and its derivative on :class:`Interval` (outward rounded). ``xt``: a point of
+    ``[p, q]``, best where ``f' = lam``. A convex ``e`` is largest at an end of ``[p, q]`` and lies above its
+    tangent at ``xt``: ``e(x) >= e(xt) + e'(xt) (x - xt)``, whose least value over ``[p, q]`` bounds ``e`` below
+    (concave: mirrored). All of it in interval arithmetic, so rounding is covered.
+    """
+    lam_ = _point(lam)
+    pp, qq, xx = _point(p), _point(q), _point(xt)
+    ep, eq, ex = f(pp) - lam_ * pp, f(qq) - lam_ * qq, f(xx) - lam_ * xx
+    tangent = ex + (df(xx) - lam_) * (Interval(p, q) - xx)
+    if convex:
+        return Interval(tangent.lo, torch.maximum(ep.hi, eq.hi))
+    return Interval(torch.minimum(ep.lo, eq.lo), tangent.hi)
+
+
+def _dtanh(x: Interval) -> Interval:
+    return 1.0 - x.tanh().square()
+
+
+def _dsqrt(x: Interval) -> Interval:
+    s = x.sqrt()
+    with torch.no_grad():
+        return Interval(_down(0.5 / s.hi, REL1), _up(0.5 / s.lo, REL1))  # 0.5 / 0 = inf (then a fallback)
+
+
+def _drecip(x: Interval) -> Interval:
+    return -x.reciprocal().square()
+
+
+class Affine(_Enclosure):
+    """A batch of affine forms (first-order Taylor models) over the noise symbols of a batch of boxes::
+
+        x = c + sum_k g[..., k] e_k + r,    e_k in [-1, 1],  r in [r.lo, r.hi]
+
+    ``c``: float64 tensor ``(B, ...)``; ``g``: coefficients ``(B, ..., K)`` of the ``K`` noise symbols (None: a
+    constant, no linear part); ``r``: an :class:`Interval` ``(B, ...)``, the remainder that collects the
+    linearisation errors of nonlinear operations and the rounding errors of every coefficient (each computed
+    coefficient's rounding error is bounded and added to ``r``, so the form encloses the real values).
+
+    Axis 0 is the batch of boxes and every box has its own symbols (``g[b, ..., k]`` multiplies ``e_{b,k}``),
+    so no operation may mix entries along axis 0: summing, unbinding, stacking at or moving axis 0 of a
+    non-constant form raises, and two non-constant forms combine only with the same size of axis 0.
+
+    Linear operations (``+ -``, products with constants, ``linear``, ``sum``, stacking, indexing) are exact
+    on the linear part. ``x * y`` keeps both first-order parts and bounds the product of the deviations by
+    intervals. The unary functions use a secant (Chebyshev-style) slope with an exact-by-convexity error bound
+    (``tanh``, ``exp``, ``sqrt``, ``square``, ``1 / x``), or the midpoint slope with a second-order Lagrange
+    remainder over the range (``sin``, ``cos``), and fall back elementwise to the interval enclosure where
+    that is narrower. ``clamp`` and ``abs`` use the secant with the error's exact range (it is piecewise
+    linear). :meth:`box` makes the form of a batch of boxes; :meth:`to_interval` encloses a form.
+    """
+
+    __slots__ = ("c", "g", "r")
+    level = 0
+
+    def __init__(self, c: Tensor, g: Tensor | None = None, r: Interval | None = None) -> None:
+        shape = c.shape
+        if r is not None and r.shape != shape:
+            shape = torch.broadcast_shapes(shape, r.shape)
+        if g is not None and g.shape[:-1] != shape:
+            shape = torch.broadcast_shapes(shape, g.shape[:-1])
+        self.c = c if c.shape == shape else c.expand(shape)
+        self.g = g if g is None or g.shape[:-1] == shape else g.expand(*shape, g.shape[-1])
+        if r is None:
+            z = torch.zeros((), dtype=F64, device=c.device).expand(shape)
+            r = Interval(z, z)
+        elif r.shape != shape:
+            r = Interval(r.lo.expand(shape), r.hi.expand(shape))
+        self.r = r
+
+    @staticmethod
+    def box(lo: Tensor, hi: Tensor) -> Affine:
+        """The boxes ``[lo, hi] (B, n)`` as forms ``centre + diag(radius) e`` with ``n`` noise symbols each."""
+        lo, hi = _t(lo), _t(hi)
+        c = (lo + hi) / 2
+        rad = _up(torch.maximum(hi - c, c - lo), REL1)
+        return Affine(c, torch.diag_embed(rad))
+
+    @staticmethod
+    def const(x) -> Affine:
+        """A constant (no linear part) enclosing ``x``: a tensor, a number or an :class:`Interval`."""
+        if isinstance(x, Affine):
+            return x
+        if isinstance(x, Interval):
+            if x.lo is x.hi:
+                return Affine(x.lo)
+            c = x.mid
+            return Affine(c, None, Interval(_down(x.lo - c, REL1), _up(x.hi - c, REL1)))
+        return Affine(_t(x))
+
+    @property
+    def shape(self) -> torch.Size:
+        return self.c.shape
+
+    @property
+    def device(self) -> torch.device:
+        return self.c.device
+
+    @property
+    def n_symbols(self) -> int:
+        """``K``, the number of noise symbols (0 for a constant)."""
+        return 0 if self.g is None else self.g.shape[-1]
+
+    def _dev(self) -> Interval:
+        """An interval of ``x - c`` (the linear part over ``[-1, 1]^K`` plus the remainder), ``(B, ...)``."""
+        if self.g is None:
+            return self.r
+        s = _sum_up(self.g.abs())
+        return Interval(_down(self.r.lo - s, REL1), _up(self.r.hi + s, REL1))
+
+    def to_interval(self) -> Interval:
+        """The interval enclosure ``(B, ...)`` of the forms."""
+        return _point(self.c) + self._dev()
+
+    @property
+    def lo(self) -> Tensor:
+        """Lower end of :meth:`to_interval`."""
+        return self.to_interval().lo
+
+    @property
+    def hi(self) -> Tensor:
+        """Upper end of :meth:`to_interval`."""
+        return self.to_interval().hi
+
+    def contains(self, x: Tensor) -> Tensor:
+        return self.to_interval().contains(x)
+
+    def zeros_ext(self, k: int) -> Affine:
+        return Affine(torch.zeros(*self.shape, k, dtype=F64, device=self.device))
+
+    def __repr__(self) -> str:
+        return f"Affine(c={self.c}, g={self.g}, r={self.r!r})"
+
+    @staticmethod
+    def _centred(const: Interval, g: Tensor | None, pad) -> Affine:
+        """The form ``const + g . e`` re-centred at the midpoint of ``const``, ``pad`` (a bound of the rounding
+        error of ``g . e``) added to the remainder on both sides."""
+        c = const.mid
+        return Affine(c, g, Interval(_down(const.lo - c - pad, REL1), _up(const.hi - c + pad, REL1)))
+
+    @staticmethod
+    def _where(mask: Tensor, a: Affine, b: Affine) -> Affine:
+        """Elementwise ``a`` where ``mask``, else ``b`` (forms of one shape and the same symbols)."""
+        c = torch.where(mask, a.c, b.c)
+        if a.g is None and b.g is None:
+            g = None
+        else:
+            ga = a.g if a.g is not None else torch.zeros_like(b.g)
+            gb = b.g if b.g is not None else torch.zeros_like(a.g)
+            g = torch.where(mask.unsqueeze(-1), ga, gb)
+        return Affine(c, g, Interval(torch.where(mask, a.r.lo, b.r.lo), torch.where(mask, a.r.hi, b.r.hi)))
+
+    def _guard(self, fallback: Interval) -> Affine:
+        """Elementwise this form, or the constant form of ``fallback`` (an interval enclosure of the same
+        values) where this form's remainder alone is at least as wide as ``fallback`` (the linear part then
+        carries nothing the interval does not) or the form is not finite. (Comparing whole widths would
+        always pick the interval: a form's own range is never narrower than the exact range of one function
+        of it; its value lies in the correlations it keeps.)"""
+        mine = self.to_interval()
+        worse = ~((self.r.hi - self.r.lo) < (fallback.hi - fallback.lo)) | ~torch.isfinite(mine.hi - mine.lo)
+        if not bool(worse.any()):
+            return self
+        return Affine._where(worse, Affine.const(fallback), self)
+
+    # ---- structure
+    def _batch_check(self, what: str) -> None:
+        if self.g is not None:
+            raise ValueError(f"{what} axis 0 of an affine form would mix the noise symbols of different boxes")
+
+    def __getitem__(self, idx) -> Affine:
+        idx = _fix_index(idx, self.ndim)
+        return Affine(self.c[idx], None if self.g is None else self.g[idx], self.r[idx])
+
+    def unbind(self, dim: int = 0) -> tuple:
+        dim = _normdim(dim, self.ndim)
+        if dim == 0:
+            self._batch_check("unbinding")
+        gs = self.g.unbind(dim) if self.g is not None else (None,) * self.c.shape[dim]
+        return tuple(Affine(c, g, r) for c, g, r in zip(self.c.unbind(dim), gs, self.r.unbind(dim)))
+
+    def unsqueeze(self, dim: int) -> Affine:
+        dim = _normdim(dim, self.ndim + 1)
+        if dim == 0:
+            self._batch_check("moving")
+        return Affine(self.c.unsqueeze(dim), None if self.g is None else self.g.unsqueeze(dim), self.r.unsqueeze(dim))
+
+    def transpose(self, a: int, b: int) -> Affine:
+        a, b = _normdim(a, self.ndim), _normdim(b, self.ndim)
+        if a != b and 0 in (a, b):
+            self._batch_check("moving")
+        return Affine(self.c.transpose(a, b), None if self.g is None else self.g.transpose(a, b), self.r.transpose(a, b))
+
+    def expand(self, *shape) -> Affine:
+        c = self.c.expand(*shape)
+        if c.ndim != self.ndim or c.shape[0] != self.c.shape[0]:
+            self._batch_check("expanding")
+        return Affine(c, None if self.g is None else self.g.expand(*c.shape, -1), self.r.expand(*c.shape))
+
+    def reshape(self, *shape) -> Affine:
+        c = self.c.reshape(*shape)
+        if c.ndim == 0 or c.shape[0] != self.c.shape[0]:
+            self._batch_check("reshaping")
+        g = None if self.g is None else self.g.reshape(*c.shape, self.g.shape[-1])
+        return Affine(c, g, self.r.reshape(*c.shape))
+
+    @staticmethod
+    def join(items: list, dim: int, fn: Callable) -> Affine:
+        """``torch.stack`` or ``torch.cat`` (``fn``) of forms along a non-negative ``dim``."""
+        with_g = [s for s in items if s.g is not None]
+        g = None
+        if with_g:
+            if fn is torch.stack and dim == 0:
+                with_g[0]._batch_check("stacking at")
+            k = with_g[0].g.shape[-1]
+            if any(s.g.shape[-1] != k for s in with_g):
+                raise ValueError("affine forms over different noise symbols")
+            g = fn([s.g if s.g is not None else torch.zeros(*s.shape, k, dtype=F64, device=s.device)
+                    for s in items], dim)
+        r = Interval(fn([s.r.lo for s in items], dim), fn([s.r.hi for s in items], dim))
+        return Affine(fn([s.c for s in items], dim), g, r)
+
+    # ---- arithmetic
+    @staticmethod
+    def _gsum(a: Tensor | None, b: Tensor | None) -> tuple[Tensor | None, object]:
+        """``a + b`` of coefficient tensors (None = 0) and a bound of its rounding error summed over symbols."""
+        if a is None or b is None:
+            return (b if a is None else a), 0.0
+        if a.shape[-1] != b.shape[-1] or a.ndim != b.ndim or a.shape[0] != b.shape[0]:
+            raise ValueError(f"affine forms of different boxes or symbols cannot be combined: coefficient shapes "
+                             f"{tuple(a.shape)} and {tuple(b.shape)}")
+        g = a + b
+        return g, REL1 * _sum_up(g.abs())
+
+    def _add(self, o: Affine) -> Affine:
+        g, pad = Affine._gsum(self.g, o.g)
+        c = self.c + o.c
+        const = Interval(_down(c, REL1), _up(c, REL1)) + (self.r + o.r)
+        return Affine._centred(const, g, pad)
+
+    def _sub(self, o: Affine) -> Affine:
+        return self._add(o._neg())
+
+    def _neg(self) -> Affine:
+        return Affine(-self.c, None if self.g is None else -self.g, -self.r)
+
+    def _scale_shift(self, lam: Tensor, k: Interval) -> Affine:
+        """``lam * x + k``: ``lam`` a float64 tensor of (or broadcastable to) the shape, ``k`` an :class:`Interval`."""
+        lam = lam.expand(self.shape) if lam.shape != self.shape else lam
+        const = _point(lam) * (_point(self.c) + self.r) + k
+        if self.g is None:
+            return Affine._centred(const, None, 0.0)
+        g = lam.unsqueeze(-1) * self.g
+        return Affine._centred(const, g, REL1 * _sum_up(g.abs()))
+
+    def _mul(self, o: Affine) -> Affine:
+        if self.g is None and o.g is None:
+            return Affine.const(self.to_interval() * o.to_interval())
+        # x y = cx cy + (cx gy + cy gx) . e + cx ry + cy rx + (x - cx)(y - cy)
+        t1 = None if self.g is None else o.c.unsqueeze(-1) * self.g
+        t2 = None if o.g is None else self.c.unsqueeze(-1) * o.g
+        g, pad = Affine._gsum(t1, t2)
+        pad = pad + REL1 * _sum_up(g.abs())  # the products' own rounding
+        const = _point(self.c) * _point(o.c) + _point(self.c) * o.r + _point(o.c) * self.r + self._dev() * o._dev()
+        return Affine._centred(const, g, pad)
+
+    def reciprocal(self) -> Affine:
+        iv = self.to_interval()
+        if not bool(((iv.lo > 0) | (iv.hi < 0)).all()):
+            raise ValueError("affine division by a form whose range contains 0")
+        if self.g is None:
+            return Affine.const(iv.reciprocal())
+        # on the positive range [a, b] of |x|, 1/y is convex; 1/x = s (1/y) with y = s x, s = sign: so
+        # 1/x = lam x + s e(y) with the slope lam and error e of 1/y
+        neg = iv.hi < 0
+        a, b = torch.where(neg, -iv.hi, iv.lo), torch.where(neg, -iv.lo, iv.hi)
+        lam = -1.0 / (a * b)  # the secant of 1/y over [a, b]
+        err = _convex_error(Interval.reciprocal, _drecip, a, b, lam, _clip(torch.sqrt(a * b), a, b))
+        k = Interval(torch.where(neg, -err.hi, err.lo), torch.where(neg, -err.lo, err.hi))
+        return self._scale_shift(lam, k)._guard(iv.reciprocal())
+
+    def _div(self, o: Affine) -> Affine:
+        return self._mul(o.reciprocal())
+
+    def _convex_fn(self, f: Callable, df: Callable, root: Callable, fallback: Interval, convex: bool = True,
+                   f_point: Callable | None = None) -> Affine:
+        """``f`` convex (or concave) on the range: secant slope, error bound by :func:`_convex_error`."""
+        iv = self.to_interval()
+        if self.g is None:
+            return Affine.const(fallback)
+        a, b = iv.lo, iv.hi
+        fp = f_point if f_point is not None else (lambda t: f(_point(t)).mid)
+        lam = _secant(fp, lambda t: df(_point(t)).mid, a, b)
+        err = _convex_error(f, df, a, b, lam, _clip(root(lam), a, b), convex)
+        return self._scale_shift(lam, err)._guard(fallback)
+
+    def square(self) -> Affine:
+        return self._convex_fn(Interval.square, lambda x: x * 2.0, lambda lam: lam / 2, self.to_interval().square(),
+                               f_point=torch.square)
+
+    def exp(self) -> Affine:
+        return self._convex_fn(Interval.exp, Interval.exp, torch.log, self.to_interval().exp(), f_point=torch.exp)
+
+    def sqrt(self) -> Affine:
+        """Square root of ``max(x, 0)`` (as :meth:`Interval.sqrt`: the argument is taken to be non-negative)."""
+        iv = self.to_interval()
+        fallback = iv.sqrt()
+        if self.g is None:
+            return Affine.const(fallback)
+        a, b = torch.clamp(iv.lo, min=0.0), torch.clamp(iv.hi, min=0.0)
+        wide = b > a
+        lam = torch.where(wide, (torch.sqrt(b) - torch.sqrt(a)) / torch.where(wide, b - a, 1.0), 0.0)
+        xt = _clip(torch.where(lam > 0, 0.25 / (lam * lam), b), a, b)
+        err = _convex_error(Interval.sqrt, _dsqrt, a, b, lam, xt, convex=False)
+        zero = b <= 0  # the range is {0}
+        err = Interval(torch.where(zero, 0.0, err.lo), torch.where(zero, 0.0, err.hi))
+        return self._scale_shift(lam, err)._guard(fallback)
+
+    def tanh(self) -> Affine:
+        iv = self.to_interval()
+        fallback = iv.tanh()
+        if self.g is None:
+            return Affine.const(fallback)
+        a, b = iv.lo, iv.hi
+        lam = torch.clamp(_secant(torch.tanh, lambda t: 1.0 - torch.tanh(t) ** 2, a, b), 0.0, 1.0)
+        root = torch.atanh(torch.sqrt(torch.clamp(1.0 - lam, 0.0, 1.0)))  # tanh'(+-root) = lam
+        zero = torch.zeros_like(a)
+        q1 = torch.maximum(torch.minimum(b, zero), a)  # tanh is convex on [a, q1] (x <= 0, or the point a)
+        p2 = torch.minimum(torch.maximum(a, zero), b)  # and concave on [p2, b]
+        e1 = _convex_error(Interval.tanh, _dtanh, a, q1, lam, _clip(-root, a, q1), convex=True)
+        e2 = _convex_error(Interval.tanh, _dtanh, p2, b, lam, _clip(root, p2, b), convex=False)
+        return self._scale_shift(lam, _hull(e1, e2))._guard(fallback)
+
+    def _taylor2(self, f: Callable, df: Callable, d2f: Callable, fallback: Interval) -> Affine:
+        """Midpoint slope, second-order Lagrange remainder:
+        ``f(x) = f(m) + f'(m)(x - m) + f''(xi)(x - m)^2 / 2`` with ``f''`` enclosed over the range."""
+        iv = self.to_interval()
+        if self.g is None:
+            return Affine.const(fallback)
+        m = iv.mid
+        mm = _point(m)
+        slope = df(mm)
+        lam = slope.mid
+        dev = iv - mm
+        err = f(mm) + (slope - _point(lam)) * dev + d2f(iv) * dev.square() * 0.5  # f(x) - lam (x - m)
+        return self._scale_shift(lam, err - _point(lam) * mm)._guard(fallback)
+
+    def sin(self) -> Affine:
+        return self._taylor2(Interval.sin, Interval.cos, lambda x: -x.sin(), self.to_interval().sin())
+
+    def cos(self) -> Affine:
+        return self._taylor2(Interval.cos, lambda x: -x.sin(), lambda x: -x.cos(), self.to_interval().cos())
+
+    def _piecewise_linear(self, f: Callable, breaks: Sequence[Tensor], fallback: Interval) -> Affine:
+        """``f`` continuous and piecewise linear with kinks at ``breaks`` (exact in float64): the error of
+        the secant is piecewise linear too, so its range is its hull at the ends and the kinks in range."""
+        iv = self.to_interval()
+        if self.g is None:
+            return Affine.const(fallback)
+        a, b = iv.lo, iv.hi
+        lam = _secant(f, lambda t: torch.zeros_like(t), a, b)
+        lam_ = _point(lam)
+        err = None
+        for t in [a, b, *(_clip(br.expand(a.shape), a, b) for br in breaks)]:
+            e = _point(f(t)) - lam_ * _point(t)
+            err = e if err is None else _hull(err, e)
+        return self._scale_shift(lam, err)._guard(fallback)
+
+    def abs(self) -> Affine:
+        iv = self.to_interval()
+        out = self._piecewise_linear(torch.abs, [torch.zeros_like(iv.lo)], iv.abs())
+        if self.g is None:
+            return out
+        return Affine._where(iv.lo >= 0, self, Affine._where(iv.hi <= 0, -self, out))
+
+    def pow_int(self, n: int) -> Affine:
+        if n == 0:
+            return Affine(torch.ones_like(self.c))
+        if n == 1:
+            return self
+        if n == 2:
+            return self.square()
+        half = self.pow_int(n // 2).square()
+        return half if n % 2 == 0 else half * self
+
+    def sum(self, dim: int | None = None) -> Affine:
+        if dim is None:
+            self._batch_check("summing over")
+            return Affine.const(self.r.sum(None) + _point(self.c).sum(None))
+        dim = _normdim(dim, self.ndim)
+        if dim == 0:
+            self._batch_check("summing over")
+        rel = 2 * (self.c.shape[dim] + 2) * EPS
+        c = self.c.sum(dim)
+        mag = self.c.abs().sum(dim)
+        const = Interval(_down(c, rel, mag), _up(c, rel, mag)) + self.r.sum(dim)
+        if self.g is None:
+            return Affine._centred(const, None, 0.0)
+        g = self.g.sum(dim)
+        return Affine._centred(const, g, rel * _sum_up(self.g.abs().sum(dim)))
+
+    def linear(self, weight: Tensor, bias: Tensor | None = None) -> Affine:
+        """``x @ weight.T + bias`` along the last axis, with a constant (exact) ``weight (out, in)``."""
+        rel = 4 * (weight.shape[1] + 4) * EPS
+        w_abs = weight.abs().T
+        c = self.c @ weight.T
+        mag = self.c.abs() @ w_abs
+        if bias is not None:
+            c = c + bias
+            mag = mag + bias.abs()
+        const = Interval(_down(c, rel, mag), _up(c, rel, mag)) + self.r.linear(weight)
+        if self.g is None:
+            return Affine._centred(const, None, 0.0)
+        g = torch.matmul(weight, self.g)  # (out, in) @ (..., in, K)
+        pad = rel * _up(_sum_up(self.g.abs()) @ w_abs, rel)
+        return Affine._centred(const, g, pad)
+
+    def clamp(self, low: Tensor, high: Tensor) -> Affine:
+        iv = self.to_interval()
+        low, high = _t(low).to(iv.lo.device), _t(high).to(iv.lo.device)
+        out = self._piecewise_linear(lambda t: _clip(t, low, high), [low, high], iv.clamp(low, high))
+        if self.g is None:
+            return out
+        return Affine._where((iv.lo >= low) & (iv.hi <= high), self, out)  # inactive: the identity, exactly
+
+    def clamp_slope(self, low: Tensor, high: Tensor) -> Interval:
+        """Enclosure of the (Clarke) derivative of ``clamp(., low, high)`` over the range (see :class:`Interval`)."""
+        return self.to_interval().clamp_slope(low, high)
+
+
 # --------------------------------------------------------------------------- dual numbers
 class Dual(_Enclosure):
     """Forward-mode dual number: value ``v`` and derivative ``d`` (shape ``v.shape + (D,)``, None = 0).
@@ -441,6 +934,10 @@ class Dual(_Enclosure):
     def shape(self) -> torch.Size:
         return self.v.shape
 
+    @property
+    def device(self) -> torch.device:
+        return self.v.device
+
     def zeros_ext(self, k: int) -> Dual:
         return Dual(self.v.zeros_ext(k), None)
 
@@ -448,19 +945,8 @@ class Dual(_Enclosure):
         return f"Dual(v={self.v!r}, d={self.d!r})"
 
     # ---- structure
-    def _fix_index(self, idx):
-        if not isinstance(idx, tuple):
-            idx = (idx,)
-        if any(i is None for i in idx):
-            raise IndexError("None (new axis) indexing is not supported on dual numbers; use unsqueeze")
-        if any(i is Ellipsis for i in idx):
-            pos = idx.index(Ellipsis)
-            fill = self.ndim - (len(idx) - 1)
-            idx = idx[:pos] + (slice(None),) * fill + idx[pos + 1:]
-        return idx
-
     def __getitem__(self, idx) -> Dual:
-        idx = self._fix_index(idx)
+        idx = _fix_index(idx, self.ndim)
         return Dual(self.v[idx], None if self.d is None else self.d[idx])
 
     def unbind(self, dim: int = 0) -> tuple:
@@ -545,7 +1031,7 @@ class Dual(_Enclosure):
         box = self.base
         if bool(((box.lo > low) & (box.hi < high)).all()):  # strictly inside: the clamp is the identity here
             return self
-        if not isinstance(self.v, Interval):
+        if not isinstance(self.v, (Interval, Affine)):
             raise TypeError("clamp is supported at first order only (or where it is provably inactive)")
         return self._chain(self.v.clamp(low, high), self.v.clamp_slope(low, high))
 
@@ -560,19 +1046,20 @@ def _dsum(a, b):
 
 def norm(x, dim: int = -1):
     """Euclidean norm along ``dim`` with a Clarke-gradient enclosure (sound also where the vector is 0)."""
-    if isinstance(x, Interval):
+    if isinstance(x, (Interval, Affine)):
         return x.square().sum(dim).sqrt()
-    if not (isinstance(x, Dual) and isinstance(x.v, Interval)):
-        raise TypeError("norm is supported on intervals and first-order duals")
+    if not (isinstance(x, Dual) and isinstance(x.v, (Interval, Affine))):
+        raise TypeError("norm is supported on intervals, affine forms and first-order duals")
     dim = _normdim(dim, x.ndim)
     value = x.v.square().sum(dim).sqrt()
     if x.d is None:
         return Dual(value, None)
     # d||x|| = (x / ||x||) . dx, with x / ||x|| in [-1, 1] componentwise (the unit ball at x = 0)
-    unit = Interval(-torch.ones_like(x.v.lo), torch.ones_like(x.v.lo))
-    pos = value.lo.unsqueeze(dim) > 0
-    safe = Interval(torch.where(pos, value.lo.unsqueeze(dim), 1.0), torch.where(pos, value.hi.unsqueeze(dim), 1.0))
-    q = (x.v / safe).intersect(-1.0, 1.0)
+    xv, val = x.v.to_interval(), value.to_interval()
+    unit = Interval(-torch.ones_like(xv.lo), torch.ones_like(xv.lo))
+    pos = val.lo.unsqueeze(dim) > 0
+    safe = Interval(torch.where(pos, val.lo.unsqueeze(dim), 1.0), torch.where(pos, val.hi.unsqueeze(dim), 1.0))
+    q = (xv / safe).intersect(-1.0, 1.0)
     q = Interval(torch.where(pos, q.lo, unit.lo), torch.where(pos, q.hi, unit.hi))
     return Dual(value, (q.unsqueeze(-1) * x.d).sum(dim))
 

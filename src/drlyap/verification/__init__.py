@@ -19,8 +19,8 @@ Modules:
   :func:`certified_shift_box` (the largest proved box of shifts on the true model), :func:`run_robustness`.
 """
 
-from drlyap.enclosures import Dual, Interval, norm
-from drlyap.verification.bounds import box_bounds, combine_lower, combine_upper, condition_objective
+from drlyap.enclosures import Affine, Dual, Interval, norm
+from drlyap.verification.bounds import ENCLOSURES, box_bounds, combine_lower, combine_upper, condition_objective
 from drlyap.verification.branch_and_bound import (
     VerificationResult,
     as_region,
@@ -40,7 +40,7 @@ from drlyap.verification.robustness import (
 from drlyap.verification.runs import run_condition, verify_run
 
 __all__ = [
-    "Dual", "Interval", "VerificationResult", "as_region", "box_bounds", "certified_roa", "combine_lower",
+    "ENCLOSURES", "Affine", "Dual", "Interval", "VerificationResult", "as_region", "box_bounds", "certified_roa", "combine_lower",
     "certified_radius", "certified_shift_box", "combine_upper", "condition_objective", "lipschitz_covering",
     "local_decrease", "maximize", "norm", "run_condition", "run_robustness", "shift_box_condition", "shift_scale",
     "uniform_margin", "verify_condition", "verify_run",

@@ -32,7 +32,7 @@ from drlyap.enclosures import EPS, F64, _down, _up
 from drlyap.networks import Controller, Lyapunov
 from drlyap.regions import Region, inside_ball, split
 from drlyap.systems import UncertainSystem
-from drlyap.verification.bounds import box_bounds, combine_lower, combine_upper, condition_objective
+from drlyap.verification.bounds import box_bounds, check_enclosure, combine_lower, combine_upper, condition_objective
 
 
 def as_region(system: UncertainSystem, delta: float | Region) -> Region:
@@ -79,7 +79,8 @@ class VerificationResult:
 def verify_condition(system: UncertainSystem, lyapunov: Lyapunov, controller: Controller, condition: Condition,
                      delta: float | Region, time_limit: float = 30.0, max_boxes: int = 2_000_000, min_width: float = 1e-4,
                      grid: Sequence[int] | None = None, batch: int = 4096, keep_boxes: int = 50,
-                     stop_at_counterexample: bool = False, violation_width: float = 1e-2) -> VerificationResult:
+                     stop_at_counterexample: bool = False, violation_width: float = 1e-2,
+                     enclosure: str = "mean-value") -> VerificationResult:
     """Prove ``residual(z) <= 0`` on X_delta by branch and bound, or find where it fails.
 
     ``min_width``: boxes whose widest side (relative to the state box) is below it are not split further.
@@ -87,8 +88,10 @@ def verify_condition(system: UncertainSystem, lyapunov: Lyapunov, controller: Co
     verified fraction) until its widest relative side is below this. ``max_boxes``: budget of processed
     boxes. ``grid``: boxes per axis at the start. ``keep_boxes``: how many unverified boxes to list.
     ``stop_at_counterexample``: return at the first confirmed one (the fraction then counts every box not
-    yet verified as unverified).
+    yet verified as unverified). ``enclosure``: how boxes are bounded (:func:`~drlyap.verification.bounds.box_bounds`:
+    ``mean-value`` or ``affine``).
     """
+    check_enclosure(enclosure)
     if not condition.per_state:
         raise ValueError("use uniform_margin for the uniform condition")
     region = as_region(system, delta)
@@ -114,7 +117,7 @@ def verify_condition(system: UncertainSystem, lyapunov: Lyapunov, controller: Co
             stopped = "box budget"
             break
         clo, chi, lo, hi = lo[:batch], hi[:batch], lo[batch:], hi[batch:]
-        _, ub_c, at = box_bounds(objective, clo, chi)
+        _, ub_c, at = box_bounds(objective, clo, chi, enclosure)
         processed += clo.shape[0]
         ub = combine_upper(condition, ub_c)
         centre = (clo + chi) / 2
@@ -200,13 +203,16 @@ def verify_condition(system: UncertainSystem, lyapunov: Lyapunov, controller: Co
 # =========================================================================== suprema
 def maximize(objective: Callable, lo: Tensor, hi: Tensor, scale: Tensor, *, centre_ok: Callable | None = None,
              box_ok: Callable | None = None, time_limit: float = 2.0, rel_tol: float = 1e-3, abs_tol: float = 1e-9,
-             min_width: float = 1e-4, max_boxes: int = 1_000_000, batch: int = 4096) -> tuple[Tensor, Tensor, dict]:
+             min_width: float = 1e-4, max_boxes: int = 1_000_000, batch: int = 4096,
+             enclosure: str = "mean-value") -> tuple[Tensor, Tensor, dict]:
     """Bounds ``lower <= sup <= upper`` (each ``(Q,)``) of every component of ``objective`` over a union of boxes.
 
     The upper bound is sound over the boxes (kept by ``box_ok``); the lower bound comes from box centres
     accepted by ``centre_ok`` (points of the set). Boxes that may still raise some component's supremum
     by more than the tolerance are split, widest side first, until time, budget or minimum size.
+    ``enclosure``: as for :func:`verify_condition`.
     """
+    check_enclosure(enclosure)
     start = time.perf_counter()
     closed: Tensor | None = None
     best: Tensor | None = None
@@ -220,7 +226,7 @@ def maximize(objective: Callable, lo: Tensor, hi: Tensor, scale: Tensor, *, cent
             stopped = "time limit" if processed < max_boxes else "box budget"
             break
         clo, chi, lo, hi = lo[:batch], hi[:batch], lo[batch:], hi[batch:]
-        _, ub, at = box_bounds(objective, clo, chi)
+        _, ub, at = box_bounds(objective, clo, chi, enclosure)
         processed += clo.shape[0]
         centre = (clo + chi) / 2
         good = centre_ok(centre) if centre_ok is not None else torch.ones(clo.shape[0], dtype=torch.bool)
@@ -241,7 +247,7 @@ def maximize(objective: Callable, lo: Tensor, hi: Tensor, scale: Tensor, *, cent
                 nlo, nhi = nlo[keep], nhi[keep]
             lo, hi = torch.cat([lo, nlo]), torch.cat([hi, nhi])
     if lo.shape[0]:
-        _, ub, _ = box_bounds(objective, lo, hi) if lo.shape[0] <= 4 * batch else (None, None, None)
+        _, ub, _ = box_bounds(objective, lo, hi, enclosure) if lo.shape[0] <= 4 * batch else (None, None, None)
         if ub is None:
             rest = torch.full_like(closed if closed is not None else best, torch.inf)
         else:
@@ -255,7 +261,8 @@ def maximize(objective: Callable, lo: Tensor, hi: Tensor, scale: Tensor, *, cent
 
 
 def uniform_margin(system: UncertainSystem, lyapunov: Lyapunov, controller: Controller, condition: DRUniform,
-                   delta: float | Region, time_limit: float = 3.0, rel_tol: float = 1e-3, min_width: float = 1e-4) -> dict:
+                   delta: float | Region, time_limit: float = 3.0, rel_tol: float = 1e-3, min_width: float = 1e-4,
+                   enclosure: str = "mean-value") -> dict:
     """Bounds of the uniform DR condition's left side over X_delta (``eq: dr_clf_constraint_relaxed``)::
 
         margin = (r/eps) sup_z ||W^T grad V(z)|| + CVaR_eps_j sup_z (Vdot_j(z) + decay(z))
@@ -269,7 +276,7 @@ def uniform_margin(system: UncertainSystem, lyapunov: Lyapunov, controller: Cont
     lower, upper, info = maximize(
         condition_objective(condition, system, lyapunov, controller), lo, hi, region.scale,
         centre_ok=region.in_region, box_ok=lambda a, b: ~inside_ball(a, b, delta),
-        time_limit=time_limit, rel_tol=rel_tol, min_width=min_width)
+        time_limit=time_limit, rel_tol=rel_tol, min_width=min_width, enclosure=enclosure)
     coef = condition.r / condition.eps
     m_up = float(_up(condition.margin(upper), 64 * EPS, upper.abs().amax() * (1 + coef)))
     m_lo = float(_down(condition.margin(lower), 64 * EPS, lower.abs().amax() * (1 + coef)))

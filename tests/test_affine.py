@@ -1,0 +1,327 @@
+"""Affine forms (first-order Taylor models): soundness against dense sampling, tightness against intervals.
+
+Every test draws points inside random boxes (the corners included) and checks that the enclosure of
+each computed value contains the value computed by plain float64 torch code at those points.
+"""
+
+from fractions import Fraction
+
+import pytest
+import torch
+
+from drlyap.conditions import DRPointwise, Nominal, TrueDecrease
+from drlyap.enclosures import Affine, Dual, Interval, is_enclosure
+from drlyap.networks import Controller, Lyapunov, TanhMLP
+from drlyap.systems import get_system
+from drlyap.training import TrainConfig, build_networks
+from drlyap.verification import maximize, verify_condition
+from drlyap.verification.bounds import condition_objective
+from handmade import linear_pair, small_pendulum
+
+torch.set_num_threads(1)
+F64 = torch.float64
+
+
+def _boxes(count, n, width, seed=0, centre_scale=1.0):
+    """``count`` random boxes ``(count, n)`` of the given side widths (a number or ``(n,)``)."""
+    gen = torch.Generator().manual_seed(seed)
+    width = torch.as_tensor(width, dtype=F64)
+    c = (torch.rand(count, n, generator=gen, dtype=F64) * 2 - 1) * centre_scale
+    w = width * (0.2 + 0.8 * torch.rand(count, n, generator=gen, dtype=F64))
+    return c - w / 2, c + w / 2
+
+
+def _samples(lo, hi, count=2000, seed=1):
+    """Points ``(B, count + 2^n, n)`` in each box: uniform ones and all the corners."""
+    gen = torch.Generator().manual_seed(seed)
+    b, n = lo.shape
+    u = torch.rand(b, count, n, generator=gen, dtype=F64)
+    corners = torch.cartesian_prod(*[torch.tensor([0.0, 1.0], dtype=F64)] * n).reshape(-1, n)
+    u = torch.cat([u, corners.expand(b, -1, -1)], 1)
+    return lo[:, None] + (hi - lo)[:, None] * u
+
+
+def _flat(fn, pts):
+    """``fn`` on points ``(B, S, n)`` as one batch; output ``(B, S, ...)``."""
+    b, s, n = pts.shape
+    out = fn(pts.reshape(b * s, n))
+    return out.reshape(b, s, *out.shape[1:])
+
+
+def _inside(enc, values):
+    """Whether the enclosure ``(B, ...)`` contains every sampled value ``(B, S, ...)``."""
+    iv = enc.to_interval()
+    return bool(((iv.lo[:, None] <= values) & (values <= iv.hi[:, None])).all())
+
+
+def _width(enc):
+    iv = enc.to_interval()
+    return iv.hi - iv.lo
+
+
+# ----------------------------------------------------------------------------------------- single operations
+OPS = {
+    "add": lambda z: z[:, 0] + z[:, 1] + 0.1,
+    "sub": lambda z: z[:, 0] - z[:, 1] - 0.3,
+    "neg": lambda z: -z[:, 0],
+    "scalar mul": lambda z: z[:, 0] * 3.7 + 0.1 * z[:, 1],
+    "mul": lambda z: z[:, 0] * z[:, 1],
+    "mul self": lambda z: (z[:, 0] + z[:, 1]) * (z[:, 0] - 2.0 * z[:, 1]),
+    "div": lambda z: z[:, 0] / (z[:, 1] + 4.0),
+    "div negative": lambda z: (z[:, 0] + 1.0) / (z[:, 1] - 4.0),
+    "reciprocal": lambda z: 1.0 / (z[:, 0] * 0.5 + 2.0),
+    "tanh": lambda z: torch.tanh(z[:, 0] * 2.0 + z[:, 1]),
+    "sin": lambda z: torch.sin(z[:, 0] * 2.0 - z[:, 1]),
+    "cos": lambda z: torch.cos(z[:, 0] + z[:, 1]),
+    "exp": lambda z: torch.exp(z[:, 0] - z[:, 1]),
+    "sqrt": lambda z: torch.sqrt(z[:, 0] * z[:, 0] + z[:, 1] * z[:, 1]),
+    "sqrt shifted": lambda z: torch.sqrt(z[:, 0] + 3.0),
+    "square": lambda z: torch.square(z[:, 0] - z[:, 1]),
+    "pow": lambda z: (z[:, 0] + 0.2) ** 3,
+    "abs": lambda z: torch.abs(z[:, 0] - z[:, 1] * 0.5),
+    "linear": lambda z: torch.nn.functional.linear(
+        z, torch.tensor([[0.3, -1.1], [2.0, 0.7], [0.1, 0.1]], dtype=F64), torch.tensor([0.2, -0.1, 0.0], dtype=F64)),
+    "sum": lambda z: (z * torch.tensor([1.0, -2.0], dtype=F64)).sum(-1),
+    "stack unbind": lambda z: torch.stack([z[:, 1], z[:, 0] * z[:, 1], z.unbind(-1)[0]], dim=-1),
+    "cat index": lambda z: torch.cat([z[..., :1], z[:, 1:] * 2.0], dim=-1)[:, [1, 0]],
+    "norm": lambda z: torch.linalg.vector_norm(z, dim=-1),
+}
+
+
+@pytest.mark.parametrize("name", sorted(OPS))
+@pytest.mark.parametrize("width", [1e-3, 0.3, 3.0])
+def test_each_operation_encloses_sampled_values(name, width):
+    fn = OPS[name]
+    lo, hi = _boxes(40, 2, width, seed=hash(name) % 1000)
+    out = fn(Affine.box(lo, hi))
+    assert isinstance(out, Affine)
+    assert _inside(out, _flat(fn, _samples(lo, hi))), name
+
+
+def test_clamp_encloses_and_is_exact_where_inactive():
+    low, high = torch.tensor([-0.4, -2.0], dtype=F64), torch.tensor([0.3, 2.0], dtype=F64)
+
+    def fn(z):
+        y = torch.nn.functional.linear(z, torch.tensor([[1.0, 0.5], [0.2, -0.3]], dtype=F64))
+        return y.clamp(low, high) if is_enclosure(y) else torch.maximum(torch.minimum(y, high), low)
+
+    for width in (0.01, 0.5, 3.0):
+        lo, hi = _boxes(60, 2, width, seed=3)
+        out = fn(Affine.box(lo, hi))
+        assert _inside(out, _flat(fn, _samples(lo, hi)))
+    # the second output never saturates on these boxes: the identity, with no added remainder beyond rounding
+    assert float((out.r.hi - out.r.lo)[:, 1].max()) < 1e-12
+
+
+def test_linear_operations_keep_correlations_exactly():
+    lo, hi = _boxes(10, 3, 0.5)
+    z = Affine.box(lo, hi)
+    x, y, w = z.unbind(-1)
+    assert float(_width(x - x).max()) < 1e-13
+    assert float(_width((x + y) * 2.0 - y - x - x - y).max()) < 1e-12
+    # sin(x)^2 + cos(x)^2 on a narrow box is close to a constant: only the linearisation errors remain
+    narrow_lo, narrow_hi = _boxes(10, 1, 1e-4)
+    t = Affine.box(narrow_lo, narrow_hi)[:, 0]
+    assert float(_width(torch.sin(t).square() + torch.cos(t).square()).max()) < 1e-7
+
+
+def test_outward_rounding_against_exact_rationals():
+    """Sums and products of values that are not representable: the enclosure contains the exact value."""
+    lo = torch.tensor([[0.1, 0.2, 1 / 3]], dtype=F64)
+    z = Affine.box(lo, lo)  # point boxes: the rounding pads are the only width
+    x, y, w = z.unbind(-1)
+    out = ((x + y) * w - x * 0.7 + y / 3.0).to_interval()
+    fx, fy, fw = (Fraction(float(v)) for v in lo[0])
+    exact = (fx + fy) * fw - fx * Fraction(0.7) + fy / 3
+    assert Fraction(float(out.lo[0])) <= exact <= Fraction(float(out.hi[0]))
+    assert float(out.hi[0] - out.lo[0]) < 1e-14
+
+
+def test_interval_and_affine_mix_and_batches_do_not():
+    lo, hi = _boxes(5, 2, 0.2)
+    z = Affine.box(lo, hi)
+    mixed = z[:, 0] * Interval(lo[:, 1], hi[:, 1]) + Interval.const(torch.ones(5, dtype=F64))
+    assert isinstance(mixed, Affine)
+    pts = _samples(lo, hi)
+    assert _inside(mixed, pts[..., 0] * pts[..., 1] + 1.0)
+    assert isinstance(torch.stack([z[:, 0], Interval(lo[:, 1], hi[:, 1])], -1), Affine)
+    with pytest.raises(ValueError, match="different boxes"):
+        z[:, 0].sum(0)
+    with pytest.raises(ValueError, match="different boxes"):
+        z[:1, 0] + z[:, 1]
+    with pytest.raises(ValueError, match="contains 0"):
+        1.0 / Affine.box(-torch.ones(2, 1, dtype=F64), torch.ones(2, 1, dtype=F64))
+
+
+# ----------------------------------------------------------------------------------------- networks
+def _small_networks(n, seed=0, hidden=(16, 16), gain=0.7):
+    torch.manual_seed(seed)
+    scale = [1.0] * n
+    lyap = Lyapunov(n, hidden, 4, 0.5, scale).double()
+    ctrl = Controller(n, ([-2.0], [2.0]), [0.0], hidden, 3.0, scale).double()
+    for net in (lyap, ctrl):
+        with torch.no_grad():
+            for p in net.parameters():
+                p.mul_(gain)
+    return lyap, ctrl
+
+
+@pytest.mark.parametrize("n", [2, 4, 6])
+def test_tanh_network_value_gradient_and_controller_are_enclosed(n):
+    lyap, ctrl = _small_networks(n, seed=n)
+    mlp = TanhMLP([n, 12, 12, 3]).double()
+    for width in (0.02, 0.3):
+        lo, hi = _boxes(30, n, width, seed=n)
+        pts = _samples(lo, hi, count=1000)
+        z = Affine.box(lo, hi)
+        with torch.no_grad():
+            assert _inside(mlp(z), _flat(mlp, pts))
+            v, g = lyap.value_and_grad(z)
+            assert _inside(v, _flat(lambda x: lyap.value_and_grad(x)[0], pts))
+            assert _inside(g, _flat(lambda x: lyap.value_and_grad(x)[1], pts))
+            assert _inside(ctrl(z), _flat(ctrl, pts))
+
+
+def test_dual_over_affine_encloses_sampled_gradients():
+    n = 4
+    lyap, ctrl = _small_networks(n, seed=7)
+    lo, hi = _boxes(20, n, 0.1, seed=7)
+    pts = _samples(lo, hi, count=500)
+    eye = torch.eye(n, dtype=F64).expand(20, n, n)
+    z = Dual(Affine.box(lo, hi), Interval(eye, eye))
+    out = lyap(z)
+    assert isinstance(out.v, Affine) and isinstance(out.d, Affine)
+    x = pts.reshape(-1, n).clone().requires_grad_(True)
+    (grad,) = torch.autograd.grad(lyap(x).sum(), x)
+    assert _inside(out.v, _flat(lambda p: lyap(p).detach(), pts))
+    assert _inside(out.d, grad.reshape(20, -1, n))
+    # the manual gradient (what the conditions use) agrees with the dual one within both enclosures
+    _, g = lyap.value_and_grad(Affine.box(lo, hi))
+    both = torch.maximum(out.d.lo, g.lo) <= torch.minimum(out.d.hi, g.hi)
+    assert bool(both.all())
+    # first-order duals through the controller's clamp (the saturated and the free case)
+    u = ctrl(z)
+    (gu,) = torch.autograd.grad(ctrl(x).sum(), x)
+    assert _inside(u.v, _flat(lambda p: ctrl(p).detach(), pts))
+    assert _inside(u.d[:, 0], gu.reshape(20, -1, n))
+
+
+# ----------------------------------------------------------------------------------------- systems
+@pytest.mark.parametrize("name", ["cartpole", "quadrotor2d"])
+def test_dynamics_on_random_small_boxes_enclose_sampled_values(name):
+    system = get_system(name)
+    n, m = system.n, system.m
+    slo, shi = (torch.tensor(b, dtype=F64) for b in system.state_box)
+    ulo, uhi = (torch.tensor(b, dtype=F64) for b in system.input_box)
+    span = torch.cat([shi - slo, uhi - ulo])
+    base = torch.cat([slo, ulo])
+    gen = torch.Generator().manual_seed(0)
+    centre = base + span * torch.rand(40, n + m, generator=gen, dtype=F64)
+    half = span * 0.02 * torch.rand(40, n + m, generator=gen, dtype=F64)
+    lo, hi = centre - half, centre + half
+    pts = _samples(lo, hi, count=1000)
+    box = Affine.box(lo, hi)
+    xi = torch.tensor(system.test_xi, dtype=F64)
+    out = system.true_dynamics(box[:, :n], box[:, n:], xi)
+    assert isinstance(out, Affine) and tuple(out.shape) == (40, n)
+    assert _inside(out, _flat(lambda p: system.true_dynamics(p[:, :n], p[:, n:], xi), pts))
+    # the design model's forward-mode parameter derivatives run on Dual(Affine)
+    cov = torch.randn(n, generator=gen, dtype=F64).expand(40, n)
+    s, w = system.weighted_design(box[:, :n], box[:, n:], Interval.const(cov))
+    fs, ws = [], []
+    for p in pts.unbind(1):
+        a, b = system.weighted_design(p[:, :n], p[:, n:], cov)
+        fs.append(a)
+        ws.append(b)
+    assert _inside(s, torch.stack(fs, 1))
+    assert _inside(w, torch.stack(ws, 1))
+
+
+@pytest.mark.parametrize("name", ["cartpole", "quadrotor2d"])
+def test_decrease_condition_objective_on_affine_boxes(name):
+    system = get_system(name)
+    torch.manual_seed(1)
+    lyap, ctrl = build_networks(system, TrainConfig(system=name).resolved(system))
+    xi = system.sample_xi(3, torch.Generator().manual_seed(0))
+    slo, shi = system.local_box()
+    lo, hi = _boxes(16, system.n, 0.03 * (shi - slo), seed=2)
+    lo, hi = lo * (shi - slo) / 2, hi * (shi - slo) / 2  # centres spread over the state box
+    lo, hi = torch.minimum(lo, hi), torch.maximum(lo, hi)
+    pts = _samples(lo, hi, count=300)
+    for cond in (Nominal(xi.mean(0, keepdim=True), 0.1), DRPointwise(0.01, 0.2, xi, 0.1),
+                 TrueDecrease(torch.tensor([system.test_xi], dtype=F64), 0.1)):
+        out = condition_objective(cond, system, lyap, ctrl)(Affine.box(lo, hi))
+        with torch.no_grad():
+            values = _flat(lambda p, c=cond: c.components(c.terms(system, lyap.double(), ctrl.double(), p)), pts)
+        assert _inside(out, values), cond.label
+
+
+# ----------------------------------------------------------------------------------------- tightness
+@pytest.mark.parametrize("n", [2, 4, 6])
+def test_affine_is_tighter_than_intervals_on_networks(n):
+    lyap, _ = _small_networks(n, seed=11, hidden=(32, 32), gain=1.0)  # torch's default initialisation
+    lo, hi = _boxes(40, n, 0.2, seed=n)
+    with torch.no_grad():
+        vi, gi = lyap.value_and_grad(Interval(lo, hi))
+        va, ga = lyap.value_and_grad(Affine.box(lo, hi))
+    ratio_v = float(((vi.hi - vi.lo) / _width(va)).median())
+    ratio_g = float(((gi.hi - gi.lo) / _width(ga)).median())
+    print(f"n={n}: interval / affine width, median over boxes: V {ratio_v:.1f}x, grad V {ratio_g:.1f}x")
+    assert bool((_width(va) <= (vi.hi - vi.lo) * 1.01).all())
+    assert ratio_v > 2.0, ratio_v
+    assert ratio_g > 10.0, ratio_g
+
+
+# ----------------------------------------------------------------------------------------- branch and bound
+XI = torch.tensor([[0.05, 0.02], [-0.02, -0.01], [0.08, 0.03]], dtype=F64)
+
+
+def _pendulum_region_points(system, delta, per=120):
+    lo, hi = system.local_box()
+    axes = [lo[i] + (hi[i] - lo[i]) * (torch.arange(per, dtype=F64) + 0.5) / per for i in range(system.n)]
+    z = torch.cat([torch.cartesian_prod(*axes),
+                   lo + (hi - lo) * torch.rand(20000, system.n, generator=torch.Generator().manual_seed(3), dtype=F64)])
+    return z[z.norm(dim=-1) >= delta]
+
+
+def test_branch_and_bound_with_affine_forms_verifies_with_fewer_boxes():
+    system = small_pendulum()
+    lyap, ctrl = linear_pair(system)
+    spec = DRPointwise(1e-3, 0.1, XI, 0.05)
+    mv = verify_condition(system, lyap, ctrl, spec, delta=0.2, time_limit=20)
+    af = verify_condition(system, lyap, ctrl, spec, delta=0.2, time_limit=20, enclosure="affine")
+    assert mv.status == af.status == "verified"
+    assert af.boxes_processed <= mv.boxes_processed
+    assert float(spec.exact(system, lyap, ctrl, _pendulum_region_points(system, 0.2)).max()) <= 0
+    with pytest.raises(ValueError, match="unknown enclosure"):
+        verify_condition(system, lyap, ctrl, spec, delta=0.2, enclosure="taylor")
+
+
+def test_branch_and_bound_with_affine_forms_leaves_every_violation_unverified():
+    system = small_pendulum(((-1.5, -3.0), (1.5, 3.0)))
+    lyap, ctrl = linear_pair(system)
+    spec = DRPointwise(1e-3, 0.1, XI, 0.05)
+    result = verify_condition(system, lyap, ctrl, spec, delta=0.2, time_limit=20, min_width=1e-2, keep_boxes=10**6,
+                              enclosure="affine")
+    z = _pendulum_region_points(system, 0.2, per=150)
+    bad = z[spec.exact(system, lyap, ctrl, z) > 0]
+    assert bad.shape[0] and result.status == "violated" and 0 < result.verified_fraction < 1
+    lo = torch.tensor([b["lo"] for b in result.unverified_boxes], dtype=F64).reshape(-1, 2)
+    hi = torch.tensor([b["hi"] for b in result.unverified_boxes], dtype=F64).reshape(-1, 2)
+    covered = ((lo[None] <= bad[:, None]) & (bad[:, None] <= hi[None])).all(-1).any(-1)
+    assert bool(covered.all()), bad[~covered]
+
+
+def test_maximize_with_affine_forms_bounds_sampled_values_at_4_states():
+    system = get_system("cartpole")
+    torch.manual_seed(5)
+    lyap, ctrl = build_networks(system, TrainConfig(system="cartpole").resolved(system))
+    spec = Nominal(torch.zeros(1, system.k, dtype=F64), 0.1)
+    lo, hi = system.local_box()
+    lo, hi = lo * 0.3, hi * 0.3
+    lower, upper, info = maximize(condition_objective(spec, system, lyap, ctrl), lo[None], hi[None], (hi - lo) / 2,
+                                  time_limit=3.0, enclosure="affine")
+    z = lo + (hi - lo) * torch.rand(20000, system.n, generator=torch.Generator().manual_seed(0), dtype=F64)
+    sampled = float(spec.exact(system, lyap, ctrl, z).max())
+    assert float(lower[0]) <= float(upper[0])
+    assert sampled <= float(upper[0]), (sampled, float(upper[0]), info)
