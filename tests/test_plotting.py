@@ -94,7 +94,8 @@ def test_plot_command_writes_figures(run_dir, tmp_path):
     result = CliRunner().invoke(main, ["plot", str(run_dir), "--n-init", "3", "--horizon", "2", "--out", str(out), "--json"])
     assert result.exit_code == 0, result.output
     data = json.loads(result.output)
-    assert data["xi"] == [0.1, 0.05] and data["region"] is None and len(data["figures"]) == 3
+    assert data["xi"] == [0.1, 0.05] and data["region"] is None and len(data["figures"]) == 4
+    assert any(path.endswith("states.png") for path in data["figures"])
     for path in data["figures"]:
         assert path.startswith(str(out)) and open(path, "rb").read(8) == PNG
 
@@ -127,3 +128,28 @@ def test_plot_roa_computes_the_set_now(run_dir, tmp_path):
     region = json.loads(result.output)["region"]
     if region is not None:  # a 10-iteration pair may certify nothing
         assert ("region of attraction" in region["label"]) == region["certified"]
+
+
+def test_plots_of_a_six_state_two_input_system(tmp_path):
+    quad = get_system("quadrotor2d")
+    assert quad.plot_dims == (0, 1) and get_system("cartpole").plot_dims == (1, 3)
+    with pytest.raises(ValueError, match="plot_dims"):
+        dataclasses.replace(quad, plot_dims=(2, 2))
+    u_star = torch.tensor(quad.equilibrium_input, dtype=torch.float64)
+    hover = lambda x: u_star.expand(x.shape[0], -1)  # noqa: E731
+    traj = simulate(quad, hover, torch.zeros(1, 6, dtype=torch.float64) + 0.1, torch.zeros(2), horizon=0.5)
+    assert traj.u.shape[-1] == 2
+    limits = plotting.input_limits(quad)
+    assert [v for v, _ in limits] == [5.96, 0.0] and "thrust_1, thrust_2" in limits[0][1]  # one shared pair
+    fig = plotting.time_series_figure({"hover": (traj.t, torch.ones_like(traj.t), traj.u[:, 0])},
+                                      input_names=quad.input_names, limits=limits)
+    assert len(fig.axes[1].lines) >= 2 + 2  # both inputs, both limits
+    plt.close(fig)
+    path = plotting.states_over_time(quad, {"hover": (traj.t, traj.x[:, 0])}, tmp_path / "x.png")
+    assert path.read_bytes()[:8] == PNG
+    fig, ax = plt.subplots()
+    grid = plotting.lyapunov_grid(quad, lambda x: (x ** 2).sum(-1), per_axis=9)
+    plotting.draw_phase(ax, quad, traj, [True], grid)
+    assert ax.get_xlabel().startswith("x") and ax.get_ylabel().startswith("y")
+    assert any("slice" in t.get_text() for t in ax.texts)  # says the V contours are a slice through x*
+    plt.close(fig)

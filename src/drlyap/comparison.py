@@ -209,7 +209,7 @@ def compare_figures(runs: Sequence[PolicyRun], shifts: Sequence[Tensor], folder:
                 continue
             traj = simulate(run.system, run.controller, x0, shift, horizon=horizon)
             value = run.certificate(traj.x[:, 0]) if run.certificate is not None else torch.full_like(traj.t, float("nan"))
-            series[f"{run.label} ({run.path.name})"] = (traj.t, value, traj.u[:, 0, 0])
+            series[f"{run.label} ({run.path.name})"] = (traj.t, value, traj.u[:, 0])
         where = ", ".join(f"{v:.3g}" for v in start)
         shift = ", ".join(f"{v:+g}" for v in shifts[0].tolist())
         system = runs[0].system
@@ -217,7 +217,8 @@ def compare_figures(runs: Sequence[PolicyRun], shifts: Sequence[Tensor], folder:
                                           f"{system.name} from ({where}), true model at xi = ({shift})",
                                           value_label="certificate: V, z'Pz or -value",
                                           input_label=plotting.input_label(system), time_label=plotting.time_label(system),
-                                          limits=plotting.input_limits_of([run.system for run in runs])))
+                                          limits=plotting.input_limits_of([run.system for run in runs]),
+                                          input_names=system.input_names))
     return paths
 
 

@@ -140,7 +140,8 @@ def _roa_cell(roa: dict | None) -> str | None:
 
 def draw_figures(system: UncertainSystem, runs: dict[str, Run], xi: torch.Tensor, x0: torch.Tensor, folder: Path,
                  seed: int) -> list[Path]:
-    """Figs. 2/5 (phase portraits of both controllers) and 3a/3b (V(t), u(t) from the reference state)."""
+    """Figs. 2/5 (phase portraits of both controllers), 3a/3b (V(t), u(t) from the reference state) and the states
+    over time from the same state (``states.png``)."""
     folder.mkdir(parents=True, exist_ok=True)
     trajs, ok, levels = {}, {}, {}
     for method, run in runs.items():
@@ -152,16 +153,18 @@ def draw_figures(system: UncertainSystem, runs: dict[str, Run], xi: torch.Tensor
     phase = plotting.phase_portraits(system, trajs, ok, folder / "trajectories.png",
                                      f"{system.name}, true model at {shift} (seed {seed})", levels, regions)
     start = torch.tensor([system.figure_starts()[0]], dtype=torch.float64)
-    series = {}
+    series, states = {}, {}
     for method, run in runs.items():
         traj = simulate(system, run.controller, start, xi)
-        series[method] = (traj.t, run.lyapunov(traj.x[:, 0]), traj.u[:, 0, 0])
+        series[method] = (traj.t, run.lyapunov(traj.x[:, 0]), traj.u[:, 0])
+        states[method] = (traj.t, traj.x[:, 0])
     where = ", ".join(f"{v:.3g}" for v in start[0].tolist())
-    ts = plotting.time_series(series, folder / "certificate_and_input.png",
-                              f"{system.name} from ({where}), true model at {shift} (seed {seed})",
+    title = f"{system.name} from ({where}), true model at {shift} (seed {seed})"
+    ts = plotting.time_series(series, folder / "certificate_and_input.png", title,
                               input_label=plotting.input_label(system), time_label=plotting.time_label(system),
-                              limits=plotting.input_limits(system))
-    return [phase, ts]
+                              limits=plotting.input_limits(system), input_names=system.input_names)
+    xs = plotting.states_over_time(system, states, folder / "states.png", title)
+    return [phase, ts, xs]
 
 
 def format_row(row: dict) -> str:

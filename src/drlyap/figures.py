@@ -109,15 +109,18 @@ def plot_run(run_dir: str | os.PathLike, xi: Sequence[float] | None = None, n_in
     series = {}
     for i, start in enumerate(starts):
         text = ", ".join(f"{v:.3g}" for v in start)
-        series[f"from ({text})"] = (ref.t, run.lyapunov(ref.x[:, i]), ref.u[:, i, 0])
+        series[f"from ({text})"] = (ref.t, run.lyapunov(ref.x[:, i]), ref.u[:, i])
     paths.append(plotting.time_series(series, folder / "certificate_and_input.png",
                                       f"{system.name} ({run.config.method}), true model at {where}",
                                       value_label="V(x(t))", input_label=plotting.input_label(system),
-                                      time_label=plotting.time_label(system), limits=plotting.input_limits(system)))
+                                      time_label=plotting.time_label(system), limits=plotting.input_limits(system),
+                                      input_names=system.input_names))
+    paths.append(plotting.states_over_time(system, {label: (ref.t, ref.x[:, i]) for i, label in enumerate(series)},
+                                           folder / "states.png",
+                                           f"{system.name} ({run.config.method}), true model at {where}"))
 
     gx, gy, gv = grid
-    x = torch.tensor(system.equilibrium, dtype=torch.float64).repeat(gx.numel(), 1)
-    x[:, 0], x[:, 1] = gx.reshape(-1), gy.reshape(-1)
+    x = plotting.plane_states(system, gx, gy)
     residual = decrease_residual(run, x, shift)
     residual[system.to_local(x).norm(dim=-1) < run.config.delta] = float("nan")
     condition = "Vdot + gamma |x - x*|" + (" + alpha V" if run.config.exp_rate else "")

@@ -54,28 +54,42 @@ def state_label(system: UncertainSystem, i: int) -> str:
     return unit_label(system.state_names[i], system.state_units[i] if system.state_units else "")
 
 
-def input_label(system: UncertainSystem, j: int = 0) -> str:
-    """Axis label of input coordinate ``j`` with its unit."""
-    return unit_label(f"u(t) = {system.input_names[j]}", system.input_units[j] if system.input_units else "")
+def input_label(system: UncertainSystem, j: int | None = None) -> str:
+    """Axis label of input coordinate ``j`` with its unit; ``None``: all inputs (``u(t) = torque [N m]`` for
+    one input, ``u(t) [N]`` for several sharing a unit)."""
+    if j is None and system.m == 1:
+        j = 0
+    if j is not None:
+        return unit_label(f"u(t) = {system.input_names[j]}", system.input_units[j] if system.input_units else "")
+    units = set(system.input_units)
+    return unit_label("u(t)", units.pop() if len(units) == 1 else "")
 
 
 def time_label(system: UncertainSystem) -> str:
     return unit_label("t", system.time_unit)
 
 
-def input_limits(system: UncertainSystem, j: int = 0) -> list[tuple[float, str]]:
-    """The input set's bounds on coordinate ``j`` as ``[(value, label)]``: ``u_max`` first, then ``u_min``."""
-    unit = f" {system.input_units[j]}" if system.input_units else ""
+def input_limits(system: UncertainSystem, j: int | None = None) -> list[tuple[float, str]]:
+    """The input set's bounds as ``[(value, label)]``, ``u_max`` then ``u_min``, for coordinate ``j`` or (``None``)
+    for every input (each distinct pair once, named by its inputs when there are several)."""
     lo, hi = system.input_box
-    return [(hi[j], f"u_max = {hi[j]:g}{unit}"), (lo[j], f"u_min = {lo[j]:g}{unit}")]
+    pairs: dict[tuple[float, float], list[int]] = {}
+    for i in range(system.m) if j is None else [j]:
+        pairs.setdefault((hi[i], lo[i]), []).append(i)
+    out = []
+    for (top, bottom), idx in pairs.items():
+        unit = f" {system.input_units[idx[0]]}" if system.input_units else ""
+        names = "" if system.m == 1 or j is not None else f" ({', '.join(system.input_names[i] for i in idx)})"
+        out += [(top, f"u_max = {top:g}{unit}{names}"), (bottom, f"u_min = {bottom:g}{unit}{names}")]
+    return out
 
 
-def input_limits_of(systems: Sequence[UncertainSystem], j: int = 0) -> list[tuple[float, str]]:
+def input_limits_of(systems: Sequence[UncertainSystem], j: int | None = None) -> list[tuple[float, str]]:
     """:func:`input_limits` of several systems drawn on one plot: each distinct bound once, named by its
     system when the systems' bounds differ (``pendulum-u9: u_max = 9 N m``)."""
     distinct: dict[tuple, UncertainSystem] = {}
     for system in systems:
-        distinct.setdefault(tuple(b[j] for b in system.input_box), system)
+        distinct.setdefault(tuple(tuple(b) if j is None else b[j] for b in system.input_box), system)
     if len(distinct) <= 1:
         return input_limits(systems[0], j) if systems else []
     return [(value, f"{system.name}: {text}") for system in distinct.values() for value, text in input_limits(system, j)]
@@ -126,11 +140,13 @@ def _contour_levels(values: Tensor, count: int = 8) -> list[float]:
 def draw_phase(ax, system: UncertainSystem, traj: Trajectories | None, success: Sequence[bool] | None,
                grid: tuple[Tensor, Tensor, Tensor] | None = None, region: Mapping | None = None,
                delta: float | None = None) -> None:
-    """One phase-plane panel (first two state coordinates, others at x*) on ``ax``: labelled V contours of
+    """One phase-plane panel (the system's ``plot_dims``; with more than two states the V contours are a slice
+    through x* and the trajectories are projections) on ``ax``: labelled V contours of
     ``grid = (X, Y, V)``, the set ``region = {"level": c, "label": str, "certified": bool}`` filled (green
     when certified, grey hatched otherwise), trajectories coloured by success (one legend entry per
     colour), starts, ends, x*, the delta-ball and the state box."""
     lo, hi = system.state_box
+    i, j = system.plot_dims
     if grid is not None:
         gx, gy, gv = grid
         levels = _contour_levels(gv)
@@ -149,25 +165,27 @@ def draw_phase(ax, system: UncertainSystem, traj: Trajectories | None, success: 
             ax.plot([], [], color=color, lw=6, alpha=0.4, label=textwrap.fill(region["label"], 75))
     if delta:
         t = torch.linspace(0, 2 * torch.pi, 100)
-        ax.plot(system.equilibrium[0] + delta * torch.cos(t), system.equilibrium[1] + delta * torch.sin(t), ":",
+        ax.plot(system.equilibrium[i] + delta * torch.cos(t), system.equilibrium[j] + delta * torch.sin(t), ":",
                 color="black", lw=0.9, label=f"delta-ball (|x - x*| < {delta:g}, excluded from the proof)")
     if traj is not None:
         x = _display_states(system, traj.x)
         ok = [bool(v) for v in (success if success is not None else [True] * x.shape[1])]
         for flag, color, text in ((True, "tab:blue", "stabilised"), (False, "tab:orange", "not stabilised")):
             idx = [b for b in range(x.shape[1]) if ok[b] == flag]
-            for i, b in enumerate(idx):
-                ax.plot(x[:, b, 0], x[:, b, 1], lw=0.9, color=color,
-                        label=f"{text} ({len(idx)} of {len(ok)})" if i == 0 else None)
-        ax.plot(x[0, :, 0], x[0, :, 1], "o", color="tab:green", ms=4, label="start")
-        ax.plot(x[-1, :, 0], x[-1, :, 1], "x", color="tab:red", ms=6, label="end")
-    ax.plot(*system.equilibrium[:2], "*", color="black", ms=11, label="x*")
-    ax.add_patch(Rectangle((lo[0], lo[1]), hi[0] - lo[0], hi[1] - lo[1], fill=False, lw=1.5, color="black"))
-    pad0, pad1 = 0.03 * (hi[0] - lo[0]), 0.03 * (hi[1] - lo[1])
-    ax.set_xlim(lo[0] - pad0, hi[0] + pad0)
-    ax.set_ylim(lo[1] - pad1, hi[1] + pad1)
-    ax.set_xlabel(state_label(system, 0))
-    ax.set_ylabel(state_label(system, 1))
+            for k, b in enumerate(idx):
+                ax.plot(x[:, b, i], x[:, b, j], lw=0.9, color=color,
+                        label=f"{text} ({len(idx)} of {len(ok)})" if k == 0 else None)
+        ax.plot(x[0, :, i], x[0, :, j], "o", color="tab:green", ms=4, label="start")
+        ax.plot(x[-1, :, i], x[-1, :, j], "x", color="tab:red", ms=6, label="end")
+    ax.plot(system.equilibrium[i], system.equilibrium[j], "*", color="black", ms=11, label="x*")
+    ax.add_patch(Rectangle((lo[i], lo[j]), hi[i] - lo[i], hi[j] - lo[j], fill=False, lw=1.5, color="black"))
+    pad0, pad1 = 0.03 * (hi[i] - lo[i]), 0.03 * (hi[j] - lo[j])
+    ax.set_xlim(lo[i] - pad0, hi[i] + pad0)
+    ax.set_ylim(lo[j] - pad1, hi[j] + pad1)
+    ax.set_xlabel(state_label(system, i))
+    ax.set_ylabel(state_label(system, j))
+    if system.n > 2:
+        ax.text(0.01, 0.99, _slice_note(system), transform=ax.transAxes, va="top", fontsize=7, color="0.3")
 
 
 def phase_portrait(system: UncertainSystem, traj: Trajectories, success: Sequence[bool], path: Path, title: str = "",
@@ -210,14 +228,24 @@ def phase_portraits(system: UncertainSystem, panels: Mapping[str, Trajectories],
 # --------------------------------------------------------------------------- time series
 def time_series_figure(series: Mapping[str, tuple[Tensor, Tensor, Tensor]], title: str = "",
                        value_label: str = "V(x(t))", input_label: str = "u(t)", time_label: str = "t",
-                       limits: Sequence[tuple[float, str]] = ()):
+                       limits: Sequence[tuple[float, str]] = (), input_names: Sequence[str] = ()):
     """The figure of :func:`time_series` (returned, not saved): axes 0 the certificate, axes 1 the input
-    with the input limits ``limits = [(value, label)]`` as dashed horizontal lines."""
+    with the input limits ``limits = [(value, label)]`` as dashed horizontal lines. Several inputs
+    (``u`` of shape ``(T, m)``) share a colour per series and differ in line style (``input_names``)."""
     fig, (a, b) = plt.subplots(1, 2, figsize=(11, 4.6), layout="constrained")
     positive = all(bool((value > 0).all()) for _, value, _ in series.values())
+    styles = ("-", "--", ":", "-.")
+    inputs = 1
     for label, (t, value, u) in series.items():
-        a.plot(t, value, label=label)
-        b.plot(t, u, label=label)
+        line = a.plot(t, value, label=label)[0]
+        u = u.reshape(len(t), -1)
+        inputs = max(inputs, u.shape[1])
+        for k in range(u.shape[1]):
+            b.plot(t, u[:, k], color=line.get_color(), ls=styles[k % len(styles)])
+    if inputs > 1:
+        for k, name in enumerate(input_names):
+            b.plot([], [], color="0.3", ls=styles[k % len(styles)], label=name)
+        b.legend(fontsize=7, loc="upper left")
     a.set_xlabel(time_label)
     a.set_ylabel(value_label)
     a.set_yscale("log" if positive else "symlog")
@@ -247,35 +275,79 @@ def time_series_figure(series: Mapping[str, tuple[Tensor, Tensor, Tensor]], titl
 
 def time_series(series: Mapping[str, tuple[Tensor, Tensor, Tensor]], path: Path, title: str = "",
                 value_label: str = "V(x(t))", input_label: str = "u(t)", time_label: str = "t",
-                limits: Sequence[tuple[float, str]] = ()) -> Path:
+                limits: Sequence[tuple[float, str]] = (), input_names: Sequence[str] = ()) -> Path:
     """Two panels: certificate (or value) along the trajectory and the input with its limits, per
     controller or start state (one legend below both panels).
 
-    ``series[label] = (t (T,), value (T,), u (T,))``; ``limits`` as :func:`input_limits`.
+    ``series[label] = (t (T,), value (T,), u (T,) or (T, m))``; ``limits`` as :func:`input_limits`;
+    ``input_names`` name the line styles of several inputs.
     """
-    return _save(time_series_figure(series, title, value_label, input_label, time_label, limits), path)
+    return _save(time_series_figure(series, title, value_label, input_label, time_label, limits, input_names), path)
+
+
+def states_over_time(system: UncertainSystem, series: Mapping[str, tuple[Tensor, Tensor]], path: Path,
+                     title: str = "") -> Path:
+    """One panel per state coordinate (with its unit) against time, one line per controller, x* dashed.
+
+    ``series[label] = (t (T,), x (T, n))`` in user coordinates (angles wrapped into the box).
+    """
+    n = system.n
+    cols = 2 if n > 1 else 1
+    rows = (n + cols - 1) // cols
+    fig, axes = plt.subplots(rows, cols, figsize=(5.5 * cols, 2.4 * rows + 0.8), squeeze=False, sharex=True,
+                             layout="constrained")
+    flat = axes.reshape(-1)
+    for label, (t, x) in series.items():
+        shown = _display_states(system, x.reshape(len(t), 1, n))[:, 0]
+        for d in range(n):
+            flat[d].plot(t, shown[:, d], label=label if d == 0 else None)
+    for d in range(n):
+        flat[d].axhline(system.equilibrium[d], ls="--", lw=0.8, color="0.4")
+        flat[d].set_ylabel(state_label(system, d))
+    for ax in flat[n:]:
+        ax.axis("off")
+    for ax in axes[-1]:
+        ax.set_xlabel(time_label(system))
+    fig.legend(loc="outside lower center", ncol=min(4, max(1, len(series))), fontsize=8)
+    if title:
+        fig.suptitle(title)
+    return _save(fig, path)
+
+
+def plane_states(system: UncertainSystem, gx: Tensor, gy: Tensor) -> Tensor:
+    """States ``(G, n)`` of the plotted plane: ``gx``, ``gy`` on the ``plot_dims`` coordinates, x* elsewhere."""
+    i, j = system.plot_dims
+    x = torch.tensor(system.equilibrium, dtype=torch.float64).repeat(gx.numel(), 1)
+    x[:, i], x[:, j] = gx.reshape(-1), gy.reshape(-1)
+    return x
 
 
 def lyapunov_grid(system: UncertainSystem, lyapunov, per_axis: int = 120) -> tuple[Tensor, Tensor, Tensor]:
-    """``(X, Y, V)`` on a grid of the first two coordinates (others at x*), for contour plots.
+    """``(X, Y, V)`` on a grid of the ``plot_dims`` coordinates (others at x*), for contour plots.
 
     An angle coordinate stops just short of the box's upper edge, where it wraps to the lower one.
     """
     lo, hi = system.state_box
-    ends = [hi[i] - (1e-9 * (hi[i] - lo[i]) if i in system.angle_dims else 0.0) for i in (0, 1)]
-    gx, gy = torch.meshgrid(torch.linspace(lo[0], ends[0], per_axis, dtype=torch.float64),
-                            torch.linspace(lo[1], ends[1], per_axis, dtype=torch.float64), indexing="xy")
-    x = torch.tensor(system.equilibrium, dtype=torch.float64).repeat(gx.numel(), 1)
-    x[:, 0], x[:, 1] = gx.reshape(-1), gy.reshape(-1)
-    return gx, gy, lyapunov(x).reshape(gx.shape)
+    ends = [hi[d] - (1e-9 * (hi[d] - lo[d]) if d in system.angle_dims else 0.0) for d in system.plot_dims]
+    i, j = system.plot_dims
+    gx, gy = torch.meshgrid(torch.linspace(lo[i], ends[0], per_axis, dtype=torch.float64),
+                            torch.linspace(lo[j], ends[1], per_axis, dtype=torch.float64), indexing="xy")
+    return gx, gy, lyapunov(plane_states(system, gx, gy)).reshape(gx.shape)
+
+
+def _slice_note(system: UncertainSystem) -> str:
+    """``slice at x* in (xdot, thetadot)``: what a plane of an n > 2 system holds fixed."""
+    rest = [system.state_names[d] for d in range(system.n) if d not in system.plot_dims]
+    return f"V: slice with ({', '.join(rest)}) at x*; trajectories projected"
 
 
 def decrease_map(system: UncertainSystem, grid: tuple[Tensor, Tensor, Tensor], residual: Tensor, path: Path,
                  title: str = "", condition: str = "Vdot + gamma |x - x*|", delta: float | None = None) -> Path:
-    """Two heatmaps over the first two coordinates (others at x*): V, and the decrease residual
+    """Two heatmaps over the ``plot_dims`` coordinates (others at x*): V, and the decrease residual
     ``residual (same shape as V; NaN where excluded, e.g. the delta-ball)`` on a colour scale centred at
     0, where it is > 0 (the condition fails) outlined in black and counted in the title."""
     gx, gy, gv = (g.detach().cpu() for g in grid)
+    i, j = system.plot_dims
     residual = residual.detach().cpu()
     px, py = gx.numpy(), gy.numpy()  # matplotlib takes arrays
     fig, (a, b) = plt.subplots(1, 2, figsize=(12, 5.2), layout="constrained")
@@ -295,15 +367,18 @@ def decrease_map(system: UncertainSystem, grid: tuple[Tensor, Tensor, Tensor], r
     if delta:
         t = torch.linspace(0, 2 * torch.pi, 100)
         for ax in (a, b):
-            ax.plot(system.equilibrium[0] + delta * torch.cos(t), system.equilibrium[1] + delta * torch.sin(t), ":",
+            ax.plot(system.equilibrium[i] + delta * torch.cos(t), system.equilibrium[j] + delta * torch.sin(t), ":",
                     color="black", lw=0.9)
     if bool(fails.any()):
         b.contour(px, py, fails.double().numpy(), levels=[0.5], colors="black", linewidths=1.0)
     share = float(fails.double().sum() / max(1, finite.numel()))
     for ax in (a, b):
-        ax.plot(*system.equilibrium[:2], "*", color="white" if ax is a else "black", ms=10)
-        ax.set_xlabel(state_label(system, 0))
-        ax.set_ylabel(state_label(system, 1))
+        ax.plot(system.equilibrium[i], system.equilibrium[j], "*", color="white" if ax is a else "black", ms=10)
+        ax.set_xlabel(state_label(system, i))
+        ax.set_ylabel(state_label(system, j))
+        if system.n > 2:
+            ax.text(0.01, 0.99, _slice_note(system).split(";")[0].replace("V: slice", "slice"), transform=ax.transAxes,
+                    va="top", fontsize=7, color="0.3")
     a.set_title("certificate V")
     where = "outside the delta-ball" if delta else ""
     top = float(finite.max()) if finite.numel() else float("nan")

@@ -96,6 +96,8 @@ class UncertainSystem:
         state_units, input_units: one unit per coordinate (``("rad", "rad/s")``), or empty when unknown;
             used on plot axes (``theta [rad]``).
         time_unit: unit of time in ``dynamics`` (``s``; ``step`` for a model in time steps).
+        plot_dims: the two state coordinates of phase portraits and V/decrease maps (default the first two);
+            with more than two states these are slices through x* (other coordinates at x*).
     """
 
     name: str
@@ -126,6 +128,7 @@ class UncertainSystem:
     state_units: tuple[str, ...] = ()
     input_units: tuple[str, ...] = ()
     time_unit: str = "s"
+    plot_dims: tuple[int, int] = (0, 1)
 
     def __post_init__(self) -> None:
         n, m = len(self.state_names), len(self.input_names)
@@ -196,6 +199,11 @@ class UncertainSystem:
             raise ValueError(f"{self.name}: equilibrium {self.equilibrium} must lie strictly inside X")
         if any(not 0 <= d < n for d in self.angle_dims):
             raise ValueError(f"{self.name}: angle_dims {self.angle_dims} must index state coordinates 0..{n - 1}")
+        dims = tuple(self.plot_dims)
+        if n >= 2 and (len(dims) != 2 or dims[0] == dims[1] or any(not (isinstance(d, int) and 0 <= d < n) for d in dims)):
+            raise ValueError(f"{self.name}: plot_dims {self.plot_dims} must be two different state coordinates "
+                             f"0..{n - 1}")
+        set_(self, "plot_dims", dims)
         if self.test_xi is not None and len(self.test_xi) != self.k:
             raise ValueError(f"{self.name}: test_xi needs {self.k} values ({', '.join(self.uncertain)})")
         x_star = torch.tensor([self.equilibrium], dtype=torch.float64)
@@ -535,6 +543,7 @@ def cartpole() -> UncertainSystem:
         defaults={"n_states": 4096, "wasserstein_radius": 0.005, "risk_level": 0.1, "n_xi": 5,
                   "decay_rate": 0.1, "delta": 0.1},
         sim_dt=0.01, horizon=10.0, state_units=("m", "rad", "m/s", "rad/s"), input_units=("N",), time_unit="s",
+        plot_dims=(1, 3),  # (theta, theta_dot): the pole's phase plane
         description=("Cart-pole (Tedrake, Underactuated Robotics), theta=0 upright: m_c=1, m_p=0.1, l=1, g=9.81, "
                      "|u|<=30 N, pivot damping b=0 nominal; xi = (pole mass [kg], damping [N m s/rad]) shift."),
     )
