@@ -9,6 +9,7 @@ from torch import Tensor
 from drlyap.conditions import Condition, DRUniform, TrueDecrease, make_condition
 from drlyap.io import jsonable
 from drlyap.regions import Region
+from drlyap.verification.bounds import check_enclosure
 from drlyap.verification.branch_and_bound import uniform_margin, verify_condition
 from drlyap.verification.roa import certified_roa
 
@@ -24,7 +25,8 @@ def run_condition(run, xi: Sequence[float] | Tensor | None = None) -> Condition:
 
 
 def verify_run(run, delta: float | None = None, xi: Sequence[float] | Tensor | None = None, time_limit: float = 30.0,
-               roa: bool = False, min_width: float = 1e-4, uniform_time: float = 3.0) -> dict:
+               roa: bool = False, min_width: float = 1e-4, uniform_time: float = 3.0,
+               enclosure: str = "mean-value") -> dict:
     """Verify a loaded run (:func:`drlyap.rundir.load_run`) on X_delta.
 
     Returns a JSON-friendly dict: ``trained`` (the run's own condition: pointwise / nominal through
@@ -33,8 +35,11 @@ def verify_run(run, delta: float | None = None, xi: Sequence[float] | Tensor | N
     on the true model at that shift) and ``roa`` (with ``roa=True``: :func:`certified_roa` for the main
     condition). The top-level ``status``, ``verified_fraction``, ``counterexample`` and ``time_s`` are those
     of the main check: the true model when ``xi`` is given, else the trained condition. Non-finite bounds
-    are reported as None (strict JSON).
+    are reported as None (strict JSON). ``enclosure`` bounds the boxes of the trained, uniform and true-model
+    checks (:data:`~drlyap.verification.bounds.ENCLOSURES`: ``"affine"`` is tighter on 4- and 6-state
+    systems); the region-of-attraction search keeps the mean-value form.
     """
+    check_enclosure(enclosure)
     cfg = run.config
     delta = float(cfg.delta if delta is None else delta)
     if not (delta == delta and delta >= 0 and delta != float("inf")):
@@ -43,23 +48,24 @@ def verify_run(run, delta: float | None = None, xi: Sequence[float] | Tensor | N
     region = Region.of(system, delta)
     trained_condition = run_condition(run)
     out: dict = {"run_dir": str(run.path), "system": system.name, "method": cfg.method,
-                 "loss": cfg.loss if cfg.method == "dr" else None, "delta": delta}
+                 "loss": cfg.loss if cfg.method == "dr" else None, "delta": delta, "enclosure": enclosure}
     uniform_condition = DRUniform(cfg.wasserstein_radius, cfg.risk_level, run.xi_samples, cfg.decay_rate, cfg.exp_rate)
     if isinstance(trained_condition, DRUniform):
-        trained = uniform_margin(system, lyap, ctrl, trained_condition, region, time_limit=time_limit, min_width=min_width)
+        trained = uniform_margin(system, lyap, ctrl, trained_condition, region, time_limit=time_limit, min_width=min_width,
+                                 enclosure=enclosure)
         uniform = trained
     else:
         trained = verify_condition(system, lyap, ctrl, trained_condition, region, time_limit=time_limit,
-                                   min_width=min_width).to_dict()
+                                   min_width=min_width, enclosure=enclosure).to_dict()
         uniform = uniform_margin(system, lyap, ctrl, uniform_condition, region, time_limit=uniform_time,
-                                 min_width=min_width)
+                                 min_width=min_width, enclosure=enclosure)
     out["trained"] = trained
     out["uniform"] = uniform
     main, main_condition = trained, trained_condition
     if xi is not None:
         main_condition = run_condition(run, xi)
         main = verify_condition(system, lyap, ctrl, main_condition, region, time_limit=time_limit,
-                                min_width=min_width).to_dict()
+                                min_width=min_width, enclosure=enclosure).to_dict()
         main["xi"] = main_condition.xi[0].tolist()
         out["true_model"] = main
     out["roa"] = None
