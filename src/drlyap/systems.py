@@ -497,7 +497,10 @@ def mountain_car() -> UncertainSystem:
         equilibrium=(math.pi / 6, 0.0), test_box=((-1.0, -0.1), (1.0, 0.1)),
         xi_sampler=_mountain_car_xi, test_xi=(-0.0003,), reference_states=((-math.pi / 6, 0.0),),
         rl_timing=(1.0, 500.0),  # the gym mountain car's step
-        defaults={"n_states": 1600, "wasserstein_radius": 1e-4, "risk_level": 0.1, "n_xi": 3,
+        # r = 5e-5, half the paper's 1e-4: at 1e-4 the DR term 0.001 |u dV/dv| cancels two thirds of the
+        # control authority and DR seeds 1, 2 stabilised 0 and 155 of 200 at the test shift; at 5e-5,
+        # 200/200 on seeds 0-2 (docs/defaults.md). `--radius 1e-4` runs the paper's setting.
+        defaults={"n_states": 1600, "wasserstein_radius": 5e-5, "risk_level": 0.1, "n_xi": 3,
                   "decay_rate": 0.001, "alpha_hat": 1.0, "delta": 0.1, "margin": 0.003},
         sim_dt=0.5, horizon=1500.0, state_units=("u.", "u./step"), input_units=("u.",), time_unit="step",
         description=("Mountain car (paper Sec. VII-B): p=0.0015, |u|<=2, goal (pi/6, 0); xi = power shift. "
