@@ -234,10 +234,10 @@ def linearisation_local(system: UncertainSystem, lyapunov: Lyapunov, controller:
     if not c_1 > 0:
         out["reason"] = "no sublevel set of V provably inside {W <= c_q}"
         return out
-    if not level > c_1:
-        out["reason"] = (f"the outer proof's level {level:.4g} does not exceed V's level {c_1:.4g} inside the "
-                         "linearisation's region (no forward-invariant {V <= c} to claim)")
-        return out
+    # any smaller c_1 will do ({V <= c_1} only shrinks): keep it below the outer level, so that the annulus
+    # {c_1 <= V <= c} is not empty and {V <= c} is forward invariant
+    c_1 = min(c_1, level / 2)
+    out["inner_level"] = c_1
     # 4. V decreases strictly on {c_1 <= V <= c} inside the ball (outside it the condition's decay already does);
     # with no decay in the condition, on the whole box
     strict = condition.decay_rate > 0 or condition.exp_rate > 0
