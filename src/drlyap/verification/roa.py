@@ -25,6 +25,30 @@ system's own code); if every symmetric matrix in that interval matrix is negativ
 largest eigenvalue plus the radius matrix's Frobenius norm < 0), then ``q < 0`` on ``C`` minus x*. The cube
 is shrunk until this holds (the controller must be unsaturated there); the rest of the delta-ball is
 proved with plain decrease plus a small decay ``gamma_in ||z||`` (strict decrease away from x*).
+
+The linearisation proof (:func:`linearisation_local`), tried when the one above fails (the networks are
+trained outside the delta-ball only, so V's local quadratic part need not be a Lyapunov function of the
+closed loop, or its Hessian of Vdot is so badly conditioned that no enclosure shows it: the mountain-car
+pairs' is ``(-0.1, -3e4)``). For each sample's model:
+
+a. ``A_j = dF_j/dz(0)`` (every one Hurwitz, else no claim) and ``P`` from ``A^T P + P A = -S^-2`` for their mean
+   (``Q = I`` in box-scaled coordinates, :mod:`drlyap.verification.linearisation`). This only *chooses*
+   ``W(z) = z^T P z``; nothing about it is assumed.
+b. ``Wdot < 0`` on ``L = {W <= c_q}`` minus x*, and ``L`` inside the box: :func:`certified_roa` run on ``W`` (the
+   second-order proof above, which holds for W on a cube by construction while the controller is
+   unsaturated, and the branch and bound with a small decay on the rest). ``L`` is forward invariant and
+   every trajectory in it converges to x*.
+c. ``c_1 <=`` a lower bound of V on ``{W >= c_q}`` in the box (branch and bound), and ``c_1 < c``: then
+   ``{V <= c_1}`` lies inside ``L``.
+d. Strict decrease of V (plain, decay ``1e-3`` of the condition's) on ``{c_1 <= V <= c}`` inside the delta-ball
+   (outside it the condition already gives it; with no decay in the condition, on the whole box),
+   possibly lowering ``c``.
+
+Then V decreases strictly on ``S`` minus ``{V < c_1}``: a trajectory from ``S`` stays in ``S`` (V never rises
+above ``max(V(0), c_1) <= c``), reaches ``{V <= c_1}`` in finite time (a compact set away from x*, a
+uniform rate), and from there lies in ``L`` for ever, where W, hence the state, tends to x*: ``S`` is a
+region of attraction. The result's ``local`` then reads ``method: "linearisation"`` with ``P``, ``q_level``
+``c_q``, ``inner_level`` ``c_1``, the Jacobians' eigenvalues, and the failed attempt as ``second_order``.
 """
 
 from __future__ import annotations
@@ -112,7 +136,8 @@ def local_decrease(system: UncertainSystem, lyapunov: Lyapunov, controller: Cont
     docstring). Returns ``proved``, the cube half-width ``cube`` of the second-order proof, its bound
     ``hessian_bound``, the ring verification's status and ``reason`` when it fails."""
     start = time.perf_counter()
-    out: dict = {"proved": False, "cube": None, "hessian_bound": None, "ring": None, "reason": ""}
+    out: dict = {"method": "second order", "proved": False, "cube": None, "hessian_bound": None, "ring": None,
+                 "reason": ""}
     plain = condition.per_sample()
     if plain is None:
         out["reason"] = "the condition implies no per-sample decrease (a CVaR over several samples)"
@@ -280,7 +305,9 @@ def certified_roa(system: UncertainSystem, lyapunov: Lyapunov, controller: Contr
     Returns a JSON-friendly dict: ``level`` c; ``kind``: ``"region of attraction"`` (every trajectory of the
     condition's model from S converges to x*), ``"practical stability"`` (trajectories from S end up in
     ``{V <= practical_level}``) or None; ``certified`` (True only for a region of attraction); ``local`` (the
-    proof inside the ball); ``boundary_min_lower``, ``ball_max_upper``, ``share_of_box`` (share of the box
+    proof inside the ball: :func:`local_decrease`'s, or with ``linearisation`` where that fails,
+    :func:`linearisation_local`'s, ``method`` says which); ``outer_level`` (the level proved outside the ball);
+    ``boundary_min_lower``, ``ball_max_upper``, ``share_of_box`` (share of the box
     volume in S), ``limited_by``, a ``counterexample`` that limited the level, times and boxes.
     """
     start = time.perf_counter()
