@@ -50,3 +50,24 @@ def linear_pair(system, sign=1.0, eps=1e-2):
         ctrl.varphi.layers[1].weight.fill_(-sign / eps)
         ctrl.varphi.layers[1].bias.zero_()
     return lyap, ctrl
+
+
+def bump_pair(system, kappa=100.0, beta=1e-3, eps=1e-2):
+    """:func:`linear_pair` with a narrow bump added to V: ``V = V_linear + beta tanh(kappa z_1)^2``.
+
+    Away from the strip ``|z_1| < 1/kappa`` the bump is flat and V decreases like the linear pair's; near x* V's
+    quadratic part is ``P + beta kappa^2 e_1 e_1^T``, which is not a Lyapunov function of the closed-loop
+    linearisation: V's own second-order proof fails at x* (the Hessian of Vdot is indefinite there), while the
+    linearisation's ``z^T P z`` works."""
+    lyap, ctrl = linear_pair(system, eps=eps)
+    s1 = float(lyap.phi.input_scale[0])
+    bumped = Lyapunov(2, hidden=[3], out=3, alpha_hat=lyap.alpha_hat, input_scale=lyap.phi.input_scale.tolist())
+    with torch.no_grad():
+        for layer in bumped.phi.layers:
+            layer.weight.zero_()
+            layer.bias.zero_()
+        bumped.phi.layers[0].weight[:2] = lyap.phi.layers[0].weight
+        bumped.phi.layers[1].weight[:2, :2] = lyap.phi.layers[1].weight
+        bumped.phi.layers[0].weight[2, 0] = kappa * s1  # the first layer sees z / s
+        bumped.phi.layers[1].weight[2, 2] = beta ** 0.5
+    return bumped, ctrl

@@ -11,7 +11,9 @@ from drlyap.regions import Region
 from drlyap.simulation import simulate
 from drlyap.systems import UncertainSystem
 from drlyap.verification import certified_roa, local_decrease
-from handmade import linear_pair, small_pendulum
+from drlyap.verification.linearisation import closed_loop_jacobians, lyapunov_matrix
+from drlyap.verification.roa import linearisation_local
+from handmade import bump_pair, linear_pair, small_pendulum
 
 F64 = torch.float64
 XI = torch.tensor([[0.02, 0.01], [-0.03, 0.0], [0.05, -0.02]], dtype=F64)
@@ -101,3 +103,62 @@ def test_a_moved_equilibrium_is_practical_stability_not_a_region_of_attraction()
     nominal = certified_roa(system, lyap, ctrl, TrueDecrease(torch.zeros(1, 1, dtype=F64), 0.01), 0.3, time_limit=10,
                             samples_per_axis=100)
     assert nominal["kind"] == "region of attraction" and math.isfinite(nominal["level"])
+
+
+def test_lyapunov_matrix_solves_the_scaled_lyapunov_equation():
+    system = small_pendulum()
+    lyap, ctrl = linear_pair(system)
+    condition = TrueDecrease(torch.tensor([[0.1, 0.05]], dtype=F64))
+    (a,) = closed_loop_jacobians(system, ctrl, condition)
+    x0 = system.to_user(torch.zeros(1, 2, dtype=F64))
+
+    def field(z):
+        return system.true_dynamics(system.to_user(z[None]), ctrl.double()(z[None]), condition.xi[0])[0]
+
+    assert torch.allclose(a, torch.autograd.functional.jacobian(field, torch.zeros(2, dtype=F64)), atol=1e-9)
+    assert float(x0.abs().max()) == 0.0
+    s = torch.tensor([0.6, 1.2], dtype=F64)
+    p = lyapunov_matrix(a, s)
+    assert torch.allclose(a.T @ p + p @ a, -torch.diag(1 / s ** 2), atol=1e-9)
+    assert float(torch.linalg.eigvalsh(p).min()) > 0
+
+
+def test_the_linearisation_proves_the_ball_where_the_hessian_of_v_cannot():
+    """V = (linear pair) + a narrow bump: V's quadratic part at x* is no Lyapunov function of the closed-loop
+    linearisation (its own second-order proof fails, and V does increase near x*), but the linearisation's
+    z'Pz proves the ball: {V <= c} is a region of attraction. Checked by simulating the true model from
+    states sampled in it, including states where V increases."""
+    system = small_pendulum()
+    lyap, ctrl = bump_pair(system, kappa=100.0, beta=1e-3)
+    xi = [0.1, 0.05]
+    condition = TrueDecrease(torch.tensor([xi], dtype=F64), 0.05)
+    region = Region.of(system, 0.2)
+    assert not local_decrease(system, lyap, ctrl, condition, region)["proved"]
+    roa = certified_roa(system, lyap, ctrl, condition, region, time_limit=10, samples_per_axis=100)
+    local = roa["local"]
+    assert roa["kind"] == "region of attraction" and roa["certified"], roa
+    assert local["method"] == "linearisation" and local["proved"] and not local["second_order"]["proved"]
+    assert 0 < local["inner_level"] < roa["level"] and local["q_level"] > 0 and roa["share_of_box"] > 0.3
+    level = roa["level"]
+    l64, c64 = lyap.double(), ctrl.double()
+    z0 = _inside(system, l64, level, 300, seed=11)
+    rising = condition.exact(system, lyap, ctrl, z0) > 0  # V increases there (inside the ball)
+    assert z0.shape[0] >= 200 and int(rising.sum()) >= 1
+    traj = simulate(system, lambda x: c64(system.to_local(x)), system.to_user(z0), torch.tensor(xi, dtype=F64),
+                    dt=0.005, horizon=15.0)
+    with torch.no_grad():
+        v = l64(system.to_local(traj.x.reshape(-1, 2))).reshape(traj.x.shape[:2])
+    assert float(v.max()) <= level * (1 + 1e-9)
+    assert float(system.to_local(traj.x[-1]).norm(dim=-1).max()) < 1e-3
+
+
+def test_no_region_of_attraction_when_the_linearisation_is_not_hurwitz():
+    system = small_pendulum()
+    lyap, ctrl = bump_pair(system, kappa=100.0, beta=1e-3)
+    flipped = linear_pair(system, sign=-1.0)[1]  # positive feedback: the closed loop is unstable at x*
+    condition = TrueDecrease(torch.tensor([[0.1, 0.05]], dtype=F64), 0.05)
+    region = Region.of(system, 0.2)
+    local = linearisation_local(system, lyap, flipped, condition, region, 1.0, time_limit=5)
+    assert not local["proved"] and "not Hurwitz" in local["reason"]
+    roa = certified_roa(system, lyap, flipped, condition, region, time_limit=5, samples_per_axis=50)
+    assert roa["kind"] != "region of attraction" and not roa["certified"]

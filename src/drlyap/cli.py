@@ -174,8 +174,12 @@ def roa_line(r: dict, true_model: bool) -> str:
     model = "the true model at --xi" if true_model else "the design model at each training sample"
     size = f"{100 * r['share_of_box']:.2f}% of the box, limited by {r['limited_by']}"
     if r["kind"] == "region of attraction":
+        local = r["local"]
+        how = ("" if local.get("method") != "linearisation" else
+               f"; near x* by the closed-loop linearisation's z'Pz, proved decreasing on {{z'Pz <= {local['q_level']:.3g}}}"
+               f" which contains {{V <= {local['inner_level']:.3g}}}")
         return (f"region of attraction: CERTIFIED {{V <= {r['level']:.4g}}} ({size}): every trajectory of {model} "
-                "that starts there converges to x*")
+                f"that starts there converges to x*{how}")
     if r["kind"] == "practical stability":
         return (f"region of attraction: NOT CERTIFIED ({r['local']['reason']}); practical stability instead: "
                 f"trajectories of {model} from {{V <= {r['level']:.4g}}} ({size}) end up in "

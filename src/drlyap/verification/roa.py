@@ -25,6 +25,30 @@ system's own code); if every symmetric matrix in that interval matrix is negativ
 largest eigenvalue plus the radius matrix's Frobenius norm < 0), then ``q < 0`` on ``C`` minus x*. The cube
 is shrunk until this holds (the controller must be unsaturated there); the rest of the delta-ball is
 proved with plain decrease plus a small decay ``gamma_in ||z||`` (strict decrease away from x*).
+
+The linearisation proof (:func:`linearisation_local`), tried when the one above fails (the networks are
+trained outside the delta-ball only, so V's local quadratic part need not be a Lyapunov function of the
+closed loop, or its Hessian of Vdot is so badly conditioned that no enclosure shows it: the mountain-car
+pairs' is ``(-0.1, -3e4)``). For each sample's model:
+
+a. ``A_j = dF_j/dz(0)`` (every one Hurwitz, else no claim) and ``P`` from ``A^T P + P A = -S^-2`` for their mean
+   (``Q = I`` in box-scaled coordinates, :mod:`drlyap.verification.linearisation`). This only *chooses*
+   ``W(z) = z^T P z``; nothing about it is assumed.
+b. ``Wdot < 0`` on ``L = {W <= c_q}`` minus x*, and ``L`` inside the box: :func:`certified_roa` run on ``W`` (the
+   second-order proof above, which holds for W on a cube by construction while the controller is
+   unsaturated, and the branch and bound with a small decay on the rest). ``L`` is forward invariant and
+   every trajectory in it converges to x*.
+c. ``c_1 <=`` a lower bound of V on ``{W >= c_q}`` in the box (branch and bound), and ``c_1 < c``: then
+   ``{V <= c_1}`` lies inside ``L``.
+d. Strict decrease of V (plain, decay ``1e-3`` of the condition's) on ``{c_1 <= V <= c}`` inside the delta-ball
+   (outside it the condition already gives it; with no decay in the condition, on the whole box),
+   possibly lowering ``c``.
+
+Then V decreases strictly on ``S`` minus ``{V < c_1}``: a trajectory from ``S`` stays in ``S`` (V never rises
+above ``max(V(0), c_1) <= c``), reaches ``{V <= c_1}`` in finite time (a compact set away from x*, a
+uniform rate), and from there lies in ``L`` for ever, where W, hence the state, tends to x*: ``S`` is a
+region of attraction. The result's ``local`` then reads ``method: "linearisation"`` with ``P``, ``q_level``
+``c_q``, ``inner_level`` ``c_1``, the Jacobians' eigenvalues, and the failed attempt as ``second_order``.
 """
 
 from __future__ import annotations
@@ -37,11 +61,12 @@ from torch import Tensor
 
 from drlyap.conditions import Condition, PlainDecrease
 from drlyap.enclosures import F64, REL1, Dual, Interval, _down
-from drlyap.networks import Controller, Lyapunov
+from drlyap.networks import Controller, Lyapunov, QuadraticLyapunov
 from drlyap.regions import Region, box_grid, default_grid, near_dist, split
 from drlyap.systems import UncertainSystem
 from drlyap.verification.bounds import box_bounds, combine_lower, combine_upper, condition_objective, value_objective
 from drlyap.verification.branch_and_bound import as_region, maximize, verify_condition
+from drlyap.verification.linearisation import closed_loop_jacobians, is_hurwitz, lyapunov_matrix
 
 
 def _faces(lo: Tensor, hi: Tensor, per_axis: list[int]) -> tuple[Tensor, Tensor]:
@@ -89,13 +114,30 @@ def _hessian_negative(system: UncertainSystem, lyapunov: Lyapunov, controller: C
     return worst < 0, worst, "" if worst < 0 else "Hessian not provably negative definite"
 
 
+def _second_order_cube(system: UncertainSystem, lyapunov: Lyapunov, controller: Controller, plain: PlainDecrease,
+                       half: Tensor, smallest: float) -> tuple[Tensor | None, float, str]:
+    """The first cube ``|z_i| <= half_i`` (halving ``half`` until its largest side is below ``smallest``) on which
+    :func:`_hessian_negative` proves ``Vdot < 0`` except at x*: ``(half, Hessian bound, "")``, or
+    ``(None, nan, reason)``."""
+    bound, reason = math.nan, ""
+    for _ in range(60):
+        ok, bound, reason = _hessian_negative(system, lyapunov, controller, plain, half)
+        if ok:
+            return half, bound, ""
+        half = half / 2
+        if float(half.max()) < smallest:
+            break
+    return None, math.nan, f"second-order proof failed on every cube down to {float(half.max()):.3g} ({reason})"
+
+
 def local_decrease(system: UncertainSystem, lyapunov: Lyapunov, controller: Controller, condition: Condition,
                    region: Region, time_limit: float = 10.0, min_width: float = 1e-4) -> dict:
     """Prove ``Vdot < 0`` on the delta-ball minus x* for every sample of ``condition``'s model (see the module
     docstring). Returns ``proved``, the cube half-width ``cube`` of the second-order proof, its bound
     ``hessian_bound``, the ring verification's status and ``reason`` when it fails."""
     start = time.perf_counter()
-    out: dict = {"proved": False, "cube": None, "hessian_bound": None, "ring": None, "reason": ""}
+    out: dict = {"method": "second order", "proved": False, "cube": None, "hessian_bound": None, "ring": None,
+                 "reason": ""}
     plain = condition.per_sample()
     if plain is None:
         out["reason"] = "the condition implies no per-sample decrease (a CVaR over several samples)"
@@ -120,16 +162,12 @@ def local_decrease(system: UncertainSystem, lyapunov: Lyapunov, controller: Cont
         if size > 1e-9 * max(scale, 1.0):
             out["reason"] = f"x* is not an equilibrium of the model at xi = {xi.tolist()} (|F(x*)| up to {size:.3g})"
             return out
+    out["equilibrium"] = True  # the preconditions hold: a failure below is one of the second-order proof
     half = torch.minimum(torch.minimum(-region.lo, region.hi), torch.full_like(region.lo, delta))
-    bound = math.nan
-    for _ in range(40):
-        ok, bound, reason = _hessian_negative(system, lyapunov, controller, plain, half)
-        if ok:
-            break
-        half = half / 2
-        if float(half.max()) < 1e-7 * delta:
-            out["reason"] = f"second-order proof failed on every cube down to {float(half.max()):.3g} ({reason})"
-            return out
+    half, bound, reason = _second_order_cube(system, lyapunov, controller, plain, half, 1e-7 * delta)
+    if half is None:
+        out["reason"] = reason
+        return out
     out["cube"] = half.tolist()
     out["hessian_bound"] = bound
     r_in = float(half.min())
@@ -153,15 +191,123 @@ def local_decrease(system: UncertainSystem, lyapunov: Lyapunov, controller: Cont
     return out
 
 
+def linearisation_local(system: UncertainSystem, lyapunov: Lyapunov, controller: Controller, condition: Condition,
+                        region: Region, level: float, time_limit: float = 10.0, min_width: float = 1e-4,
+                        batch: int = 4096) -> dict:
+    """The local proof from the closed-loop linearisation, for when V's own second-order proof fails (module
+    docstring, "The linearisation proof"). ``level``: the level ``c`` up to which ``condition`` is proved on
+    ``{V <= c}`` outside the delta-ball. Returns ``proved``, ``level`` (the largest ``c' <= c`` for which the
+    whole chain holds: ``{V <= c'}`` is then a region of attraction), ``P``, ``q_level`` (``c_q``), ``inner_level``
+    (``c_1``), the Jacobians and their eigenvalues, the proofs' details and ``reason`` when it fails."""
+    start = time.perf_counter()
+    deadline = start + time_limit
+    out: dict = {"method": "linearisation", "proved": False, "level": None, "reason": ""}
+    plain = condition.per_sample()
+    if plain is None:
+        out["reason"] = "the condition implies no per-sample decrease (a CVaR over several samples)"
+        return out
+    # 1. the certificate W = z^T P z of the linearisation (this only chooses W; everything after is proved)
+    jacobians = closed_loop_jacobians(system, controller, plain)
+    out["jacobians"] = [a.tolist() for a in jacobians]
+    eigenvalues = []
+    for a in jacobians:
+        ok, ev = is_hurwitz(a)
+        eigenvalues.append([[e.real, e.imag] for e in ev])
+        if not ok:
+            out["eigenvalues"] = eigenvalues
+            out["reason"] = f"the closed-loop linearisation at x* is not Hurwitz (eigenvalues {[str(e) for e in ev]})"
+            return out
+    out["eigenvalues"] = eigenvalues
+    half_box = torch.minimum(-region.lo, region.hi)
+    p = lyapunov_matrix(torch.stack(jacobians).mean(0), region.scale / 2)
+    out["P"] = p.tolist()
+    if not bool(torch.isfinite(p).all()) or float(torch.linalg.eigvalsh(p).min()) <= 1e-12 * float(p.abs().max()):
+        out["reason"] = "the Lyapunov matrix P is not positive definite"
+        return out
+    w = QuadraticLyapunov(p)
+    # 2. W decreases on {W <= c_q} minus x*: second order on a cube, branch and bound on the rest
+    half, bound, reason = _second_order_cube(system, w, controller, plain, half_box, 1e-9 * float(half_box.max()))
+    if half is None:
+        out["reason"] = f"W = z'Pz: {reason}"
+        return out
+    r_in = float(half.min())
+    out["cube"], out["hessian_bound"] = half.tolist(), bound
+    ring = PlainDecrease(plain.xi, 0.25 * abs(bound) / 2 * r_in, 0.0, plain.model)
+    w_roa = certified_roa(system, w, controller, ring, Region(region.lo, region.hi, r_in),
+                          time_limit=max(1.0, 0.4 * (deadline - time.perf_counter())),
+                          min_width=min(min_width, 0.05 * r_in / float(region.scale.max())),
+                          samples_per_axis=50, batch=batch, linearisation=False)
+    c_q = w_roa["level"]
+    out["q_level"] = c_q
+    out["q_roa"] = {k: w_roa[k] for k in ("level", "kind", "limited_by", "boxes_processed", "time_s")} | {
+        "decay_rate": ring.decay_rate, "inner_radius": r_in}
+    if w_roa["kind"] != "region of attraction" or not c_q > 0:
+        out["reason"] = f"W = z'Pz: no region of attraction ({w_roa['local'].get('reason') or w_roa['limited_by']})"
+        return out
+    # 3. c_1 <= min of V over {W >= c_q} in the box, so that {V <= c_1} lies inside {W <= c_q}
+    vobj, wobj = value_objective(lyapunov), value_objective(w)
+    blo, bhi = box_grid(region.lo, region.hi, default_grid(system.n))
+
+    def outside(a, b):
+        return box_bounds(wobj, a, b)[1][:, 0] >= c_q
+
+    _, neg_up, _ = maximize(lambda z: -vobj(z), blo, bhi, region.scale, box_ok=outside,
+                            centre_ok=lambda z: w(z) >= c_q, min_width=min_width,
+                            time_limit=max(1.0, 0.3 * (deadline - time.perf_counter())))
+    c_1 = float(_down(_down(-neg_up[0], REL1), 1e-9))
+    out["inner_level"] = c_1
+    if not c_1 > 0:
+        out["reason"] = "no sublevel set of V provably inside {W <= c_q}"
+        return out
+    # any smaller c_1 will do ({V <= c_1} only shrinks): keep it below the outer level, so that the annulus
+    # {c_1 <= V <= c} is not empty and {V <= c} is forward invariant
+    c_1 = min(c_1, level / 2)
+    out["inner_level"] = c_1
+    # 4. V decreases strictly on {c_1 <= V <= c} inside the ball (outside it the condition's decay already does);
+    # with no decay in the condition, on the whole box
+    strict = condition.decay_rate > 0 or condition.exp_rate > 0
+    inner = PlainDecrease(plain.xi, 1e-3 * condition.decay_rate if strict else 1e-9,
+                   1e-3 * condition.exp_rate if strict else 0.0, plain.model)
+    delta = region.delta if strict else math.inf
+    alo, ahi = box_grid(torch.maximum(region.lo, torch.full_like(region.lo, -delta)),
+                        torch.minimum(region.hi, torch.full_like(region.hi, delta)), default_grid(system.n))
+
+    def keep(a, b):
+        meets = near_dist(a, b) < delta
+        return a[meets], b[meets]
+
+    alo, ahi = keep(alo, ahi)
+    # boxes near {V = c_1} must resolve a set as small as {W <= c_q}: a minimum width relative to it
+    extent = (c_q * torch.linalg.inv(p).diagonal()).sqrt()
+    fine = min(min_width, 1e-4 * float((extent / region.scale).min()))
+    c_2, limited_by, cex, boxes = _level_search(
+        system, lyapunov, controller, inner, alo, ahi, region.scale, level, "outer proof",
+        max(deadline, time.perf_counter() + 1.0), keep=keep,
+        in_region=lambda centre, v: centre.norm(dim=-1) < delta, floor=c_1, min_width=fine, batch=batch)
+    c_2 = float(_down(torch.tensor(c_2, dtype=F64), REL1)) if math.isfinite(c_2) else c_2
+    out["annulus"] = {"level": c_2, "limited_by": limited_by, "boxes": boxes, "decay_rate": inner.decay_rate,
+                      "exp_rate": inner.exp_rate, "region": "delta-ball" if strict else "box", "min_width": fine,
+                      "counterexample": None if cex is None else system.to_user(cex[None])[0].tolist()}
+    out["time_s"] = time.perf_counter() - start
+    if not c_2 > c_1:
+        out["reason"] = (f"decrease of V on {{{c_1:.4g} <= V <= c}} inside the ball fails below the inner level "
+                         f"({limited_by})")
+        return out
+    out.update(proved=True, level=c_2)
+    return out
+
+
 def certified_roa(system: UncertainSystem, lyapunov: Lyapunov, controller: Controller, condition: Condition,
                   delta: float | Region, time_limit: float = 10.0, min_width: float = 1e-4,
-                  samples_per_axis: int = 400, batch: int = 4096) -> dict:
+                  samples_per_axis: int = 400, batch: int = 4096, linearisation: bool = True) -> dict:
     """The largest level ``c`` (up to the search's resolution) with ``S = {V <= c}`` certified (module docstring).
 
     Returns a JSON-friendly dict: ``level`` c; ``kind``: ``"region of attraction"`` (every trajectory of the
     condition's model from S converges to x*), ``"practical stability"`` (trajectories from S end up in
     ``{V <= practical_level}``) or None; ``certified`` (True only for a region of attraction); ``local`` (the
-    proof inside the ball); ``boundary_min_lower``, ``ball_max_upper``, ``share_of_box`` (share of the box
+    proof inside the ball: :func:`local_decrease`'s, or with ``linearisation`` where that fails,
+    :func:`linearisation_local`'s, ``method`` says which); ``outer_level`` (the level proved outside the ball);
+    ``boundary_min_lower``, ``ball_max_upper``, ``share_of_box`` (share of the box
     volume in S), ``limited_by``, a ``counterexample`` that limited the level, times and boxes.
     """
     start = time.perf_counter()
@@ -185,16 +331,61 @@ def certified_roa(system: UncertainSystem, lyapunov: Lyapunov, controller: Contr
                             box_ok=lambda a, b: near_dist(a, b) < delta, min_width=min_width)
         ball_max_upper = float(up[0])
     # 3. the decrease condition on the sublevel set outside the ball
-    level = boundary_min_lower
-    limited_by = "box boundary"
+    lo, hi = region.boxes(grid)
+    level, limited_by, cex, processed = _level_search(
+        system, lyapunov, controller, condition, lo, hi, scale, boundary_min_lower, "box boundary",
+        start + time_limit, keep=region.keep, in_region=lambda centre, v: region.in_region(centre),
+        min_width=min_width, batch=batch)
+    deadline = start + time_limit
+    c = float(_down(torch.tensor(level, dtype=F64), REL1)) if math.isfinite(level) else level
+    # 4. inside the ball
+    left = max(1.0, deadline - time.perf_counter())
+    local = local_decrease(system, lyapunov, controller, condition, region, time_limit=left, min_width=min_width)
+    if linearisation and not local["proved"] and local.get("equilibrium") and c > 0:
+        left = max(3.0, deadline - time.perf_counter())
+        local = linearisation_local(system, lyapunov, controller, condition, region, c, time_limit=left,
+                                    min_width=min_width, batch=batch) | {"second_order": local}
+    outer_level = c
+    if c > 0 and local["proved"]:
+        kind = "region of attraction"
+        if local.get("level") is not None and local["level"] < c:  # the annulus inside the ball may lower it
+            c = local["level"]
+            if local["annulus"]["limited_by"] != "outer proof":
+                limited_by = f"inside the ball: {local['annulus']['limited_by']}"
+    elif c > 0 and c > ball_max_upper:
+        kind = "practical stability"
+    else:
+        kind = None
+    share = _share_of_box(lyapunov, region, c, samples_per_axis) if c > 0 else 0.0
+    return {"level": c, "kind": kind, "certified": kind == "region of attraction",
+            "practical_level": ball_max_upper if kind == "practical stability" else None,
+            "outer_level": outer_level,
+            "contains_ball": c > ball_max_upper, "limited_by": limited_by, "local": local,
+            "boundary_min_lower": boundary_min_lower, "ball_max_upper": ball_max_upper, "share_of_box": share,
+            "counterexample": None if cex is None else system.to_user(cex[None])[0].tolist(),
+            "boxes_processed": processed, "time_s": time.perf_counter() - start, "delta": float(delta),
+            "condition": condition.label}
+
+
+def _level_search(system: UncertainSystem, lyapunov: Lyapunov, controller: Controller, condition: Condition,
+                  lo: Tensor, hi: Tensor, scale: Tensor, level: float, limited_by: str, deadline: float, *,
+                  keep, in_region, floor: float = -math.inf, min_width: float = 1e-4,
+                  batch: int = 4096) -> tuple[float, str, Tensor | None, int]:
+    """The largest level (at most ``level``) such that ``condition`` holds on every state of the boxes
+    ``[lo, hi]`` (and their parts kept by ``keep(lo, hi)``) with ``floor <= V <= level``.
+
+    Boxes with V's lower bound above the level, or V's upper bound below ``floor``, need no proof; the rest are
+    proved or split. A box that cannot be proved lowers the level to (a lower bound of) V on it: to V at its
+    centre when that centre is a confirmed violation in the region (``in_region(centre, V enclosure)``), else to
+    V's lower bound on it once it reaches the minimum size or the time runs out. Returns the level, what
+    limited it, the counterexample (local, or None) and the number of boxes processed."""
     components = condition_objective(condition, system, lyapunov, controller)
+    vobj = value_objective(lyapunov)
 
     def objective(z):
         return torch.cat([components(z), vobj(z)], -1)
 
-    lo, hi = region.boxes(grid)
     processed = 0
-    deadline = start + time_limit
     cex = None
     while lo.shape[0]:
         if time.perf_counter() > deadline:
@@ -209,11 +400,12 @@ def certified_roa(system: UncertainSystem, lyapunov: Lyapunov, controller: Contr
         lb, ub, at = box_bounds(objective, clo, chi)
         processed += clo.shape[0]
         v_lb = lb[:, -1]
-        active = v_lb <= level
+        active = (v_lb <= level) & (ub[:, -1] >= floor)
         res_ub = combine_upper(condition, ub[:, :-1])
         centre = (clo + chi) / 2
         open_ = active & (res_ub > 0)
-        bad = open_ & region.in_region(centre) & (combine_lower(condition, at.lo[:, :-1]) > 0)
+        bad = (open_ & in_region(centre, at[:, -1]) & (at.hi[:, -1] >= floor)
+               & (combine_lower(condition, at.lo[:, :-1]) > 0))
         if bad.any():
             values = condition.exact(system, lyapunov, controller, centre[bad])
             if (values > 0).any():
@@ -227,26 +419,9 @@ def certified_roa(system: UncertainSystem, lyapunov: Lyapunov, controller: Contr
             level, limited_by = float(v_lb[small].min()), "unverified box at minimum size"
         divide = open_ & ~small & (v_lb <= level)
         if divide.any():
-            nlo, nhi = region.keep(*split(clo[divide], chi[divide], scale))
+            nlo, nhi = keep(*split(clo[divide], chi[divide], scale))
             lo, hi = torch.cat([lo, nlo]), torch.cat([hi, nhi])
-    c = float(_down(torch.tensor(level, dtype=F64), REL1)) if math.isfinite(level) else level
-    # 4. inside the ball
-    left = max(1.0, deadline - time.perf_counter())
-    local = local_decrease(system, lyapunov, controller, condition, region, time_limit=left, min_width=min_width)
-    if c > 0 and local["proved"]:
-        kind = "region of attraction"
-    elif c > 0 and c > ball_max_upper:
-        kind = "practical stability"
-    else:
-        kind = None
-    share = _share_of_box(lyapunov, region, c, samples_per_axis) if c > 0 else 0.0
-    return {"level": c, "kind": kind, "certified": kind == "region of attraction",
-            "practical_level": ball_max_upper if kind == "practical stability" else None,
-            "contains_ball": c > ball_max_upper, "limited_by": limited_by, "local": local,
-            "boundary_min_lower": boundary_min_lower, "ball_max_upper": ball_max_upper, "share_of_box": share,
-            "counterexample": None if cex is None else system.to_user(cex[None])[0].tolist(),
-            "boxes_processed": processed, "time_s": time.perf_counter() - start, "delta": float(delta),
-            "condition": condition.label}
+    return level, limited_by, cex, processed
 
 
 def _share_of_box(lyapunov: Lyapunov, region: Region, level: float, samples_per_axis: int) -> float:
