@@ -7,7 +7,7 @@ import torch
 from drlyap.checks import find_equilibria, jacobian_check
 from drlyap.regions import Region
 from drlyap.rundir import RunDirError, load_run, save_run
-from drlyap.systems import mountain_car, pendulum
+from drlyap.systems import cartpole, mountain_car, pendulum
 from drlyap.training import TrainConfig, build_networks, train, training_region
 
 
@@ -17,6 +17,35 @@ def test_training_states_avoid_the_delta_ball_and_fill_the_box():
     lo, hi = p.local_box()
     assert z.shape == (2000, 2) and (z.norm(dim=-1) >= 0.5).all()
     assert (z >= lo).all() and (z <= hi).all()
+
+
+def test_near_states_spread_over_the_distance_from_x_star_in_four_states():
+    """A uniform batch in 4 states holds almost no states near x* (where local stability is decided):
+    the near draw gives every distance the same share, inside the box and outside the delta-ball."""
+    cp = cartpole()
+    region = Region.of(cp, 0.1)
+    gen = torch.Generator().manual_seed(0)
+    uniform, near = region.sample(20000, gen), region.sample_near(20000, gen)
+    lo, hi = cp.local_box()
+    assert near.shape == (20000, 4) and (near.norm(dim=-1) >= 0.1).all()
+    assert (near >= lo).all() and (near <= hi).all()
+    assert float((uniform.norm(dim=-1) < 0.3).double().mean()) < 0.01
+    assert float((near.norm(dim=-1) < 0.3).double().mean()) > 0.15
+    assert near.mean(0).abs().max() < 0.02  # no preferred direction
+
+
+def test_the_validation_set_in_four_states_covers_the_neighbourhood_of_x_star():
+    z = Region.of(cartpole(), 0.1).grid()
+    near = (z.norm(dim=-1) < 0.3).sum()
+    assert z.shape[0] >= 45000 and (z.norm(dim=-1) >= 0.1).all() and near > 1000  # uniform alone: about 100
+
+
+def test_a_share_of_near_states_enters_every_batch(tiny_config):
+    result = train(tiny_config(near_share=0.5), progress=False)
+    assert result.config.near_share == 0.5
+    assert train(tiny_config(), progress=False).config.near_share == 0.0  # off by default
+    with pytest.raises(ValueError, match="near_share"):
+        train(tiny_config(near_share=1.5), progress=False)
 
 
 def test_tiny_training_run_round_trips_through_a_run_directory(tmp_path, tiny_config):

@@ -58,6 +58,9 @@ class TrainConfig:
     init_gain: float = 10.0  # scale of the controller's output layer at initialisation
     margin: float | None = None  # training hinge is (residual + margin)_+: pushes the condition past zero
     resample: bool = True  # draw a fresh uniform batch of n_states every iteration (False: one fixed set)
+    # share of each batch drawn evenly over the distance from x* (Region.sample_near) instead of uniformly:
+    # with 4 or more states a uniform batch holds almost no states near x*, where local stability is decided
+    near_share: float | None = None
     # proof after training (drlyap.cegis.train_certified; drlyap.training.train ignores these)
     verify: bool = True  # prove the trained condition, with counterexample-guided rounds until it is proved
     verify_rounds: int = 5  # retraining rounds at most
@@ -73,7 +76,7 @@ class TrainConfig:
         cfg = copy.deepcopy(self)
         base = {"wasserstein_radius": 0.01, "risk_level": 0.1, "n_states": 3600, "n_xi": 5, "decay_rate": 1.0,
                 "delta": 0.1, "alpha_hat": 1.0, "margin": 0.0, "lyapunov_hidden": [32, 32],
-                "controller_hidden": [32, 32], "train_box": None}
+                "controller_hidden": [32, 32], "train_box": None, "near_share": 0.0}
         base.update(system.defaults)
         for key, value in base.items():
             if getattr(cfg, key) is None:
@@ -102,6 +105,8 @@ class TrainConfig:
                 problems.append(f"{name} = {getattr(self, name)} (must be >= 1)")
         if not (math.isfinite(self.lr) and self.lr > 0):
             problems.append(f"lr = {self.lr} (must be > 0)")
+        if not (math.isfinite(self.near_share) and 0 <= self.near_share <= 1):
+            problems.append(f"near_share = {self.near_share} (must be in [0, 1])")
         if not (math.isfinite(self.delta) and self.delta >= 0):
             problems.append(f"delta = {self.delta} (must be >= 0)")
         if self.train_box is not None:
@@ -223,8 +228,13 @@ def train(cfg: TrainConfig, system: UncertainSystem | None = None, progress: boo
 
     sampling = region if cfg.train_box is None else Region.of(training_region(system, cfg.train_box), cfg.delta)
 
+    n_near = int(round(float(cfg.near_share) * int(cfg.n_states)))
+
     def batch() -> Tensor:
-        z = sampling.sample(int(cfg.n_states), gen).float().to(device)
+        z = sampling.sample(int(cfg.n_states) - n_near, gen)
+        if n_near:
+            z = torch.cat([z, sampling.sample_near(n_near, gen)])
+        z = z.float().to(device)
         return z if extra_states is None else torch.cat([z, extra_states])
 
     z_train = batch()
