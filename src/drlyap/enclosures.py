@@ -454,21 +454,9 @@ class Interval(_Enclosure):
 
 
 # --------------------------------------------------------------------------- affine forms
-def _point(x: Tensor) -> Interval:
-    return Interval(x, x)
-
-
 def _sum_up(t: Tensor, dim: int = -1) -> Tensor:
     """An upper bound of the real sum of the non-negative ``t`` along ``dim``."""
     return _up(t.sum(dim), 2 * (t.shape[dim] + 2) * EPS)
-
-
-def _hull(a: Interval, b: Interval) -> Interval:
-    return Interval(torch.minimum(a.lo, b.lo), torch.maximum(a.hi, b.hi))
-
-
-def _clip(x: Tensor, lo: Tensor, hi: Tensor) -> Tensor:
-    return torch.minimum(torch.maximum(x, lo), hi)
 
 
 def _secant(f: Callable, df: Callable, a: Tensor, b: Tensor) -> Tensor:
@@ -489,8 +477,8 @@ def _convex_error(f: Callable, df: Callable, p: Tensor, q: Tensor, lam: Tensor, 
     tangent at ``xt``: ``e(x) >= e(xt) + e'(xt) (x - xt)``, whose least value over ``[p, q]`` bounds ``e`` below
     (concave: mirrored). All of it in interval arithmetic, so rounding is covered.
     """
-    lam_ = _point(lam)
-    pp, qq, xx = _point(p), _point(q), _point(xt)
+    lam_ = Interval.const(lam)
+    pp, qq, xx = Interval.const(p), Interval.const(q), Interval.const(xt)
     ep, eq, ex = f(pp) - lam_ * pp, f(qq) - lam_ * qq, f(xx) - lam_ * xx
     tangent = ex + (df(xx) - lam_) * (Interval(p, q) - xx)
     if convex:
@@ -595,7 +583,7 @@ class Affine(_Enclosure):
 
     def to_interval(self) -> Interval:
         """The interval enclosure ``(B, ...)`` of the forms."""
-        return _point(self.c) + self._dev()
+        return Interval.const(self.c) + self._dev()
 
     @property
     def lo(self) -> Tensor:
@@ -731,7 +719,7 @@ class Affine(_Enclosure):
     def _scale_shift(self, lam: Tensor, k: Interval) -> Affine:
         """``lam * x + k``: ``lam`` a float64 tensor of (or broadcastable to) the shape, ``k`` an :class:`Interval`."""
         lam = lam.expand(self.shape) if lam.shape != self.shape else lam
-        const = _point(lam) * (_point(self.c) + self.r) + k
+        const = Interval.const(lam) * (Interval.const(self.c) + self.r) + k
         if self.g is None:
             return Affine._centred(const, None, 0.0)
         g = lam.unsqueeze(-1) * self.g
@@ -745,7 +733,8 @@ class Affine(_Enclosure):
         t2 = None if o.g is None else self.c.unsqueeze(-1) * o.g
         g, pad = Affine._gsum(t1, t2)
         pad = pad + REL1 * _sum_up(g.abs())  # the products' own rounding
-        const = _point(self.c) * _point(o.c) + _point(self.c) * o.r + _point(o.c) * self.r + self._dev() * o._dev()
+        cx, cy = Interval.const(self.c), Interval.const(o.c)
+        const = cx * cy + cx * o.r + cy * self.r + self._dev() * o._dev()
         return Affine._centred(const, g, pad)
 
     def reciprocal(self) -> Affine:
@@ -759,7 +748,7 @@ class Affine(_Enclosure):
         neg = iv.hi < 0
         a, b = torch.where(neg, -iv.hi, iv.lo), torch.where(neg, -iv.lo, iv.hi)
         lam = -1.0 / (a * b)  # the secant of 1/y over [a, b]
-        err = _convex_error(Interval.reciprocal, _drecip, a, b, lam, _clip(torch.sqrt(a * b), a, b))
+        err = _convex_error(Interval.reciprocal, _drecip, a, b, lam, torch.clamp(torch.sqrt(a * b), a, b))
         k = Interval(torch.where(neg, -err.hi, err.lo), torch.where(neg, -err.lo, err.hi))
         return self._scale_shift(lam, k)._guard(iv.reciprocal())
 
@@ -773,9 +762,9 @@ class Affine(_Enclosure):
         if self.g is None:
             return Affine.const(fallback)
         a, b = iv.lo, iv.hi
-        fp = f_point if f_point is not None else (lambda t: f(_point(t)).mid)
-        lam = _secant(fp, lambda t: df(_point(t)).mid, a, b)
-        err = _convex_error(f, df, a, b, lam, _clip(root(lam), a, b), convex)
+        fp = f_point if f_point is not None else (lambda t: f(Interval.const(t)).mid)
+        lam = _secant(fp, lambda t: df(Interval.const(t)).mid, a, b)
+        err = _convex_error(f, df, a, b, lam, torch.clamp(root(lam), a, b), convex)
         return self._scale_shift(lam, err)._guard(fallback)
 
     def square(self) -> Affine:
@@ -794,7 +783,7 @@ class Affine(_Enclosure):
         a, b = torch.clamp(iv.lo, min=0.0), torch.clamp(iv.hi, min=0.0)
         wide = b > a
         lam = torch.where(wide, (torch.sqrt(b) - torch.sqrt(a)) / torch.where(wide, b - a, 1.0), 0.0)
-        xt = _clip(torch.where(lam > 0, 0.25 / (lam * lam), b), a, b)
+        xt = torch.clamp(torch.where(lam > 0, 0.25 / (lam * lam), b), a, b)
         err = _convex_error(Interval.sqrt, _dsqrt, a, b, lam, xt, convex=False)
         zero = b <= 0  # the range is {0}
         err = Interval(torch.where(zero, 0.0, err.lo), torch.where(zero, 0.0, err.hi))
@@ -811,9 +800,9 @@ class Affine(_Enclosure):
         zero = torch.zeros_like(a)
         q1 = torch.maximum(torch.minimum(b, zero), a)  # tanh is convex on [a, q1] (x <= 0, or the point a)
         p2 = torch.minimum(torch.maximum(a, zero), b)  # and concave on [p2, b]
-        e1 = _convex_error(Interval.tanh, _dtanh, a, q1, lam, _clip(-root, a, q1), convex=True)
-        e2 = _convex_error(Interval.tanh, _dtanh, p2, b, lam, _clip(root, p2, b), convex=False)
-        return self._scale_shift(lam, _hull(e1, e2))._guard(fallback)
+        e1 = _convex_error(Interval.tanh, _dtanh, a, q1, lam, torch.clamp(-root, a, q1), convex=True)
+        e2 = _convex_error(Interval.tanh, _dtanh, p2, b, lam, torch.clamp(root, p2, b), convex=False)
+        return self._scale_shift(lam, e1.hull(e2))._guard(fallback)
 
     def _taylor2(self, f: Callable, df: Callable, d2f: Callable, fallback: Interval) -> Affine:
         """Midpoint slope, second-order Lagrange remainder:
@@ -822,12 +811,12 @@ class Affine(_Enclosure):
         if self.g is None:
             return Affine.const(fallback)
         m = iv.mid
-        mm = _point(m)
+        mm = Interval.const(m)
         slope = df(mm)
         lam = slope.mid
         dev = iv - mm
-        err = f(mm) + (slope - _point(lam)) * dev + d2f(iv) * dev.square() * 0.5  # f(x) - lam (x - m)
-        return self._scale_shift(lam, err - _point(lam) * mm)._guard(fallback)
+        err = f(mm) + (slope - Interval.const(lam)) * dev + d2f(iv) * dev.square() * 0.5  # f(x) - lam (x - m)
+        return self._scale_shift(lam, err - Interval.const(lam) * mm)._guard(fallback)
 
     def sin(self) -> Affine:
         return self._taylor2(Interval.sin, Interval.cos, lambda x: -x.sin(), self.to_interval().sin())
@@ -843,11 +832,11 @@ class Affine(_Enclosure):
             return Affine.const(fallback)
         a, b = iv.lo, iv.hi
         lam = _secant(f, lambda t: torch.zeros_like(t), a, b)
-        lam_ = _point(lam)
+        lam_ = Interval.const(lam)
         err = None
-        for t in [a, b, *(_clip(br.expand(a.shape), a, b) for br in breaks)]:
-            e = _point(f(t)) - lam_ * _point(t)
-            err = e if err is None else _hull(err, e)
+        for t in [a, b, *(torch.clamp(br.expand(a.shape), a, b) for br in breaks)]:
+            e = Interval.const(f(t)) - lam_ * Interval.const(t)
+            err = e if err is None else err.hull(e)
         return self._scale_shift(lam, err)._guard(fallback)
 
     def abs(self) -> Affine:
@@ -870,7 +859,7 @@ class Affine(_Enclosure):
     def sum(self, dim: int | None = None) -> Affine:
         if dim is None:
             self._batch_check("summing over")
-            return Affine.const(self.r.sum(None) + _point(self.c).sum(None))
+            return Affine.const(self.r.sum(None) + Interval.const(self.c).sum(None))
         dim = _normdim(dim, self.ndim)
         if dim == 0:
             self._batch_check("summing over")
@@ -902,7 +891,7 @@ class Affine(_Enclosure):
     def clamp(self, low: Tensor, high: Tensor) -> Affine:
         iv = self.to_interval()
         low, high = _t(low).to(iv.lo.device), _t(high).to(iv.lo.device)
-        out = self._piecewise_linear(lambda t: _clip(t, low, high), [low, high], iv.clamp(low, high))
+        out = self._piecewise_linear(lambda t: torch.clamp(t, low, high), [low, high], iv.clamp(low, high))
         if self.g is None:
             return out
         return Affine._where((iv.lo >= low) & (iv.hi <= high), self, out)  # inactive: the identity, exactly
