@@ -104,15 +104,20 @@ class Region:
         """``(B,)``: states ``z (B, n)`` in X_delta."""
         return ((z >= self.lo) & (z <= self.hi)).all(-1) & (z.norm(dim=-1) >= self.delta)
 
-    def sample(self, count: int, generator: torch.Generator) -> Tensor:
-        """``count`` states ``(count, n)`` uniform in X_delta (rejection sampling)."""
+    def _outside_ball(self, count: int, draw) -> Tensor:
+        """``count`` states kept from batches ``draw(k) -> (k, n)`` of states of the box: those outside the ball."""
         out = torch.empty(0, self.n, dtype=F64)
         for _ in range(100):
-            z = self.lo + self.scale * torch.rand(2 * count, self.n, generator=generator, dtype=F64)
+            z = draw(2 * count)
             out = torch.cat([out, z[z.norm(dim=-1) >= self.delta]])
             if out.shape[0] >= count:
                 return out[:count]
         raise ValueError(f"delta = {self.delta} leaves (almost) nothing of the state box; choose a smaller delta")
+
+    def sample(self, count: int, generator: torch.Generator) -> Tensor:
+        """``count`` states ``(count, n)`` uniform in X_delta (rejection sampling)."""
+        return self._outside_ball(
+            count, lambda k: self.lo + self.scale * torch.rand(k, self.n, generator=generator, dtype=F64))
 
     def sample_near(self, count: int, generator: torch.Generator) -> Tensor:
         """``count`` states ``(count, n)`` of X_delta spread evenly over the distance from x*.
@@ -123,17 +128,14 @@ class Region:
         near x* a share ``~ rho^(n-1)`` that vanishes with the dimension (in 4 states, 0.25% of uniform
         states lie within a quarter of the half-width of x*). Every state lies in the box.
         """
-        lo, hi = self.lo, self.hi
-        out = torch.empty(0, self.n, dtype=F64)
-        for _ in range(100):
-            d = torch.randn(2 * count, self.n, generator=generator, dtype=F64)
+
+        def draw(k: int) -> Tensor:
+            d = torch.randn(k, self.n, generator=generator, dtype=F64)
             d = d / d.norm(dim=-1, keepdim=True).clamp_min(1e-300)
-            rho = torch.rand(2 * count, 1, generator=generator, dtype=F64)
-            z = rho * torch.where(d >= 0, d * hi, -d * lo)
-            out = torch.cat([out, z[z.norm(dim=-1) >= self.delta]])
-            if out.shape[0] >= count:
-                return out[:count]
-        raise ValueError(f"delta = {self.delta} leaves (almost) nothing of the state box; choose a smaller delta")
+            rho = torch.rand(k, 1, generator=generator, dtype=F64)
+            return rho * torch.where(d >= 0, d * self.hi, -d * self.lo)
+
+        return self._outside_ball(count, draw)
 
     def grid(self, per_axis: int = 200, count: int = 40000) -> Tensor:
         """A dense set of states of X_delta: a cell-centred grid for n <= 3, else a scrambled Sobol set of
