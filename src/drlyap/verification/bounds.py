@@ -68,26 +68,23 @@ def box_bounds(objective: Objective, lo: Tensor, hi: Tensor,
     """
     batch, n = lo.shape
     centre = (lo + hi) / 2
+    at = objective(Interval(centre, centre))
     if check_enclosure(enclosure) == "affine":
-        at = objective(Interval(centre, centre))
         over = objective(Affine.box(lo, hi)).to_interval()
         plain = objective(Interval(lo, hi))
         upper = torch.minimum(over.hi, plain.hi)
         lower = torch.maximum(over.lo, plain.lo)
-        upper = torch.where(torch.isnan(upper), torch.inf, upper)
-        lower = torch.where(torch.isnan(lower), -torch.inf, lower)
-        return lower, upper, at
-    rad = _up(torch.maximum(hi - centre, centre - lo), REL1)
-    eye = torch.eye(n, dtype=F64).expand(batch, n, n)
-    over = objective(Dual(Interval(lo, hi), Interval(eye, eye)))
-    at = objective(Interval(centre, centre))
-    if over.d is None:
-        spread = torch.zeros_like(at.lo)
     else:
-        slope = torch.maximum(over.d.lo.abs(), over.d.hi.abs())
-        spread = _up((slope * rad.unsqueeze(1)).sum(-1), 4 * (n + 2) * EPS)
-    upper = torch.minimum(over.v.hi, _up(at.hi + spread, REL1))
-    lower = torch.maximum(over.v.lo, _down(at.lo - spread, REL1))
+        rad = _up(torch.maximum(hi - centre, centre - lo), REL1)
+        eye = torch.eye(n, dtype=F64).expand(batch, n, n)
+        over = objective(Dual(Interval(lo, hi), Interval(eye, eye)))
+        if over.d is None:
+            spread = torch.zeros_like(at.lo)
+        else:
+            slope = torch.maximum(over.d.lo.abs(), over.d.hi.abs())
+            spread = _up((slope * rad.unsqueeze(1)).sum(-1), 4 * (n + 2) * EPS)
+        upper = torch.minimum(over.v.hi, _up(at.hi + spread, REL1))
+        lower = torch.maximum(over.v.lo, _down(at.lo - spread, REL1))
     upper = torch.where(torch.isnan(upper), torch.inf, upper)
     lower = torch.where(torch.isnan(lower), -torch.inf, lower)
     return lower, upper, at

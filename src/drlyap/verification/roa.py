@@ -114,6 +114,11 @@ def _hessian_negative(system: UncertainSystem, lyapunov: Lyapunov, controller: C
     return worst < 0, worst, "" if worst < 0 else "Hessian not provably negative definite"
 
 
+def _below(level: float) -> float:
+    """A level rounded one float64 step down (a sound level stays sound below), infinities as they are."""
+    return float(_down(torch.tensor(level, dtype=F64), REL1)) if math.isfinite(level) else level
+
+
 def _second_order_cube(system: UncertainSystem, lyapunov: Lyapunov, controller: Controller, plain: PlainDecrease,
                        half: Tensor, smallest: float) -> tuple[Tensor | None, float, str]:
     """The first cube ``|z_i| <= half_i`` (halving ``half`` until its largest side is below ``smallest``) on which
@@ -284,7 +289,7 @@ def linearisation_local(system: UncertainSystem, lyapunov: Lyapunov, controller:
         system, lyapunov, controller, inner, alo, ahi, region.scale, level, "outer proof",
         max(deadline, time.perf_counter() + 1.0), keep=keep,
         in_region=lambda centre, v: centre.norm(dim=-1) < delta, floor=c_1, min_width=fine, batch=batch)
-    c_2 = float(_down(torch.tensor(c_2, dtype=F64), REL1)) if math.isfinite(c_2) else c_2
+    c_2 = _below(c_2)
     out["annulus"] = {"level": c_2, "limited_by": limited_by, "boxes": boxes, "decay_rate": inner.decay_rate,
                       "exp_rate": inner.exp_rate, "region": "delta-ball" if strict else "box", "min_width": fine,
                       "counterexample": None if cex is None else system.to_user(cex[None])[0].tolist()}
@@ -337,7 +342,7 @@ def certified_roa(system: UncertainSystem, lyapunov: Lyapunov, controller: Contr
         start + time_limit, keep=region.keep, in_region=lambda centre, v: region.in_region(centre),
         min_width=min_width, batch=batch)
     deadline = start + time_limit
-    c = float(_down(torch.tensor(level, dtype=F64), REL1)) if math.isfinite(level) else level
+    c = _below(level)
     # 4. inside the ball
     left = max(1.0, deadline - time.perf_counter())
     local = local_decrease(system, lyapunov, controller, condition, region, time_limit=left, min_width=min_width)
