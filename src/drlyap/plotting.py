@@ -164,9 +164,7 @@ def draw_phase(ax, system: UncertainSystem, traj: Trajectories | None, success: 
             ax.contour(gx, gy, gv, levels=[c], colors=[color], linewidths=2.0, linestyles="solid" if ok else "dashed")
             ax.plot([], [], color=color, lw=6, alpha=0.4, label=textwrap.fill(region["label"], 75))
     if delta:
-        t = torch.linspace(0, 2 * torch.pi, 100)
-        ax.plot(system.equilibrium[i] + delta * torch.cos(t), system.equilibrium[j] + delta * torch.sin(t), ":",
-                color="black", lw=0.9, label=f"delta-ball (|x - x*| < {delta:g}, excluded from the proof)")
+        _draw_ball(ax, system, delta, label=f"delta-ball (|x - x*| < {delta:g}, excluded from the proof)")
     if traj is not None:
         x = _display_states(system, traj.x)
         ok = [bool(v) for v in (success if success is not None else [True] * x.shape[1])]
@@ -184,8 +182,7 @@ def draw_phase(ax, system: UncertainSystem, traj: Trajectories | None, success: 
     ax.set_ylim(lo[j] - pad1, hi[j] + pad1)
     ax.set_xlabel(state_label(system, i))
     ax.set_ylabel(state_label(system, j))
-    if system.n > 2:
-        ax.text(0.01, 0.99, _slice_note(system), transform=ax.transAxes, va="top", fontsize=7, color="0.3")
+    _note_slice(ax, system, projected=traj is not None)
 
 
 def phase_portrait(system: UncertainSystem, traj: Trajectories, success: Sequence[bool], path: Path, title: str = "",
@@ -335,10 +332,22 @@ def lyapunov_grid(system: UncertainSystem, lyapunov, per_axis: int = 120) -> tup
     return gx, gy, lyapunov(plane_states(system, gx, gy)).reshape(gx.shape)
 
 
-def _slice_note(system: UncertainSystem) -> str:
-    """``slice at x* in (xdot, thetadot)``: what a plane of an n > 2 system holds fixed."""
+def _note_slice(ax, system: UncertainSystem, projected: bool = False) -> None:
+    """On a plane of an n > 2 system, say what it holds fixed (``slice with (x, x_dot) at x*``) and, with
+    ``projected``, that trajectories are projections onto it."""
+    if system.n <= 2:
+        return
     rest = [system.state_names[d] for d in range(system.n) if d not in system.plot_dims]
-    return f"V: slice with ({', '.join(rest)}) at x*; trajectories projected"
+    text = f"slice with ({', '.join(rest)}) at x*" + ("; trajectories projected" if projected else "")
+    ax.text(0.01, 0.99, text, transform=ax.transAxes, va="top", fontsize=7, color="0.3")
+
+
+def _draw_ball(ax, system: UncertainSystem, delta: float, label: str | None = None) -> None:
+    """The delta-ball's outline in the ``plot_dims`` plane (its section through x*)."""
+    i, j = system.plot_dims
+    t = torch.linspace(0, 2 * torch.pi, 100)
+    ax.plot(system.equilibrium[i] + delta * torch.cos(t), system.equilibrium[j] + delta * torch.sin(t), ":",
+            color="black", lw=0.9, label=label)
 
 
 def decrease_map(system: UncertainSystem, grid: tuple[Tensor, Tensor, Tensor], residual: Tensor, path: Path,
@@ -365,10 +374,8 @@ def decrease_map(system: UncertainSystem, grid: tuple[Tensor, Tensor, Tensor], r
     fig.colorbar(r, ax=b, label=f"{condition} (> 0: fails)")
     fails = residual > 0  # NaN (the excluded delta-ball) is not a failure
     if delta:
-        t = torch.linspace(0, 2 * torch.pi, 100)
         for ax in (a, b):
-            ax.plot(system.equilibrium[i] + delta * torch.cos(t), system.equilibrium[j] + delta * torch.sin(t), ":",
-                    color="black", lw=0.9)
+            _draw_ball(ax, system, delta)
     if bool(fails.any()):
         b.contour(px, py, fails.double().numpy(), levels=[0.5], colors="black", linewidths=1.0)
     share = float(fails.double().sum() / max(1, finite.numel()))
@@ -376,9 +383,7 @@ def decrease_map(system: UncertainSystem, grid: tuple[Tensor, Tensor, Tensor], r
         ax.plot(system.equilibrium[i], system.equilibrium[j], "*", color="white" if ax is a else "black", ms=10)
         ax.set_xlabel(state_label(system, i))
         ax.set_ylabel(state_label(system, j))
-        if system.n > 2:
-            ax.text(0.01, 0.99, _slice_note(system).split(";")[0].replace("V: slice", "slice"), transform=ax.transAxes,
-                    va="top", fontsize=7, color="0.3")
+        _note_slice(ax, system)
     a.set_title("certificate V")
     where = "outside the delta-ball" if delta else ""
     top = float(finite.max()) if finite.numel() else float("nan")
