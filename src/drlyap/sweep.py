@@ -49,6 +49,7 @@ import torch
 
 from drlyap.io import from_fields
 from drlyap.rundir import jsonable, write_json
+from drlyap.systems import UncertainSystem, resolve_system, system_source
 from drlyap.training import TrainConfig
 
 METHODS = ("baseline", "dr")
@@ -175,11 +176,13 @@ class SweepSpec:
                 combos += [Combination(method, seed, r, e) for e in self.eps for r in self.radii]
         return combos
 
-    def train_config(self, combo: Combination) -> TrainConfig:
-        """The training configuration of one combination (system defaults for what the sweep leaves open)."""
-        from drlyap.systems import resolve_system
+    def train_config(self, combo: Combination, system: UncertainSystem | None = None) -> TrainConfig:
+        """The training configuration of one combination (system defaults for what the sweep leaves open).
 
-        cfg = TrainConfig(system=resolve_system(self.system).name, method=combo.method, seed=combo.seed,
+        ``system``: the resolved ``self.system``, when the caller has it (a file spec is imported on each resolve).
+        """
+        system = system or resolve_system(self.system)
+        cfg = TrainConfig(system=system.name, method=combo.method, seed=combo.seed,
                           device=self.device, wasserstein_radius=combo.radius, risk_level=combo.eps,
                           verify=self.verify, verify_rounds=self.verify_rounds, verify_time=self.verify_time_limit,
                           **self.config)
@@ -189,8 +192,6 @@ class SweepSpec:
 
     def validate(self) -> None:
         """Check the whole grid before anything runs (every combination's config, the evaluation settings)."""
-        from drlyap.systems import resolve_system
-
         system = resolve_system(self.system)
         if system.test_xi is None:
             raise SweepError(f"{self.system} declares no test shift; a sweep evaluates at k x that shift")
@@ -209,7 +210,7 @@ class SweepSpec:
             raise SweepError("invalid sweep: " + "; ".join(problems))
         for combo in self.combinations():
             try:
-                self.train_config(combo).resolved(system)
+                self.train_config(combo, system).resolved(system)
             except (TypeError, ValueError) as err:
                 raise SweepError(f"combination {combo.name}: {err}") from None
 
@@ -252,11 +253,10 @@ def run_combination(spec_dict: dict, combo_dict: dict, out: str, threads: int = 
         from drlyap.cegis import train_certified
         from drlyap.experiments import evaluate_run, test_initial_states
         from drlyap.rundir import load_run, save_run
-        from drlyap.systems import resolve_system, system_source
         from drlyap.verification import verify_run
 
         system = resolve_system(spec.system)
-        result = train_certified(spec.train_config(combo), system, progress=False, warn=False)
+        result = train_certified(spec.train_config(combo, system), system, progress=False, warn=False)
         if staging.exists():
             shutil.rmtree(staging)
         save_run(staging, result, source=system_source(spec.system, system))
