@@ -51,9 +51,19 @@ def inside_ball(lo: Tensor, hi: Tensor, radius: float) -> Tensor:
     return far_dist(lo, hi) * (1 + 1e-12) < radius
 
 
-def split(lo: Tensor, hi: Tensor, scale: Tensor) -> tuple[Tensor, Tensor]:
-    """Bisect each box ``(B, n)`` along its widest side (widths relative to ``scale``): ``(2B, n)`` boxes."""
-    dim = ((hi - lo) / scale).argmax(-1)
+def split(lo: Tensor, hi: Tensor, scale: Tensor, sensitivity: Tensor | None = None) -> tuple[Tensor, Tensor]:
+    """Bisect each box ``(B, n)`` along its widest side (widths relative to ``scale``): ``(2B, n)`` boxes.
+
+    ``sensitivity (B, n)``: bisect instead the side that adds most to the bound (e.g. ``box_bounds``'s
+    sensitivity), among the sides at least 1/16 as wide (relatively) as the widest, so that every side
+    keeps shrinking.
+    """
+    rel = (hi - lo) / scale
+    dim = rel.argmax(-1)
+    if sensitivity is not None:
+        wide = rel >= rel.amax(-1, keepdim=True) / 16
+        score = torch.where(wide, torch.nan_to_num(sensitivity, nan=torch.inf), -1.0)
+        dim = torch.where(score.amax(-1) > 0, score.argmax(-1), dim)
     rows = torch.arange(lo.shape[0])
     mid = (lo[rows, dim] + hi[rows, dim]) / 2
     hi1, lo2 = hi.clone(), lo.clone()
@@ -136,6 +146,17 @@ class Region:
             return rho * torch.where(d >= 0, d * self.hi, -d * self.lo)
 
         return self._outside_ball(count, draw)
+
+    def sample_faces(self, count: int, generator: torch.Generator) -> Tensor:
+        """``count`` states ``(count, n)`` uniform on the boundary of the box: a face (coordinate and side)
+        drawn with probability proportional to its area, a uniform state on it."""
+        area = (self.scale.prod() / self.scale).repeat(2)  # faces at lo (first n), then at hi
+        face = torch.multinomial(area, count, replacement=True, generator=generator)
+        axis, upper = face % self.n, face >= self.n
+        z = self.lo + self.scale * torch.rand(count, self.n, generator=generator, dtype=F64)
+        rows = torch.arange(count)
+        z[rows, axis] = torch.where(upper, self.hi[axis], self.lo[axis])
+        return z
 
     def grid(self, per_axis: int = 200, count: int = 40000) -> Tensor:
         """A dense set of states of X_delta: a cell-centred grid for n <= 3, else a scrambled Sobol set of

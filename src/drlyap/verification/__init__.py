@@ -12,7 +12,9 @@ Modules:
 * :mod:`~drlyap.verification.bounds` -- bounds of a function over boxes (interval and mean-value forms);
 * :mod:`~drlyap.verification.branch_and_bound` -- :func:`verify_condition`, :func:`maximize`, :func:`uniform_margin`;
 * :mod:`~drlyap.verification.roa` -- :func:`certified_roa` (regions of attraction reaching x*, or practical
-  stability where the proof inside the ball fails) and :func:`local_decrease`;
+  stability where the proof inside the ball fails), :func:`local_decrease`, and :func:`verify_sublevel` /
+  :func:`prove_trained` (the condition of region-of-attraction training: on ``{V <= level}``, V above the
+  level on the box's faces);
 * :mod:`~drlyap.verification.covering` -- the paper's Lipschitz covering check;
 * :mod:`~drlyap.verification.runs` -- :func:`run_condition`, :func:`verify_run` on run directories;
 * :mod:`~drlyap.verification.robustness` -- :func:`certified_radius` (the largest proved Wasserstein radius),
@@ -20,7 +22,14 @@ Modules:
 """
 
 from drlyap.enclosures import Affine, Dual, Interval, norm
-from drlyap.verification.bounds import ENCLOSURES, box_bounds, combine_lower, combine_upper, condition_objective
+from drlyap.verification.bounds import (
+    ENCLOSURES,
+    box_bounds,
+    combine_lower,
+    combine_upper,
+    condition_objective,
+    default_enclosure,
+)
 from drlyap.verification.branch_and_bound import (
     VerificationResult,
     as_region,
@@ -29,7 +38,7 @@ from drlyap.verification.branch_and_bound import (
     verify_condition,
 )
 from drlyap.verification.covering import lipschitz_covering
-from drlyap.verification.roa import certified_roa, local_decrease
+from drlyap.verification.roa import certified_roa, local_decrease, prove_trained, verify_sublevel
 from drlyap.verification.robustness import (
     certified_radius,
     certified_shift_box,
@@ -41,7 +50,7 @@ from drlyap.verification.runs import run_condition, verify_run
 
 __all__ = [
     "ENCLOSURES", "Affine", "Dual", "Interval", "VerificationResult", "as_region", "box_bounds", "certified_roa", "combine_lower",
-    "certified_radius", "certified_shift_box", "combine_upper", "condition_objective", "lipschitz_covering",
-    "local_decrease", "maximize", "norm", "run_condition", "run_robustness", "shift_box_condition", "shift_scale",
-    "uniform_margin", "verify_condition", "verify_run",
+    "certified_radius", "certified_shift_box", "combine_upper", "condition_objective", "default_enclosure",
+    "lipschitz_covering", "local_decrease", "maximize", "norm", "prove_trained", "run_condition", "run_robustness",
+    "shift_box_condition", "shift_scale", "uniform_margin", "verify_condition", "verify_run", "verify_sublevel",
 ]

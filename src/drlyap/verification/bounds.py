@@ -52,41 +52,57 @@ ENCLOSURES = ("mean-value", "affine")
 """The enclosures :func:`box_bounds` can use (the first is the default)."""
 
 
+def default_enclosure(n: int) -> str:
+    """The enclosure for an ``n``-state system: ``affine`` from 4 states on (9-16x tighter there,
+    ``benchmarks/enclosure_bench.py``), else ``mean-value`` (cheaper per box, as tight in 2 states)."""
+    return "affine" if n >= 4 else "mean-value"
+
+
 def check_enclosure(enclosure: str) -> str:
     if enclosure not in ENCLOSURES:
         raise ValueError(f"unknown enclosure {enclosure!r}; valid: {', '.join(ENCLOSURES)}")
     return enclosure
 
 
-def box_bounds(objective: Objective, lo: Tensor, hi: Tensor,
-               enclosure: str = "mean-value") -> tuple[Tensor, Tensor, Interval]:
+def box_bounds(objective: Objective, lo: Tensor, hi: Tensor, enclosure: str = "mean-value",
+               sensitivity: bool = False) -> tuple[Tensor, ...]:
     """Lower and upper bounds ``(B, Q)`` of ``objective`` over the boxes ``[lo, hi] (B, n)``.
 
     ``enclosure``: ``mean-value`` (the tighter of the plain interval bound and the mean-value form) or
     ``affine`` (the tighter of the plain interval bound and the affine-form bound). Also returns the enclosure
-    of the objective at the box centres (an :class:`Interval` ``(B, Q)``).
+    of the objective at the box centres (an :class:`Interval` ``(B, Q)``). With ``sensitivity``, a fourth
+    tensor ``(B, n)``: how much each coordinate's half-width adds to the first-order spread of the bounds, summed
+    over the components (``|slope| * radius`` of the mean-value form, ``|coefficient|`` of the affine form):
+    the coordinate worth splitting.
     """
     batch, n = lo.shape
     centre = (lo + hi) / 2
     at = objective(Interval(centre, centre))
     if check_enclosure(enclosure) == "affine":
-        over = objective(Affine.box(lo, hi)).to_interval()
+        form = objective(Affine.box(lo, hi))
+        over = form.to_interval()
         plain = objective(Interval(lo, hi))
         upper = torch.minimum(over.hi, plain.hi)
         lower = torch.maximum(over.lo, plain.lo)
+        if sensitivity:
+            sens = torch.zeros_like(lo) if form.g is None else form.g.abs().sum(1)
     else:
         rad = _up(torch.maximum(hi - centre, centre - lo), REL1)
         eye = torch.eye(n, dtype=F64).expand(batch, n, n)
         over = objective(Dual(Interval(lo, hi), Interval(eye, eye)))
         if over.d is None:
             spread = torch.zeros_like(at.lo)
+            sens = torch.zeros_like(lo)
         else:
             slope = torch.maximum(over.d.lo.abs(), over.d.hi.abs())
             spread = _up((slope * rad.unsqueeze(1)).sum(-1), 4 * (n + 2) * EPS)
+            sens = (slope * rad.unsqueeze(1)).sum(1)
         upper = torch.minimum(over.v.hi, _up(at.hi + spread, REL1))
         lower = torch.maximum(over.v.lo, _down(at.lo - spread, REL1))
     upper = torch.where(torch.isnan(upper), torch.inf, upper)
     lower = torch.where(torch.isnan(lower), -torch.inf, lower)
+    if sensitivity:
+        return lower, upper, at, torch.nan_to_num(sens, nan=torch.inf, posinf=torch.inf)
     return lower, upper, at
 
 

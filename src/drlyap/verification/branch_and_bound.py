@@ -32,7 +32,14 @@ from drlyap.enclosures import EPS, F64, _down, _up
 from drlyap.networks import Controller, Lyapunov
 from drlyap.regions import Region, inside_ball, split
 from drlyap.systems import UncertainSystem
-from drlyap.verification.bounds import box_bounds, check_enclosure, combine_lower, combine_upper, condition_objective
+from drlyap.verification.bounds import (
+    box_bounds,
+    check_enclosure,
+    combine_lower,
+    combine_upper,
+    condition_objective,
+    value_objective,
+)
 
 
 def as_region(system: UncertainSystem, delta: float | Region) -> Region:
@@ -71,6 +78,7 @@ class VerificationResult:
     unverified_boxes: list[dict] = field(default_factory=list)
     sup_bounds: list[float] = field(default_factory=list)
     stopped: str = ""
+    level: float | None = None  # proved on {V <= level} only (None: on the whole of X_delta)
 
     def to_dict(self) -> dict:
         return asdict(self)
@@ -80,8 +88,12 @@ def verify_condition(system: UncertainSystem, lyapunov: Lyapunov, controller: Co
                      delta: float | Region, time_limit: float = 30.0, max_boxes: int = 2_000_000, min_width: float = 1e-4,
                      grid: Sequence[int] | None = None, batch: int = 4096, keep_boxes: int = 50,
                      stop_at_counterexample: bool = False, violation_width: float = 1e-2,
-                     enclosure: str = "mean-value") -> VerificationResult:
+                     enclosure: str = "mean-value", level: float | None = None) -> VerificationResult:
     """Prove ``residual(z) <= 0`` on X_delta by branch and bound, or find where it fails.
+
+    ``level``: prove it only on the sublevel set ``{V <= level}`` of X_delta (a box on which V provably exceeds
+    the level needs nothing more; a counterexample must have ``V <= level``); the verified fraction is then
+    the share of X_delta where the condition or ``V > level`` is proved.
 
     ``min_width``: boxes whose widest side (relative to the state box) is below it are not split further.
     ``violation_width``: a box whose centre is a confirmed counterexample is still split (to sharpen the
@@ -98,6 +110,11 @@ def verify_condition(system: UncertainSystem, lyapunov: Lyapunov, controller: Co
     delta = region.delta
     start = time.perf_counter()
     objective = condition_objective(condition, system, lyapunov, controller)
+    if level is not None:
+        components, vobj = objective, value_objective(lyapunov)
+
+        def objective(z):
+            return torch.cat([components(z), vobj(z)], -1)
     scale = region.scale
     lo, hi = region.boxes(grid)
     volume = region.volume()
@@ -117,18 +134,24 @@ def verify_condition(system: UncertainSystem, lyapunov: Lyapunov, controller: Co
             stopped = "box budget"
             break
         clo, chi, lo, hi = lo[:batch], hi[:batch], lo[batch:], hi[batch:]
-        _, ub_c, at = box_bounds(objective, clo, chi, enclosure)
+        lb_c, ub_c, at, sens = box_bounds(objective, clo, chi, enclosure, sensitivity=True)
         processed += clo.shape[0]
-        ub = combine_upper(condition, ub_c)
         centre = (clo + chi) / 2
-        centre_lb = combine_lower(condition, at.lo)
         in_region = region.in_region(centre)
+        at_lo = at.lo
+        outside = torch.zeros(clo.shape[0], dtype=torch.bool)
+        if level is not None:  # the last component is V: boxes above the level are done, centres must lie in the set
+            outside, in_region = lb_c[:, -1] > level, in_region & (at.hi[:, -1] <= level)
+            ub_c, at_lo = ub_c[:, :-1], at_lo[:, :-1]
+        ub = combine_upper(condition, ub_c)
+        centre_lb = combine_lower(condition, at_lo)
         if in_region.any():
             sup_lo = max(sup_lo, float(centre_lb[in_region].max()))
+        ub = torch.where(outside, -torch.inf, ub)
         ok = ub <= 0
         verified_count += int(ok.sum())
-        if ok.any():
-            sup_hi = max(sup_hi, float(ub[ok].max()))
+        if (ok & ~outside).any():
+            sup_hi = max(sup_hi, float(ub[ok & ~outside].max()))
         bad = ~ok & in_region & (centre_lb > 0)
         if bad.any():
             values = condition.exact(system, lyapunov, controller, centre[bad])
@@ -166,7 +189,7 @@ def verify_condition(system: UncertainSystem, lyapunov: Lyapunov, controller: Co
             leaves_hi.append(chi[small])
         divide = rest & ~small
         if divide.any():
-            nlo, nhi = region.keep(*split(clo[divide], chi[divide], scale))
+            nlo, nhi = region.keep(*split(clo[divide], chi[divide], scale, sens[divide]))
             lo, hi = torch.cat([lo, nlo]), torch.cat([hi, nhi])
     if lo.shape[0]:
         unverified_vol += float((hi - lo).prod(-1).sum())
@@ -190,7 +213,7 @@ def verify_condition(system: UncertainSystem, lyapunov: Lyapunov, controller: Co
         condition=condition.label, status=status, verified_fraction=fraction, delta=float(delta),
         boxes_processed=processed, boxes_verified=verified_count, time_s=time.perf_counter() - start,
         n_unverified=int(left_lo.shape[0]), unverified_boxes=boxes, n_counterexample_boxes=n_cex_boxes,
-        sup_bounds=[sup_lo, sup_hi], stopped=stopped)
+        sup_bounds=[sup_lo, sup_hi], stopped=stopped, level=level)
     if cex is not None:
         result.counterexample_value = cex[0]
         result.counterexample_value_float32 = float(condition.exact(system, lyapunov, controller, cex[1][None],

@@ -64,7 +64,15 @@ from drlyap.enclosures import F64, REL1, Dual, Interval, _down
 from drlyap.networks import Controller, Lyapunov, QuadraticLyapunov
 from drlyap.regions import Region, box_grid, default_grid, near_dist, split
 from drlyap.systems import UncertainSystem
-from drlyap.verification.bounds import box_bounds, combine_lower, combine_upper, condition_objective, value_objective
+from drlyap.verification.bounds import (
+    box_bounds,
+    check_enclosure,
+    combine_lower,
+    combine_upper,
+    condition_objective,
+    default_enclosure,
+    value_objective,
+)
 from drlyap.verification.branch_and_bound import as_region, maximize, verify_condition
 from drlyap.verification.linearisation import closed_loop_jacobians, is_hurwitz, lyapunov_matrix
 
@@ -82,6 +90,62 @@ def _faces(lo: Tensor, hi: Tensor, per_axis: list[int]) -> tuple[Tensor, Tensor]
             out_lo.append(flo)
             out_hi.append(fhi)
     return torch.cat(out_lo), torch.cat(out_hi)
+
+
+def boundary_minimum(lyapunov: Lyapunov, region: Region, time_limit: float = 5.0, min_width: float = 1e-4,
+                     enclosure: str = "mean-value", rel_tol: float = 1e-3) -> tuple[float, float]:
+    """``(lower, upper)``: a sound lower bound of the minimum of V over the boundary of the state box, and a value
+    of V taken at a point of the boundary (so ``lower <= min <= upper``); boxes are refined until ``lower`` is
+    within ``rel_tol`` of ``upper`` (or time runs out: ``lower`` is then ``-inf``)."""
+    if isinstance(lyapunov, QuadraticLyapunov):  # min of z'Pz on the hyperplane z_i = b is b^2 / (P^-1)_ii
+        p = lyapunov.P.to(F64)
+        inv_diag = torch.linalg.inv(p).diagonal()
+        sides = torch.stack([region.lo, region.hi], -1)  # (n, 2)
+        low = float(_down((sides.square() / inv_diag[:, None]).min(), 1e-9))
+        i, j = divmod(int((sides.square() / inv_diag[:, None]).argmin()), 2)
+        point = torch.clamp(torch.linalg.solve(p, torch.eye(region.n, dtype=F64)[i]) * (sides[i, j] / inv_diag[i]),
+                            region.lo, region.hi)
+        point[i] = sides[i, j]
+        return low, float(lyapunov(point[None])[0])
+    vobj = value_objective(lyapunov)
+    flo, fhi = _faces(region.lo, region.hi, default_grid(region.n))
+    best, neg_up, _ = maximize(lambda z: -vobj(z), flo, fhi, region.scale, time_limit=time_limit, min_width=min_width,
+                               enclosure=enclosure, rel_tol=rel_tol)
+    return float(-neg_up[0]), float(-best[0])
+
+
+def verify_sublevel(system: UncertainSystem, lyapunov: Lyapunov, controller: Controller, condition: Condition,
+                    delta: float | Region, level: float, time_limit: float = 30.0, min_width: float = 1e-4,
+                    enclosure: str = "mean-value", **kwargs) -> dict:
+    """Prove what region-of-attraction training asks (``TrainConfig.roa_level``): the condition on
+    ``{V <= level}`` minus the delta-ball (:func:`verify_condition` with ``level``) and ``V > level`` on the
+    boundary of the box (:func:`boundary_minimum`), so that the sublevel set lies inside the box.
+
+    Returns :meth:`VerificationResult.to_dict` plus ``boundary_min_lower`` / ``boundary_min_upper``; ``status``
+    is ``verified`` only when both hold, ``violated`` when a boundary point has ``V <= level`` or a state of the
+    set violates the condition.
+    """
+    region = as_region(system, delta)
+    start = time.perf_counter()
+    low, high = boundary_minimum(lyapunov, region, time_limit / 4, min_width, enclosure, rel_tol=0.02)
+    left = max(1.0, time_limit - (time.perf_counter() - start))
+    out = verify_condition(system, lyapunov, controller, condition, region, time_limit=left, min_width=min_width,
+                           enclosure=enclosure, level=level, **kwargs).to_dict()
+    out.update(boundary_min_lower=low, boundary_min_upper=high, time_s=time.perf_counter() - start)
+    if high <= level:
+        out["status"], out["stopped"] = "violated", f"V = {high:.6g} <= {level:g} at a point of the box's boundary"
+    elif low <= level and out["status"] == "verified":
+        out["status"], out["stopped"] = "unknown", f"V > {level:g} on the box's boundary not proved (bound {low:.6g})"
+    return out
+
+
+def prove_trained(system: UncertainSystem, lyapunov: Lyapunov, controller: Controller, condition: Condition,
+                  delta: float | Region, level: float | None = None, **kwargs) -> dict:
+    """The proof of a trained condition as a dict: :func:`verify_condition` on X_delta (``level`` None) or
+    :func:`verify_sublevel` on ``{V <= level}`` (region-of-attraction training)."""
+    if level is None:
+        return verify_condition(system, lyapunov, controller, condition, delta, **kwargs).to_dict()
+    return verify_sublevel(system, lyapunov, controller, condition, delta, level, **kwargs)
 
 
 def _hessian_negative(system: UncertainSystem, lyapunov: Lyapunov, controller: Controller, plain: PlainDecrease,
@@ -304,7 +368,8 @@ def linearisation_local(system: UncertainSystem, lyapunov: Lyapunov, controller:
 
 def certified_roa(system: UncertainSystem, lyapunov: Lyapunov, controller: Controller, condition: Condition,
                   delta: float | Region, time_limit: float = 10.0, min_width: float = 1e-4,
-                  samples_per_axis: int = 400, batch: int = 4096, linearisation: bool = True) -> dict:
+                  samples_per_axis: int = 400, batch: int = 4096, linearisation: bool = True,
+                  enclosure: str | None = None) -> dict:
     """The largest level ``c`` (up to the search's resolution) with ``S = {V <= c}`` certified (module docstring).
 
     Returns a JSON-friendly dict: ``level`` c; ``kind``: ``"region of attraction"`` (every trajectory of the
@@ -313,9 +378,12 @@ def certified_roa(system: UncertainSystem, lyapunov: Lyapunov, controller: Contr
     proof inside the ball: :func:`local_decrease`'s, or with ``linearisation`` where that fails,
     :func:`linearisation_local`'s, ``method`` says which); ``outer_level`` (the level proved outside the ball);
     ``boundary_min_lower``, ``ball_max_upper``, ``share_of_box`` (share of the box
-    volume in S), ``limited_by``, a ``counterexample`` that limited the level, times and boxes.
+    volume in S), ``limited_by``, a ``counterexample`` that limited the level, times and boxes. ``enclosure``
+    bounds V on the boundary and the ball and the condition in the level search (None:
+    :func:`~drlyap.verification.bounds.default_enclosure`); the proof inside the ball keeps the mean-value form.
     """
     start = time.perf_counter()
+    enclosure = check_enclosure(enclosure or default_enclosure(system.n))
     region = as_region(system, delta)
     delta = region.delta
     box_lo, box_hi, scale = region.lo, region.hi, region.scale
@@ -323,16 +391,14 @@ def certified_roa(system: UncertainSystem, lyapunov: Lyapunov, controller: Contr
     vobj = value_objective(lyapunov)
 
     # 1. min of V on the boundary of the box
-    flo, fhi = _faces(box_lo, box_hi, grid)
-    _, neg_up, _ = maximize(lambda z: -vobj(z), flo, fhi, scale, time_limit=time_limit / 4, min_width=min_width)
-    boundary_min_lower = float(-neg_up[0])
+    boundary_min_lower = boundary_minimum(lyapunov, region, time_limit / 4, min_width, enclosure, rel_tol=0.02)[0]
     # 2. max of V on the delta-ball
     ball_max_upper = 0.0
     if delta > 0:
         blo = torch.maximum(box_lo, torch.full_like(box_lo, -delta))
         bhi = torch.minimum(box_hi, torch.full_like(box_hi, delta))
         glo, ghi = box_grid(blo, bhi, grid)
-        _, up, _ = maximize(vobj, glo, ghi, scale, time_limit=time_limit / 4,
+        _, up, _ = maximize(vobj, glo, ghi, scale, time_limit=time_limit / 4, enclosure=enclosure,
                             box_ok=lambda a, b: near_dist(a, b) < delta, min_width=min_width)
         ball_max_upper = float(up[0])
     # 3. the decrease condition on the sublevel set outside the ball
@@ -340,7 +406,7 @@ def certified_roa(system: UncertainSystem, lyapunov: Lyapunov, controller: Contr
     level, limited_by, cex, processed = _level_search(
         system, lyapunov, controller, condition, lo, hi, scale, boundary_min_lower, "box boundary",
         start + time_limit, keep=region.keep, in_region=lambda centre, v: region.in_region(centre),
-        min_width=min_width, batch=batch)
+        min_width=min_width, batch=batch, enclosure=enclosure)
     deadline = start + time_limit
     c = _below(level)
     # 4. inside the ball
@@ -375,7 +441,7 @@ def certified_roa(system: UncertainSystem, lyapunov: Lyapunov, controller: Contr
 def _level_search(system: UncertainSystem, lyapunov: Lyapunov, controller: Controller, condition: Condition,
                   lo: Tensor, hi: Tensor, scale: Tensor, level: float, limited_by: str, deadline: float, *,
                   keep, in_region, floor: float = -math.inf, min_width: float = 1e-4,
-                  batch: int = 4096) -> tuple[float, str, Tensor | None, int]:
+                  batch: int = 4096, enclosure: str = "mean-value") -> tuple[float, str, Tensor | None, int]:
     """The largest level (at most ``level``) such that ``condition`` holds on every state of the boxes
     ``[lo, hi]`` (and their parts kept by ``keep(lo, hi)``) with ``floor <= V <= level``.
 
@@ -396,13 +462,13 @@ def _level_search(system: UncertainSystem, lyapunov: Lyapunov, controller: Contr
         if time.perf_counter() > deadline:
             v_min = -math.inf
             if lo.shape[0] <= 16 * batch:
-                v_min = min(float(box_bounds(vobj, lo[i:i + batch], hi[i:i + batch])[0].min())
+                v_min = min(float(box_bounds(vobj, lo[i:i + batch], hi[i:i + batch], enclosure)[0].min())
                             for i in range(0, lo.shape[0], batch))
             if v_min < level:
                 level, limited_by = v_min, "time limit"
             break
         clo, chi, lo, hi = lo[:batch], hi[:batch], lo[batch:], hi[batch:]
-        lb, ub, at = box_bounds(objective, clo, chi)
+        lb, ub, at, sens = box_bounds(objective, clo, chi, enclosure, sensitivity=True)
         processed += clo.shape[0]
         v_lb = lb[:, -1]
         active = (v_lb <= level) & (ub[:, -1] >= floor)
@@ -424,7 +490,7 @@ def _level_search(system: UncertainSystem, lyapunov: Lyapunov, controller: Contr
             level, limited_by = float(v_lb[small].min()), "unverified box at minimum size"
         divide = open_ & ~small & (v_lb <= level)
         if divide.any():
-            nlo, nhi = keep(*split(clo[divide], chi[divide], scale))
+            nlo, nhi = keep(*split(clo[divide], chi[divide], scale, sens[divide]))
             lo, hi = torch.cat([lo, nlo]), torch.cat([hi, nhi])
     return level, limited_by, cex, processed
 

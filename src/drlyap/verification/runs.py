@@ -9,9 +9,9 @@ from torch import Tensor
 from drlyap.conditions import Condition, DRUniform, TrueDecrease, make_condition
 from drlyap.io import jsonable
 from drlyap.regions import Region
-from drlyap.verification.bounds import check_enclosure
-from drlyap.verification.branch_and_bound import uniform_margin, verify_condition
-from drlyap.verification.roa import certified_roa
+from drlyap.verification.bounds import check_enclosure, default_enclosure
+from drlyap.verification.branch_and_bound import uniform_margin
+from drlyap.verification.roa import certified_roa, prove_trained
 
 
 def run_condition(run, xi: Sequence[float] | Tensor | None = None) -> Condition:
@@ -26,7 +26,7 @@ def run_condition(run, xi: Sequence[float] | Tensor | None = None) -> Condition:
 
 def verify_run(run, delta: float | None = None, xi: Sequence[float] | Tensor | None = None, time_limit: float = 30.0,
                roa: bool = False, min_width: float = 1e-4, uniform_time: float = 3.0,
-               enclosure: str = "mean-value") -> dict:
+               enclosure: str | None = None) -> dict:
     """Verify a loaded run (:func:`drlyap.rundir.load_run`) on X_delta.
 
     Returns a JSON-friendly dict: ``trained`` (the run's own condition: pointwise / nominal through
@@ -36,11 +36,14 @@ def verify_run(run, delta: float | None = None, xi: Sequence[float] | Tensor | N
     condition). The top-level ``status``, ``verified_fraction``, ``counterexample`` and ``time_s`` are those
     of the main check: the true model when ``xi`` is given, else the trained condition. Non-finite bounds
     are reported as None (strict JSON). ``enclosure`` bounds the boxes of the trained, uniform and true-model
-    checks (:data:`~drlyap.verification.bounds.ENCLOSURES`: ``"affine"`` is tighter on 4- and 6-state
-    systems); the region-of-attraction search keeps the mean-value form.
+    checks (:data:`~drlyap.verification.bounds.ENCLOSURES`; None: :func:`default_enclosure`, ``"affine"`` from
+    4 states on); the region-of-attraction search keeps the mean-value form. A run trained for a region of
+    attraction (``config.roa_level``) has its trained and true-model conditions proved on ``{V <= roa_level}``
+    with V above the level on the box's faces (:func:`verify_sublevel`).
     """
-    check_enclosure(enclosure)
     cfg = run.config
+    enclosure = check_enclosure(enclosure or default_enclosure(run.system.n))
+    level = getattr(cfg, "roa_level", None)
     delta = float(cfg.delta if delta is None else delta)
     if not (delta == delta and delta >= 0 and delta != float("inf")):
         raise ValueError(f"delta must be finite and >= 0, got {delta}")
@@ -55,8 +58,8 @@ def verify_run(run, delta: float | None = None, xi: Sequence[float] | Tensor | N
                                  enclosure=enclosure)
         uniform = trained
     else:
-        trained = verify_condition(system, lyap, ctrl, trained_condition, region, time_limit=time_limit,
-                                   min_width=min_width, enclosure=enclosure).to_dict()
+        trained = prove_trained(system, lyap, ctrl, trained_condition, region, level, time_limit=time_limit,
+                                min_width=min_width, enclosure=enclosure)
         uniform = uniform_margin(system, lyap, ctrl, uniform_condition, region, time_limit=uniform_time,
                                  min_width=min_width, enclosure=enclosure)
     out["trained"] = trained
@@ -64,8 +67,8 @@ def verify_run(run, delta: float | None = None, xi: Sequence[float] | Tensor | N
     main, main_condition = trained, trained_condition
     if xi is not None:
         main_condition = run_condition(run, xi)
-        main = verify_condition(system, lyap, ctrl, main_condition, region, time_limit=time_limit,
-                                min_width=min_width, enclosure=enclosure).to_dict()
+        main = prove_trained(system, lyap, ctrl, main_condition, region, level, time_limit=time_limit,
+                             min_width=min_width, enclosure=enclosure)
         main["xi"] = main_condition.xi[0].tolist()
         out["true_model"] = main
     out["roa"] = None
