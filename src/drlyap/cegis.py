@@ -43,7 +43,7 @@ from drlyap.networks import Controller, Lyapunov
 from drlyap.regions import Region
 from drlyap.systems import UncertainSystem, get_system
 from drlyap.training import TrainConfig, TrainResult, train
-from drlyap.verification import verify_condition
+from drlyap.verification import default_enclosure, prove_trained
 
 F64 = torch.float64
 
@@ -98,12 +98,13 @@ def _dedupe(z: Tensor, scale: Tensor, resolution: float = 1e-6) -> Tensor:
 def collect_counterexamples(system: UncertainSystem, lyapunov: Lyapunov, controller: Controller, condition: Condition,
                             region: Region, verification: dict, generator: torch.Generator,
                             n_random: int = 512, max_boxes: int = 200, steps: int = 30,
-                            neighbours: int = 3) -> dict:
+                            neighbours: int = 3, level: float | None = None) -> dict:
     """New training states from a failed verification: counterexamples (residual > 0) and unverified box centres.
 
     ``verification`` is :meth:`VerificationResult.to_dict` (states in user coordinates). Returns local states:
     ``counterexamples`` (each re-evaluated, residual > 0), ``neighbours`` (jittered copies of them, in X_delta),
-    ``box_centres`` (unverified boxes, in X_delta, any residual) and the counts.
+    ``box_centres`` (unverified boxes, in X_delta, any residual) and the counts. ``level``: the claim is about
+    ``{V <= level}`` only (region-of-attraction training), so only states there count as counterexamples.
     """
     x_star = torch.as_tensor(system.equilibrium, dtype=F64)
     scale = region.scale
@@ -130,6 +131,10 @@ def collect_counterexamples(system: UncertainSystem, lyapunov: Lyapunov, control
     falsify_time = time.perf_counter() - tic
     pool = torch.cat([starts, found])
     res = condition.exact(system, lyapunov, controller, pool)
+    if level is not None:
+        with torch.no_grad():
+            v = copy.deepcopy(lyapunov).to(F64)(pool)
+        res = torch.where(v <= level, res, -torch.inf)
     cex = _dedupe(pool[res > 0], scale)
     near = torch.empty(0, system.n, dtype=F64)
     if neighbours and cex.shape[0]:
@@ -143,7 +148,8 @@ def collect_counterexamples(system: UncertainSystem, lyapunov: Lyapunov, control
 
 def _summary(ver: dict) -> dict:
     keys = ("condition", "status", "verified_fraction", "boxes_processed", "time_s", "stopped", "counterexample",
-            "counterexample_value", "n_unverified", "n_counterexample_boxes", "sup_bounds")
+            "counterexample_value", "n_unverified", "n_counterexample_boxes", "sup_bounds", "level",
+            "boundary_min_lower")
     out = {k: ver.get(k) for k in keys}
     out["sup_bounds"] = [v if math.isfinite(v) else None for v in (out["sup_bounds"] or [])]
     return out
@@ -194,8 +200,9 @@ def train_cegis(cfg: TrainConfig, system: UncertainSystem | None = None, rounds:
     train_time = time.perf_counter() - start
     for r in range(rounds + 1):
         tic = time.perf_counter()
-        ver = verify_condition(system, result.lyapunov, result.controller, condition, region, time_limit=verify_time_limit,
-                               min_width=min_width, keep_boxes=max_boxes).to_dict()
+        ver = prove_trained(system, result.lyapunov, result.controller, condition, region, base_cfg.roa_level,
+                            time_limit=verify_time_limit, min_width=min_width, keep_boxes=max_boxes,
+                            enclosure=default_enclosure(system.n))
         entry: dict = {"round": r, "verification": _summary(ver), "verified": ver["status"] == "verified",
                        "status": ver["status"], "verified_fraction": ver["verified_fraction"],
                        "verify_time_s": time.perf_counter() - tic, "train_time_s": train_time,
@@ -218,7 +225,7 @@ def train_cegis(cfg: TrainConfig, system: UncertainSystem | None = None, rounds:
             break
         found = collect_counterexamples(system, result.lyapunov, result.controller, condition, region, ver,
                                         gen, n_random=n_random, max_boxes=max_boxes, steps=falsifier_steps,
-                                        neighbours=neighbours)
+                                        neighbours=neighbours, level=base_cfg.roa_level)
         # newest last, the counterexamples at the very end: the cap keeps the tail
         new = torch.cat([found["box_centres"], found["neighbours"], found["counterexamples"]])
         extra = _dedupe(torch.cat([extra, new]), region.scale)[-max_extra:]
@@ -258,12 +265,17 @@ def certificate_summary(verification: dict, condition_label: str, delta: float, 
     """``metrics["certificate"]``: what the verifier proved about a run's trained condition.
 
     ``status`` is ``verified`` (proved at every state of X_delta = the state box minus the open ball of radius
-    ``delta`` around x*), ``violated`` (a counterexample state, re-checked) or ``unknown`` (time or box budget
-    ran out); ``verified_fraction`` a lower bound of the share of X_delta proved.
+    ``delta`` around x*; with a ``level`` in the verification, at every state of X_delta with ``V <= level``,
+    and ``V > level`` on the box's boundary), ``violated`` (a counterexample state, re-checked) or ``unknown``
+    (time or box budget ran out); ``verified_fraction`` a lower bound of the share of X_delta proved.
     """
+    level = verification.get("level")
+    region = f"state box minus the open ball ||x - x*|| < {delta:g}"
+    if level is not None:
+        region = f"{{V <= {level:g}}} minus the open ball ||x - x*|| < {delta:g}, with V > {level:g} on the box's faces"
     return jsonable({
-        "status": verification["status"], "condition": condition_label, "region": "state box minus the open ball "
-        f"||x - x*|| < {delta:g}", "delta": delta, "verified_fraction": verification.get("verified_fraction"),
+        "status": verification["status"], "condition": condition_label, "region": region, "level": level,
+        "delta": delta, "verified_fraction": verification.get("verified_fraction"),
         "time_s": verification.get("time_s"), "boxes": verification.get("boxes_processed"),
         "counterexample": verification.get("counterexample"), "rounds": rounds,
         "margin_upper": verification.get("margin_upper"),

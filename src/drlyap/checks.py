@@ -41,6 +41,13 @@ def condition_residual(system: UncertainSystem, lyapunov: Lyapunov, controller: 
     return condition.residual(terms)
 
 
+def lyapunov_values(lyapunov: Lyapunov, z: Tensor, chunk: int = 20000) -> Tensor:
+    """``V (B,)`` at local states ``z (B, n)``, chunked, without gradients."""
+    ref = next(lyapunov.parameters())
+    with torch.no_grad():
+        return torch.cat([lyapunov(z[i:i + chunk].to(ref)) for i in range(0, z.shape[0], chunk)])
+
+
 def closed_loop_rhs(system: UncertainSystem, controller: Controller, z: Tensor, xi: Tensor) -> Tensor:
     """True closed-loop vector field in local coordinates: ``z (B, n)``, ``xi (B, k)`` -> ``(B, n)``."""
     return system.true_dynamics(system.to_user(z), controller(z), xi)
@@ -120,24 +127,37 @@ def find_equilibria(system: UncertainSystem, controller: Controller, xi_samples:
 
 
 def acceptance_check(system: UncertainSystem, lyapunov: Lyapunov, controller: Controller, condition: Condition,
-                     xi_samples: Tensor, region: Region, validation: Tensor | None = None) -> dict:
+                     xi_samples: Tensor, region: Region, validation: Tensor | None = None,
+                     level: float | None = None, faces: Tensor | None = None) -> dict:
     """Run all three checks; ``passed`` is True only if all of them pass.
 
     ``xi_samples (N, k)``: every sample; the Jacobian and equilibrium checks run at each of them and at
     their mean (the condition uses its own samples: the baseline's only the mean). ``validation``: the
-    states of the first check (default: ``region.grid()``).
+    states of the first check (default: ``region.grid()``). ``level``: the condition is asked only of the
+    validation states with ``V <= level``, and V must exceed ``level`` at every state of ``faces`` ``(F, n)``
+    (default: 20,000 fixed states on the box's boundary), so that ``{V <= level}`` lies inside the box.
     """
     z = region.grid() if validation is None else validation
     residual = condition_residual(system, lyapunov, controller, condition, z)
-    max_violation = float(residual.max())
+    boundary_min = None
+    if level is not None:
+        residual = residual[lyapunov_values(lyapunov, z) <= level]
+        if faces is None:
+            faces = region.sample_faces(20000, torch.Generator().manual_seed(12345))
+        boundary_min = float(lyapunov_values(lyapunov, faces).min())
+    max_violation = float(residual.max()) if residual.numel() else -math.inf
     jac = jacobian_check(system, controller, xi_samples)
     equilibria = find_equilibria(system, controller, xi_samples, region.delta)
     passed = (max_violation <= 0) and jac["hurwitz"] and not equilibria
+    if level is not None:
+        passed = passed and boundary_min > level
     return {
-        "passed": bool(passed and math.isfinite(max_violation)),
+        "passed": bool(passed and not math.isnan(max_violation)),
         "validation_states": int(z.shape[0]),
         "max_violation": max_violation,
-        "violating_fraction": float((residual > 0).double().mean()),
+        "violating_fraction": float((residual > 0).double().sum()) / max(1, int(z.shape[0])),
         "jacobian": jac,
         "other_equilibria": equilibria,
+        "level": level,
+        "boundary_min": boundary_min,
     }

@@ -89,8 +89,8 @@ def systems(as_json: bool) -> None:
 @click.option("--radius", type=float, default=None, help="Wasserstein radius r [system default].")
 @click.option("--eps", type=float, default=None, help="Risk level eps in (0, 1) [system default].")
 @click.option("--gamma", type=float, default=None, help="Decay rate gamma in Vdot + gamma||x-x*|| <= 0.")
-@click.option("--exp-rate", type=float, default=0.0, show_default=True,
-              help="alpha of the exponential variant (adds alpha V inside the condition).")
+@click.option("--exp-rate", type=float, default=None,
+              help="alpha of the exponential variant (adds alpha V inside the condition) [system default; 0].")
 @click.option("--xi-samples", default=None,
               help="Explicit xi samples 'a,b;c,d;...' (one sample per ';'); default: drawn from the system.")
 @click.option("--iters", type=int, default=3000, show_default=True, help="Iteration cap.")
@@ -108,7 +108,7 @@ def systems(as_json: bool) -> None:
 @click.option("--verify-budget", type=float, default=None, help="Total seconds for the retraining rounds [no limit].")
 @click.option("--json", "as_json", is_flag=True, help="Print one JSON object (run_dir, system, metrics) on stdout.")
 def train(system: str, method: str, loss: str, radius: float | None, eps: float | None, gamma: float | None,
-          exp_rate: float, xi_samples: str | None, iters: int, seed: int, device: str, warm_start: Path | None,
+          exp_rate: float | None, xi_samples: str | None, iters: int, seed: int, device: str, warm_start: Path | None,
           out: Path, quiet: bool, verify: bool, verify_rounds: int, verify_time: float,
           verify_budget: float | None, as_json: bool) -> None:
     """Train a controller and Lyapunov certificate for SYSTEM, prove the trained condition, save a run directory.
@@ -427,13 +427,17 @@ def compare(run_dirs: tuple[Path, ...], xi: str, n_init: int, seed: int, horizon
                    "is proved (bisection on proofs; each proof gets --time-limit seconds).")
 @click.option("--radius-tol", type=float, default=0.01, show_default=True,
               help="Relative width of the bracket [certified, unproved) that --max-radius stops at.")
-@click.option("--enclosure", type=click.Choice(["mean-value", "affine"]), default="mean-value", show_default=True,
+@click.option("--enclosure", type=click.Choice(["mean-value", "affine"]), default=None,
               help="How boxes are bounded: the interval mean-value form, or affine forms (tighter with more than two "
-                   "states, about twice the cost per box). The region-of-attraction search uses the mean-value form.")
+                   "states, about twice the cost per box) [affine from 4 states on, else mean-value]. The "
+                   "region-of-attraction search uses the mean-value form.")
 @click.option("--json", "as_json", is_flag=True, help="Print one JSON object.")
 def verify(run_dir: Path, delta: float | None, xi: str | None, time_limit: float, roa: bool, max_radius: bool,
-           radius_tol: float, enclosure: str, as_json: bool) -> None:
+           radius_tol: float, enclosure: str | None, as_json: bool) -> None:
     """Prove the decrease condition of RUN_DIR on the whole state box minus the delta-ball, or find a counterexample.
+
+    A run trained for a region of attraction (cartpole's default) has its condition proved on the sublevel set
+    {V <= level} minus the ball instead, together with V > level on the faces of the box.
 
     Sound bounds (interval mean-value form, or affine forms with --enclosure affine) with branch and bound,
     in float64 with outward rounding.
@@ -461,8 +465,15 @@ def verify(run_dir: Path, delta: float | None, xi: str | None, time_limit: float
         return
 
     def show(res: dict, title: str) -> None:
-        click.echo(f"{title}: {res['status'].upper()}; verified {_proved(res)} of X_delta "
+        where = "X_delta" if res.get("level") is None else f"X_delta (condition or V > {res['level']:g})"
+        click.echo(f"{title}: {res['status'].upper()}; verified {_proved(res)} of {where} "
                    f"({res['boxes_processed']} boxes, {res['time_s']:.2f} s, {res['stopped']})")
+        if res.get("level") is not None:
+            low = res.get("boundary_min_lower")
+            bound = "unbounded (time limit)" if low is None else f">= {low:.6g}"
+            inside = low is not None and low > res["level"]
+            click.echo(f"  on {{V <= {res['level']:g}}} only; min of V on the box's faces {bound} (so the set lies "
+                       f"inside the box: {'proved' if inside else 'NOT proved'})")
         if res["counterexample"] is not None:
             click.echo(f"  counterexample x = {[round(v, 6) for v in res['counterexample']]} with residual "
                        f"{res['counterexample_value']:.4g} > 0 (float32 networks: {res['counterexample_value_float32']:.4g})")

@@ -45,6 +45,7 @@ class DecreaseTerms:
     vdot: Tensor  # (B, N) Lyapunov derivative under each sample
     lip: Tensor | None  # (B,) ||W^T grad V|| (design model; None on the true model)
     decay: Tensor  # (B,) gamma ||z|| + alpha V
+    value: Tensor | None = None  # (B,) V(z) itself (what a sublevel-set condition restricts by)
 
 
 def euclidean_norm(x: Tensor) -> Tensor:
@@ -81,7 +82,7 @@ def decrease_terms(system: UncertainSystem, lyapunov: Lyapunov, controller: Cont
     decay = euclidean_norm(z) * decay_rate if decay_rate else value * 0.0
     if exp_rate:
         decay = decay + value * exp_rate
-    return DecreaseTerms(vdot=vdot, lip=lip, decay=decay)
+    return DecreaseTerms(vdot=vdot, lip=lip, decay=decay, value=value)
 
 
 def cvar_bound(h: Tensor, risk_level: float) -> Tensor:
@@ -124,6 +125,7 @@ class Condition:
                 xi_samples = xi_samples.reshape(1, -1)
             if xi_samples.ndim != 2 or xi_samples.numel() == 0 or not bool(torch.isfinite(xi_samples).all()):
                 raise ValueError(f"xi samples must be a finite (N, k) array, got shape {tuple(xi_samples.shape)}")
+        decay_rate, exp_rate = decay_rate or 0.0, exp_rate or 0.0  # None (an unresolved config's field): none
         for what, value in (("decay rate", decay_rate), ("exp rate", exp_rate)):
             if not (math.isfinite(value) and value >= 0):
                 raise ValueError(f"{what} must be finite and >= 0, got {value}")
@@ -175,9 +177,18 @@ class Condition:
         with torch.no_grad():
             return self.evaluate(system, lyap, ctrl, torch.as_tensor(z).to(dtype))
 
-    def loss(self, terms: DecreaseTerms, margin: float = 0.0) -> Tensor:
-        """Mean of ``(residual + margin)_+``; with ``margin = 0`` it is zero iff the condition holds."""
-        return torch.relu(self.residual(terms) + margin).mean()
+    def loss(self, terms: DecreaseTerms, margin: float = 0.0, margin_rate: float = 0.0,
+             level: float | None = None) -> Tensor:
+        """Mean of ``(residual + margin + margin_rate V)_+`` over the batch; with both margins 0 it is zero iff
+        the condition holds at every state. ``level``: only states with ``V <= level`` count (the others add
+        zero): the condition is then asked of the sublevel set ``{V <= level}`` (a region of attraction)."""
+        hinge = self.residual(terms) + margin
+        if margin_rate:
+            hinge = hinge + terms.value * margin_rate
+        hinge = torch.relu(hinge)
+        if level is not None:
+            hinge = hinge * (terms.value <= level).detach().to(hinge.dtype)
+        return hinge.mean()
 
     def per_sample(self, decay_rate: float = 0.0, exp_rate: float = 0.0) -> PlainDecrease | None:
         """The plain decrease condition, on the same model and samples, that this condition implies for every

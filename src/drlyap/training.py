@@ -41,7 +41,7 @@ class TrainConfig:
     wasserstein_radius: float | None = None  # r
     risk_level: float | None = None  # eps
     decay_rate: float | None = None  # gamma in Vdot + gamma ||x - x*|| <= 0
-    exp_rate: float = 0.0  # alpha of the exponential variant (adds alpha V inside the hinge)
+    exp_rate: float | None = None  # alpha of the exponential variant (adds alpha V inside the hinge)
     n_states: int | None = None  # M training states
     n_xi: int | None = None  # N samples of xi drawn from the system's distribution
     xi_samples: list[list[float]] | None = None  # explicit samples (N, k); overrides n_xi
@@ -70,13 +70,22 @@ class TrainConfig:
     # system's X. Only where training samples: the networks' input scaling, the acceptance check, the
     # verifier and the success criterion keep X.
     train_box: list[list[float]] | None = None
+    # Region-of-attraction training: the condition is asked only of {V <= roa_level}, and a hinge keeps V above
+    # roa_level on the faces of X (so the set lies inside X and is forward invariant once the condition holds
+    # on it); half of each batch is drawn inside the set. None: the paper's condition on all of X_delta.
+    roa_level: float | None = None
+    margin_rate: float | None = None  # adds margin_rate * V to the hinge: a margin that scales with V (0 at x*)
+    # "lqr": before training, fit V to the LQR's z^T P z (scaled to 1.2 roa_level, or 1, on the faces) and pi to
+    # its gain, by regression; lqr_weights = [Q diagonal, R diagonal] (None: Bryson's rule)
+    warm_start: str | None = None
+    lqr_weights: list[list[float]] | None = None
 
     def resolved(self, system: UncertainSystem) -> TrainConfig:
         """A copy with ``None`` fields filled from the system's defaults, validated."""
         cfg = copy.deepcopy(self)
         base = {"wasserstein_radius": 0.01, "risk_level": 0.1, "n_states": 3600, "n_xi": 5, "decay_rate": 1.0,
                 "delta": 0.1, "alpha_hat": 1.0, "margin": 0.0, "lyapunov_hidden": [32, 32],
-                "controller_hidden": [32, 32], "train_box": None, "near_share": 0.0}
+                "controller_hidden": [32, 32], "train_box": None, "near_share": 0.0, "margin_rate": 0.0, "exp_rate": 0.0}
         base.update(system.defaults)
         for key, value in base.items():
             if getattr(cfg, key) is None:
@@ -90,7 +99,7 @@ class TrainConfig:
             problems.append(f"method {self.method!r} (valid: baseline, dr)")
         if self.loss not in ("pointwise", "uniform"):
             problems.append(f"loss {self.loss!r} (valid: pointwise, uniform)")
-        for name in ("wasserstein_radius", "decay_rate", "exp_rate", "margin", "alpha_hat"):
+        for name in ("wasserstein_radius", "decay_rate", "exp_rate", "margin", "alpha_hat", "margin_rate"):
             value = getattr(self, name)
             if not (math.isfinite(value) and value >= 0):
                 problems.append(f"{name} = {value} (must be finite and >= 0)")
@@ -107,6 +116,16 @@ class TrainConfig:
             problems.append(f"lr = {self.lr} (must be > 0)")
         if not (math.isfinite(self.near_share) and 0 <= self.near_share <= 1):
             problems.append(f"near_share = {self.near_share} (must be in [0, 1])")
+        if self.roa_level is not None and not (math.isfinite(self.roa_level) and self.roa_level > 0):
+            problems.append(f"roa_level = {self.roa_level} (must be > 0, or None)")
+        if self.warm_start not in (None, "lqr"):
+            problems.append(f"warm_start {self.warm_start!r} (valid: lqr, or None)")
+        if self.lqr_weights is not None:
+            ok = (isinstance(self.lqr_weights, (list, tuple)) and len(self.lqr_weights) == 2
+                  and len(self.lqr_weights[0]) == system.n and len(self.lqr_weights[1]) == system.m)
+            if not ok:
+                problems.append(f"lqr_weights must be [Q diagonal ({system.n}), R diagonal ({system.m})], "
+                                f"got {self.lqr_weights!r}")
         if not (math.isfinite(self.delta) and self.delta >= 0):
             problems.append(f"delta = {self.delta} (must be >= 0)")
         if self.train_box is not None:
@@ -189,6 +208,55 @@ def draw_xi_samples(system: UncertainSystem, cfg: TrainConfig) -> Tensor:
     return system.sample_xi(int(cfg.n_xi), gen)
 
 
+def warm_start_lqr(system: UncertainSystem, lyapunov: Lyapunov, controller: Controller, cfg: TrainConfig,
+                   region: Region, generator: torch.Generator, iters: int = 500, n_states: int = 4096) -> dict:
+    """Fit the networks to an LQR pair by regression (in place): ``V ~ s z^T P z`` and ``varphi(z) - varphi(0) ~ -K z``.
+
+    ``P``, ``K``: the LQR design for ``cfg.lqr_weights`` (``[Q diagonal, R diagonal]``; None: Bryson's rule) on the
+    nominal linearisation; ``s`` puts the quadratic's minimum over the faces of the box at ``1.2 cfg.roa_level``
+    (1.2 without a level). States: half uniform in X_delta, half spread over the distance from x*. Returns the
+    design's gain, the scale and the final relative errors.
+    """
+    from drlyap.baselines import lqr_design  # baselines reads run directories, which read training configs
+
+    q, r = cfg.lqr_weights if cfg.lqr_weights is not None else (None, None)
+    design = lqr_design(system, q, r)
+    half = torch.maximum(-region.lo, region.hi)
+    scale = 1.2 * (cfg.roa_level or 1.0) / float((half.square() / torch.linalg.inv(design.P).diagonal()).min())
+    ref = next(lyapunov.parameters())
+    p_mat, k_mat = (design.P * scale).to(ref), design.K.to(ref)
+    opt = torch.optim.Adam(list(lyapunov.parameters()) + list(controller.parameters()), lr=cfg.lr)
+    for _ in range(iters):
+        z = torch.cat([region.sample(n_states // 2, generator), region.sample_near(n_states - n_states // 2, generator)])
+        z = z.to(ref)
+        v_target, u_target = ((z @ p_mat) * z).sum(-1), -(z @ k_mat.T)
+        v_err = (lyapunov(z) - v_target).square().mean() / v_target.square().mean()
+        u_err = (controller.raw(z) - u_target).square().mean() / u_target.square().mean().clamp_min(1e-12)
+        opt.zero_grad(set_to_none=True)
+        (v_err + u_err).backward()
+        opt.step()
+    return {"method": "lqr", "K": design.K.tolist(), "P_scale": scale, "v_relative_error": float(v_err.detach()),
+            "u_relative_error": float(u_err.detach()), "iterations": iters}
+
+
+def inside_states(lyapunov: Lyapunov, region: Region, level: float, count: int, device: torch.device,
+                  seed: int = 12345, tries: int = 20) -> Tensor:
+    """Up to ``count`` states ``(C, n)`` of X_delta with ``V <= level`` (uniform draws kept by rejection, a fixed
+    seed, at most ``tries`` rounds of ``4 count`` draws), float32 on ``device``."""
+    gen = torch.Generator().manual_seed(seed)
+    kept = []
+    found = 0
+    with torch.no_grad():
+        for _ in range(tries):
+            z = region.sample(4 * count, gen).float().to(device)
+            z = z[lyapunov(z) <= level]
+            kept.append(z)
+            found += z.shape[0]
+            if found >= count:
+                break
+    return torch.cat(kept)[:count]
+
+
 def train(cfg: TrainConfig, system: UncertainSystem | None = None, progress: bool = True,
           init: tuple[Lyapunov, Controller] | None = None, extra_states: Tensor | None = None) -> TrainResult:
     """Train a pair for ``cfg``.
@@ -229,13 +297,25 @@ def train(cfg: TrainConfig, system: UncertainSystem | None = None, progress: boo
     sampling = region if cfg.train_box is None else Region.of(training_region(system, cfg.train_box), cfg.delta)
 
     n_near = int(round(float(cfg.near_share) * int(cfg.n_states)))
+    level = cfg.roa_level
+    warm = None
+    if cfg.warm_start == "lqr" and not init:
+        warm = warm_start_lqr(system, lyapunov, controller, cfg, region, gen, n_states=min(4096, int(cfg.n_states)))
 
     def batch() -> Tensor:
-        z = sampling.sample(int(cfg.n_states) - n_near, gen)
+        n_uniform = int(cfg.n_states) - n_near
+        z = sampling.sample(n_uniform, gen)
+        if level is not None:  # half of the uniform share from inside (or just outside) the sublevel set
+            with torch.no_grad():
+                cand = sampling.sample(4 * n_uniform, gen)
+                inside = cand[lyapunov(cand.float().to(device)).cpu() <= 1.25 * level][: n_uniform // 2]
+            z = torch.cat([inside, z[: n_uniform - inside.shape[0]]])
         if n_near:
             z = torch.cat([z, sampling.sample_near(n_near, gen)])
         z = z.float().to(device)
         return z if extra_states is None else torch.cat([z, extra_states])
+
+    faces_val = region.sample_faces(20000, torch.Generator().manual_seed(12345)).float().to(device)
 
     z_train = batch()
     z_val = region.grid().float().to(device)
@@ -254,7 +334,11 @@ def train(cfg: TrainConfig, system: UncertainSystem | None = None, progress: boo
     def run_check(iteration: int) -> dict:
         nonlocal best, check_time
         tic = time.perf_counter()
-        check = acceptance_check(system, lyapunov, controller, condition, xi_all.to(device), region, validation=z_val)
+        validation = z_val
+        if level is not None:  # the set is a few % of the box: add 20,000 states drawn inside it (fixed seed)
+            validation = torch.cat([z_val, inside_states(lyapunov, region, level, 20000, device)])
+        check = acceptance_check(system, lyapunov, controller, condition, xi_all.to(device), region,
+                                 validation=validation, level=level, faces=faces_val if level is not None else None)
         check["iteration"] = iteration
         checks.append({k: check[k] for k in ("iteration", "passed", "max_violation", "violating_fraction")}
                       | {"hurwitz": check["jacobian"]["hurwitz"], "n_other_equilibria": len(check["other_equilibria"])})
@@ -272,7 +356,9 @@ def train(cfg: TrainConfig, system: UncertainSystem | None = None, progress: boo
             if cfg.resample and iteration > 1:
                 z_train = batch()
             terms = condition.terms(system, lyapunov, controller, z_train)
-            loss = condition.loss(terms, cfg.margin)
+            loss = condition.loss(terms, cfg.margin, cfg.margin_rate, level)
+            if level is not None:  # V above the level on the faces of X: {V <= level} inside X
+                loss = loss + torch.relu(level - lyapunov(region.sample_faces(1024, gen).float().to(device))).mean()
             if not torch.isfinite(loss):
                 lyapunov.load_state_dict(last_good[0])
                 controller.load_state_dict(last_good[1])
@@ -313,5 +399,6 @@ def train(cfg: TrainConfig, system: UncertainSystem | None = None, progress: boo
         "condition": condition.describe(),
         "xi_samples": xi_all.tolist(),
         "xi_train": xi_train.tolist(),
+        "warm_start": warm,
     }
     return TrainResult(cfg, system, lyapunov.cpu(), controller.cpu(), xi_all, condition, history, metrics)
