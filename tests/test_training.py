@@ -29,14 +29,17 @@ def test_near_states_spread_over_the_distance_from_x_star_in_four_states():
     lo, hi = cp.local_box()
     assert near.shape == (20000, 4) and (near.norm(dim=-1) >= 0.1).all()
     assert (near >= lo).all() and (near <= hi).all()
-    assert float((uniform.norm(dim=-1) < 0.3).double().mean()) < 0.01
-    assert float((near.norm(dim=-1) < 0.3).double().mean()) > 0.15
-    assert near.mean(0).abs().max() < 0.02  # no preferred direction
+    half = (hi - lo) / 2  # distances in box-scaled coordinates (cartpole's box is not a cube)
+    assert float(((uniform / half).norm(dim=-1) < 0.3).double().mean()) < 0.01
+    assert float(((near / half).norm(dim=-1) < 0.3).double().mean()) > 0.15
+    assert (near / half).mean(0).abs().max() < 0.02  # no preferred direction
 
 
 def test_the_validation_set_in_four_states_covers_the_neighbourhood_of_x_star():
-    z = Region.of(cartpole(), 0.1).grid()
-    near = (z.norm(dim=-1) < 0.3).sum()
+    cp = cartpole()
+    z = Region.of(cp, 0.1).grid()
+    lo, hi = cp.local_box()
+    near = ((z / ((hi - lo) / 2)).norm(dim=-1) < 0.3).sum()
     assert z.shape[0] >= 45000 and (z.norm(dim=-1) >= 0.1).all() and near > 1000  # uniform alone: about 100
 
 

@@ -532,19 +532,27 @@ def cartpole() -> UncertainSystem:
     only to first order; the damping enters affinely. Simulations and evaluations use the true model
     with the exact perturbed parameters. Training distribution: ``pole_mass ~ U(-0.01, 0.03)``
     (-10%..+30%), ``damping ~ U(0, 0.02)``; out-of-distribution test shift ``(0.04, 0.04)`` (a 40%
-    heavier pole and a damped pivot). State box ``[-1, 1]^4``.
+    heavier pole and a damped pivot). State box ``[-2, 2] x [-1, 1] x [-3, 3] x [-3, 3]``, test box
+    ``[-0.5, 0.5] x [-0.25, 0.25] x [-0.5, 0.5] x [-0.5, 0.5]``.
     """
     return UncertainSystem(
         name="cartpole", state_names=("x", "theta", "x_dot", "theta_dot"), input_names=("force",),
         param_names=("cart_mass", "pole_mass", "length", "gravity", "damping"),
         nominal_params=(1.0, 0.1, 1.0, 9.81, 0.0), uncertain=("pole_mass", "damping"), dynamics=_cartpole,
-        state_box=((-1.0,) * 4, (1.0,) * 4), input_box=((-30.0,), (30.0,)),
+        # X is wider than the pole's [-1, 1] in the cart's coordinates: catching the pole moves the cart (from the
+        # test box an LQR reaches 1.4 m and 2.3 m/s), and a certified invariant set must hold those trajectories
+        state_box=((-2.0, -1.0, -3.0, -3.0), (2.0, 1.0, 3.0, 3.0)), input_box=((-30.0,), (30.0,)),
         equilibrium=(0.0, 0.0, 0.0, 0.0), angle_dims=(1,),
+        test_box=((-0.5, -0.25, -0.5, -0.5), (0.5, 0.25, 0.5, 0.5)),
         xi_sampler=_cartpole_xi, test_xi=(0.04, 0.04),
-        reference_states=((0.5, 0.5, 0.0, 0.0), (-1.0, -1.0, 1.0, 1.0)),
+        reference_states=((0.5, 0.25, 0.0, 0.0), (-0.5, -0.25, 0.5, 0.5)),
         rl_timing=(0.02, 10.0),
+        # region-of-attraction training (docs/defaults.md "Cart-pole"): decrease on {V <= 1}, V > 1 on the faces,
+        # an LQR warm start, the scale-free decay alpha V plus a training margin 0.8 V; the paper's condition on
+        # the whole box was never met (no setting stabilised any test state)
         defaults={"n_states": 4096, "wasserstein_radius": 0.005, "risk_level": 0.1, "n_xi": 5,
-                  "decay_rate": 0.1, "delta": 0.1},
+                  "decay_rate": 0.0, "exp_rate": 0.3, "delta": 0.1, "near_share": 0.25, "roa_level": 1.0,
+                  "margin_rate": 0.8, "warm_start": "lqr", "lqr_weights": [[0.1, 1.0, 0.1, 1.0], [0.1]]},
         sim_dt=0.01, horizon=10.0, state_units=("m", "rad", "m/s", "rad/s"), input_units=("N",), time_unit="s",
         plot_dims=(1, 3),  # (theta, theta_dot): the pole's phase plane
         description=("Cart-pole (Tedrake, Underactuated Robotics), theta=0 upright: m_c=1, m_p=0.1, l=1, g=9.81, "
@@ -590,8 +598,10 @@ def quadrotor2d() -> UncertainSystem:
         angle_dims=(2,), xi_sampler=_quadrotor2d_xi, test_xi=(0.8, -2.5),
         reference_states=((0.5, 0.5, 0.5, 0.0, 0.0, 0.0), (-0.75, -0.75, -1.0, 2.0, 2.0, 2.0)),
         rl_timing=(0.02, 10.0),
+        # region-of-attraction training with an LQR warm start, as for the cart-pole (docs/defaults.md)
         defaults={"n_states": 4096, "wasserstein_radius": 0.05, "risk_level": 0.1, "n_xi": 5,
-                  "decay_rate": 0.1, "delta": 0.1},
+                  "decay_rate": 0.0, "exp_rate": 0.3, "delta": 0.1, "near_share": 0.25, "roa_level": 1.0,
+                  "margin_rate": 0.1, "warm_start": "lqr", "lqr_weights": [[1.0] * 6, [1.0, 1.0]]},
         sim_dt=0.01, horizon=10.0, state_units=("m", "m", "rad", "m/s", "m/s", "rad/s"), input_units=("N", "N"),
         time_unit="s",
         description=("Planar quadrotor (Yang et al. 2024): m=0.486 kg, I=3.83 g m^2, l=25 cm, thrusts in [0, 5.96] N, "

@@ -1,0 +1,155 @@
+"""Region-of-attraction training (TrainConfig.roa_level, warm_start) and the proofs on sublevel sets."""
+
+import dataclasses
+import math
+
+import pytest
+import torch
+
+from drlyap.baselines import lqr_design
+from drlyap.cegis import train_certified
+from drlyap.conditions import DecreaseTerms, PlainDecrease
+from drlyap.networks import LinearController, QuadraticLyapunov
+from drlyap.regions import Region, split
+from drlyap.systems import cartpole
+from drlyap.training import TrainConfig, train
+from drlyap.verification import box_bounds, verify_condition, verify_sublevel
+from drlyap.verification.linearisation import lyapunov_matrix
+from drlyap.verification.roa import boundary_minimum
+from handmade import linear_pair, small_pendulum
+
+F64 = torch.float64
+
+
+def saturated_pair(u_max: float = 3.0):
+    """A pendulum on a wide box with a weak torque: the LQR-like pair decreases near x* only."""
+    system = dataclasses.replace(small_pendulum(((-2.0, -4.0), (2.0, 4.0))), input_box=((-u_max,), (u_max,)))
+    design = lqr_design(system, [1.0, 1.0], [1.0])
+    p = lyapunov_matrix(design.A - design.B @ design.K, torch.tensor([2.0, 4.0], dtype=F64))
+    return system, QuadraticLyapunov(p), LinearController(design.K, system.input_box, system.equilibrium_input)
+
+
+def test_faces_are_on_the_boundary_in_proportion_to_their_area():
+    region = Region.of(cartpole(), 0.1)
+    z = region.sample_faces(20000, torch.Generator().manual_seed(0))
+    on_lo, on_hi = (z == region.lo).any(-1), (z == region.hi).any(-1)
+    assert bool((on_lo | on_hi).all()) and bool(((z >= region.lo) & (z <= region.hi)).all())
+    area = region.scale.prod() / region.scale  # one face per coordinate and side
+    axis = torch.where(z == region.lo, 1, 0) + torch.where(z == region.hi, 1, 0)
+    share = axis.double().mean(0) / axis.double().mean(0).sum()
+    assert torch.allclose(share, area / area.sum(), atol=0.02)
+
+
+def test_split_follows_the_sensitive_side_among_the_wide_ones():
+    lo, hi, scale = torch.zeros(3, 2, dtype=F64), torch.ones(3, 2, dtype=F64), torch.ones(2, dtype=F64)
+    hi[2, 1] = 1 / 32  # side 1 of box 2 is too thin to be chosen (< 1/16 of the widest)
+    sens = torch.tensor([[0.0, 5.0], [5.0, 0.0], [0.0, 5.0]], dtype=F64)
+    nlo, nhi = split(lo, hi, scale, sens)
+    assert torch.equal(nhi[:3, 1], torch.tensor([0.5, 1.0, 1 / 32], dtype=F64))  # box 0 on side 1; box 2 on side 0
+    assert torch.equal(nhi[:3, 0], torch.tensor([1.0, 0.5, 0.5], dtype=F64))
+    plain_lo, _ = split(lo, hi, scale)
+    assert plain_lo.shape == nlo.shape
+
+
+@pytest.mark.parametrize("enclosure", ["mean-value", "affine"])
+def test_box_bounds_sensitivity_is_zero_for_a_coordinate_the_objective_ignores(enclosure):
+    lo = torch.tensor([[0.0, -1.0], [0.5, 0.0]], dtype=F64)
+    hi = lo + 0.25
+    lower, upper, at, sens = box_bounds(lambda z: (z[:, :1] * z[:, :1]) * 3.0, lo, hi, enclosure, sensitivity=True)
+    assert sens.shape == (2, 2) and bool((sens[:, 1] < 1e-12).all()) and bool((sens[:, 0] > 0.05).all())
+    assert lower.shape == upper.shape == (2, 1)
+
+
+def test_the_loss_on_a_sublevel_set_ignores_states_above_the_level_and_scales_the_margin_with_v():
+    cond = PlainDecrease(torch.zeros(1, 2, dtype=F64))
+    terms = DecreaseTerms(vdot=torch.tensor([[0.5], [-1.0], [2.0]]), lip=None, decay=torch.zeros(3),
+                          value=torch.tensor([0.5, 0.5, 3.0]))
+    assert float(cond.loss(terms)) == pytest.approx(2.5 / 3)
+    assert float(cond.loss(terms, level=1.0)) == pytest.approx(0.5 / 3)  # the state with V = 3 is outside
+    assert float(cond.loss(terms, margin_rate=4.0, level=1.0)) == pytest.approx((2.5 + 1.0) / 3)
+
+
+def test_verification_on_a_sublevel_set_proves_what_holds_there_and_refutes_with_states_inside():
+    system, lyap, ctrl = saturated_pair()
+    cond = PlainDecrease(torch.zeros(1, 2, dtype=F64), 0.0, 0.05)  # sampled: fails from V = 0.0037 on
+    whole = verify_condition(system, lyap, ctrl, cond, 0.05, time_limit=20)
+    assert whole.status == "violated" and whole.level is None  # a weak torque cannot hold the pole far out
+    small = verify_condition(system, lyap, ctrl, cond, 0.05, time_limit=20, level=0.002)
+    assert small.status == "verified" and small.level == 0.002
+    region = Region.of(system, 0.05)
+    z = region.sample(100_000, torch.Generator().manual_seed(1))
+    with torch.no_grad():
+        inside = z[lyap(z) <= 0.002]
+        assert inside.shape[0] > 100 and bool((cond.evaluate(system, lyap, ctrl, inside) <= 0).all())
+    mid = verify_condition(system, lyap, ctrl, cond, 0.05, time_limit=20, level=0.05)
+    assert mid.status == "violated"
+    assert float(lyap(torch.tensor([mid.counterexample_local], dtype=F64))[0]) <= 0.05
+
+
+def test_boundary_minimum_brackets_the_sampled_minimum_for_quadratic_and_network_certificates():
+    system = small_pendulum()
+    region = Region.of(system, 0.0)
+    faces = region.sample_faces(50_000, torch.Generator().manual_seed(2))
+    _, lyap_q, _ = saturated_pair()
+    net, _ = linear_pair(system)
+    for v in (QuadraticLyapunov(lyap_q.P), net.double()):
+        low, high = boundary_minimum(v, region, time_limit=10, rel_tol=1e-3)
+        with torch.no_grad():
+            sampled = float(v(faces).min())
+        assert low <= sampled + 1e-12 and high >= low and high <= sampled * 1.01 + 1e-12
+
+
+def test_verify_sublevel_needs_the_set_inside_the_box():
+    system, lyap, ctrl = saturated_pair()
+    cond = PlainDecrease(torch.zeros(1, 2, dtype=F64), 0.0, 0.05)
+    region = Region.of(system, 0.05)
+    low, high = boundary_minimum(lyap, region)
+    ok = verify_sublevel(system, lyap, ctrl, cond, region, 0.002, time_limit=20)
+    assert ok["status"] == "verified" and ok["boundary_min_lower"] == pytest.approx(low)
+    out = verify_sublevel(system, lyap, ctrl, cond, region, 1.5 * high, time_limit=5)
+    assert out["status"] == "violated"
+
+
+def test_roa_config_is_validated():
+    for bad in ({"roa_level": 0.0}, {"roa_level": math.nan}, {"warm_start": "sos"},
+                {"lqr_weights": [[1.0, 1.0], [1.0]]}, {"margin_rate": -1.0}):
+        with pytest.raises(ValueError, match="invalid training config"):
+            TrainConfig(system="cartpole", **bad).resolved(cartpole())
+
+
+def test_roa_training_warm_starts_from_lqr_and_keeps_v_above_the_level_on_the_faces():
+    cfg = TrainConfig(system="cartpole", iters=20, check_every=10, n_states=512, lyapunov_hidden=[8],
+                      controller_hidden=[8], verify=False)
+    result = train(cfg, progress=False)
+    assert result.config.roa_level == 1.0 and result.config.warm_start == "lqr"
+    warm = result.metrics["warm_start"]
+    assert warm["method"] == "lqr" and warm["v_relative_error"] < 0.5 and warm["u_relative_error"] < 0.5  # 8 units
+    acc = result.metrics["acceptance"]
+    assert acc["level"] == 1.0 and acc["boundary_min"] > 1.0
+    # the controller stays the LQR's near x*: its linearisation is Hurwitz at every sample
+    assert acc["jacobian"]["hurwitz"]
+
+
+def test_certified_training_of_a_roa_run_proves_on_the_sublevel_set():
+    cfg = TrainConfig(system="cartpole", iters=20, check_every=10, n_states=512, lyapunov_hidden=[8],
+                      controller_hidden=[8], verify_rounds=0, verify_time=3.0)
+    with pytest.warns(UserWarning, match="NOT verified"):
+        result = train_certified(cfg, progress=False)
+    cert = result.metrics["certificate"]
+    assert cert["level"] == 1.0 and "{V <= 1}" in cert["region"] and cert["status"] in ("unknown", "violated")
+    assert 0.0 <= cert["verified_fraction"] <= 1.0
+
+
+def test_verify_command_names_the_sublevel_set_of_a_roa_run(tmp_path):
+    from click.testing import CliRunner
+
+    from drlyap.cli import main
+    from drlyap.rundir import save_run
+
+    cfg = TrainConfig(system="cartpole", iters=10, check_every=10, n_states=256, lyapunov_hidden=[8],
+                      controller_hidden=[8], verify=False)
+    run_dir = save_run(tmp_path / "cp", train(cfg, progress=False))
+    result = CliRunner().invoke(main, ["verify", str(run_dir), "--time-limit", "2"])
+    assert result.exit_code == 0, result.output
+    assert "on {V <= 1} only; min of V on the box's faces" in result.output
+    assert "of X_delta (condition or V > 1)" in result.output
