@@ -240,15 +240,14 @@ def warm_start_lqr(system: UncertainSystem, lyapunov: Lyapunov, controller: Cont
 
 
 def inside_states(lyapunov: Lyapunov, region: Region, level: float, count: int, device: torch.device,
-                  seed: int = 12345, tries: int = 20) -> Tensor:
-    """Up to ``count`` states ``(C, n)`` of X_delta with ``V <= level`` (uniform draws kept by rejection, a fixed
-    seed, at most ``tries`` rounds of ``4 count`` draws), float32 on ``device``."""
-    gen = torch.Generator().manual_seed(seed)
+                  generator: torch.Generator, tries: int = 20) -> Tensor:
+    """Up to ``count`` states ``(C, n)`` of X_delta with ``V <= level``: uniform draws kept by rejection, at most
+    ``tries`` rounds of ``4 count`` draws; float32 on ``device``."""
     kept = []
     found = 0
     with torch.no_grad():
         for _ in range(tries):
-            z = region.sample(4 * count, gen).float().to(device)
+            z = region.sample(4 * count, generator).float().to(device)
             z = z[lyapunov(z) <= level]
             kept.append(z)
             found += z.shape[0]
@@ -305,11 +304,9 @@ def train(cfg: TrainConfig, system: UncertainSystem | None = None, progress: boo
     def batch() -> Tensor:
         n_uniform = int(cfg.n_states) - n_near
         z = sampling.sample(n_uniform, gen)
-        if level is not None:  # half of the uniform share from inside (or just outside) the sublevel set
-            with torch.no_grad():
-                cand = sampling.sample(4 * n_uniform, gen)
-                inside = cand[lyapunov(cand.float().to(device)).cpu() <= 1.25 * level][: n_uniform // 2]
-            z = torch.cat([inside, z[: n_uniform - inside.shape[0]]])
+        if level is not None:  # up to half of the uniform share from inside (or just outside) the sublevel set
+            inside = inside_states(lyapunov, sampling, 1.25 * level, n_uniform // 2, device, gen, tries=1)
+            z = torch.cat([inside.double().cpu(), z[: n_uniform - inside.shape[0]]])
         if n_near:
             z = torch.cat([z, sampling.sample_near(n_near, gen)])
         z = z.float().to(device)
@@ -336,7 +333,8 @@ def train(cfg: TrainConfig, system: UncertainSystem | None = None, progress: boo
         tic = time.perf_counter()
         validation = z_val
         if level is not None:  # the set is a few % of the box: add 20,000 states drawn inside it (fixed seed)
-            validation = torch.cat([z_val, inside_states(lyapunov, region, level, 20000, device)])
+            inside = inside_states(lyapunov, region, level, 20000, device, torch.Generator().manual_seed(12345))
+            validation = torch.cat([z_val, inside])
         check = acceptance_check(system, lyapunov, controller, condition, xi_all.to(device), region,
                                  validation=validation, level=level, faces=faces_val if level is not None else None)
         check["iteration"] = iteration
