@@ -391,7 +391,7 @@ def certified_roa(system: UncertainSystem, lyapunov: Lyapunov, controller: Contr
     vobj = value_objective(lyapunov)
 
     # 1. min of V on the boundary of the box
-    boundary_min_lower = boundary_minimum(lyapunov, region, time_limit / 4, min_width, enclosure, rel_tol=0.02)[0]
+    boundary_min_lower = boundary_minimum(lyapunov, region, time_limit / 4, min_width, enclosure)[0]
     # 2. max of V on the delta-ball
     ball_max_upper = 0.0
     if delta > 0:
@@ -468,7 +468,7 @@ def _level_search(system: UncertainSystem, lyapunov: Lyapunov, controller: Contr
                 level, limited_by = v_min, "time limit"
             break
         clo, chi, lo, hi = lo[:batch], hi[:batch], lo[batch:], hi[batch:]
-        lb, ub, at, sens = box_bounds(objective, clo, chi, enclosure, sensitivity=True)
+        lb, ub, at = box_bounds(objective, clo, chi, enclosure)
         processed += clo.shape[0]
         v_lb = lb[:, -1]
         active = (v_lb <= level) & (ub[:, -1] >= floor)
@@ -490,7 +490,7 @@ def _level_search(system: UncertainSystem, lyapunov: Lyapunov, controller: Contr
             level, limited_by = float(v_lb[small].min()), "unverified box at minimum size"
         divide = open_ & ~small & (v_lb <= level)
         if divide.any():
-            nlo, nhi = keep(*split(clo[divide], chi[divide], scale, sens[divide]))
+            nlo, nhi = keep(*split(clo[divide], chi[divide], scale))
             lo, hi = torch.cat([lo, nlo]), torch.cat([hi, nhi])
     return level, limited_by, cex, processed
 
