@@ -46,7 +46,7 @@ class TrainConfig:
     n_xi: int | None = None  # N samples of xi drawn from the system's distribution
     xi_samples: list[list[float]] | None = None  # explicit samples (N, k); overrides n_xi
     delta: float | None = None  # radius of the excluded ball around x* (local coordinates)
-    lr: float = 0.002
+    lr: float | None = None  # Adam's step size (system default; 0.002)
     iters: int = 3000  # iteration cap
     check_every: int = 250  # acceptance check period (iterations)
     seed: int = 0
@@ -85,7 +85,8 @@ class TrainConfig:
         cfg = copy.deepcopy(self)
         base = {"wasserstein_radius": 0.01, "risk_level": 0.1, "n_states": 3600, "n_xi": 5, "decay_rate": 1.0,
                 "delta": 0.1, "alpha_hat": 1.0, "margin": 0.0, "lyapunov_hidden": [32, 32],
-                "controller_hidden": [32, 32], "train_box": None, "near_share": 0.0, "margin_rate": 0.0, "exp_rate": 0.0}
+                "controller_hidden": [32, 32], "train_box": None, "near_share": 0.0, "margin_rate": 0.0, "exp_rate": 0.0,
+                "lr": 0.002}
         base.update(system.defaults)
         for key, value in base.items():
             if getattr(cfg, key) is None:
