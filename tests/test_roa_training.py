@@ -153,3 +153,13 @@ def test_verify_command_names_the_sublevel_set_of_a_roa_run(tmp_path):
     assert result.exit_code == 0, result.output
     assert "on {V <= 1} only; min of V on the box's faces" in result.output
     assert "of X_delta (condition or V > 1)" in result.output
+
+
+def test_systems_default_the_step_size_and_the_exponential_rate():
+    from drlyap.systems import get_system
+
+    quad = TrainConfig(system="quadrotor2d").resolved(get_system("quadrotor2d"))
+    pend = TrainConfig(system="pendulum").resolved(get_system("pendulum"))
+    assert (quad.lr, quad.exp_rate, quad.roa_level) == (0.0005, 0.3, 1.0)
+    assert (pend.lr, pend.exp_rate, pend.roa_level, pend.warm_start) == (0.002, 0.0, None, None)
+    assert TrainConfig(system="pendulum", lr=0.01, exp_rate=0.2).resolved(get_system("pendulum")).lr == 0.01
