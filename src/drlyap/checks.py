@@ -138,13 +138,15 @@ def acceptance_check(system: UncertainSystem, lyapunov: Lyapunov, controller: Co
     (default: 20,000 fixed states on the box's boundary), so that ``{V <= level}`` lies inside the box.
     """
     z = region.grid() if validation is None else validation
-    residual = condition_residual(system, lyapunov, controller, condition, z)
+    asked = z
     boundary_min = None
     if level is not None:
-        residual = residual[lyapunov_values(lyapunov, z) <= level]
+        asked = z[(lyapunov_values(lyapunov, z) <= level).to(z.device)]
         if faces is None:
             faces = region.sample_faces(20000, torch.Generator().manual_seed(12345))
         boundary_min = float(lyapunov_values(lyapunov, faces).min())
+    residual = (condition_residual(system, lyapunov, controller, condition, asked) if asked.shape[0]
+                else torch.empty(0))
     max_violation = float(residual.max()) if residual.numel() else -math.inf
     jac = jacobian_check(system, controller, xi_samples)
     equilibria = find_equilibria(system, controller, xi_samples, region.delta)

@@ -313,7 +313,9 @@ def train(cfg: TrainConfig, system: UncertainSystem | None = None, progress: boo
         z = z.float().to(device)
         return z if extra_states is None else torch.cat([z, extra_states])
 
-    faces_val = region.sample_faces(20000, torch.Generator().manual_seed(12345)).float().to(device)
+    faces_val = None
+    if level is not None:
+        faces_val = region.sample_faces(20000, torch.Generator().manual_seed(12345)).float().to(device)
 
     z_train = batch()
     z_val = region.grid().float().to(device)
@@ -337,7 +339,7 @@ def train(cfg: TrainConfig, system: UncertainSystem | None = None, progress: boo
             inside = inside_states(lyapunov, region, level, 20000, device, torch.Generator().manual_seed(12345))
             validation = torch.cat([z_val, inside])
         check = acceptance_check(system, lyapunov, controller, condition, xi_all.to(device), region,
-                                 validation=validation, level=level, faces=faces_val if level is not None else None)
+                                 validation=validation, level=level, faces=faces_val)
         check["iteration"] = iteration
         checks.append({k: check[k] for k in ("iteration", "passed", "max_violation", "violating_fraction")}
                       | {"hurwitz": check["jacobian"]["hurwitz"], "n_other_equilibria": len(check["other_equilibria"])})

@@ -48,6 +48,18 @@ def value_objective(lyapunov: Lyapunov) -> Objective:
     return lambda z: lyapunov(z).unsqueeze(-1)
 
 
+def condition_and_value_objective(condition: Condition, system: UncertainSystem, lyapunov: Lyapunov,
+                                  controller: Controller) -> Objective:
+    """The condition's components followed by V as the last column, ``(B, Q + 1)``: what a proof restricted to a
+    sublevel set of V bounds."""
+    components, vobj = condition_objective(condition, system, lyapunov, controller), value_objective(lyapunov)
+
+    def objective(z):
+        return torch.cat([components(z), vobj(z)], -1)
+
+    return objective
+
+
 ENCLOSURES = ("mean-value", "affine")
 """The enclosures :func:`box_bounds` can use (the first is the default)."""
 
@@ -94,9 +106,9 @@ def box_bounds(objective: Objective, lo: Tensor, hi: Tensor, enclosure: str = "m
             spread = torch.zeros_like(at.lo)
             sens = torch.zeros_like(lo)
         else:
-            slope = torch.maximum(over.d.lo.abs(), over.d.hi.abs())
-            spread = _up((slope * rad.unsqueeze(1)).sum(-1), 4 * (n + 2) * EPS)
-            sens = (slope * rad.unsqueeze(1)).sum(1)
+            contribution = torch.maximum(over.d.lo.abs(), over.d.hi.abs()) * rad.unsqueeze(1)  # (B, Q, n)
+            spread = _up(contribution.sum(-1), 4 * (n + 2) * EPS)
+            sens = contribution.sum(1)
         upper = torch.minimum(over.v.hi, _up(at.hi + spread, REL1))
         lower = torch.maximum(over.v.lo, _down(at.lo - spread, REL1))
     upper = torch.where(torch.isnan(upper), torch.inf, upper)

@@ -37,8 +37,8 @@ from drlyap.verification.bounds import (
     check_enclosure,
     combine_lower,
     combine_upper,
+    condition_and_value_objective,
     condition_objective,
-    value_objective,
 )
 
 
@@ -109,12 +109,8 @@ def verify_condition(system: UncertainSystem, lyapunov: Lyapunov, controller: Co
     region = as_region(system, delta)
     delta = region.delta
     start = time.perf_counter()
-    objective = condition_objective(condition, system, lyapunov, controller)
-    if level is not None:
-        components, vobj = objective, value_objective(lyapunov)
-
-        def objective(z):
-            return torch.cat([components(z), vobj(z)], -1)
+    objective = (condition_objective if level is None else condition_and_value_objective)(
+        condition, system, lyapunov, controller)
     scale = region.scale
     lo, hi = region.boxes(grid)
     volume = region.volume()

@@ -69,7 +69,7 @@ from drlyap.verification.bounds import (
     check_enclosure,
     combine_lower,
     combine_upper,
-    condition_objective,
+    condition_and_value_objective,
     default_enclosure,
     value_objective,
 )
@@ -101,8 +101,9 @@ def boundary_minimum(lyapunov: Lyapunov, region: Region, time_limit: float = 5.0
         p = lyapunov.P.to(F64)
         inv_diag = torch.linalg.inv(p).diagonal()
         sides = torch.stack([region.lo, region.hi], -1)  # (n, 2)
-        low = float(_down((sides.square() / inv_diag[:, None]).min(), 1e-9))
-        i, j = divmod(int((sides.square() / inv_diag[:, None]).argmin()), 2)
+        minima = sides.square() / inv_diag[:, None]  # on each face's hyperplane
+        low = float(_down(minima.min(), 1e-9))
+        i, j = divmod(int(minima.argmin()), 2)
         point = torch.clamp(torch.linalg.solve(p, torch.eye(region.n, dtype=F64)[i]) * (sides[i, j] / inv_diag[i]),
                             region.lo, region.hi)
         point[i] = sides[i, j]
@@ -450,12 +451,8 @@ def _level_search(system: UncertainSystem, lyapunov: Lyapunov, controller: Contr
     centre when that centre is a confirmed violation in the region (``in_region(centre, V enclosure)``), else to
     V's lower bound on it once it reaches the minimum size or the time runs out. Returns the level, what
     limited it, the counterexample (local, or None) and the number of boxes processed."""
-    components = condition_objective(condition, system, lyapunov, controller)
+    objective = condition_and_value_objective(condition, system, lyapunov, controller)
     vobj = value_objective(lyapunov)
-
-    def objective(z):
-        return torch.cat([components(z), vobj(z)], -1)
-
     processed = 0
     cex = None
     while lo.shape[0]:

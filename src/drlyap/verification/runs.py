@@ -43,7 +43,7 @@ def verify_run(run, delta: float | None = None, xi: Sequence[float] | Tensor | N
     """
     cfg = run.config
     enclosure = check_enclosure(enclosure or default_enclosure(run.system.n))
-    level = getattr(cfg, "roa_level", None)
+    level = cfg.roa_level
     delta = float(cfg.delta if delta is None else delta)
     if not (delta == delta and delta >= 0 and delta != float("inf")):
         raise ValueError(f"delta must be finite and >= 0, got {delta}")
