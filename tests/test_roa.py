@@ -28,6 +28,16 @@ def _inside(system, lyap, level, count, seed):
     return z[v <= level][:count]
 
 
+def _assert_stays_and_converges(system, lyap, ctrl, z0, xi, level, horizon):
+    """Trajectories of the true model at ``xi`` from local states ``z0`` keep ``V <= level`` and reach x*."""
+    traj = simulate(system, lambda x: ctrl(system.to_local(x)), system.to_user(z0), torch.tensor(xi, dtype=F64),
+                    dt=0.005, horizon=horizon)
+    with torch.no_grad():
+        v = lyap(system.to_local(traj.x.reshape(-1, 2))).reshape(traj.x.shape[:2])
+    assert float(v.max()) <= level * (1 + 1e-9)
+    assert float(system.to_local(traj.x[-1]).norm(dim=-1).max()) < 1e-3
+
+
 def test_every_certified_set_converges_to_x_star_on_the_true_model():
     """Sample states in each certified {V <= c} (true model at several shifts), simulate the true closed loop:
     every trajectory converges to x* and V never rises above c."""
@@ -41,13 +51,7 @@ def test_every_certified_set_converges_to_x_star_on_the_true_model():
         level = roa["level"]
         z0 = _inside(system, l64, level, 200, seed=len(xi))
         assert z0.shape[0] >= 100
-        x0 = system.to_user(z0)
-        traj = simulate(system, lambda x: c64(system.to_local(x)), x0, torch.tensor(xi, dtype=F64), dt=0.005,
-                        horizon=12.0)
-        with torch.no_grad():
-            v = l64(system.to_local(traj.x.reshape(-1, 2))).reshape(traj.x.shape[:2])
-        assert float(v.max()) <= level * (1 + 1e-9)
-        assert float(system.to_local(traj.x[-1]).norm(dim=-1).max()) < 1e-3
+        _assert_stays_and_converges(system, l64, c64, z0, xi, level, horizon=12.0)
 
 
 def test_design_model_roa_for_the_dr_condition_proves_the_ball_too():
@@ -144,12 +148,7 @@ def test_the_linearisation_proves_the_ball_where_the_hessian_of_v_cannot():
     z0 = _inside(system, l64, level, 300, seed=11)
     rising = condition.exact(system, lyap, ctrl, z0) > 0  # V increases there (inside the ball)
     assert z0.shape[0] >= 200 and int(rising.sum()) >= 1
-    traj = simulate(system, lambda x: c64(system.to_local(x)), system.to_user(z0), torch.tensor(xi, dtype=F64),
-                    dt=0.005, horizon=15.0)
-    with torch.no_grad():
-        v = l64(system.to_local(traj.x.reshape(-1, 2))).reshape(traj.x.shape[:2])
-    assert float(v.max()) <= level * (1 + 1e-9)
-    assert float(system.to_local(traj.x[-1]).norm(dim=-1).max()) < 1e-3
+    _assert_stays_and_converges(system, l64, c64, z0, xi, level, horizon=15.0)
 
 
 def test_no_region_of_attraction_when_the_linearisation_is_not_hurwitz():
