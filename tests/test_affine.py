@@ -153,6 +153,57 @@ def test_interval_and_affine_mix_and_batches_do_not():
         1.0 / Affine.box(-torch.ones(2, 1, dtype=F64), torch.ones(2, 1, dtype=F64))
 
 
+
+def test_quadratic_part_keeps_products_of_linear_parts():
+    """``x * y`` keeps ``Lx Ly`` as a quadratic part: sums of products cancel before they are bounded."""
+    lo, hi = _boxes(30, 4, 0.4, seed=5)
+    z = Affine.box(lo, hi)
+    a, b, c, d = z.unbind(-1)
+    assert float(_width(a * b - b * a).max()) < 1e-12
+    dot = a * c + b * d - (c * a + d * b)
+    assert float(_width(dot).max()) < 1e-12
+    # (a + b)^2 - a^2 - 2 a b - b^2 is 0: only rounding remains
+    assert float(_width((a + b).square() - a.square() - a * b * 2.0 - b.square()).max()) < 1e-11
+    q = (a * b).q
+    assert q is not None and torch.allclose(q, q.transpose(-1, -2))  # kept symmetric
+
+
+@pytest.mark.parametrize("k", [2, 4, 6])
+def test_range_of_the_quadratic_part_encloses_corners_and_samples(k):
+    gen = torch.Generator().manual_seed(k)
+    q = torch.randn(50, k, k, generator=gen, dtype=F64)
+    q = (q + q.transpose(-1, -2)) / 2
+    form = Affine(torch.zeros(50, dtype=F64), None, None, q)
+    rng = form._quad()
+    e = torch.cat([torch.cartesian_prod(*[torch.tensor([-1.0, 1.0], dtype=F64)] * k).reshape(-1, k),
+                   torch.rand(3000, k, generator=gen, dtype=F64) * 2 - 1])
+    values = torch.einsum("sk,bkl,sl->bs", e, q, e)
+    assert bool((rng.lo[:, None] <= values).all() and (values <= rng.hi[:, None]).all())
+    assert _inside(form, values)
+
+
+@pytest.mark.parametrize("name", ["tanh", "sin", "cos", "exp", "reciprocal"])
+def test_second_order_functions_leave_a_third_order_remainder(name):
+    """On narrow boxes the remainder (beyond the exact linear and quadratic parts) shrinks like width^3."""
+    fn = OPS[name]
+    widths = []
+    for width in (0.02, 0.01):
+        lo, hi = _boxes(20, 2, width, seed=4)
+        out = fn(Affine.box(lo, hi))
+        assert _inside(out, _flat(fn, _samples(lo, hi, count=500)))
+        assert out.q is not None
+        widths.append(float((out.r.hi - out.r.lo).max()))
+    assert widths[1] < widths[0] / 5, widths  # third order: 8x; a first-order remainder would shrink 4x
+
+
+def test_wide_inputs_fall_back_to_the_secant_form():
+    """On wide ranges the Taylor remainder would exceed the secant's error: the first-order form is kept."""
+    lo, hi = _boxes(20, 2, 4.0, seed=6)
+    fn = OPS["tanh"]
+    out = fn(Affine.box(lo, hi))
+    assert _inside(out, _flat(fn, _samples(lo, hi)))
+    assert float((out.r.hi - out.r.lo).max()) <= 2.0 + 1e-9  # the secant's error; the Taylor remainder is ~100
+
 # ----------------------------------------------------------------------------------------- networks
 def _small_networks(n, seed=0, hidden=(16, 16), gain=0.7):
     torch.manual_seed(seed)

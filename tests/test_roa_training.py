@@ -14,6 +14,7 @@ from drlyap.regions import Region, split
 from drlyap.systems import cartpole
 from drlyap.training import TrainConfig, train
 from drlyap.verification import box_bounds, verify_condition, verify_sublevel
+from drlyap.verification.bounds import combine_upper, condition_and_value_objective, sublevel_upper
 from drlyap.verification.linearisation import lyapunov_matrix
 from drlyap.verification.roa import boundary_minimum
 from handmade import linear_pair, small_pendulum
@@ -85,6 +86,34 @@ def test_verification_on_a_sublevel_set_proves_what_holds_there_and_refutes_with
     assert mid.status == "violated"
     assert float(lyap(torch.tensor([mid.counterexample_local], dtype=F64))[0]) <= 0.05
 
+
+
+def test_the_s_procedure_bound_covers_every_state_of_the_box_inside_the_set():
+    """``sublevel_upper`` bounds the residual where ``V <= level`` (sampled), never above the same form's bound
+    without the multiplier, and proves boxes that straddle the level the plain bound cannot."""
+    system, lyap, ctrl = saturated_pair()
+    cond = PlainDecrease(torch.zeros(1, 2, dtype=F64), 0.0, 0.05)
+    level = 0.05
+    gen = torch.Generator().manual_seed(4)
+    region = Region.of(system, 0.0)
+    centre = region.sample(400, gen)
+    half = region.scale * 0.03 * torch.rand(400, 2, generator=gen, dtype=F64)
+    lo, hi = centre - half, centre + half
+    objective = condition_and_value_objective(cond, system, lyap, ctrl)
+    lower, upper, _, form = box_bounds(objective, lo, hi, "affine", keep_form=True)
+    bound = sublevel_upper(cond, form, level)
+    plain = combine_upper(cond, upper[:, :-1])
+    at_zero = combine_upper(cond, form.to_interval().hi[:, :-1])  # lam = 0 is among the multipliers tried
+    assert bool((bound <= at_zero + 1e-9 * at_zero.abs() + 1e-12).all())
+    u = torch.rand(400, 300, 2, generator=gen, dtype=F64)
+    pts = (lo[:, None] + (hi - lo)[:, None] * u).reshape(-1, 2)
+    with torch.no_grad():
+        v, res = lyap(pts).reshape(400, 300), cond.exact(system, lyap, ctrl, pts).reshape(400, 300)
+    worst = torch.where(v <= level, res, torch.tensor(-torch.inf, dtype=F64)).amax(1)
+    assert bool((worst <= bound).all())
+    straddle = (lower[:, -1] <= level) & (upper[:, -1] > level)
+    gained = straddle & (bound <= 0) & (plain > 0)
+    assert int(gained.sum()) > 0, int(straddle.sum())
 
 def test_boundary_minimum_brackets_the_sampled_minimum_for_quadratic_and_network_certificates():
     system = small_pendulum()

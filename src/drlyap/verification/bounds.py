@@ -22,7 +22,7 @@ import torch
 from torch import Tensor
 
 from drlyap.conditions import Condition
-from drlyap.enclosures import EPS, F64, REL1, Affine, Dual, Interval, _down, _up, is_enclosure
+from drlyap.enclosures import EPS, F64, REL1, Affine, Dual, Interval, _down, _max_lin_quad, _up, is_enclosure
 from drlyap.networks import Controller, Lyapunov
 from drlyap.systems import UncertainSystem
 
@@ -52,10 +52,13 @@ def condition_and_value_objective(condition: Condition, system: UncertainSystem,
                                   controller: Controller) -> Objective:
     """The condition's components followed by V as the last column, ``(B, Q + 1)``: what a proof restricted to a
     sublevel set of V bounds."""
-    components, vobj = condition_objective(condition, system, lyapunov, controller), value_objective(lyapunov)
 
     def objective(z):
-        return torch.cat([components(z), vobj(z)], -1)
+        terms = condition.terms(system, lyapunov, controller, z)  # V once: its value comes with its gradient
+        out = torch.cat([condition.components(terms), terms.value.unsqueeze(-1)], -1)
+        if not is_enclosure(out):
+            raise ValueError("the system's dynamics did not return an enclosure; write it with torch ops on its inputs")
+        return out
 
     return objective
 
@@ -77,15 +80,17 @@ def check_enclosure(enclosure: str) -> str:
 
 
 def box_bounds(objective: Objective, lo: Tensor, hi: Tensor, enclosure: str = "mean-value",
-               sensitivity: bool = False) -> tuple[Tensor, ...]:
+               sensitivity: bool = False, keep_form: bool = False) -> tuple:
     """Lower and upper bounds ``(B, Q)`` of ``objective`` over the boxes ``[lo, hi] (B, n)``.
 
     ``enclosure``: ``mean-value`` (the tighter of the plain interval bound and the mean-value form) or
     ``affine`` (the tighter of the plain interval bound and the affine-form bound). Also returns the enclosure
     of the objective at the box centres (an :class:`Interval` ``(B, Q)``). With ``sensitivity``, a fourth
-    tensor ``(B, n)``: how much each coordinate's half-width adds to the first-order spread of the bounds, summed
-    over the components (``|slope| * radius`` of the mean-value form, ``|coefficient|`` of the affine form):
-    the coordinate worth splitting.
+    tensor ``(B, n)``: how much each coordinate's half-width adds to the spread of the bounds, summed over the
+    components (``|slope| * radius`` of the mean-value form; ``|coefficient|`` of the affine form plus half of
+    each ``|q_kl|`` of its quadratic part for each of the entry's two symbols): the coordinate worth splitting.
+    With ``keep_form``, last: the objective's :class:`Affine` form ``(B, Q)`` over the boxes (``affine`` only;
+    None for ``mean-value``), for :func:`sublevel_upper`.
     """
     batch, n = lo.shape
     centre = (lo + hi) / 2
@@ -98,6 +103,8 @@ def box_bounds(objective: Objective, lo: Tensor, hi: Tensor, enclosure: str = "m
         lower = torch.maximum(over.lo, plain.lo)
         if sensitivity:
             sens = torch.zeros_like(lo) if form.g is None else form.g.abs().sum(1)
+            if form.q is not None:  # a quadratic term q_kl e_k e_l shrinks with either side: count it on both
+                sens = sens + (form.q.abs().sum(-1) + form.q.abs().sum(-2)).sum(1) / 2
     else:
         rad = _up(torch.maximum(hi - centre, centre - lo), REL1)
         eye = torch.eye(n, dtype=F64).expand(batch, n, n)
@@ -113,9 +120,12 @@ def box_bounds(objective: Objective, lo: Tensor, hi: Tensor, enclosure: str = "m
         lower = torch.maximum(over.v.lo, _down(at.lo - spread, REL1))
     upper = torch.where(torch.isnan(upper), torch.inf, upper)
     lower = torch.where(torch.isnan(lower), -torch.inf, lower)
+    out = (lower, upper, at)
     if sensitivity:
-        return lower, upper, at, torch.nan_to_num(sens, nan=torch.inf, posinf=torch.inf)
-    return lower, upper, at
+        out += (torch.nan_to_num(sens, nan=torch.inf, posinf=torch.inf),)
+    if keep_form:
+        out += (form if enclosure == "affine" else None,)
+    return out
 
 
 def combine_upper(condition: Condition, upper: Tensor) -> Tensor:
@@ -129,3 +139,46 @@ def combine_lower(condition: Condition, lower: Tensor) -> Tensor:
     """A lower bound ``(B,)`` of the residual from lower bounds ``(B, Q)`` of its components."""
     out = condition.combine(lower)
     return _down(out, 64 * EPS, lower.abs().amax(-1))
+
+
+def sublevel_upper(condition: Condition, form: Affine, level: float) -> Tensor:
+    """An upper bound ``(B,)`` of the residual over the part of each box where ``V <= level``, or ``-inf``-like
+    values where that part is empty: ``min over lam >= 0 of max over the box of residual - lam (V - level)``
+    (an S-procedure on the box: where ``V <= level`` the subtracted term is ``<= 0``).
+
+    ``form``: the :class:`Affine` form ``(B, Q + 1)`` of :func:`condition_and_value_objective` over the boxes.
+    The residual is ``condition.combine`` of its components, monotone and shifted by ``s`` when every component
+    is (true of every per-state condition: a max, a CVaR or one entry), so ``residual - lam (V - level)`` is the
+    combination of the components' ``comp_q - lam (V - level)``, each bounded on the shared noise symbols: the
+    parts of the condition's linear and quadratic variation that follow V's cancel. ``lam`` is tried at 0 and at every kink
+    ``g_qk / g_Vk > 0`` of the components' bounds (any ``lam >= 0`` is sound).
+    """
+    batch = form.shape[0]
+    if form.g is None:
+        return combine_upper(condition, _up(form.c[:, :-1] + form._higher().hi[:, :-1], REL1))
+    k = form.n_symbols
+    cq, gq, rq = form.c[:, :-1], form.g[:, :-1], form.r.hi[:, :-1]  # (B, Q), (B, Q, K), (B, Q)
+    cv, gv, rv = form.c[:, -1], form.g[:, -1], form.r.lo[:, -1]  # (B,), (B, K), (B,)
+    kinks = (gq / gv[:, None]).flatten(1)
+    lam = torch.cat([torch.zeros(batch, 1, dtype=F64, device=cq.device), kinks], 1)
+    lam = torch.where(torch.isfinite(lam) & (lam > 0), lam, 0.0)
+    best = None
+    for lo in range(0, lam.shape[1], 8):  # a few multipliers at a time: (B, 8, Q, K, K) at most
+        lm = lam[:, lo:lo + 8, None]  # (B, C, 1)
+        value = cq[:, None] - lm * (cv - level)[:, None, None] + rq[:, None] - lm * rv[:, None, None]
+        lin = gq[:, None] - lm[..., None] * gv[:, None, None]  # (B, C, Q, K)
+        mag = (cq.abs() + gq.abs().sum(-1) + rq.abs())[:, None] + lm * (
+            cv.abs() + level + gv.abs().sum(-1) + rv.abs())[:, None, None]
+        if form.q is None:
+            value = value + lin.abs().sum(-1)
+        else:  # sum_k max_e (lin_k e_k + m_kk e_k^2) + sum_{k != l} |m_kl|, m = q_q - lam q_V
+            qq, qv = form.q[:, :-1], form.q[:, -1]
+            m = qq[:, None] - lm[..., None, None] * qv[:, None, None]  # (B, C, Q, K, K)
+            diag = torch.diagonal(m, dim1=-2, dim2=-1)
+            value = value + _max_lin_quad(lin, diag).sum(-1) + m.abs().sum((-2, -1)) - diag.abs().sum(-1)
+            mag = mag + qq.abs().sum((-2, -1))[:, None] + lm * qv.abs().sum((-2, -1))[:, None, None]
+        value = _up(value, 8 * (k * k + k + 8) * EPS, mag)
+        value = torch.where(torch.isnan(value), torch.inf, value)
+        up = combine_upper(condition, value.flatten(0, 1)).reshape(batch, -1).amin(-1)
+        best = up if best is None else torch.minimum(best, up)
+    return best

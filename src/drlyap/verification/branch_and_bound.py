@@ -39,6 +39,7 @@ from drlyap.verification.bounds import (
     combine_upper,
     condition_and_value_objective,
     condition_objective,
+    sublevel_upper,
 )
 
 
@@ -130,7 +131,7 @@ def verify_condition(system: UncertainSystem, lyapunov: Lyapunov, controller: Co
             stopped = "box budget"
             break
         clo, chi, lo, hi = lo[:batch], hi[:batch], lo[batch:], hi[batch:]
-        lb_c, ub_c, at, sens = box_bounds(objective, clo, chi, enclosure, sensitivity=True)
+        lb_c, ub_c, at, sens, form = box_bounds(objective, clo, chi, enclosure, sensitivity=True, keep_form=True)
         processed += clo.shape[0]
         centre = (clo + chi) / 2
         in_region = region.in_region(centre)
@@ -140,6 +141,8 @@ def verify_condition(system: UncertainSystem, lyapunov: Lyapunov, controller: Co
             outside, in_region = lb_c[:, -1] > level, in_region & (at.hi[:, -1] <= level)
             ub_c, at_lo = ub_c[:, :-1], at_lo[:, :-1]
         ub = combine_upper(condition, ub_c)
+        if level is not None and form is not None:
+            ub = torch.minimum(ub, sublevel_upper(condition, form, level))
         centre_lb = combine_lower(condition, at_lo)
         if in_region.any():
             sup_lo = max(sup_lo, float(centre_lb[in_region].max()))

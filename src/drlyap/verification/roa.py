@@ -71,6 +71,7 @@ from drlyap.verification.bounds import (
     combine_upper,
     condition_and_value_objective,
     default_enclosure,
+    sublevel_upper,
     value_objective,
 )
 from drlyap.verification.branch_and_bound import as_region, maximize, verify_condition
@@ -465,11 +466,13 @@ def _level_search(system: UncertainSystem, lyapunov: Lyapunov, controller: Contr
                 level, limited_by = v_min, "time limit"
             break
         clo, chi, lo, hi = lo[:batch], hi[:batch], lo[batch:], hi[batch:]
-        lb, ub, at = box_bounds(objective, clo, chi, enclosure)
+        lb, ub, at, form = box_bounds(objective, clo, chi, enclosure, keep_form=True)
         processed += clo.shape[0]
         v_lb = lb[:, -1]
         active = (v_lb <= level) & (ub[:, -1] >= floor)
         res_ub = combine_upper(condition, ub[:, :-1])
+        if form is not None:  # a box proved on {V <= level} is proved on every smaller sublevel set
+            res_ub = torch.minimum(res_ub, sublevel_upper(condition, form, level))
         centre = (clo + chi) / 2
         open_ = active & (res_ub > 0)
         bad = (open_ & in_region(centre, at[:, -1]) & (at.hi[:, -1] >= floor)
