@@ -10,7 +10,7 @@ import pytest
 import torch
 
 from drlyap.conditions import DRPointwise, Nominal, TrueDecrease
-from drlyap.enclosures import Affine, Dual, Interval, is_enclosure
+from drlyap.enclosures import Affine, Dual, Interval, is_enclosure, quadratic_max
 from drlyap.networks import Controller, Lyapunov, TanhMLP
 from drlyap.systems import get_system
 from drlyap.training import TrainConfig, build_networks
@@ -181,6 +181,26 @@ def test_range_of_the_quadratic_part_encloses_corners_and_samples(k):
     assert bool((rng.lo[:, None] <= values).all() and (values <= rng.hi[:, None]).all())
     assert _inside(form, values)
 
+
+
+@pytest.mark.parametrize("k", [2, 4, 6])
+def test_joint_bound_of_linear_and_quadratic_parts_is_sound_and_exact_for_convex_diagonals(k):
+    gen = torch.Generator().manual_seed(10 + k)
+    g = torch.randn(60, k, generator=gen, dtype=F64)
+    q = torch.randn(60, k, k, generator=gen, dtype=F64)
+    q = (q + q.transpose(-1, -2)) / 2
+    e = torch.cat([torch.cartesian_prod(*[torch.tensor([-1.0, 1.0], dtype=F64)] * k).reshape(-1, k),
+                   torch.rand(5000, k, generator=gen, dtype=F64) * 2 - 1])
+    values = g @ e.T + torch.einsum("sk,bkl,sl->bs", e, q, e)
+    bound = quadratic_max(g, q)
+    assert bool((values.amax(-1) <= bound).all())
+    convex = q + torch.diag_embed(q.abs().sum(-1))  # diagonally dominant: the maximum is at a vertex
+    vals = g @ e.T + torch.einsum("sk,bkl,sl->bs", e, convex, e)
+    assert torch.allclose(quadratic_max(g, convex), vals.amax(-1), rtol=1e-9)
+    form = Affine(torch.zeros(60, dtype=F64), g, None, q)
+    tight, loose = form.tight_interval(), form.to_interval()
+    assert bool((tight.lo <= values.amin(-1)).all() and (values.amax(-1) <= tight.hi).all())
+    assert bool((tight.hi - tight.lo <= loose.hi - loose.lo).all())
 
 @pytest.mark.parametrize("name", ["tanh", "sin", "cos", "exp", "reciprocal"])
 def test_second_order_functions_leave_a_third_order_remainder(name):

@@ -502,6 +502,39 @@ def _drecip(x: Interval) -> Interval:
     return -x.reciprocal().square()
 
 
+def quadratic_max(g: Tensor, q: Tensor) -> Tensor:
+    """An upper bound ``(...)`` of ``max over e in [-1, 1]^K of g . e + e^T q e`` for ``g (..., K)`` and a
+    symmetric ``q (..., K, K)``, exact up to rounding when ``q``'s diagonal is non-negative.
+
+    Each concave diagonal term (``q_kk < 0``) is replaced by its tangent at ``t_k`` (``q_kk e^2 <= q_kk (2 t_k e -
+    t_k^2)``, ``t_k`` the one-coordinate maximiser); what is left is convex in every coordinate separately, so its
+    maximum over the cube is at one of the ``2^K`` vertices, all evaluated (two matrix products). Padded outward
+    for the rounding of the float64 sums.
+    """
+    k = g.shape[-1]
+    verts = _vertices(k, g.device)  # (2^K, K)
+    diag = torch.diagonal(q, dim1=-2, dim2=-1)
+    neg = torch.clamp(diag, max=0.0)
+    t = torch.where(neg < 0, torch.clamp(g / (-2.0 * torch.where(neg < 0, neg, -1.0)), -1.0, 1.0), 0.0)
+    g_t = g + 2.0 * neg * t
+    q_t = q - torch.diag_embed(neg)
+    outer = (verts.unsqueeze(-1) * verts.unsqueeze(-2)).flatten(1)  # (2^K, K^2)
+    values = g_t @ verts.T + q_t.flatten(-2) @ outer.T  # (..., 2^K)
+    best = values.amax(-1) - (neg * t * t).sum(-1)
+    mag = g.abs().sum(-1) + 2.0 * q.abs().sum((-2, -1))
+    return best + 4 * (k * k + k + 4) * EPS * mag + TINY
+
+
+_VERTS: dict = {}
+
+
+def _vertices(k: int, device) -> Tensor:
+    key = (k, str(device))
+    if key not in _VERTS:
+        _VERTS[key] = torch.cartesian_prod(*[torch.tensor([-1.0, 1.0], dtype=F64)] * k).reshape(-1, k).to(device)
+    return _VERTS[key]
+
+
 def _max_lin_quad(g: Tensor, d: Tensor) -> Tensor:
     """``max over e in [-1, 1] of g e + d e^2`` for each symbol, ``(..., K)`` (the vertex ``-g / 2d`` where it
     lies inside and ``d < 0``, else an end); float64, not yet padded for rounding."""
@@ -657,6 +690,18 @@ class Affine(_Enclosure):
     def to_interval(self) -> Interval:
         """The interval enclosure ``(B, ...)`` of the forms."""
         return Interval.const(self.c) + self._dev()
+
+    def tight_interval(self, max_symbols: int = 8) -> Interval:
+        """:meth:`to_interval` with the linear and quadratic parts bounded jointly over the cube's vertices
+        (:func:`quadratic_max`; the cross terms then cancel where they can) when there are at most
+        ``max_symbols`` symbols: ``2^K`` evaluations per entry, for final results rather than every step."""
+        if self.q is None or self.g is None or self.n_symbols > max_symbols:
+            return self.to_interval()
+        hi = quadratic_max(self.g, self.q)
+        lo = -quadratic_max(-self.g, -self.q)
+        dev = Interval(_down(lo + self.r.lo, REL1), _up(hi + self.r.hi, REL1))
+        tight, plain = Interval.const(self.c) + dev, self.to_interval()
+        return Interval(torch.maximum(tight.lo, plain.lo), torch.minimum(tight.hi, plain.hi))
 
     @property
     def lo(self) -> Tensor:

@@ -22,7 +22,19 @@ import torch
 from torch import Tensor
 
 from drlyap.conditions import Condition
-from drlyap.enclosures import EPS, F64, REL1, Affine, Dual, Interval, _down, _max_lin_quad, _up, is_enclosure
+from drlyap.enclosures import (
+    EPS,
+    F64,
+    REL1,
+    Affine,
+    Dual,
+    Interval,
+    _down,
+    _max_lin_quad,
+    _up,
+    is_enclosure,
+    quadratic_max,
+)
 from drlyap.networks import Controller, Lyapunov
 from drlyap.systems import UncertainSystem
 
@@ -97,7 +109,7 @@ def box_bounds(objective: Objective, lo: Tensor, hi: Tensor, enclosure: str = "m
     at = objective(Interval(centre, centre))
     if check_enclosure(enclosure) == "affine":
         form = objective(Affine.box(lo, hi))
-        over = form.to_interval()
+        over = form.tight_interval()
         plain = objective(Interval(lo, hi))
         upper = torch.minimum(over.hi, plain.hi)
         lower = torch.maximum(over.lo, plain.lo)
@@ -162,7 +174,7 @@ def sublevel_upper(condition: Condition, form: Affine, level: float) -> Tensor:
     kinks = (gq / gv[:, None]).flatten(1)
     lam = torch.cat([torch.zeros(batch, 1, dtype=F64, device=cq.device), kinks], 1)
     lam = torch.where(torch.isfinite(lam) & (lam > 0), lam, 0.0)
-    best = None
+    best, best_lam = None, None
     for lo in range(0, lam.shape[1], 8):  # a few multipliers at a time: (B, 8, Q, K, K) at most
         lm = lam[:, lo:lo + 8, None]  # (B, C, 1)
         value = cq[:, None] - lm * (cv - level)[:, None, None] + rq[:, None] - lm * rv[:, None, None]
@@ -179,6 +191,22 @@ def sublevel_upper(condition: Condition, form: Affine, level: float) -> Tensor:
             mag = mag + qq.abs().sum((-2, -1))[:, None] + lm * qv.abs().sum((-2, -1))[:, None, None]
         value = _up(value, 8 * (k * k + k + 8) * EPS, mag)
         value = torch.where(torch.isnan(value), torch.inf, value)
-        up = combine_upper(condition, value.flatten(0, 1)).reshape(batch, -1).amin(-1)
-        best = up if best is None else torch.minimum(best, up)
-    return best
+        up, at = combine_upper(condition, value.flatten(0, 1)).reshape(batch, -1).min(-1)
+        lam_at = lm[:, :, 0].gather(1, at[:, None])[:, 0]
+        if best is None:
+            best, best_lam = up, lam_at
+        else:
+            best_lam = torch.where(up < best, lam_at, best_lam)
+            best = torch.minimum(best, up)
+    if form.q is None or k > 8:
+        return best
+    # the chosen multiplier again, with the linear and quadratic parts bounded jointly (quadratic_max)
+    lm = best_lam[:, None]
+    qq, qv = form.q[:, :-1], form.q[:, -1]
+    value = (cq - lm * (cv - level)[:, None] + rq - lm * rv[:, None]
+             + quadratic_max(gq - lm[..., None] * gv[:, None], qq - lm[..., None, None] * qv[:, None]))
+    mag = (cq.abs() + gq.abs().sum(-1) + rq.abs() + qq.abs().sum((-2, -1))) + lm * (
+        cv.abs() + level + gv.abs().sum(-1) + rv.abs() + qv.abs().sum((-2, -1)))[:, None]
+    value = _up(value, 8 * (k * k + k + 8) * EPS, mag)
+    value = torch.where(torch.isnan(value), torch.inf, value)
+    return torch.minimum(best, combine_upper(condition, value))
