@@ -297,6 +297,7 @@ def train_certified(cfg: TrainConfig, system: UncertainSystem | None = None, pro
     from drlyap.verification import uniform_margin
 
     system = system or get_system(cfg.system)
+    cfg = cfg.resolved(system)  # the system's defaults (e.g. its seconds per proof)
     if not cfg.verify:
         result = train(cfg, system, progress=progress, init=init)
         result.metrics["certificate"] = {"status": "not checked", "condition": result.condition.label}

@@ -104,12 +104,13 @@ def systems(as_json: bool) -> None:
               help="Prove the trained condition after training, retraining on counterexamples (CEGIS) until it is "
                    "proved or the rounds/budget run out. --no-verify: training and the acceptance check only.")
 @click.option("--verify-rounds", type=int, default=5, show_default=True, help="Retraining rounds at most.")
-@click.option("--verify-time", type=float, default=30.0, show_default=True, help="Seconds per proof.")
+@click.option("--verify-time", type=float, default=None,
+              help="Seconds per proof [the system's: 30; 120 for cartpole and quadrotor2d].")
 @click.option("--verify-budget", type=float, default=None, help="Total seconds for the retraining rounds [no limit].")
 @click.option("--json", "as_json", is_flag=True, help="Print one JSON object (run_dir, system, metrics) on stdout.")
 def train(system: str, method: str, loss: str, radius: float | None, eps: float | None, gamma: float | None,
           exp_rate: float | None, xi_samples: str | None, iters: int, seed: int, device: str, warm_start: Path | None,
-          out: Path, quiet: bool, verify: bool, verify_rounds: int, verify_time: float,
+          out: Path, quiet: bool, verify: bool, verify_rounds: int, verify_time: float | None,
           verify_budget: float | None, as_json: bool) -> None:
     """Train a controller and Lyapunov certificate for SYSTEM, prove the trained condition, save a run directory.
 
@@ -419,7 +420,8 @@ def compare(run_dirs: tuple[Path, ...], xi: str, n_init: int, seed: int, horizon
 @click.argument("run_dir", type=click.Path(path_type=Path))
 @click.option("--delta", type=float, default=None, help="Radius of the excluded ball around x* [the run's delta].")
 @click.option("--xi", default=None, help="Also verify plain decrease on the true model at this shift (comma-separated).")
-@click.option("--time-limit", type=float, default=30.0, show_default=True, help="Seconds per branch and bound.")
+@click.option("--time-limit", type=float, default=None,
+              help="Seconds per branch and bound [the run's seconds per proof: 30; 120 for cartpole, quadrotor2d].")
 @click.option("--roa/--no-roa", default=False, show_default=True, help="Certify a sublevel set of V as region of attraction.")
 @click.option("--max-radius", is_flag=True,
               help="Also find the largest Wasserstein radius for which the DR pointwise condition (the run's eps, "
@@ -432,7 +434,7 @@ def compare(run_dirs: tuple[Path, ...], xi: str, n_init: int, seed: int, horizon
                    "states, about twice the cost per box) [affine from 4 states on, else mean-value]. The "
                    "region-of-attraction search uses the mean-value form.")
 @click.option("--json", "as_json", is_flag=True, help="Print one JSON object.")
-def verify(run_dir: Path, delta: float | None, xi: str | None, time_limit: float, roa: bool, max_radius: bool,
+def verify(run_dir: Path, delta: float | None, xi: str | None, time_limit: float | None, roa: bool, max_radius: bool,
            radius_tol: float, enclosure: str | None, as_json: bool) -> None:
     """Prove the decrease condition of RUN_DIR on the whole state box minus the delta-ball, or find a counterexample.
 
@@ -448,11 +450,13 @@ def verify(run_dir: Path, delta: float | None, xi: str | None, time_limit: float
     from drlyap.verification.robustness import robustness_lines
 
     try:
-        if time_limit <= 0:
+        if time_limit is not None and not time_limit > 0:
             raise ValueError(f"--time-limit must be > 0, got {time_limit}")
         if not radius_tol > 0:
             raise ValueError(f"--radius-tol must be > 0, got {radius_tol}")
         run = load_run(run_dir)
+        if time_limit is None:
+            time_limit = float(run.config.verify_time or 30.0)
         shift = None if xi is None else run.system.check_xi(_floats(xi, "--xi"))
         result = verify_run(run, delta=delta, xi=shift, time_limit=time_limit, roa=roa, enclosure=enclosure)
         if max_radius:

@@ -45,7 +45,8 @@ def summary_row(result: dict) -> dict:
 
 def reproduce(system: str | UncertainSystem, seeds: Sequence[int], out: Path, iters: int | None = None,
               progress: bool = True, device: str = "cpu", log=print, n_more: int = 200, sweep: Sequence[int] = SWEEP,
-              verify: bool = True, verify_rounds: int = 5, verify_time: float = 10.0, source: dict | None = None) -> dict:
+              verify: bool = True, verify_rounds: int = 5, verify_time: float | None = None,
+              source: dict | None = None) -> dict:
     """Run the paper's experiment for ``system`` (an object, or a spec for
     :func:`drlyap.systems.resolve_system`) and write everything under ``out`` (atomically).
 
@@ -54,7 +55,8 @@ def reproduce(system: str | UncertainSystem, seeds: Sequence[int], out: Path, it
     :func:`drlyap.cegis.train_certified` does: with ``verify``, counterexample-guided rounds (at most
     ``verify_rounds``) until the verifier proves their trained condition; then each pair's decrease on the
     true model at the test shift and its certified region of attraction there are proved
-    (:func:`drlyap.verification.verify_run`, ``verify_time`` seconds per check) and stored in its
+    (:func:`drlyap.verification.verify_run`, ``verify_time`` seconds per check; None: the run's seconds per
+    proof, 30 or the system's) and stored in its
     ``metrics["certificate"]``. ``source`` (:func:`drlyap.systems.system_source`) is recorded in each run
     directory; by default it is derived from a spec, or the registry name.
     """
@@ -90,7 +92,8 @@ def reproduce(system: str | UncertainSystem, seeds: Sequence[int], out: Path, it
                 bar.update(2)
                 run.metrics["evaluations"] = {"paper_10": paper, "more_200": more}
                 if verify:  # what the pair proves on the true model at the test shift (the figures draw its region)
-                    proof = verify_run(run, xi=xi_test, time_limit=verify_time, roa=True)
+                    proof = verify_run(run, xi=xi_test, roa=True,
+                                       time_limit=verify_time or float(run.config.verify_time or 30.0))
                     run.metrics["certificate"]["true_model"] = {
                         k: proof["true_model"][k] for k in ("status", "xi", "verified_fraction", "time_s", "counterexample")}
                     run.metrics["certificate"]["roa"] = proof["roa"]

@@ -64,7 +64,7 @@ class TrainConfig:
     # proof after training (drlyap.cegis.train_certified; drlyap.training.train ignores these)
     verify: bool = True  # prove the trained condition, with counterexample-guided rounds until it is proved
     verify_rounds: int = 5  # retraining rounds at most
-    verify_time: float = 30.0  # seconds per proof
+    verify_time: float | None = None  # seconds per proof (None: the system's; 30, 120 for cartpole and quadrotor2d)
     verify_budget: float | None = None  # total seconds for the rounds (None: no limit beyond the rounds)
     # Box ((low...), (high...)) in user coordinates the training states are drawn from; None: the
     # system's X. Only where training samples: the networks' input scaling, the acceptance check, the
@@ -86,7 +86,7 @@ class TrainConfig:
         base = {"wasserstein_radius": 0.01, "risk_level": 0.1, "n_states": 3600, "n_xi": 5, "decay_rate": 1.0,
                 "delta": 0.1, "alpha_hat": 1.0, "margin": 0.0, "lyapunov_hidden": [32, 32],
                 "controller_hidden": [32, 32], "train_box": None, "near_share": 0.0, "margin_rate": 0.0, "exp_rate": 0.0,
-                "lr": 0.002}
+                "lr": 0.002, "verify_time": 30.0}
         base.update(system.defaults)
         for key, value in base.items():
             if getattr(cfg, key) is None:
