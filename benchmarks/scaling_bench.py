@@ -6,8 +6,9 @@ Usage::
                                        [--verify-time 60] [--threads 1] [--json OUT]
 
 For each system it trains a DR pair as ``drlyap train SYSTEM --seed SEED`` does (``drlyap.cegis.train_certified``:
-the system's defaults, proof rounds until the trained condition is verified or 5 rounds of 30 s are spent;
-cart-pole and quadrotor train for a region of attraction with an LQR warm start), then reports
+the system's defaults, proof rounds until the trained condition is verified or 5 rounds are spent, 30 s per
+proof, 120 s for cart-pole and quadrotor; these train for a region of attraction with an LQR warm start), then
+reports
 
 * training states: states per batch x iterations (all rounds), the certificate's status and the seconds in all;
 * success under the shift: stabilised of 200 test-box states on the true model at the system's ``test_xi``

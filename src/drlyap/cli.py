@@ -430,9 +430,9 @@ def compare(run_dirs: tuple[Path, ...], xi: str, n_init: int, seed: int, horizon
 @click.option("--radius-tol", type=float, default=0.01, show_default=True,
               help="Relative width of the bracket [certified, unproved) that --max-radius stops at.")
 @click.option("--enclosure", type=click.Choice(["mean-value", "affine"]), default=None,
-              help="How boxes are bounded: the interval mean-value form, or affine forms (tighter with more than two "
-                   "states, about twice the cost per box) [affine from 4 states on, else mean-value]. The "
-                   "region-of-attraction search uses the mean-value form.")
+              help="How boxes are bounded: the interval mean-value form, or affine forms with an exact quadratic "
+                   "part (second-order Taylor models: far tighter from 4 states on, several times the cost per box) "
+                   "[affine from 4 states on, else mean-value]; the region-of-attraction search uses the same.")
 @click.option("--json", "as_json", is_flag=True, help="Print one JSON object.")
 def verify(run_dir: Path, delta: float | None, xi: str | None, time_limit: float | None, roa: bool, max_radius: bool,
            radius_tol: float, enclosure: str | None, as_json: bool) -> None:

@@ -5,13 +5,15 @@
 mean-value form ``f(centre) + [grad f over the box] . (box - centre)`` (the gradient enclosure comes from dual
 numbers; for the controller's clamp and the norms it is an enclosure of the Clarke generalised gradient, for
 which the mean-value theorem still holds). ``enclosure="affine"`` runs the function on affine forms
-(:class:`~drlyap.enclosures.Affine`, one noise symbol per box coordinate) instead of the mean-value form:
-it keeps the dependence on the coordinates through every layer, and was measured 10-100x tighter on
-4- and 6-state boxes (``benchmarks/enclosure_bench.py``) at about twice the cost per box.
+(:class:`~drlyap.enclosures.Affine`, one noise symbol per box coordinate, with an exact quadratic part)
+instead of the mean-value form: it keeps the dependence on the coordinates through every layer to second
+order, and its result's linear and quadratic parts are bounded jointly over the cube's vertices
+(:meth:`~drlyap.enclosures.Affine.tight_interval`); ``benchmarks/enclosure_bench.py`` compares the widths.
 
 :func:`condition_objective` is the function the verifier bounds for a decrease condition: the condition's
 own ``components(terms(...))`` (:mod:`drlyap.conditions`), evaluated by the networks' and the system's own
-code on enclosures.
+code on enclosures. On a sublevel set ``{V <= c}``, :func:`sublevel_upper` bounds the residual where
+``V <= c`` only (an S-procedure on the affine form of the condition and V together).
 """
 
 from __future__ import annotations

@@ -8,8 +8,8 @@ functions over a union of boxes; :func:`uniform_margin` uses it for the uniform 
 The networks are the stored weights read as float64 numbers and evaluated in exact real arithmetic;
 every bound is computed in float64 with outward rounding (:mod:`drlyap.enclosures`), so it encloses the
 real value. Boxes whose upper bound is ``<= 0`` are verified, a box whose centre violates the condition
-is a counterexample, the rest are bisected along their widest normalised side until a time limit, box
-budget or minimum box size is reached.
+is a counterexample, the rest are bisected (on the side that adds most to the bound, among the sides at
+least 1/16 of the widest normalised one) until a time limit, box budget or minimum box size is reached.
 
 Limits: the claim is about the float64 reading of the weights in real arithmetic (training and simulation
 run float32; counterexamples report the residual both ways). A box straddling the sphere ``||z|| = delta``
