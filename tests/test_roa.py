@@ -161,3 +161,19 @@ def test_no_region_of_attraction_when_the_linearisation_is_not_hurwitz():
     assert not local["proved"] and "not Hurwitz" in local["reason"]
     roa = certified_roa(system, lyap, flipped, condition, region, time_limit=5, samples_per_axis=50)
     assert roa["kind"] != "region of attraction" and not roa["certified"]
+
+
+def test_a_capped_search_certifies_the_level_asked_for_and_no_more():
+    """``max_level`` below the largest certifiable level: the search stops at the cap (one rounding step below),
+    says so, and the set is still a region of attraction whose trajectories converge."""
+    system = small_pendulum()
+    lyap, ctrl = linear_pair(system)
+    condition = TrueDecrease(torch.tensor([[0.0, 0.0]], dtype=F64), 0.05)
+    full = certified_roa(system, lyap, ctrl, condition, 0.2, time_limit=10, samples_per_axis=50)
+    cap = full["level"] / 3
+    capped = certified_roa(system, lyap, ctrl, condition, 0.2, time_limit=10, samples_per_axis=50, max_level=cap)
+    assert capped["certified"] and capped["limited_by"] == "level asked for", capped
+    assert cap * (1 - 1e-12) <= capped["level"] <= cap
+    assert capped["share_of_box"] < full["share_of_box"]
+    z0 = _inside(system, lyap.double(), capped["level"], 50, seed=3)
+    _assert_stays_and_converges(system, lyap.double(), ctrl.double(), z0, [0.0, 0.0], capped["level"], horizon=12.0)

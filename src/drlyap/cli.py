@@ -423,6 +423,9 @@ def compare(run_dirs: tuple[Path, ...], xi: str, n_init: int, seed: int, horizon
 @click.option("--time-limit", type=float, default=None,
               help="Seconds per branch and bound [the run's seconds per proof: 30; 120 for cartpole, quadrotor2d].")
 @click.option("--roa/--no-roa", default=False, show_default=True, help="Certify a sublevel set of V as region of attraction.")
+@click.option("--roa-time", type=float, default=None,
+              help="Seconds for --roa's search: the condition on a sublevel set, then decrease inside the ball "
+                   "[3x --time-limit].")
 @click.option("--max-radius", is_flag=True,
               help="Also find the largest Wasserstein radius for which the DR pointwise condition (the run's eps, "
                    "samples, gamma) is proved, and the largest box of shifts for which decrease on the true model "
@@ -434,8 +437,8 @@ def compare(run_dirs: tuple[Path, ...], xi: str, n_init: int, seed: int, horizon
                    "part (second-order Taylor models: far tighter from 4 states on, several times the cost per box) "
                    "[affine from 4 states on, else mean-value]; the region-of-attraction search uses the same.")
 @click.option("--json", "as_json", is_flag=True, help="Print one JSON object.")
-def verify(run_dir: Path, delta: float | None, xi: str | None, time_limit: float | None, roa: bool, max_radius: bool,
-           radius_tol: float, enclosure: str | None, as_json: bool) -> None:
+def verify(run_dir: Path, delta: float | None, xi: str | None, time_limit: float | None, roa: bool,
+           roa_time: float | None, max_radius: bool, radius_tol: float, enclosure: str | None, as_json: bool) -> None:
     """Prove the decrease condition of RUN_DIR on the whole state box minus the delta-ball, or find a counterexample.
 
     A run trained for a region of attraction (cartpole's default) has its condition proved on the sublevel set
@@ -452,13 +455,16 @@ def verify(run_dir: Path, delta: float | None, xi: str | None, time_limit: float
     try:
         if time_limit is not None and not time_limit > 0:
             raise ValueError(f"--time-limit must be > 0, got {time_limit}")
+        if roa_time is not None and not roa_time > 0:
+            raise ValueError(f"--roa-time must be > 0, got {roa_time}")
         if not radius_tol > 0:
             raise ValueError(f"--radius-tol must be > 0, got {radius_tol}")
         run = load_run(run_dir)
         if time_limit is None:
             time_limit = float(run.config.verify_time or 30.0)
         shift = None if xi is None else run.system.check_xi(_floats(xi, "--xi"))
-        result = verify_run(run, delta=delta, xi=shift, time_limit=time_limit, roa=roa, enclosure=enclosure)
+        result = verify_run(run, delta=delta, xi=shift, time_limit=time_limit, roa=roa, enclosure=enclosure,
+                            roa_time=roa_time)
         if max_radius:
             result["robustness"] = jsonable(run_robustness(run, delta=delta, tol=radius_tol, time_limit=time_limit,
                                                            total_time=8 * time_limit))

@@ -55,8 +55,8 @@ def reproduce(system: str | UncertainSystem, seeds: Sequence[int], out: Path, it
     :func:`drlyap.cegis.train_certified` does: with ``verify``, counterexample-guided rounds (at most
     ``verify_rounds``) until the verifier proves their trained condition; then each pair's decrease on the
     true model at the test shift and its certified region of attraction there are proved
-    (:func:`drlyap.verification.verify_run`, ``verify_time`` seconds per check; None: the run's seconds per
-    proof, 30 or the system's) and stored in its
+    (:func:`drlyap.verification.verify_run`, ``verify_time`` seconds per check, three times that for the
+    region; None: the run's seconds per proof, 30 or the system's) and stored in its
     ``metrics["certificate"]``. ``source`` (:func:`drlyap.systems.system_source`) is recorded in each run
     directory; by default it is derived from a spec, or the registry name.
     """

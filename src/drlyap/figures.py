@@ -76,7 +76,7 @@ def plot_run(run_dir: str | os.PathLike, xi: Sequence[float] | None = None, n_in
     where = plotting.shift_text(system, shift)
 
     if roa:
-        found = verify_run(run, xi=shift, time_limit=time_limit, roa=True)["roa"] or {}
+        found = verify_run(run, xi=shift, time_limit=time_limit, roa=True, roa_time=time_limit)["roa"] or {}
         missing = found.get("error", "the verifier certified no sublevel set of V (level <= 0)")
         found = dict(found, xi=None if shift is None else shift.tolist()) if "level" in found else None
     elif roa is None:

@@ -188,9 +188,13 @@ class Region:
         lo, hi = box_grid(self.lo, self.hi, per_axis or default_grid(self.n))
         return self.keep(lo, hi)
 
+    def meets(self, lo: Tensor, hi: Tensor) -> Tensor:
+        """``(B,)``: the boxes that meet X_delta (not entirely inside the open ball)."""
+        return ~inside_ball(lo, hi, self.delta)
+
     def keep(self, lo: Tensor, hi: Tensor) -> tuple[Tensor, Tensor]:
         """The boxes that meet X_delta (those entirely inside the open ball are dropped)."""
-        keep = ~inside_ball(lo, hi, self.delta)
+        keep = self.meets(lo, hi)
         return lo[keep], hi[keep]
 
     def in_region(self, points: Tensor) -> Tensor:

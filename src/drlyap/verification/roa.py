@@ -5,8 +5,8 @@
 1. lies inside the state box (``V > c`` on the box boundary), and
 2. satisfies the condition's decrease on ``S`` outside the delta-ball (branch and bound, as
    :func:`drlyap.verification.verify_condition`), and
-3. inside the delta-ball, ``Vdot < 0`` except at x* (:func:`local_decrease`): a second-order proof on a
-   cube around x* and a branch and bound on the rest of the ball.
+3. inside the delta-ball, ``Vdot < 0`` on S except at x* (:func:`local_decrease`): a second-order proof on a
+   cube around x* and a branch and bound on the rest of the ball's part in S.
 
 With all three, ``Vdot < 0`` on ``S`` minus x*, so ``S`` is forward invariant and every trajectory that
 starts in it converges to x* (Lyapunov / LaSalle): ``S`` is a **region of attraction** of the model the
@@ -202,10 +202,12 @@ def _second_order_cube(system: UncertainSystem, lyapunov: Lyapunov, controller: 
 
 
 def local_decrease(system: UncertainSystem, lyapunov: Lyapunov, controller: Controller, condition: Condition,
-                   region: Region, time_limit: float = 10.0, min_width: float = 1e-4) -> dict:
-    """Prove ``Vdot < 0`` on the delta-ball minus x* for every sample of ``condition``'s model (see the module
-    docstring). Returns ``proved``, the cube half-width ``cube`` of the second-order proof, its bound
-    ``hessian_bound``, the ring verification's status and ``reason`` when it fails."""
+                   region: Region, time_limit: float = 10.0, min_width: float = 1e-4,
+                   enclosure: str = "mean-value", level: float | None = None) -> dict:
+    """Prove ``Vdot < 0`` on the delta-ball minus x* (with ``level``: on its part in ``{V <= level}``) for every
+    sample of ``condition``'s model (see the module docstring). Returns ``proved``, the cube half-width ``cube``
+    of the second-order proof, its bound ``hessian_bound``, the ring verification's status and ``reason`` when
+    it fails."""
     start = time.perf_counter()
     out: dict = {"method": "second order", "proved": False, "cube": None, "hessian_bound": None, "ring": None,
                  "reason": ""}
@@ -251,8 +253,9 @@ def local_decrease(system: UncertainSystem, lyapunov: Lyapunov, controller: Cont
     ring = Region(torch.maximum(region.lo, torch.full_like(region.lo, -delta)),
                   torch.minimum(region.hi, torch.full_like(region.hi, delta)), r_in)
     left = max(0.5, time_limit - (time.perf_counter() - start))
-    res = verify_condition(system, lyapunov, controller, ring_plain, ring, time_limit=left, min_width=min_width,
-                           stop_at_counterexample=True)
+    fine = min(min_width, 0.05 * r_in / float(region.scale.max()))  # boxes must resolve the cube's scale
+    res = verify_condition(system, lyapunov, controller, ring_plain, ring, time_limit=left, min_width=fine,
+                           stop_at_counterexample=True, enclosure=enclosure, level=level)
     out["ring"] = {"status": res.status, "decay_rate": gamma_in, "inner_radius": r_in, "boxes": res.boxes_processed,
                    "verified_fraction": res.verified_fraction}
     out["proved"] = res.status == "verified"
@@ -264,7 +267,7 @@ def local_decrease(system: UncertainSystem, lyapunov: Lyapunov, controller: Cont
 
 def linearisation_local(system: UncertainSystem, lyapunov: Lyapunov, controller: Controller, condition: Condition,
                         region: Region, level: float, time_limit: float = 10.0, min_width: float = 1e-4,
-                        batch: int = 4096) -> dict:
+                        batch: int = 4096, enclosure: str = "mean-value") -> dict:
     """The local proof from the closed-loop linearisation, for when V's own second-order proof fails (module
     docstring, "The linearisation proof"). ``level``: the level ``c`` up to which ``condition`` is proved on
     ``{V <= c}`` outside the delta-ball. Returns ``proved``, ``level`` (the largest ``c' <= c`` for which the
@@ -307,7 +310,7 @@ def linearisation_local(system: UncertainSystem, lyapunov: Lyapunov, controller:
     w_roa = certified_roa(system, w, controller, ring, Region(region.lo, region.hi, r_in),
                           time_limit=max(1.0, 0.4 * (deadline - time.perf_counter())),
                           min_width=min(min_width, 0.05 * r_in / float(region.scale.max())),
-                          samples_per_axis=50, batch=batch, linearisation=False)
+                          samples_per_axis=50, batch=batch, linearisation=False, enclosure=enclosure)
     c_q = w_roa["level"]
     out["q_level"] = c_q
     out["q_roa"] = {k: w_roa[k] for k in ("level", "kind", "limited_by", "boxes_processed", "time_s")} | {
@@ -320,11 +323,11 @@ def linearisation_local(system: UncertainSystem, lyapunov: Lyapunov, controller:
     blo, bhi = box_grid(region.lo, region.hi, default_grid(system.n))
 
     def outside(a, b):
-        return box_bounds(wobj, a, b)[1][:, 0] >= c_q
+        return box_bounds(wobj, a, b, enclosure)[1][:, 0] >= c_q
 
     _, neg_up, _ = maximize(lambda z: -vobj(z), blo, bhi, region.scale, box_ok=outside,
                             centre_ok=lambda z: w(z) >= c_q, min_width=min_width,
-                            time_limit=max(1.0, 0.3 * (deadline - time.perf_counter())))
+                            time_limit=max(1.0, 0.3 * (deadline - time.perf_counter())), enclosure=enclosure)
     c_1 = float(_down(_down(-neg_up[0], REL1), 1e-9))
     out["inner_level"] = c_1
     if not c_1 > 0:
@@ -343,18 +346,19 @@ def linearisation_local(system: UncertainSystem, lyapunov: Lyapunov, controller:
     alo, ahi = box_grid(torch.maximum(region.lo, torch.full_like(region.lo, -delta)),
                         torch.minimum(region.hi, torch.full_like(region.hi, delta)), default_grid(system.n))
 
-    def keep(a, b):
-        meets = near_dist(a, b) < delta
-        return a[meets], b[meets]
+    def meets(a, b):
+        return near_dist(a, b) < delta
 
-    alo, ahi = keep(alo, ahi)
+    fits = meets(alo, ahi)
+    alo, ahi = alo[fits], ahi[fits]
     # boxes near {V = c_1} must resolve a set as small as {W <= c_q}: a minimum width relative to it
     extent = (c_q * torch.linalg.inv(p).diagonal()).sqrt()
     fine = min(min_width, 1e-4 * float((extent / region.scale).min()))
     c_2, limited_by, cex, boxes = _level_search(
         system, lyapunov, controller, inner, alo, ahi, region.scale, level, "outer proof",
-        max(deadline, time.perf_counter() + 1.0), keep=keep,
-        in_region=lambda centre, v: centre.norm(dim=-1) < delta, floor=c_1, min_width=fine, batch=batch)
+        max(deadline, time.perf_counter() + 1.0), meets=meets,
+        in_region=lambda centre, v: centre.norm(dim=-1) < delta, floor=c_1, min_width=fine, batch=batch,
+        enclosure=enclosure)
     c_2 = _below(c_2)
     out["annulus"] = {"level": c_2, "limited_by": limited_by, "boxes": boxes, "decay_rate": inner.decay_rate,
                       "exp_rate": inner.exp_rate, "region": "delta-ball" if strict else "box", "min_width": fine,
@@ -371,7 +375,7 @@ def linearisation_local(system: UncertainSystem, lyapunov: Lyapunov, controller:
 def certified_roa(system: UncertainSystem, lyapunov: Lyapunov, controller: Controller, condition: Condition,
                   delta: float | Region, time_limit: float = 10.0, min_width: float = 1e-4,
                   samples_per_axis: int = 400, batch: int = 4096, linearisation: bool = True,
-                  enclosure: str | None = None) -> dict:
+                  enclosure: str | None = None, max_level: float = math.inf) -> dict:
     """The largest level ``c`` (up to the search's resolution) with ``S = {V <= c}`` certified (module docstring).
 
     Returns a JSON-friendly dict: ``level`` c; ``kind``: ``"region of attraction"`` (every trajectory of the
@@ -381,8 +385,10 @@ def certified_roa(system: UncertainSystem, lyapunov: Lyapunov, controller: Contr
     :func:`linearisation_local`'s, ``method`` says which); ``outer_level`` (the level proved outside the ball);
     ``boundary_min_lower``, ``ball_max_upper``, ``share_of_box`` (share of the box
     volume in S), ``limited_by``, a ``counterexample`` that limited the level, times and boxes. ``enclosure``
-    bounds V on the boundary and the ball and the condition in the level search (None:
-    :func:`~drlyap.verification.bounds.default_enclosure`); the proof inside the ball keeps the mean-value form.
+    bounds V and the conditions in every branch and bound here, inside the ball too (None:
+    :func:`~drlyap.verification.bounds.default_enclosure`); the Hessian enclosure on the cube around x* is
+    interval arithmetic on nested dual numbers. ``max_level`` caps the search (e.g. at the level a region of
+    attraction was trained for: ``limited_by`` then reads ``"level asked for"`` when the cap is proved).
     """
     start = time.perf_counter()
     enclosure = check_enclosure(enclosure or default_enclosure(system.n))
@@ -405,19 +411,23 @@ def certified_roa(system: UncertainSystem, lyapunov: Lyapunov, controller: Contr
         ball_max_upper = float(up[0])
     # 3. the decrease condition on the sublevel set outside the ball
     lo, hi = region.boxes(grid)
+    top, why = (boundary_min_lower, "box boundary") if boundary_min_lower <= max_level else (max_level,
+                                                                                             "level asked for")
     level, limited_by, cex, processed = _level_search(
-        system, lyapunov, controller, condition, lo, hi, scale, boundary_min_lower, "box boundary",
-        start + time_limit, keep=region.keep, in_region=lambda centre, v: region.in_region(centre),
+        system, lyapunov, controller, condition, lo, hi, scale, top, why,
+        start + (0.6 if delta > 0 else 1.0) * time_limit, meets=region.meets,  # 40% kept for the ball
+        in_region=lambda centre, v: region.in_region(centre),
         min_width=min_width, batch=batch, enclosure=enclosure)
     deadline = start + time_limit
     c = _below(level)
     # 4. inside the ball
-    left = max(1.0, deadline - time.perf_counter())
-    local = local_decrease(system, lyapunov, controller, condition, region, time_limit=left, min_width=min_width)
+    left = max(1.0, (deadline - time.perf_counter()) / (2 if linearisation else 1))
+    local = local_decrease(system, lyapunov, controller, condition, region, time_limit=left, min_width=min_width,
+                           enclosure=enclosure, level=c if c > 0 else None)
     if linearisation and not local["proved"] and local.get("equilibrium") and c > 0:
         left = max(3.0, deadline - time.perf_counter())
         local = linearisation_local(system, lyapunov, controller, condition, region, c, time_limit=left,
-                                    min_width=min_width, batch=batch) | {"second_order": local}
+                                    min_width=min_width, batch=batch, enclosure=enclosure) | {"second_order": local}
     outer_level = c
     if c > 0 and local["proved"]:
         kind = "region of attraction"
@@ -442,30 +452,41 @@ def certified_roa(system: UncertainSystem, lyapunov: Lyapunov, controller: Contr
 
 def _level_search(system: UncertainSystem, lyapunov: Lyapunov, controller: Controller, condition: Condition,
                   lo: Tensor, hi: Tensor, scale: Tensor, level: float, limited_by: str, deadline: float, *,
-                  keep, in_region, floor: float = -math.inf, min_width: float = 1e-4,
+                  meets, in_region, floor: float = -math.inf, min_width: float = 1e-4,
                   batch: int = 4096, enclosure: str = "mean-value") -> tuple[float, str, Tensor | None, int]:
     """The largest level (at most ``level``) such that ``condition`` holds on every state of the boxes
-    ``[lo, hi]`` (and their parts kept by ``keep(lo, hi)``) with ``floor <= V <= level``.
+    ``[lo, hi]`` (and of their parts where ``meets(lo, hi)``, a ``(B,)`` mask) with ``floor <= V <= level``.
 
     Boxes with V's lower bound above the level, or V's upper bound below ``floor``, need no proof; the rest are
-    proved or split. A box that cannot be proved lowers the level to (a lower bound of) V on it: to V at its
-    centre when that centre is a confirmed violation in the region (``in_region(centre, V enclosure)``), else to
-    V's lower bound on it once it reaches the minimum size or the time runs out. Returns the level, what
-    limited it, the counterexample (local, or None) and the number of boxes processed."""
+    proved or split, those with the lowest bound on V first (a box's parts inherit its bound), so that the
+    sets ``{V <= c}`` are settled from small ``c`` up and a time limit costs the least level. A box that cannot
+    be proved lowers the level to (a lower bound of) V on it: to V at its centre when that centre is a
+    confirmed violation in the region (``in_region(centre, V enclosure)``), else to V's lower bound on it once
+    it reaches the minimum size or the time runs out. Returns the level, what limited it, the counterexample
+    (local, or None) and the number of boxes processed."""
     objective = condition_and_value_objective(condition, system, lyapunov, controller)
     vobj = value_objective(lyapunov)
     processed = 0
     cex = None
+    known = torch.full((lo.shape[0],), -math.inf, dtype=lo.dtype)  # a lower bound of V on each queued box
     while lo.shape[0]:
         if time.perf_counter() > deadline:
-            v_min = -math.inf
-            if lo.shape[0] <= 16 * batch:
-                v_min = min(float(box_bounds(vobj, lo[i:i + batch], hi[i:i + batch], enclosure)[0].min())
-                            for i in range(0, lo.shape[0], batch))
+            order = known.argsort()
+            first = order[:16 * batch]  # tighten the lowest inherited bounds, the rest stand as they are
+            v_min = float(known[order[16 * batch:]].min()) if order.shape[0] > first.shape[0] else math.inf
+            for i in range(0, first.shape[0], batch):
+                rows = first[i:i + batch]
+                v_min = min(v_min, float(box_bounds(vobj, lo[rows], hi[rows], enclosure)[0].min()))
             if v_min < level:
                 level, limited_by = v_min, "time limit"
             break
-        clo, chi, lo, hi = lo[:batch], hi[:batch], lo[batch:], hi[batch:]
+        if lo.shape[0] > batch:
+            take = torch.zeros(lo.shape[0], dtype=torch.bool)
+            take[torch.topk(known, batch, largest=False).indices] = True
+        else:
+            take = torch.ones(lo.shape[0], dtype=torch.bool)
+        clo, chi = lo[take], hi[take]
+        lo, hi, known = lo[~take], hi[~take], known[~take]
         lb, ub, at, form = box_bounds(objective, clo, chi, enclosure, keep_form=True)
         processed += clo.shape[0]
         v_lb = lb[:, -1]
@@ -490,8 +511,13 @@ def _level_search(system: UncertainSystem, lyapunov: Lyapunov, controller: Contr
             level, limited_by = float(v_lb[small].min()), "unverified box at minimum size"
         divide = open_ & ~small & (v_lb <= level)
         if divide.any():
-            nlo, nhi = keep(*split(clo[divide], chi[divide], scale))
-            lo, hi = torch.cat([lo, nlo]), torch.cat([hi, nhi])
+            nlo, nhi = split(clo[divide], chi[divide], scale)
+            nknown = v_lb[divide].repeat(2)
+            fits = meets(nlo, nhi)
+            lo, hi, known = torch.cat([lo, nlo[fits]]), torch.cat([hi, nhi[fits]]), torch.cat([known, nknown[fits]])
+        above = known > level  # queued boxes the lowered level no longer asks about
+        if above.any():
+            lo, hi, known = lo[~above], hi[~above], known[~above]
     return level, limited_by, cex, processed
 
 

@@ -2,6 +2,7 @@
 
 from __future__ import annotations
 
+import math
 from collections.abc import Sequence
 
 from torch import Tensor
@@ -26,18 +27,20 @@ def run_condition(run, xi: Sequence[float] | Tensor | None = None) -> Condition:
 
 def verify_run(run, delta: float | None = None, xi: Sequence[float] | Tensor | None = None, time_limit: float = 30.0,
                roa: bool = False, min_width: float = 1e-4, uniform_time: float = 3.0,
-               enclosure: str | None = None) -> dict:
+               enclosure: str | None = None, roa_time: float | None = None) -> dict:
     """Verify a loaded run (:func:`drlyap.rundir.load_run`) on X_delta.
 
     Returns a JSON-friendly dict: ``trained`` (the run's own condition: pointwise / nominal through
     :func:`verify_condition`, uniform through :func:`uniform_margin`), ``uniform`` (always: the uniform DR
     margin bounds at the run's radius, risk level and samples), ``true_model`` (with ``xi``: plain decrease
     on the true model at that shift) and ``roa`` (with ``roa=True``: :func:`certified_roa` for the main
-    condition). The top-level ``status``, ``verified_fraction``, ``counterexample`` and ``time_s`` are those
+    condition, ``roa_time`` seconds, None: 3x ``time_limit``, as it proves the condition on a sublevel set and
+    then the decrease inside the ball; for a run trained for a region of attraction, up to the level trained
+    for). The top-level ``status``, ``verified_fraction``, ``counterexample`` and ``time_s`` are those
     of the main check: the true model when ``xi`` is given, else the trained condition. Non-finite bounds
     are reported as None (strict JSON). ``enclosure`` bounds the boxes of the trained, uniform and true-model
-    checks (:data:`~drlyap.verification.bounds.ENCLOSURES`; None: :func:`default_enclosure`, ``"affine"`` from
-    4 states on); the region-of-attraction search keeps the mean-value form. A run trained for a region of
+    checks and of the region-of-attraction search (:data:`~drlyap.verification.bounds.ENCLOSURES`; None:
+    :func:`default_enclosure`, ``"affine"`` from 4 states on). A run trained for a region of
     attraction (``config.roa_level``) has its trained and true-model conditions proved on ``{V <= roa_level}``
     with V above the level on the box's faces (:func:`verify_sublevel`).
     """
@@ -76,8 +79,10 @@ def verify_run(run, delta: float | None = None, xi: Sequence[float] | Tensor | N
         if not main_condition.per_state:
             out["roa"] = {"error": "no per-state residual for the uniform condition; no sublevel-set certificate"}
         else:
-            out["roa"] = certified_roa(system, lyap, ctrl, main_condition, region, time_limit=time_limit,
-                                       min_width=min_width)
+            out["roa"] = certified_roa(system, lyap, ctrl, main_condition, region,
+                                       time_limit=3 * time_limit if roa_time is None else roa_time,
+                                       min_width=min_width, enclosure=enclosure,
+                                       max_level=math.inf if level is None else float(level))
     out["status"] = main["status"]
     out["condition"] = main["condition"]
     out["verified_fraction"] = main.get("verified_fraction")
