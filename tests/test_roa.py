@@ -11,7 +11,12 @@ from drlyap.regions import Region
 from drlyap.simulation import simulate
 from drlyap.systems import UncertainSystem
 from drlyap.verification import certified_roa, local_decrease
-from drlyap.verification.linearisation import closed_loop_jacobians, lyapunov_matrix
+from drlyap.verification.linearisation import (
+    closed_loop_jacobians,
+    common_lyapunov_matrix,
+    decrease_rates,
+    lyapunov_matrix,
+)
 from drlyap.verification.roa import linearisation_local
 from handmade import bump_pair, linear_pair, small_pendulum
 
@@ -125,6 +130,21 @@ def test_lyapunov_matrix_solves_the_scaled_lyapunov_equation():
     p = lyapunov_matrix(a, s)
     assert torch.allclose(a.T @ p + p @ a, -torch.diag(1 / s ** 2), atol=1e-9)
     assert float(torch.linalg.eigvalsh(p).min()) > 0
+
+
+def test_one_quadratic_decreases_along_every_samples_linearisation():
+    """Jacobians whose mean's Lyapunov matrix fails for both (a slow and a fast mode coupled, the fast one
+    moved 100x by the samples): the common P decreases along each; where the mean's works, it is kept."""
+    half = torch.tensor([0.5, 2.0], dtype=F64)
+    jacobians = [torch.tensor([[-1.0, 10.0], [0.0, -t]], dtype=F64) for t in (1.0, 100.0)]
+    mean = lyapunov_matrix(torch.stack(jacobians).mean(0), half)
+    assert bool((decrease_rates(jacobians, mean, half) > 0).all())
+    p = common_lyapunov_matrix(jacobians, half)
+    assert float(torch.linalg.eigvalsh(p).min()) > 0
+    for a in jacobians:
+        assert float(torch.linalg.eigvalsh(a.T @ p + p @ a).max()) < 0
+    close = [torch.tensor([[-1.0, 1.0], [0.0, -t]], dtype=F64) for t in (2.0, 2.2)]
+    assert torch.equal(common_lyapunov_matrix(close, half), lyapunov_matrix(torch.stack(close).mean(0), half))
 
 
 def test_the_linearisation_proves_the_ball_where_the_hessian_of_v_cannot():

@@ -7,6 +7,8 @@
 :func:`lyapunov_matrix` solves ``A_s^T P_s + P_s A_s = -I`` in the coordinates scaled by the box's half-widths
 ``s`` (``z = S z_s``) and returns ``P = S^-1 P_s S^-1``, so ``W(z) = z^T P z`` has the Hessian of ``Wdot`` at
 x* equal to ``-2 S^-2`` for that ``A``: negative definite and conditioned like the box, whatever V looks like.
+:func:`common_lyapunov_matrix` picks one ``P`` for all samples' ``A_j`` (their mean's, improved numerically
+where it fails for some ``A_j``).
 
 Nothing here is a proof: ``A`` and ``P`` only *choose* the certificate ``W``; what is claimed about ``W`` is
 proved afterwards by the verifier's enclosures and branch and bound (:func:`drlyap.verification.roa.linearisation_local`).
@@ -66,3 +68,42 @@ def lyapunov_matrix(a: Tensor, half_widths: Tensor) -> Tensor:
     p_s = scipy.linalg.solve_continuous_lyapunov(a_s.T, -np.eye(a.shape[0]))
     p = torch.as_tensor(p_s, dtype=F64) / s[:, None] / s[None, :]
     return (p + p.T) / 2
+
+
+def decrease_rates(jacobians: Tensor | list[Tensor], p: Tensor, half_widths: Tensor) -> Tensor:
+    """``(J,)``: for each ``A_j``, the largest eigenvalue of ``A_j^T P + P A_j`` over the smallest of ``P``, both
+    in box-scaled coordinates: negative exactly when ``z^T P z`` decreases along ``A_j``'s linear flow."""
+    s = torch.diag(half_widths.to(F64))
+    p_s = s @ p @ s
+    low = torch.linalg.eigvalsh(p_s).min()
+    return torch.stack([torch.linalg.eigvalsh(s @ (a.T @ p + p @ a) @ s).max() for a in jacobians]) / low
+
+
+def common_lyapunov_matrix(jacobians: list[Tensor], half_widths: Tensor, steps: int = 2000) -> Tensor:
+    """A ``P`` with ``A_j^T P + P A_j`` negative definite for every sample's ``A_j`` where one is found: the
+    :func:`lyapunov_matrix` of their mean if it already is one (the usual case when the samples differ
+    little), else that ``P`` improved by Adam on a Cholesky factor in box-scaled coordinates, minimising a
+    soft maximum of :func:`decrease_rates` (the quadrotor's samples move its fast attitude mode from -106 to
+    -129, and the mean's ``P`` fails for three of five). Returns the best ``P`` seen."""
+    s = half_widths.to(F64)
+    stack = torch.stack(jacobians).to(F64)
+    p = lyapunov_matrix(stack.mean(0), s)
+    if bool((decrease_rates(stack, p, s) < 0).all()) or not bool(torch.isfinite(p).all()):
+        return p
+    a_s = stack * s[None, None, :] / s[None, :, None]  # S^-1 A_j S
+    p_s = p * s[:, None] * s[None, :]
+    factor = torch.linalg.cholesky(p_s / torch.trace(p_s)).clone().requires_grad_(True)
+    opt = torch.optim.Adam([factor], lr=1e-3)
+    best, best_rate = p, float(decrease_rates(stack, p, s).max())
+    for _ in range(steps):
+        q = factor @ factor.T
+        q = q / torch.trace(q)
+        rates = torch.linalg.eigvalsh(a_s.transpose(1, 2) @ q + q @ a_s).amax(-1) / torch.linalg.eigvalsh(q).min()
+        worst = float(rates.detach().max())
+        if worst < best_rate:
+            best_rate, best = worst, (q.detach() / s[:, None] / s[None, :])
+        loss = torch.logsumexp(20 * rates / rates.detach().abs().max(), 0)
+        opt.zero_grad()
+        loss.backward()
+        opt.step()
+    return (best + best.T) / 2

@@ -32,7 +32,8 @@ closed loop, or its Hessian of Vdot is so badly conditioned that no enclosure sh
 pairs' is ``(-0.1, -3e4)``). For each sample's model:
 
 a. ``A_j = dF_j/dz(0)`` (every one Hurwitz, else no claim) and ``P`` from ``A^T P + P A = -S^-2`` for their mean
-   (``Q = I`` in box-scaled coordinates, :mod:`drlyap.verification.linearisation`). This only *chooses*
+   (``Q = I`` in box-scaled coordinates), improved numerically where some ``A_j^T P + P A_j`` is not negative
+   definite (:func:`~drlyap.verification.linearisation.common_lyapunov_matrix`). This only *chooses*
    ``W(z) = z^T P z``; nothing about it is assumed.
 b. ``Wdot < 0`` on ``L = {W <= c_q}`` minus x*, and ``L`` inside the box: :func:`certified_roa` run on ``W`` (the
    second-order proof above, which holds for W on a cube by construction while the controller is
@@ -75,7 +76,7 @@ from drlyap.verification.bounds import (
     value_objective,
 )
 from drlyap.verification.branch_and_bound import as_region, maximize, verify_condition
-from drlyap.verification.linearisation import closed_loop_jacobians, is_hurwitz, lyapunov_matrix
+from drlyap.verification.linearisation import closed_loop_jacobians, common_lyapunov_matrix, is_hurwitz
 
 
 def _faces(lo: Tensor, hi: Tensor, per_axis: list[int]) -> tuple[Tensor, Tensor]:
@@ -293,7 +294,7 @@ def linearisation_local(system: UncertainSystem, lyapunov: Lyapunov, controller:
             return out
     out["eigenvalues"] = eigenvalues
     half_box = torch.minimum(-region.lo, region.hi)
-    p = lyapunov_matrix(torch.stack(jacobians).mean(0), region.scale / 2)
+    p = common_lyapunov_matrix(jacobians, region.scale / 2)
     out["P"] = p.tolist()
     if not bool(torch.isfinite(p).all()) or float(torch.linalg.eigvalsh(p).min()) <= 1e-12 * float(p.abs().max()):
         out["reason"] = "the Lyapunov matrix P is not positive definite"
