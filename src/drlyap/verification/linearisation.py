@@ -92,18 +92,22 @@ def common_lyapunov_matrix(jacobians: list[Tensor], half_widths: Tensor, steps: 
         return p
     a_s = stack * s[None, None, :] / s[None, :, None]  # S^-1 A_j S
     p_s = p * s[:, None] * s[None, :]
-    factor = torch.linalg.cholesky(p_s / torch.trace(p_s)).clone().requires_grad_(True)
-    opt = torch.optim.Adam([factor], lr=1e-3)
+    factor, info = torch.linalg.cholesky_ex(p_s / torch.trace(p_s))
+    if int(info) != 0:  # the mean's A is not Hurwitz: no starting point
+        return p
     best, best_rate = p, float(decrease_rates(stack, p, s).max())
-    for _ in range(steps):
-        q = factor @ factor.T
-        q = q / torch.trace(q)
-        rates = torch.linalg.eigvalsh(a_s.transpose(1, 2) @ q + q @ a_s).amax(-1) / torch.linalg.eigvalsh(q).min()
-        worst = float(rates.detach().max())
-        if worst < best_rate:
-            best_rate, best = worst, (q.detach() / s[:, None] / s[None, :])
-        loss = torch.logsumexp(20 * rates / rates.detach().abs().max(), 0)
-        opt.zero_grad()
-        loss.backward()
-        opt.step()
+    with torch.enable_grad():
+        factor = factor.clone().requires_grad_(True)
+        opt = torch.optim.Adam([factor], lr=1e-3)
+        for _ in range(steps):
+            q = factor @ factor.T
+            q = q / torch.trace(q)
+            rates = torch.linalg.eigvalsh(a_s.transpose(1, 2) @ q + q @ a_s).amax(-1) / torch.linalg.eigvalsh(q).min()
+            worst = float(rates.detach().max())
+            if worst < best_rate:
+                best_rate, best = worst, (q.detach() / s[:, None] / s[None, :])
+            loss = torch.logsumexp(20 * rates / rates.detach().abs().max(), 0)
+            opt.zero_grad()
+            loss.backward()
+            opt.step()
     return (best + best.T) / 2
