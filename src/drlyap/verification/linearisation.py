@@ -74,9 +74,9 @@ def decrease_rates(jacobians: Tensor | list[Tensor], p: Tensor, half_widths: Ten
     """``(J,)``: for each ``A_j``, the largest eigenvalue of ``A_j^T P + P A_j`` over the smallest of ``P``, both
     in box-scaled coordinates: negative exactly when ``z^T P z`` decreases along ``A_j``'s linear flow."""
     s = torch.diag(half_widths.to(F64))
-    p_s = s @ p @ s
-    low = torch.linalg.eigvalsh(p_s).min()
-    return torch.stack([torch.linalg.eigvalsh(s @ (a.T @ p + p @ a) @ s).max() for a in jacobians]) / low
+    a = torch.stack(list(jacobians)) if isinstance(jacobians, list) else jacobians
+    low = torch.linalg.eigvalsh(s @ p @ s).min()
+    return torch.linalg.eigvalsh(s @ (a.transpose(-1, -2) @ p + p @ a) @ s).amax(-1) / low
 
 
 def common_lyapunov_matrix(jacobians: list[Tensor], half_widths: Tensor, steps: int = 2000) -> Tensor:
@@ -88,21 +88,24 @@ def common_lyapunov_matrix(jacobians: list[Tensor], half_widths: Tensor, steps: 
     s = half_widths.to(F64)
     stack = torch.stack(jacobians).to(F64)
     p = lyapunov_matrix(stack.mean(0), s)
-    if bool((decrease_rates(stack, p, s) < 0).all()) or not bool(torch.isfinite(p).all()):
+    if not bool(torch.isfinite(p).all()):
+        return p
+    best_rate = float(decrease_rates(stack, p, s).max())
+    if best_rate < 0:
         return p
     a_s = stack * s[None, None, :] / s[None, :, None]  # S^-1 A_j S
     p_s = p * s[:, None] * s[None, :]
     factor, info = torch.linalg.cholesky_ex(p_s / torch.trace(p_s))
     if int(info) != 0:  # the mean's A is not Hurwitz: no starting point
         return p
-    best, best_rate = p, float(decrease_rates(stack, p, s).max())
+    best, unit = p, torch.ones_like(s)
     with torch.enable_grad():
         factor = factor.clone().requires_grad_(True)
         opt = torch.optim.Adam([factor], lr=1e-3)
         for _ in range(steps):
             q = factor @ factor.T
             q = q / torch.trace(q)
-            rates = torch.linalg.eigvalsh(a_s.transpose(1, 2) @ q + q @ a_s).amax(-1) / torch.linalg.eigvalsh(q).min()
+            rates = decrease_rates(a_s, q, unit)  # already in box-scaled coordinates
             worst = float(rates.detach().max())
             if worst < best_rate:
                 best_rate, best = worst, (q.detach() / s[:, None] / s[None, :])

@@ -202,6 +202,12 @@ def _second_order_cube(system: UncertainSystem, lyapunov: Lyapunov, controller: 
     return None, math.nan, f"second-order proof failed on every cube down to {float(half.max()):.3g} ({reason})"
 
 
+def _resolving(min_width: float, r_in: float, region: Region) -> float:
+    """A minimum box width (relative to the box) small enough for boxes to resolve a ball of radius ``r_in``
+    (the second-order cube around x* that a branch and bound has to close around)."""
+    return min(min_width, 0.05 * r_in / float(region.scale.max()))
+
+
 def local_decrease(system: UncertainSystem, lyapunov: Lyapunov, controller: Controller, condition: Condition,
                    region: Region, time_limit: float = 10.0, min_width: float = 1e-4,
                    enclosure: str = "mean-value", level: float | None = None) -> dict:
@@ -254,8 +260,8 @@ def local_decrease(system: UncertainSystem, lyapunov: Lyapunov, controller: Cont
     ring = Region(torch.maximum(region.lo, torch.full_like(region.lo, -delta)),
                   torch.minimum(region.hi, torch.full_like(region.hi, delta)), r_in)
     left = max(0.5, time_limit - (time.perf_counter() - start))
-    fine = min(min_width, 0.05 * r_in / float(region.scale.max()))  # boxes must resolve the cube's scale
-    res = verify_condition(system, lyapunov, controller, ring_plain, ring, time_limit=left, min_width=fine,
+    res = verify_condition(system, lyapunov, controller, ring_plain, ring, time_limit=left,
+                           min_width=_resolving(min_width, r_in, region),
                            stop_at_counterexample=True, enclosure=enclosure, level=level)
     out["ring"] = {"status": res.status, "decay_rate": gamma_in, "inner_radius": r_in, "boxes": res.boxes_processed,
                    "verified_fraction": res.verified_fraction}
@@ -310,7 +316,7 @@ def linearisation_local(system: UncertainSystem, lyapunov: Lyapunov, controller:
     ring = PlainDecrease(plain.xi, 0.25 * abs(bound) / 2 * r_in, 0.0, plain.model)
     w_roa = certified_roa(system, w, controller, ring, Region(region.lo, region.hi, r_in),
                           time_limit=max(1.0, 0.4 * (deadline - time.perf_counter())),
-                          min_width=min(min_width, 0.05 * r_in / float(region.scale.max())),
+                          min_width=_resolving(min_width, r_in, region),
                           samples_per_axis=50, batch=batch, linearisation=False, enclosure=enclosure)
     c_q = w_roa["level"]
     out["q_level"] = c_q
