@@ -182,11 +182,22 @@ def roa_line(r: dict, true_model: bool) -> str:
         return (f"region of attraction: CERTIFIED {{V <= {r['level']:.4g}}} ({size}): every trajectory of {model} "
                 f"that starts there converges to x*{how}")
     if r["kind"] == "practical stability":
-        return (f"region of attraction: NOT CERTIFIED ({r['local']['reason']}); practical stability instead: "
+        line = (f"region of attraction: NOT CERTIFIED ({r['local']['reason']}); practical stability instead: "
                 f"trajectories of {model} from {{V <= {r['level']:.4g}}} ({size}) end up in "
                 f"{{V <= {r['practical_level']:.4g}}}")
-    return (f"region of attraction: NOT CERTIFIED (largest proved level {r['level']:.4g}, limited by {r['limited_by']}; "
-            f"inside the ball: {r['local']['reason'] or 'proved'})")
+    else:
+        proved = "none" if r["level"] is None else f"{r['level']:.4g}"  # None: -inf (e.g. V's minimum on the faces)
+        line = (f"region of attraction: NOT CERTIFIED (largest proved level {proved}, limited by "
+                f"{r['limited_by']}; inside the ball: {r['local']['reason'] or 'proved'})")
+    quad = r.get("quadratic")
+    if quad and quad.get("proved"):
+        line += (f"\n  the closed loop's own quadratic certificate: CERTIFIED region of attraction {{z'Pz <= "
+                 f"{quad['q_level']:.4g}}} ({quad['share_of_box']:.3g} of the box, |x_i - x*_i| up to "
+                 f"{[float(f'{e:.3g}') for e in quad['extent']]}; P chosen from the closed-loop linearisation, --json: "
+                 f"roa.quadratic.P): every trajectory of {model} that starts there converges to x*")
+    elif quad:
+        line += f"\n  the closed loop's own quadratic certificate: none ({quad['reason']})"
+    return line
 
 
 def certificate_line(cert: dict) -> str:

@@ -138,6 +138,9 @@ def _roa_cell(roa: dict | None) -> str | None:
         return None
     if roa.get("kind") == "region of attraction":
         return f"{100 * roa['share_of_box']:.1f}%"
+    quad = roa.get("quadratic") or {}
+    if quad.get("proved"):  # V's sublevel sets are not certified; the closed loop's quadratic one is
+        return f"z'Pz only, {quad['share_of_box']:.2g} of box"
     return roa.get("kind") or "none"
 
 

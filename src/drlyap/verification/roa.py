@@ -31,14 +31,18 @@ trained outside the delta-ball only, so V's local quadratic part need not be a L
 closed loop, or its Hessian of Vdot is so badly conditioned that no enclosure shows it: the mountain-car
 pairs' is ``(-0.1, -3e4)``). For each sample's model:
 
-a. ``A_j = dF_j/dz(0)`` (every one Hurwitz, else no claim) and ``P`` from ``A^T P + P A = -S^-2`` for their mean
-   (``Q = I`` in box-scaled coordinates), improved numerically where some ``A_j^T P + P A_j`` is not negative
-   definite (:func:`~drlyap.verification.linearisation.common_lyapunov_matrix`). This only *chooses*
-   ``W(z) = z^T P z``; nothing about it is assumed.
-b. ``Wdot < 0`` on ``L = {W <= c_q}`` minus x*, and ``L`` inside the box: :func:`certified_roa` run on ``W`` (the
-   second-order proof above, which holds for W on a cube by construction while the controller is
-   unsaturated, and the branch and bound with a small decay on the rest). ``L`` is forward invariant and
-   every trajectory in it converges to x*.
+a. ``A_j = dF_j/dz(0)`` (every one Hurwitz, else no claim); ``W(z) = z^T P z`` and a cube ``|z_i| <= h_i``
+   chosen together (:func:`quadratic_roa`): ``P`` minimises a robust bound of ``P A + A^T P`` over the
+   enclosure of the Jacobians on the cube
+   (:func:`~drlyap.verification.linearisation.robust_lyapunov_matrix`, starting from the Lyapunov matrix of the
+   samples' mean). This only *chooses* W; nothing about it is assumed.
+b. ``Wdot < 0`` on ``L = {W <= c_q}`` minus x*, and ``L`` inside the box. On the cube, by the mean-value form
+   (:func:`_jacobian_negative`: ``F_j(z) = A z`` with ``A`` in the hull of the cube's Jacobian enclosure, so only
+   first derivatives are enclosed; on the quadrotor its cube is 16x wider per side than the Hessian test's);
+   ``c_cube = min_i h_i^2 / (P^-1)_ii`` puts ``{W <= c_cube}`` inside the cube; :func:`certified_roa` run on
+   ``W`` may prove a larger level. ``L`` is forward invariant and every trajectory in it converges to x*:
+   it is itself a region of attraction of the closed loop, which :func:`certified_roa` reports (``quadratic``)
+   where no sublevel set of V is certified.
 c. ``c_1 <=`` a lower bound of V on ``{W >= c_q}`` in the box (branch and bound), and ``c_1 < c``: then
    ``{V <= c_1}`` lies inside ``L``.
 d. Strict decrease of V (plain, decay ``1e-3`` of the condition's) on ``{c_1 <= V <= c}`` inside the delta-ball
@@ -76,7 +80,15 @@ from drlyap.verification.bounds import (
     value_objective,
 )
 from drlyap.verification.branch_and_bound import as_region, maximize, verify_condition
-from drlyap.verification.linearisation import closed_loop_jacobians, common_lyapunov_matrix, is_hurwitz
+from drlyap.verification.linearisation import (
+    closed_loop_jacobians,
+    common_lyapunov_matrix,
+    is_hurwitz,
+    jacobian_enclosures,
+    robust_decrease_matrix,
+    robust_lyapunov_matrix,
+    scaled_jacobians,
+)
 
 
 def _faces(lo: Tensor, hi: Tensor, per_axis: list[int]) -> tuple[Tensor, Tensor]:
@@ -186,20 +198,69 @@ def _below(level: float) -> float:
     return float(_down(torch.tensor(level, dtype=F64), REL1)) if math.isfinite(level) else level
 
 
+def _jacobian_negative(system: UncertainSystem, controller: Controller, plain: PlainDecrease, p: Tensor,
+                       half: Tensor, half_widths: Tensor, log_t: Tensor | None = None) -> tuple[bool, float, str]:
+    """Is ``Wdot = 2 z^T P F_j(z) < 0`` for every sample's model on the cube ``|z_i| <= half_i`` minus x*
+    (``W = z^T P z``)?
+
+    The mean-value form: ``F_j(0) = 0``, so ``F_j(z) = A z`` for some ``A`` in the hull of the enclosure of
+    ``dF_j/dz`` over the cube (:func:`~drlyap.verification.linearisation.jacobian_enclosures`; the cube holds the
+    segment from x* to z), and ``Wdot = z^T (P A + A^T P) z``. In the coordinates scaled by ``half_widths`` this
+    is at most ``z_s^T M z_s`` with ``M`` of
+    :func:`~drlyap.verification.linearisation.robust_decrease_matrix` (its ``t`` fitted here, any ``t`` is
+    sound); ``M``'s largest eigenvalue plus a rounding pad of 1e-9 of the terms' norms below 0 proves it.
+    Only first derivatives are enclosed (the Hessian test of :func:`_hessian_negative` needs second ones).
+
+    Returns (proved, the bound ``lambda`` with ``Wdot <= lambda ||z||^2 / 2`` on the cube, reason)."""
+    s = half_widths.to(F64)
+    centre, radius = scaled_jacobians(jacobian_enclosures(system, controller, plain, half), s)
+    if not bool(torch.isfinite(centre).all() and torch.isfinite(radius).all()):
+        return False, math.nan, "non-finite Jacobian enclosure"
+    p_s = p.to(F64) * s[:, None] * s[None, :]
+    unit = float(torch.linalg.eigvalsh(p_s).min())  # P / unit has lambda_min 1, as robust_lyapunov_matrix's
+    if not unit > 0:
+        return False, math.nan, "P is not positive definite"
+    p_n = p_s / unit
+
+    def proved_rate(log_t: Tensor) -> float:
+        m = robust_decrease_matrix(p_n, centre, radius, log_t)
+        t = log_t.exp()
+        norms = (2 * torch.linalg.matrix_norm(p_n) * torch.linalg.matrix_norm(centre)
+                 + torch.linalg.matrix_norm(p_n) ** 2 * (radius * t).sum(-1).amax(-1)
+                 + (radius / t).sum(-2).amax(-1) + torch.linalg.matrix_norm(m))
+        top = torch.linalg.eigvalsh(m).amax(-1) + 1e-9 * norms + 1e-300
+        return float(top.max())
+
+    worst = proved_rate(log_t) if log_t is not None else math.nan
+    for stop in (0.0, None):  # fit t: first until the rate is negative, then (if the pads undo it) all the way
+        if worst < 0:
+            break
+        _, log_t, _ = robust_lyapunov_matrix(centre, radius, p_n, log_t, steps=300, fit_p=False, stop_below=stop)
+        worst = proved_rate(log_t)
+    if not worst < 0:  # NaN included
+        return False, math.nan, "P A + A^T P not provably negative definite over the Jacobian enclosure"
+    return True, 2 * unit * worst / float(s.max()) ** 2, ""
+
+
 def _second_order_cube(system: UncertainSystem, lyapunov: Lyapunov, controller: Controller, plain: PlainDecrease,
-                       half: Tensor, smallest: float) -> tuple[Tensor | None, float, str]:
+                       half: Tensor, smallest: float, half_widths: Tensor) -> tuple[Tensor | None, float, str]:
     """The first cube ``|z_i| <= half_i`` (halving ``half`` until its largest side is below ``smallest``) on which
-    :func:`_hessian_negative` proves ``Vdot < 0`` except at x*: ``(half, Hessian bound, "")``, or
+    ``Vdot < 0`` except at x* is proved: by :func:`_jacobian_negative` for a quadratic V, else by
+    :func:`_hessian_negative`. Returns ``(half, bound, "")`` (``Vdot <= bound ||z||^2 / 2`` there), or
     ``(None, nan, reason)``."""
     bound, reason = math.nan, ""
     for _ in range(60):
-        ok, bound, reason = _hessian_negative(system, lyapunov, controller, plain, half)
+        if isinstance(lyapunov, QuadraticLyapunov):
+            ok, bound, reason = _jacobian_negative(system, controller, plain, lyapunov.P, half, half_widths)
+        else:
+            ok, bound, reason = _hessian_negative(system, lyapunov, controller, plain, half)
         if ok:
             return half, bound, ""
         half = half / 2
         if float(half.max()) < smallest:
             break
-    return None, math.nan, f"second-order proof failed on every cube down to {float(half.max()):.3g} ({reason})"
+    what = "mean-value (Jacobian)" if isinstance(lyapunov, QuadraticLyapunov) else "second-order"
+    return None, math.nan, f"{what} proof failed on every cube down to {float(half.max()):.3g} ({reason})"
 
 
 def _resolving(min_width: float, r_in: float, region: Region) -> float:
@@ -208,25 +269,9 @@ def _resolving(min_width: float, r_in: float, region: Region) -> float:
     return min(min_width, 0.05 * r_in / float(region.scale.max()))
 
 
-def local_decrease(system: UncertainSystem, lyapunov: Lyapunov, controller: Controller, condition: Condition,
-                   region: Region, time_limit: float = 10.0, min_width: float = 1e-4,
-                   enclosure: str = "mean-value", level: float | None = None) -> dict:
-    """Prove ``Vdot < 0`` on the delta-ball minus x* (with ``level``: on its part in ``{V <= level}``) for every
-    sample of ``condition``'s model (see the module docstring). Returns ``proved``, the cube half-width ``cube``
-    of the second-order proof, its bound ``hessian_bound``, the ring verification's status and ``reason`` when
-    it fails."""
-    start = time.perf_counter()
-    out: dict = {"method": "second order", "proved": False, "cube": None, "hessian_bound": None, "ring": None,
-                 "reason": ""}
-    plain = condition.per_sample()
-    if plain is None:
-        out["reason"] = "the condition implies no per-sample decrease (a CVaR over several samples)"
-        return out
-    delta = region.delta
-    if delta <= 0:
-        out.update(proved=True, reason="no ball to cover (delta = 0)")
-        return out
-    # x* must be an equilibrium of every sample's model: F(x*, pi(x*)) = 0 (up to rounding)
+def _not_equilibrium(system: UncertainSystem, controller: Controller, plain: PlainDecrease, region: Region) -> str:
+    """Why x* is not an equilibrium of some sample's model (``F(x*, pi(x*)) = 0`` up to 1e-9 of the box's
+    scale, with the verifier's enclosures), or "" when it is of every one: the local proofs rest on it."""
     zero = torch.zeros(system.n, system.n, dtype=F64)  # n copies of x*, one per unit covector below
     x_star = system.to_user(Interval(zero, zero))
     u_star = controller(Interval(zero, zero))
@@ -240,11 +285,36 @@ def local_decrease(system: UncertainSystem, lyapunov: Lyapunov, controller: Cont
             f = gf + (gw * Interval.const(xi)).sum(-1)
         size = float(torch.maximum(f.lo.abs(), f.hi.abs()).max())
         if size > 1e-9 * max(scale, 1.0):
-            out["reason"] = f"x* is not an equilibrium of the model at xi = {xi.tolist()} (|F(x*)| up to {size:.3g})"
-            return out
+            return f"x* is not an equilibrium of the model at xi = {xi.tolist()} (|F(x*)| up to {size:.3g})"
+    return ""
+
+
+def local_decrease(system: UncertainSystem, lyapunov: Lyapunov, controller: Controller, condition: Condition,
+                   region: Region, time_limit: float = 10.0, min_width: float = 1e-4,
+                   enclosure: str = "mean-value", level: float | None = None) -> dict:
+    """Prove ``Vdot < 0`` on the delta-ball minus x* (with ``level``: on its part in ``{V <= level}``) for every
+    sample of ``condition``'s model (see the module docstring). Returns ``proved``, the cube half-width ``cube``
+    of the second-order proof, its bound ``hessian_bound``, the ring verification's status and ``reason`` when
+    it fails."""
+    start = time.perf_counter()
+    method = "mean-value Jacobian" if isinstance(lyapunov, QuadraticLyapunov) else "second order"
+    out: dict = {"method": method, "proved": False, "cube": None, "hessian_bound": None, "ring": None, "reason": ""}
+    plain = condition.per_sample()
+    if plain is None:
+        out["reason"] = "the condition implies no per-sample decrease (a CVaR over several samples)"
+        return out
+    delta = region.delta
+    if delta <= 0:
+        out.update(proved=True, reason="no ball to cover (delta = 0)")
+        return out
+    reason = _not_equilibrium(system, controller, plain, region)
+    if reason:
+        out["reason"] = reason
+        return out
     out["equilibrium"] = True  # the preconditions hold: a failure below is one of the second-order proof
     half = torch.minimum(torch.minimum(-region.lo, region.hi), torch.full_like(region.lo, delta))
-    half, bound, reason = _second_order_cube(system, lyapunov, controller, plain, half, 1e-7 * delta)
+    half, bound, reason = _second_order_cube(system, lyapunov, controller, plain, half, 1e-7 * delta,
+                                             region.scale / 2)
     if half is None:
         out["reason"] = reason
         return out
@@ -272,22 +342,32 @@ def local_decrease(system: UncertainSystem, lyapunov: Lyapunov, controller: Cont
     return out
 
 
-def linearisation_local(system: UncertainSystem, lyapunov: Lyapunov, controller: Controller, condition: Condition,
-                        region: Region, level: float, time_limit: float = 10.0, min_width: float = 1e-4,
-                        batch: int = 4096, enclosure: str = "mean-value") -> dict:
-    """The local proof from the closed-loop linearisation, for when V's own second-order proof fails (module
-    docstring, "The linearisation proof"). ``level``: the level ``c`` up to which ``condition`` is proved on
-    ``{V <= c}`` outside the delta-ball. Returns ``proved``, ``level`` (the largest ``c' <= c`` for which the
-    whole chain holds: ``{V <= c'}`` is then a region of attraction), ``P``, ``q_level`` (``c_q``), ``inner_level``
-    (``c_1``), the Jacobians and their eigenvalues, the proofs' details and ``reason`` when it fails."""
+def quadratic_roa(system: UncertainSystem, controller: Controller, condition: Condition, region: Region,
+                  time_limit: float = 10.0, min_width: float = 1e-4, batch: int = 4096,
+                  enclosure: str = "affine") -> dict:
+    """A certified region of attraction ``{z^T P z <= c_q}`` of the closed loop of every sample's model of
+    ``condition`` (the controller's, whatever V is), from its linearisation (module docstring, steps a and b).
+
+    Two candidates ``(P, cube)``, each with ``Wdot < 0`` proved on its cube minus x* by
+    :func:`_jacobian_negative`: the samples' Lyapunov-equation ``P`` (:func:`common_lyapunov_matrix`) on the
+    widest cube (halving) where it is proved, and a ``P`` fitted to the cube (:func:`_fitted_cube`: wider cubes,
+    rounder ellipsoids). For each, ``c_cube = min_i h_i^2 / (P^-1)_ii`` (rounded down) puts ``{W <= c_cube}``
+    inside the cube, and :func:`certified_roa` on ``W`` may prove a larger level (:func:`_quadratic_level`; the
+    candidates share the time left). The result is the candidate with the larger volume: ``proved``, ``P``,
+    ``P_choice``, ``q_level`` (``c_q``), ``cube``, ``cube_level``, ``q_roa`` (the search beyond the cube),
+    ``share_of_box`` (the ellipsoid's exact volume over the box's), ``candidates`` (both, each with its ``P``),
+    the Jacobians and their eigenvalues, and ``reason`` when it fails."""
     start = time.perf_counter()
     deadline = start + time_limit
-    out: dict = {"method": "linearisation", "proved": False, "level": None, "reason": ""}
+    out: dict = {"method": "linearisation", "proved": False, "q_level": None, "share_of_box": 0.0, "reason": ""}
     plain = condition.per_sample()
     if plain is None:
         out["reason"] = "the condition implies no per-sample decrease (a CVaR over several samples)"
         return out
-    # 1. the certificate W = z^T P z of the linearisation (this only chooses W; everything after is proved)
+    out["reason"] = _not_equilibrium(system, controller, plain, region)
+    if out["reason"]:
+        return out
+    # 1. the linearisation (this only chooses W = z^T P z; everything after is proved)
     jacobians = closed_loop_jacobians(system, controller, plain)
     out["jacobians"] = [a.tolist() for a in jacobians]
     eigenvalues = []
@@ -299,44 +379,158 @@ def linearisation_local(system: UncertainSystem, lyapunov: Lyapunov, controller:
             out["reason"] = f"the closed-loop linearisation at x* is not Hurwitz (eigenvalues {[str(e) for e in ev]})"
             return out
     out["eigenvalues"] = eigenvalues
+    s = region.scale / 2
     half_box = torch.minimum(-region.lo, region.hi)
-    p = common_lyapunov_matrix(jacobians, region.scale / 2)
-    out["P"] = p.tolist()
-    if not bool(torch.isfinite(p).all()) or float(torch.linalg.eigvalsh(p).min()) <= 1e-12 * float(p.abs().max()):
+    p_mean = common_lyapunov_matrix(jacobians, s)
+    if not bool(torch.isfinite(p_mean).all()) or float(torch.linalg.eigvalsh(p_mean).min()) <= 0:
         out["reason"] = "the Lyapunov matrix P is not positive definite"
         return out
-    w = QuadraticLyapunov(p)
-    # 2. W decreases on {W <= c_q} minus x*: second order on a cube, branch and bound on the rest
-    half, bound, reason = _second_order_cube(system, w, controller, plain, half_box, 1e-9 * float(half_box.max()))
-    if half is None:
-        out["reason"] = f"W = z'Pz: {reason}"
+    # 2. two candidates for W and its cube: the samples' Lyapunov-equation P on the widest cube where it is
+    # proved, and a P fitted to the widest cube it can be proved on; each W's region then searched beyond it
+    cube_deadline = start + 0.5 * time_limit
+    candidates = []
+    half, bound, reason = _second_order_cube(system, QuadraticLyapunov(p_mean), controller, plain, half_box,
+                                             1e-9 * float(half_box.max()), s)
+    if half is not None:
+        candidates.append(("Lyapunov equation", p_mean, half, bound))
+    fitted = _fitted_cube(system, controller, plain, p_mean, half_box, s, cube_deadline)
+    if fitted is not None:
+        candidates.append(("fitted", *fitted))
+    if not candidates:
+        out["reason"] = f"W = z'Pz: Wdot < 0 not proved on any cube around x* ({reason})"
         return out
+    results = []
+    for i, (name, p, half, bound) in enumerate(candidates):
+        left = (deadline - time.perf_counter()) / (len(candidates) - i)
+        results.append(_quadratic_level(system, controller, plain, region, p, half, bound, left, min_width, batch,
+                                        enclosure) | {"P_choice": name})
+    best = max(results, key=lambda r: r["share_of_box"])
+    out.update(best)
+    out["candidates"] = results  # each with its P: linearisation_local tries every one
+    out.update(proved=True, time_s=time.perf_counter() - start)
+    return out
+
+
+def _fitted_cube(system: UncertainSystem, controller: Controller, plain: PlainDecrease, p_mean: Tensor,
+                 half_box: Tensor, s: Tensor, deadline: float) -> tuple[Tensor, Tensor, float] | None:
+    """``(P, half, bound)``: the widest cube ``half_box * f`` (f halving, then two bisection steps) on which a
+    ``P`` fitted by :func:`robust_lyapunov_matrix` (from ``p_mean``, warm-started cube to cube) is proved by
+    :func:`_jacobian_negative`, that ``P`` refitted for the largest ellipsoid inside the cube; None if none."""
+
+    def attempt(frac: float, p_from: Tensor, t_from: Tensor | None, steps: int):
+        h = half_box * frac
+        centre, radius = scaled_jacobians(jacobian_enclosures(system, controller, plain, h), s)
+        if not bool(torch.isfinite(centre).all() and torch.isfinite(radius).all()):
+            return None, p_from, t_from
+        p_s, log_t, rate = robust_lyapunov_matrix(centre, radius, p_from, t_from, steps=steps, stop_below=0.0)
+        if not rate < 0:
+            return None, p_s, log_t
+        p = p_s / s[:, None] / s[None, :]
+        p = (p + p.T) / 2
+        ok, bound, _ = _jacobian_negative(system, controller, plain, p, h, s, log_t)
+        return ((p, h, bound, log_t) if ok else None), p_s, log_t
+
+    found, frac, failed, log_t = None, 1.0, None, None
+    p_start = p_mean * s[:, None] * s[None, :]
+    while found is None and frac > 1e-9 and time.perf_counter() < deadline:
+        found, p_start, log_t = attempt(frac, p_start, log_t, 300)
+        if found is None:
+            failed, frac = frac, frac / 2
+    if found is None:
+        return None
+    for _ in range(2):
+        if failed is None or time.perf_counter() > deadline:
+            break
+        mid = (frac + failed) / 2
+        better, _, _ = attempt(mid, found[0] * s[:, None] * s[None, :], found[3], 1000)
+        if better is not None:
+            found, frac = better, mid
+        else:
+            failed = mid
+    p, half, bound, log_t = found
+    centre, radius = scaled_jacobians(jacobian_enclosures(system, controller, plain, half), s)
+    p_s, log_t, rate = robust_lyapunov_matrix(centre, radius, p * s[:, None] * s[None, :], log_t, steps=1000,
+                                              volume=True)
+    if rate < 0:
+        rounder = (p_s + p_s.T) / 2 / s[:, None] / s[None, :]
+        ok, rounder_bound, _ = _jacobian_negative(system, controller, plain, rounder, half, s, log_t)
+        if ok:
+            p, bound = (rounder + rounder.T) / 2, rounder_bound
+    return p, half, bound
+
+
+def _quadratic_level(system: UncertainSystem, controller: Controller, plain: PlainDecrease, region: Region,
+                     p: Tensor, half: Tensor, bound: float, time_limit: float, min_width: float, batch: int,
+                     enclosure: str) -> dict:
+    """The certified level ``q_level`` of ``W = z^T P z`` whose decrease is proved on the cube ``half``: the
+    largest ellipsoid inside the cube (``cube_level``), or more where :func:`certified_roa` on W proves it; with
+    ``P``, the cube, ``share_of_box`` (the ellipsoid's exact volume over the box's), ``extent`` (the largest
+    ``|z_i|`` in it, per state) and the search's details."""
+    inv_diag = torch.linalg.inv(p).diagonal()
+    c_cube = float(_down((half.square() / inv_diag).min(), 1e-6))
+    w = QuadraticLyapunov(p)
     r_in = float(half.min())
-    out["cube"], out["hessian_bound"] = half.tolist(), bound
     ring = PlainDecrease(plain.xi, 0.25 * abs(bound) / 2 * r_in, 0.0, plain.model)
     w_roa = certified_roa(system, w, controller, ring, Region(region.lo, region.hi, r_in),
-                          time_limit=max(1.0, 0.4 * (deadline - time.perf_counter())),
-                          min_width=_resolving(min_width, r_in, region),
+                          time_limit=max(1.0, time_limit), min_width=_resolving(min_width, r_in, region),
                           samples_per_axis=50, batch=batch, linearisation=False, enclosure=enclosure)
-    c_q = w_roa["level"]
-    out["q_level"] = c_q
-    out["q_roa"] = {k: w_roa[k] for k in ("level", "kind", "limited_by", "boxes_processed", "time_s")} | {
-        "decay_rate": ring.decay_rate, "inner_radius": r_in}
-    if w_roa["kind"] != "region of attraction" or not c_q > 0:
-        out["reason"] = f"W = z'Pz: no region of attraction ({w_roa['local'].get('reason') or w_roa['limited_by']})"
+    c_q = c_cube
+    if w_roa["kind"] == "region of attraction" and w_roa["level"] > c_q:
+        c_q = w_roa["level"]
+    n = system.n
+    volume = math.pi ** (n / 2) / math.gamma(n / 2 + 1) * c_q ** (n / 2) / math.sqrt(float(torch.linalg.det(p)))
+    return {"P": p.tolist(), "q_level": c_q, "share_of_box": volume / float(region.scale.prod()),
+            "extent": (c_q * inv_diag).sqrt().tolist(),  # the largest |z_i| in the ellipsoid, per state
+            "cube": half.tolist(), "cube_fraction": float((half / torch.minimum(-region.lo, region.hi)).max()),
+            "hessian_bound": bound, "cube_level": c_cube,
+            "q_roa": {k: w_roa[k] for k in ("level", "kind", "limited_by", "boxes_processed", "time_s")} | {
+                "decay_rate": ring.decay_rate, "inner_radius": r_in}}
+
+
+def linearisation_local(system: UncertainSystem, lyapunov: Lyapunov, controller: Controller, condition: Condition,
+                        region: Region, level: float, time_limit: float = 10.0, min_width: float = 1e-4,
+                        batch: int = 4096, enclosure: str = "mean-value") -> dict:
+    """The local proof from the closed-loop linearisation, for when V's own second-order proof fails (module
+    docstring, "The linearisation proof"). ``level``: the level ``c`` up to which ``condition`` is proved on
+    ``{V <= c}`` outside the delta-ball. Returns ``proved``, ``level`` (the largest ``c' <= c`` for which the
+    whole chain holds: ``{V <= c'}`` is then a region of attraction), ``P``, ``q_level`` (``c_q``), ``inner_level``
+    (``c_1``), ``quadratic`` (:func:`quadratic_roa`'s result), the proofs' details and ``reason`` when it fails."""
+    start = time.perf_counter()
+    deadline = start + time_limit
+    out: dict = {"method": "linearisation", "proved": False, "level": None, "reason": ""}
+    quad = quadratic_roa(system, controller, condition, region, time_limit=0.4 * time_limit, min_width=min_width,
+                         batch=batch, enclosure=enclosure)
+    out["quadratic"] = {k: v for k, v in quad.items() if k not in ("jacobians", "eigenvalues")}
+    out.update({k: quad[k] for k in ("jacobians", "eigenvalues", "P", "q_level", "cube") if k in quad})
+    if not quad["proved"]:
+        out["reason"] = quad["reason"]
         return out
-    # 3. c_1 <= min of V over {W >= c_q} in the box, so that {V <= c_1} lies inside {W <= c_q}
-    vobj, wobj = value_objective(lyapunov), value_objective(w)
+    plain = condition.per_sample()
+    # 3. c_1 <= min of V over {W >= c_q} in the box, so that {V <= c_1} lies inside {W <= c_q}; of the candidate
+    # W's (quadratic_roa), the one that holds the largest sublevel set of V
+    vobj = value_objective(lyapunov)
     blo, bhi = box_grid(region.lo, region.hi, default_grid(system.n))
+    c_1, p, c_q = -math.inf, None, None
+    candidates = quad["candidates"]
+    for i, cand in enumerate(candidates):
+        p_i, c_qi = torch.tensor(cand["P"], dtype=F64), cand["q_level"]
+        w_i = QuadraticLyapunov(p_i)
+        wobj = value_objective(w_i)
 
-    def outside(a, b):
-        return box_bounds(wobj, a, b, enclosure)[1][:, 0] >= c_q
+        def outside(a, b, wobj=wobj, c_qi=c_qi):
+            return box_bounds(wobj, a, b, enclosure)[1][:, 0] >= c_qi
 
-    _, neg_up, _ = maximize(lambda z: -vobj(z), blo, bhi, region.scale, box_ok=outside,
-                            centre_ok=lambda z: w(z) >= c_q, min_width=min_width,
-                            time_limit=max(1.0, 0.3 * (deadline - time.perf_counter())), enclosure=enclosure)
-    c_1 = float(_down(_down(-neg_up[0], REL1), 1e-9))
+        _, neg_up, _ = maximize(lambda z: -vobj(z), blo, bhi, region.scale, box_ok=outside,
+                                centre_ok=lambda z, w_i=w_i, c_qi=c_qi: w_i(z) >= c_qi, min_width=min_width,
+                                time_limit=max(1.0, 0.3 * (deadline - time.perf_counter()) / (len(candidates) - i)),
+                                enclosure=enclosure)
+        c_1i = float(_down(_down(-neg_up[0], REL1), 1e-9))
+        cand["inner_level"] = c_1i
+        if c_1i > c_1:
+            c_1, p, c_q = c_1i, p_i, c_qi
     out["inner_level"] = c_1
+    if p is not None:
+        out.update(P=p.tolist(), q_level=c_q)
     if not c_1 > 0:
         out["reason"] = "no sublevel set of V provably inside {W <= c_q}"
         return out
@@ -396,6 +590,8 @@ def certified_roa(system: UncertainSystem, lyapunov: Lyapunov, controller: Contr
     :func:`~drlyap.verification.bounds.default_enclosure`); the Hessian enclosure on the cube around x* is
     interval arithmetic on nested dual numbers. ``max_level`` caps the search (e.g. at the level a region of
     attraction was trained for: ``limited_by`` then reads ``"level asked for"`` when the cap is proved).
+    ``quadratic``: where no sublevel set of V is certified (and ``linearisation``), :func:`quadratic_roa`'s
+    result: a region of attraction ``{z^T P z <= q_level}`` of the same closed loop, not of V; else None.
     """
     start = time.perf_counter()
     enclosure = check_enclosure(enclosure or default_enclosure(system.n))
@@ -436,6 +632,12 @@ def certified_roa(system: UncertainSystem, lyapunov: Lyapunov, controller: Contr
         local = linearisation_local(system, lyapunov, controller, condition, region, c, time_limit=left,
                                     min_width=min_width, batch=batch, enclosure=enclosure) | {"second_order": local}
     outer_level = c
+    quadratic = None  # the closed loop's own certificate, reported where V's sublevel sets are not certified
+    if linearisation and not (c > 0 and local["proved"]):
+        quadratic = local.get("quadratic") or quadratic_roa(
+            system, controller, condition, region, time_limit=max(3.0, deadline - time.perf_counter()),
+            min_width=min_width, batch=batch, enclosure=enclosure)
+        quadratic = {k: v for k, v in quadratic.items() if k not in ("jacobians", "eigenvalues")}
     if c > 0 and local["proved"]:
         kind = "region of attraction"
         if local.get("level") is not None and local["level"] < c:  # the annulus inside the ball may lower it
@@ -454,7 +656,7 @@ def certified_roa(system: UncertainSystem, lyapunov: Lyapunov, controller: Contr
             "boundary_min_lower": boundary_min_lower, "ball_max_upper": ball_max_upper, "share_of_box": share,
             "counterexample": None if cex is None else system.to_user(cex[None])[0].tolist(),
             "boxes_processed": processed, "time_s": time.perf_counter() - start, "delta": float(delta),
-            "condition": condition.label}
+            "condition": condition.label, "quadratic": quadratic}
 
 
 def _level_search(system: UncertainSystem, lyapunov: Lyapunov, controller: Controller, condition: Condition,
