@@ -4,6 +4,7 @@ Every test draws points inside random boxes (the corners included) and checks th
 each computed value contains the value computed by plain float64 torch code at those points.
 """
 
+import math
 from fractions import Fraction
 
 import pytest
@@ -396,3 +397,19 @@ def test_maximize_with_affine_forms_bounds_sampled_values_at_4_states():
     sampled = float(spec.exact(system, lyap, ctrl, z).max())
     assert float(lower[0]) <= float(upper[0])
     assert sampled <= float(upper[0]), (sampled, float(upper[0]), info)
+
+
+def test_maximize_stopped_early_keeps_a_sound_finite_bound():
+    """Stopped with more boxes queued than it re-bounds, the upper bound comes from their parents' bounds:
+    finite, above every sampled value, and tighter than the first box's."""
+    def objective(z):  # (B, 2) -> (B, 1): sin(3 z1) cos(2 z2) + z1 z2
+        return (torch.sin(3 * z[:, :1]) * torch.cos(2 * z[:, 1:]) + z[:, :1] * z[:, 1:])
+
+    lo, hi = torch.tensor([[-1.0, -1.0]], dtype=F64), torch.tensor([[1.0, 1.0]], dtype=F64)
+    scale = torch.tensor([2.0, 2.0], dtype=F64)
+    first = maximize(objective, lo, hi, scale, max_boxes=1, batch=1)[1]
+    lower, upper, info = maximize(objective, lo, hi, scale, max_boxes=60, batch=2, rel_tol=1e-9)
+    assert info["stopped"] == "box budget"
+    z = lo + (hi - lo) * torch.rand(50000, 2, generator=torch.Generator().manual_seed(1), dtype=F64)
+    assert float(objective(z).max()) <= float(upper[0]) < float(first[0]) < math.inf
+    assert float(lower[0]) <= float(upper[0])

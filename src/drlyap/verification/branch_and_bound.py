@@ -243,11 +243,14 @@ def maximize(objective: Callable, lo: Tensor, hi: Tensor, scale: Tensor, *, cent
     if box_ok is not None:
         keep = box_ok(lo, hi)
         lo, hi = lo[keep], hi[keep]
+    known: Tensor | None = None  # (B, Q): an upper bound on each queued box (its parent's), once one is split
     while lo.shape[0]:
         if time.perf_counter() - start > time_limit or processed >= max_boxes:
             stopped = "time limit" if processed < max_boxes else "box budget"
             break
         clo, chi, lo, hi = lo[:batch], hi[:batch], lo[batch:], hi[batch:]
+        if known is not None:
+            known = known[clo.shape[0]:]
         _, ub, at = box_bounds(objective, clo, chi, enclosure)
         processed += clo.shape[0]
         centre = (clo + chi) / 2
@@ -264,16 +267,20 @@ def maximize(objective: Callable, lo: Tensor, hi: Tensor, scale: Tensor, *, cent
             closed = cand if closed is None else torch.maximum(closed, cand)
         if refine.any():
             nlo, nhi = split(clo[refine], chi[refine], scale)
+            inherited = ub[refine].repeat(2, 1)  # split() returns the lower halves, then the upper halves
             if box_ok is not None:
                 keep = box_ok(nlo, nhi)
-                nlo, nhi = nlo[keep], nhi[keep]
-            lo, hi = torch.cat([lo, nlo]), torch.cat([hi, nhi])
+                nlo, nhi, inherited = nlo[keep], nhi[keep], inherited[keep]
+            if known is None:
+                known = torch.full((lo.shape[0], ub.shape[1]), torch.inf, dtype=ub.dtype, device=ub.device)
+            lo, hi, known = torch.cat([lo, nlo]), torch.cat([hi, nhi]), torch.cat([known, inherited])
     if lo.shape[0]:
-        _, ub, _ = box_bounds(objective, lo, hi, enclosure) if lo.shape[0] <= 4 * batch else (None, None, None)
-        if ub is None:
-            rest = torch.full_like(closed if closed is not None else best, torch.inf)
+        if lo.shape[0] <= 4 * batch:
+            rest = box_bounds(objective, lo, hi, enclosure)[1].amax(0)
+        elif known is not None:  # too many to bound again in time: their parents' bounds hold for them
+            rest = known.amax(0)
         else:
-            rest = ub.amax(0)
+            rest = torch.full_like(closed if closed is not None else best, torch.inf)
         closed = rest if closed is None else torch.maximum(closed, rest)
     if closed is None:
         raise ValueError("the set to maximise over is empty")
