@@ -491,8 +491,9 @@ def verify(run_dir: Path, delta: float | None, xi: str | None, time_limit: float
                    f"({res['boxes_processed']} boxes, {res['time_s']:.2f} s, {res['stopped']})")
         if res.get("level") is not None:
             low = res.get("boundary_min_lower")
-            bound = "unbounded (time limit)" if low is None else f">= {low:.6g}"
             inside = low is not None and low > res["level"]
+            digits = 6 if low is None or inside or f"{low:.6g}" != f"{res['level']:.6g}" else 12  # 0.9999999 is not 1
+            bound = "unbounded (time limit)" if low is None else f">= {low:.{digits}g}"
             click.echo(f"  on {{V <= {res['level']:g}}} only; min of V on the box's faces {bound} (so the set lies "
                        f"inside the box: {'proved' if inside else 'NOT proved'})")
         if res["counterexample"] is not None:
