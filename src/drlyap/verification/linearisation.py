@@ -10,8 +10,15 @@ x* equal to ``-2 S^-2`` for that ``A``: negative definite and conditioned like t
 :func:`common_lyapunov_matrix` picks one ``P`` for all samples' ``A_j`` (their mean's, improved numerically
 where it fails for some ``A_j``).
 
-Nothing here is a proof: ``A`` and ``P`` only *choose* the certificate ``W``; what is claimed about ``W`` is
-proved afterwards by the verifier's enclosures and branch and bound (:func:`drlyap.verification.roa.linearisation_local`).
+For the mean-value proof of ``W`` on a cube (:func:`drlyap.verification.roa.quadratic_roa`):
+:func:`jacobian_enclosures` encloses every sample's Jacobian over the cube (sound, affine forms),
+:func:`scaled_jacobians` puts the interval matrices in box-scaled coordinates (rounded outward),
+:func:`robust_decrease_matrix` is the matrix whose negative definiteness the verifier checks, and
+:func:`robust_lyapunov_matrix` fits ``P`` and the bound's weights to it.
+
+The fits prove nothing: ``A``, ``P`` and the weights only *choose* the certificate ``W``; what is claimed about
+``W`` is proved afterwards by the verifier's enclosures, rounding pads and branch and bound
+(:func:`drlyap.verification.roa.quadratic_roa`, :func:`drlyap.verification.roa.linearisation_local`).
 """
 
 from __future__ import annotations
@@ -199,7 +206,9 @@ def robust_lyapunov_matrix(centre: Tensor, radius: Tensor, p_start: Tensor, log_
                 break
             if volume:
                 if target is None:
-                    target = worst / 20 if worst < 0 else -math.inf
+                    if not worst < 0:  # no margin to trade for volume
+                        break
+                    target = worst / 20
                 log_volume = inscribed_log_volume(p)
                 if worst < target and float(log_volume.detach()) > best_volume:
                     best_volume, best = float(log_volume.detach()), (p.detach().clone(), log_t.detach().clone(), worst)
