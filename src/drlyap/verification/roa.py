@@ -199,7 +199,8 @@ def _below(level: float) -> float:
 
 
 def _jacobian_negative(system: UncertainSystem, controller: Controller, plain: PlainDecrease, p: Tensor,
-                       half: Tensor, half_widths: Tensor, log_t: Tensor | None = None) -> tuple[bool, float, str]:
+                       half: Tensor, half_widths: Tensor, log_t: Tensor | None = None,
+                       scaled: tuple[Tensor, Tensor] | None = None) -> tuple[bool, float, str]:
     """Is ``Wdot = 2 z^T P F_j(z) < 0`` for every sample's model on the cube ``|z_i| <= half_i`` minus x*
     (``W = z^T P z``)?
 
@@ -211,9 +212,11 @@ def _jacobian_negative(system: UncertainSystem, controller: Controller, plain: P
     sound); ``M``'s largest eigenvalue plus a rounding pad of 1e-9 of the terms' norms below 0 proves it.
     Only first derivatives are enclosed (the Hessian test of :func:`_hessian_negative` needs second ones).
 
+    ``scaled``: that cube's :func:`~drlyap.verification.linearisation.scaled_jacobians` when the caller has them.
+
     Returns (proved, the bound ``lambda`` with ``Wdot <= lambda ||z||^2 / 2`` on the cube, reason)."""
     s = half_widths.to(F64)
-    centre, radius = scaled_jacobians(jacobian_enclosures(system, controller, plain, half), s)
+    centre, radius = scaled or scaled_jacobians(jacobian_enclosures(system, controller, plain, half), s)
     if not bool(torch.isfinite(centre).all() and torch.isfinite(radius).all()):
         return False, math.nan, "non-finite Jacobian enclosure"
     p_s = p.to(F64) * s[:, None] * s[None, :]
@@ -242,7 +245,7 @@ def _jacobian_negative(system: UncertainSystem, controller: Controller, plain: P
     return True, 2 * unit * worst / float(s.max()) ** 2, ""
 
 
-def _second_order_cube(system: UncertainSystem, lyapunov: Lyapunov, controller: Controller, plain: PlainDecrease,
+def _proved_cube(system: UncertainSystem, lyapunov: Lyapunov, controller: Controller, plain: PlainDecrease,
                        half: Tensor, smallest: float, half_widths: Tensor) -> tuple[Tensor | None, float, str]:
     """The first cube ``|z_i| <= half_i`` (halving ``half`` until its largest side is below ``smallest``) on which
     ``Vdot < 0`` except at x* is proved: by :func:`_jacobian_negative` for a quadratic V, else by
@@ -313,7 +316,7 @@ def local_decrease(system: UncertainSystem, lyapunov: Lyapunov, controller: Cont
         return out
     out["equilibrium"] = True  # the preconditions hold: a failure below is one of the second-order proof
     half = torch.minimum(torch.minimum(-region.lo, region.hi), torch.full_like(region.lo, delta))
-    half, bound, reason = _second_order_cube(system, lyapunov, controller, plain, half, 1e-7 * delta,
+    half, bound, reason = _proved_cube(system, lyapunov, controller, plain, half, 1e-7 * delta,
                                              region.scale / 2)
     if half is None:
         out["reason"] = reason
@@ -389,7 +392,7 @@ def quadratic_roa(system: UncertainSystem, controller: Controller, condition: Co
     # proved, and a P fitted to the widest cube it can be proved on; each W's region then searched beyond it
     cube_deadline = start + 0.5 * time_limit
     candidates = []
-    half, bound, reason = _second_order_cube(system, QuadraticLyapunov(p_mean), controller, plain, half_box,
+    half, bound, reason = _proved_cube(system, QuadraticLyapunov(p_mean), controller, plain, half_box,
                                              1e-9 * float(half_box.max()), s)
     if half is not None:
         candidates.append(("Lyapunov equation", p_mean, half, bound))
@@ -427,7 +430,7 @@ def _fitted_cube(system: UncertainSystem, controller: Controller, plain: PlainDe
             return None, p_s, log_t
         p = p_s / s[:, None] / s[None, :]
         p = (p + p.T) / 2
-        ok, bound, _ = _jacobian_negative(system, controller, plain, p, h, s, log_t)
+        ok, bound, _ = _jacobian_negative(system, controller, plain, p, h, s, log_t, (centre, radius))
         return ((p, h, bound, log_t) if ok else None), p_s, log_t
 
     found, frac, failed, log_t = None, 1.0, None, None
@@ -453,7 +456,8 @@ def _fitted_cube(system: UncertainSystem, controller: Controller, plain: PlainDe
                                               volume=True)
     if rate < 0:
         rounder = (p_s + p_s.T) / 2 / s[:, None] / s[None, :]
-        ok, rounder_bound, _ = _jacobian_negative(system, controller, plain, rounder, half, s, log_t)
+        ok, rounder_bound, _ = _jacobian_negative(system, controller, plain, rounder, half, s, log_t,
+                                                  (centre, radius))
         if ok:
             p, bound = (rounder + rounder.T) / 2, rounder_bound
     return p, half, bound
@@ -538,7 +542,7 @@ def linearisation_local(system: UncertainSystem, lyapunov: Lyapunov, controller:
     # W's (quadratic_roa), the one that holds the largest sublevel set of V
     vobj = value_objective(lyapunov)
     blo, bhi = box_grid(region.lo, region.hi, default_grid(system.n))
-    c_1, p, c_q = -math.inf, None, None
+    c_1, chosen = -math.inf, None
     candidates = quad["candidates"]
     for i, cand in enumerate(candidates):
         p_i, c_qi = torch.tensor(cand["P"], dtype=F64), cand["q_level"]
@@ -555,13 +559,14 @@ def linearisation_local(system: UncertainSystem, lyapunov: Lyapunov, controller:
         c_1i = float(_down(_down(-neg_up[0], REL1), 1e-9))
         cand["inner_level"] = c_1i
         if c_1i > c_1:
-            c_1, p, c_q = c_1i, p_i, c_qi
+            c_1, chosen = c_1i, cand
     out["inner_level"] = c_1
-    if p is not None:
-        out.update(P=p.tolist(), q_level=c_q)
+    if chosen is not None:  # the W the chain below rests on, with its level and cube
+        out.update({k: chosen[k] for k in ("P", "q_level", "cube")})
     if not c_1 > 0:
         out["reason"] = "no sublevel set of V provably inside {W <= c_q}"
         return out
+    p, c_q = torch.tensor(chosen["P"], dtype=F64), chosen["q_level"]
     # any smaller c_1 will do ({V <= c_1} only shrinks): keep it below the outer level, so that the annulus
     # {c_1 <= V <= c} is not empty and {V <= c} is forward invariant
     c_1 = min(c_1, level / 2)
