@@ -12,7 +12,7 @@ def run_dir(tmp_path_factory):
     result = CliRunner().invoke(main, ["train", "pendulum", "--method", "baseline", "--iters", "10", "--quiet", "--no-verify",
                                        "--out", str(out)])
     assert result.exit_code == 0, result.output
-    assert "acceptance" in result.output
+    assert "acceptance" in result.output and "V near x*: Vdot <=" in result.output
     return out
 
 
@@ -41,6 +41,7 @@ def test_evaluate_json(run_dir):
     (["train", "nope", "--out", "x"], "unknown system 'nope'"),
     (["evaluate", "/nonexistent/run", "--xi", "0.1,0.05"], "does not exist"),
     (["train", "pendulum", "--eps", "2", "--iters", "1", "--out", "OUT"], "risk_level"),
+    (["train", "pendulum", "--local-rate", "-1", "--iters", "1", "--out", "OUT"], "local_rate"),
 ])
 def test_errors_name_the_problem(tmp_path, args, message):
     args = [str(tmp_path / "o") if a == "OUT" else a for a in args]
@@ -83,3 +84,15 @@ def test_proved_shares_are_never_rounded_up_to_a_proof():
     assert proved_percent(0.998449, verified=False) == "99.84%"
     assert proved_percent(1.0, verified=False, decimals=4) == "> 99.9999%"  # a volume sum that reached 1.0
     assert proved_percent(1.0, verified=True) == "100.00%"
+
+
+def test_train_with_the_local_term_saves_it_and_reports_the_rate(tmp_path):
+    out = tmp_path / "run"
+    result = CliRunner().invoke(main, ["train", "pendulum", "--iters", "8", "--quiet", "--no-verify", "--local-rate", "0.5",
+                                       "--json", "--out", str(out)])
+    assert result.exit_code == 0, result.output
+    metrics = json.loads(result.stdout)["metrics"]
+    assert json.loads((out / "config.json").read_text())["local_rate"] == 0.5
+    rates = metrics["acceptance"]["local_rates"]
+    assert len(rates) == 5 and metrics["acceptance"]["local_rate_max"] == max(rates)
+    assert not metrics["passed"] or max(rates) < 0

@@ -10,7 +10,10 @@ from drlyap.conditions import (
     DRPointwise,
     DRUniform,
     Nominal,
+    PlainDecrease,
+    TrueDecrease,
     cvar_bound,
+    local_rates,
     make_condition,
     wasserstein_radius_guarantee,
 )
@@ -92,3 +95,52 @@ def test_wasserstein_radius_guarantee_cases():
     assert r == pytest.approx((math.log(20.0) / 0.05) ** (1 / 3))
     with pytest.raises(ValueError):
         wasserstein_radius_guarantee(1, 1, 1, 1, 5, 1.5)
+
+
+def _random_pair(system, seed):
+    from drlyap.training import TrainConfig, build_networks
+
+    torch.manual_seed(seed)
+    cfg = TrainConfig(system=system.name, lyapunov_hidden=[8], lyapunov_out=4, controller_hidden=[8], init_gain=1.0)
+    lyap, ctrl = build_networks(system, cfg.resolved(system))
+    return lyap.double(), ctrl.double()
+
+
+@pytest.mark.parametrize("seed", [0, 1])
+def test_local_rates_are_the_largest_ratio_of_vdot_to_v_next_to_x_star(seed):
+    """In two states the directions of a fine circle find the largest generalised eigenvalue: the largest
+    Vdot / V at radius 1e-5 must equal the rate, on the design model (DR samples) and on the true model."""
+    from drlyap.systems import pendulum
+
+    p = pendulum()
+    lyap, ctrl = _random_pair(p, seed)
+    xi = torch.tensor([[0.1, -0.2], [0.3, 0.0], [-0.2, 0.4]], dtype=torch.float64)
+    angle = torch.linspace(0, 2 * math.pi, 20001, dtype=torch.float64)[:-1]
+    z = 1e-5 * torch.stack([angle.cos(), angle.sin()], -1)
+    for cond in (DRPointwise(0.01, 0.1, xi), TrueDecrease(xi)):
+        rates = local_rates(cond, p, lyap, ctrl)
+        with torch.no_grad():
+            v = lyap(z)
+            ratio = PlainDecrease(xi, model=cond.model).terms(p, lyap, ctrl, z).vdot / v[:, None]
+        assert rates.shape == (3,)
+        assert torch.allclose(rates, ratio.amax(0), rtol=1e-3, atol=1e-3 * float(ratio.abs().max()))
+
+
+def test_local_rates_bound_vdot_over_v_in_four_states_and_carry_gradients():
+    from drlyap.systems import cartpole
+
+    c = cartpole()
+    lyap, ctrl = _random_pair(c, 0)
+    xi = torch.as_tensor(c.sample_xi(2, torch.Generator().manual_seed(0)), dtype=torch.float64)
+    cond = PlainDecrease(xi)
+    rates = local_rates(cond, c, lyap, ctrl)
+    g = torch.Generator().manual_seed(1)
+    d = torch.randn(20000, 4, generator=g, dtype=torch.float64)
+    z = 1e-5 * d / d.norm(dim=-1, keepdim=True)
+    with torch.no_grad():
+        ratio = cond.terms(c, lyap, ctrl, z).vdot / lyap(z)[:, None]
+    scale = float(ratio.abs().max())
+    assert (ratio.amax(0) <= rates + 1e-3 * scale).all()  # no direction beats the rate
+    assert (ratio.amax(0) >= rates - 0.2 * scale).all()  # and random directions come close to it
+    rates.sum().backward()
+    assert all(p.grad is not None and torch.isfinite(p.grad).all() for p in [*lyap.parameters(), *ctrl.parameters()])

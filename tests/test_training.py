@@ -109,7 +109,8 @@ def test_divergence_stops_with_last_good_weights(tiny_config):
 @pytest.mark.parametrize("field, value, message", [
     ("method", "magic", "method"), ("risk_level", 1.5, "risk_level"), ("n_states", 0, "n_states"),
     ("xi_samples", [[0.1]], "xi_samples must be"), ("xi_samples", [[0.1, float("nan")]], "NaN"),
-    ("decay_rate", -1.0, "decay_rate"), ("device", "tpu", "device"),
+    ("decay_rate", -1.0, "decay_rate"), ("device", "tpu", "device"), ("local_rate", -0.5, "local_rate"),
+    ("local_rate", float("nan"), "local_rate"),
 ])
 def test_bad_config_is_rejected_before_training(tiny_config, field, value, message):
     with pytest.raises(ValueError, match=message):
@@ -161,3 +162,15 @@ def test_a_train_box_without_the_equilibrium_is_rejected(tiny_config):
 def test_a_saved_config_with_an_unknown_key_is_refused_by_name():
     with pytest.raises(ValueError, match=r"unknown config keys \['iterz'\]"):
         TrainConfig.from_dict({"system": "pendulum", "iterz": 10})
+
+
+def test_the_local_term_makes_v_decay_near_x_star_and_the_acceptance_check_asks_for_it(tiny_config):
+    """Same seed with and without the local term: it lowers V's worst second-order rate at x* (it starts well
+    above 0 here), and with the term asked the acceptance check fails while any rate is >= 0."""
+    plain = train(tiny_config(iters=200, check_every=200), progress=False).metrics
+    local = train(tiny_config(iters=200, check_every=200, local_rate=1.0), progress=False).metrics
+    assert plain["acceptance"]["local_rate_max"] > 0
+    assert local["acceptance"]["local_rate_max"] < plain["acceptance"]["local_rate_max"] - 1.0
+    assert local["checks"][-1]["local_rate_max"] == pytest.approx(local["acceptance"]["local_rate_max"])
+    if local["acceptance"]["local_rate_max"] >= 0:
+        assert not local["passed"]

@@ -20,7 +20,7 @@ import math
 import torch
 from torch import Tensor
 
-from drlyap.conditions import Condition, DecreaseTerms
+from drlyap.conditions import Condition, DecreaseTerms, local_rates
 from drlyap.networks import Controller, Lyapunov
 from drlyap.regions import Region
 from drlyap.systems import UncertainSystem
@@ -128,7 +128,7 @@ def find_equilibria(system: UncertainSystem, controller: Controller, xi_samples:
 
 def acceptance_check(system: UncertainSystem, lyapunov: Lyapunov, controller: Controller, condition: Condition,
                      xi_samples: Tensor, region: Region, validation: Tensor | None = None,
-                     level: float | None = None, faces: Tensor | None = None) -> dict:
+                     level: float | None = None, faces: Tensor | None = None, local: bool = False) -> dict:
     """Run all three checks; ``passed`` is True only if all of them pass.
 
     ``xi_samples (N, k)``: every sample; the Jacobian and equilibrium checks run at each of them and at
@@ -136,6 +136,8 @@ def acceptance_check(system: UncertainSystem, lyapunov: Lyapunov, controller: Co
     states of the first check (default: ``region.grid()``). ``level``: the condition is asked only of the
     validation states with ``V <= level``, and V must exceed ``level`` at every state of ``faces`` ``(F, n)``
     (default: 20,000 fixed states on the box's boundary), so that ``{V <= level}`` lies inside the box.
+    ``local_rates``: V's second-order decay rate at x* on each of the condition's samples
+    (:func:`~drlyap.conditions.local_rates`), always reported; with ``local`` every one must be negative.
     """
     z = region.grid() if validation is None else validation
     asked = z
@@ -150,7 +152,11 @@ def acceptance_check(system: UncertainSystem, lyapunov: Lyapunov, controller: Co
     max_violation = float(residual.max()) if residual.numel() else -math.inf
     jac = jacobian_check(system, controller, xi_samples)
     equilibria = find_equilibria(system, controller, xi_samples, region.delta)
+    with torch.enable_grad():
+        rates = [float(r) for r in local_rates(condition, system, lyapunov, controller).detach().cpu()]
     passed = (max_violation <= 0) and jac["hurwitz"] and not equilibria
+    if local:
+        passed = passed and max(rates) < 0
     if level is not None:
         passed = passed and boundary_min > level
     return {
@@ -162,4 +168,6 @@ def acceptance_check(system: UncertainSystem, lyapunov: Lyapunov, controller: Co
         "other_equilibria": equilibria,
         "level": level,
         "boundary_min": boundary_min,
+        "local_rates": rates,
+        "local_rate_max": max(rates),
     }

@@ -107,11 +107,14 @@ def systems(as_json: bool) -> None:
 @click.option("--verify-time", type=float, default=None,
               help="Seconds per proof [the system's: 30; 120 for cartpole and quadrotor2d].")
 @click.option("--verify-budget", type=float, default=None, help="Total seconds for the retraining rounds [no limit].")
+@click.option("--local-rate", type=float, default=None,
+              help="Ask V to decay at this rate near x* on every training sample's linearisation (a loss term; the "
+                   "acceptance check then asks V to decrease there) [0: not asked].")
 @click.option("--json", "as_json", is_flag=True, help="Print one JSON object (run_dir, system, metrics) on stdout.")
 def train(system: str, method: str, loss: str, radius: float | None, eps: float | None, gamma: float | None,
           exp_rate: float | None, xi_samples: str | None, iters: int, seed: int, device: str, warm_start: Path | None,
           out: Path, quiet: bool, verify: bool, verify_rounds: int, verify_time: float | None,
-          verify_budget: float | None, as_json: bool) -> None:
+          verify_budget: float | None, local_rate: float | None, as_json: bool) -> None:
     """Train a controller and Lyapunov certificate for SYSTEM, prove the trained condition, save a run directory.
 
     SYSTEM is a registered name, package.module:factory or path/to/file.py:factory (see `drlyap systems`).
@@ -130,7 +133,7 @@ def train(system: str, method: str, loss: str, radius: float | None, eps: float 
         cfg = TrainConfig(system=sys_.name, method=method, loss=loss, wasserstein_radius=radius, risk_level=eps,
                           decay_rate=gamma, exp_rate=exp_rate, xi_samples=samples, iters=iters, seed=seed,
                           device=device, verify=verify, verify_rounds=verify_rounds, verify_time=verify_time,
-                          verify_budget=verify_budget)
+                          verify_budget=verify_budget, local_rate=local_rate)
         cfg.resolved(sys_)  # refuse a bad config before anything runs
         ensure_new(out)
         init = None
@@ -162,6 +165,10 @@ def train(system: str, method: str, loss: str, radius: float | None, eps: float 
     click.echo(f"  acceptance: {'PASSED' if m['passed'] else 'NOT PASSED'}; max violation {acc['max_violation']:.3g} "
                f"on {100 * acc['violating_fraction']:.2f}% of {acc['validation_states']} validation states; "
                f"Hurwitz at x*: {acc['jacobian']['hurwitz']}; other equilibria: {len(acc['other_equilibria'])}")
+    if acc.get("local_rate_max") is not None:
+        rate = acc["local_rate_max"]
+        click.echo(f"  V near x*: Vdot <= {rate:+.3g} V to second order at the worst training sample "
+                   f"({'V decreases' if rate < 0 else 'V does NOT decrease along every direction'})")
     if c:
         click.echo(f"  proof: {c['retraining_rounds']} retraining round(s) (kept round {c['returned_round']})")
     click.echo(f"  saved {out}")

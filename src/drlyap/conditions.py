@@ -21,6 +21,9 @@ Per-state ingredients (:func:`decrease_terms`):
   (``eq: V_dot_uncertain``) or, for :class:`TrueDecrease`, on the true model ``F(x, u, p0 + xi_j)``;
 * ``lip[i] = || W(x_i, pi(x_i))^T grad V(x_i) ||`` (the Lipschitz constant of Vdot in xi; design model only);
 * ``decay[i] = gamma ||z_i|| + alpha V(z_i)`` (``alpha > 0``: the exponential variant).
+
+:func:`local_rates` gives V's second-order decay rate at x* on each sample's model, from the same ``vdot``
+(what the training's local term and the acceptance check ask to be negative).
 """
 
 from __future__ import annotations
@@ -83,6 +86,35 @@ def decrease_terms(system: UncertainSystem, lyapunov: Lyapunov, controller: Cont
     if exp_rate:
         decay = decay + value * exp_rate
     return DecreaseTerms(vdot=vdot, lip=lip, decay=decay, value=value)
+
+
+def local_rates(condition: Condition, system: UncertainSystem, lyapunov: Lyapunov, controller: Controller) -> Tensor:
+    """``(N,)``: V's second-order decay rate at x* on each sample's model of ``condition`` (its samples, its model).
+
+    With ``H_V`` V's Hessian at x* and ``H_j`` the Hessian there of sample j's ``Vdot`` (the condition's own
+    ``vdot``, so the very formula training and the verifier use), both ``V`` and ``Vdot`` are quadratic to second
+    order (``V(0) = 0``, ``grad V(0) = 0``, x* an equilibrium), and ``Vdot <= lambda_j V + o(||z||^2)`` with
+    ``lambda_j`` the largest generalised eigenvalue of ``(H_j, H_V)``. ``lambda_j < 0``: V is a strict Lyapunov
+    function of that model's linearisation (``-lambda_j`` its local exponential rate); ``lambda_j > 0``: V rises
+    along some direction arbitrarily close to x*, so no sublevel set of V is shown invariant by V's own decrease.
+    Differentiable in the networks' weights (second derivatives by batched double backward passes); ``H_V`` is
+    positive definite by V's construction (``alpha_hat > 0``).
+    """
+    ref = next(iter([*lyapunov.parameters(), *lyapunov.buffers()]))
+    n = system.n
+    z = torch.zeros(1, n, dtype=ref.dtype, device=ref.device, requires_grad=True)
+    terms = decrease_terms(system, lyapunov, controller, z, condition._xi_for(z.detach()), 0.0, 0.0, condition.model,
+                           with_lip=False)
+    f = torch.cat([terms.value, terms.vdot[0]])  # (1 + N,): V and every sample's Vdot
+    k = f.shape[0]
+    eye = torch.eye(k, dtype=f.dtype, device=f.device)
+    grad = torch.autograd.grad(f, z, eye, create_graph=True, is_grads_batched=True)[0][:, 0]  # (1 + N, n)
+    eye = torch.eye(k * n, dtype=f.dtype, device=f.device)
+    hess = torch.autograd.grad(grad.flatten(), z, eye, create_graph=True, is_grads_batched=True)[0].reshape(k, n, n)
+    chol = torch.linalg.cholesky((hess[0] + hess[0].mT) / 2)
+    m = torch.linalg.solve_triangular(chol, hess[1:], upper=False)  # L^-1 H_j, then L^-1 (L^-1 H_j)^T
+    m = torch.linalg.solve_triangular(chol, m.mT, upper=False)
+    return torch.linalg.eigvalsh((m + m.mT) / 2)[:, -1]
 
 
 def cvar_bound(h: Tensor, risk_level: float) -> Tensor:

@@ -20,12 +20,14 @@ import torch
 from torch import Tensor
 
 from drlyap.checks import acceptance_check
-from drlyap.conditions import Condition, make_condition
+from drlyap.conditions import Condition, local_rates, make_condition
 from drlyap.io import from_fields
 from drlyap.networks import Controller, Lyapunov
 from drlyap.progress import progress as show_progress
 from drlyap.regions import Region
 from drlyap.systems import UncertainSystem, get_system
+
+LOCAL_EVERY = 4  # iterations between evaluations of the local term (second derivatives at x*: ~2x an iteration)
 
 
 @dataclass
@@ -75,6 +77,9 @@ class TrainConfig:
     # on it); half of each batch is drawn inside the set. None: the paper's condition on all of X_delta.
     roa_level: float | None = None
     margin_rate: float | None = None  # adds margin_rate * V to the hinge: a margin that scales with V (0 at x*)
+    # V's local decay rate asked at x*: a hinge (lambda_j + local_rate)_+ on conditions.local_rates at every training
+    # sample (every LOCAL_EVERY iterations), and the acceptance check then asks lambda_j < 0. 0: neither.
+    local_rate: float | None = None
     # "lqr": before training, fit V to the LQR's z^T P z (scaled to 1.2 roa_level, or 1, on the faces) and pi to
     # its gain, by regression; lqr_weights = [Q diagonal, R diagonal] (None: Bryson's rule)
     warm_start: str | None = None
@@ -86,6 +91,7 @@ class TrainConfig:
         base = {"wasserstein_radius": 0.01, "risk_level": 0.1, "n_states": 3600, "n_xi": 5, "decay_rate": 1.0,
                 "delta": 0.1, "alpha_hat": 1.0, "margin": 0.0, "lyapunov_hidden": [32, 32],
                 "controller_hidden": [32, 32], "train_box": None, "near_share": 0.0, "margin_rate": 0.0, "exp_rate": 0.0,
+                "local_rate": 0.0,
                 "lr": 0.002, "verify_time": 30.0}
         base.update(system.defaults)
         for key, value in base.items():
@@ -100,7 +106,7 @@ class TrainConfig:
             problems.append(f"method {self.method!r} (valid: baseline, dr)")
         if self.loss not in ("pointwise", "uniform"):
             problems.append(f"loss {self.loss!r} (valid: pointwise, uniform)")
-        for name in ("wasserstein_radius", "decay_rate", "exp_rate", "margin", "alpha_hat", "margin_rate"):
+        for name in ("wasserstein_radius", "decay_rate", "exp_rate", "margin", "alpha_hat", "margin_rate", "local_rate"):
             value = getattr(self, name)
             if not (math.isfinite(value) and value >= 0):
                 problems.append(f"{name} = {value} (must be finite and >= 0)")
@@ -339,10 +345,11 @@ def train(cfg: TrainConfig, system: UncertainSystem | None = None, progress: boo
             inside = inside_states(lyapunov, region, level, 20000, device, torch.Generator().manual_seed(12345))
             validation = torch.cat([z_val, inside])
         check = acceptance_check(system, lyapunov, controller, condition, xi_all.to(device), region,
-                                 validation=validation, level=level, faces=faces_val)
+                                 validation=validation, level=level, faces=faces_val, local=bool(cfg.local_rate))
         check["iteration"] = iteration
         checks.append({k: check[k] for k in ("iteration", "passed", "max_violation", "violating_fraction")}
-                      | {"hurwitz": check["jacobian"]["hurwitz"], "n_other_equilibria": len(check["other_equilibria"])})
+                      | {"hurwitz": check["jacobian"]["hurwitz"], "n_other_equilibria": len(check["other_equilibria"]),
+                         "local_rate_max": check["local_rate_max"]})
         score = (check["passed"], check["jacobian"]["hurwitz"], not check["other_equilibria"],
                  -check["violating_fraction"], -check["max_violation"])
         if best is None or score > best[0]:
@@ -360,6 +367,8 @@ def train(cfg: TrainConfig, system: UncertainSystem | None = None, progress: boo
             loss = condition.loss(terms, cfg.margin, cfg.margin_rate, level)
             if level is not None:  # V above the level on the faces of X: {V <= level} inside X
                 loss = loss + torch.relu(level - lyapunov(region.sample_faces(1024, gen).float().to(device))).mean()
+            if cfg.local_rate and iteration % LOCAL_EVERY == 1:  # V a Lyapunov function of the linearisation
+                loss = loss + torch.relu(local_rates(condition, system, lyapunov, controller) + cfg.local_rate).mean()
             if not torch.isfinite(loss):
                 lyapunov.load_state_dict(last_good[0])
                 controller.load_state_dict(last_good[1])

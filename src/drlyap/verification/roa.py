@@ -64,7 +64,7 @@ import time
 import torch
 from torch import Tensor
 
-from drlyap.conditions import Condition, PlainDecrease
+from drlyap.conditions import Condition, PlainDecrease, local_rates
 from drlyap.enclosures import F64, REL1, Dual, Interval, _down, _up
 from drlyap.networks import Controller, Lyapunov, QuadraticLyapunov
 from drlyap.regions import Region, box_grid, default_grid, near_dist, split
@@ -320,6 +320,13 @@ def local_decrease(system: UncertainSystem, lyapunov: Lyapunov, controller: Cont
                                              region.scale / 2)
     if half is None:
         out["reason"] = reason
+        if not isinstance(lyapunov, QuadraticLyapunov):  # why: is V a Lyapunov function of the linearisation at all?
+            with torch.enable_grad():
+                rate = float(local_rates(plain, system, lyapunov, controller).max())
+            out["local_rate"] = rate
+            out["reason"] += f"; V's second-order rate at x*: Vdot <= {rate:+.3g} V" + (
+                " (V rises along some direction arbitrarily close to x*: no cube can prove its decrease)"
+                if rate > 0 else "")
         return out
     out["cube"] = half.tolist()
     out["hessian_bound"] = bound
