@@ -111,10 +111,11 @@ def local_rates(condition: Condition, system: UncertainSystem, lyapunov: Lyapuno
     grad = torch.autograd.grad(f, z, eye, create_graph=True, is_grads_batched=True)[0][:, 0]  # (1 + N, n)
     eye = torch.eye(k * n, dtype=f.dtype, device=f.device)
     hess = torch.autograd.grad(grad.flatten(), z, eye, create_graph=True, is_grads_batched=True)[0].reshape(k, n, n)
+    hess = hess.double()  # V's Hessian may be conditioned 1e5 (the mountain car's): factor it in float64
     chol = torch.linalg.cholesky((hess[0] + hess[0].mT) / 2)
     m = torch.linalg.solve_triangular(chol, hess[1:], upper=False)  # L^-1 H_j, then L^-1 (L^-1 H_j)^T
     m = torch.linalg.solve_triangular(chol, m.mT, upper=False)
-    return torch.linalg.eigvalsh((m + m.mT) / 2)[:, -1]
+    return torch.linalg.eigvalsh((m + m.mT) / 2)[:, -1].to(ref.dtype)
 
 
 def cvar_bound(h: Tensor, risk_level: float) -> Tensor:
