@@ -144,3 +144,14 @@ def test_local_rates_bound_vdot_over_v_in_four_states_and_carry_gradients():
     assert (ratio.amax(0) >= rates - 0.2 * scale).all()  # and random directions come close to it
     rates.sum().backward()
     assert all(p.grad is not None and torch.isfinite(p.grad).all() for p in [*lyap.parameters(), *ctrl.parameters()])
+
+
+def test_local_rates_are_nan_for_non_finite_weights():
+    from drlyap.systems import pendulum
+
+    p = pendulum()
+    lyap, ctrl = _random_pair(p, 0)
+    with torch.no_grad():
+        lyap.phi.layers[0].weight[0, 0] = float("nan")
+    rates = local_rates(TrueDecrease(torch.zeros(2, 2, dtype=torch.float64)), p, lyap, ctrl)
+    assert rates.shape == (2,) and torch.isnan(rates).all()

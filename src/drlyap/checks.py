@@ -156,7 +156,7 @@ def acceptance_check(system: UncertainSystem, lyapunov: Lyapunov, controller: Co
         rates = [float(r) for r in local_rates(condition, system, lyapunov, controller).detach().cpu()]
     passed = (max_violation <= 0) and jac["hurwitz"] and not equilibria
     if local:
-        passed = passed and max(rates) < 0
+        passed = passed and all(r < 0 for r in rates)  # NaN fails
     if level is not None:
         passed = passed and boundary_min > level
     return {
@@ -169,5 +169,5 @@ def acceptance_check(system: UncertainSystem, lyapunov: Lyapunov, controller: Co
         "level": level,
         "boundary_min": boundary_min,
         "local_rates": rates,
-        "local_rate_max": max(rates),
+        "local_rate_max": math.nan if any(math.isnan(r) for r in rates) else max(rates),
     }

@@ -98,7 +98,7 @@ def local_rates(condition: Condition, system: UncertainSystem, lyapunov: Lyapuno
     function of that model's linearisation (``-lambda_j`` its local exponential rate); ``lambda_j > 0``: V rises
     along some direction arbitrarily close to x*, so no sublevel set of V is shown invariant by V's own decrease.
     Differentiable in the networks' weights (second derivatives by batched double backward passes); ``H_V`` is
-    positive definite by V's construction (``alpha_hat > 0``).
+    positive definite by V's construction (``alpha_hat > 0``); NaN where it cannot be factored (non-finite weights).
     """
     ref = next(iter([*lyapunov.parameters(), *lyapunov.buffers()]))
     n = system.n
@@ -112,7 +112,9 @@ def local_rates(condition: Condition, system: UncertainSystem, lyapunov: Lyapuno
     eye = torch.eye(k * n, dtype=f.dtype, device=f.device)
     hess = torch.autograd.grad(grad.flatten(), z, eye, create_graph=True, is_grads_batched=True)[0].reshape(k, n, n)
     hess = hess.double()  # V's Hessian may be conditioned 1e5 (the mountain car's): factor it in float64
-    chol = torch.linalg.cholesky((hess[0] + hess[0].mT) / 2)
+    chol, info = torch.linalg.cholesky_ex((hess[0] + hess[0].mT) / 2)
+    if int(info):  # not finite (diverged weights): no rate, and a loss built on it reads as diverged
+        return torch.full((k - 1,), math.nan, dtype=ref.dtype, device=ref.device)
     m = torch.linalg.solve_triangular(chol, hess[1:], upper=False)  # L^-1 H_j, then L^-1 (L^-1 H_j)^T
     m = torch.linalg.solve_triangular(chol, m.mT, upper=False)
     return torch.linalg.eigvalsh((m + m.mT) / 2)[:, -1].to(ref.dtype)
