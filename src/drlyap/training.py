@@ -367,7 +367,7 @@ def train(cfg: TrainConfig, system: UncertainSystem | None = None, progress: boo
             loss = condition.loss(terms, cfg.margin, cfg.margin_rate, level)
             if level is not None:  # V above the level on the faces of X: {V <= level} inside X
                 loss = loss + torch.relu(level - lyapunov(region.sample_faces(1024, gen).float().to(device))).mean()
-            if cfg.local_rate and iteration % LOCAL_EVERY == 1:  # V a Lyapunov function of the linearisation
+            if cfg.local_rate and (iteration - 1) % LOCAL_EVERY == 0:  # V a Lyapunov function of the linearisation
                 loss = loss + torch.relu(local_rates(condition, system, lyapunov, controller) + cfg.local_rate).mean()
             if not torch.isfinite(loss):
                 lyapunov.load_state_dict(last_good[0])

@@ -246,7 +246,7 @@ def _jacobian_negative(system: UncertainSystem, controller: Controller, plain: P
 
 
 def _proved_cube(system: UncertainSystem, lyapunov: Lyapunov, controller: Controller, plain: PlainDecrease,
-                       half: Tensor, smallest: float, half_widths: Tensor) -> tuple[Tensor | None, float, str]:
+                 half: Tensor, smallest: float, half_widths: Tensor) -> tuple[Tensor | None, float, str]:
     """The first cube ``|z_i| <= half_i`` (halving ``half`` until its largest side is below ``smallest``) on which
     ``Vdot < 0`` except at x* is proved: by :func:`_jacobian_negative` for a quadratic V, else by
     :func:`_hessian_negative`. Returns ``(half, bound, "")`` (``Vdot <= bound ||z||^2 / 2`` there), or
@@ -317,7 +317,7 @@ def local_decrease(system: UncertainSystem, lyapunov: Lyapunov, controller: Cont
     out["equilibrium"] = True  # the preconditions hold: a failure below is one of the second-order proof
     half = torch.minimum(torch.minimum(-region.lo, region.hi), torch.full_like(region.lo, delta))
     half, bound, reason = _proved_cube(system, lyapunov, controller, plain, half, 1e-7 * delta,
-                                             region.scale / 2)
+                                       region.scale / 2)
     if half is None:
         out["reason"] = reason
         if not isinstance(lyapunov, QuadraticLyapunov):  # why: is V a Lyapunov function of the linearisation at all?
@@ -400,7 +400,7 @@ def quadratic_roa(system: UncertainSystem, controller: Controller, condition: Co
     cube_deadline = start + 0.5 * time_limit
     candidates = []
     half, bound, reason = _proved_cube(system, QuadraticLyapunov(p_mean), controller, plain, half_box,
-                                             1e-9 * float(half_box.max()), s)
+                                       1e-9 * float(half_box.max()), s)
     if half is not None:
         candidates.append(("Lyapunov equation", p_mean, half, bound))
     fitted = _fitted_cube(system, controller, plain, p_mean, half_box, s, cube_deadline)
