@@ -9,9 +9,9 @@
 3. otherwise new training states are collected, in local coordinates:
 
    * the verifier's counterexample and the centres of (at most ``max_boxes``) unverified boxes,
-   * a gradient falsifier (:func:`falsify`): a few steps of projected gradient ascent on the condition's
-     residual (``condition.evaluate``, float64 networks) from random
-     states of X_delta and from the unverified boxes' centres, projected back into X_delta after every step;
+   * a gradient falsifier (:func:`~drlyap.verification.falsifier.falsify`): a few steps of projected gradient
+     ascent on the condition's residual (``condition.evaluate``, float64 networks) from random states of X_delta
+     and from the unverified boxes' centres, projected back into X_delta after every step;
 
    the states with a positive residual (the *counterexamples*), with ``neighbours`` jittered copies each, and
    the unverified box centres are added (deduplicated, at most ``max_extra``, the newest kept) to the
@@ -22,7 +22,9 @@
 
 The pair returned is the best one seen (verified first, then one that passes the acceptance check, then
 Hurwitz at x* and free of other equilibria, then the largest verified fraction), so a round that makes
-things worse does not lose a better earlier pair. ``metrics["cegis"]`` records every round.
+things worse does not lose a better earlier pair. ``metrics["cegis"]`` records every round (the branch and
+bound's verdicts) and, as ``final``, the returned pair's proof, an ``unknown`` one settled by the falsifier
+(:func:`~drlyap.verification.falsifier.settle_unknown`: ``violated`` where a violation is certain).
 Only per-state conditions are supported (DR pointwise and the baseline's nominal condition): the uniform
 DR condition has no per-state residual to falsify.
 """
@@ -44,45 +46,9 @@ from drlyap.regions import Region
 from drlyap.systems import UncertainSystem, get_system
 from drlyap.training import TrainConfig, TrainResult, train
 from drlyap.verification import default_enclosure, prove_trained
+from drlyap.verification.falsifier import falsify, settle_unknown
 
 F64 = torch.float64
-
-
-def falsify(system: UncertainSystem, lyapunov: Lyapunov, controller: Controller, condition: Condition, region: Region,
-            starts: Tensor, steps: int = 30, step_size: float = 0.02) -> tuple[Tensor, Tensor]:
-    """Projected gradient ascent on the condition's residual from ``starts (B, n)`` (local states), batched.
-
-    Each step moves every state by ``step_size`` (a fraction of the box width, shrinking over the steps) along
-    its normalised gradient (per coordinate scaled by the box width), then projects into X_delta. Returns the
-    best state found per start and its residual (float64). The controller's saturation has a straight-through
-    gradient, so ascent in saturated regions is only a heuristic; the residuals returned are exact evaluations.
-    """
-    if not condition.per_state:
-        raise ValueError("the falsifier needs a per-state condition (pointwise, nominal or plain decrease)")
-    lyap, ctrl = copy.deepcopy(lyapunov).to(F64), copy.deepcopy(controller).to(F64)
-    for p in list(lyap.parameters()) + list(ctrl.parameters()):
-        p.requires_grad_(False)
-    width = region.scale
-    z = region.project(starts.to(F64).clone())
-
-    def evaluate(states: Tensor, grad: bool) -> tuple[Tensor, Tensor | None]:
-        with torch.enable_grad():
-            s = states.detach().requires_grad_(grad)
-            res = condition.evaluate(system, lyap, ctrl, s)
-            g = torch.autograd.grad(res.sum(), s)[0] if grad else None
-        return res.detach(), g
-
-    best_z, best_r = z.clone(), evaluate(z, False)[0]
-    for k in range(steps):
-        _, g = evaluate(z, True)
-        direction = g * width
-        direction = direction / direction.norm(dim=-1, keepdim=True).clamp_min(1e-300)
-        rate = step_size * (1 - k / max(steps, 1)) + 1e-3 * step_size
-        z = region.project(z + rate * direction * width)
-        r, _ = evaluate(z, False)
-        better = r > best_r
-        best_z[better], best_r[better] = z[better], r[better]
-    return best_z, best_r
 
 
 def _dedupe(z: Tensor, scale: Tensor, resolution: float = 1e-6) -> Tensor:
@@ -148,8 +114,8 @@ def collect_counterexamples(system: UncertainSystem, lyapunov: Lyapunov, control
 
 def _summary(ver: dict) -> dict:
     keys = ("condition", "status", "verified_fraction", "boxes_processed", "time_s", "stopped", "counterexample",
-            "counterexample_value", "n_unverified", "n_counterexample_boxes", "sup_bounds", "level",
-            "boundary_min_lower")
+            "counterexample_value", "counterexample_source", "n_unverified", "n_counterexample_boxes", "sup_bounds",
+            "level", "boundary_min_lower")
     out = {k: ver.get(k) for k in keys}
     out["sup_bounds"] = [v if math.isfinite(v) else None for v in (out["sup_bounds"] or [])]
     return out
@@ -202,7 +168,7 @@ def train_cegis(cfg: TrainConfig, system: UncertainSystem | None = None, rounds:
         tic = time.perf_counter()
         ver = prove_trained(system, result.lyapunov, result.controller, condition, region, base_cfg.roa_level,
                             time_limit=verify_time_limit, min_width=min_width, keep_boxes=max_boxes,
-                            enclosure=default_enclosure(system.n))
+                            enclosure=default_enclosure(system.n), falsify_starts=0)  # its own falsifier below
         entry: dict = {"round": r, "verification": _summary(ver), "verified": ver["status"] == "verified",
                        "status": ver["status"], "verified_fraction": ver["verified_fraction"],
                        "verify_time_s": time.perf_counter() - tic, "train_time_s": train_time,
@@ -250,9 +216,12 @@ def train_cegis(cfg: TrainConfig, system: UncertainSystem | None = None, rounds:
     _, chosen, chosen_round, chosen_history = best
     metrics = dict(chosen.metrics)
     final = record[chosen_round] if chosen_round < len(record) else record[-1]
+    # the returned pair's verdict: an unknown proof becomes violated where the falsifier finds a certain violation
+    verdict = settle_unknown(dict(final["verification"]), system, chosen.lyapunov, chosen.controller, condition,
+                             region, base_cfg.roa_level, seed=base_cfg.seed)
     metrics["cegis"] = jsonable({
         "rounds": [{k: v for k, v in e.items() if k != "counterexamples"} for e in record],
-        "final": final["verification"], "verified": final["verified"], "returned_round": chosen_round,
+        "final": verdict, "verified": final["verified"], "returned_round": chosen_round,
         "retraining_rounds": len(record) - 1, "max_rounds": rounds, "iters_per_round": iters_round,
         "total_iterations": total_iters, "extra_states": int(extra.shape[0]), "replicate": replicate,
         "verify_time_limit_s": verify_time_limit, "total_time_s": time.perf_counter() - start,
@@ -277,7 +246,8 @@ def certificate_summary(verification: dict, condition_label: str, delta: float, 
         "status": verification["status"], "condition": condition_label, "region": region, "level": level,
         "delta": delta, "verified_fraction": verification.get("verified_fraction"),
         "time_s": verification.get("time_s"), "boxes": verification.get("boxes_processed"),
-        "counterexample": verification.get("counterexample"), "rounds": rounds,
+        "counterexample": verification.get("counterexample"),
+        "counterexample_source": verification.get("counterexample_source"), "rounds": rounds,
         "margin_upper": verification.get("margin_upper"),
     })
 

@@ -219,7 +219,8 @@ def certificate_line(cert: dict) -> str:
     share = cert.get("verified_fraction")
     proved = "" if share is None else f"; {100 * share:.4f}% of it proved"
     cex = cert.get("counterexample")
-    extra = f"; counterexample x = {[round(v, 5) for v in cex]}" if cex else ""
+    found = " (found by the falsifier after the proof ran out of time)" if cert.get("counterexample_source") else ""
+    extra = f"; counterexample x = {[round(v, 5) for v in cex]}{found}" if cex else ""
     return f"certificate: NOT VERIFIED ({status}) - the {cert['condition']} condition on the {where}{proved}{extra}"
 
 
@@ -504,7 +505,8 @@ def verify(run_dir: Path, delta: float | None, xi: str | None, time_limit: float
             click.echo(f"  on {{V <= {res['level']:g}}} only; min of V on the box's faces {bound} (so the set lies "
                        f"inside the box: {'proved' if inside else 'NOT proved'})")
         if res["counterexample"] is not None:
-            click.echo(f"  counterexample x = {[round(v, 6) for v in res['counterexample']]} with residual "
+            by = " (the falsifier's, after the proof ran out of time)" if res.get("counterexample_source") else ""
+            click.echo(f"  counterexample x = {[round(v, 6) for v in res['counterexample']]}{by} with residual "
                        f"{res['counterexample_value']:.4g} > 0 (float32 networks: {res['counterexample_value_float32']:.4g})")
         elif res["status"] != "verified":
             click.echo(f"  {res['n_unverified']} boxes left unverified")

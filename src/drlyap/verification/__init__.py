@@ -14,7 +14,9 @@ Modules:
 * :mod:`~drlyap.verification.roa` -- :func:`certified_roa` (regions of attraction reaching x*, or practical
   stability where the proof inside the ball fails), :func:`local_decrease`, and :func:`verify_sublevel` /
   :func:`prove_trained` (the condition of region-of-attraction training: on ``{V <= level}``, V above the
-  level on the box's faces);
+  level on the box's faces); where a proof runs out of time, :func:`prove_trained` asks the falsifier;
+* :mod:`~drlyap.verification.falsifier` -- gradient search for counterexamples (:func:`falsify`) and
+  :func:`settle_unknown`: an ``unknown`` proof becomes ``violated`` at a state where a violation is certain;
 * :mod:`~drlyap.verification.covering` -- the paper's Lipschitz covering check;
 * :mod:`~drlyap.verification.runs` -- :func:`run_condition`, :func:`verify_run` on run directories;
 * :mod:`~drlyap.verification.robustness` -- :func:`certified_radius` (the largest proved Wasserstein radius),
@@ -38,6 +40,7 @@ from drlyap.verification.branch_and_bound import (
     verify_condition,
 )
 from drlyap.verification.covering import lipschitz_covering
+from drlyap.verification.falsifier import falsify, settle_unknown
 from drlyap.verification.roa import certified_roa, local_decrease, prove_trained, verify_sublevel
 from drlyap.verification.robustness import (
     certified_radius,
@@ -51,6 +54,6 @@ from drlyap.verification.runs import run_condition, verify_run
 __all__ = [
     "ENCLOSURES", "Affine", "Dual", "Interval", "VerificationResult", "as_region", "box_bounds", "certified_roa", "combine_lower",
     "certified_radius", "certified_shift_box", "combine_upper", "condition_objective", "default_enclosure",
-    "lipschitz_covering", "local_decrease", "maximize", "norm", "prove_trained", "run_condition", "run_robustness",
-    "shift_box_condition", "shift_scale", "uniform_margin", "verify_condition", "verify_run", "verify_sublevel",
+    "falsify", "lipschitz_covering", "local_decrease", "maximize", "norm", "prove_trained", "run_condition", "run_robustness",
+    "settle_unknown", "shift_box_condition", "shift_scale", "uniform_margin", "verify_condition", "verify_run", "verify_sublevel",
 ]

@@ -80,6 +80,7 @@ from drlyap.verification.bounds import (
     value_objective,
 )
 from drlyap.verification.branch_and_bound import as_region, maximize, verify_condition
+from drlyap.verification.falsifier import DEFAULT_STARTS, settle_unknown
 from drlyap.verification.linearisation import (
     closed_loop_jacobians,
     common_lyapunov_matrix,
@@ -155,12 +156,18 @@ def verify_sublevel(system: UncertainSystem, lyapunov: Lyapunov, controller: Con
 
 
 def prove_trained(system: UncertainSystem, lyapunov: Lyapunov, controller: Controller, condition: Condition,
-                  delta: float | Region, level: float | None = None, **kwargs) -> dict:
+                  delta: float | Region, level: float | None = None, falsify_starts: int = DEFAULT_STARTS,
+                  **kwargs) -> dict:
     """The proof of a trained condition as a dict: :func:`verify_condition` on X_delta (``level`` None) or
-    :func:`verify_sublevel` on ``{V <= level}`` (region-of-attraction training)."""
+    :func:`verify_sublevel` on ``{V <= level}`` (region-of-attraction training). Where the proof comes back
+    ``unknown``, a falsifier from ``falsify_starts`` states looks for a certain violation
+    (:func:`~drlyap.verification.falsifier.settle_unknown`; 0: none)."""
+    region = as_region(system, delta)
     if level is None:
-        return verify_condition(system, lyapunov, controller, condition, delta, **kwargs).to_dict()
-    return verify_sublevel(system, lyapunov, controller, condition, delta, level, **kwargs)
+        out = verify_condition(system, lyapunov, controller, condition, region, **kwargs).to_dict()
+    else:
+        out = verify_sublevel(system, lyapunov, controller, condition, region, level, **kwargs)
+    return settle_unknown(out, system, lyapunov, controller, condition, region, level, starts=falsify_starts)
 
 
 def _hessian_negative(system: UncertainSystem, lyapunov: Lyapunov, controller: Controller, plain: PlainDecrease,
@@ -322,7 +329,7 @@ def local_decrease(system: UncertainSystem, lyapunov: Lyapunov, controller: Cont
         out["reason"] = reason
         if not isinstance(lyapunov, QuadraticLyapunov):  # why: is V a Lyapunov function of the linearisation at all?
             with torch.enable_grad():
-                rate = float(local_rates(plain, system, lyapunov, controller).max())
+                rate = float(local_rates(plain, system, lyapunov, controller).detach().max())
             out["local_rate"] = rate
             out["reason"] += f"; V's second-order rate at x*: Vdot <= {rate:+.3g} V" + (
                 " (V rises along some direction arbitrarily close to x*: no cube can prove its decrease)"
