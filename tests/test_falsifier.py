@@ -109,3 +109,28 @@ def test_cegis_settles_the_returned_pairs_verdict(tiny_config, monkeypatch):
     assert float(result.condition.exact(system, result.lyapunov, result.controller, z)[0]) > 0
     line = certificate_line(cegis.certificate_summary(final, result.condition.label, 0.5))
     assert "NOT VERIFIED (violated)" in line and "found by the falsifier" in line
+
+
+def test_cegis_starts_near_x_star_where_training_does(violating_pair, monkeypatch):
+    import drlyap.cegis as cegis
+
+    result, region = violating_pair
+    system, lyap, ctrl, cond = result.system, result.lyapunov, result.controller, result.condition
+    got = cegis.collect_counterexamples(system, lyap, ctrl, cond, region, {}, torch.Generator().manual_seed(0),
+                                        n_random=64, steps=5, near=True)
+    assert got["falsifier_starts"] == 64 and bool((cond.exact(system, lyap, ctrl, got["counterexamples"]) > 0).all())
+    seen = []
+
+    def spy(*args, **kwargs):
+        seen.append((kwargs["n_random"], kwargs["near"]))
+        return {"counterexamples": torch.empty(0, 2, dtype=torch.float64), "neighbours": torch.empty(0, 2),
+                "box_centres": torch.empty(0, 2, dtype=torch.float64), "max_residual": None, "falsify_time_s": 0.0}
+
+    monkeypatch.setattr(cegis, "collect_counterexamples", spy)
+    from drlyap.training import TrainConfig
+
+    for share, expected in ((0.0, (512, False)), (0.25, (2048, True))):
+        cfg = TrainConfig(system="pendulum", n_states=64, iters=2, check_every=2, lyapunov_hidden=[4], lyapunov_out=2,
+                          controller_hidden=[4], seed=0, near_share=share)
+        cegis.train_cegis(cfg, rounds=1, verify_time_limit=0.1, progress=False, iters_per_round=1)
+        assert seen[-1] == expected

@@ -46,7 +46,7 @@ from drlyap.regions import Region
 from drlyap.systems import UncertainSystem, get_system
 from drlyap.training import TrainConfig, TrainResult, train
 from drlyap.verification import default_enclosure, prove_trained
-from drlyap.verification.falsifier import falsify, settle_unknown
+from drlyap.verification.falsifier import falsifier_starts, falsify, settle_unknown
 
 F64 = torch.float64
 
@@ -64,10 +64,13 @@ def _dedupe(z: Tensor, scale: Tensor, resolution: float = 1e-6) -> Tensor:
 def collect_counterexamples(system: UncertainSystem, lyapunov: Lyapunov, controller: Controller, condition: Condition,
                             region: Region, verification: dict, generator: torch.Generator,
                             n_random: int = 512, max_boxes: int = 200, steps: int = 30,
-                            neighbours: int = 3, level: float | None = None) -> dict:
+                            neighbours: int = 3, level: float | None = None, near: bool = False) -> dict:
     """New training states from a failed verification: counterexamples (residual > 0) and unverified box centres.
 
-    ``verification`` is :meth:`VerificationResult.to_dict` (states in user coordinates). Returns local states:
+    ``verification`` is :meth:`VerificationResult.to_dict` (states in user coordinates). The falsifier starts from
+    its counterexample, the unverified boxes' centres and ``n_random`` random states of X_delta: uniform, or with
+    ``near`` half of them spread over the distance from x* (:func:`~drlyap.verification.falsifier.falsifier_starts`).
+    Returns local states:
     ``counterexamples`` (each re-evaluated, residual > 0), ``neighbours`` (jittered copies of them, in X_delta),
     ``box_centres`` (unverified boxes, in X_delta, any residual) and the counts. ``level``: the claim is about
     ``{V <= level}`` only (region-of-attraction training), so only states there count as counterexamples.
@@ -86,7 +89,7 @@ def collect_counterexamples(system: UncertainSystem, lyapunov: Lyapunov, control
         centres = centres[region.in_region(centres)]
         cand.append(centres)
     if n_random:
-        cand.append(region.sample(n_random, generator))
+        cand.append(falsifier_starts(region, n_random, generator) if near else region.sample(n_random, generator))
     starts = torch.cat(cand) if cand else torch.empty(0, system.n, dtype=F64)
     if starts.shape[0] == 0:
         empty = torch.empty(0, system.n, dtype=F64)
@@ -124,7 +127,7 @@ def _summary(ver: dict) -> dict:
 def train_cegis(cfg: TrainConfig, system: UncertainSystem | None = None, rounds: int = 5,
                 verify_time_limit: float = 30.0, progress: bool = True,
                 init: tuple[Lyapunov, Controller] | None = None, iters_per_round: int | None = None,
-                max_extra: int = 2000, replicate: int = 2, max_boxes: int = 200, n_random: int = 512,
+                max_extra: int = 2000, replicate: int = 2, max_boxes: int = 200, n_random: int | None = None,
                 falsifier_steps: int = 30, neighbours: int = 3, min_width: float = 1e-4,
                 log=None, time_budget: float | None = None) -> tuple[TrainResult, list[dict]]:
     """Train with counterexample-guided rounds (see the module docstring).
@@ -135,7 +138,10 @@ def train_cegis(cfg: TrainConfig, system: UncertainSystem | None = None, rounds:
     (summary), ``verified``, ``verified_fraction``, times, counts of states added and, when states were added,
     ``counterexamples`` (a float64 ``(C, n)`` tensor of the violating local states found; not in the metrics).
     ``log(round_dict)`` is called after each verification. ``time_budget`` (seconds, from the start): no new
-    retraining round starts once it is spent.
+    retraining round starts once it is spent. ``n_random``: the falsifier's random starts per round; None: 512
+    uniform in X_delta, or, where training draws states near x* (``near_share > 0``: cart-pole, quadrotor), 2,048,
+    half of them spread over the distance from x* (in 6 states uniform starts miss the violations near x*:
+    docs/defaults.md).
     """
     if time_budget is not None and not time_budget > 0:
         raise ValueError(f"time_budget must be > 0 seconds, got {time_budget}")
@@ -157,6 +163,9 @@ def train_cegis(cfg: TrainConfig, system: UncertainSystem | None = None, rounds:
     condition = result.condition
     iters_round = int(iters_per_round if iters_per_round is not None else max(1, base_cfg.iters // 2))
     region = Region.of(system, float(base_cfg.delta))
+    near = bool(base_cfg.near_share)
+    if n_random is None:
+        n_random = 2048 if near else 512
     gen = torch.Generator().manual_seed(base_cfg.seed + 7919)
     extra = torch.empty(0, system.n, dtype=F64)
     record: list[dict] = []
@@ -191,7 +200,7 @@ def train_cegis(cfg: TrainConfig, system: UncertainSystem | None = None, rounds:
             break
         found = collect_counterexamples(system, result.lyapunov, result.controller, condition, region, ver,
                                         gen, n_random=n_random, max_boxes=max_boxes, steps=falsifier_steps,
-                                        neighbours=neighbours, level=base_cfg.roa_level)
+                                        neighbours=neighbours, level=base_cfg.roa_level, near=near)
         # newest last, the counterexamples at the very end: the cap keeps the tail
         new = torch.cat([found["box_centres"], found["neighbours"], found["counterexamples"]])
         extra = _dedupe(torch.cat([extra, new]), region.scale)[-max_extra:]
