@@ -94,8 +94,8 @@ def reproduce(system: str | UncertainSystem, seeds: Sequence[int], out: Path, it
                 if verify:  # what the pair proves on the true model at the test shift (the figures draw its region)
                     proof = verify_run(run, xi=xi_test, roa=True,
                                        time_limit=verify_time or float(run.config.verify_time or 30.0))
-                    run.metrics["certificate"]["true_model"] = {
-                        k: proof["true_model"][k] for k in ("status", "xi", "verified_fraction", "time_s", "counterexample")}
+                    keys = ("status", "xi", "verified_fraction", "time_s", "counterexample", "counterexample_source")
+                    run.metrics["certificate"]["true_model"] = {k: proof["true_model"].get(k) for k in keys}
                     run.metrics["certificate"]["roa"] = proof["roa"]
                 run.save_metrics()
                 runs[method] = run
