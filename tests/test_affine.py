@@ -184,6 +184,32 @@ def test_range_of_the_quadratic_part_encloses_corners_and_samples(k):
 
 
 
+@pytest.mark.parametrize("k", [2, 3, 6])
+def test_joint_bound_is_sound_and_tight_for_stiff_concave_quadratics(k):
+    """A concave q curved 1e4 times more along mixed directions than along others (a stiff closed loop's Vdot near
+    x*): the linear part's growth is cancelled by the curvature, which the vertex bound alone cannot see."""
+    gen = torch.Generator().manual_seed(20 + k)
+    basis = torch.linalg.qr(torch.randn(80, k, k, generator=gen, dtype=F64))[0]
+    curv = torch.ones(80, k, dtype=F64)
+    curv[:, 0] = 1e4
+    q = -(basis * curv[:, None, :]) @ basis.mT
+    q = (q + q.mT) / 2
+    q[::4] += torch.diag_embed(torch.rand(20, k, generator=gen, dtype=F64))  # some indefinite ones too
+    g = torch.randn(80, k, generator=gen, dtype=F64) * 30
+    e = torch.cat([torch.cartesian_prod(*[torch.tensor([-1.0, 1.0], dtype=F64)] * k).reshape(-1, k),
+                   torch.rand(20000, k, generator=gen, dtype=F64) * 2 - 1])
+    values = (g @ e.T + torch.einsum("sk,bkl,sl->bs", e, q, e)).amax(-1)
+    bound = quadratic_max(g, q)
+    assert bool((values <= bound).all())
+    # the concave ones: at most the larger of the sampled maximum and the unconstrained one, plus 0.2 per symbol
+    # (term by term: the off-diagonal curvature alone is ~1e3-1e4 here)
+    concave = torch.ones(80, dtype=torch.bool)
+    concave[::4] = False
+    top = 0.25 * (g.unsqueeze(-2) @ torch.linalg.solve(-q, g.unsqueeze(-1)))[..., 0, 0]
+    assert bool((bound[concave] <= torch.maximum(top[concave], values[concave]) + 0.2 * k + 1e-9).all())
+    assert not bool(torch.isfinite(quadratic_max(g[:1], torch.full_like(q[:1], math.nan))).any())
+
+
 @pytest.mark.parametrize("k", [2, 4, 6])
 def test_joint_bound_of_linear_and_quadratic_parts_is_sound_and_exact_for_convex_diagonals(k):
     gen = torch.Generator().manual_seed(10 + k)

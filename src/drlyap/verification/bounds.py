@@ -7,8 +7,9 @@ numbers; for the controller's clamp and the norms it is an enclosure of the Clar
 which the mean-value theorem still holds). ``enclosure="affine"`` runs the function on affine forms
 (:class:`~drlyap.enclosures.Affine`, one noise symbol per box coordinate, with an exact quadratic part)
 instead of the mean-value form: it keeps the dependence on the coordinates through every layer to second
-order, and its result's linear and quadratic parts are bounded jointly over the cube's vertices
-(:meth:`~drlyap.enclosures.Affine.tight_interval`); ``benchmarks/enclosure_bench.py`` compares the widths.
+order, and its result's linear and quadratic parts are bounded jointly (over the cube's vertices and by a
+dual bound, :func:`~drlyap.enclosures.quadratic_max`; :meth:`~drlyap.enclosures.Affine.tight_interval`);
+``benchmarks/enclosure_bench.py`` compares the widths.
 
 :func:`condition_objective` is the function the verifier bounds for a decrease condition: the condition's
 own ``components(terms(...))`` (:mod:`drlyap.conditions`), evaluated by the networks' and the system's own
