@@ -545,6 +545,8 @@ def _dual_max(g: Tensor, q: Tensor) -> Tensor:
     finite = torch.isfinite(g).all(-1) & torch.isfinite(q).flatten(-2).all(-1)
     g = torch.where(finite[..., None], g, 0.0)
     q = torch.where(finite[..., None, None], q, 0.0)
+    asym = EPS * q.abs().sum((-2, -1))  # e'qe = e'q_sym e; rounding of the symmetrised entries
+    q = (q + q.mT) * 0.5  # eigh reads one triangle
     lam, u = torch.linalg.eigh(q)
     gu = (u.mT @ g.unsqueeze(-1)).squeeze(-1)
     size = q.flatten(-2).norm(dim=-1)
@@ -560,7 +562,7 @@ def _dual_max(g: Tensor, q: Tensor) -> Tensor:
     value = t.clamp_min(0) * k + (g - 2 * my).abs().sum(-1) + (y * my).sum(-1)
     pad = 8 * (k + 2) * EPS * (g.abs().sum(-1) + 2 * m_y.sum(-1) + (y.abs() * m_y).sum(-1) + t.abs() * k) + TINY
     semidefinite = torch.linalg.eigvalsh(m)[..., 0] > 1e-11 * m.flatten(-2).norm(dim=-1) + 4 * EPS * t.abs() + 1e-300
-    value = value + pad
+    value = value + pad + asym
     return torch.where(finite & semidefinite & torch.isfinite(value), value, torch.inf)
 
 
