@@ -46,7 +46,7 @@ from drlyap.regions import Region
 from drlyap.systems import UncertainSystem, get_system
 from drlyap.training import TrainConfig, TrainResult, train
 from drlyap.verification import default_enclosure, prove_trained
-from drlyap.verification.falsifier import falsifier_starts, falsify, settle_unknown
+from drlyap.verification.falsifier import box_centres, falsifier_starts, falsify, settle_unknown
 
 F64 = torch.float64
 
@@ -75,18 +75,13 @@ def collect_counterexamples(system: UncertainSystem, lyapunov: Lyapunov, control
     ``box_centres`` (unverified boxes, in X_delta, any residual) and the counts. ``level``: the claim is about
     ``{V <= level}`` only (region-of-attraction training), so only states there count as counterexamples.
     """
-    x_star = torch.as_tensor(system.equilibrium, dtype=F64)
     scale = region.scale
     cand = []
     if verification.get("counterexample_local") is not None:
         cand.append(torch.as_tensor([verification["counterexample_local"]], dtype=F64))
-    boxes = verification.get("unverified_boxes") or []
-    centres = torch.empty(0, system.n, dtype=F64)
-    if boxes:
-        blo = torch.as_tensor([b["lo"] for b in boxes[:max_boxes]], dtype=F64) - x_star
-        bhi = torch.as_tensor([b["hi"] for b in boxes[:max_boxes]], dtype=F64) - x_star
-        centres = (blo + bhi) / 2
-        centres = centres[region.in_region(centres)]
+    centres = box_centres(system, (verification.get("unverified_boxes") or [])[:max_boxes])
+    centres = centres[region.in_region(centres)]
+    if centres.shape[0]:
         cand.append(centres)
     if n_random:
         cand.append(falsifier_starts(region, n_random, generator) if near else region.sample(n_random, generator))

@@ -78,6 +78,17 @@ def falsifier_starts(region: Region, count: int, generator: torch.Generator) -> 
     return torch.cat([region.sample(count - near, generator), region.sample_near(near, generator)])
 
 
+def box_centres(system: UncertainSystem, boxes: list[dict]) -> Tensor:
+    """The centres ``(B, n)``, in local coordinates, of boxes ``{"lo": [...], "hi": [...]}`` given in user
+    coordinates (a verification's ``unverified_boxes``; angles are not wrapped, so a box keeps its centre)."""
+    if not boxes:
+        return torch.empty(0, system.n, dtype=F64)
+    x_star = torch.as_tensor(system.equilibrium, dtype=F64)
+    lo = torch.as_tensor([b["lo"] for b in boxes], dtype=F64) - x_star
+    hi = torch.as_tensor([b["hi"] for b in boxes], dtype=F64) - x_star
+    return (lo + hi) / 2
+
+
 def confirmed_violations(system: UncertainSystem, lyapunov: Lyapunov, controller: Controller, condition: Condition,
                          region: Region, z: Tensor, level: float | None = None) -> Tensor:
     """``(B,)``: a sound lower bound of the residual at each local state of ``z (B, n)`` where a violation is
@@ -118,12 +129,7 @@ def settle_unknown(result: dict, system: UncertainSystem, lyapunov: Lyapunov, co
         return result
     tic = time.perf_counter()
     pool = [falsifier_starts(region, int(starts), torch.Generator().manual_seed(int(seed)))]
-    boxes = result.get("unverified_boxes") or []
-    if boxes:
-        x_star = torch.as_tensor(system.equilibrium, dtype=F64)  # boxes in user coordinates, angles unwrapped
-        lo = torch.as_tensor([b["lo"] for b in boxes], dtype=F64) - x_star
-        hi = torch.as_tensor([b["hi"] for b in boxes], dtype=F64) - x_star
-        pool.append(region.project((lo + hi) / 2))
+    pool.append(region.project(box_centres(system, result.get("unverified_boxes") or [])))
     found, values = falsify(system, lyapunov, controller, condition, region, torch.cat(pool), steps=steps)
     lower = confirmed_violations(system, lyapunov, controller, condition, region, found, level)
     record = {"starts": int(found.shape[0]), "time_s": time.perf_counter() - tic,
@@ -137,6 +143,6 @@ def settle_unknown(result: dict, system: UncertainSystem, lyapunov: Lyapunov, co
             counterexample_value=float(condition.exact(system, lyapunov, controller, best[None])[0]),
             counterexample_value_float32=float(condition.exact(system, lyapunov, controller, best[None],
                                                                torch.float32)[0]))
-        result["stopped"] = (f"{result.get('stopped')}; the falsifier found {record['confirmed']} violating states "
-                             f"from {record['starts']} starts")
+        found_by = f"the falsifier found {record['confirmed']} violating states from {record['starts']} starts"
+        result["stopped"] = f"{result['stopped']}; {found_by}" if result.get("stopped") else found_by
     return result
