@@ -8,6 +8,7 @@ import torch
 from drlyap.baselines import lqr_design
 from drlyap.cli import roa_line
 from drlyap.conditions import DRPointwise, TrueDecrease
+from drlyap.enclosures import Affine
 from drlyap.networks import LinearController, QuadraticLyapunov
 from drlyap.regions import Region
 from drlyap.simulation import simulate
@@ -20,7 +21,14 @@ from drlyap.verification.linearisation import (
     lyapunov_matrix,
     robust_decrease_matrix,
 )
-from drlyap.verification.roa import linearisation_local, quadratic_roa
+from drlyap.verification.roa import (
+    _outside_lower,
+    _share_of_box,
+    _vertex_max,
+    band_roa,
+    linearisation_local,
+    quadratic_roa,
+)
 from handmade import bump_pair, linear_pair, small_pendulum
 
 F64 = torch.float64
@@ -250,14 +258,14 @@ def test_quadratic_region_of_the_quadrotor_decreases_and_converges():
 
 def test_the_closed_loops_quadratic_region_is_reported_where_no_sublevel_set_of_v_is():
     """V = theta^2 + omega^2 / 100 does not decrease along the linear pair's closed loop near x* (its level
-    search and local proofs fail), yet the controller's closed loop is stable: the result certifies no set of
-    V, reports the quadratic {z'Pz <= c} instead, and the CLI names it for what it is."""
+    search and local proofs fail), yet the controller's closed loop is stable: without the band proof the result
+    certifies no set of V, reports the quadratic {z'Pz <= c} instead, and the CLI names it for what it is."""
     system = small_pendulum()
     _, ctrl = linear_pair(system)
     wrong = QuadraticLyapunov(torch.diag(torch.tensor([1.0, 0.01], dtype=F64)))
     condition = TrueDecrease(torch.tensor([[0.1, 0.05]], dtype=F64), 0.05)
-    roa = certified_roa(system, wrong, ctrl, condition, 0.2, time_limit=10, samples_per_axis=50)
-    assert not roa["certified"]
+    roa = certified_roa(system, wrong, ctrl, condition, 0.2, time_limit=10, samples_per_axis=50, band_time=0)
+    assert not roa["certified"] and roa["band"] is None
     quad = roa["quadratic"]
     assert quad["proved"] and quad["q_level"] > 0 and quad["share_of_box"] > 0, quad
     line = roa_line(roa, true_model=True)
@@ -266,3 +274,118 @@ def test_the_closed_loops_quadratic_region_is_reported_where_no_sublevel_set_of_
     z0 = _inside(system, w.double(), quad["q_level"], 100, seed=5)
     assert z0.shape[0] >= 20
     _assert_stays_and_converges(system, w.double(), ctrl.double(), z0, [0.1, 0.05], quad["q_level"], horizon=12.0)
+
+
+def _outside_points(lyap, p, c_q, level, system, count, seed):
+    """Uniform states of the box in {V <= level} with z'Pz > c_q (outside the ellipsoid)."""
+    z = _inside(system, lyap, level, 50 * count, seed)
+    return z[QuadraticLyapunov(p)(z) > c_q][:count]
+
+
+def test_band_proof_extends_the_closed_loops_ellipsoid_to_a_sublevel_set_of_v():
+    """The band proof: V decreases on {V <= c} outside the closed loop's certified ellipsoid L. Its level reaches
+    beyond L (V's smallest value on L's boundary), V decreases at every sampled state of {V <= c} outside L, and
+    trajectories of the true model from {V <= c} converge to x*."""
+    system = small_pendulum()
+    lyap, ctrl = linear_pair(system)
+    l64 = lyap.double()
+    xi = [0.1, 0.05]
+    condition = TrueDecrease(torch.tensor([xi], dtype=F64), 0.05)
+    region = Region.of(system, 0.2)
+    quad = quadratic_roa(system, ctrl, condition, region, time_limit=5)
+    assert quad["proved"]
+    band = band_roa(system, lyap, ctrl, condition, region, quad, top=1.0, time_limit=10)
+    assert band["proved"] and band["level"] > band["v_on_ellipsoid"][0], band
+    p = torch.tensor(quad["P"], dtype=F64)
+    z = _outside_points(l64, p, quad["q_level"], band["level"], system, 300, seed=7)
+    assert z.shape[0] >= 100
+    assert float(TrueDecrease(torch.tensor([xi], dtype=F64), 0.0).exact(system, l64, ctrl.double(), z).max()) < 0
+    _assert_stays_and_converges(system, l64, ctrl.double(), z[:100], xi, band["level"], horizon=12.0)
+
+
+def test_band_proof_never_certifies_where_v_rises_outside_the_ellipsoid():
+    """V = theta^2 + omega^2 / 100 rises along the linear pair's closed loop near x*, outside every ellipsoid of
+    it: whatever level the band proof returns, no sampled state of {V <= c} outside L has Vdot > 0."""
+    system = small_pendulum()
+    _, ctrl = linear_pair(system)
+    wrong = QuadraticLyapunov(torch.diag(torch.tensor([1.0, 0.01], dtype=F64)))
+    condition = TrueDecrease(torch.tensor([[0.1, 0.05]], dtype=F64), 0.05)
+    region = Region.of(system, 0.2)
+    quad = quadratic_roa(system, ctrl, condition, region, time_limit=5)
+    band = band_roa(system, wrong, ctrl, condition, region, quad, top=0.3, time_limit=5)
+    if band["proved"]:
+        p = torch.tensor(quad["P"], dtype=F64)
+        z = _outside_points(wrong, p, quad["q_level"], band["level"], system, 2000, seed=8)
+        if z.shape[0]:
+            values = TrueDecrease(torch.tensor([[0.1, 0.05]], dtype=F64), 0.0).exact(system, wrong, ctrl.double(), z)
+            assert float(values.max()) < 0
+    # and V does rise just outside L somewhere below V = 0.3: the proof stopped short of 0.3
+    assert band["level"] is None or band["level"] < 0.3
+
+
+def test_lower_bound_of_v_outside_an_ellipsoid_is_sound_on_random_boxes():
+    """_outside_lower on the affine forms of V (a tanh pair) and W over boxes straddling W = c_q is at most the
+    smallest sampled V on the box's part with W >= c_q; _vertex_max bounds W on the box from above and matches
+    its largest vertex."""
+    system = small_pendulum()
+    lyap, _ = linear_pair(system)
+    l64 = lyap.double()
+    p = torch.tensor([[2.0, 0.3], [0.3, 0.5]], dtype=F64)
+    w = QuadraticLyapunov(p)
+    c_q = 0.05
+    g = torch.Generator().manual_seed(3)
+    centre = 0.3 * (torch.rand(200, 2, generator=g, dtype=F64) - 0.5)
+    half = 0.02 + 0.1 * torch.rand(200, 2, generator=g, dtype=F64)
+    lo, hi = centre - half, centre + half
+    form = torch.stack([w(Affine.box(lo, hi)), l64(Affine.box(lo, hi))], -1)
+    at_v, at_w = l64(centre), w(centre)
+    for level in (0.01, 0.1):
+        bound = _outside_lower(form[:, 1], form[:, 0], at_v, at_w, c_q, level)
+        t = torch.rand(200, 4000, 2, generator=g, dtype=F64)
+        z = lo[:, None] + (hi - lo)[:, None] * t
+        with torch.no_grad():
+            v = l64(z.reshape(-1, 2)).reshape(200, -1)
+        wz = (z @ p * z).sum(-1)
+        v_out = torch.where(wz >= c_q, v, torch.inf).amin(-1)
+        assert bool((bound <= v_out).all())
+        assert int(torch.isfinite(v_out).sum()) > 50 and int((bound > -torch.inf).sum()) > 50
+    top = _vertex_max(p, lo, hi)
+    corners = torch.stack([lo, torch.stack([lo[:, 0], hi[:, 1]], -1), torch.stack([hi[:, 0], lo[:, 1]], -1), hi], 1)
+    exact = (corners @ p * corners).sum(-1).amax(-1)
+    assert bool((top >= exact).all()) and bool((top <= exact * (1 + 1e-12) + 1e-300).all())
+
+
+def test_share_of_a_small_set_is_estimated_on_nested_boxes():
+    """In 6 states a sublevel set far below 1e-5 of the box gets no uniform sample; the stratified estimate over
+    nested boxes is within 10% of the ellipsoid's exact volume share."""
+    system = get_system("quadrotor2d")
+    region = Region.of(system, 0.1)
+    p = torch.diag(torch.tensor([4.0, 9.0, 25.0, 1.0, 1.0, 2.0], dtype=F64))
+    v = QuadraticLyapunov(p)
+    for level in (1e-3, 1e-2):
+        exact = (math.pi ** 3 / 6 * level ** 3 / math.sqrt(float(torch.linalg.det(p)))
+                 / float(region.scale.prod()))
+        share = _share_of_box(v, region, level, 400)
+        assert abs(share - exact) < 0.1 * exact, (share, exact)
+
+
+def test_certified_roa_falls_back_to_the_band_proof_and_names_it():
+    """Where the level search and the local proofs certify no sublevel set of V (V rises near x*), the band proof
+    from the closed loop's ellipsoid may: the result is then a region of attraction by the band, the CLI says
+    so, and trajectories of the true model from the set converge to x* (V need not decrease inside L)."""
+    system = small_pendulum()
+    _, ctrl = linear_pair(system)
+    wrong = QuadraticLyapunov(torch.diag(torch.tensor([1.0, 0.01], dtype=F64)))
+    xi = [0.1, 0.05]
+    condition = TrueDecrease(torch.tensor([xi], dtype=F64), 0.05)
+    roa = certified_roa(system, wrong, ctrl, condition, 0.2, time_limit=10, samples_per_axis=50)
+    assert roa["certified"] and roa["local"]["method"] == "band" and roa["quadratic"]["proved"], roa
+    assert roa["level"] == roa["band"]["level"] > 0
+    line = roa_line(roa, true_model=True)
+    assert "CERTIFIED {V <=" in line and "outside the closed loop's certified ellipsoid" in line
+    z0 = _inside(system, wrong.double(), roa["level"], 100, seed=9)
+    assert z0.shape[0] >= 20
+    c64 = ctrl.double()
+    traj = simulate(system, lambda x: c64(system.to_local(x)), system.to_user(z0), torch.tensor(xi, dtype=F64),
+                    dt=0.005, horizon=12.0)
+    assert float(system.to_local(traj.x[-1]).norm(dim=-1).max()) < 1e-3

@@ -180,12 +180,21 @@ def roa_line(r: dict, true_model: bool) -> str:
     if "error" in r:
         return f"region of attraction: {r['error']}"
     model = "the true model at --xi" if true_model else "the design model at each training sample"
-    size = f"{100 * r['share_of_box']:.2f}% of the box, limited by {r['limited_by']}"
+    share = r["share_of_box"]
+    size = (f"{100 * share:.2f}% of the box" if share >= 1e-4 or share == 0 else f"{share:.2g} of the box (estimated)"
+            ) + f", limited by {r['limited_by']}"
     if r["kind"] == "region of attraction":
         local = r["local"]
-        how = ("" if local.get("method") != "linearisation" else
-               f"; near x* by the closed-loop linearisation's z'Pz, proved decreasing on {{z'Pz <= {local['q_level']:.3g}}}"
-               f" which contains {{V <= {local['inner_level']:.3g}}}")
+        how = ""
+        if local.get("method") == "linearisation":
+            how = (f"; near x* by the closed-loop linearisation's z'Pz, proved decreasing on {{z'Pz <= "
+                   f"{local['q_level']:.3g}}} which contains {{V <= {local['inner_level']:.3g}}}")
+        elif local.get("method") == "band":
+            low = local["v_on_ellipsoid"][0]
+            how = (f"; V proved decreasing on it outside the closed loop's certified ellipsoid {{z'Pz <= "
+                   f"{local['q_level']:.3g}}} (--json: roa.band.P), on whose boundary V is as low as {low:.3g} "
+                   f"(sampled): " + ("the set reaches beyond the ellipsoid" if r["level"] > low else
+                                     "the set may lie inside the ellipsoid"))
         return (f"region of attraction: CERTIFIED {{V <= {r['level']:.4g}}} ({size}): every trajectory of {model} "
                 f"that starts there converges to x*{how}")
     if r["kind"] == "practical stability":
@@ -444,7 +453,8 @@ def compare(run_dirs: tuple[Path, ...], xi: str, n_init: int, seed: int, horizon
 @click.option("--roa/--no-roa", default=False, show_default=True, help="Certify a sublevel set of V as region of attraction.")
 @click.option("--roa-time", type=float, default=None,
               help="Seconds for --roa's search: the condition on a sublevel set, then decrease inside the ball "
-                   "[3x --time-limit].")
+                   "[3x --time-limit]; where that certifies no sublevel set of V but the closed loop's own ellipsoid "
+                   "{z'Pz <= c}, as many seconds again for V's decrease outside that ellipsoid (the band proof).")
 @click.option("--max-radius", is_flag=True,
               help="Also find the largest Wasserstein radius for which the DR pointwise condition (the run's eps, "
                    "samples, gamma) is proved, and the largest box of shifts for which decrease on the true model "

@@ -137,7 +137,9 @@ def _roa_cell(roa: dict | None) -> str | None:
     if not roa or "level" not in roa:
         return None
     if roa.get("kind") == "region of attraction":
-        return f"{100 * roa['share_of_box']:.1f}%"
+        share = roa["share_of_box"]
+        text = f"{100 * share:.1f}%" if share >= 1e-3 or share == 0 else f"{share:.2g} of box"
+        return text + (" (V, band)" if (roa.get("local") or {}).get("method") == "band" else "")
     quad = roa.get("quadratic") or {}
     if quad.get("proved"):  # V's sublevel sets are not certified; the closed loop's quadratic one is
         return f"z'Pz only, {quad['share_of_box']:.2g} of box"

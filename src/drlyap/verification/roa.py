@@ -620,10 +620,91 @@ def linearisation_local(system: UncertainSystem, lyapunov: Lyapunov, controller:
     return out
 
 
+def band_roa(system: UncertainSystem, lyapunov: Lyapunov, controller: Controller, condition: Condition,
+             region: Region, quadratic: dict, top: float, limited_by: str = "box boundary", time_limit: float = 10.0,
+             min_width: float = 1e-4, batch: int = 4096) -> dict:
+    """The band proof (module docstring): the largest level ``c <= top`` (up to the search's resolution) such that
+    V decreases strictly (``Vdot + 1e-9 ||z|| <= 0``, every sample's model of ``condition``) on ``{V <= c}``
+    outside ``L = {z^T P z <= c_q}``, the closed loop's certified ellipsoid of :func:`quadratic_roa`
+    (``quadratic``: its result, with ``P`` and ``q_level``). ``top`` must be a lower bound of V on the box's
+    faces (or lower). Runs :func:`_level_search` with the ellipsoid (affine enclosure) over the whole box.
+
+    Returns ``proved`` (``c > 0``), ``level``, ``limited_by``, ``boxes``, ``time_s``, ``counterexample`` (user
+    coordinates, or None), ``P``, ``q_level``, and ``v_on_ellipsoid``: V's smallest and largest value at 20,000
+    sampled points of L's boundary (not a proof: where ``c`` exceeds the smallest, ``{V <= c}`` reaches outside
+    L, and the decrease proved there is what carries it)."""
+    start = time.perf_counter()
+    out: dict = {"method": "band", "proved": False, "level": None, "limited_by": None, "reason": ""}
+    plain = condition.per_sample()
+    if plain is None:
+        out["reason"] = "the condition implies no per-sample decrease (a CVaR over several samples)"
+        return out
+    if not quadratic or not quadratic.get("proved"):
+        out["reason"] = "no certified ellipsoid of the closed loop to start from"
+        return out
+    if not top > 0:
+        out["reason"] = f"V's lower bound on the box's faces is {top:.3g}: no positive level fits in the box"
+        return out
+    p, c_q = torch.tensor(quadratic["P"], dtype=F64), float(quadratic["q_level"])
+    out.update(P=p.tolist(), q_level=c_q, v_on_ellipsoid=_on_ellipsoid(lyapunov, p, c_q))
+    strict = PlainDecrease(plain.xi, 1e-9, 0.0, plain.model)
+    lo, hi = box_grid(region.lo, region.hi, default_grid(system.n))
+
+    def everywhere(a, b):
+        return torch.ones(a.shape[0], dtype=torch.bool, device=a.device)
+
+    # levels from just above V's sampled minimum on L's boundary up, 1.3x apart: a search with a fixed level drops
+    # the boxes above it at once and bounds the rest on {V <= level} only; one with the top level would spend the
+    # time on the sets far above the level it reaches
+    target = min(top, 1.1 * out["v_on_ellipsoid"][0])
+    reached, boxes, cex, targets = -math.inf, 0, None, []
+    while True:
+        level, why, cex, count = _level_search(
+            system, lyapunov, controller, strict, lo, hi, region.scale, target,
+            limited_by if target >= top else "next level not reached", start + time_limit, meets=everywhere,
+            in_region=lambda centre, v: everywhere(centre, centre), min_width=min_width, batch=batch,
+            enclosure="affine", ellipsoid=(p, c_q))
+        boxes += count
+        targets.append({"level": target, "reached": level >= target, "boxes": count,
+                        "time_s": time.perf_counter() - start})
+        if level >= target and target < top:
+            reached = target
+            if time.perf_counter() < start + time_limit:
+                target = min(top, 1.3 * target)
+                continue
+            limited_by = "time limit"
+        elif level > reached:  # the last search's own level (a lower bound of V on what it left), if higher
+            reached, limited_by = level, why
+        else:
+            limited_by, cex = f"{why} at the next level ({target:.4g})", None
+        break
+    c = _below(reached)
+    out.update(proved=c > 0, level=c, limited_by=limited_by, boxes=boxes, decay_rate=strict.decay_rate, levels=targets,
+               counterexample=None if cex is None else system.to_user(cex[None])[0].tolist(),
+               time_s=time.perf_counter() - start)
+    if not c > 0:
+        out["reason"] = f"V's decrease outside the ellipsoid not proved on any sublevel set ({limited_by})"
+    return out
+
+
+def _on_ellipsoid(lyapunov: Lyapunov, p: Tensor, c_q: float, count: int = 20_000) -> list[float]:
+    """V's smallest and largest value at ``count`` points of ``{z^T P z = c_q}`` (a fixed seed; not a bound)."""
+    import copy
+
+    g = torch.Generator().manual_seed(0)
+    e = torch.randn(count, p.shape[0], generator=g, dtype=F64)
+    e = e / e.norm(dim=-1, keepdim=True)
+    chol = torch.linalg.cholesky(p)
+    z = torch.linalg.solve_triangular(chol.T, e.T, upper=True).T * math.sqrt(c_q)
+    with torch.no_grad():
+        values = copy.deepcopy(lyapunov).to(F64)(z)
+    return [float(values.min()), float(values.max())]
+
+
 def certified_roa(system: UncertainSystem, lyapunov: Lyapunov, controller: Controller, condition: Condition,
                   delta: float | Region, time_limit: float = 10.0, min_width: float = 1e-4,
                   samples_per_axis: int = 400, batch: int = 4096, linearisation: bool = True,
-                  enclosure: str | None = None, max_level: float = math.inf) -> dict:
+                  enclosure: str | None = None, max_level: float = math.inf, band_time: float | None = None) -> dict:
     """The largest level ``c`` (up to the search's resolution) with ``S = {V <= c}`` certified (module docstring).
 
     Returns a JSON-friendly dict: ``level`` c; ``kind``: ``"region of attraction"`` (every trajectory of the
@@ -639,6 +720,9 @@ def certified_roa(system: UncertainSystem, lyapunov: Lyapunov, controller: Contr
     attraction was trained for: ``limited_by`` then reads ``"level asked for"`` when the cap is proved).
     ``quadratic``: where no sublevel set of V is certified (and ``linearisation``), :func:`quadratic_roa`'s
     result: a region of attraction ``{z^T P z <= q_level}`` of the same closed loop, not of V; else None.
+    ``band``: where that ellipsoid is certified and no sublevel set of V is, :func:`band_roa`'s result (V's decrease
+    on ``{V <= c}`` outside the ellipsoid), run for ``band_time`` seconds more (None: ``time_limit``; 0: not run);
+    where it proves a level, that level is the result's (``local["method"]`` reads ``"band"``); else None.
     """
     start = time.perf_counter()
     enclosure = check_enclosure(enclosure or default_enclosure(system.n))
@@ -685,7 +769,15 @@ def certified_roa(system: UncertainSystem, lyapunov: Lyapunov, controller: Contr
             system, controller, condition, region, time_limit=max(3.0, deadline - time.perf_counter()),
             min_width=min_width, batch=batch, enclosure=enclosure)
         quadratic = {k: v for k, v in quadratic.items() if k not in ("jacobians", "eigenvalues")}
-    if c > 0 and local["proved"]:
+    band = None
+    counterexample = None if cex is None else system.to_user(cex[None])[0].tolist()
+    if quadratic is not None and quadratic.get("proved") and (band_time is None or band_time > 0):
+        band = band_roa(system, lyapunov, controller, condition, region, quadratic, top, why,
+                        time_limit=time_limit if band_time is None else band_time, min_width=min_width, batch=batch)
+    if band is not None and band["proved"]:  # V's sublevel set from the band proof (the outer search's stays)
+        kind, c, limited_by, local = "region of attraction", band["level"], band["limited_by"], band
+        counterexample = band["counterexample"]
+    elif c > 0 and local["proved"]:
         kind = "region of attraction"
         if local.get("level") is not None and local["level"] < c:  # the annulus inside the ball may lower it
             c = local["level"]
@@ -701,26 +793,44 @@ def certified_roa(system: UncertainSystem, lyapunov: Lyapunov, controller: Contr
             "outer_level": outer_level,
             "contains_ball": c > ball_max_upper, "limited_by": limited_by, "local": local,
             "boundary_min_lower": boundary_min_lower, "ball_max_upper": ball_max_upper, "share_of_box": share,
-            "counterexample": None if cex is None else system.to_user(cex[None])[0].tolist(),
+            "counterexample": counterexample,
             "boxes_processed": processed, "time_s": time.perf_counter() - start, "delta": float(delta),
-            "condition": condition.label, "quadratic": quadratic}
+            "condition": condition.label, "quadratic": quadratic, "band": band}
 
 
 def _level_search(system: UncertainSystem, lyapunov: Lyapunov, controller: Controller, condition: Condition,
                   lo: Tensor, hi: Tensor, scale: Tensor, level: float, limited_by: str, deadline: float, *,
                   meets, in_region, floor: float = -math.inf, min_width: float = 1e-4,
-                  batch: int = 4096, enclosure: str = "mean-value") -> tuple[float, str, Tensor | None, int]:
+                  batch: int = 4096, enclosure: str = "mean-value",
+                  ellipsoid: tuple[Tensor, float] | None = None) -> tuple[float, str, Tensor | None, int]:
     """The largest level (at most ``level``) such that ``condition`` holds on every state of the boxes
-    ``[lo, hi]`` (and of their parts where ``meets(lo, hi)``, a ``(B,)`` mask) with ``floor <= V <= level``.
+    ``[lo, hi]`` (and of their parts where ``meets(lo, hi)``, a ``(B,)`` mask) with ``floor <= V <= level``
+    (with ``ellipsoid = (P, c_q)``: and ``z^T P z >= c_q``, outside the ellipsoid ``L``).
 
     Boxes with V's lower bound above the level, or V's upper bound below ``floor``, need no proof; the rest are
     proved or split, those with the lowest bound on V first (a box's parts inherit its bound), so that the
     sets ``{V <= c}`` are settled from small ``c`` up and a time limit costs the least level. A box that cannot
     be proved lowers the level to (a lower bound of) V on it: to V at its centre when that centre is a
     confirmed violation in the region (``in_region(centre, V enclosure)``), else to V's lower bound on it once
-    it reaches the minimum size or the time runs out. Returns the level, what limited it, the counterexample
-    (local, or None) and the number of boxes processed."""
-    objective = condition_and_value_objective(condition, system, lyapunov, controller)
+    it reaches the minimum size or the time runs out.
+
+    With ``ellipsoid`` (the affine enclosure only): boxes inside ``L`` (every vertex; ``L`` is convex) need no
+    proof, V's lower bound is taken on each box's part outside ``L`` (:func:`_outside_lower`), and boxes are
+    split on the side that adds most to the bounds (``split``'s sensitivity): the search behind
+    :func:`band_roa`. Returns the level, what limited it, the counterexample (local, or None) and the number of
+    boxes processed."""
+    base = condition_and_value_objective(condition, system, lyapunov, controller)
+    if ellipsoid is None:
+        objective = base
+    else:
+        if enclosure != "affine":
+            raise ValueError("the search outside an ellipsoid needs the affine enclosure")
+        w = QuadraticLyapunov(ellipsoid[0])
+        c_q = float(ellipsoid[1])
+
+        def objective(z):  # the condition's components, W, then V (W's form shares the box's symbols)
+            out = base(z)
+            return torch.cat([out[..., :-1], w(z).unsqueeze(-1), out[..., -1:]], -1)
     vobj = value_objective(lyapunov)
     processed = 0
     cex = None
@@ -732,7 +842,8 @@ def _level_search(system: UncertainSystem, lyapunov: Lyapunov, controller: Contr
             v_min = float(known[order[16 * batch:]].min()) if order.shape[0] > first.shape[0] else math.inf
             for i in range(0, first.shape[0], batch):
                 rows = first[i:i + batch]
-                v_min = min(v_min, float(box_bounds(vobj, lo[rows], hi[rows], enclosure)[0].min()))
+                fresh = box_bounds(vobj, lo[rows], hi[rows], enclosure)[0][:, 0]
+                v_min = min(v_min, float(torch.maximum(fresh, known[rows]).min()))  # both are lower bounds
             if v_min < level:
                 level, limited_by = v_min, "time limit"
             break
@@ -743,9 +854,20 @@ def _level_search(system: UncertainSystem, lyapunov: Lyapunov, controller: Contr
             take = torch.ones(lo.shape[0], dtype=torch.bool)
         clo, chi = lo[take], hi[take]
         lo, hi, known = lo[~take], hi[~take], known[~take]
-        lb, ub, at, form = box_bounds(objective, clo, chi, enclosure, keep_form=True)
+        if ellipsoid is not None:
+            inside = _vertex_max(ellipsoid[0], clo, chi) <= c_q
+            clo, chi = clo[~inside], chi[~inside]
+            if not clo.shape[0]:
+                continue
+        bounds = box_bounds(objective, clo, chi, enclosure, sensitivity=ellipsoid is not None, keep_form=True)
+        lb, ub, at, form = bounds[0], bounds[1], bounds[2], bounds[-1]
+        sens = bounds[3] if ellipsoid is not None else None
         processed += clo.shape[0]
         v_lb = lb[:, -1]
+        if ellipsoid is not None:
+            v_lb = torch.maximum(v_lb, _outside_lower(form[:, -1], form[:, -2], at.mid[:, -1], at.mid[:, -2], c_q, level))
+            keep = [*range(lb.shape[1] - 2), lb.shape[1] - 1]
+            lb, ub, at, form = lb[:, keep], ub[:, keep], at[:, keep], form[:, keep]
         active = (v_lb <= level) & (ub[:, -1] >= floor)
         res_ub = combine_upper(condition, ub[:, :-1])
         if form is not None:  # a box proved on {V <= level} is proved on every smaller sublevel set
@@ -754,6 +876,8 @@ def _level_search(system: UncertainSystem, lyapunov: Lyapunov, controller: Contr
         open_ = active & (res_ub > 0)
         bad = (open_ & in_region(centre, at[:, -1]) & (at.hi[:, -1] >= floor)
                & (combine_lower(condition, at.lo[:, :-1]) > 0))
+        if ellipsoid is not None:  # a violation inside L does not count against the band
+            bad = bad & (QuadraticLyapunov(ellipsoid[0])(centre) > c_q)
         if bad.any():
             values = condition.exact(system, lyapunov, controller, centre[bad])
             if (values > 0).any():
@@ -767,7 +891,7 @@ def _level_search(system: UncertainSystem, lyapunov: Lyapunov, controller: Contr
             level, limited_by = float(v_lb[small].min()), "unverified box at minimum size"
         divide = open_ & ~small & (v_lb <= level)
         if divide.any():
-            nlo, nhi = split(clo[divide], chi[divide], scale)
+            nlo, nhi = split(clo[divide], chi[divide], scale, None if sens is None else sens[divide])
             nknown = v_lb[divide].repeat(2)
             fits = meets(nlo, nhi)
             lo, hi, known = torch.cat([lo, nlo[fits]]), torch.cat([hi, nhi[fits]]), torch.cat([known, nknown[fits]])
@@ -777,20 +901,75 @@ def _level_search(system: UncertainSystem, lyapunov: Lyapunov, controller: Contr
     return level, limited_by, cex, processed
 
 
+def _vertex_max(p: Tensor, lo: Tensor, hi: Tensor) -> Tensor:
+    """``max z^T P z`` over each box ``[lo, hi] (B, n)`` (at a vertex: the form is convex), rounded up."""
+    n = lo.shape[-1]
+    if n > 12:  # 2^n vertices: beyond that, the interval bound
+        z = Interval(lo, hi)
+        return QuadraticLyapunov(p)(z).hi
+    bits = torch.tensor([[(k >> i) & 1 for i in range(n)] for k in range(2 ** n)], dtype=torch.bool,
+                        device=lo.device)
+    vertices = torch.where(bits[None], hi[:, None, :], lo[:, None, :])
+    values = (vertices @ p.to(F64) * vertices).sum(-1)
+    mag = (vertices.abs() @ p.to(F64).abs() * vertices.abs()).sum(-1)
+    return _up(values, 4 * (n + 2) * REL1, mag).amax(-1)
+
+
+def _outside_lower(v_form, w_form, v_centre: Tensor, w_centre: Tensor, c_q: float, level: float) -> Tensor:
+    """A lower bound ``(B,)`` of V on the part of each box where ``W >= c_q`` (``-inf`` where none is found).
+
+    For any ``mu >= 0`` and ``W(z) >= c_q``: ``V(z) >= V(z) - mu (W(z) - c_q) >= min_box (V - mu W) + mu c_q``.
+    ``V - mu W`` is bounded on the affine forms of V and W over the box (the same noise symbols, so the parts of
+    V's variation that follow W's cancel); ``mu`` is tried at 1/2 and 1 times ``V / W`` at the box centre (where
+    V and W vary alike) and at 1/2, 1 and 2 times ``level / c_q`` (V at the level where W is at ``c_q``). Near a
+    boundary of ``L = {W <= c_q}`` on which V is above the level, this shows V above the level on the box's part
+    outside L, which V's own bound on the whole box (down to V's values inside L) cannot."""
+    ratio = torch.where(w_centre > 0, v_centre / w_centre, 0.0).clamp(min=0.0)
+    best = torch.full_like(v_centre, -math.inf)
+    ref = max(level, 0.0) / c_q if math.isfinite(level) else 0.0
+    for mu in (0.5 * ratio, ratio, torch.full_like(ratio, 0.5 * ref), torch.full_like(ratio, ref),
+               torch.full_like(ratio, 2 * ref)):
+        low = (v_form - w_form * mu).tight_interval().lo
+        bound = _down(low + mu * c_q, REL1)
+        best = torch.maximum(best, torch.where(torch.isnan(bound), -math.inf, bound))
+    return best
+
+
 def _share_of_box(lyapunov: Lyapunov, region: Region, level: float, samples_per_axis: int) -> float:
-    """Share of the box volume in ``{V <= level}``: on a grid for n <= 3, else from 100,000 uniform samples."""
+    """Share of the box volume in ``{V <= level}``: on a grid for n <= 3, else from 100,000 uniform samples; where
+    fewer than 1,000 of those fall in the set (a share below 1%), stratified over the nested boxes
+    ``B_k = 2^-k X`` around x*: 20,000 uniform samples in each ``B_k`` estimate the set's share of the shell
+    ``B_k \\ B_{k+1}``, down to the first ``B_k`` the set fills at least half of (its samples then estimate all of
+    it), or until the shells left are below 1e-6 of the estimate."""
     import copy
 
     n = region.n
+    lyap = copy.deepcopy(lyapunov).to(F64)
+
+    def values_at(z: Tensor) -> Tensor:
+        with torch.no_grad():
+            return torch.cat([lyap(z[i:i + 50_000]) for i in range(0, z.shape[0], 50_000)])
+
     if n <= 3:
         per = samples_per_axis if n <= 2 else 60
         axes = [region.lo[i] + region.scale[i] * (torch.arange(per, dtype=F64) + 0.5) / per for i in range(n)]
-        z = torch.cartesian_prod(*axes).reshape(-1, n)
-    else:
-        g = torch.Generator().manual_seed(0)
-        z = region.lo + region.scale * torch.rand(100_000, n, generator=g, dtype=F64)
-    lyap = copy.deepcopy(lyapunov).to(F64)
-    with torch.no_grad():
-        values = torch.cat([lyap(z[i:i + 50_000]) for i in range(0, z.shape[0], 50_000)])
-    return float((values <= level).double().mean())
-
+        return float((values_at(torch.cartesian_prod(*axes).reshape(-1, n)) <= level).double().mean())
+    g = torch.Generator().manual_seed(0)
+    z = region.lo + region.scale * torch.rand(100_000, n, generator=g, dtype=F64)
+    hits = values_at(z) <= level
+    if int(hits.sum()) >= 1000:
+        return float(hits.double().mean())
+    share = 0.0
+    for k in range(64):
+        lo, hi = region.lo * 2.0 ** -k, region.hi * 2.0 ** -k  # x* = 0 (local coordinates) lies in every B_k
+        if k:
+            z = lo + (hi - lo) * torch.rand(20_000, n, generator=g, dtype=F64)
+            hits = values_at(z) <= level
+        inner = ((z >= lo / 2) & (z <= hi / 2)).all(-1)
+        weight = 2.0 ** (-n * k)  # B_k's share of the box
+        if float(hits.double().mean()) >= 0.5:
+            return share + weight * float(hits.double().mean())
+        share += weight * float((hits & ~inner).double().mean())
+        if weight * 2.0 ** -n < 1e-6 * share:
+            break
+    return share
