@@ -54,6 +54,19 @@ above ``max(V(0), c_1) <= c``), reaches ``{V <= c_1}`` in finite time (a compact
 uniform rate), and from there lies in ``L`` for ever, where W, hence the state, tends to x*: ``S`` is a
 region of attraction. The result's ``local`` then reads ``method: "linearisation"`` with ``P``, ``q_level``
 ``c_q``, ``inner_level`` ``c_1``, the Jacobians' eigenvalues, and the failed attempt as ``second_order``.
+
+The band proof (:func:`band_roa`), tried when none of the above certifies a sublevel set of V but the closed
+loop's own ellipsoid ``L = {W <= c_q}`` (step b) is certified: on 6 states the condition's proof outside the
+delta-ball and V's proof near x* do not finish (the closed loop is stiff), while L is proved by its Jacobians alone.
+It proves strict decrease ``Vdot + 1e-9 ||z|| <= 0`` (every sample's model) on ``S = {V <= c}`` minus L, over the
+whole box, with ``c`` below V's lower bound on the box's faces. Then every trajectory from S converges to x*:
+while outside L it keeps V <= c (V decreases there, and S does not reach the faces), so it stays in S; it cannot
+stay in the compact set S minus L (which excludes a neighbourhood of x*) for ever, where V falls at a uniform
+rate; once in L it stays in L and converges. ``S`` together with L is forward invariant; S alone need not be (a
+trajectory inside L may leave S). The search (:func:`_level_search` with the ellipsoid) drops boxes inside L,
+bounds V on each box's part outside L (:func:`_outside_lower`), and asks the decrease only on the part with
+``V <= c`` (:func:`~drlyap.verification.bounds.sublevel_upper`); levels are tried from just above V's sampled
+minimum on L's boundary up, 1.3x apart. ``local`` then reads ``method: "band"``.
 """
 
 from __future__ import annotations
@@ -930,7 +943,8 @@ def _outside_lower(v_form, w_form, v_centre: Tensor, w_centre: Tensor, c_q: floa
     for mu in (0.5 * ratio, ratio, torch.full_like(ratio, 0.5 * ref), torch.full_like(ratio, ref),
                torch.full_like(ratio, 2 * ref)):
         low = (v_form - w_form * mu).tight_interval().lo
-        bound = _down(low + mu * c_q, REL1)
+        shift = mu * c_q
+        bound = _down(low + shift, 4 * REL1, low.abs() + shift.abs())  # the product's and the sum's rounding
         best = torch.maximum(best, torch.where(torch.isnan(bound), -math.inf, bound))
     return best
 
