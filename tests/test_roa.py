@@ -300,7 +300,10 @@ def test_band_proof_extends_the_closed_loops_ellipsoid_to_a_sublevel_set_of_v():
     z = _outside_points(l64, p, quad["q_level"], band["level"], system, 300, seed=7)
     assert z.shape[0] >= 100
     assert float(TrueDecrease(torch.tensor([xi], dtype=F64), 0.0).exact(system, l64, ctrl.double(), z).max()) < 0
-    _assert_stays_and_converges(system, l64, ctrl.double(), z[:100], xi, band["level"], horizon=12.0)
+    c64 = ctrl.double()  # the proof claims convergence from the set (it and L together are invariant, not it alone)
+    traj = simulate(system, lambda x: c64(system.to_local(x)), system.to_user(z[:100]), torch.tensor(xi, dtype=F64),
+                    dt=0.005, horizon=12.0)
+    assert float(system.to_local(traj.x[-1]).norm(dim=-1).max()) < 1e-3
 
 
 def test_band_proof_never_certifies_where_v_rises_outside_the_ellipsoid():

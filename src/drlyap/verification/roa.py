@@ -61,8 +61,9 @@ delta-ball and V's proof near x* do not finish (the closed loop is stiff), while
 It proves strict decrease ``Vdot + 1e-9 ||z|| <= 0`` (every sample's model) on ``S = {V <= c}`` minus L, over the
 whole box, with ``c`` below V's lower bound on the box's faces. Then every trajectory from S converges to x*:
 while outside L it keeps V <= c (V decreases there, and S does not reach the faces), so it stays in S; it cannot
-stay in the compact set S minus L (which excludes a neighbourhood of x*) for ever, where V falls at a uniform
-rate; once in L it stays in L and converges. ``S`` together with L is forward invariant; S alone need not be (a
+stay in S minus L for ever: that set is bounded away from x* (L holds a neighbourhood of it), so there V falls
+at least at the uniform rate ``1e-9 sqrt(c_q / lambda_max(P))`` while V is bounded below; once in L it stays in
+L and converges. ``S`` together with L is forward invariant; S alone need not be (a
 trajectory inside L may leave S). The search (:func:`_level_search` with the ellipsoid) drops boxes inside L,
 bounds V on each box's part outside L (:func:`_outside_lower`), and asks the decrease only on the part with
 ``V <= c`` (:func:`~drlyap.verification.bounds.sublevel_upper`); levels are tried from just above V's sampled
@@ -655,13 +656,22 @@ def band_roa(system: UncertainSystem, lyapunov: Lyapunov, controller: Controller
     if not quadratic or not quadratic.get("proved"):
         out["reason"] = "no certified ellipsoid of the closed loop to start from"
         return out
-    if not top > 0:
+    if not (top > 0 and math.isfinite(top)):
         out["reason"] = f"V's lower bound on the box's faces is {top:.3g}: no positive level fits in the box"
         return out
     p, c_q = torch.tensor(quadratic["P"], dtype=F64), float(quadratic["q_level"])
+    if not c_q > 0:
+        out["reason"] = f"the ellipsoid's level is {c_q:.3g}: no ellipsoid to start from"
+        return out
     out.update(P=p.tolist(), q_level=c_q, v_on_ellipsoid=_on_ellipsoid(lyapunov, p, c_q))
+    if not out["v_on_ellipsoid"][0] > 0:
+        out["reason"] = "V is not positive on the ellipsoid's boundary"
+        return out
     strict = PlainDecrease(plain.xi, 1e-9, 0.0, plain.model)
     lo, hi = box_grid(region.lo, region.hi, default_grid(system.n))
+    # boxes must resolve a set as small as L (the box holding x* has to fit inside it)
+    extent = (c_q * torch.linalg.inv(p).diagonal()).sqrt()
+    fine = min(min_width, 1e-4 * float((extent / region.scale).min()))
 
     def everywhere(a, b):
         return torch.ones(a.shape[0], dtype=torch.bool, device=a.device)
@@ -675,7 +685,7 @@ def band_roa(system: UncertainSystem, lyapunov: Lyapunov, controller: Controller
         level, why, cex, count = _level_search(
             system, lyapunov, controller, strict, lo, hi, region.scale, target,
             limited_by if target >= top else "next level not reached", start + time_limit, meets=everywhere,
-            in_region=lambda centre, v: everywhere(centre, centre), min_width=min_width, batch=batch,
+            in_region=lambda centre, v: everywhere(centre, centre), min_width=fine, batch=batch,
             enclosure="affine", ellipsoid=(p, c_q))
         boxes += count
         targets.append({"level": target, "reached": level >= target, "boxes": count,
@@ -917,14 +927,14 @@ def _level_search(system: UncertainSystem, lyapunov: Lyapunov, controller: Contr
 def _vertex_max(p: Tensor, lo: Tensor, hi: Tensor) -> Tensor:
     """``max z^T P z`` over each box ``[lo, hi] (B, n)`` (at a vertex: the form is convex), rounded up."""
     n = lo.shape[-1]
-    if n > 12:  # 2^n vertices: beyond that, the interval bound
-        z = Interval(lo, hi)
-        return QuadraticLyapunov(p)(z).hi
+    p = p.to(lo)
+    if n > 8:  # 2^n vertices per box: beyond that, the interval bound
+        return QuadraticLyapunov(p)(Interval(lo, hi)).hi
     bits = torch.tensor([[(k >> i) & 1 for i in range(n)] for k in range(2 ** n)], dtype=torch.bool,
                         device=lo.device)
     vertices = torch.where(bits[None], hi[:, None, :], lo[:, None, :])
-    values = (vertices @ p.to(F64) * vertices).sum(-1)
-    mag = (vertices.abs() @ p.to(F64).abs() * vertices.abs()).sum(-1)
+    values = (vertices @ p * vertices).sum(-1)
+    mag = (vertices.abs() @ p.abs() * vertices.abs()).sum(-1)
     return _up(values, 4 * (n + 2) * REL1, mag).amax(-1)
 
 
