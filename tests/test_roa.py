@@ -392,3 +392,13 @@ def test_certified_roa_falls_back_to_the_band_proof_and_names_it():
     traj = simulate(system, lambda x: c64(system.to_local(x)), system.to_user(z0), torch.tensor(xi, dtype=F64),
                     dt=0.005, horizon=12.0)
     assert float(system.to_local(traj.x[-1]).norm(dim=-1).max()) < 1e-3
+
+
+def test_report_cell_says_whether_the_band_set_reaches_beyond_the_ellipsoid():
+    from drlyap.experiments import _roa_cell
+
+    band = {"method": "band", "v_on_ellipsoid": [0.0165, 0.27]}
+    roa = {"level": 0.0185, "kind": "region of attraction", "share_of_box": 4.1e-9, "local": band}
+    assert _roa_cell(roa) == "4.1e-09 of box (V, band)"
+    assert _roa_cell(roa | {"level": 0.0119}) == "4.1e-09 of box (V, within z'Pz)"
+    assert _roa_cell({"level": 1.0, "kind": "region of attraction", "share_of_box": 0.35, "local": {}}) == "35.0%"
