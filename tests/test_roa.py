@@ -295,7 +295,7 @@ def test_band_proof_extends_the_closed_loops_ellipsoid_to_a_sublevel_set_of_v():
     quad = quadratic_roa(system, ctrl, condition, region, time_limit=5)
     assert quad["proved"]
     band = band_roa(system, lyap, ctrl, condition, region, quad, top=1.0, time_limit=10)
-    assert band["proved"] and band["level"] > band["v_on_ellipsoid"][0], band
+    assert band["proved"] and band["level"] > band["v_on_ellipsoid"][0] and band["beyond_ellipsoid"], band
     p = torch.tensor(quad["P"], dtype=F64)
     z = _outside_points(l64, p, quad["q_level"], band["level"], system, 300, seed=7)
     assert z.shape[0] >= 100
@@ -397,8 +397,9 @@ def test_certified_roa_falls_back_to_the_band_proof_and_names_it():
 def test_report_cell_says_whether_the_band_set_reaches_beyond_the_ellipsoid():
     from drlyap.experiments import _roa_cell
 
-    band = {"method": "band", "v_on_ellipsoid": [0.0165, 0.27]}
+    band = {"method": "band", "v_on_ellipsoid": [0.0165, 0.27], "beyond_ellipsoid": True}
     roa = {"level": 0.0185, "kind": "region of attraction", "share_of_box": 4.1e-9, "local": band}
     assert _roa_cell(roa) == "4.1e-09 of box (V, band)"
-    assert _roa_cell(roa | {"level": 0.0119}) == "4.1e-09 of box (V, within z'Pz)"
+    inside = band | {"beyond_ellipsoid": False}
+    assert _roa_cell(roa | {"level": 0.0119, "local": inside}) == "4.1e-09 of box (V, within z'Pz)"
     assert _roa_cell({"level": 1.0, "kind": "region of attraction", "share_of_box": 0.35, "local": {}}) == "35.0%"

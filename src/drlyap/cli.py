@@ -193,7 +193,7 @@ def roa_line(r: dict, true_model: bool) -> str:
             low = local["v_on_ellipsoid"][0]
             how = (f"; V proved decreasing on it outside the closed loop's certified ellipsoid {{z'Pz <= "
                    f"{local['q_level']:.3g}}} (--json: roa.band.P), on whose boundary V is as low as {low:.3g} "
-                   f"(sampled): " + ("the set reaches beyond the ellipsoid" if r["level"] > low else
+                   f"(sampled): " + ("the set reaches beyond the ellipsoid" if local["beyond_ellipsoid"] else
                                      "the set may lie inside the ellipsoid"))
         return (f"region of attraction: CERTIFIED {{V <= {r['level']:.4g}}} ({size}): every trajectory of {model} "
                 f"that starts there converges to x*{how}")

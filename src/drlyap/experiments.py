@@ -142,9 +142,7 @@ def _roa_cell(roa: dict | None) -> str | None:
         band = roa.get("local") or {}
         if band.get("method") != "band":
             return text
-        # below V's sampled minimum on the ellipsoid's boundary the set may lie inside the ellipsoid
-        beyond = roa["level"] > band["v_on_ellipsoid"][0]
-        return text + (" (V, band)" if beyond else " (V, within z'Pz)")
+        return text + (" (V, band)" if band["beyond_ellipsoid"] else " (V, within z'Pz)")
     quad = roa.get("quadratic") or {}
     if quad.get("proved"):  # V's sublevel sets are not certified; the closed loop's quadratic one is
         return f"z'Pz only, {quad['share_of_box']:.2g} of box"

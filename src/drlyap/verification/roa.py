@@ -79,7 +79,7 @@ import torch
 from torch import Tensor
 
 from drlyap.conditions import Condition, PlainDecrease, local_rates
-from drlyap.enclosures import F64, REL1, Dual, Interval, _down, _up
+from drlyap.enclosures import F64, REL1, Dual, Interval, _down, _up, _vertices
 from drlyap.networks import Controller, Lyapunov, QuadraticLyapunov
 from drlyap.regions import Region, box_grid, default_grid, near_dist, split
 from drlyap.systems import UncertainSystem
@@ -644,9 +644,10 @@ def band_roa(system: UncertainSystem, lyapunov: Lyapunov, controller: Controller
     faces (or lower). Runs :func:`_level_search` with the ellipsoid (affine enclosure) over the whole box.
 
     Returns ``proved`` (``c > 0``), ``level``, ``limited_by``, ``boxes``, ``time_s``, ``counterexample`` (user
-    coordinates, or None), ``P``, ``q_level``, and ``v_on_ellipsoid``: V's smallest and largest value at 20,000
-    sampled points of L's boundary (not a proof: where ``c`` exceeds the smallest, ``{V <= c}`` reaches outside
-    L, and the decrease proved there is what carries it)."""
+    coordinates, or None), ``P``, ``q_level``, ``v_on_ellipsoid``: V's smallest and largest value at 20,000
+    sampled points of L's boundary, and ``beyond_ellipsoid``: ``c`` above that smallest value, so that
+    ``{V <= c}`` reaches outside L and the decrease proved there is what carries it (from samples, not a proof;
+    otherwise the set may lie inside L)."""
     start = time.perf_counter()
     out: dict = {"method": "band", "proved": False, "level": None, "limited_by": None, "reason": ""}
     plain = condition.per_sample()
@@ -703,6 +704,7 @@ def band_roa(system: UncertainSystem, lyapunov: Lyapunov, controller: Controller
         break
     c = _below(reached)
     out.update(proved=c > 0, level=c, limited_by=limited_by, boxes=boxes, decay_rate=strict.decay_rate, levels=targets,
+               beyond_ellipsoid=c > out["v_on_ellipsoid"][0],
                counterexample=None if cex is None else system.to_user(cex[None])[0].tolist(),
                time_s=time.perf_counter() - start)
     if not c > 0:
@@ -878,7 +880,7 @@ def _level_search(system: UncertainSystem, lyapunov: Lyapunov, controller: Contr
         clo, chi = lo[take], hi[take]
         lo, hi, known = lo[~take], hi[~take], known[~take]
         if ellipsoid is not None:
-            inside = _vertex_max(ellipsoid[0], clo, chi) <= c_q
+            inside = _vertex_max(w.P, clo, chi) <= c_q
             clo, chi = clo[~inside], chi[~inside]
             if not clo.shape[0]:
                 continue
@@ -900,7 +902,7 @@ def _level_search(system: UncertainSystem, lyapunov: Lyapunov, controller: Contr
         bad = (open_ & in_region(centre, at[:, -1]) & (at.hi[:, -1] >= floor)
                & (combine_lower(condition, at.lo[:, :-1]) > 0))
         if ellipsoid is not None:  # a violation inside L does not count against the band
-            bad = bad & (QuadraticLyapunov(ellipsoid[0])(centre) > c_q)
+            bad = bad & (w(centre) > c_q)
         if bad.any():
             values = condition.exact(system, lyapunov, controller, centre[bad])
             if (values > 0).any():
@@ -930,9 +932,7 @@ def _vertex_max(p: Tensor, lo: Tensor, hi: Tensor) -> Tensor:
     p = p.to(lo)
     if n > 8:  # 2^n vertices per box: beyond that, the interval bound
         return QuadraticLyapunov(p)(Interval(lo, hi)).hi
-    bits = torch.tensor([[(k >> i) & 1 for i in range(n)] for k in range(2 ** n)], dtype=torch.bool,
-                        device=lo.device)
-    vertices = torch.where(bits[None], hi[:, None, :], lo[:, None, :])
+    vertices = torch.where(_vertices(n, lo.device)[None] > 0, hi[:, None, :], lo[:, None, :])  # (B, 2^n, n)
     values = (vertices @ p * vertices).sum(-1)
     mag = (vertices.abs() @ p.abs() * vertices.abs()).sum(-1)
     return _up(values, 4 * (n + 2) * REL1, mag).amax(-1)
