@@ -29,6 +29,7 @@ the improvement ``mean-value / affine`` and the time per box of each (microsecon
 from __future__ import annotations
 
 import argparse
+import copy
 import statistics
 import sys
 import time
@@ -61,6 +62,7 @@ def main(argv: list[str] | None = None) -> int:
     args = parser.parse_args(argv)
     torch.set_num_threads(args.threads)
 
+    from drlyap.closed_loop import ClosedLoop
     from drlyap.conditions import make_condition
     from drlyap.enclosures import Interval
     from drlyap.systems import get_system
@@ -81,18 +83,19 @@ def main(argv: list[str] | None = None) -> int:
         cfg = TrainConfig(system=name, seed=args.seed).resolved(system)
         torch.manual_seed(args.seed)
         lyap, ctrl = build_networks(system, cfg)
-        lyap64, ctrl64 = lyap.double(), ctrl.double()
+        lyap64, ctrl64 = copy.deepcopy(lyap).double(), copy.deepcopy(ctrl).double()
+        loop64 = ClosedLoop(system, lyap64, ctrl64)
         xi = system.sample_xi(int(cfg.n_xi), torch.Generator().manual_seed(10_000 + args.seed))
         cond = make_condition("dr", "pointwise", cfg.wasserstein_radius, cfg.risk_level, xi, cfg.decay_rate)
         quantities = {
             "V": value_objective(lyap),
             "grad V": lambda z, lyap=lyap: lyap.value_and_grad(z)[1],
-            "condition": condition_objective(cond, system, lyap, ctrl),
+            "condition": condition_objective(ClosedLoop(system, lyap, ctrl), cond),
         }
         points = {
             "V": lambda z, v=lyap64: v(z).unsqueeze(-1),
             "grad V": lambda z, v=lyap64: v.value_and_grad(z)[1],
-            "condition": lambda z, c=cond, s=system, v=lyap64, p=ctrl64: c.components(c.terms(s, v, p, z)),
+            "condition": lambda z, c=cond, loop=loop64: c.components(c.terms(loop, z)),
         }
         slo, shi = system.local_box()
         n = system.n

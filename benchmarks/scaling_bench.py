@@ -5,7 +5,7 @@ Usage::
     python benchmarks/scaling_bench.py [--systems pendulum,cartpole,quadrotor2d] [--seed 0]
                                        [--verify-time 60] [--threads 1] [--json OUT]
 
-For each system it trains a DR pair as ``drlyap train SYSTEM --seed SEED`` does (``drlyap.cegis.train_certified``:
+For each system it trains a DR pair as ``drlyap train SYSTEM --seed SEED`` does (``drlyap.train``:
 the system's defaults, proof rounds until the trained condition is verified or 5 rounds are spent, 30 s per
 proof, 120 s for cart-pole and quadrotor; these train for a region of attraction with an LQR warm start), then
 reports
@@ -23,6 +23,7 @@ Timings depend on the machine and its load: compare rows of one run.
 from __future__ import annotations
 
 import argparse
+import copy
 import json
 import math
 import sys
@@ -41,39 +42,37 @@ def main(argv: list[str] | None = None) -> int:
     args = parser.parse_args(argv)
     torch.set_num_threads(args.threads)
 
-    from drlyap.cegis import train_certified
-    from drlyap.rundir import Run
+    from drlyap.config import Budget
+    from drlyap.regions import Region
     from drlyap.simulation import evaluate, initial_states
     from drlyap.systems import get_system
-    from drlyap.training import TrainConfig
-    from drlyap.verification import run_condition
-    from drlyap.verification.roa import prove_trained
+    from drlyap.training import TrainConfig, train
+    from drlyap.verification import prove_trained
 
     rows = []
     for name in [s.strip() for s in args.systems.split(",") if s.strip()]:
         system = get_system(name)
         tic = time.perf_counter()
-        result = train_certified(TrainConfig(system=name, seed=args.seed), system, progress=False, warn=False)
+        result = train(TrainConfig(system=name, seed=args.seed), system, progress=False, warn=False)
         train_s = time.perf_counter() - tic
         cfg, m = result.config, result.metrics
-        lyap, ctrl = result.lyapunov.double(), result.controller.double()
+        ctrl = copy.deepcopy(result.controller).double()
 
         def policy(x, ctrl=ctrl, system=system):
             return ctrl(system.to_local(x))
 
         x0 = initial_states(system, 200, torch.Generator().manual_seed(7))
         ev = evaluate(system, policy, x0, torch.tensor(system.test_xi, dtype=torch.float64))
-        run = Run(None, system, cfg, m, lyap, ctrl)
         iterations = m.get("cegis", {}).get("total_iterations", m["iterations"])
         row = {"system": name, "states": system.n, "inputs": system.m, "batch": int(cfg.n_states),
                "iterations": iterations, "training_states": int(cfg.n_states) * iterations,
                "certificate": m["certificate"]["status"], "train_s": round(train_s, 1), "roa_level": cfg.roa_level,
                "success": f"{ev['n_success']}/{ev['n']}"}
         for enclosure in ("mean-value", "affine"):
-            proof = prove_trained(system, lyap, ctrl, run_condition(run), float(cfg.delta), cfg.roa_level,
-                                  time_limit=args.verify_time, enclosure=enclosure, max_boxes=50_000_000)
-            row[enclosure] = {"status": proof["status"], "proved": proof["verified_fraction"],
-                              "boxes": proof["boxes_processed"], "time_s": round(proof["time_s"], 1)}
+            proof = prove_trained(result.loop, result.condition, Region.of(system, float(cfg.delta)),
+                                  Budget(seconds=args.verify_time, boxes=50_000_000, enclosure=enclosure), cfg.roa_level)
+            row[enclosure] = {"status": proof.status, "proved": proof.verified_fraction,
+                              "boxes": proof.boxes_processed, "time_s": round(proof.time_s, 1)}
         rows.append(row)
         print(json.dumps(row), file=sys.stderr, flush=True)
 

@@ -29,8 +29,10 @@ def main(argv: list[str] | None = None) -> int:
     args = parser.parse_args(argv)
     torch.set_num_threads(args.threads)
 
-    from drlyap.rundir import load_run
-    from drlyap.verification import verify_run
+    import dataclasses
+
+    from drlyap.runs import load_run
+    from drlyap.workflows.verify import run_proof, verify_run
 
     header = f"{'run':<36} {'check':<20} {'status':<9} {'verified':>10} {'boxes':>8} {'boxes/s':>9} {'seconds':>8}"
     print(header)
@@ -46,7 +48,8 @@ def main(argv: list[str] | None = None) -> int:
             else:
                 xi = None if args.xi is None else [float(v) for v in args.xi.split(",")]
             tic = time.perf_counter()
-            result = verify_run(run, delta=args.delta, xi=xi, time_limit=args.time_limit)
+            proof = dataclasses.replace(run_proof(run), time_limit=args.time_limit)
+            result = verify_run(run, proof, delta=args.delta, xi=xi).to_dict()
             total = time.perf_counter() - tic
         except ValueError as err:
             print(f"{path:<36} error: {err}")

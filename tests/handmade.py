@@ -71,3 +71,10 @@ def bump_pair(system, kappa=100.0, beta=1e-3, eps=1e-2):
         bumped.phi.layers[0].weight[2, 0] = kappa * s1  # the first layer sees z / s
         bumped.phi.layers[1].weight[2, 2] = beta ** 0.5
     return bumped, ctrl
+
+
+def plain_train(cfg, system=None, **kwargs):
+    """Training alone, without the proof rounds (``drlyap.train`` with ``proof=None``)."""
+    from drlyap.training import train
+
+    return train(cfg, system, None, **kwargs)

@@ -10,9 +10,12 @@ from fractions import Fraction
 import pytest
 import torch
 
+from drlyap.closed_loop import ClosedLoop
 from drlyap.conditions import DRPointwise, Nominal, TrueDecrease
+from drlyap.config import Budget
 from drlyap.enclosures import Affine, Dual, Interval, is_enclosure, quadratic_max
 from drlyap.networks import Controller, Lyapunov, TanhMLP
+from drlyap.regions import Region
 from drlyap.systems import get_system
 from drlyap.training import TrainConfig, build_networks
 from drlyap.verification import maximize, verify_condition
@@ -348,9 +351,9 @@ def test_decrease_condition_objective_on_affine_boxes(name):
     pts = _samples(lo, hi, count=300)
     for cond in (Nominal(xi.mean(0, keepdim=True), 0.1), DRPointwise(0.01, 0.2, xi, 0.1),
                  TrueDecrease(torch.tensor([system.test_xi], dtype=F64), 0.1)):
-        out = condition_objective(cond, system, lyap, ctrl)(Affine.box(lo, hi))
+        out = condition_objective(ClosedLoop(system, lyap, ctrl), cond)(Affine.box(lo, hi))
         with torch.no_grad():
-            values = _flat(lambda p, c=cond: c.components(c.terms(system, lyap.double(), ctrl.double(), p)), pts)
+            values = _flat(lambda p, c=cond: c.components(c.terms(ClosedLoop(system, lyap.double(), ctrl.double()), p)), pts)
         assert _inside(out, values), cond.label
 
 
@@ -386,23 +389,24 @@ def test_branch_and_bound_with_affine_forms_verifies_with_fewer_boxes():
     system = small_pendulum()
     lyap, ctrl = linear_pair(system)
     spec = DRPointwise(1e-3, 0.1, XI, 0.05)
-    mv = verify_condition(system, lyap, ctrl, spec, delta=0.2, time_limit=20)
-    af = verify_condition(system, lyap, ctrl, spec, delta=0.2, time_limit=20, enclosure="affine")
+    loop, region = ClosedLoop(system, lyap, ctrl), Region.of(system, 0.2)
+    mv = verify_condition(loop, spec, region, Budget(seconds=20, enclosure="mean-value"))
+    af = verify_condition(loop, spec, region, Budget(seconds=20, enclosure="affine"))
     assert mv.status == af.status == "verified"
     assert af.boxes_processed <= mv.boxes_processed
-    assert float(spec.exact(system, lyap, ctrl, _pendulum_region_points(system, 0.2)).max()) <= 0
+    assert float(ClosedLoop(system, lyap, ctrl).exact(spec, _pendulum_region_points(system, 0.2)).max()) <= 0
     with pytest.raises(ValueError, match="unknown enclosure"):
-        verify_condition(system, lyap, ctrl, spec, delta=0.2, enclosure="taylor")
+        Budget(enclosure="taylor")
 
 
 def test_branch_and_bound_with_affine_forms_leaves_every_violation_unverified():
     system = small_pendulum(((-1.5, -3.0), (1.5, 3.0)))
     lyap, ctrl = linear_pair(system)
     spec = DRPointwise(1e-3, 0.1, XI, 0.05)
-    result = verify_condition(system, lyap, ctrl, spec, delta=0.2, time_limit=20, min_width=1e-2, keep_boxes=10**6,
-                              enclosure="affine")
+    result = verify_condition(ClosedLoop(system, lyap, ctrl), spec, Region.of(system, 0.2),
+                              Budget(seconds=20, min_width=1e-2, enclosure="affine"), keep_boxes=10**6)
     z = _pendulum_region_points(system, 0.2, per=150)
-    bad = z[spec.exact(system, lyap, ctrl, z) > 0]
+    bad = z[ClosedLoop(system, lyap, ctrl).exact(spec, z) > 0]
     assert bad.shape[0] and result.status == "violated" and 0 < result.verified_fraction < 1
     lo = torch.tensor([b["lo"] for b in result.unverified_boxes], dtype=F64).reshape(-1, 2)
     hi = torch.tensor([b["hi"] for b in result.unverified_boxes], dtype=F64).reshape(-1, 2)
@@ -417,10 +421,10 @@ def test_maximize_with_affine_forms_bounds_sampled_values_at_4_states():
     spec = Nominal(torch.zeros(1, system.k, dtype=F64), 0.1)
     lo, hi = system.local_box()
     lo, hi = lo * 0.3, hi * 0.3
-    lower, upper, info = maximize(condition_objective(spec, system, lyap, ctrl), lo[None], hi[None], (hi - lo) / 2,
-                                  time_limit=3.0, enclosure="affine")
+    lower, upper, info = maximize(condition_objective(ClosedLoop(system, lyap, ctrl), spec), lo[None], hi[None],
+                                  (hi - lo) / 2, Budget(seconds=3.0, boxes=1_000_000, enclosure="affine"))
     z = lo + (hi - lo) * torch.rand(20000, system.n, generator=torch.Generator().manual_seed(0), dtype=F64)
-    sampled = float(spec.exact(system, lyap, ctrl, z).max())
+    sampled = float(ClosedLoop(system, lyap, ctrl).exact(spec, z).max())
     assert float(lower[0]) <= float(upper[0])
     assert sampled <= float(upper[0]), (sampled, float(upper[0]), info)
 
@@ -433,8 +437,9 @@ def test_maximize_stopped_early_keeps_a_sound_finite_bound():
 
     lo, hi = torch.tensor([[-1.0, -1.0]], dtype=F64), torch.tensor([[1.0, 1.0]], dtype=F64)
     scale = torch.tensor([2.0, 2.0], dtype=F64)
-    first = maximize(objective, lo, hi, scale, max_boxes=1, batch=1)[1]
-    lower, upper, info = maximize(objective, lo, hi, scale, max_boxes=60, batch=2, rel_tol=1e-9)
+    first = maximize(objective, lo, hi, scale, Budget(seconds=2.0, boxes=1, batch=1, enclosure="mean-value"))[1]
+    lower, upper, info = maximize(objective, lo, hi, scale, Budget(seconds=2.0, boxes=60, batch=2, enclosure="mean-value"),
+                                  rel_tol=1e-9)
     assert info["stopped"] == "box budget"
     z = lo + (hi - lo) * torch.rand(50000, 2, generator=torch.Generator().manual_seed(1), dtype=F64)
     assert float(objective(z).max()) <= float(upper[0]) < float(first[0]) < math.inf

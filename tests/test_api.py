@@ -18,8 +18,8 @@ def test_readme_user_system_round_trip(tmp_path):
         nominal_params=(0.5,), uncertain=("friction",), dynamics=cart,
         state_box=((-1, -1), (1, 1)), input_box=((-2,), (2,)), equilibrium=(0.0, 0.0),
         xi_sampler=lambda n, g: 0.1 * torch.randn(n, 1, generator=g, dtype=torch.float64))
-    result = drlyap.train(drlyap.TrainConfig(system="cart", iters=30, check_every=30, n_states=256, verify=False),
-                          system=sys_, progress=False)
+    result = drlyap.train(drlyap.TrainConfig(system="cart", iters=30, check_every=30, n_states=256), system=sys_,
+                          proof=None, progress=False)
     drlyap.save_run(tmp_path / "cart", result)
     drlyap.register_system("cart", lambda: sys_)
     run = drlyap.load_run(tmp_path / "cart")
@@ -30,7 +30,7 @@ def test_readme_user_system_round_trip(tmp_path):
 
 
 def test_load_run_returns_controller_and_certificate_in_user_coordinates(tmp_path, tiny_config):
-    result = drlyap.train(tiny_config(system="mountain-car", verify=False), progress=False)
+    result = drlyap.train(tiny_config(system="mountain-car"), proof=None, progress=False)
     run = drlyap.load_run(drlyap.save_run(tmp_path / "mc", result))
     x_star = torch.tensor([[math.pi / 6, 0.0]], dtype=torch.float64)
     assert abs(run.lyapunov(x_star).item()) < 1e-6
@@ -41,9 +41,32 @@ def test_load_run_returns_controller_and_certificate_in_user_coordinates(tmp_pat
 def test_train_proves_by_default_and_says_so_when_it_cannot(tiny_config):
     """drlyap.train ends with the verifier's verdict in metrics["certificate"]; an unproved run warns."""
     with pytest.warns(UserWarning, match="NOT verified"):
-        result = drlyap.train(tiny_config(iters=10, check_every=10, verify_rounds=0, verify_time=1.0), progress=False)
+        result = drlyap.train(tiny_config(iters=10, check_every=10), proof=drlyap.ProofConfig(rounds=0, time_limit=1.0),
+                              progress=False)
     cert = result.metrics["certificate"]
     assert cert["status"] in ("violated", "unknown") and cert["condition"] == "DR pointwise"
     assert 0 <= cert["verified_fraction"] < 1 and cert["rounds"] == 0
-    plain = drlyap.train(tiny_config(iters=10, check_every=10, verify=False), progress=False)
+    plain = drlyap.train(tiny_config(iters=10, check_every=10), proof=None, progress=False)
     assert plain.metrics["certificate"]["status"] == "not checked" and "cegis" not in plain.metrics
+
+
+def test_the_api_runs_on_one_thread_unless_told_otherwise():
+    import subprocess
+    import sys
+
+    code = ("import torch; torch.set_num_threads(2); import drlyap; drlyap.TrainConfig; "
+            "print(torch.get_num_threads()); drlyap.set_threads(2); print(torch.get_num_threads())")
+    out = subprocess.run([sys.executable, "-c", code], capture_output=True, text=True, check=True,
+                         env={k: v for k, v in __import__("os").environ.items() if k != "DRLYAP_THREADS"})
+    assert out.stdout.split() == ["1", "2"]
+
+
+def test_xi_samples_may_be_a_tensor_or_an_array(tmp_path, tiny_config):
+    import numpy as np
+
+    samples = torch.tensor([[0.02, 0.0], [-0.01, 0.01]], dtype=torch.float64)
+    for given in (samples, samples.numpy(), np.asarray(samples)):
+        result = drlyap.train(tiny_config(iters=2, check_every=2, xi_samples=given), proof=None, progress=False)
+        assert result.config.xi_samples == samples.tolist()
+    drlyap.save_run(tmp_path / "run", result)  # the config is plain JSON
+    assert drlyap.load_run(tmp_path / "run").xi_samples.tolist() == samples.tolist()

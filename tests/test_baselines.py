@@ -10,13 +10,17 @@ import pytest
 import torch
 from click.testing import CliRunner
 
-from drlyap.baselines import default_weights, linearize, load_policy_run, lqr_design, save_lqr_run, train_lqr
 from drlyap.cli import main
-from drlyap.comparison import compare_runs, monotonicity, score_run
-from drlyap.rundir import RunDirError, save_run
+from drlyap.closed_loop import ClosedLoop
+from drlyap.config import Budget
+from drlyap.lqr import default_weights, linearize, lqr_design
+from drlyap.regions import Region
+from drlyap.runs import RunDirError, save_lqr_run, save_run, train_lqr
 from drlyap.simulation import evaluate, initial_states
 from drlyap.systems import get_system
 from drlyap.training import TrainConfig, TrainResult, build_networks
+from drlyap.workflows.compare import compare_runs, monotonicity, score_run
+from drlyap.workflows.policies import load_policy_run
 
 torch.set_num_threads(1)
 
@@ -116,7 +120,7 @@ def _fake_lyapunov_run(path):
 
 
 def test_lyapunov_run_through_common_loader(tmp_path):
-    from drlyap.rundir import load_run
+    from drlyap.runs import load_run
 
     _fake_lyapunov_run(tmp_path / "lyap")
     run = load_policy_run(tmp_path / "lyap")
@@ -173,7 +177,8 @@ def test_compare_and_evaluate_cli(tmp_path):
     assert res.exit_code == 0, res.output
     out = tmp_path / "cmp"
     res = runner.invoke(main, ["compare", str(tmp_path / "lqr"), str(tmp_path / "lqr9"), str(tmp_path / "lyap"),
-                               "--xi", "0.1,0.05", "--n-init", "3", "--horizon", "2", "--out", str(out)])
+                               "--xi", "0.1,0.05", "--n-init", "3", "--horizon", "2", "--certify-time", "2", "--out",
+                               str(out)])
     assert res.exit_code == 0, res.output
     assert "| lqr |" in res.output and "lyapunov-dr-pointwise" in res.output
     report = json.loads((out / "compare.json").read_text())
@@ -213,13 +218,14 @@ def test_lqr_pair_is_verifiable_and_its_region_of_attraction_is_certified():
     assert torch.allclose(controller(system.to_local(x)), design.controller(x))
     assert torch.allclose(lyapunov(system.to_local(x)), design.certificate(x))
     spec = TrueDecrease(torch.tensor([[0.1, 0.05]]), decay_rate=0.0)
-    result = verify_condition(system, lyapunov, controller, spec, 0.5, time_limit=10)
+    loop = ClosedLoop(system, lyapunov, controller)
+    result = verify_condition(loop, spec, Region.of(system, 0.5), Budget(seconds=10, enclosure="mean-value"))
     assert result.status == "violated"  # saturation: z'Pz is not a certificate on the whole box
     cex = torch.tensor([result.counterexample], dtype=torch.float64)
-    assert spec.exact(system, lyapunov, controller, system.to_local(cex)).item() > 0
-    roa = certified_roa(system, lyapunov, controller, spec, 0.5, time_limit=10)
-    assert roa["certified"] and 0 < roa["share_of_box"] < 1
+    assert ClosedLoop(system, lyapunov, controller).exact(spec, system.to_local(cex)).item() > 0
+    roa = certified_roa(ClosedLoop(system, lyapunov, controller), spec, Region.of(system, 0.5), Budget(seconds=10))
+    assert roa.certified and 0 < roa.share_of_box < 1
     # on the certified sublevel set the decrease really holds (dense check)
     z = torch.rand(20000, 2, dtype=torch.float64) * torch.tensor([2 * math.pi, 16.0]) - torch.tensor([math.pi, 8.0])
-    inside = (lyapunov(z) <= roa["level"]) & (z.norm(dim=-1) >= 0.5)
-    assert inside.any() and (spec.exact(system, lyapunov, controller, z[inside]) <= 0).all()
+    inside = (lyapunov(z) <= roa.level) & (z.norm(dim=-1) >= 0.5)
+    assert inside.any() and (ClosedLoop(system, lyapunov, controller).exact(spec, z[inside]) <= 0).all()

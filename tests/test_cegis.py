@@ -1,4 +1,4 @@
-"""Counterexample-guided training (drlyap.cegis)."""
+"""Counterexample-guided training (drlyap.training.certified)."""
 
 import json
 
@@ -6,11 +6,12 @@ import pytest
 import torch
 from click.testing import CliRunner
 
-from drlyap.cegis import collect_counterexamples, falsify, train_cegis
+from drlyap.config import Budget, ProofConfig
 from drlyap.regions import Region
 from drlyap.systems import get_system
-from drlyap.training import train
-from drlyap.verification import verify_condition
+from drlyap.training.certified import collect_counterexamples, train_cegis
+from drlyap.verification import falsify, verify_condition
+from handmade import plain_train
 
 
 def test_projection_lands_in_x_delta():
@@ -23,39 +24,40 @@ def test_projection_lands_in_x_delta():
 
 
 def test_falsifier_and_collected_states_really_violate(tiny_config):
-    result = train(tiny_config(iters=10, check_every=10), progress=False)
-    system, lyap, ctrl, cond = result.system, result.lyapunov, result.controller, result.condition
+    result = plain_train(tiny_config(iters=10, check_every=10), progress=False)
+    loop, cond = result.loop, result.condition
     cfg = result.config
-    region = Region.of(system, cfg.delta)
+    region = Region.of(result.system, cfg.delta)
     starts = region.sample(64, torch.Generator().manual_seed(1))
-    before = cond.exact(system, lyap, ctrl, starts)
-    found, values = falsify(system, lyap, ctrl, cond, region, starts, steps=10)
+    before = loop.exact(cond, starts)
+    found, values = falsify(loop, cond, region, starts, steps=10)
     assert bool((values >= before - 1e-12).all())  # never worse than the start
-    assert torch.allclose(values, cond.exact(system, lyap, ctrl, found))
+    assert torch.allclose(values, loop.exact(cond, found))
     assert bool((found.norm(dim=-1) >= cfg.delta).all())
-    ver = verify_condition(system, lyap, ctrl, cond, region, time_limit=1.0, keep_boxes=50).to_dict()
-    assert ver["status"] != "verified"
-    got = collect_counterexamples(system, lyap, ctrl, cond, region, ver, torch.Generator().manual_seed(0),
-                                  n_random=64, steps=5)
+    ver = verify_condition(loop, cond, region, Budget(seconds=1.0), keep_boxes=50)
+    assert ver.status != "verified"
+    got = collect_counterexamples(loop, cond, region, ver, torch.Generator().manual_seed(0), n_random=64, steps=5)
     cex = got["counterexamples"]
     assert cex.shape[0] > 0
-    assert bool((cond.exact(system, lyap, ctrl, cex) > 0).all())  # one condition object: training's and the verifier's
+    assert bool((loop.exact(cond, cex) > 0).all())  # one condition object: training's and the verifier's
     assert got["neighbours"].shape[0] == 3 * cex.shape[0]
 
 
 def test_tiny_cegis_run_records_rounds_and_saves_metrics(tmp_path, tiny_config):
-    from drlyap.rundir import load_run, save_run
+    from drlyap.runs import load_run, save_run
 
-    cfg = tiny_config(iters=20, check_every=20)
-    result, rounds = train_cegis(cfg, rounds=2, verify_time_limit=1.5, progress=False, iters_per_round=10,
-                                 n_random=64, falsifier_steps=5, max_extra=300)
+    system = get_system("pendulum")
+    cfg = tiny_config(iters=20, check_every=20).resolved(system)
+    proof = ProofConfig(rounds=2, time_limit=1.5, iters_per_round=10, falsifier_starts=64, falsifier_steps=5,
+                        max_extra=300).resolved(system)
+    result, rounds = train_cegis(cfg, system, proof, progress=False)
     assert 1 <= len(rounds) <= 3 and [r["round"] for r in rounds] == list(range(len(rounds)))
     first = rounds[0]
     if not first["verified"]:  # a 20-iteration pair is never verified in practice
         assert first["counterexamples_added"] > 0 and first["extra_states"] <= 300
         # the counterexamples violate the condition of the pair they were found for (training is deterministic)
-        again = train(cfg, progress=False)
-        res = again.condition.exact(again.system, again.lyapunov, again.controller, first["counterexamples"])
+        again = plain_train(cfg, progress=False)
+        res = again.loop.exact(again.condition, first["counterexamples"])
         assert bool((res > 0).all())
     cegis = result.metrics["cegis"]
     assert len(cegis["rounds"]) == len(rounds) and cegis["final"]["status"] in ("verified", "violated", "unknown")
@@ -71,12 +73,16 @@ def test_tiny_cegis_run_records_rounds_and_saves_metrics(tmp_path, tiny_config):
 
 
 def test_cegis_rejects_bad_arguments_before_training(tiny_config):
+    system = get_system("pendulum")
+    proof = ProofConfig(rounds=1).resolved(system)
     with pytest.raises(ValueError, match="per-state"):
-        train_cegis(tiny_config(iters=5, check_every=5, loss="uniform"), rounds=1, progress=False)
+        train_cegis(tiny_config(iters=5, check_every=5, loss="uniform").resolved(system), system, proof, progress=False)
     with pytest.raises(ValueError, match="iters_per_round"):
-        train_cegis(tiny_config(iters=5, check_every=5), rounds=1, progress=False, iters_per_round=0)
+        ProofConfig(rounds=1, iters_per_round=0).resolved(system)
     with pytest.raises(ValueError, match="rounds"):
-        train_cegis(tiny_config(iters=5, check_every=5), rounds=-1, progress=False)
+        ProofConfig(rounds=-1).resolved(system)
+    with pytest.raises(ValueError, match="resolve"):
+        train_cegis(tiny_config(iters=5, check_every=5).resolved(system), system, ProofConfig(), progress=False)
 
 
 def test_cli_train_proves_by_default(tmp_path):
@@ -96,4 +102,4 @@ def test_cli_train_proves_by_default(tmp_path):
     assert plain.exit_code == 0 and plain.output.strip().splitlines()[-1].startswith("certificate: NOT CHECKED")
     assert "cegis" not in json.loads((tmp_path / "p" / "metrics.json").read_text())
     bad = runner.invoke(main, ["train", "pendulum", "--verify-rounds", "-1", "--out", str(tmp_path / "x")])
-    assert bad.exit_code != 0 and "verify_rounds" in bad.output
+    assert bad.exit_code != 0 and "--verify-rounds must be >= 0" in bad.output

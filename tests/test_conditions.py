@@ -5,6 +5,7 @@ import torch
 from hypothesis import given, settings
 from hypothesis import strategies as st
 
+from drlyap.closed_loop import ClosedLoop
 from drlyap.conditions import (
     DecreaseTerms,
     DRPointwise,
@@ -118,10 +119,10 @@ def test_local_rates_are_the_largest_ratio_of_vdot_to_v_next_to_x_star(seed):
     angle = torch.linspace(0, 2 * math.pi, 20001, dtype=torch.float64)[:-1]
     z = 1e-5 * torch.stack([angle.cos(), angle.sin()], -1)
     for cond in (DRPointwise(0.01, 0.1, xi), TrueDecrease(xi)):
-        rates = local_rates(cond, p, lyap, ctrl)
+        rates = local_rates(cond, ClosedLoop(p, lyap, ctrl))
         with torch.no_grad():
             v = lyap(z)
-            ratio = PlainDecrease(xi, model=cond.model).terms(p, lyap, ctrl, z).vdot / v[:, None]
+            ratio = PlainDecrease(xi, model=cond.model).terms(ClosedLoop(p, lyap, ctrl), z).vdot / v[:, None]
         assert rates.shape == (3,)
         assert torch.allclose(rates, ratio.amax(0), rtol=1e-3, atol=1e-3 * float(ratio.abs().max()))
 
@@ -133,12 +134,12 @@ def test_local_rates_bound_vdot_over_v_in_four_states_and_carry_gradients():
     lyap, ctrl = _random_pair(c, 0)
     xi = torch.as_tensor(c.sample_xi(2, torch.Generator().manual_seed(0)), dtype=torch.float64)
     cond = PlainDecrease(xi)
-    rates = local_rates(cond, c, lyap, ctrl)
+    rates = local_rates(cond, ClosedLoop(c, lyap, ctrl))
     g = torch.Generator().manual_seed(1)
     d = torch.randn(20000, 4, generator=g, dtype=torch.float64)
     z = 1e-5 * d / d.norm(dim=-1, keepdim=True)
     with torch.no_grad():
-        ratio = cond.terms(c, lyap, ctrl, z).vdot / lyap(z)[:, None]
+        ratio = cond.terms(ClosedLoop(c, lyap, ctrl), z).vdot / lyap(z)[:, None]
     scale = float(ratio.abs().max())
     assert (ratio.amax(0) <= rates + 1e-3 * scale).all()  # no direction beats the rate
     assert (ratio.amax(0) >= rates - 0.2 * scale).all()  # and random directions come close to it
@@ -153,5 +154,5 @@ def test_local_rates_are_nan_for_non_finite_weights():
     lyap, ctrl = _random_pair(p, 0)
     with torch.no_grad():
         lyap.phi.layers[0].weight[0, 0] = float("nan")
-    rates = local_rates(TrueDecrease(torch.zeros(2, 2, dtype=torch.float64)), p, lyap, ctrl)
+    rates = local_rates(TrueDecrease(torch.zeros(2, 2, dtype=torch.float64)), ClosedLoop(p, lyap, ctrl))
     assert rates.shape == (2,) and torch.isnan(rates).all()

@@ -13,7 +13,7 @@ gymnasium = pytest.importorskip("gymnasium")  # part of the optional extra drlya
 
 from gymnasium.utils.env_checker import check_env  # noqa: E402
 
-from drlyap.envs import ENV_IDS, UncertainSystemEnv, make_env, observe, reward_weights  # noqa: E402
+from drlyap.rl.envs import ENV_IDS, UncertainSystemEnv, make_env, observe, reward_weights  # noqa: E402
 from drlyap.simulation import rk4_step  # noqa: E402
 from drlyap.systems import get_system  # noqa: E402
 

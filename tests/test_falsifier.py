@@ -1,15 +1,17 @@
 """The falsifier's verdicts (drlyap.verification.falsifier): certain violations only, and only where a proof is unknown."""
 
+import dataclasses
 import math
 
 import pytest
 import torch
 
+from drlyap.config import Budget, ProofConfig
 from drlyap.regions import Region
 from drlyap.systems import get_system
-from drlyap.training import train
-from drlyap.verification import prove_trained, verify_condition
+from drlyap.verification import ConditionProof, prove_trained, verify_condition
 from drlyap.verification.falsifier import confirmed_violations, falsifier_starts, falsify, settle_unknown
+from handmade import plain_train
 
 
 @pytest.fixture(scope="module")
@@ -19,7 +21,7 @@ def violating_pair():
     cfg = TrainConfig(system="pendulum", n_states=256, iters=10, check_every=10, lyapunov_hidden=[8], lyapunov_out=4,
                       controller_hidden=[8], seed=0)
     torch.set_num_threads(1)
-    result = train(cfg, progress=False)
+    result = plain_train(cfg, progress=False)
     return result, Region.of(result.system, result.config.delta)
 
 
@@ -36,89 +38,92 @@ def test_starts_reach_near_x_star_in_six_states():
 
 def test_confirmed_violations_are_sound_lower_bounds(violating_pair):
     result, region = violating_pair
-    system, lyap, ctrl, cond = result.system, result.lyapunov, result.controller, result.condition
+    loop, cond = result.loop, result.condition
     z = torch.cat([region.sample(300, torch.Generator().manual_seed(3)),
                    torch.tensor([[0.01, 0.0], [0.0, -0.02]], dtype=torch.float64)])  # two inside the delta-ball
-    exact = cond.exact(system, lyap, ctrl, z)
+    exact = loop.exact(cond, z)
     for level in (None, 0.5):
-        lower = confirmed_violations(system, lyap, ctrl, cond, region, z, level)
+        lower = confirmed_violations(loop, cond, region, z, level)
         certain = torch.isfinite(lower)
         assert bool((lower[certain] > 0).all() and (lower[certain] <= exact[certain] + 1e-9).all())
         assert not bool(certain[-2:].any())  # not in X_delta
         assert bool(certain[(exact > 1e-6) & (z.norm(dim=-1) >= region.delta)].all()) or level is not None
         if level is not None:
-            with torch.no_grad():
-                v = lyap.double()(z)
+            v = loop.f64.value(z)
             assert not bool(certain[v > level].any())
-    assert bool(torch.isfinite(confirmed_violations(system, lyap, ctrl, cond, region, z)).any())  # some violate
+    assert bool(torch.isfinite(confirmed_violations(loop, cond, region, z)).any())  # some violate
 
 
 def test_settle_unknown_only_changes_unknown_proofs(violating_pair):
     result, region = violating_pair
-    system, lyap, ctrl, cond = result.system, result.lyapunov, result.controller, result.condition
-    ver = verify_condition(system, lyap, ctrl, cond, region, time_limit=0.3, keep_boxes=20).to_dict()
+    system, loop, cond = result.system, result.loop, result.condition
+    ver = verify_condition(loop, cond, region, Budget(seconds=0.3), keep_boxes=20)
     for status in ("verified", "violated"):
-        same = dict(ver, status=status)
-        assert settle_unknown(dict(same), system, lyap, ctrl, cond, region) == same
-    unknown = dict(ver, status="unknown", counterexample=None, counterexample_local=None, counterexample_value=None)
-    assert settle_unknown(dict(unknown), system, lyap, ctrl, cond, region, starts=0) == unknown
-    out = settle_unknown(dict(unknown), system, lyap, ctrl, cond, region, starts=256, seed=1)
-    assert out["status"] == "violated" and out["counterexample_source"] == "falsifier"
-    assert out["verified_fraction"] == ver["verified_fraction"] and out["falsifier"]["confirmed"] >= 1
-    z = torch.tensor([out["counterexample_local"]], dtype=torch.float64)
-    assert math.isclose(float(cond.exact(system, lyap, ctrl, z)[0]), out["counterexample_value"], rel_tol=1e-12)
-    assert out["counterexample_value"] > 0 and float(z.norm()) >= region.delta
-    assert torch.allclose(system.to_user(z)[0], torch.tensor(out["counterexample"], dtype=torch.float64))
+        same = dataclasses.replace(ver, status=status)
+        assert settle_unknown(dataclasses.replace(same), loop, cond, region) == same
+    unknown = dataclasses.replace(ver, status="unknown", counterexample=None, counterexample_local=None,
+                                  counterexample_value=None)
+    assert settle_unknown(dataclasses.replace(unknown), loop, cond, region, starts=0) == unknown
+    out = settle_unknown(dataclasses.replace(unknown), loop, cond, region, starts=256, seed=1)
+    assert out.status == "violated" and out.counterexample_source == "falsifier"
+    assert out.verified_fraction == ver.verified_fraction and out.falsifier["confirmed"] >= 1
+    z = torch.tensor([out.counterexample_local], dtype=torch.float64)
+    assert math.isclose(float(loop.exact(cond, z)[0]), out.counterexample_value, rel_tol=1e-12)
+    assert out.counterexample_value > 0 and float(z.norm()) >= region.delta
+    assert torch.allclose(system.to_user(z)[0], torch.tensor(out.counterexample, dtype=torch.float64))
 
 
 def test_prove_trained_reports_the_falsifier_or_the_proof(violating_pair):
     result, region = violating_pair
-    system, lyap, ctrl, cond = result.system, result.lyapunov, result.controller, result.condition
-    out = prove_trained(system, lyap, ctrl, cond, region, time_limit=0.2)
-    assert out["status"] == "violated"  # by the branch and bound or by the falsifier: the pair violates
-    value = cond.exact(system, lyap, ctrl, torch.tensor([out["counterexample_local"]], dtype=torch.float64))
+    loop, cond = result.loop, result.condition
+    out = prove_trained(loop, cond, region, Budget(seconds=0.2))
+    assert out.status == "violated"  # by the branch and bound or by the falsifier: the pair violates
+    value = loop.exact(cond, torch.tensor([out.counterexample_local], dtype=torch.float64))
     assert float(value[0]) > 0
-    plain = prove_trained(system, lyap, ctrl, cond, region, time_limit=0.2, falsify_starts=0)
-    assert "falsifier" not in plain
+    plain = prove_trained(loop, cond, region, Budget(seconds=0.2), falsify_starts=0)
+    assert plain.falsifier is None and "falsifier" not in plain.to_dict()
 
 
 def test_falsify_never_loses_its_start(violating_pair):
     result, region = violating_pair
-    system, lyap, ctrl, cond = result.system, result.lyapunov, result.controller, result.condition
+    loop, cond = result.loop, result.condition
     starts = falsifier_starts(region, 64, torch.Generator().manual_seed(2))
-    found, values = falsify(system, lyap, ctrl, cond, region, starts, steps=5)
-    assert bool((values >= cond.exact(system, lyap, ctrl, starts) - 1e-12).all())
+    found, values = falsify(loop, cond, region, starts, steps=5)
+    assert bool((values >= loop.exact(cond, starts) - 1e-12).all())
 
 
 def test_cegis_settles_the_returned_pairs_verdict(tiny_config, monkeypatch):
-    import drlyap.cegis as cegis
-    from drlyap.cli import certificate_line
+    import drlyap.training.certified as cegis
+    from drlyap.render import certificate_line
 
     def out_of_time(*args, **kwargs):  # the branch and bound as if it had run out of time before any violation
         out = prove_trained(*args, **kwargs)
-        return dict(out, status="unknown", counterexample=None, counterexample_local=None, counterexample_value=None)
+        return dataclasses.replace(out, status="unknown", counterexample=None, counterexample_local=None,
+                                   counterexample_value=None)
 
     monkeypatch.setattr(cegis, "prove_trained", out_of_time)
-    result, rounds = cegis.train_cegis(tiny_config(iters=10, check_every=10), rounds=0, verify_time_limit=0.2,
-                                       progress=False)
+    system = get_system("pendulum")
+    result, rounds = cegis.train_cegis(tiny_config(iters=10, check_every=10).resolved(system), system,
+                                       ProofConfig(rounds=0, time_limit=0.2).resolved(system), progress=False)
     final = result.metrics["cegis"]["final"]
     assert rounds[0]["status"] == "unknown" and rounds[0]["verification"]["status"] == "unknown"  # the round's own
     assert final["status"] == "violated" and final["counterexample_source"] == "falsifier"
     system = result.system
     z = system.to_local(torch.tensor([final["counterexample"]], dtype=torch.float64))
-    assert float(result.condition.exact(system, result.lyapunov, result.controller, z)[0]) > 0
-    line = certificate_line(cegis.certificate_summary(final, result.condition.label, 0.5))
+    assert float(result.loop.exact(result.condition, z)[0]) > 0
+    line = certificate_line(cegis.certificate(ConditionProof.from_dict(final), 0.5))
     assert "NOT VERIFIED (violated)" in line and "found by the falsifier" in line
 
 
 def test_cegis_starts_near_x_star_where_training_does(violating_pair, monkeypatch):
-    import drlyap.cegis as cegis
+    import drlyap.training.certified as cegis
 
     result, region = violating_pair
-    system, lyap, ctrl, cond = result.system, result.lyapunov, result.controller, result.condition
-    got = cegis.collect_counterexamples(system, lyap, ctrl, cond, region, {}, torch.Generator().manual_seed(0),
+    loop, cond = result.loop, result.condition
+    nothing = ConditionProof(condition=cond.label, status="unknown", verified_fraction=0.0, delta=region.delta)
+    got = cegis.collect_counterexamples(loop, cond, region, nothing, torch.Generator().manual_seed(0),
                                         n_random=64, steps=5, near=True)
-    assert got["falsifier_starts"] == 64 and bool((cond.exact(system, lyap, ctrl, got["counterexamples"]) > 0).all())
+    assert got["falsifier_starts"] == 64 and bool((loop.exact(cond, got["counterexamples"]) > 0).all())
     seen = []
 
     def spy(*args, **kwargs):
@@ -132,5 +137,7 @@ def test_cegis_starts_near_x_star_where_training_does(violating_pair, monkeypatc
     for share, expected in ((0.0, (512, False)), (0.25, (2048, True))):
         cfg = TrainConfig(system="pendulum", n_states=64, iters=2, check_every=2, lyapunov_hidden=[4], lyapunov_out=2,
                           controller_hidden=[4], seed=0, near_share=share)
-        cegis.train_cegis(cfg, rounds=1, verify_time_limit=0.1, progress=False, iters_per_round=1)
+        system = get_system("pendulum")
+        cegis.train_cegis(cfg.resolved(system), system, ProofConfig(rounds=1, time_limit=0.1, iters_per_round=1)
+                          .resolved(system), progress=False)
         assert seen[-1] == expected

@@ -9,10 +9,11 @@ from click.testing import CliRunner
 
 from drlyap import systems
 from drlyap.conditions import wasserstein_radius_guarantee
-from drlyap.guarantee import clopper_pearson, guarantee, parse_distribution, wilson
-from drlyap.rundir import Run
+from drlyap.io import jsonable
+from drlyap.runs import Run
 from drlyap.training import TrainConfig
-from drlyap.verification import lipschitz_covering
+from drlyap.workflows.guarantee import clopper_pearson, guarantee, parse_distribution, wilson
+from drlyap.workflows.verify import run_covering
 from handmade import linear_pair, small_pendulum
 
 F64 = torch.float64
@@ -82,7 +83,7 @@ def test_stable_pair_holds_at_a_point_and_broken_pair_fails(method):
     assert bad["holds"] == 0 and bad["fraction"] == 0.0 and bad["worst_sup_residual"] > 0
     lo, hi = bad["interval_clopper_pearson"]
     assert lo == 0.0 <= hi < 0.2
-    json.dumps(good, allow_nan=False)
+    json.dumps(jsonable(good), allow_nan=False)
 
 
 def test_guarantee_under_a_spread_distribution_and_radius_constants():
@@ -102,7 +103,7 @@ def test_guarantee_under_a_spread_distribution_and_radius_constants():
 
 # ------------------------------------------------------------------ Lipschitz covering
 def test_lipschitz_covering_finite_and_never_certified_when_violated():
-    good = lipschitz_covering(hand_run(), spacing=0.02, verify_time=10)
+    good = run_covering(hand_run(), spacing=0.02, compare_seconds=10).to_dict()
     for key in ("max_residual", "lipschitz_sound", "lipschitz_sampled", "covering_radius", "required_max_residual"):
         assert isinstance(good[key], float) and torch.isfinite(torch.tensor(good[key])), key
     assert good["lipschitz_sampled"] <= good["lipschitz_sound"] + 1e-9
@@ -110,21 +111,21 @@ def test_lipschitz_covering_finite_and_never_certified_when_violated():
     assert good["covering_radius"] == pytest.approx(0.02 * 2 ** 0.5 / 2, rel=0.05)
     assert good["certified"] == (good["max_residual"] <= -good["lipschitz_sound"] * good["covering_radius"])
     assert not good["certified"] and 0 < good["spacing_needed"] < 0.02  # L rho is too large at this spacing
-    finer = lipschitz_covering(hand_run(), spacing=0.005)  # about 1e5 cells where the branch and bound needed ~500 boxes
+    finer = run_covering(hand_run(), spacing=0.005).to_dict()  # about 1e5 cells where the branch and bound needed ~500 boxes
     assert finer["certified"] and finer["max_residual"] <= finer["required_max_residual"]
-    bad = lipschitz_covering(hand_run(sign=-1.0), spacing=0.05, verify_time=10)
+    bad = run_covering(hand_run(sign=-1.0), spacing=0.05, compare_seconds=10).to_dict()
     assert bad["verifier"]["status"] == "violated" and not bad["certified"] and bad["max_residual"] > 0
     assert bad["spacing_needed"] is None
-    json.dumps(good, allow_nan=False)
+    json.dumps(jsonable(good), allow_nan=False)
 
 
 # ------------------------------------------------------------------ CLI
 def test_cli_guarantee_and_lipschitz(tmp_path, tiny_config):
     from drlyap.cli import main
-    from drlyap.rundir import save_run
-    from drlyap.training import train
+    from drlyap.runs import save_run
+    from handmade import plain_train
 
-    save_run(tmp_path / "run", train(tiny_config(iters=5, check_every=5), progress=False))
+    save_run(tmp_path / "run", plain_train(tiny_config(iters=5, check_every=5), progress=False))
     runner = CliRunner()
     out = runner.invoke(main, ["guarantee", str(tmp_path / "run"), "--dist", "normal:0.1,0.05;0.02,0.01", "--n", "20",
                                "--radius-constants", "2,1,2", "--json"])

@@ -5,8 +5,8 @@ import math
 import pytest
 import torch
 
-from drlyap.baselines import lqr_design
 from drlyap.enclosures import Interval
+from drlyap.lqr import lqr_design
 from drlyap.simulation import evaluate, initial_states
 from drlyap.systems import get_system, resolve_system, system_names
 from drlyap.training import TrainConfig, build_networks
@@ -214,7 +214,7 @@ def test_lqr_stabilises_small_initial_states_on_the_true_model(name):
 
 def test_linearisations_by_hand():
     """A, B at the equilibrium: the textbook linearisations."""
-    from drlyap.baselines import linearize
+    from drlyap.lqr import linearize
 
     a, b = linearize(get_system("cartpole"))
     mc, mp, l, g = 1.0, 0.1, 1.0, 9.81

@@ -10,8 +10,10 @@ from click.testing import CliRunner
 
 from drlyap import plotting
 from drlyap.cli import main
+from drlyap.render import region_label
 from drlyap.simulation import simulate
 from drlyap.systems import get_system, pendulum
+from drlyap.verification import RegionOfAttraction
 
 PNG = b"\x89PNG\r\n\x1a\n"
 
@@ -20,7 +22,7 @@ PNG = b"\x89PNG\r\n\x1a\n"
 def run_dir(tmp_path_factory):
     out = tmp_path_factory.mktemp("plot") / "run"
     result = CliRunner().invoke(main, ["train", "pendulum", "--method", "dr", "--iters", "10", "--quiet",
-                                       "--out", str(out)])
+                                       "--verify-rounds", "0", "--verify-time", "2", "--out", str(out)])
     assert result.exit_code == 0, result.output
     return out
 
@@ -38,16 +40,16 @@ def test_units_are_validated_and_described():
 
 def test_region_label_names_a_region_of_attraction_only_when_certified():
     where = "xi = (mass +0.1)"
-    yes = plotting.region_label({"level": 2.5, "certified": True, "ball_max_upper": 0.3}, where)
+    yes = region_label(RegionOfAttraction(level=2.5, certified=True, ball_max_upper=0.3), where)
     assert yes == "certified region of attraction {V <= 2.5} at xi = (mass +0.1)"
-    no = plotting.region_label({"level": 0.2, "certified": False, "ball_max_upper": 0.3}, where)
+    no = region_label(RegionOfAttraction(level=0.2, certified=False, ball_max_upper=0.3), where)
     assert "region of attraction" not in no and no.startswith("not certified") and "{V <= 0.2}" in no
-    practical = plotting.region_label({"level": 2.0, "certified": True, "kind": "practical stability",
-                                       "ball_max_upper": 0.5}, where)
+    practical = region_label(RegionOfAttraction(level=2.0, certified=True, kind="practical stability",
+                                                ball_max_upper=0.5), where)
     assert "region of attraction" not in practical and "practical stability" in practical
     assert "converges to {V <= 0.5}" in practical
-    assert plotting.region_label({"level": 0.0, "certified": False}, where) == ""
-    assert plotting.region_label(None, where) == ""
+    assert region_label(RegionOfAttraction(level=0.0, certified=False), where) == ""
+    assert region_label(None, where) == ""
 
 
 def test_input_limits_drawn_on_u_plot():
@@ -72,7 +74,7 @@ def test_phase_panel_has_units_contour_labels_and_region():
     policy = lambda x: -20 * sys_.to_local(x)[:, :1] - 5 * x[:, 1:]  # noqa: E731
     traj = simulate(sys_, policy, torch.tensor([[0.5, 0.0], [-1.0, 1.0]], dtype=torch.float64), None, horizon=1.0)
     fig, ax = plt.subplots()
-    region = {"level": 4.0, "certified": True, "label": plotting.region_label({"level": 4.0, "certified": True}, "x")}
+    region = {"level": 4.0, "certified": True, "label": region_label(RegionOfAttraction(level=4.0, certified=True), "x")}
     plotting.draw_phase(ax, sys_, traj, [True, False], plotting.lyapunov_grid(sys_, lyap, 40), region, delta=0.5)
     assert ax.get_xlabel() == "theta [rad]" and ax.get_ylabel() == "theta_dot [rad/s]"
     labels = ax.get_legend_handles_labels()[1]
@@ -104,7 +106,7 @@ def test_plot_uses_a_stored_certificate(run_dir, tmp_path):
     metrics_path = run_dir / "metrics.json"
     original = metrics_path.read_text()
     metrics = json.loads(original)
-    metrics["certificate"] = {"status": "verified", "xi": [0.1, 0.05],
+    metrics["certificate"] = {"status": "verified", "condition": "DR pointwise", "true_model": {"xi": [0.1, 0.05]},
                               "roa": {"level": 1.5, "certified": False, "ball_max_upper": 2.0}}
     metrics_path.write_text(json.dumps(metrics))
     try:

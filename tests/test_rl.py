@@ -10,11 +10,11 @@ from click.testing import CliRunner
 
 pytest.importorskip("stable_baselines3")
 
-from drlyap.baselines import load_policy_run  # noqa: E402
 from drlyap.cli import main  # noqa: E402
-from drlyap.envs import observe  # noqa: E402
 from drlyap.rl import train_rl  # noqa: E402
-from drlyap.rundir import RunDirError  # noqa: E402
+from drlyap.rl.envs import observe  # noqa: E402
+from drlyap.runs import RunDirError  # noqa: E402
+from drlyap.workflows.policies import load_policy_run  # noqa: E402
 
 torch.set_num_threads(1)
 

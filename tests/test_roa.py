@@ -5,15 +5,17 @@ import math
 
 import torch
 
-from drlyap.baselines import lqr_design
-from drlyap.cli import roa_line
+from drlyap.closed_loop import ClosedLoop
 from drlyap.conditions import DRPointwise, TrueDecrease
+from drlyap.config import Budget
 from drlyap.enclosures import Affine
+from drlyap.lqr import lqr_design
 from drlyap.networks import LinearController, QuadraticLyapunov
 from drlyap.regions import Region
+from drlyap.render import roa_cell, roa_line
 from drlyap.simulation import simulate
 from drlyap.systems import UncertainSystem, get_system
-from drlyap.verification import certified_roa, local_decrease
+from drlyap.verification import RegionOfAttraction, certified_roa, local_decrease
 from drlyap.verification.linearisation import (
     closed_loop_jacobians,
     common_lyapunov_matrix,
@@ -21,14 +23,8 @@ from drlyap.verification.linearisation import (
     lyapunov_matrix,
     robust_decrease_matrix,
 )
-from drlyap.verification.roa import (
-    _outside_lower,
-    _share_of_box,
-    _vertex_max,
-    band_roa,
-    linearisation_local,
-    quadratic_roa,
-)
+from drlyap.verification.roa import band_roa, linearisation_local, quadratic_roa, share_of_box
+from drlyap.verification.roa.levels import outside_lower, vertex_max
 from handmade import bump_pair, linear_pair, small_pendulum
 
 F64 = torch.float64
@@ -62,9 +58,10 @@ def test_every_certified_set_converges_to_x_star_on_the_true_model():
     l64, c64 = lyap.double(), ctrl.double()
     for xi in ([0.1, 0.05], [0.0, 0.0], [-0.05, 0.1]):
         condition = TrueDecrease(torch.tensor([xi], dtype=F64), 0.05)
-        roa = certified_roa(system, lyap, ctrl, condition, 0.2, time_limit=10, samples_per_axis=100)
-        assert roa["kind"] == "region of attraction" and roa["certified"] and roa["local"]["proved"], roa
-        level = roa["level"]
+        roa = certified_roa(ClosedLoop(system, lyap, ctrl), condition, Region.of(system, 0.2), Budget(seconds=10),
+                            samples_per_axis=100)
+        assert roa.kind == "region of attraction" and roa.certified and roa.local["proved"], roa
+        level = roa.level
         z0 = _inside(system, l64, level, 200, seed=len(xi))
         assert z0.shape[0] >= 100
         _assert_stays_and_converges(system, l64, c64, z0, xi, level, horizon=12.0)
@@ -73,11 +70,11 @@ def test_every_certified_set_converges_to_x_star_on_the_true_model():
 def test_design_model_roa_for_the_dr_condition_proves_the_ball_too():
     system = small_pendulum()
     lyap, ctrl = linear_pair(system)
-    local = local_decrease(system, lyap, ctrl, DRPointwise(1e-3, 0.1, XI, 0.05),
+    local = local_decrease(ClosedLoop(system, lyap, ctrl), DRPointwise(1e-3, 0.1, XI, 0.05),
                            Region.of(system, 0.2))
     assert local["proved"] and local["hessian_bound"] < 0
     # with eps N > 1 the CVaR is not a max over samples: no per-sample trajectory claim
-    local = local_decrease(system, lyap, ctrl, DRPointwise(1e-3, 0.5, XI, 0.05),
+    local = local_decrease(ClosedLoop(system, lyap, ctrl), DRPointwise(1e-3, 0.5, XI, 0.05),
                            Region.of(system, 0.2))
     assert not local["proved"] and "per-sample" in local["reason"]
 
@@ -108,28 +105,29 @@ def test_a_moved_equilibrium_is_practical_stability_not_a_region_of_attraction()
     system = _offset_integrator()
     lyap, ctrl = _lqr_like_pair(system)
     condition = TrueDecrease(torch.tensor([[0.05]], dtype=F64), 0.01)
-    roa = certified_roa(system, lyap, ctrl, condition, 0.3, time_limit=10, samples_per_axis=100)
-    assert roa["level"] > roa["ball_max_upper"] > 0  # the annulus-only certificate exists...
-    assert roa["kind"] == "practical stability" and not roa["certified"]  # ...and is not called an ROA
-    assert "not an equilibrium" in roa["local"]["reason"]
+    roa = certified_roa(ClosedLoop(system, lyap, ctrl), condition, Region.of(system, 0.3), Budget(seconds=10),
+                        samples_per_axis=100)
+    assert roa.level > roa.ball_max_upper > 0  # the annulus-only certificate exists...
+    assert roa.kind == "practical stability" and not roa.certified  # ...and is not called an ROA
+    assert "not an equilibrium" in roa.local["reason"]
     # and indeed the true closed loop settles away from x*, inside {V <= practical_level}
-    z0 = _inside(system, lyap, roa["level"], 50, seed=3)
+    z0 = _inside(system, lyap, roa.level, 50, seed=3)
     traj = simulate(system, lambda x: ctrl(system.to_local(x)), system.to_user(z0), torch.tensor([0.05], dtype=F64),
                     dt=0.01, horizon=20.0)
     end = traj.x[-1]
     assert float(end.norm(dim=-1).min()) > 1e-3
-    assert float(lyap(end).max()) <= roa["practical_level"]
+    assert float(lyap(end).max()) <= roa.practical_level
     # at xi = 0 the same pair has a region of attraction
-    nominal = certified_roa(system, lyap, ctrl, TrueDecrease(torch.zeros(1, 1, dtype=F64), 0.01), 0.3, time_limit=10,
-                            samples_per_axis=100)
-    assert nominal["kind"] == "region of attraction" and math.isfinite(nominal["level"])
+    nominal = certified_roa(ClosedLoop(system, lyap, ctrl), TrueDecrease(torch.zeros(1, 1, dtype=F64), 0.01),
+                            Region.of(system, 0.3), Budget(seconds=10), samples_per_axis=100)
+    assert nominal.kind == "region of attraction" and math.isfinite(nominal.level)
 
 
 def test_lyapunov_matrix_solves_the_scaled_lyapunov_equation():
     system = small_pendulum()
     lyap, ctrl = linear_pair(system)
     condition = TrueDecrease(torch.tensor([[0.1, 0.05]], dtype=F64))
-    (a,) = closed_loop_jacobians(system, ctrl, condition)
+    (a,) = closed_loop_jacobians(ClosedLoop(system, None, ctrl), condition)
     x0 = system.to_user(torch.zeros(1, 2, dtype=F64))
 
     def field(z):
@@ -168,16 +166,16 @@ def test_the_linearisation_proves_the_ball_where_the_hessian_of_v_cannot():
     xi = [0.1, 0.05]
     condition = TrueDecrease(torch.tensor([xi], dtype=F64), 0.05)
     region = Region.of(system, 0.2)
-    assert not local_decrease(system, lyap, ctrl, condition, region)["proved"]
-    roa = certified_roa(system, lyap, ctrl, condition, region, time_limit=10, samples_per_axis=100)
-    local = roa["local"]
-    assert roa["kind"] == "region of attraction" and roa["certified"], roa
+    assert not local_decrease(ClosedLoop(system, lyap, ctrl), condition, region)["proved"]
+    roa = certified_roa(ClosedLoop(system, lyap, ctrl), condition, region, Budget(seconds=10), samples_per_axis=100)
+    local = roa.local
+    assert roa.kind == "region of attraction" and roa.certified, roa
     assert local["method"] == "linearisation" and local["proved"] and not local["second_order"]["proved"]
-    assert 0 < local["inner_level"] < roa["level"] and local["q_level"] > 0 and roa["share_of_box"] > 0.3
-    level = roa["level"]
+    assert 0 < local["inner_level"] < roa.level and local["q_level"] > 0 and roa.share_of_box > 0.3
+    level = roa.level
     l64, c64 = lyap.double(), ctrl.double()
     z0 = _inside(system, l64, level, 300, seed=11)
-    rising = condition.exact(system, lyap, ctrl, z0) > 0  # V increases there (inside the ball)
+    rising = ClosedLoop(system, lyap, ctrl).exact(condition, z0) > 0  # V increases there (inside the ball)
     assert z0.shape[0] >= 200 and int(rising.sum()) >= 1
     _assert_stays_and_converges(system, l64, c64, z0, xi, level, horizon=15.0)
 
@@ -188,10 +186,10 @@ def test_no_region_of_attraction_when_the_linearisation_is_not_hurwitz():
     flipped = linear_pair(system, sign=-1.0)[1]  # positive feedback: the closed loop is unstable at x*
     condition = TrueDecrease(torch.tensor([[0.1, 0.05]], dtype=F64), 0.05)
     region = Region.of(system, 0.2)
-    local = linearisation_local(system, lyap, flipped, condition, region, 1.0, time_limit=5)
+    local = linearisation_local(ClosedLoop(system, lyap, flipped), condition, region, 1.0, Budget(seconds=5))
     assert not local["proved"] and "not Hurwitz" in local["reason"]
-    roa = certified_roa(system, lyap, flipped, condition, region, time_limit=5, samples_per_axis=50)
-    assert roa["kind"] != "region of attraction" and not roa["certified"]
+    roa = certified_roa(ClosedLoop(system, lyap, flipped), condition, region, Budget(seconds=5), samples_per_axis=50)
+    assert roa.kind != "region of attraction" and not roa.certified
 
 
 def test_a_capped_search_certifies_the_level_asked_for_and_no_more():
@@ -200,14 +198,16 @@ def test_a_capped_search_certifies_the_level_asked_for_and_no_more():
     system = small_pendulum()
     lyap, ctrl = linear_pair(system)
     condition = TrueDecrease(torch.tensor([[0.0, 0.0]], dtype=F64), 0.05)
-    full = certified_roa(system, lyap, ctrl, condition, 0.2, time_limit=10, samples_per_axis=50)
-    cap = full["level"] / 3
-    capped = certified_roa(system, lyap, ctrl, condition, 0.2, time_limit=10, samples_per_axis=50, max_level=cap)
-    assert capped["certified"] and capped["limited_by"] == "level asked for", capped
-    assert cap * (1 - 1e-12) <= capped["level"] <= cap
-    assert capped["share_of_box"] < full["share_of_box"]
-    z0 = _inside(system, lyap.double(), capped["level"], 50, seed=3)
-    _assert_stays_and_converges(system, lyap.double(), ctrl.double(), z0, [0.0, 0.0], capped["level"], horizon=12.0)
+    full = certified_roa(ClosedLoop(system, lyap, ctrl), condition, Region.of(system, 0.2), Budget(seconds=10),
+                         samples_per_axis=50)
+    cap = full.level / 3
+    capped = certified_roa(ClosedLoop(system, lyap, ctrl), condition, Region.of(system, 0.2), Budget(seconds=10),
+                           samples_per_axis=50, max_level=cap)
+    assert capped.certified and capped.limited_by == "level asked for", capped
+    assert cap * (1 - 1e-12) <= capped.level <= cap
+    assert capped.share_of_box < full.share_of_box
+    z0 = _inside(system, lyap.double(), capped.level, 50, seed=3)
+    _assert_stays_and_converges(system, lyap.double(), ctrl.double(), z0, [0.0, 0.0], capped.level, horizon=12.0)
 
 
 def test_robust_decrease_matrix_bounds_every_matrix_of_the_interval():
@@ -237,7 +237,8 @@ def test_quadratic_region_of_the_quadrotor_decreases_and_converges():
     ctrl = LinearController(design.K, system.input_box, system.equilibrium_input)
     shifts = [list(system.test_xi), [0.0, 0.0]]
     condition = TrueDecrease(torch.tensor(shifts, dtype=F64), 0.05)
-    out = quadratic_roa(system, ctrl, condition, Region.of(system, 0.1), time_limit=15)
+    out = quadratic_roa(ClosedLoop(system, None, ctrl), condition, Region.of(system, 0.1),
+                        Budget(seconds=15, enclosure="affine"))
     assert out["proved"] and out["q_level"] > 0 and out["cube_level"] <= out["q_level"], out["reason"]
     p, level = torch.tensor(out["P"], dtype=F64), out["q_level"]
     g = torch.Generator().manual_seed(1)
@@ -247,7 +248,7 @@ def test_quadratic_region_of_the_quadrotor_decreases_and_converges():
     assert float(QuadraticLyapunov(p)(z).max()) <= level * (1 + 1e-9)
     w = QuadraticLyapunov(p)
     for xi in shifts:
-        assert float(TrueDecrease(torch.tensor([xi], dtype=F64), 0.0).exact(system, w, ctrl, z).max()) < 0
+        assert float(ClosedLoop(system, w, ctrl).exact(TrueDecrease(torch.tensor([xi], dtype=F64), 0.0), z).max()) < 0
         traj = simulate(system, lambda x: ctrl(system.to_local(x)), system.to_user(z[:100]),
                         torch.tensor(xi, dtype=F64), dt=0.002, horizon=10.0)
         with torch.no_grad():
@@ -264,9 +265,10 @@ def test_the_closed_loops_quadratic_region_is_reported_where_no_sublevel_set_of_
     _, ctrl = linear_pair(system)
     wrong = QuadraticLyapunov(torch.diag(torch.tensor([1.0, 0.01], dtype=F64)))
     condition = TrueDecrease(torch.tensor([[0.1, 0.05]], dtype=F64), 0.05)
-    roa = certified_roa(system, wrong, ctrl, condition, 0.2, time_limit=10, samples_per_axis=50, band_time=0)
-    assert not roa["certified"] and roa["band"] is None
-    quad = roa["quadratic"]
+    roa = certified_roa(ClosedLoop(system, wrong, ctrl), condition, Region.of(system, 0.2), Budget(seconds=10),
+                        samples_per_axis=50, band_time=0)
+    assert not roa.certified and roa.band is None
+    quad = roa.quadratic
     assert quad["proved"] and quad["q_level"] > 0 and quad["share_of_box"] > 0, quad
     line = roa_line(roa, true_model=True)
     assert "region of attraction: NOT CERTIFIED" in line and "CERTIFIED region of attraction {z'Pz <=" in line
@@ -292,14 +294,15 @@ def test_band_proof_extends_the_closed_loops_ellipsoid_to_a_sublevel_set_of_v():
     xi = [0.1, 0.05]
     condition = TrueDecrease(torch.tensor([xi], dtype=F64), 0.05)
     region = Region.of(system, 0.2)
-    quad = quadratic_roa(system, ctrl, condition, region, time_limit=5)
+    quad = quadratic_roa(ClosedLoop(system, None, ctrl), condition, region, Budget(seconds=5, enclosure="affine"))
     assert quad["proved"]
-    band = band_roa(system, lyap, ctrl, condition, region, quad, top=1.0, time_limit=10)
+    band = band_roa(ClosedLoop(system, lyap, ctrl), condition, region, quad, top=1.0, budget=Budget(seconds=10))
     assert band["proved"] and band["level"] > band["v_on_ellipsoid"][0] and band["beyond_ellipsoid"], band
     p = torch.tensor(quad["P"], dtype=F64)
     z = _outside_points(l64, p, quad["q_level"], band["level"], system, 300, seed=7)
     assert z.shape[0] >= 100
-    assert float(TrueDecrease(torch.tensor([xi], dtype=F64), 0.0).exact(system, l64, ctrl.double(), z).max()) < 0
+    assert float(ClosedLoop(system, l64, ctrl.double()).exact(TrueDecrease(torch.tensor([xi], dtype=F64), 0.0), z)
+                 .max()) < 0
     c64 = ctrl.double()  # the proof claims convergence from the set (it and L together are invariant, not it alone)
     traj = simulate(system, lambda x: c64(system.to_local(x)), system.to_user(z[:100]), torch.tensor(xi, dtype=F64),
                     dt=0.005, horizon=12.0)
@@ -314,21 +317,22 @@ def test_band_proof_never_certifies_where_v_rises_outside_the_ellipsoid():
     wrong = QuadraticLyapunov(torch.diag(torch.tensor([1.0, 0.01], dtype=F64)))
     condition = TrueDecrease(torch.tensor([[0.1, 0.05]], dtype=F64), 0.05)
     region = Region.of(system, 0.2)
-    quad = quadratic_roa(system, ctrl, condition, region, time_limit=5)
-    band = band_roa(system, wrong, ctrl, condition, region, quad, top=0.3, time_limit=5)
+    quad = quadratic_roa(ClosedLoop(system, None, ctrl), condition, region, Budget(seconds=5, enclosure="affine"))
+    band = band_roa(ClosedLoop(system, wrong, ctrl), condition, region, quad, top=0.3, budget=Budget(seconds=5))
     if band["proved"]:
         p = torch.tensor(quad["P"], dtype=F64)
         z = _outside_points(wrong, p, quad["q_level"], band["level"], system, 2000, seed=8)
         if z.shape[0]:
-            values = TrueDecrease(torch.tensor([[0.1, 0.05]], dtype=F64), 0.0).exact(system, wrong, ctrl.double(), z)
+            plain = TrueDecrease(torch.tensor([[0.1, 0.05]], dtype=F64), 0.0)
+            values = ClosedLoop(system, wrong, ctrl.double()).exact(plain, z)
             assert float(values.max()) < 0
     # and V does rise just outside L somewhere below V = 0.3: the proof stopped short of 0.3
     assert band["level"] is None or band["level"] < 0.3
 
 
 def test_lower_bound_of_v_outside_an_ellipsoid_is_sound_on_random_boxes():
-    """_outside_lower on the affine forms of V (a tanh pair) and W over boxes straddling W = c_q is at most the
-    smallest sampled V on the box's part with W >= c_q; _vertex_max bounds W on the box from above and matches
+    """outside_lower on the affine forms of V (a tanh pair) and W over boxes straddling W = c_q is at most the
+    smallest sampled V on the box's part with W >= c_q; vertex_max bounds W on the box from above and matches
     its largest vertex."""
     system = small_pendulum()
     lyap, _ = linear_pair(system)
@@ -343,7 +347,7 @@ def test_lower_bound_of_v_outside_an_ellipsoid_is_sound_on_random_boxes():
     form = torch.stack([w(Affine.box(lo, hi)), l64(Affine.box(lo, hi))], -1)
     at_v, at_w = l64(centre), w(centre)
     for level in (0.01, 0.1):
-        bound = _outside_lower(form[:, 1], form[:, 0], at_v, at_w, c_q, level)
+        bound = outside_lower(form[:, 1], form[:, 0], at_v, at_w, c_q, level)
         t = torch.rand(200, 4000, 2, generator=g, dtype=F64)
         z = lo[:, None] + (hi - lo)[:, None] * t
         with torch.no_grad():
@@ -352,7 +356,7 @@ def test_lower_bound_of_v_outside_an_ellipsoid_is_sound_on_random_boxes():
         v_out = torch.where(wz >= c_q, v, torch.inf).amin(-1)
         assert bool((bound <= v_out).all())
         assert int(torch.isfinite(v_out).sum()) > 50 and int((bound > -torch.inf).sum()) > 50
-    top = _vertex_max(p, lo, hi)
+    top = vertex_max(p, lo, hi)
     corners = torch.stack([lo, torch.stack([lo[:, 0], hi[:, 1]], -1), torch.stack([hi[:, 0], lo[:, 1]], -1), hi], 1)
     exact = (corners @ p * corners).sum(-1).amax(-1)
     assert bool((top >= exact).all()) and bool((top <= exact * (1 + 1e-12) + 1e-300).all())
@@ -368,7 +372,7 @@ def test_share_of_a_small_set_is_estimated_on_nested_boxes():
     for level in (1e-3, 1e-2):
         exact = (math.pi ** 3 / 6 * level ** 3 / math.sqrt(float(torch.linalg.det(p)))
                  / float(region.scale.prod()))
-        share = _share_of_box(v, region, level, 400)
+        share = share_of_box(v, region, level, 400)
         assert abs(share - exact) < 0.1 * exact, (share, exact)
 
 
@@ -381,12 +385,13 @@ def test_certified_roa_falls_back_to_the_band_proof_and_names_it():
     wrong = QuadraticLyapunov(torch.diag(torch.tensor([1.0, 0.01], dtype=F64)))
     xi = [0.1, 0.05]
     condition = TrueDecrease(torch.tensor([xi], dtype=F64), 0.05)
-    roa = certified_roa(system, wrong, ctrl, condition, 0.2, time_limit=10, samples_per_axis=50)
-    assert roa["certified"] and roa["local"]["method"] == "band" and roa["quadratic"]["proved"], roa
-    assert roa["level"] == roa["band"]["level"] > 0
+    roa = certified_roa(ClosedLoop(system, wrong, ctrl), condition, Region.of(system, 0.2), Budget(seconds=10),
+                        samples_per_axis=50)
+    assert roa.certified and roa.local["method"] == "band" and roa.quadratic["proved"], roa
+    assert roa.level == roa.band["level"] > 0
     line = roa_line(roa, true_model=True)
     assert "CERTIFIED {V <=" in line and "outside the closed loop's certified ellipsoid" in line
-    z0 = _inside(system, wrong.double(), roa["level"], 100, seed=9)
+    z0 = _inside(system, wrong.double(), roa.level, 100, seed=9)
     assert z0.shape[0] >= 20
     c64 = ctrl.double()
     traj = simulate(system, lambda x: c64(system.to_local(x)), system.to_user(z0), torch.tensor(xi, dtype=F64),
@@ -395,11 +400,10 @@ def test_certified_roa_falls_back_to_the_band_proof_and_names_it():
 
 
 def test_report_cell_says_whether_the_band_set_reaches_beyond_the_ellipsoid():
-    from drlyap.experiments import _roa_cell
-
     band = {"method": "band", "v_on_ellipsoid": [0.0165, 0.27], "beyond_ellipsoid": True}
-    roa = {"level": 0.0185, "kind": "region of attraction", "share_of_box": 4.1e-9, "local": band}
-    assert _roa_cell(roa) == "4.1e-09 of box (V, band)"
+    roa = RegionOfAttraction(level=0.0185, kind="region of attraction", share_of_box=4.1e-9, local=band)
+    assert roa_cell(roa) == "4.1e-09 of box (V, band)"
     inside = band | {"beyond_ellipsoid": False}
-    assert _roa_cell(roa | {"level": 0.0119, "local": inside}) == "4.1e-09 of box (V, within z'Pz)"
-    assert _roa_cell({"level": 1.0, "kind": "region of attraction", "share_of_box": 0.35, "local": {}}) == "35.0%"
+    assert roa_cell(RegionOfAttraction(level=0.0119, kind="region of attraction", share_of_box=4.1e-9,
+                                       local=inside)) == "4.1e-09 of box (V, within z'Pz)"
+    assert roa_cell(RegionOfAttraction(level=1.0, kind="region of attraction", share_of_box=0.35, local={})) == "35.0%"

@@ -6,18 +6,18 @@ import math
 import pytest
 import torch
 
-from drlyap.baselines import lqr_design
-from drlyap.cegis import train_certified
+from drlyap.closed_loop import ClosedLoop
 from drlyap.conditions import DecreaseTerms, PlainDecrease
+from drlyap.config import Budget, ProofConfig
+from drlyap.lqr import lqr_design
 from drlyap.networks import LinearController, QuadraticLyapunov
 from drlyap.regions import Region, split
 from drlyap.systems import cartpole
 from drlyap.training import TrainConfig, train
-from drlyap.verification import box_bounds, verify_condition, verify_sublevel
+from drlyap.verification import boundary_minimum, box_bounds, verify_condition, verify_sublevel
 from drlyap.verification.bounds import combine_upper, condition_and_value_objective, sublevel_upper
 from drlyap.verification.linearisation import lyapunov_matrix
-from drlyap.verification.roa import boundary_minimum
-from handmade import linear_pair, small_pendulum
+from handmade import linear_pair, plain_train, small_pendulum
 
 F64 = torch.float64
 
@@ -73,16 +73,16 @@ def test_the_loss_on_a_sublevel_set_ignores_states_above_the_level_and_scales_th
 def test_verification_on_a_sublevel_set_proves_what_holds_there_and_refutes_with_states_inside():
     system, lyap, ctrl = saturated_pair()
     cond = PlainDecrease(torch.zeros(1, 2, dtype=F64), 0.0, 0.05)  # sampled: fails from V = 0.0037 on
-    whole = verify_condition(system, lyap, ctrl, cond, 0.05, time_limit=20)
+    loop, region, budget = ClosedLoop(system, lyap, ctrl), Region.of(system, 0.05), Budget(seconds=20, enclosure="mean-value")
+    whole = verify_condition(loop, cond, region, budget)
     assert whole.status == "violated" and whole.level is None  # a weak torque cannot hold the pole far out
-    small = verify_condition(system, lyap, ctrl, cond, 0.05, time_limit=20, level=0.002)
+    small = verify_condition(loop, cond, region, budget, level=0.002)
     assert small.status == "verified" and small.level == 0.002
-    region = Region.of(system, 0.05)
     z = region.sample(100_000, torch.Generator().manual_seed(1))
     with torch.no_grad():
         inside = z[lyap(z) <= 0.002]
-        assert inside.shape[0] > 100 and bool((cond.evaluate(system, lyap, ctrl, inside) <= 0).all())
-    mid = verify_condition(system, lyap, ctrl, cond, 0.05, time_limit=20, level=0.05)
+        assert inside.shape[0] > 100 and bool((loop.residual(cond, inside) <= 0).all())
+    mid = verify_condition(loop, cond, region, budget, level=0.05)
     assert mid.status == "violated"
     assert float(lyap(torch.tensor([mid.counterexample_local], dtype=F64))[0]) <= 0.05
 
@@ -99,7 +99,7 @@ def test_the_s_procedure_bound_covers_every_state_of_the_box_inside_the_set():
     centre = region.sample(400, gen)
     half = region.scale * 0.03 * torch.rand(400, 2, generator=gen, dtype=F64)
     lo, hi = centre - half, centre + half
-    objective = condition_and_value_objective(cond, system, lyap, ctrl)
+    objective = condition_and_value_objective(ClosedLoop(system, lyap, ctrl), cond)
     lower, upper, _, form = box_bounds(objective, lo, hi, "affine", keep_form=True)
     bound = sublevel_upper(cond, form, level)
     plain = combine_upper(cond, upper[:, :-1])
@@ -108,7 +108,7 @@ def test_the_s_procedure_bound_covers_every_state_of_the_box_inside_the_set():
     u = torch.rand(400, 300, 2, generator=gen, dtype=F64)
     pts = (lo[:, None] + (hi - lo)[:, None] * u).reshape(-1, 2)
     with torch.no_grad():
-        v, res = lyap(pts).reshape(400, 300), cond.exact(system, lyap, ctrl, pts).reshape(400, 300)
+        v, res = lyap(pts).reshape(400, 300), ClosedLoop(system, lyap, ctrl).exact(cond, pts).reshape(400, 300)
     worst = torch.where(v <= level, res, torch.tensor(-torch.inf, dtype=F64)).amax(1)
     assert bool((worst <= bound).all())
     straddle = (lower[:, -1] <= level) & (upper[:, -1] > level)
@@ -122,7 +122,8 @@ def test_boundary_minimum_brackets_the_sampled_minimum_for_quadratic_and_network
     _, lyap_q, _ = saturated_pair()
     net, _ = linear_pair(system)
     for v in (QuadraticLyapunov(lyap_q.P), net.double()):
-        low, high = boundary_minimum(v, region, time_limit=10, rel_tol=1e-3)
+        low, high = boundary_minimum(v, region, Budget(seconds=10, boxes=1_000_000, enclosure="mean-value"),
+                                     rel_tol=1e-3)
         with torch.no_grad():
             sampled = float(v(faces).min())
         assert low <= sampled + 1e-12 and high >= low and high <= sampled * 1.01 + 1e-12
@@ -132,11 +133,11 @@ def test_verify_sublevel_needs_the_set_inside_the_box():
     system, lyap, ctrl = saturated_pair()
     cond = PlainDecrease(torch.zeros(1, 2, dtype=F64), 0.0, 0.05)
     region = Region.of(system, 0.05)
-    low, high = boundary_minimum(lyap, region)
-    ok = verify_sublevel(system, lyap, ctrl, cond, region, 0.002, time_limit=20)
-    assert ok["status"] == "verified" and ok["boundary_min_lower"] == pytest.approx(low)
-    out = verify_sublevel(system, lyap, ctrl, cond, region, 1.5 * high, time_limit=5)
-    assert out["status"] == "violated"
+    low, high = boundary_minimum(lyap, region, Budget(seconds=5, boxes=1_000_000, enclosure="mean-value"))
+    ok = verify_sublevel(ClosedLoop(system, lyap, ctrl), cond, region, 0.002, Budget(seconds=20, enclosure="mean-value"))
+    assert ok.status == "verified" and ok.boundary_min_lower == pytest.approx(low)
+    out = verify_sublevel(ClosedLoop(system, lyap, ctrl), cond, region, 1.5 * high, Budget(seconds=5, enclosure="mean-value"))
+    assert out.status == "violated"
 
 
 def test_roa_config_is_validated():
@@ -148,8 +149,8 @@ def test_roa_config_is_validated():
 
 def test_roa_training_warm_starts_from_lqr_and_keeps_v_above_the_level_on_the_faces():
     cfg = TrainConfig(system="cartpole", iters=20, check_every=10, n_states=512, lyapunov_hidden=[8],
-                      controller_hidden=[8], verify=False)
-    result = train(cfg, progress=False)
+                      controller_hidden=[8])
+    result = plain_train(cfg, progress=False)
     assert result.config.roa_level == 1.0 and result.config.warm_start == "lqr"
     warm = result.metrics["warm_start"]
     assert warm["method"] == "lqr" and warm["v_relative_error"] < 0.5 and warm["u_relative_error"] < 0.5  # 8 units
@@ -161,9 +162,9 @@ def test_roa_training_warm_starts_from_lqr_and_keeps_v_above_the_level_on_the_fa
 
 def test_certified_training_of_a_roa_run_proves_on_the_sublevel_set():
     cfg = TrainConfig(system="cartpole", iters=20, check_every=10, n_states=512, lyapunov_hidden=[8],
-                      controller_hidden=[8], verify_rounds=0, verify_time=3.0)
+                      controller_hidden=[8])
     with pytest.warns(UserWarning, match="NOT verified"):
-        result = train_certified(cfg, progress=False)
+        result = train(cfg, proof=ProofConfig(rounds=0, time_limit=3.0), progress=False)
     cert = result.metrics["certificate"]
     assert cert["level"] == 1.0 and "{V <= 1}" in cert["region"] and cert["status"] in ("unknown", "violated")
     assert 0.0 <= cert["verified_fraction"] <= 1.0
@@ -173,11 +174,11 @@ def test_verify_command_names_the_sublevel_set_of_a_roa_run(tmp_path):
     from click.testing import CliRunner
 
     from drlyap.cli import main
-    from drlyap.rundir import save_run
+    from drlyap.runs import save_run
 
     cfg = TrainConfig(system="cartpole", iters=10, check_every=10, n_states=256, lyapunov_hidden=[8],
-                      controller_hidden=[8], verify=False)
-    run_dir = save_run(tmp_path / "cp", train(cfg, progress=False))
+                      controller_hidden=[8])
+    run_dir = save_run(tmp_path / "cp", plain_train(cfg, progress=False))
     result = CliRunner().invoke(main, ["verify", str(run_dir), "--time-limit", "2"])
     assert result.exit_code == 0, result.output
     assert "on {V <= 1} only; min of V on the box's faces" in result.output

@@ -6,14 +6,18 @@ import pytest
 import torch
 from click.testing import CliRunner
 
+from drlyap.closed_loop import ClosedLoop
 from drlyap.conditions import DRPointwise, Nominal, TrueDecrease, decrease_terms
+from drlyap.config import Budget
 from drlyap.enclosures import Interval
+from drlyap.regions import Region
 from drlyap.verification import certified_radius, certified_shift_box, shift_box_condition, verify_condition
 from handmade import linear_pair, small_pendulum
 
 F64 = torch.float64
 XI = torch.tensor([[0.02, 0.01], [-0.03, 0.0], [0.05, -0.02]], dtype=F64)
 DELTA, TOL = 0.2, 0.01
+TEN, FIVE = Budget(seconds=10, enclosure="mean-value"), Budget(seconds=5, enclosure="mean-value")  # per proof
 
 
 def _dense(system, per=300):
@@ -27,71 +31,75 @@ def _dense(system, per=300):
 def test_certified_radius_is_proved_there_and_fails_just_above(eps):
     system = small_pendulum()
     lyap, ctrl = linear_pair(system)
+    loop, region = ClosedLoop(system, lyap, ctrl), Region.of(system, DELTA)
     condition = DRPointwise(1e-3, eps, XI, 0.05)
-    out = certified_radius(system, lyap, ctrl, condition, DELTA, tol=TOL, time_limit=10)
-    r = out["radius"]
-    assert r is not None and r > 0 and out["stopped"] == "tolerance"
-    assert out["unproved"] <= r * (1 + TOL) and out["unproved_status"] in ("violated", "unknown")
-    assert verify_condition(system, lyap, ctrl, condition.with_radius(r), DELTA, time_limit=10).status == "verified"
-    above = verify_condition(system, lyap, ctrl, condition.with_radius(r * (1 + 2 * TOL)), DELTA, time_limit=10)
+    out = certified_radius(loop, condition, region, TEN, tol=TOL)
+    r = out.radius
+    assert r is not None and r > 0 and out.stopped == "tolerance"
+    assert out.unproved <= r * (1 + TOL) and out.unproved_status in ("violated", "unknown")
+    assert verify_condition(loop, condition.with_radius(r), region, TEN).status == "verified"
+    above = verify_condition(loop, condition.with_radius(r * (1 + 2 * TOL)), region, TEN)
     assert above.status in ("violated", "unknown")
     # dense sampling: the condition holds up to eps * min_z (-rho(z, 0) / lip(z)) and fails just above it
     z = _dense(system)
     with torch.no_grad():
-        terms = decrease_terms(system, lyap.double(), ctrl.double(), z, XI, 0.05)
+        terms = decrease_terms(ClosedLoop(system, lyap.double(), ctrl.double()), z, XI, 0.05)
     rho0 = condition.with_radius(0.0).residual(terms)
     sampled = eps * float((-rho0 / terms.lip).min())
     assert r <= sampled and r >= 0.95 * sampled  # sound, and not needlessly loose
-    assert float(condition.with_radius(sampled * 1.001).exact(system, lyap, ctrl, z).max()) > 0
+    assert float(loop.exact(condition.with_radius(sampled * 1.001), z).max()) > 0
 
 
 def test_radius_not_provable_at_zero_says_why():
     system = small_pendulum()
     lyap, ctrl = linear_pair(system, sign=-1.0)  # pushes away from x*
-    out = certified_radius(system, lyap, ctrl, DRPointwise(1e-3, 0.1, XI, 0.05), DELTA, time_limit=5)
-    assert out["radius"] is None and "at 0" in out["reason"]
-    assert out["unproved"] == 0.0 and out["witness"]["residual"] > 0
+    loop, region = ClosedLoop(system, lyap, ctrl), Region.of(system, DELTA)
+    out = certified_radius(loop, DRPointwise(1e-3, 0.1, XI, 0.05), region, FIVE)
+    assert out.radius is None and "at 0" in out.reason
+    assert out.unproved == 0.0 and out.witness["residual"] > 0
 
 
 def test_interval_xi_on_plain_states_is_the_max_over_the_corners():
     system = small_pendulum()
     lyap, ctrl = linear_pair(system)
+    loop = ClosedLoop(system, lyap, ctrl)
     z = _dense(system, 20)
     box = TrueDecrease(Interval(torch.tensor([[-0.2, -0.1]], dtype=F64), torch.tensor([[0.3, 0.1]], dtype=F64)), 0.05)
     corners = TrueDecrease(torch.tensor([[-0.2, -0.1], [-0.2, 0.1], [0.3, -0.1], [0.3, 0.1]], dtype=F64), 0.05)
-    assert torch.equal(box.exact(system, lyap, ctrl, z), corners.exact(system, lyap, ctrl, z))
+    assert torch.equal(loop.exact(box, z), loop.exact(corners, z))
     with pytest.raises(ValueError, match="enclosures only"):
-        Nominal(Interval(torch.zeros(1, 2, dtype=F64), torch.ones(1, 2, dtype=F64)), 0.05).exact(system, lyap, ctrl, z)
+        loop.exact(Nominal(Interval(torch.zeros(1, 2, dtype=F64), torch.ones(1, 2, dtype=F64)), 0.05), z)
 
 
 def test_certified_shift_box_is_proved_there_and_fails_just_above():
     system = small_pendulum()
     lyap, ctrl = linear_pair(system)
+    loop, region = ClosedLoop(system, lyap, ctrl), Region.of(system, DELTA)
     scale = torch.tensor([0.1, 0.05], dtype=F64)
-    out = certified_shift_box(system, lyap, ctrl, 0.05, 0.0, DELTA, scale, tol=TOL, time_limit=10)
-    s = out["s"]
-    assert s is not None and s > 0 and out["unproved"] <= s * (1 + TOL)
-    assert out["box"]["mass"] == pytest.approx([-0.1 * s, 0.1 * s])
-    proved = verify_condition(system, lyap, ctrl, shift_box_condition(scale, s, 0.05), DELTA, time_limit=10)
+    out = certified_shift_box(loop, 0.05, 0.0, region, scale, TEN, tol=TOL)
+    s = out.s
+    assert s is not None and s > 0 and out.unproved <= s * (1 + TOL)
+    assert out.box["mass"] == pytest.approx([-0.1 * s, 0.1 * s])
+    proved = verify_condition(loop, shift_box_condition(scale, s, 0.05), region, TEN)
     assert proved.status == "verified"
     # slightly beyond: a corner shift violates at a dense state, or the proof fails
     beyond = s * (1 + 2 * TOL)
     corners = torch.tensor([[a, b] for a in (-1, 1) for b in (-1, 1)], dtype=F64) * scale * beyond
-    worst = float(TrueDecrease(corners, 0.05).exact(system, lyap, ctrl, _dense(system)).max())
-    status = verify_condition(system, lyap, ctrl, shift_box_condition(scale, beyond, 0.05), DELTA, time_limit=5).status
+    worst = float(loop.exact(TrueDecrease(corners, 0.05), _dense(system)).max())
+    status = verify_condition(loop, shift_box_condition(scale, beyond, 0.05), region, FIVE).status
     assert worst > 0 or status != "verified"
     with pytest.raises(ValueError, match="scale must be 2"):
-        certified_shift_box(system, lyap, ctrl, 0.05, 0.0, DELTA, torch.tensor([0.1]))
+        certified_shift_box(loop, 0.05, 0.0, region, torch.tensor([0.1]), TEN)
     with pytest.raises(ValueError, match="DRPointwise"):
-        certified_radius(system, lyap, ctrl, Nominal(XI[:1], 0.05), DELTA)
+        certified_radius(loop, Nominal(XI[:1], 0.05), region, TEN)
 
 
 def test_cli_max_radius_on_a_baseline_run(tmp_path, tiny_config):
     from drlyap.cli import main
-    from drlyap.rundir import save_run
-    from drlyap.training import train
+    from drlyap.runs import save_run
+    from handmade import plain_train
 
-    save_run(tmp_path / "run", train(tiny_config(iters=5, check_every=5, method="baseline"), progress=False))
+    save_run(tmp_path / "run", plain_train(tiny_config(iters=5, check_every=5, method="baseline"), progress=False))
     runner = CliRunner()
     out = runner.invoke(main, ["verify", str(tmp_path / "run"), "--time-limit", "1", "--max-radius", "--json"])
     assert out.exit_code == 0, out.output

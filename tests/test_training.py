@@ -4,11 +4,13 @@ import math
 import pytest
 import torch
 
-from drlyap.checks import find_equilibria, jacobian_check
+from drlyap.closed_loop import ClosedLoop
 from drlyap.regions import Region
-from drlyap.rundir import RunDirError, load_run, save_run
+from drlyap.runs import RunDirError, load_run, save_run
 from drlyap.systems import cartpole, mountain_car, pendulum
-from drlyap.training import TrainConfig, build_networks, train, training_region
+from drlyap.training import TrainConfig, build_networks, training_region
+from drlyap.training.acceptance import find_equilibria, jacobian_check
+from handmade import plain_train
 
 
 def test_training_states_avoid_the_delta_ball_and_fill_the_box():
@@ -44,15 +46,15 @@ def test_the_validation_set_in_four_states_covers_the_neighbourhood_of_x_star():
 
 
 def test_a_share_of_near_states_enters_every_batch(tiny_config):
-    result = train(tiny_config(near_share=0.5), progress=False)
+    result = plain_train(tiny_config(near_share=0.5), progress=False)
     assert result.config.near_share == 0.5
-    assert train(tiny_config(), progress=False).config.near_share == 0.0  # off by default
+    assert plain_train(tiny_config(), progress=False).config.near_share == 0.0  # off by default
     with pytest.raises(ValueError, match="near_share"):
-        train(tiny_config(near_share=1.5), progress=False)
+        plain_train(tiny_config(near_share=1.5), progress=False)
 
 
 def test_tiny_training_run_round_trips_through_a_run_directory(tmp_path, tiny_config):
-    result = train(tiny_config(), progress=False)
+    result = plain_train(tiny_config(), progress=False)
     m = result.metrics
     assert m["iterations"] == 20 and "acceptance" in m and isinstance(m["passed"], bool)
     assert set(m["acceptance"]) >= {"max_violation", "violating_fraction", "jacobian", "other_equilibria"}
@@ -75,7 +77,7 @@ def test_tiny_training_run_round_trips_through_a_run_directory(tmp_path, tiny_co
 
 
 def test_interrupted_save_leaves_no_run_directory(tmp_path, tiny_config):
-    result = train(tiny_config(iters=2, check_every=2), progress=False)
+    result = plain_train(tiny_config(iters=2, check_every=2), progress=False)
 
     def boom(tmp):
         raise KeyboardInterrupt
@@ -91,9 +93,9 @@ def test_run_directory_errors(tmp_path, tiny_config):
     (tmp_path / "half").mkdir()
     with pytest.raises(RunDirError, match="not a complete"):
         load_run(tmp_path / "half")
-    out = save_run(tmp_path / "run", train(tiny_config(iters=2, check_every=2), progress=False))
+    out = save_run(tmp_path / "run", plain_train(tiny_config(iters=2, check_every=2), progress=False))
     with pytest.raises(RunDirError, match="already exists"):
-        save_run(out, train(tiny_config(iters=2, check_every=2), progress=False))
+        save_run(out, plain_train(tiny_config(iters=2, check_every=2), progress=False))
     from drlyap.systems import mountain_car
 
     with pytest.raises(RunDirError, match="made for system 'pendulum'"):
@@ -101,7 +103,7 @@ def test_run_directory_errors(tmp_path, tiny_config):
 
 
 def test_divergence_stops_with_last_good_weights(tiny_config):
-    result = train(tiny_config(lr=1e30, iters=40, check_every=40), progress=False)
+    result = plain_train(tiny_config(lr=1e30, iters=40, check_every=40), progress=False)
     assert result.metrics["status"].startswith("diverged")
     assert all(torch.isfinite(p).all() for p in result.controller.parameters())
 
@@ -114,7 +116,7 @@ def test_divergence_stops_with_last_good_weights(tiny_config):
 ])
 def test_bad_config_is_rejected_before_training(tiny_config, field, value, message):
     with pytest.raises(ValueError, match=message):
-        train(tiny_config(**{field: value}), progress=False)
+        plain_train(tiny_config(**{field: value}), progress=False)
 
 
 def test_acceptance_checks_flag_a_bad_controller():
@@ -125,8 +127,9 @@ def test_acceptance_checks_flag_a_bad_controller():
         for param in controller.parameters():
             param.zero_()
     xi = torch.zeros(1, 2)
-    assert not jacobian_check(p, controller, xi)["hurwitz"]
-    found = find_equilibria(p, controller, xi, delta=0.5)
+    loop = ClosedLoop(p, None, controller)
+    assert not jacobian_check(loop, xi)["hurwitz"]
+    found = find_equilibria(loop, xi, delta=0.5)
     assert found and all(abs(abs(e["state"][0]) - math.pi) < 1e-3 for e in found)
 
 
@@ -140,8 +143,9 @@ def test_a_pd_like_controller_passes_the_jacobian_and_equilibrium_checks():
         last.weight.copy_(torch.tensor([[-30.0 / 0.01, -8.0 / 0.01]]))
         last.bias.zero_()
     xi = torch.tensor([[0.1, 0.05], [0.0, 0.0]])
-    assert jacobian_check(p, controller, xi)["hurwitz"]
-    assert find_equilibria(p, controller, xi, delta=0.5) == []
+    loop = ClosedLoop(p, None, controller)
+    assert jacobian_check(loop, xi)["hurwitz"]
+    assert find_equilibria(loop, xi, delta=0.5) == []
 
 
 def test_training_states_can_be_drawn_from_a_box_wider_than_x():
@@ -156,7 +160,7 @@ def test_training_states_can_be_drawn_from_a_box_wider_than_x():
 
 def test_a_train_box_without_the_equilibrium_is_rejected(tiny_config):
     with pytest.raises(ValueError, match="train_box"):
-        train(tiny_config(train_box=[[1.0, -1.0], [2.0, 1.0]]), progress=False)
+        plain_train(tiny_config(train_box=[[1.0, -1.0], [2.0, 1.0]]), progress=False)
 
 
 def test_a_saved_config_with_an_unknown_key_is_refused_by_name():
@@ -167,8 +171,8 @@ def test_a_saved_config_with_an_unknown_key_is_refused_by_name():
 def test_the_local_term_makes_v_decay_near_x_star_and_the_acceptance_check_asks_for_it(tiny_config):
     """Same seed with and without the local term: it lowers V's worst second-order rate at x* (it starts well
     above 0 here), and with the term asked the acceptance check fails while any rate is >= 0."""
-    plain = train(tiny_config(iters=200, check_every=200), progress=False).metrics
-    local = train(tiny_config(iters=200, check_every=200, local_rate=1.0), progress=False).metrics
+    plain = plain_train(tiny_config(iters=200, check_every=200), progress=False).metrics
+    local = plain_train(tiny_config(iters=200, check_every=200, local_rate=1.0), progress=False).metrics
     assert plain["acceptance"]["local_rate_max"] > 0
     assert local["acceptance"]["local_rate_max"] < plain["acceptance"]["local_rate_max"] - 1.0
     assert local["checks"][-1]["local_rate_max"] == pytest.approx(local["acceptance"]["local_rate_max"])

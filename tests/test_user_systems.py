@@ -11,8 +11,9 @@ from click.testing import CliRunner
 import drlyap
 from drlyap.cli import main
 from drlyap.progress import progress
-from drlyap.rundir import RunDirError, load_policy_run, load_run
+from drlyap.runs import RunDirError, load_run
 from drlyap.systems import UncertainSystem, get_system, resolve_system
+from drlyap.workflows.policies import load_policy_run
 
 SYSTEM_FILE = '''
 import torch
@@ -31,7 +32,7 @@ def make():
         state_box=((-1.0, -1.0), (1.0, 1.0)), input_box=((-2.0,), (2.0,)), equilibrium=(0.0, 0.0),
         xi_sampler=lambda n, g: 0.05 * torch.randn(n, 1, generator=g, dtype=torch.float64),
         test_xi=(-0.2,), reference_states=((-0.8, 0.5),), horizon=5.0,
-        defaults={"n_states": 128, "lyapunov_hidden": [8, 8], "controller_hidden": [8, 8], "check_every": 20},
+        defaults={"n_states": 128, "lyapunov_hidden": [8, 8], "controller_hidden": [8, 8]},
     )
 '''
 
@@ -149,7 +150,7 @@ def test_bad_systems_are_refused_when_built(over, message):
 
 def test_reproduce_needs_a_test_shift(tmp_path):
     system = UncertainSystem(**_kwargs(name="no-test", xi_sampler=lambda n, g: torch.zeros(n, 1)))
-    from drlyap.experiments import reproduce
+    from drlyap.workflows.reproduce import reproduce
 
     with pytest.raises(ValueError, match="declares no test_xi"):
         reproduce(system, [0], tmp_path / "out")
@@ -172,7 +173,8 @@ def test_progress_lines_when_piped_and_nothing_when_disabled():
 
 def test_reproduce_takes_a_user_file(user_runs):
     tmp, file, _, _ = user_runs
-    result = invoke("reproduce", f"{file}:make", "--iters", "2", "--seeds", "0", "--json", "--out", tmp / "rep")
+    result = invoke("reproduce", f"{file}:make", "--iters", "2", "--seeds", "0", "--verify-rounds", "0", "--verify-time",
+                    "1", "--horizon", "2", "--json", "--out", tmp / "rep")
     assert result.exit_code == 0, result.output
     report = json.loads(result.stdout)
     assert report["system"] == "user-dint" and report["test_xi"] == [-0.2]
@@ -182,7 +184,7 @@ def test_reproduce_takes_a_user_file(user_runs):
 def test_sweep_takes_a_user_file(user_runs):
     tmp, file, _, _ = user_runs
     result = invoke("sweep", f"{file}:make", "--seeds", "0", "--radius", "0,0.01", "--iters", "10", "--verify-rounds",
-                    "1", "--verify-time-limit", "1", "--n-init", "4", "--shifts", "1", "--json", "--out", tmp / "sw")
+                    "0", "--verify-time-limit", "1", "--n-init", "4", "--shifts", "1", "--json", "--out", tmp / "sw")
     assert result.exit_code == 0, result.output
     report = json.loads(result.stdout)
     assert report["failed"] == 0 and len(report["rows"]) == 2
@@ -190,23 +192,7 @@ def test_sweep_takes_a_user_file(user_runs):
     assert run.system.name == "user-dint" and run.metrics["certificate"]["status"] in ("verified", "violated", "unknown")
 
 
-def test_run_kind_loaders_need_no_import_loop():
-    import ast
-    import inspect
-
-    import drlyap.baselines
-    import drlyap.rl
-
-    def imported(module) -> set[str]:
-        names = set()
-        for node in ast.walk(ast.parse(inspect.getsource(module))):
-            if isinstance(node, ast.ImportFrom) and node.module:
-                names.add(node.module)
-            elif isinstance(node, ast.Import):
-                names.update(a.name for a in node.names)
-        return names
-
-    assert "drlyap.rl" not in imported(drlyap.baselines) and "drlyap.baselines" not in imported(drlyap.rl)
-    from drlyap.rundir import LOADERS
+def test_run_kind_loaders_are_one_table():
+    from drlyap.workflows.policies import LOADERS
 
     assert {"lyapunov", "lqr", "rl"} <= set(LOADERS)

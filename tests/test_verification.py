@@ -11,13 +11,15 @@ from hypothesis import given, settings
 from hypothesis import strategies as st
 
 from drlyap import systems
+from drlyap.closed_loop import ClosedLoop
 from drlyap.conditions import DRPointwise, DRUniform, Nominal, TrueDecrease, decrease_terms
+from drlyap.config import Budget
+from drlyap.enclosures import Dual, Interval
 from drlyap.networks import TanhMLP
+from drlyap.regions import Region
 from drlyap.systems import UncertainSystem
 from drlyap.training import TrainConfig, build_networks
 from drlyap.verification import (
-    Dual,
-    Interval,
     box_bounds,
     certified_roa,
     combine_lower,
@@ -26,7 +28,7 @@ from drlyap.verification import (
     uniform_margin,
     verify_condition,
 )
-from handmade import linear_pair, small_pendulum
+from handmade import linear_pair, plain_train, small_pendulum
 
 F64 = torch.float64
 
@@ -132,8 +134,8 @@ def test_pair_and_dynamics_enclosures(make):
     value, grad = lyap.value_and_grad(z)
     u = ctrl(z)
     xi = torch.tensor([system.test_xi], dtype=F64)
-    design = decrease_terms(system, lyap, ctrl, z, xi, 0.0)
-    true = decrease_terms(system, lyap, ctrl, z, xi, 0.0, model="true")
+    design = decrease_terms(ClosedLoop(system, lyap, ctrl), z, xi, 0.0)
+    true = decrease_terms(ClosedLoop(system, lyap, ctrl), z, xi, 0.0, model="true")
     saturated = 0
     for p in _samples(lo, hi, g, 8):
         p = p.requires_grad_(True)
@@ -175,10 +177,10 @@ def test_box_bounds_enclose_the_residual(spec):
                                  (systems.pendulum(), _random_pair(systems.pendulum(), 30.0, 3))]:
         box_lo, box_hi = system.local_box()
         lo, hi, g = _boxes(2, 60, box_lo, box_hi, 0.1, 4)
-        lb, ub, _ = box_bounds(condition_objective(spec, system, lyap, ctrl), lo, hi)
+        lb, ub, _ = box_bounds(condition_objective(ClosedLoop(system, lyap, ctrl), spec), lo, hi)
         upper, lower = combine_upper(spec, ub), combine_lower(spec, lb)
         for p in _samples(lo, hi, g, 8):
-            res = spec.exact(system, lyap, ctrl, p)
+            res = ClosedLoop(system, lyap, ctrl).exact(spec, p)
             assert bool((lower <= res).all() and (res <= upper).all())
 
 
@@ -189,8 +191,8 @@ def test_one_condition_object_on_points_and_on_enclosures(spec):
     system = small_pendulum()
     lyap, ctrl = linear_pair(system)
     z = torch.tensor([[0.3, -0.5], [-0.2, 0.9], [0.55, 1.1]], dtype=F64)
-    on_points = spec.exact(system, lyap, ctrl, z)
-    enclosure = condition_objective(spec, system, lyap, ctrl)(Interval(z, z))
+    on_points = ClosedLoop(system, lyap, ctrl).exact(spec, z)
+    enclosure = condition_objective(ClosedLoop(system, lyap, ctrl), spec)(Interval(z, z))
     assert bool((combine_lower(spec, enclosure.lo) <= on_points).all() and (on_points <= combine_upper(spec, enclosure.hi)).all())
     assert float((combine_upper(spec, enclosure.hi) - combine_lower(spec, enclosure.lo)).max()) < 1e-9
 
@@ -209,11 +211,11 @@ def _dense_region(system, delta, per=200):
 def test_hand_made_pair_verifies_and_dense_sampling_agrees(spec):
     system = small_pendulum()
     lyap, ctrl = linear_pair(system)
-    result = verify_condition(system, lyap, ctrl, spec, delta=0.2, time_limit=20)
+    result = verify_condition(ClosedLoop(system, lyap, ctrl), spec, Region.of(system, 0.2), Budget(seconds=20))
     assert result.status == "verified", result
     assert result.verified_fraction == 1.0 and result.counterexample is None
     assert result.sup_bounds[1] <= 0
-    res = spec.exact(system, lyap, ctrl, _dense_region(system, 0.2))
+    res = ClosedLoop(system, lyap, ctrl).exact(spec, _dense_region(system, 0.2))
     assert float(res.max()) <= 0
     assert result.sup_bounds[0] <= float(res.max()) + 1e-9  # the reported lower end is attained
 
@@ -224,9 +226,10 @@ def test_dense_violations_lie_in_unverified_boxes_of_a_mixed_case():
     system = small_pendulum(((-1.5, -3.0), (1.5, 3.0)))
     lyap, ctrl = linear_pair(system)
     spec = DRPointwise(1e-3, 0.1, XI, 0.05)
-    result = verify_condition(system, lyap, ctrl, spec, delta=0.2, time_limit=20, min_width=1e-2, keep_boxes=10**6)
+    loop = ClosedLoop(system, lyap, ctrl)
+    result = verify_condition(loop, spec, Region.of(system, 0.2), Budget(seconds=20, min_width=1e-2), keep_boxes=10**6)
     z = _dense_region(system, 0.2, per=150)
-    res = spec.exact(system, lyap, ctrl, z)
+    res = loop.exact(spec, z)
     bad = z[res > 0]
     assert result.status == ("violated" if bad.shape[0] else "verified")
     assert result.n_unverified == len(result.unverified_boxes)
@@ -242,12 +245,12 @@ def test_wrong_way_controller_is_violated_with_a_real_counterexample():
     system = small_pendulum()
     lyap, ctrl = linear_pair(system, sign=-1.0)  # pushes away from the equilibrium
     spec = DRPointwise(1e-3, 0.1, XI, 0.05)
-    result = verify_condition(system, lyap, ctrl, spec, delta=0.2, time_limit=20)
+    result = verify_condition(ClosedLoop(system, lyap, ctrl), spec, Region.of(system, 0.2), Budget(seconds=20))
     assert result.status == "violated"
     z = torch.tensor([result.counterexample_local], dtype=F64)
     assert math.hypot(*result.counterexample_local) >= 0.2
     assert torch.allclose(system.to_user(z), torch.tensor([result.counterexample], dtype=F64))
-    terms = decrease_terms(system, lyap.double(), ctrl.double(), z, XI, 0.05)
+    terms = decrease_terms(ClosedLoop(system, lyap.double(), ctrl.double()), z, XI, 0.05)
     assert float(DRPointwise(1e-3, 0.1).residual(terms)[0].detach()) > 0  # recomputed from the formula's pieces
     assert result.counterexample_value > 0 and result.verified_fraction < 1
 
@@ -256,7 +259,8 @@ def test_budget_exhaustion_is_unknown_not_verified():
     system = small_pendulum()
     lyap, ctrl = linear_pair(system)
     spec = Nominal(XI[:1], 0.05)
-    result = verify_condition(system, lyap, ctrl, spec, delta=0.2, max_boxes=10, grid=[2, 2])
+    result = verify_condition(ClosedLoop(system, lyap, ctrl), spec, Region.of(system, 0.2), Budget(boxes=10),
+                              grid=[2, 2])
     assert result.status == "unknown" and result.stopped == "box budget" and result.verified_fraction < 1
 
 
@@ -264,33 +268,35 @@ def test_uniform_margin_brackets_sampled_value():
     system = small_pendulum()
     lyap, ctrl = linear_pair(system)
     r, eps = 1e-3, 0.1
-    out = uniform_margin(system, lyap, ctrl, DRUniform(r, eps, XI, 0.05), 0.2, time_limit=5)
+    out = uniform_margin(ClosedLoop(system, lyap, ctrl), DRUniform(r, eps, XI, 0.05), Region.of(system, 0.2),
+                         Budget(seconds=5))
     z = _dense_region(system, 0.2, per=100)
     with torch.no_grad():
-        terms = decrease_terms(system, lyap.double(), ctrl.double(), z, XI, 0.05)
+        terms = decrease_terms(ClosedLoop(system, lyap.double(), ctrl.double()), z, XI, 0.05)
     sampled = r / eps * float(terms.lip.max()) + float((terms.vdot + terms.decay[:, None]).max())
-    assert out["margin_lower"] <= out["margin_upper"]
-    assert sampled <= out["margin_upper"] + 1e-12
-    assert out["status"] in ("verified", "unknown", "violated")
+    assert out.margin_lower <= out.margin_upper
+    assert sampled <= out.margin_upper + 1e-12
+    assert out.status in ("verified", "unknown", "violated")
 
 
 def test_certified_roa_is_a_sublevel_set_inside_the_box_where_the_condition_holds():
     system = small_pendulum()
     lyap, ctrl = linear_pair(system)
     spec = DRPointwise(1e-3, 0.1, XI, 0.05)
-    roa = certified_roa(system, lyap, ctrl, spec, delta=0.2, time_limit=10, samples_per_axis=100)
-    assert roa["certified"] and roa["kind"] == "region of attraction" and 0 < roa["share_of_box"] < 1
-    assert roa["local"]["proved"]
+    loop = ClosedLoop(system, lyap, ctrl)
+    roa = certified_roa(loop, spec, Region.of(system, 0.2), Budget(seconds=10), samples_per_axis=100)
+    assert roa.certified and roa.kind == "region of attraction" and 0 < roa.share_of_box < 1
+    assert roa.local["proved"]
     l64 = copy.deepcopy(lyap).double()
     lo, hi = system.local_box()
     t = torch.linspace(0, 1, 400, dtype=F64)
     edges = torch.cat([torch.stack([lo[0] + (hi[0] - lo[0]) * t, torch.full_like(t, float(s))], -1) for s in (lo[1], hi[1])]
                       + [torch.stack([torch.full_like(t, float(s)), lo[1] + (hi[1] - lo[1]) * t], -1) for s in (lo[0], hi[0])])
     with torch.no_grad():
-        assert float(l64(edges).min()) > roa["level"]
+        assert float(l64(edges).min()) > roa.level
         z = _dense_region(system, 0.2)
-        inside = z[l64(z) <= roa["level"]]
-    assert inside.shape[0] > 0 and float(spec.exact(system, lyap, ctrl, inside).max()) <= 0
+        inside = z[l64(z) <= roa.level]
+    assert inside.shape[0] > 0 and float(loop.exact(spec, inside).max()) <= 0
 
 
 def test_user_dynamics_with_unsupported_ops_fail_clearly():
@@ -302,16 +308,14 @@ def test_user_dynamics_with_unsupported_ops_fail_clearly():
                              state_box=((-1.0, -1.0), (1.0, 1.0)), input_box=((-1.0,), (1.0,)), equilibrium=(0.0, 0.0))
     lyap, ctrl = _random_pair(system)
     with pytest.raises(TypeError, match="does not support"):
-        verify_condition(system, lyap, ctrl, Nominal(torch.zeros(1, 1), 0.0), delta=0.1)
+        verify_condition(ClosedLoop(system, lyap, ctrl), Nominal(torch.zeros(1, 1), 0.0), Region.of(system, 0.1))
 
 
 # ------------------------------------------------------------------ runs and CLI
 def test_cli_verify_on_a_run_directory(tmp_path, tiny_config):
     from drlyap.cli import main
-    from drlyap.rundir import save_run
-    from drlyap.training import train
-
-    result = train(tiny_config(iters=5, check_every=5), progress=False)
+    from drlyap.runs import save_run
+    result = plain_train(tiny_config(iters=5, check_every=5), progress=False)
     save_run(tmp_path / "run", result)
     runner = CliRunner()
     out = runner.invoke(main, ["verify", str(tmp_path / "run"), "--time-limit", "2", "--xi", "0.1,0.05", "--json"])
@@ -337,14 +341,17 @@ def test_cli_verify_on_a_run_directory(tmp_path, tiny_config):
 
 
 def test_verify_run_on_a_uniform_run_reports_the_margin(tmp_path, tiny_config):
-    from drlyap.rundir import load_run, save_run
-    from drlyap.training import train
-    from drlyap.verification import verify_run
+    from drlyap.io import jsonable
+    from drlyap.runs import load_run, save_run
+    from drlyap.verification import ProofConfig, UniformMargin
+    from drlyap.workflows.verify import verify_run
 
-    result = train(tiny_config(iters=5, check_every=5, loss="uniform"), progress=False)
+    result = plain_train(tiny_config(iters=5, check_every=5, loss="uniform"), progress=False)
     save_run(tmp_path / "uni", result)
-    out = verify_run(load_run(tmp_path / "uni"), time_limit=2, roa=True, uniform_time=1)
-    assert out["trained"] == out["uniform"] and "margin_upper" in out["trained"]
-    assert out["trained"]["margin_lower"] <= out["trained"]["margin_upper"]
-    assert "error" in out["roa"] and out["status"] in ("verified", "violated", "unknown")
-    json.dumps(out, allow_nan=False)
+    out = verify_run(load_run(tmp_path / "uni"), ProofConfig(time_limit=2, uniform_time=1), roa=True)
+    assert out.trained == out.uniform and isinstance(out.trained, UniformMargin)
+    assert out.trained.margin_lower <= out.trained.margin_upper
+    assert out.roa.error is not None and out.status in ("verified", "violated", "unknown")
+    data = out.to_dict()
+    assert "margin_upper" in data["trained"] and "error" in data["roa"]
+    json.dumps(jsonable(data), allow_nan=False)

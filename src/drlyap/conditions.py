@@ -3,7 +3,8 @@
 A condition knows its samples of xi, its decay term and, for the DR conditions, the Wasserstein radius
 r and risk level eps. It computes, from a batch of local states ``z (B, n)``:
 
-* ``terms(system, lyapunov, controller, z)`` -> :class:`DecreaseTerms` (the per-state ingredients);
+* ``terms(loop, z)`` -> :class:`DecreaseTerms` (the per-state ingredients) for a closed loop
+  (:class:`~drlyap.closed_loop.ClosedLoop`: the system, V and pi);
 * ``components(terms) -> (B, Q)`` and ``combine(components) -> (B,)``: the residual is
   ``combine(components(terms))``; ``combine`` is non-decreasing in every component, so upper bounds of
   the components give an upper bound of the residual. The condition holds at the states of the batch
@@ -28,7 +29,6 @@ Per-state ingredients (:func:`decrease_terms`):
 
 from __future__ import annotations
 
-import copy
 import math
 from dataclasses import dataclass
 
@@ -37,8 +37,6 @@ import torch.nn.functional as F  # noqa: N812
 from torch import Tensor
 
 from drlyap.enclosures import is_enclosure, norm
-from drlyap.networks import Controller, Lyapunov
-from drlyap.systems import UncertainSystem
 
 
 @dataclass
@@ -61,18 +59,19 @@ def euclidean_norm(x: Tensor) -> Tensor:
     return torch.linalg.vector_norm(x, dim=-1)
 
 
-def decrease_terms(system: UncertainSystem, lyapunov: Lyapunov, controller: Controller, z: Tensor,
-                   xi_samples: Tensor, decay_rate: float, exp_rate: float = 0.0, model: str = "design",
-                   with_lip: bool = True) -> DecreaseTerms:
-    """Evaluate :class:`DecreaseTerms` at local states ``z (B, n)`` for ``xi_samples (N, k)``.
+def decrease_terms(loop, z: Tensor, xi_samples: Tensor, decay_rate: float, exp_rate: float = 0.0,
+                   model: str = "design", with_lip: bool = True) -> DecreaseTerms:
+    """Evaluate :class:`DecreaseTerms` of a closed loop (:class:`~drlyap.closed_loop.ClosedLoop`) at local states
+    ``z (B, n)`` for ``xi_samples (N, k)``.
 
     ``model``: ``design`` (``f + W xi``, the training model) or ``true`` (``F(x, u, p0 + xi)``). ``z`` may be a
     tensor or an enclosure (then ``xi_samples`` may also be an interval ``(N, k)`` on the true model).
     ``with_lip=False`` skips ``lip`` (None). Zero decay rates add no norm term.
     """
-    value, grad_v = lyapunov.value_and_grad(z)
+    system = loop.system
+    value, grad_v = loop.lyapunov.value_and_grad(z)
     x = system.to_user(z)
-    u = controller(z)
+    u = loop.controller(z)
     if model == "design":
         gf, gw = system.weighted_design(x, u, grad_v)
         vdot = gf.unsqueeze(-1) + F.linear(gw, xi_samples)
@@ -88,8 +87,9 @@ def decrease_terms(system: UncertainSystem, lyapunov: Lyapunov, controller: Cont
     return DecreaseTerms(vdot=vdot, lip=lip, decay=decay, value=value)
 
 
-def local_rates(condition: Condition, system: UncertainSystem, lyapunov: Lyapunov, controller: Controller) -> Tensor:
-    """``(N,)``: V's second-order decay rate at x* on each sample's model of ``condition`` (its samples, its model).
+def local_rates(condition: Condition, loop) -> Tensor:
+    """``(N,)``: V's second-order decay rate at x* of a closed loop on each sample's model of ``condition`` (its
+    samples, its model).
 
     With ``H_V`` V's Hessian at x* and ``H_j`` the Hessian there of sample j's ``Vdot`` (the condition's own
     ``vdot``, so the very formula training and the verifier use), both ``V`` and ``Vdot`` are quadratic to second
@@ -100,11 +100,10 @@ def local_rates(condition: Condition, system: UncertainSystem, lyapunov: Lyapuno
     Differentiable in the networks' weights (second derivatives by batched double backward passes); ``H_V`` is
     positive definite by V's construction (``alpha_hat > 0``); NaN where it cannot be factored (non-finite weights).
     """
-    ref = next(iter([*lyapunov.parameters(), *lyapunov.buffers()]))
-    n = system.n
+    ref = next(iter([*loop.lyapunov.parameters(), *loop.lyapunov.buffers()]))
+    n = loop.system.n
     z = torch.zeros(1, n, dtype=ref.dtype, device=ref.device, requires_grad=True)
-    terms = decrease_terms(system, lyapunov, controller, z, condition._xi_for(z.detach()), 0.0, 0.0, condition.model,
-                           with_lip=False)
+    terms = decrease_terms(loop, z, condition._xi_for(z.detach()), 0.0, 0.0, condition.model, with_lip=False)
     f = torch.cat([terms.value, terms.vdot[0]])  # (1 + N,): V and every sample's Vdot
     k = f.shape[0]
     eye = torch.eye(k, dtype=f.dtype, device=f.device)
@@ -184,10 +183,10 @@ class Condition:
         raise ValueError(f"the {self.label} condition takes an interval box of xi on enclosures only; "
                          "on plain states use PlainDecrease / TrueDecrease (evaluated at the box's corners)")
 
-    def terms(self, system: UncertainSystem, lyapunov: Lyapunov, controller: Controller, z: Tensor) -> DecreaseTerms:
-        """:func:`decrease_terms` at local states ``z (B, n)`` (a tensor or an enclosure)."""
-        return decrease_terms(system, lyapunov, controller, z, self._xi_for(z), self.decay_rate, self.exp_rate,
-                              self.model, with_lip=self.uses_lip)
+    def terms(self, loop, z: Tensor) -> DecreaseTerms:
+        """:func:`decrease_terms` of a closed loop at local states ``z (B, n)`` (a tensor or an enclosure)."""
+        return decrease_terms(loop, z, self._xi_for(z), self.decay_rate, self.exp_rate, self.model,
+                              with_lip=self.uses_lip)
 
     def components(self, terms: DecreaseTerms) -> Tensor:
         raise NotImplementedError
@@ -198,19 +197,6 @@ class Condition:
     def residual(self, terms: DecreaseTerms) -> Tensor:
         """The residual ``(B,)``: the condition holds at a state iff its entry is ``<= 0``."""
         return self.combine(self.components(terms))
-
-    def evaluate(self, system: UncertainSystem, lyapunov: Lyapunov, controller: Controller, z: Tensor) -> Tensor:
-        """``residual(terms(...))`` at local states ``z (B, n)``."""
-        return self.residual(self.terms(system, lyapunov, controller, z))
-
-    def exact(self, system: UncertainSystem, lyapunov: Lyapunov, controller: Controller, z: Tensor,
-              dtype: torch.dtype = torch.float64) -> Tensor:
-        """The residual at local states ``z (B, n)`` by the ordinary torch code path, with copies of the
-        networks and the states cast to ``dtype`` (float64 by default: the arithmetic the verifier's claims
-        are about), without gradients."""
-        lyap, ctrl = copy.deepcopy(lyapunov).to(dtype), copy.deepcopy(controller).to(dtype)
-        with torch.no_grad():
-            return self.evaluate(system, lyap, ctrl, torch.as_tensor(z).to(dtype))
 
     def loss(self, terms: DecreaseTerms, margin: float = 0.0, margin_rate: float = 0.0,
              level: float | None = None) -> Tensor:

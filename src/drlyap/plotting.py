@@ -1,4 +1,4 @@
-"""Figures: phase portraits of closed-loop trajectories and certificate / input time series.
+"""Drawing: phase portraits of closed-loop trajectories, certificate / input time series, maps and sweep plots.
 
 All functions take already simulated data and write one PNG; they never simulate or train.
 """
@@ -101,28 +101,6 @@ def shift_text(system: UncertainSystem, xi: Sequence[float] | Tensor | None) -> 
         return "nominal model (xi = 0)"
     values = torch.as_tensor(xi, dtype=torch.float64).reshape(-1).tolist()
     return "xi = (" + ", ".join(f"{n} {v:+g}" for n, v in zip(system.uncertain, values)) + ")"
-
-
-def region_label(roa: Mapping | None, where: str) -> str:
-    """What a sublevel set ``{V <= c}`` drawn on a figure is, in words, for a verifier result ``roa``
-    (``level`` c, ``certified``, optionally ``kind`` and ``ball_max_upper`` c0) at ``where`` (a shift text).
-
-    "practical stability: ... converges to {V <= c0}" when ``kind`` says so; "certified region of
-    attraction" only when ``certified`` is true and ``kind`` (if given) says so; otherwise what was proved
-    and that it certifies nothing. An empty string when there is no level to draw.
-    """
-    if not roa or roa.get("level") is None or not roa["level"] > 0:
-        return ""
-    c = float(roa["level"])
-    kind = roa.get("kind")
-    c0 = roa.get("converges_to", roa.get("ball_max_upper"))
-    inner = f"{{V <= {float(c0):.3g}}}" if c0 is not None else "the delta-ball"
-    if kind == "practical stability":
-        return f"practical stability at {where}: from {{V <= {c:.3g}}} converges to {inner}"
-    if roa.get("certified") and kind in (None, "region of attraction"):
-        return f"certified region of attraction {{V <= {c:.3g}}} at {where}"
-    bound = f", but V may reach {float(c0):.3g} on the delta-ball" if c0 is not None else ""
-    return f"not certified at {where}: decrease proved on {{V <= {c:.3g}}} outside the delta-ball{bound}"
 
 
 # --------------------------------------------------------------------------- phase portraits
@@ -426,7 +404,7 @@ def against_radius(summary: Sequence[dict], factors: Sequence[float], path: Path
     """A sweep's outcome against the Wasserstein radius r, one line per risk level eps (method ``dr``),
     the baseline (which ignores r) as a dashed level; lines are means over seeds, bands their min-max.
 
-    ``summary`` is :func:`drlyap.sweep.summarise`'s list; panels: success at the first and last shift
+    ``summary`` is :func:`drlyap.workflows.sweep.summarise`'s list; panels: success at the first and last shift
     factor, share of seeds whose decrease at the test shift is verified, share of X_delta where it is
     proved (a lower bound when the branch and bound stopped on its time limit; its own y-range),
     certified region of attraction.

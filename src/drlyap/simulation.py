@@ -32,9 +32,10 @@ class Trajectories:
     u: Tensor
 
 
-def rk4_step(rhs: Callable[[Tensor], Tensor], x: Tensor, dt: float) -> Tensor:
-    """One classical Runge-Kutta step of ``xdot = rhs(x)`` for ``x (B, n)``."""
-    k1 = rhs(x)
+def rk4_step(rhs: Callable[[Tensor], Tensor], x: Tensor, dt: float, k1: Tensor | None = None) -> Tensor:
+    """One classical Runge-Kutta step of ``xdot = rhs(x)`` for ``x (B, n)`` (``k1``: ``rhs(x)`` when the caller
+    has it)."""
+    k1 = rhs(x) if k1 is None else k1
     k2 = rhs(x + 0.5 * dt * k1)
     k3 = rhs(x + 0.5 * dt * k2)
     k4 = rhs(x + dt * k3)
@@ -64,14 +65,17 @@ def simulate(system: UncertainSystem, policy: Policy, x0: Tensor, xi: Tensor | N
             raise ValueError(f"xi must be (k,) or (B, k) = ({x0.shape[0]}, {system.k}) and finite, got {tuple(xi.shape)}")
     steps = max(1, round(horizon / dt))
 
+    params = system.params(xi, x0)  # p0 + E xi, the same at every stage
+
     def rhs(x: Tensor) -> Tensor:
-        return system.true_dynamics(x, policy(x), xi)
+        return system.dynamics(x, policy(x), params)
 
     xs, us = [x0], []
     x = x0
     for _ in range(steps):
-        us.append(policy(x))
-        x = rk4_step(rhs, x, dt)
+        u = policy(x)
+        us.append(u)
+        x = rk4_step(rhs, x, dt, k1=system.dynamics(x, u, params))
         xs.append(x)
     us.append(policy(x))
     t = torch.arange(steps + 1, dtype=x0.dtype, device=x0.device) * dt
@@ -115,17 +119,11 @@ def initial_states(system: UncertainSystem, count: int, generator: torch.Generat
 
 
 @torch.no_grad()
-def evaluate(system: UncertainSystem, policy: Policy, x0: Tensor, xi: Tensor | None,
-             lyapunov: Callable[[Tensor], Tensor] | None = None, dt: float | None = None,
-             horizon: float | None = None) -> dict:
-    """Simulate from ``x0 (B, n)`` on the true model at ``xi`` and score the closed loop.
-
-    Returns a JSON-friendly dict: ``n``, ``n_success``, ``success_rate``, ``success`` (per state),
-    ``final_distance`` (normalised deviation at the end, per state), ``worst_v_increase`` (largest
-    one-step increase of ``lyapunov`` along successful trajectories, steps across the angle wrap
-    excluded; None without ``lyapunov``), and the settings used.
-    """
-    traj = simulate(system, policy, x0, xi, dt, horizon)
+def score(system: UncertainSystem, traj: Trajectories, xi: Tensor | None,
+          lyapunov: Callable[[Tensor], Tensor] | None = None, dt: float | None = None,
+          horizon: float | None = None) -> dict:
+    """Score trajectories ``traj`` simulated on the true model at ``xi`` with step ``dt`` over ``horizon`` (None:
+    the system's), as :func:`evaluate` does."""
     success, dev = success_mask(system, traj.x)
     worst = None
     if lyapunov is not None:
@@ -134,7 +132,7 @@ def evaluate(system: UncertainSystem, policy: Policy, x0: Tensor, xi: Tensor | N
         if success.any():
             worst = float(dv[:, success].max())
     return {
-        "n": int(x0.shape[0]),
+        "n": int(traj.x.shape[1]),
         "n_success": int(success.sum()),
         "success_rate": float(success.double().mean()),
         "success": success.tolist(),
@@ -145,3 +143,17 @@ def evaluate(system: UncertainSystem, policy: Policy, x0: Tensor, xi: Tensor | N
         "horizon": float(system.horizon if horizon is None else horizon),
         "success_tol": system.success_tol,
     }
+
+
+@torch.no_grad()
+def evaluate(system: UncertainSystem, policy: Policy, x0: Tensor, xi: Tensor | None,
+             lyapunov: Callable[[Tensor], Tensor] | None = None, dt: float | None = None,
+             horizon: float | None = None) -> dict:
+    """Simulate from ``x0 (B, n)`` on the true model at ``xi`` and score the closed loop.
+
+    Returns a JSON-friendly dict: ``n``, ``n_success``, ``success_rate``, ``success`` (per state),
+    ``final_distance`` (normalised deviation at the end, per state), ``worst_v_increase`` (largest
+    one-step increase of ``lyapunov`` along successful trajectories, steps across the angle wrap
+    excluded; None without ``lyapunov``), and the settings used (``dt``, ``horizon``, ``success_tol``).
+    """
+    return score(system, simulate(system, policy, x0, xi, dt, horizon), xi, lyapunov, dt, horizon)

@@ -25,6 +25,7 @@ import torch
 from torch import Tensor
 
 from drlyap.conditions import Condition
+from drlyap.config import check_enclosure
 from drlyap.enclosures import (
     EPS,
     F64,
@@ -32,25 +33,23 @@ from drlyap.enclosures import (
     Affine,
     Dual,
     Interval,
-    _down,
-    _max_lin_quad,
-    _up,
     is_enclosure,
+    max_lin_quad,
     quadratic_max,
+    round_down,
+    round_up,
 )
-from drlyap.networks import Controller, Lyapunov
-from drlyap.systems import UncertainSystem
 
 Objective = Callable[[object], object]
 """``objective(z)``: ``z`` an enclosure of local states ``(B, n)`` -> an enclosure ``(B, Q)``."""
 
 
-def condition_objective(condition: Condition, system: UncertainSystem, lyapunov: Lyapunov,
-                        controller: Controller) -> Objective:
-    """``z -> condition.components(condition.terms(system, lyapunov, controller, z))`` on enclosures."""
+def condition_objective(loop, condition: Condition) -> Objective:
+    """``z -> condition.components(condition.terms(loop, z))`` on enclosures, for a closed loop
+    (:class:`~drlyap.closed_loop.ClosedLoop`)."""
 
     def objective(z):
-        out = condition.components(condition.terms(system, lyapunov, controller, z))
+        out = condition.components(condition.terms(loop, z))
         if not is_enclosure(out):
             raise ValueError("the system's dynamics did not return an enclosure; write it with torch ops on its inputs")
         return out
@@ -58,41 +57,23 @@ def condition_objective(condition: Condition, system: UncertainSystem, lyapunov:
     return objective
 
 
-def value_objective(lyapunov: Lyapunov) -> Objective:
-    """``z -> V(z)`` as ``(B, 1)``."""
+def value_objective(lyapunov) -> Objective:
+    """``z -> V(z)`` as ``(B, 1)`` for a certificate V (a network or a quadratic form)."""
     return lambda z: lyapunov(z).unsqueeze(-1)
 
 
-def condition_and_value_objective(condition: Condition, system: UncertainSystem, lyapunov: Lyapunov,
-                                  controller: Controller) -> Objective:
+def condition_and_value_objective(loop, condition: Condition) -> Objective:
     """The condition's components followed by V as the last column, ``(B, Q + 1)``: what a proof restricted to a
     sublevel set of V bounds."""
 
     def objective(z):
-        terms = condition.terms(system, lyapunov, controller, z)  # V once: its value comes with its gradient
+        terms = condition.terms(loop, z)  # V once: its value comes with its gradient
         out = torch.cat([condition.components(terms), terms.value.unsqueeze(-1)], -1)
         if not is_enclosure(out):
             raise ValueError("the system's dynamics did not return an enclosure; write it with torch ops on its inputs")
         return out
 
     return objective
-
-
-ENCLOSURES = ("mean-value", "affine")
-"""The enclosures :func:`box_bounds` can use (the first is the default)."""
-
-
-def default_enclosure(n: int) -> str:
-    """The enclosure for an ``n``-state system: ``affine`` from 4 states on (11-25x tighter there,
-    ``benchmarks/enclosure_bench.py``), else ``mean-value`` (about 3x cheaper per box; in 2 states boxes are
-    few and the pendulum's proofs take about a second either way)."""
-    return "affine" if n >= 4 else "mean-value"
-
-
-def check_enclosure(enclosure: str) -> str:
-    if enclosure not in ENCLOSURES:
-        raise ValueError(f"unknown enclosure {enclosure!r}; valid: {', '.join(ENCLOSURES)}")
-    return enclosure
 
 
 def box_bounds(objective: Objective, lo: Tensor, hi: Tensor, enclosure: str = "mean-value",
@@ -122,7 +103,7 @@ def box_bounds(objective: Objective, lo: Tensor, hi: Tensor, enclosure: str = "m
             if form.q is not None:  # a quadratic term q_kl e_k e_l shrinks with either side: count it on both
                 sens = sens + (form.q.abs().sum(-1) + form.q.abs().sum(-2)).sum(1) / 2
     else:
-        rad = _up(torch.maximum(hi - centre, centre - lo), REL1)
+        rad = round_up(torch.maximum(hi - centre, centre - lo), REL1)
         eye = torch.eye(n, dtype=F64).expand(batch, n, n)
         over = objective(Dual(Interval(lo, hi), Interval(eye, eye)))
         if over.d is None:
@@ -130,10 +111,10 @@ def box_bounds(objective: Objective, lo: Tensor, hi: Tensor, enclosure: str = "m
             sens = torch.zeros_like(lo)
         else:
             contribution = torch.maximum(over.d.lo.abs(), over.d.hi.abs()) * rad.unsqueeze(1)  # (B, Q, n)
-            spread = _up(contribution.sum(-1), 4 * (n + 2) * EPS)
+            spread = round_up(contribution.sum(-1), 4 * (n + 2) * EPS)
             sens = contribution.sum(1)
-        upper = torch.minimum(over.v.hi, _up(at.hi + spread, REL1))
-        lower = torch.maximum(over.v.lo, _down(at.lo - spread, REL1))
+        upper = torch.minimum(over.v.hi, round_up(at.hi + spread, REL1))
+        lower = torch.maximum(over.v.lo, round_down(at.lo - spread, REL1))
     upper = torch.where(torch.isnan(upper), torch.inf, upper)
     lower = torch.where(torch.isnan(lower), -torch.inf, lower)
     out = (lower, upper, at)
@@ -148,13 +129,13 @@ def combine_upper(condition: Condition, upper: Tensor) -> Tensor:
     """An upper bound ``(B,)`` of the residual from upper bounds ``(B, Q)`` of its components (the combination
     is non-decreasing in each component; its float64 evaluation is padded outward)."""
     out = condition.combine(upper)
-    return _up(out, 64 * EPS, upper.abs().amax(-1))
+    return round_up(out, 64 * EPS, upper.abs().amax(-1))
 
 
 def combine_lower(condition: Condition, lower: Tensor) -> Tensor:
     """A lower bound ``(B,)`` of the residual from lower bounds ``(B, Q)`` of its components."""
     out = condition.combine(lower)
-    return _down(out, 64 * EPS, lower.abs().amax(-1))
+    return round_down(out, 64 * EPS, lower.abs().amax(-1))
 
 
 def sublevel_upper(condition: Condition, form: Affine, level: float) -> Tensor:
@@ -171,7 +152,7 @@ def sublevel_upper(condition: Condition, form: Affine, level: float) -> Tensor:
     """
     batch = form.shape[0]
     if form.g is None:
-        return combine_upper(condition, _up(form.c[:, :-1] + form._higher().hi[:, :-1], REL1))
+        return combine_upper(condition, round_up(form.c[:, :-1] + form._higher().hi[:, :-1], REL1))
     k = form.n_symbols
     cq, gq, rq = form.c[:, :-1], form.g[:, :-1], form.r.hi[:, :-1]  # (B, Q), (B, Q, K), (B, Q)
     cv, gv, rv = form.c[:, -1], form.g[:, -1], form.r.lo[:, -1]  # (B,), (B, K), (B,)
@@ -191,9 +172,9 @@ def sublevel_upper(condition: Condition, form: Affine, level: float) -> Tensor:
             qq, qv = form.q[:, :-1], form.q[:, -1]
             m = qq[:, None] - lm[..., None, None] * qv[:, None, None]  # (B, C, Q, K, K)
             diag = torch.diagonal(m, dim1=-2, dim2=-1)
-            value = value + _max_lin_quad(lin, diag).sum(-1) + m.abs().sum((-2, -1)) - diag.abs().sum(-1)
+            value = value + max_lin_quad(lin, diag).sum(-1) + m.abs().sum((-2, -1)) - diag.abs().sum(-1)
             mag = mag + qq.abs().sum((-2, -1))[:, None] + lm * qv.abs().sum((-2, -1))[:, None, None]
-        value = _up(value, 8 * (k * k + k + 8) * EPS, mag)
+        value = round_up(value, 8 * (k * k + k + 8) * EPS, mag)
         value = torch.where(torch.isnan(value), torch.inf, value)
         up, at = combine_upper(condition, value.flatten(0, 1)).reshape(batch, -1).min(-1)
         lam_at = lm[:, :, 0].gather(1, at[:, None])[:, 0]
@@ -211,6 +192,6 @@ def sublevel_upper(condition: Condition, form: Affine, level: float) -> Tensor:
              + quadratic_max(gq - lm[..., None] * gv[:, None], qq - lm[..., None, None] * qv[:, None]))
     mag = (cq.abs() + gq.abs().sum(-1) + rq.abs() + qq.abs().sum((-2, -1))) + lm * (
         cv.abs() + level + gv.abs().sum(-1) + rv.abs() + qv.abs().sum((-2, -1)))[:, None]
-    value = _up(value, 8 * (k * k + k + 8) * EPS, mag)
+    value = round_up(value, 8 * (k * k + k + 8) * EPS, mag)
     value = torch.where(torch.isnan(value), torch.inf, value)
     return torch.minimum(best, combine_upper(condition, value))

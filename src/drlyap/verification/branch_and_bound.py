@@ -22,96 +22,52 @@ from __future__ import annotations
 import math
 import time
 from collections.abc import Callable, Sequence
-from dataclasses import asdict, dataclass, field
 
 import torch
 from torch import Tensor
 
+from drlyap.closed_loop import ClosedLoop
 from drlyap.conditions import Condition, DRUniform
-from drlyap.enclosures import EPS, F64, _down, _up
-from drlyap.networks import Controller, Lyapunov
+from drlyap.config import Budget
+from drlyap.enclosures import EPS, F64, round_down, round_up
 from drlyap.regions import Region, inside_ball, split
-from drlyap.systems import UncertainSystem
 from drlyap.verification.bounds import (
     box_bounds,
-    check_enclosure,
     combine_lower,
     combine_upper,
     condition_and_value_objective,
     condition_objective,
     sublevel_upper,
 )
+from drlyap.verification.results import ConditionProof, UniformMargin
 
 
-def as_region(system: UncertainSystem, delta: float | Region) -> Region:
-    """``delta`` itself if it is a :class:`Region`, else the system's region with that ball radius."""
-    return delta if isinstance(delta, Region) else Region.of(system, float(delta))
-
-
-@dataclass
-class VerificationResult:
-    """Outcome of a branch-and-bound verification of a decrease condition over ``X_delta``.
-
-    ``status``: ``verified`` (proved at every state of X_delta), ``violated`` (a state where the residual is
-    > 0, re-checked by direct evaluation) or ``unknown`` (budget or time ran out, or boxes reached the
-    minimum size). ``verified_fraction`` is a lower bound of the share of X_delta's volume covered by
-    verified boxes (unverified boxes count whole, even where they overlap the delta-ball).
-    ``sup_bounds``: ``[lower, upper]`` of the maximum of the residual over X_delta found on the way (the lower
-    end from evaluated box centres, the upper end the largest bound of a leaf box; exact bounds only when
-    the run finished). Counterexample states are in user coordinates, ``counterexample_local`` in local ones;
-    ``counterexample_value`` is the residual there in float64, ``counterexample_value_float32`` with the
-    networks in float32 as training and simulation run them.
-    """
-
-    condition: str
-    status: str
-    verified_fraction: float
-    delta: float
-    boxes_processed: int
-    boxes_verified: int
-    time_s: float
-    counterexample: list[float] | None = None
-    counterexample_local: list[float] | None = None
-    counterexample_value: float | None = None
-    counterexample_value_float32: float | None = None
-    n_counterexample_boxes: int = 0
-    n_unverified: int = 0
-    unverified_boxes: list[dict] = field(default_factory=list)
-    sup_bounds: list[float] = field(default_factory=list)
-    stopped: str = ""
-    level: float | None = None  # proved on {V <= level} only (None: on the whole of X_delta)
-
-    def to_dict(self) -> dict:
-        return asdict(self)
-
-
-def verify_condition(system: UncertainSystem, lyapunov: Lyapunov, controller: Controller, condition: Condition,
-                     delta: float | Region, time_limit: float = 30.0, max_boxes: int = 2_000_000, min_width: float = 1e-4,
-                     grid: Sequence[int] | None = None, batch: int = 4096, keep_boxes: int = 50,
-                     stop_at_counterexample: bool = False, violation_width: float = 1e-2,
-                     enclosure: str = "mean-value", level: float | None = None) -> VerificationResult:
-    """Prove ``residual(z) <= 0`` on X_delta by branch and bound, or find where it fails.
+def verify_condition(loop: ClosedLoop, condition: Condition, region: Region, budget: Budget = Budget(), *,
+                     level: float | None = None, grid: Sequence[int] | None = None, keep_boxes: int = 50,
+                     stop_at_counterexample: bool = False, violation_width: float = 1e-2) -> ConditionProof:
+    """Prove ``residual(z) <= 0`` for the closed loop on the region X_delta by branch and bound, or find where it
+    fails, within ``budget`` (boxes, seconds, minimum box width, enclosure).
 
     ``level``: prove it only on the sublevel set ``{V <= level}`` of X_delta (a box on which V provably exceeds
     the level needs nothing more; a counterexample must have ``V <= level``); the verified fraction is then
     the share of X_delta where the condition or ``V > level`` is proved.
 
-    ``min_width``: boxes whose widest side (relative to the state box) is below it are not split further.
+    ``budget.min_width``: boxes whose widest side (relative to the state box) is below it are not split further.
     ``violation_width``: a box whose centre is a confirmed counterexample is still split (to sharpen the
-    verified fraction) until its widest relative side is below this. ``max_boxes``: budget of processed
-    boxes. ``grid``: boxes per axis at the start. ``keep_boxes``: how many unverified boxes to list.
+    verified fraction) until its widest relative side is below this. ``budget.boxes``: processed boxes at most.
+    ``grid``: boxes per axis at the start. ``keep_boxes``: how many unverified boxes to list.
     ``stop_at_counterexample``: return at the first confirmed one (the fraction then counts every box not
-    yet verified as unverified). ``enclosure``: how boxes are bounded (:func:`~drlyap.verification.bounds.box_bounds`:
-    ``mean-value`` or ``affine``).
+    yet verified as unverified). ``budget.enclosure``: how boxes are bounded
+    (:func:`~drlyap.verification.bounds.box_bounds`: ``mean-value`` or ``affine``; None: by the dimension).
     """
-    check_enclosure(enclosure)
     if not condition.per_state:
         raise ValueError("use uniform_margin for the uniform condition")
-    region = as_region(system, delta)
+    system = loop.system
+    enclosure = budget.enclosure_for(system.n)
+    time_limit, max_boxes, min_width, batch = budget.seconds, budget.boxes, budget.min_width, budget.batch
     delta = region.delta
     start = time.perf_counter()
-    objective = (condition_objective if level is None else condition_and_value_objective)(
-        condition, system, lyapunov, controller)
+    objective = (condition_objective if level is None else condition_and_value_objective)(loop, condition)
     scale = region.scale
     lo, hi = region.boxes(grid)
     volume = region.volume()
@@ -153,7 +109,7 @@ def verify_condition(system: UncertainSystem, lyapunov: Lyapunov, controller: Co
             sup_hi = max(sup_hi, float(ub[ok & ~outside].max()))
         bad = ~ok & in_region & (centre_lb > 0)
         if bad.any():
-            values = condition.exact(system, lyapunov, controller, centre[bad])
+            values = loop.exact(condition, centre[bad])
             confirmed = values > 0
             if confirmed.any():
                 best = int(values.argmax())
@@ -208,33 +164,33 @@ def verify_condition(system: UncertainSystem, lyapunov: Lyapunov, controller: Co
         fraction = 1.0
     boxes = [{"lo": system.to_user(a[None])[0].tolist(), "hi": system.to_user(b[None])[0].tolist()}
              for a, b in zip(left_lo[:keep_boxes], left_hi[:keep_boxes])]
-    result = VerificationResult(
+    result = ConditionProof(
         condition=condition.label, status=status, verified_fraction=fraction, delta=float(delta),
         boxes_processed=processed, boxes_verified=verified_count, time_s=time.perf_counter() - start,
         n_unverified=int(left_lo.shape[0]), unverified_boxes=boxes, n_counterexample_boxes=n_cex_boxes,
         sup_bounds=[sup_lo, sup_hi], stopped=stopped, level=level)
     if cex is not None:
         result.counterexample_value = cex[0]
-        result.counterexample_value_float32 = float(condition.exact(system, lyapunov, controller, cex[1][None],
-                                                                    torch.float32)[0])
+        result.counterexample_value_float32 = float(loop.exact(condition, cex[1][None], torch.float32)[0])
         result.counterexample_local = cex[1].tolist()
         result.counterexample = system.to_user(cex[1][None])[0].tolist()
     return result
 
 
 # =========================================================================== suprema
-def maximize(objective: Callable, lo: Tensor, hi: Tensor, scale: Tensor, *, centre_ok: Callable | None = None,
-             box_ok: Callable | None = None, time_limit: float = 2.0, rel_tol: float = 1e-3, abs_tol: float = 1e-9,
-             min_width: float = 1e-4, max_boxes: int = 1_000_000, batch: int = 4096,
-             enclosure: str = "mean-value") -> tuple[Tensor, Tensor, dict]:
-    """Bounds ``lower <= sup <= upper`` (each ``(Q,)``) of every component of ``objective`` over a union of boxes.
+def maximize(objective: Callable, lo: Tensor, hi: Tensor, scale: Tensor, budget: Budget, *,
+             centre_ok: Callable | None = None, box_ok: Callable | None = None, rel_tol: float = 1e-3,
+             abs_tol: float = 1e-9) -> tuple[Tensor, Tensor, dict]:
+    """Bounds ``lower <= sup <= upper`` (each ``(Q,)``) of every component of ``objective`` over a union of boxes
+    ``[lo, hi] (B, n)`` (``scale (n,)``: the widths that box sides are measured against).
 
     The upper bound is sound over the boxes (kept by ``box_ok``); the lower bound comes from box centres
     accepted by ``centre_ok`` (points of the set). Boxes that may still raise some component's supremum
-    by more than the tolerance are split, widest side first, until time, budget or minimum size.
-    ``enclosure``: as for :func:`verify_condition`.
+    by more than the tolerance are split, widest side first, until the budget's time or boxes or minimum size.
+    ``budget.enclosure``: as for :func:`verify_condition` (None: by the boxes' dimension).
     """
-    check_enclosure(enclosure)
+    enclosure = budget.enclosure_for(lo.shape[-1])
+    time_limit, max_boxes, min_width, batch = budget.seconds, budget.boxes, budget.min_width, budget.batch
     start = time.perf_counter()
     closed: Tensor | None = None
     best: Tensor | None = None
@@ -289,30 +245,22 @@ def maximize(objective: Callable, lo: Tensor, hi: Tensor, scale: Tensor, *, cent
     return best, closed, {"boxes_processed": processed, "time_s": time.perf_counter() - start, "stopped": stopped}
 
 
-def uniform_margin(system: UncertainSystem, lyapunov: Lyapunov, controller: Controller, condition: DRUniform,
-                   delta: float | Region, time_limit: float = 3.0, rel_tol: float = 1e-3, min_width: float = 1e-4,
-                   enclosure: str = "mean-value") -> dict:
-    """Bounds of the uniform DR condition's left side over X_delta (``eq: dr_clf_constraint_relaxed``)::
-
-        margin = (r/eps) sup_z ||W^T grad V(z)|| + CVaR_eps_j sup_z (Vdot_j(z) + decay(z))
-
-    ``margin_upper`` is a sound upper bound (the condition is proved when it is <= 0); ``margin_lower`` is a
-    value attained by evaluated states (the condition fails when it is > 0).
-    """
-    region = as_region(system, delta)
+def uniform_margin(loop: ClosedLoop, condition: DRUniform, region: Region, budget: Budget = Budget(seconds=3.0), *,
+                   rel_tol: float = 1e-3) -> UniformMargin:
+    """Bounds of the uniform DR condition's left side over X_delta (``eq: dr_clf_constraint_relaxed``), see
+    :class:`~drlyap.verification.results.UniformMargin`."""
     delta = region.delta
     lo, hi = region.boxes()
     lower, upper, info = maximize(
-        condition_objective(condition, system, lyapunov, controller), lo, hi, region.scale,
-        centre_ok=region.in_region, box_ok=lambda a, b: ~inside_ball(a, b, delta),
-        time_limit=time_limit, rel_tol=rel_tol, min_width=min_width, enclosure=enclosure)
+        condition_objective(loop, condition), lo, hi, region.scale, budget,
+        centre_ok=region.in_region, box_ok=lambda a, b: ~inside_ball(a, b, delta), rel_tol=rel_tol)
     coef = condition.r / condition.eps
-    m_up = float(_up(condition.margin(upper), 64 * EPS, upper.abs().amax() * (1 + coef)))
-    m_lo = float(_down(condition.margin(lower), 64 * EPS, lower.abs().amax() * (1 + coef)))
+    m_up = float(round_up(condition.margin(upper), 64 * EPS, upper.abs().amax() * (1 + coef)))
+    m_lo = float(round_down(condition.margin(lower), 64 * EPS, lower.abs().amax() * (1 + coef)))
     status = "verified" if m_up <= 0 else ("violated" if m_lo > 0 else "unknown")
-    return {"condition": "DR uniform", "status": status, "margin_upper": m_up, "margin_lower": m_lo,
-            "lipschitz_sup": [float(lower[0]), float(upper[0])],
-            "h_sup": [[float(a), float(b)] for a, b in zip(lower[1:], upper[1:])],
-            "lipschitz_term": [coef * float(lower[0]), coef * float(upper[0])], "delta": float(delta), **info}
+    return UniformMargin(condition="DR uniform", status=status, margin_upper=m_up, margin_lower=m_lo,
+                         lipschitz_sup=[float(lower[0]), float(upper[0])],
+                         h_sup=[[float(a), float(b)] for a, b in zip(lower[1:], upper[1:])],
+                         lipschitz_term=[coef * float(lower[0]), coef * float(upper[0])], delta=float(delta), **info)
 
 

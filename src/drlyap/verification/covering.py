@@ -6,29 +6,30 @@ If the residual ``c`` is ``L``-Lipschitz and every cell of a grid that meets X_d
 
 from __future__ import annotations
 
-import copy
 import math
 import time
-from collections.abc import Sequence
 
 import torch
 
+from drlyap.closed_loop import ClosedLoop
+from drlyap.conditions import Condition
+from drlyap.config import Budget
 from drlyap.enclosures import F64, Dual, Interval
-from drlyap.io import jsonable
 from drlyap.regions import Region
 from drlyap.verification.bounds import combine_upper, condition_objective
 from drlyap.verification.branch_and_bound import verify_condition
-from drlyap.verification.runs import run_condition
+from drlyap.verification.results import CoveringCheck
 
 
-def lipschitz_covering(run, spacing: float | None = None, n_samples: int = 20000, xi: Sequence[float] | None = None,
-                       safety: float = 1.5, verify_time: float = 0.0, batch: int = 2048) -> dict:
-    """The covering certificate of ``lemma: nominal_nn_lf`` on a grid of X_delta, next to the branch and bound.
+def lipschitz_covering(loop: ClosedLoop, condition: Condition, region: Region, spacing: float | None = None,
+                       n_samples: int = 20000, safety: float = 1.5, compare: Budget | None = None,
+                       batch: int = 2048) -> CoveringCheck:
+    """The covering certificate of ``lemma: nominal_nn_lf`` for a closed loop's per-state ``condition`` on a grid of
+    the region X_delta, next to the branch and bound.
 
     The state box is cut into cells of side at most ``spacing`` (local units, the same on every axis; default:
     about ``n_samples`` cells); cells entirely inside the open delta-ball are dropped, the rest cover X_delta.
-    With ``rho`` = the largest half cell diagonal and ``c`` the run's condition residual (or plain decrease on
-    the true model at ``xi``):
+    With ``rho`` = the largest half cell diagonal and ``c`` the condition's residual:
 
     * ``max_residual``: sound upper bound of ``max c`` at the cell centres (interval evaluation; centres of cells
       that straddle the sphere may lie inside the ball, where c is not required to be <= 0 but still counts);
@@ -42,15 +43,14 @@ def lipschitz_covering(run, spacing: float | None = None, n_samples: int = 20000
     * ``spacing_needed``: the spacing at which the same test would pass with the same ``L`` and maximum
       (``None`` when the maximum is >= 0), and ``samples_needed`` the resulting number of cells.
 
-    With ``verify_time > 0`` the branch and bound runs on the same condition for comparison.
+    With a ``compare`` budget the branch and bound runs on the same condition for comparison.
     """
     start = time.perf_counter()
-    cfg, system = run.config, run.system
-    condition = run_condition(run) if xi is None else run_condition(run, xi)
+    system = loop.system
     if not condition.per_state:
         raise ValueError("the uniform DR condition has no per-state residual; the covering check needs one")
-    delta = float(cfg.delta)
-    lo, hi = system.local_box()
+    delta = region.delta
+    lo, hi = region.lo, region.hi
     width = hi - lo
     n = system.n
     if spacing is None:
@@ -65,7 +65,7 @@ def lipschitz_covering(run, spacing: float | None = None, n_samples: int = 20000
         raise ValueError(f"spacing {spacing} gives {cells} cells; choose a larger spacing")
     glo, ghi = Region(lo, hi, delta).boxes(per_axis)
     rho = float(((ghi - glo) / 2).norm(dim=-1).max()) * (1 + 1e-12)
-    objective = condition_objective(condition, system, run.lyapunov_net, run.controller_net)
+    objective = condition_objective(loop, condition)
     max_res, l_sound = -math.inf, 0.0
     for i in range(0, glo.shape[0], batch):
         clo, chi = glo[i:i + batch], ghi[i:i + batch]
@@ -81,14 +81,12 @@ def lipschitz_covering(run, spacing: float | None = None, n_samples: int = 20000
         max_res = max(max_res, float(combine_upper(condition, at.hi).max()))
     # sampled gradient norms at the centres (float64 autograd through the ordinary code path)
     centres = (glo + ghi) / 2
-    lyap, ctrl = copy.deepcopy(run.lyapunov_net).to(F64), copy.deepcopy(run.controller_net).to(F64)
-    for p in list(lyap.parameters()) + list(ctrl.parameters()):
-        p.requires_grad_(False)
+    f64 = loop.f64
     l_sampled, exact_max, region_max = 0.0, -math.inf, -math.inf
     for i in range(0, centres.shape[0], 20000):
         zc = centres[i:i + 20000].clone().requires_grad_(True)
         with torch.enable_grad():
-            res = condition.evaluate(system, lyap, ctrl, zc)
+            res = f64.residual(condition, zc)
             (g,) = torch.autograd.grad(res.sum(), zc)
         l_sampled = max(l_sampled, float(g.norm(dim=-1).max()))
         exact_max = max(exact_max, float(res.detach().max()))
@@ -103,19 +101,11 @@ def lipschitz_covering(run, spacing: float | None = None, n_samples: int = 20000
         "lipschitz_sound": l_sound, "lipschitz_sampled": l_sampled, "safety": safety,
         "required_max_residual": needed, "certified": bool(max_res <= needed),
         "certified_estimate": bool(max_res <= -safety * l_sampled * rho),
-        "spacing_needed": None, "samples_needed": None,
-        "lipschitz_note": ("lipschitz_sound: interval enclosure of the gradient over every cell (sound); "
-                           "lipschitz_sampled: max gradient norm at the centres (an estimate from below)"),
     }
     if max_res < 0 and l_sound > 0:
         h_needed = 2 * (-max_res) / (l_sound * math.sqrt(n))  # rho = h sqrt(n) / 2 for equal sides
         out["spacing_needed"] = h_needed
         out["samples_needed"] = float(math.prod(math.ceil(float(w) / h_needed) for w in width))
-    out["verifier"] = None
-    if verify_time > 0:
-        ver = verify_condition(system, run.lyapunov_net, run.controller_net, condition, delta, time_limit=verify_time)
-        out["verifier"] = {"status": ver.status, "verified_fraction": ver.verified_fraction,
-                           "boxes_processed": ver.boxes_processed, "time_s": ver.time_s,
-                           "counterexample": ver.counterexample, "counterexample_value": ver.counterexample_value}
-    out["time_s"] = time.perf_counter() - start
-    return jsonable(out)
+    if compare is not None:
+        out["verifier"] = verify_condition(loop, condition, region, compare)
+    return CoveringCheck(**out, time_s=time.perf_counter() - start)

@@ -16,27 +16,25 @@
 
 from __future__ import annotations
 
-import copy
 import time
 
 import torch
 from torch import Tensor
 
+from drlyap.closed_loop import ClosedLoop
 from drlyap.conditions import Condition
+from drlyap.config import DEFAULT_SETTLE_STARTS
 from drlyap.enclosures import Interval
-from drlyap.networks import Controller, Lyapunov
 from drlyap.regions import Region
 from drlyap.systems import UncertainSystem
 from drlyap.verification.bounds import combine_lower, condition_and_value_objective, condition_objective
+from drlyap.verification.results import ConditionProof
 
 F64 = torch.float64
 
-DEFAULT_STARTS = 4096
-"""Falsifier starts of a verdict (:func:`settle_unknown`): about 1.6 s on the quadrotor, one thread."""
 
-
-def falsify(system: UncertainSystem, lyapunov: Lyapunov, controller: Controller, condition: Condition, region: Region,
-            starts: Tensor, steps: int = 30, step_size: float = 0.02) -> tuple[Tensor, Tensor]:
+def falsify(loop: ClosedLoop, condition: Condition, region: Region, starts: Tensor, steps: int = 30,
+            step_size: float = 0.02) -> tuple[Tensor, Tensor]:
     """Projected gradient ascent on the condition's residual from ``starts (B, n)`` (local states), batched.
 
     Each step moves every state by ``step_size`` (a fraction of the box width, shrinking over the steps) along
@@ -46,16 +44,14 @@ def falsify(system: UncertainSystem, lyapunov: Lyapunov, controller: Controller,
     """
     if not condition.per_state:
         raise ValueError("the falsifier needs a per-state condition (pointwise, nominal or plain decrease)")
-    lyap, ctrl = copy.deepcopy(lyapunov).to(F64), copy.deepcopy(controller).to(F64)
-    for p in list(lyap.parameters()) + list(ctrl.parameters()):
-        p.requires_grad_(False)
+    f64 = loop.f64
     width = region.scale
     z = region.project(starts.to(F64).clone())
 
     def evaluate(states: Tensor, grad: bool) -> tuple[Tensor, Tensor | None]:
         with torch.enable_grad():
             s = states.detach().requires_grad_(grad)
-            res = condition.evaluate(system, lyap, ctrl, s)
+            res = f64.residual(condition, s)
             g = torch.autograd.grad(res.sum(), s)[0] if grad else None
         return res.detach(), g
 
@@ -89,21 +85,21 @@ def box_centres(system: UncertainSystem, boxes: list[dict]) -> Tensor:
     return (lo + hi) / 2
 
 
-def confirmed_violations(system: UncertainSystem, lyapunov: Lyapunov, controller: Controller, condition: Condition,
-                         region: Region, z: Tensor, level: float | None = None) -> Tensor:
+def confirmed_violations(loop: ClosedLoop, condition: Condition, region: Region, z: Tensor,
+                         level: float | None = None) -> Tensor:
     """``(B,)``: a sound lower bound of the residual at each local state of ``z (B, n)`` where a violation is
     certain (X_delta, and ``V <= level`` proved when a level is given), ``-inf`` elsewhere."""
     z = torch.as_tensor(z, dtype=F64)
     if z.shape[0] == 0:
         return torch.empty(0, dtype=F64)
-    lyap, ctrl = copy.deepcopy(lyapunov).to(F64), copy.deepcopy(controller).to(F64)
+    f64 = loop.f64
     point = Interval(z, z)
     with torch.no_grad():
         if level is None:
-            at = condition_objective(condition, system, lyap, ctrl)(point)
+            at = condition_objective(f64, condition)(point)
             inside = torch.ones(z.shape[0], dtype=torch.bool)
         else:
-            at = condition_and_value_objective(condition, system, lyap, ctrl)(point)
+            at = condition_and_value_objective(f64, condition)(point)
             inside = at.hi[:, -1] <= level
             at = at[:, :-1]
     lower = combine_lower(condition, at.lo)
@@ -112,37 +108,36 @@ def confirmed_violations(system: UncertainSystem, lyapunov: Lyapunov, controller
     return torch.where(certain, lower, -torch.inf)
 
 
-def settle_unknown(result: dict, system: UncertainSystem, lyapunov: Lyapunov, controller: Controller,
-                   condition: Condition, region: Region, level: float | None = None, starts: int = DEFAULT_STARTS,
-                   seed: int = 0, steps: int = 30) -> dict:
-    """Search for a counterexample where a proof ``result`` (a verification dict) came back ``unknown``.
+def settle_unknown(result: ConditionProof, loop: ClosedLoop, condition: Condition, region: Region,
+                   level: float | None = None, starts: int = DEFAULT_SETTLE_STARTS, seed: int = 0,
+                   steps: int = 30) -> ConditionProof:
+    """Search for a counterexample where a proof ``result`` came back ``unknown``.
 
     Starts: :func:`falsifier_starts` (``starts`` states, generator seeded with ``seed``) plus the centres of the
     unverified boxes the result kept. When :func:`confirmed_violations` finds one, ``result`` becomes
     ``violated`` with the worst such state as its counterexample (``counterexample``, ``counterexample_local``,
     ``counterexample_value`` (float64 residual), ``counterexample_value_float32``, ``counterexample_source``
-    ``"falsifier"``); ``verified_fraction`` (what the branch and bound proved) stays. ``result["falsifier"]``
+    ``"falsifier"``); ``verified_fraction`` (what the branch and bound proved) stays. ``result.falsifier``
     records the search (starts, seconds, largest residual, confirmed states). Returns ``result`` (updated in
     place); other statuses, non-per-state conditions and ``starts <= 0`` leave it as it was.
     """
-    if result.get("status") != "unknown" or not condition.per_state or starts <= 0:
+    if result.status != "unknown" or not condition.per_state or starts <= 0:
         return result
+    system = loop.system
     tic = time.perf_counter()
     pool = [falsifier_starts(region, int(starts), torch.Generator().manual_seed(int(seed)))]
-    pool.append(region.project(box_centres(system, result.get("unverified_boxes") or [])))
-    found, values = falsify(system, lyapunov, controller, condition, region, torch.cat(pool), steps=steps)
-    lower = confirmed_violations(system, lyapunov, controller, condition, region, found, level)
+    pool.append(region.project(box_centres(system, result.unverified_boxes or [])))
+    found, values = falsify(loop, condition, region, torch.cat(pool), steps=steps)
+    lower = confirmed_violations(loop, condition, region, found, level)
     record = {"starts": int(found.shape[0]), "time_s": time.perf_counter() - tic,
               "max_residual": float(values.max()), "confirmed": int(torch.isfinite(lower).sum())}
-    result["falsifier"] = record
+    result.falsifier = record
     if record["confirmed"]:
         best = found[int(lower.argmax())]
-        result.update(
-            status="violated", counterexample_source="falsifier",
-            counterexample_local=best.tolist(), counterexample=system.to_user(best[None])[0].tolist(),
-            counterexample_value=float(condition.exact(system, lyapunov, controller, best[None])[0]),
-            counterexample_value_float32=float(condition.exact(system, lyapunov, controller, best[None],
-                                                               torch.float32)[0]))
+        result.status, result.counterexample_source = "violated", "falsifier"
+        result.counterexample_local, result.counterexample = best.tolist(), system.to_user(best[None])[0].tolist()
+        result.counterexample_value = float(loop.exact(condition, best[None])[0])
+        result.counterexample_value_float32 = float(loop.exact(condition, best[None], torch.float32)[0])
         found_by = f"the falsifier found {record['confirmed']} violating states from {record['starts']} starts"
-        result["stopped"] = f"{result['stopped']}; {found_by}" if result.get("stopped") else found_by
+        result.stopped = f"{result.stopped}; {found_by}" if result.stopped else found_by
     return result

@@ -10,10 +10,10 @@ x* equal to ``-2 S^-2`` for that ``A``: negative definite and conditioned like t
 :func:`common_lyapunov_matrix` picks one ``P`` for all samples' ``A_j`` (their mean's, improved numerically
 where it fails for some ``A_j``).
 
-For the mean-value proof of ``W`` on a cube (:func:`drlyap.verification.roa.quadratic_roa`):
-:func:`jacobian_enclosures` encloses every sample's Jacobian over the cube (sound, affine forms),
-:func:`scaled_jacobians` puts the interval matrices in box-scaled coordinates (rounded outward),
-:func:`robust_decrease_matrix` is the matrix whose negative definiteness the verifier checks, and
+For the mean-value proof of ``W`` on a cube (:func:`jacobian_negative`, used by
+:func:`drlyap.verification.roa.quadratic_roa`): :func:`jacobian_enclosures` encloses every sample's Jacobian over
+the cube (sound, affine forms), :func:`scaled_jacobians` puts the interval matrices in box-scaled coordinates
+(rounded outward), :func:`robust_decrease_matrix` is the matrix whose negative definiteness is checked, and
 :func:`robust_lyapunov_matrix` fits ``P`` and the bound's weights to it.
 
 The fits prove nothing: ``A``, ``P`` and the weights only *choose* the certificate ``W``; what is claimed about
@@ -30,25 +30,24 @@ import scipy.linalg
 import torch
 from torch import Tensor
 
+from drlyap.closed_loop import ClosedLoop
 from drlyap.conditions import PlainDecrease
-from drlyap.enclosures import F64, REL1, Affine, Dual, Interval, _down, _up
-from drlyap.networks import Controller
-from drlyap.systems import UncertainSystem
+from drlyap.enclosures import F64, REL1, Affine, Dual, Interval, round_down, round_up
 
 
-def closed_loop_jacobians(system: UncertainSystem, controller: Controller, plain: PlainDecrease) -> list[Tensor]:
+def closed_loop_jacobians(loop: ClosedLoop, plain: PlainDecrease) -> list[Tensor]:
     """``A_j (n, n)`` for every sample ``xi_j`` of ``plain`` on its model (``true``: ``F(x, u, p0 + xi)``;
     ``design``: ``f + W xi``), at the local origin ``z = 0`` (the midpoints of :func:`jacobian_enclosures`)."""
-    return [a.mid for a in jacobian_enclosures(system, controller, plain)]
+    return [a.mid for a in jacobian_enclosures(loop, plain)]
 
 
-def jacobian_enclosures(system: UncertainSystem, controller: Controller, plain: PlainDecrease,
-                        half: Tensor | None = None) -> list[Interval]:
+def jacobian_enclosures(loop: ClosedLoop, plain: PlainDecrease, half: Tensor | None = None) -> list[Interval]:
     """For every sample of ``plain``, an interval matrix ``(n, n)`` containing ``dF_j/dz`` at every state of the
     cube ``|z_i| <= half_i`` (``half`` None: at ``z = 0``). The system's and the controller's own code runs on
     dual numbers over affine forms (:class:`~drlyap.enclosures.Affine`, whose vertex bound is within ~15% of the
     sampled range on the quadrotor's cubes), so for the controller's clamp it is the Clarke generalised Jacobian
     that is enclosed (the mean-value inclusion ``F(z) - F(0) in hull(J(cube)) z`` holds for it)."""
+    system, controller = loop.system, loop.controller
     n = system.n
     eye = torch.eye(n, dtype=F64)
 
@@ -147,10 +146,10 @@ def scaled_jacobians(enclosures: list[Interval], half_widths: Tensor) -> tuple[T
     ``S^-1 A S`` with ``A`` in an enclosure lies within the radius (rounded up) of its centre, entrywise."""
     s = half_widths.to(F64)
     ratio = s[None, :] / s[:, None]
-    lo = torch.stack([_down(e.lo * ratio, REL1) for e in enclosures])
-    hi = torch.stack([_up(e.hi * ratio, REL1) for e in enclosures])
+    lo = torch.stack([round_down(e.lo * ratio, REL1) for e in enclosures])
+    hi = torch.stack([round_up(e.hi * ratio, REL1) for e in enclosures])
     centre = (lo + hi) / 2
-    return centre, _up(torch.maximum(hi - centre, centre - lo), REL1)
+    return centre, round_up(torch.maximum(hi - centre, centre - lo), REL1)
 
 
 def robust_decrease_matrix(p: Tensor, centre: Tensor, radius: Tensor, log_t: Tensor) -> Tensor:
@@ -224,3 +223,50 @@ def robust_lyapunov_matrix(centre: Tensor, radius: Tensor, p_start: Tensor, log_
             opt.step()
     p, log_t, rate = best
     return (p + p.T) / 2, log_t, rate
+
+
+def jacobian_negative(loop: ClosedLoop, plain: PlainDecrease, p: Tensor, half: Tensor, half_widths: Tensor,
+                      log_t: Tensor | None = None,
+                      scaled: tuple[Tensor, Tensor] | None = None) -> tuple[bool, float, str]:
+    """Is ``Wdot = 2 z^T P F_j(z) < 0`` for every sample's model on the cube ``|z_i| <= half_i`` minus x*
+    (``W = z^T P z``)?
+
+    The mean-value form: ``F_j(0) = 0``, so ``F_j(z) = A z`` for some ``A`` in the hull of the enclosure of
+    ``dF_j/dz`` over the cube (:func:`jacobian_enclosures`; the cube holds the
+    segment from x* to z), and ``Wdot = z^T (P A + A^T P) z``. In the coordinates scaled by ``half_widths`` this
+    is at most ``z_s^T M z_s`` with ``M`` of
+    :func:`robust_decrease_matrix` (its ``t`` fitted here, any ``t`` is
+    sound); ``M``'s largest eigenvalue plus a rounding pad of 1e-9 of the terms' norms below 0 proves it.
+    Only first derivatives are enclosed (V's own Hessian test, :mod:`drlyap.verification.roa.local`, needs second ones).
+
+    ``scaled``: that cube's :func:`scaled_jacobians` when the caller has them.
+
+    Returns (proved, the bound ``lambda`` with ``Wdot <= lambda ||z||^2 / 2`` on the cube, reason)."""
+    s = half_widths.to(F64)
+    centre, radius = scaled or scaled_jacobians(jacobian_enclosures(loop, plain, half), s)
+    if not bool(torch.isfinite(centre).all() and torch.isfinite(radius).all()):
+        return False, math.nan, "non-finite Jacobian enclosure"
+    p_s = p.to(F64) * s[:, None] * s[None, :]
+    unit = float(torch.linalg.eigvalsh(p_s).min())  # P / unit has lambda_min 1, as robust_lyapunov_matrix's
+    if not unit > 0:
+        return False, math.nan, "P is not positive definite"
+    p_n = p_s / unit
+
+    def proved_rate(log_t: Tensor) -> float:
+        m = robust_decrease_matrix(p_n, centre, radius, log_t)
+        t = log_t.exp()
+        norms = (2 * torch.linalg.matrix_norm(p_n) * torch.linalg.matrix_norm(centre)
+                 + torch.linalg.matrix_norm(p_n) ** 2 * (radius * t).sum(-1).amax(-1)
+                 + (radius / t).sum(-2).amax(-1) + torch.linalg.matrix_norm(m))
+        top = torch.linalg.eigvalsh(m).amax(-1) + 1e-9 * norms + 1e-300
+        return float(top.max())
+
+    worst = proved_rate(log_t) if log_t is not None else math.nan
+    for stop in (0.0, None):  # fit t: first until the rate is negative, then (if the pads undo it) all the way
+        if worst < 0:
+            break
+        _, log_t, _ = robust_lyapunov_matrix(centre, radius, p_n, log_t, steps=300, fit_p=False, stop_below=stop)
+        worst = proved_rate(log_t)
+    if not worst < 0:  # NaN included
+        return False, math.nan, "P A + A^T P not provably negative definite over the Jacobian enclosure"
+    return True, 2 * unit * worst / float(s.max()) ** 2, ""

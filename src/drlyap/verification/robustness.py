@@ -20,12 +20,11 @@ from the sampled ratio, usually needs two or three proofs.
 once (:class:`TrueDecrease` with an :class:`Interval` of xi; the boxes are nested, so proofs are monotone in
 s). Corners of the box evaluated at dense states give the sampled upper end.
 
-:func:`run_robustness` applies both to a run directory.
+A run directory's searches: :func:`drlyap.workflows.verify.run_robustness`.
 """
 
 from __future__ import annotations
 
-import copy
 import math
 import time
 from collections.abc import Callable
@@ -33,12 +32,17 @@ from collections.abc import Callable
 import torch
 from torch import Tensor
 
+from drlyap.closed_loop import ClosedLoop
 from drlyap.conditions import DRPointwise, TrueDecrease
+from drlyap.config import Budget
 from drlyap.enclosures import F64, Interval
-from drlyap.networks import Controller, Lyapunov
 from drlyap.regions import Region
 from drlyap.systems import UncertainSystem
-from drlyap.verification.branch_and_bound import as_region, verify_condition
+from drlyap.verification.branch_and_bound import verify_condition
+from drlyap.verification.results import CertifiedRadius, CertifiedShiftBox
+
+SEARCH_BUDGET = Budget(seconds=10.0, enclosure="mean-value")
+"""The default budget of each proof of a search."""
 
 
 # --------------------------------------------------------------------------- dense states
@@ -62,27 +66,23 @@ def dense_states(region: Region, per_axis: int = 200, sphere: int = 2000, seed: 
     return z
 
 
-class _Pair:
-    """Float64 copies of the networks for sampled evaluations (the arithmetic the verifier's claims are about)."""
+def _residuals(loop: ClosedLoop, condition, z: Tensor, batch: int = 8192) -> Tensor:
+    """The residual ``(B,)`` of ``condition`` at ``z`` with the float64 networks (the arithmetic of the claims)."""
+    f64 = loop.f64
+    with torch.no_grad():
+        return torch.cat([f64.residual(condition, z[i:i + batch]) for i in range(0, z.shape[0], batch)])
 
-    def __init__(self, system: UncertainSystem, lyapunov: Lyapunov, controller: Controller) -> None:
-        self.system = system
-        self.lyapunov, self.controller = copy.deepcopy(lyapunov).to(F64), copy.deepcopy(controller).to(F64)
 
-    def residual(self, condition, z: Tensor, batch: int = 8192) -> Tensor:
-        with torch.no_grad():
-            return torch.cat([condition.evaluate(self.system, self.lyapunov, self.controller, z[i:i + batch])
-                              for i in range(0, z.shape[0], batch)])
-
-    def terms(self, condition, z: Tensor, batch: int = 8192) -> tuple[Tensor, Tensor]:
-        """``(residual (B,), lip (B,))`` of a DR condition at ``z``."""
-        res, lip = [], []
-        with torch.no_grad():
-            for i in range(0, z.shape[0], batch):
-                t = condition.terms(self.system, self.lyapunov, self.controller, z[i:i + batch])
-                res.append(condition.residual(t))
-                lip.append(t.lip)
-        return torch.cat(res), torch.cat(lip)
+def _residuals_and_lip(loop: ClosedLoop, condition, z: Tensor, batch: int = 8192) -> tuple[Tensor, Tensor]:
+    """``(residual (B,), lip (B,))`` of a DR condition at ``z`` with the float64 networks."""
+    f64 = loop.f64
+    res, lip = [], []
+    with torch.no_grad():
+        for i in range(0, z.shape[0], batch):
+            t = condition.terms(f64, z[i:i + batch])
+            res.append(condition.residual(t))
+            lip.append(t.lip)
+    return torch.cat(res), torch.cat(lip)
 
 
 # --------------------------------------------------------------------------- the search
@@ -175,11 +175,10 @@ def _largest_proved(prove: Callable[[float], dict], refute: Callable[[float], di
     return out(lo, hi_res, "tolerance")
 
 
-def _prover(system, lyapunov, controller, region, time_limit, min_width, make) -> Callable[[float], dict]:
+def _prover(loop: ClosedLoop, region: Region, budget: Budget, make) -> Callable[[float], dict]:
     def prove(v: float) -> dict:
         try:
-            r = verify_condition(system, lyapunov, controller, make(v), region, time_limit=time_limit,
-                                 min_width=min_width, stop_at_counterexample=True)
+            r = verify_condition(loop, make(v), region, budget, stop_at_counterexample=True)
         except ValueError as err:  # e.g. the dynamics are undefined for some shift in the box (a zero mass)
             return {"status": "error", "error": str(err), "time_s": None}
         res = {"status": r.status, "time_s": r.time_s, "verified_fraction": r.verified_fraction}
@@ -191,33 +190,30 @@ def _prover(system, lyapunov, controller, region, time_limit, min_width, make) -
 
 
 # --------------------------------------------------------------------------- radius
-def certified_radius(system: UncertainSystem, lyapunov: Lyapunov, controller: Controller, condition: DRPointwise,
-                     region: float | Region, tol: float = 0.01, time_limit: float = 10.0, total_time: float = 120.0,
-                     max_proofs: int = 40, min_width: float = 1e-4, cap: float = 1e6) -> dict:
+def certified_radius(loop: ClosedLoop, condition: DRPointwise, region: Region, budget: Budget = SEARCH_BUDGET, *,
+                     tol: float = 0.01, total_time: float = 120.0, max_proofs: int = 40,
+                     cap: float = 1e6) -> CertifiedRadius:
     """The largest Wasserstein radius r for which the pointwise DR condition (at the condition's risk level
     eps, samples and decay) is proved over the region X_delta.
 
     ``condition``: a :class:`DRPointwise` (its own radius is only reported; the search sets r with
     :meth:`~DRPointwise.with_radius`). ``tol``: relative width of the final bracket ``[r*, r_unproved)``.
-    ``time_limit``: seconds per proof; ``total_time``/``max_proofs``: budget of the whole search (the bracket
+    ``budget``: of each proof; ``total_time``/``max_proofs``: budget of the whole search (the bracket
     found so far is returned, with ``stopped`` saying why). ``cap``: largest radius tried.
 
-    Returns a JSON-friendly dict: ``radius`` (r*, proved: the condition holds for every r <= r*; None when it
-    is not provable even at r = 0, with ``reason``), ``unproved`` (the smallest radius tried that is not
-    proved, ``unproved_status`` ``violated``/``unknown``/``error`` and ``unproved_by`` ``verifier`` or
-    ``sampled state``, with the ``witness`` state where the residual is > 0), ``sampled_upper``
-    (``eps min_z -rho(z, 0)/lip(z)`` over dense states: the condition fails above it), ``proofs``, ``probes``
-    and ``time_s``.
-    """
+    Returns a :class:`~drlyap.verification.results.CertifiedRadius`: ``radius`` (r*, proved: the condition holds for
+    every r <= r*; None when it is not provable even at r = 0, with ``reason``), ``unproved`` (the smallest radius tried
+    that is not proved, ``unproved_status`` ``violated``/``unknown``/``error`` and ``unproved_by`` ``verifier`` or
+    ``sampled state``, with the ``witness`` state where the residual is > 0), ``sampled_upper`` (``eps min_z -rho(z,
+    0)/lip(z)`` over dense states: the condition fails above it), ``proofs``, ``probes`` and ``time_s``. """
     if not isinstance(condition, DRPointwise):
         raise ValueError(f"certified_radius needs a DRPointwise condition, got {type(condition).__name__}")
     if not tol > 0:
         raise ValueError(f"tol must be > 0, got {tol}")
-    region = as_region(system, region)
+    system = loop.system
     clock = time.perf_counter()
-    pair = _Pair(system, lyapunov, controller)
     z = dense_states(region)
-    res0, lip = pair.terms(condition.with_radius(0.0), z)
+    res0, lip = _residuals_and_lip(loop, condition.with_radius(0.0), z)
     best: dict = {"sampled": math.inf, "at": None}  # the smallest sampled ratio and its state
 
     def take(states: Tensor, r0: Tensor, lips: Tensor) -> None:
@@ -240,26 +236,26 @@ def certified_radius(system: UncertainSystem, lyapunov: Lyapunov, controller: Co
         at = best["at"]
         if at is None or r <= best["sampled"]:
             return None
-        value = float(pair.residual(condition.with_radius(r), at[None])[0])
+        value = float(_residuals(loop, condition.with_radius(r), at[None])[0])
         return {"status": "violated", "witness": _witness(system, at, value)} if value > 0 else None
 
     def reguess(res: dict) -> float | None:  # the ratio at the verifier's counterexample
         state = system.to_local(torch.tensor([res["witness"]["state"]], dtype=F64))
-        r0, lips = pair.terms(condition.with_radius(0.0), state)
+        r0, lips = _residuals_and_lip(loop, condition.with_radius(0.0), state)
         before = best["sampled"]
         take(state, r0, lips)
         return best["sampled"] if best["sampled"] < before else None
 
-    prove = _prover(system, lyapunov, controller, region, time_limit, min_width, condition.with_radius)
+    prove = _prover(loop, region, budget, condition.with_radius)
     start = condition.r if condition.r > 0 else 1e-3
     found = _largest_proved(prove, refute, first_guess, start, tol, cap, max_proofs, total_time, reguess)
     found["time_s"] = time.perf_counter() - clock
     radius = found.pop("certified")
     sampled = best["sampled"]
-    return {"quantity": "wasserstein_radius", "radius": radius, **found,
-            "sampled_upper": sampled if math.isfinite(sampled) else None, "risk_level": condition.eps,
-            "n_samples": int(condition.xi.shape[0]), "decay_rate": condition.decay_rate,
-            "exp_rate": condition.exp_rate, "condition_radius": condition.r, "delta": region.delta}
+    return CertifiedRadius(radius=radius, **found, sampled_upper=sampled if math.isfinite(sampled) else None,
+                           risk_level=condition.eps, n_samples=int(condition.xi.shape[0]),
+                           decay_rate=condition.decay_rate, exp_rate=condition.exp_rate, condition_radius=condition.r,
+                           delta=region.delta)
 
 
 def _witness(system: UncertainSystem, z: Tensor, value: float) -> dict:
@@ -293,36 +289,35 @@ def shift_box_condition(scale: Tensor, s: float, decay_rate: float, exp_rate: fl
     return TrueDecrease(Interval(-half, half), decay_rate, exp_rate)
 
 
-def certified_shift_box(system: UncertainSystem, lyapunov: Lyapunov, controller: Controller, decay_rate: float,
-                        exp_rate: float, region: float | Region, scale: Tensor, tol: float = 0.01,
-                        time_limit: float = 10.0, total_time: float = 120.0, max_proofs: int = 40,
-                        min_width: float = 1e-4, cap: float = 1e3) -> dict:
+def certified_shift_box(loop: ClosedLoop, decay_rate: float, exp_rate: float, region: Region, scale: Tensor,
+                        budget: Budget = SEARCH_BUDGET, *, tol: float = 0.01, total_time: float = 120.0,
+                        max_proofs: int = 40, cap: float = 1e3) -> CertifiedShiftBox:
     """The largest s such that decrease on the TRUE model, ``grad V . F(x, pi(x), p0 + xi) + decay_rate ||z||
     + exp_rate V <= 0``, is proved over X_delta for every shift xi in the box ``[-s scale, s scale]``.
 
     ``scale (k,)``: the box's half-widths at s = 1, in the uncertain parameters' units (see
-    :func:`shift_scale`). Other arguments as :func:`certified_radius`. Returns ``s`` (None when not provable
+    :func:`shift_scale`). Other arguments as :func:`certified_radius`. Returns a
+    :class:`~drlyap.verification.results.CertifiedShiftBox`: ``s`` (None when not provable
     even at xi = 0, with ``reason``), ``box`` (``{parameter: [low, high]}`` at s*, in the parameters' units),
     the bracket ``unproved`` / ``unproved_status`` / ``unproved_by`` / ``witness`` (a state and the corner
     shifts of the box there), ``sampled_upper`` (the smallest s at which a corner of the box violates the
     condition at a dense state, found by bisection on samples), ``proofs``, ``probes``, ``time_s``.
     """
+    system = loop.system
     scale = torch.as_tensor(scale, dtype=F64).reshape(-1)
     if scale.shape[0] != system.k or not bool((scale > 0).all() and torch.isfinite(scale).all()):
         raise ValueError(f"scale must be {system.k} finite positive value(s) ({', '.join(system.uncertain)}), "
                          f"got {scale.tolist()}")
     if not tol > 0:
         raise ValueError(f"tol must be > 0, got {tol}")
-    region = as_region(system, region)
     clock = time.perf_counter()
-    pair = _Pair(system, lyapunov, controller)
     states = {"z": dense_states(region)}
 
     def make(s: float) -> TrueDecrease:
         return shift_box_condition(scale, s, decay_rate, exp_rate)
 
     def refute_at(z: Tensor, s: float) -> dict | None:
-        res = pair.residual(make(s), z)  # the max over the box's corners at each state
+        res = _residuals(loop, make(s), z)  # the max over the box's corners at each state
         bad = ~(res <= 0)  # non-finite counts as a failure
         if not bad.any():
             return None
@@ -338,14 +333,14 @@ def certified_shift_box(system: UncertainSystem, lyapunov: Lyapunov, controller:
         return _sampled_threshold(lambda s: refute_at(state, s), cap, tol / 8)
 
     sampled = _sampled_threshold(refute, cap, tol / 8)
-    prove = _prover(system, lyapunov, controller, region, time_limit, min_width, make)
+    prove = _prover(loop, region, budget, make)
     found = _largest_proved(prove, refute, sampled, 1.0, tol, cap, max_proofs, total_time, reguess)
     found["time_s"] = time.perf_counter() - clock
     s = found.pop("certified")
     box = None if s is None else {name: [-s * float(w), s * float(w)] for name, w in zip(system.uncertain, scale)}
-    return {"quantity": "shift_box", "s": s, "box": box, **found, "scale": scale.tolist(),
-            "parameters": list(system.uncertain), "sampled_upper": sampled,
-            "decay_rate": float(decay_rate), "exp_rate": float(exp_rate), "delta": region.delta}
+    return CertifiedShiftBox(s=s, box=box, **found, scale=scale.tolist(), parameters=list(system.uncertain),
+                             sampled_upper=sampled, decay_rate=float(decay_rate), exp_rate=float(exp_rate),
+                             delta=region.delta)
 
 
 def _sampled_threshold(refute: Callable[[float], dict | None], cap: float, tol: float) -> float | None:
@@ -367,94 +362,3 @@ def _sampled_threshold(refute: Callable[[float], dict | None], cap: float, tol: 
         else:
             hi = mid
     return hi
-
-
-# --------------------------------------------------------------------------- run directories
-def run_radius_condition(run) -> DRPointwise:
-    """The DR pointwise condition a run's radius is certified for: the run's samples ``run.xi_samples`` (all N,
-    also for a baseline run, which trained on their mean), ``risk_level``, ``decay_rate`` and ``exp_rate``; its
-    radius is the configured ``wasserstein_radius`` (only a starting point of the search)."""
-    cfg = run.config
-    return DRPointwise(cfg.wasserstein_radius, cfg.risk_level, run.xi_samples, cfg.decay_rate, cfg.exp_rate)
-
-
-def run_robustness(run, delta: float | None = None, tol: float = 0.01, time_limit: float = 10.0,
-                   total_time: float = 120.0, scale: Tensor | None = None) -> dict:
-    """:func:`certified_radius` (with :func:`run_radius_condition`) and :func:`certified_shift_box` (the run's
-    decay, ``scale`` default :func:`shift_scale` of the run's samples) for a loaded Lyapunov run over its
-    X_delta (``delta`` default the run's). Returns ``{"radius": ..., "shift_box": ..., "trained_radius",
-    "method", "delta"}``; for a baseline run also ``radius_training_sample``: the radius of the DR condition
-    around the single sample it trained on (``run.xi_train``, the mean of the samples; N = 1)."""
-    cfg = run.config
-    delta = float(cfg.delta if delta is None else delta)
-    region = Region.of(run.system, delta)
-    system, lyap, ctrl = run.system, run.lyapunov_net, run.controller_net
-    radius = certified_radius(system, lyap, ctrl, run_radius_condition(run), region, tol=tol, time_limit=time_limit,
-                              total_time=total_time)
-    scale = shift_scale(system, run.xi_samples) if scale is None else scale
-    box = certified_shift_box(system, lyap, ctrl, cfg.decay_rate, cfg.exp_rate, region, scale, tol=tol,
-                              time_limit=time_limit, total_time=total_time)
-    out = {"method": cfg.method, "trained_radius": cfg.wasserstein_radius if cfg.method == "dr" else None,
-           "delta": delta, "radius": radius, "shift_box": box}
-    if cfg.method == "baseline":  # also around the one sample it trained on (the mean: a ball around a point mass)
-        own = DRPointwise(cfg.wasserstein_radius, cfg.risk_level, run.xi_train, cfg.decay_rate, cfg.exp_rate)
-        out["radius_training_sample"] = certified_radius(system, lyap, ctrl, own, region, tol=tol,
-                                                         time_limit=time_limit, total_time=total_time)
-    return out
-
-
-def robustness_lines(result: dict) -> list[str]:
-    """Human-readable lines for a :func:`run_robustness` result (what ``drlyap verify --max-radius`` prints)."""
-    lines = []
-    rad, box = result.get("radius"), result.get("shift_box")
-    if rad is not None:
-        decay = f"gamma={rad['decay_rate']:g}" + (f", alpha={rad['exp_rate']:g}" if rad["exp_rate"] else "")
-        at = f"eps={rad['risk_level']:g}, N={rad['n_samples']}, {decay}"
-        trained = (f"run trained at r={result['trained_radius']:g}" if result.get("trained_radius") is not None
-                   else f"{result.get('method', 'run')} run: radius of the DR condition at its N samples")
-        if rad["radius"] is None:
-            lines.append(f"certified Wasserstein radius (DR pointwise over X_delta): NONE at {at} ({trained}): {rad['reason']}"
-                         + _witness_text(rad))
-        else:
-            lines.append(f"certified Wasserstein radius (DR pointwise over X_delta): r* in [{rad['radius']:.4g}, "
-                         f"{_upper(rad)}) at {at} ({trained}); {_why(rad)}; {rad['proofs']} proofs, {rad['time_s']:.1f} s")
-    own = result.get("radius_training_sample")
-    if own is not None:
-        at = f"eps={own['risk_level']:g}, N=1"
-        if own["radius"] is None:
-            lines.append(f"  around its training sample (the mean, {at}): NONE: {own['reason']}" + _witness_text(own))
-        else:
-            lines.append(f"  around its training sample (the mean, {at}): r* in [{own['radius']:.4g}, {_upper(own)}); "
-                         f"{_why(own)}; {own['proofs']} proofs, {own['time_s']:.1f} s")
-    if box is not None:
-        decay = f"gamma={box['decay_rate']:g}" + (f", alpha={box['exp_rate']:.3g}" if box["exp_rate"] else "")
-        if box["s"] is None:
-            lines.append(f"certified shift box: NONE (decrease on the true model over X_delta with {decay}): {box['reason']}"
-                         + _witness_text(box))
-        else:
-            parts = ", ".join(f"{name} in [{lo:.4g}, {hi:.4g}]" for name, (lo, hi) in box["box"].items())
-            unit = ", ".join(f"{w:.3g}" for w in box["scale"])
-            lines.append(f"certified shift box: {parts} (decrease on the true model over X_delta for every xi in the "
-                         f"box, with {decay}; s* = {box['s']:.4g} x ({unit}), s in [{box['s']:.4g}, {_upper(box)}); "
-                         f"{_why(box)}; {box['proofs']} proofs, {box['time_s']:.1f} s)")
-    return lines
-
-
-def _upper(res: dict) -> str:
-    return "unbounded" if res["unproved"] is None else f"{res['unproved']:.4g}"
-
-
-def _why(res: dict) -> str:
-    if res["unproved"] is None:
-        return f"nothing unproved found ({res['stopped']})"
-    text = f"upper end {res['unproved_status']} ({res['unproved_by']})"
-    if res["stopped"] != "tolerance":
-        text += f", stopped: {res['stopped']}"
-    return text
-
-
-def _witness_text(res: dict) -> str:
-    w = res.get("witness")
-    if not w:
-        return ""
-    return f" at x = {[round(v, 5) for v in w['state']]} (residual {w['residual']:.3g} > 0)"

@@ -1,0 +1,46 @@
+"""What every command shares: the thread policy, parsing of number lists, one-line errors, defaults read from the
+settings dataclasses. Imports neither torch nor the numerical code, so ``--help`` is fast."""
+
+from __future__ import annotations
+
+import dataclasses
+import math
+import os
+
+import click
+
+
+def setup_threads() -> None:
+    """One torch thread unless ``DRLYAP_THREADS`` says otherwise (the two shared cores of a laptop-class machine)."""
+    value = os.environ.get("DRLYAP_THREADS", "1")
+    if not value.isdigit() or int(value) < 1:
+        raise click.ClickException(f"DRLYAP_THREADS must be a positive integer, got {value!r}")
+    import torch
+
+    torch.set_num_threads(int(value))
+
+
+def default(cls, name: str):
+    """The default of dataclass ``cls``'s field ``name`` (the one place that default lives)."""
+    for f in dataclasses.fields(cls):
+        if f.name == name:
+            return f.default
+    raise KeyError(f"{cls.__name__} has no field {name!r}")
+
+
+def floats(text: str | None, what: str) -> list[float] | None:
+    """Comma-separated finite numbers, or a usage error naming ``what``."""
+    if text is None:
+        return None
+    try:
+        values = [float(v) for v in text.split(",") if v.strip()]
+    except ValueError:
+        raise click.BadParameter(f"{what} must be comma-separated numbers, got {text!r}") from None
+    if not values or not all(math.isfinite(v) for v in values):
+        raise click.BadParameter(f"{what} must be finite numbers, got {text!r}")
+    return values
+
+
+def fail(err: Exception) -> None:
+    """A one-line error (exit status 1)."""
+    raise click.ClickException(str(err))

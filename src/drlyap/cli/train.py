@@ -1,0 +1,121 @@
+"""``drlyap systems`` and ``drlyap train``."""
+
+from __future__ import annotations
+
+import json
+from pathlib import Path
+
+import click
+
+from drlyap.cli.common import default, fail, floats
+from drlyap.config import ProofConfig, TrainConfig
+
+
+@click.command()
+@click.option("--json", "as_json", is_flag=True, help="Print one JSON object.")
+def systems(as_json: bool) -> None:
+    """List the built-in systems with their dimensions and parameters."""
+    from drlyap.systems import get_system, system_names
+
+    described = [get_system(name).describe() for name in system_names()]
+    if as_json:
+        click.echo(json.dumps(described, indent=2))
+        return
+    for d in described:
+        params = ", ".join(f"{k}={v:g}" for k, v in d["parameters"].items())
+        click.echo(f"{d['name']}: n={d['n']} states {d['states']}, m={d['m']} inputs {d['inputs']}, "
+                   f"k={d['k']} uncertain {d['uncertain']}")
+        click.echo(f"    parameters: {params}; x* = {[round(v, 4) for v in d['equilibrium']]}; "
+                   f"U = {d['input_box']}; test xi = {d['test_xi']}")
+
+
+@click.command()
+@click.argument("system")
+@click.option("--method", type=click.Choice(["baseline", "dr"]), default=default(TrainConfig, "method"),
+              show_default=True, help="baseline: nominal condition at the mean xi sample; dr: distributionally robust.")
+@click.option("--loss", type=click.Choice(["pointwise", "uniform"]), default=default(TrainConfig, "loss"),
+              show_default=True, help="DR condition: per-state (pointwise) or over the whole region (uniform).")
+@click.option("--radius", type=float, default=None, help="Wasserstein radius r [system default].")
+@click.option("--eps", type=float, default=None, help="Risk level eps in (0, 1) [system default].")
+@click.option("--gamma", type=float, default=None, help="Decay rate gamma in Vdot + gamma||x-x*|| <= 0.")
+@click.option("--exp-rate", type=float, default=None,
+              help="alpha of the exponential variant (adds alpha V inside the condition) [system default; 0].")
+@click.option("--xi-samples", default=None,
+              help="Explicit xi samples 'a,b;c,d;...' (one sample per ';'); default: drawn from the system.")
+@click.option("--iters", type=int, default=default(TrainConfig, "iters"), show_default=True, help="Iteration cap.")
+@click.option("--seed", type=int, default=default(TrainConfig, "seed"), show_default=True)
+@click.option("--device", default=default(TrainConfig, "device"), show_default=True, help="cpu or cuda.")
+@click.option("--warm-start", type=click.Path(path_type=Path), default=None,
+              help="Start from the networks of this run directory (e.g. a baseline run).")
+@click.option("--out", type=click.Path(path_type=Path), required=True, help="Run directory to create.")
+@click.option("--quiet", is_flag=True, help="No progress bar.")
+@click.option("--verify/--no-verify", default=True, show_default=True,
+              help="Prove the trained condition after training, retraining on counterexamples (CEGIS) until it is "
+                   "proved or the rounds/budget run out. --no-verify: training and the acceptance check only.")
+@click.option("--verify-rounds", type=int, default=default(ProofConfig, "rounds"), show_default=True,
+              help="Retraining rounds at most.")
+@click.option("--verify-time", type=float, default=None,
+              help="Seconds per proof [the system's: 30; 120 for cartpole and quadrotor2d].")
+@click.option("--verify-budget", type=float, default=None, help="Total seconds for the retraining rounds [no limit].")
+@click.option("--local-rate", type=float, default=None,
+              help="Ask V to decay at this rate near x* on every training sample's linearisation (a loss term; the "
+                   "acceptance check then asks V to decrease there) [0: not asked].")
+@click.option("--json", "as_json", is_flag=True, help="Print one JSON object (run_dir, system, metrics) on stdout.")
+def train(system: str, method: str, loss: str, radius: float | None, eps: float | None, gamma: float | None,
+          exp_rate: float | None, xi_samples: str | None, iters: int, seed: int, device: str, warm_start: Path | None,
+          out: Path, quiet: bool, verify: bool, verify_rounds: int, verify_time: float | None,
+          verify_budget: float | None, local_rate: float | None, as_json: bool) -> None:
+    """Train a controller and Lyapunov certificate for SYSTEM, prove the trained condition, save a run directory.
+
+    SYSTEM is a registered name, package.module:factory or path/to/file.py:factory (see `drlyap systems`).
+    The last line says whether the condition is VERIFIED (proved at every state of the box minus the
+    delta-ball), VIOLATED (a counterexample) or UNKNOWN (budget ran out).
+    """
+    from drlyap.render import certificate_line, proof_round_line
+    from drlyap.runs import ensure_new, load_run, save_run
+    from drlyap.systems import resolve_system, system_source
+    from drlyap.training import train as train_pair
+    from drlyap.verification import Certificate
+
+    try:
+        if verify_rounds < 0:
+            raise ValueError(f"--verify-rounds must be >= 0, got {verify_rounds}")
+        sys_ = resolve_system(system)
+        samples = None
+        if xi_samples is not None:
+            samples = [floats(part, "--xi-samples") for part in xi_samples.split(";") if part.strip()]
+        cfg = TrainConfig(system=sys_.name, method=method, loss=loss, wasserstein_radius=radius, risk_level=eps,
+                          decay_rate=gamma, exp_rate=exp_rate, xi_samples=samples, iters=iters, seed=seed,
+                          device=device, local_rate=local_rate).resolved(sys_)  # a bad config is refused here
+        proof = None
+        if verify:
+            proof = ProofConfig(rounds=verify_rounds, time_limit=verify_time, total_time=verify_budget).resolved(sys_)
+        ensure_new(out)
+        init = None
+        if warm_start is not None:
+            prior = load_run(warm_start, sys_)
+            init = (prior.lyapunov_net, prior.controller_net)
+        result = train_pair(cfg, sys_, proof, progress=not quiet, init=init,
+                            log=lambda entry: click.echo(proof_round_line(entry), err=True), warn=False)
+        save_run(out, result, source=system_source(system, sys_))
+    except ValueError as err:
+        fail(err)
+    m = result.metrics
+    if as_json:
+        click.echo(json.dumps({"run_dir": str(out), "system": sys_.name, "method": method, "metrics": m}))
+        return
+    c = m.get("cegis")
+    iterations, seconds = (c["total_iterations"], c["total_time_s"]) if c else (m["iterations"], m["train_time_s"])
+    click.echo(f"{sys_.name} {method}: {m['status']} ({iterations} iterations, {seconds:.1f} s in all)")
+    acc = m["acceptance"]
+    click.echo(f"  acceptance: {'PASSED' if m['passed'] else 'NOT PASSED'}; max violation {acc['max_violation']:.3g} "
+               f"on {100 * acc['violating_fraction']:.2f}% of {acc['validation_states']} validation states; "
+               f"Hurwitz at x*: {acc['jacobian']['hurwitz']}; other equilibria: {len(acc['other_equilibria'])}")
+    if acc.get("local_rate_max") is not None:
+        rate = acc["local_rate_max"]
+        click.echo(f"  V near x*: Vdot <= {rate:+.3g} V to second order at the worst training sample "
+                   f"({'V decreases' if rate < 0 else 'V does NOT decrease along every direction'})")
+    if c:
+        click.echo(f"  proof: {c['retraining_rounds']} retraining round(s) (kept round {c['returned_round']})")
+    click.echo(f"  saved {out}")
+    click.echo(certificate_line(Certificate.from_dict(m["certificate"])))

@@ -1,0 +1,167 @@
+"""``drlyap verify``, ``drlyap lipschitz`` and ``drlyap guarantee``: what a run directory proves."""
+
+from __future__ import annotations
+
+import dataclasses
+import json
+from pathlib import Path
+
+import click
+
+from drlyap.cli.common import default, fail, floats
+from drlyap.config import ENCLOSURES, ProofConfig
+
+
+@click.command()
+@click.argument("run_dir", type=click.Path(path_type=Path))
+@click.option("--delta", type=float, default=None, help="Radius of the excluded ball around x* [the run's delta].")
+@click.option("--xi", default=None, help="Also verify plain decrease on the true model at this shift (comma-separated).")
+@click.option("--time-limit", type=float, default=None,
+              help="Seconds per branch and bound [the run's seconds per proof: 30; 120 for cartpole, quadrotor2d].")
+@click.option("--roa/--no-roa", default=False, show_default=True, help="Certify a sublevel set of V as region of attraction.")
+@click.option("--roa-time", type=float, default=None,
+              help="Seconds for --roa's search: the condition on a sublevel set, then decrease inside the ball "
+                   "[3x --time-limit]; where that certifies no sublevel set of V but the closed loop's own ellipsoid "
+                   "{z'Pz <= c}, as many seconds again for V's decrease outside that ellipsoid (the band proof).")
+@click.option("--max-radius", is_flag=True,
+              help="Also find the largest Wasserstein radius for which the DR pointwise condition (the run's eps, "
+                   "samples, gamma) is proved, and the largest box of shifts for which decrease on the true model "
+                   "is proved (bisection on proofs; each proof gets --time-limit seconds).")
+@click.option("--radius-tol", type=float, default=0.01, show_default=True,
+              help="Relative width of the bracket [certified, unproved) that --max-radius stops at.")
+@click.option("--enclosure", type=click.Choice(ENCLOSURES), default=default(ProofConfig, "enclosure"),
+              help="How boxes are bounded: the interval mean-value form, or affine forms with an exact quadratic "
+                   "part (second-order Taylor models: far tighter from 4 states on, several times the cost per box) "
+                   "[affine from 4 states on, else mean-value]; the region-of-attraction search uses the same.")
+@click.option("--json", "as_json", is_flag=True, help="Print one JSON object.")
+def verify(run_dir: Path, delta: float | None, xi: str | None, time_limit: float | None, roa: bool,
+           roa_time: float | None, max_radius: bool, radius_tol: float, enclosure: str | None, as_json: bool) -> None:
+    """Prove the decrease condition of RUN_DIR on the whole state box minus the delta-ball, or find a counterexample.
+
+    A run trained for a region of attraction (cartpole's default) has its condition proved on the sublevel set
+    {V <= level} minus the ball instead, together with V > level on the faces of the box.
+
+    Sound bounds (interval mean-value form, or affine forms with --enclosure affine) with branch and bound,
+    in float64 with outward rounding.
+    """
+    from drlyap.io import jsonable
+    from drlyap.render import verification_lines
+    from drlyap.runs import load_run
+    from drlyap.verification import Budget
+    from drlyap.workflows.verify import run_proof, run_robustness, verify_run
+
+    try:
+        if time_limit is not None and not time_limit > 0:
+            raise ValueError(f"--time-limit must be > 0, got {time_limit}")
+        if roa_time is not None and not roa_time > 0:
+            raise ValueError(f"--roa-time must be > 0, got {roa_time}")
+        if not radius_tol > 0:
+            raise ValueError(f"--radius-tol must be > 0, got {radius_tol}")
+        run = load_run(run_dir)
+        settings = dataclasses.replace(run.proof or ProofConfig(), roa_time=roa_time, enclosure=enclosure)
+        if time_limit is not None:
+            settings = dataclasses.replace(settings, time_limit=time_limit)
+        settings = run_proof(run, settings)
+        shift = None if xi is None else run.system.check_xi(floats(xi, "--xi"))
+        result = verify_run(run, settings, delta=delta, xi=shift, roa=roa)
+        if max_radius:
+            result.robustness = run_robustness(run, delta=delta, tol=radius_tol,
+                                               budget=Budget(seconds=settings.time_limit, enclosure="mean-value"),
+                                               total_time=8 * settings.time_limit)
+    except ValueError as err:
+        fail(err)
+    if as_json:
+        click.echo(json.dumps(jsonable(result.to_dict())))
+        return
+    for line in verification_lines(result, run.system.name, run.config.method):
+        click.echo(line)
+
+
+@click.command("guarantee")
+@click.argument("run_dir", type=click.Path(path_type=Path))
+@click.option("--dist", "dist", default="train", show_default=True,
+              help="Distribution of xi: 'train' (the system's own), 'normal:M1,M2;S1,S2', 'uniform:L1,L2;H1,H2' "
+                   "or 'point:V1,V2'.")
+@click.option("--n", "n", type=int, default=1000, show_default=True, help="Number of draws of xi.")
+@click.option("--method", type=click.Choice(["sampling", "verifier"]), default="sampling", show_default=True,
+              help="sampling: dense grid of X_delta per draw (optimistic); verifier: branch and bound per distinct "
+                   "draw (unknown counts as failing; pendulum: about 0.5 s per draw).")
+@click.option("--eps-bar", type=float, default=0.05, show_default=True, help="Confidence slack eps_bar of the lemma.")
+@click.option("--seed", type=int, default=0, show_default=True, help="Seed of the draws.")
+@click.option("--time-limit", type=float, default=5.0, show_default=True, help="Seconds per draw (--method verifier).")
+@click.option("--radius-constants", default=None,
+              help="c1,c2,rho of eq. wasserstein_r_guarantee: also report r_N(eps_bar) for the run's k and N.")
+@click.option("--json", "as_json", is_flag=True, help="Print one JSON object.")
+def guarantee(run_dir: Path, dist: str, n: int, method: str, eps_bar: float, seed: int, time_limit: float,
+              radius_constants: str | None, as_json: bool) -> None:
+    """Estimate P(sup_x Vdot + gamma||x - x*|| <= 0) on the true model under a distribution of xi, next to the
+    bound (1 - eps)(1 - eps_bar) of the paper's lemma."""
+    from drlyap.runs import load_run
+    from drlyap.workflows.guarantee import guarantee as estimate
+
+    try:
+        constants = None
+        if radius_constants is not None:
+            constants = floats(radius_constants, "--radius-constants")
+            if len(constants) != 3:
+                raise ValueError(f"--radius-constants takes c1,c2,rho, got {radius_constants!r}")
+        run = load_run(run_dir)
+        result = estimate(run, dist, n, method=method, seed=seed, eps_bar=eps_bar, time_limit=time_limit,
+                          radius_constants=constants)
+    except ValueError as err:
+        fail(err)
+    if as_json:
+        click.echo(json.dumps(result))
+        return
+    lo, hi = result["interval_clopper_pearson"]
+    click.echo(f"{result['system']} ({result['method']}), xi ~ {dist}, {n} draws ({result['n_distinct']} distinct), "
+               f"check: {method}")
+    click.echo(f"  decrease holds on the true model over X_delta for {result['holds']}/{n} draws: "
+               f"{100 * result['fraction']:.2f}% (95% Clopper-Pearson [{100 * lo:.2f}%, {100 * hi:.2f}%])")
+    if result["unknown"]:
+        click.echo(f"  {result['unknown']} distinct draws unknown (time limit), counted as failing")
+    worst = result["worst_sup_residual"]
+    if worst is not None:
+        click.echo(f"  worst sup_x residual over the draws: {worst:.4g}")
+    click.echo(f"  lemma bound (1 - eps)(1 - eps_bar) = (1 - {result['eps']:g})(1 - {result['eps_bar']:g}) = "
+               f"{result['bound']:.4f}"
+               + ("" if result["bound_applies"] else " (not for this run: it needs the uniform DR condition)"))
+    click.echo(f"  the bound assumes r = r_N(eps_bar) (run: r = {result['radius']:g}, N = {result['n_xi']}) and a "
+               "light-tailed true distribution")
+    rg = result.get("radius_guarantee")
+    if rg is not None:
+        click.echo(f"  r_N(eps_bar) = {rg['r_N']:.4g} for c1={rg['c1']:g}, c2={rg['c2']:g}, rho={rg['rho']:g}, k={rg['k']}, "
+                   f"N={rg['N']}: the run's radius is {'enough' if rg['radius_sufficient'] else 'too small'}")
+
+
+@click.command()
+@click.argument("run_dir", type=click.Path(path_type=Path))
+@click.option("--spacing", type=float, default=None, help="Grid spacing in local state units [about 20000 cells].")
+@click.option("--xi", default=None, help="Check plain decrease on the true model at this shift instead.")
+@click.option("--verify-time", type=float, default=10.0, show_default=True,
+              help="Seconds for the branch and bound on the same condition, for comparison (0: skip).")
+@click.option("--json", "as_json", is_flag=True, help="Print one JSON object.")
+def lipschitz(run_dir: Path, spacing: float | None, xi: str | None, verify_time: float, as_json: bool) -> None:
+    """Lipschitz covering check of RUN_DIR's condition on a grid of X_delta (the paper's covering argument).
+
+    Certified when the residual at every cell centre is <= -L * rho (L: a sound Lipschitz constant from interval
+    gradient bounds, rho: the covering radius); compare with the branch and bound of `drlyap verify`.
+    """
+    from drlyap.io import jsonable
+    from drlyap.render import covering_lines
+    from drlyap.runs import load_run
+    from drlyap.workflows.verify import run_covering
+
+    try:
+        if verify_time < 0:
+            raise ValueError(f"--verify-time must be >= 0, got {verify_time}")
+        run = load_run(run_dir)
+        shift = None if xi is None else run.system.check_xi(floats(xi, "--xi"))
+        result = run_covering(run, spacing=spacing, xi=shift, compare_seconds=verify_time)
+    except ValueError as err:
+        fail(err)
+    if as_json:
+        click.echo(json.dumps(jsonable(result.to_dict())))
+        return
+    for line in covering_lines(result, run.system.name, run.config.method):
+        click.echo(line)

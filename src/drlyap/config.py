@@ -1,0 +1,432 @@
+"""The settings of a run, resolved once where the user's input enters (the CLI, the Python API) and passed down as
+typed objects: a system's defaults (:class:`SystemDefaults`), the training configuration (:class:`TrainConfig`),
+the proof settings (:class:`ProofConfig`) and one proof's work (:class:`Budget`).
+
+This module imports neither torch nor the rest of drlyap, so the command line reads its defaults from these
+classes without loading the numerical code. Every default of these settings lives here.
+"""
+
+from __future__ import annotations
+
+import copy
+import dataclasses
+import math
+from collections.abc import Mapping
+from dataclasses import dataclass, fields
+
+from drlyap.io import from_fields
+
+
+@dataclass(frozen=True)
+class SystemDefaults:
+    """A system's defaults for the settings a :class:`~drlyap.training.TrainConfig` (and a
+    :class:`~drlyap.verification.ProofConfig`) leaves open (``None``): the one place every default of those lives.
+
+    A system declares only what differs (``UncertainSystem(..., defaults={"delta": 0.5, "margin": 0.1})`` or a
+    ``SystemDefaults``); the field defaults below are the rest. Units: ``wasserstein_radius`` in the units of xi,
+    ``delta`` and ``train_box`` in local state units, ``lr`` per Adam step, ``verify_time`` seconds per proof.
+    """
+
+    wasserstein_radius: float = 0.01  # r
+    risk_level: float = 0.1  # eps
+    decay_rate: float = 1.0  # gamma of gamma ||z||
+    exp_rate: float = 0.0  # alpha of alpha V (the exponential variant)
+    n_states: int = 3600  # training states per batch
+    n_xi: int = 5  # samples of xi drawn from the system's distribution
+    delta: float = 0.1  # radius of the excluded ball around x*
+    lr: float = 0.002  # Adam's step size
+    alpha_hat: float = 1.0
+    lyapunov_hidden: tuple[int, ...] = (32, 32)
+    controller_hidden: tuple[int, ...] = (32, 32)
+    margin: float = 0.0
+    near_share: float = 0.0
+    train_box: tuple[tuple[float, ...], tuple[float, ...]] | None = None
+    roa_level: float | None = None
+    margin_rate: float = 0.0
+    local_rate: float = 0.0
+    warm_start: str | None = None
+    lqr_weights: tuple[tuple[float, ...], tuple[float, ...]] | None = None
+    verify_time: float = 30.0  # seconds per proof
+
+    def __post_init__(self) -> None:
+        for f in fields(self):
+            object.__setattr__(self, f.name, _frozen(getattr(self, f.name)))
+
+    @classmethod
+    def of(cls, value: SystemDefaults | Mapping | None, what: str = "defaults") -> SystemDefaults:
+        """``value`` as defaults: itself, or a mapping of field names (an unknown name is an error that lists
+        the valid ones); sequences are stored as tuples."""
+        if value is None:
+            return cls()
+        if isinstance(value, cls):
+            return value
+        if not isinstance(value, Mapping):
+            raise ValueError(f"{what} must be a SystemDefaults or a dict of its fields, got {type(value).__name__}")
+        known = [f.name for f in fields(cls)]
+        unknown = sorted(set(value) - set(known))
+        if unknown:
+            raise ValueError(f"{what}: unknown keys {unknown}; valid: {known}")
+        return cls(**value)
+
+    def to_dict(self) -> dict:
+        """The defaults as JSON-friendly values (tuples as lists)."""
+        return {f.name: _thawed(getattr(self, f.name)) for f in fields(self)}
+
+
+def _frozen(value):
+    return tuple(_frozen(v) for v in value) if isinstance(value, (list, tuple)) else value
+
+
+def _thawed(value):
+    return [_thawed(v) for v in value] if isinstance(value, (list, tuple)) else value
+
+
+def _frozen(value):
+    return tuple(_frozen(v) for v in value) if isinstance(value, (list, tuple)) else value
+
+
+def _thawed(value):
+    return [_thawed(v) for v in value] if isinstance(value, (list, tuple)) else value
+
+
+RESOLVED = ("wasserstein_radius", "risk_level", "decay_rate", "exp_rate", "n_states", "n_xi", "delta", "lr",
+            "alpha_hat", "lyapunov_hidden", "controller_hidden", "margin", "near_share", "train_box", "roa_level",
+            "margin_rate", "local_rate", "warm_start", "lqr_weights")
+"""The fields a config leaves to its system (``None``) and :meth:`TrainConfig.resolved` fills."""
+
+OPTIONAL = ("train_box", "roa_level", "warm_start", "lqr_weights")
+"""Of :data:`RESOLVED`, those that may stay None (no training box of its own, the paper's condition on all of
+X_delta, no warm start, Bryson's weights)."""
+
+LEGACY_PROOF_KEYS = ("verify", "verify_rounds", "verify_time", "verify_budget")
+"""Proof settings older runs stored in ``config.json`` (now a :class:`~drlyap.verification.ProofConfig`)."""
+
+
+
+
+def _is_number(value) -> bool:
+    return isinstance(value, (int, float)) and not isinstance(value, bool)
+
+
+def _short(value) -> str:
+    text = repr(value)
+    return text if len(text) <= 60 else text[:57] + "..."
+
+
+_KINDS = {
+    "system": "str", "method": "str", "loss": "str", "device": "str", "warm_start": "str",
+    "wasserstein_radius": "number", "risk_level": "number", "decay_rate": "number", "exp_rate": "number",
+    "delta": "number", "lr": "number", "alpha_hat": "number", "margin": "number", "near_share": "number",
+    "roa_level": "number", "margin_rate": "number", "local_rate": "number", "init_gain": "number",
+    "n_states": "int", "n_xi": "int", "iters": "int", "check_every": "int", "seed": "int", "lyapunov_out": "int",
+    "resample": "bool", "lyapunov_hidden": "sizes", "controller_hidden": "sizes",
+}
+_REQUIRED = ("system", "method", "loss", "iters", "check_every", "seed", "device", "lyapunov_out", "init_gain",
+             "resample")
+
+
+@dataclass
+class TrainConfig:
+    """Everything a training run depends on (saved verbatim as ``config.json``).
+
+    ``None`` fields take the system's defaults (:class:`~drlyap.systems.SystemDefaults`) when the config is
+    resolved (:meth:`resolved`), once, where the user's input enters (the CLI, :func:`drlyap.train`); everything
+    below takes resolved configs. The proof settings are a :class:`~drlyap.verification.ProofConfig` of their own.
+    """
+
+    system: str = "pendulum"
+    method: str = "dr"  # "baseline" (nominal condition at the sample mean) or "dr"
+    loss: str = "pointwise"  # DR loss: "pointwise" or "uniform"
+    wasserstein_radius: float | None = None  # r
+    risk_level: float | None = None  # eps
+    decay_rate: float | None = None  # gamma in Vdot + gamma ||x - x*|| <= 0
+    exp_rate: float | None = None  # alpha of the exponential variant (adds alpha V inside the hinge)
+    n_states: int | None = None  # M training states
+    n_xi: int | None = None  # N samples of xi drawn from the system's distribution
+    xi_samples: list[list[float]] | None = None  # explicit samples (N, k); overrides n_xi
+    delta: float | None = None  # radius of the excluded ball around x* (local coordinates)
+    lr: float | None = None  # Adam's step size (system default; 0.002)
+    iters: int = 3000  # iteration cap
+    check_every: int = 250  # acceptance check period (iterations)
+    seed: int = 0
+    device: str = "cpu"
+    lyapunov_hidden: list[int] | None = None
+    lyapunov_out: int = 8
+    alpha_hat: float | None = None
+    controller_hidden: list[int] | None = None
+    init_gain: float = 10.0  # scale of the controller's output layer at initialisation
+    margin: float | None = None  # training hinge is (residual + margin)_+: pushes the condition past zero
+    resample: bool = True  # draw a fresh uniform batch of n_states every iteration (False: one fixed set)
+    # share of each batch drawn evenly over the distance from x* (Region.sample_near) instead of uniformly:
+    # with 4 or more states a uniform batch holds almost no states near x*, where local stability is decided
+    near_share: float | None = None
+    # Box ((low...), (high...)) in user coordinates the training states are drawn from; None: the
+    # system's X. Only where training samples: the networks' input scaling, the acceptance check, the
+    # verifier and the success criterion keep X.
+    train_box: list[list[float]] | None = None
+    # Region-of-attraction training: the condition is asked only of {V <= roa_level}, and a hinge keeps V above
+    # roa_level on the faces of X (so the set lies inside X and is forward invariant once the condition holds
+    # on it); half of each batch is drawn inside the set. None: the paper's condition on all of X_delta.
+    roa_level: float | None = None
+    margin_rate: float | None = None  # adds margin_rate * V to the hinge: a margin that scales with V (0 at x*)
+    # V's local decay rate asked at x*: a hinge (lambda_j + local_rate)_+ on conditions.local_rates at every training
+    # sample (every LOCAL_EVERY iterations), and the acceptance check then asks lambda_j < 0. 0: neither.
+    local_rate: float | None = None
+    # "lqr": before training, fit V to the LQR's z^T P z (scaled to 1.2 roa_level, or 1, on the faces) and pi to
+    # its gain, by regression; lqr_weights = [Q diagonal, R diagonal] (None: Bryson's rule)
+    warm_start: str | None = None
+    lqr_weights: list[list[float]] | None = None
+
+    def type_problems(self) -> list[str]:
+        """The fields whose value has the wrong type (numbers where numbers belong, integers for counts, strings,
+        a boolean), each named with what would be valid; fields left None are not checked."""
+        problems = []
+        for f in dataclasses.fields(self):
+            value, kind = getattr(self, f.name), _KINDS.get(f.name)
+            if value is None or kind is None:
+                if value is None and f.name in _REQUIRED:
+                    problems.append(f"{f.name} is missing (null)")
+                continue
+            if kind == "number" and not _is_number(value):
+                problems.append(f"{f.name} = {value!r} (must be a number)")
+            elif kind == "int" and not (isinstance(value, int) and not isinstance(value, bool)):
+                problems.append(f"{f.name} = {value!r} (must be an integer)")
+            elif kind == "str" and not isinstance(value, str):
+                problems.append(f"{f.name} = {value!r} (must be a string)")
+            elif kind == "bool" and not isinstance(value, bool):
+                problems.append(f"{f.name} = {value!r} (must be true or false)")
+            elif kind == "sizes" and not (isinstance(value, (list, tuple)) and value and all(
+                    isinstance(v, int) and not isinstance(v, bool) and v >= 1 for v in value)):
+                problems.append(f"{f.name} = {value!r} (must be a list of positive integers)")
+        return problems
+
+    def resolved(self, system) -> TrainConfig:
+        """A copy with ``None`` fields filled from ``system.defaults``, explicit xi samples as lists of floats
+        (a tensor or an array is accepted), validated for ``system``."""
+        cfg = copy.deepcopy(self)
+        defaults = system.defaults.to_dict()
+        for name in RESOLVED:
+            if getattr(cfg, name) is None:
+                setattr(cfg, name, defaults[name])
+        if cfg.xi_samples is not None and hasattr(cfg.xi_samples, "tolist"):  # a tensor or an array
+            cfg.xi_samples = cfg.xi_samples.tolist()
+        cfg.validate(system)
+        return cfg
+
+    def missing(self) -> list[str]:
+        """The fields a resolved config has filled that this one leaves open (empty once resolved)."""
+        return [name for name in RESOLVED if getattr(self, name) is None and name not in OPTIONAL]
+
+    def validate(self, system) -> None:
+        """A ValueError naming every field that is of the wrong type or out of range for ``system``."""
+        problems = self.type_problems()
+        if problems:
+            raise ValueError("invalid training config: " + "; ".join(problems))
+        if self.method not in ("baseline", "dr"):
+            problems.append(f"method {self.method!r} (valid: baseline, dr)")
+        if self.loss not in ("pointwise", "uniform"):
+            problems.append(f"loss {self.loss!r} (valid: pointwise, uniform)")
+        for name in ("wasserstein_radius", "decay_rate", "exp_rate", "margin", "alpha_hat", "margin_rate", "local_rate"):
+            value = getattr(self, name)
+            if not (math.isfinite(value) and value >= 0):
+                problems.append(f"{name} = {value} (must be finite and >= 0)")
+        if not 0 < self.risk_level < 1:
+            problems.append(f"risk_level = {self.risk_level} (must be in (0, 1))")
+        for name in ("n_states", "n_xi", "iters", "check_every"):
+            if int(getattr(self, name)) < 1:
+                problems.append(f"{name} = {getattr(self, name)} (must be >= 1)")
+        if not (math.isfinite(self.lr) and self.lr > 0):
+            problems.append(f"lr = {self.lr} (must be > 0)")
+        if not (math.isfinite(self.near_share) and 0 <= self.near_share <= 1):
+            problems.append(f"near_share = {self.near_share} (must be in [0, 1])")
+        if self.roa_level is not None and not (math.isfinite(self.roa_level) and self.roa_level > 0):
+            problems.append(f"roa_level = {self.roa_level} (must be > 0, or None)")
+        if self.warm_start not in (None, "lqr"):
+            problems.append(f"warm_start {self.warm_start!r} (valid: lqr, or None)")
+        if self.lqr_weights is not None:
+            ok = (isinstance(self.lqr_weights, (list, tuple)) and len(self.lqr_weights) == 2
+                  and len(self.lqr_weights[0]) == system.n and len(self.lqr_weights[1]) == system.m)
+            if not ok:
+                problems.append(f"lqr_weights must be [Q diagonal ({system.n}), R diagonal ({system.m})], "
+                                f"got {self.lqr_weights!r}")
+        if not (math.isfinite(self.delta) and self.delta >= 0):
+            problems.append(f"delta = {self.delta} (must be >= 0)")
+        if self.train_box is not None:
+            try:
+                dataclasses.replace(system, state_box=tuple(tuple(float(v) for v in side) for side in self.train_box))
+            except (TypeError, ValueError) as err:
+                problems.append(f"train_box: {err}")
+        if self.xi_samples is not None:
+            rows = self.xi_samples
+            shape_ok = isinstance(rows, (list, tuple)) and len(rows) >= 1 and all(
+                isinstance(row, (list, tuple)) and len(row) == system.k and all(_is_number(v) for v in row)
+                for row in rows)
+            if not shape_ok:
+                problems.append(f"xi_samples must be an (N, {system.k}) array of numbers for {system.name} (N >= 1), "
+                                f"got {_short(rows)}")
+            elif not all(math.isfinite(v) for row in rows for v in row):
+                problems.append("xi_samples contain NaN or inf")
+        if problems:
+            raise ValueError("invalid training config: " + "; ".join(problems))
+
+    def to_dict(self) -> dict:
+        return dataclasses.asdict(self)
+
+    @classmethod
+    def from_dict(cls, data: dict) -> TrainConfig:
+        """The config stored as ``data`` (a run's ``config.json``); the proof settings older runs kept in it
+        (``verify*``, see :func:`legacy_proof`) are left to the run's proof record."""
+        return from_fields(cls, {k: v for k, v in data.items() if k not in LEGACY_PROOF_KEYS}, "config")
+
+
+ENCLOSURES = ("mean-value", "affine")
+"""The enclosures the verifier can bound boxes with (the first is the default below 4 states)."""
+
+
+def default_enclosure(n: int) -> str:
+    """The enclosure for an ``n``-state system: ``affine`` from 4 states on (11-25x tighter there,
+    ``benchmarks/enclosure_bench.py``), else ``mean-value`` (about 3x cheaper per box; in 2 states boxes are
+    few and the pendulum's proofs take about a second either way)."""
+    return "affine" if n >= 4 else "mean-value"
+
+
+def check_enclosure(enclosure: str) -> str:
+    """``enclosure`` if it is one of :data:`ENCLOSURES`, else a ValueError naming the valid ones."""
+    if enclosure not in ENCLOSURES:
+        raise ValueError(f"unknown enclosure {enclosure!r}; valid: {', '.join(ENCLOSURES)}")
+    return enclosure
+
+
+@dataclass(frozen=True)
+class Budget:
+    """How much one proof may do, and how finely: at most ``boxes`` boxes bounded and ``seconds`` of wall time
+    (whichever ends first; the result's ``stopped`` says which), boxes split no finer than ``min_width`` (of the
+    box's sides), ``batch`` boxes bounded at a time, with ``enclosure`` (None: :func:`default_enclosure`)."""
+
+    seconds: float = 30.0
+    boxes: int = 2_000_000
+    min_width: float = 1e-4
+    batch: int = 4096
+    enclosure: str | None = None
+
+    def __post_init__(self) -> None:
+        # seconds may be spent (<= 0) where a proof hands what is left of its time to its last step: it stops at once
+        if not (math.isfinite(self.seconds) and int(self.boxes) >= 1 and self.min_width > 0 and int(self.batch) >= 1):
+            raise ValueError(f"a proof budget needs finite seconds, boxes >= 1, min_width > 0 and batch >= 1, got {self}")
+        if self.enclosure is not None:
+            check_enclosure(self.enclosure)
+
+    def enclosure_for(self, n: int) -> str:
+        """The enclosure to bound boxes of an ``n``-state system with."""
+        return self.enclosure or default_enclosure(n)
+
+    def share(self, fraction: float, least_seconds: float = 0.0) -> Budget:
+        """The same budget scaled by ``fraction`` (seconds at least ``least_seconds``, boxes at least 1)."""
+        return dataclasses.replace(self, seconds=max(least_seconds, self.seconds * fraction),
+                                   boxes=max(1, int(self.boxes * fraction)))
+
+    def with_seconds(self, seconds: float) -> Budget:
+        return dataclasses.replace(self, seconds=seconds)
+
+
+DEFAULT_SETTLE_STARTS = 4096
+"""Falsifier starts of a verdict (:func:`~drlyap.verification.falsifier.settle_unknown`): about 1.6 s on the
+quadrotor, one thread."""
+
+
+@dataclass(frozen=True)
+class ProofConfig:
+    """Every setting of a run's proofs: the counterexample-guided rounds after training (``drlyap train``) and the
+    checks of ``drlyap verify``. ``None`` fields are resolved from the system (:meth:`resolved`).
+
+    Proofs: ``time_limit`` seconds each (None: the system's ``defaults.verify_time``: 30, 120 for the cart-pole and
+    the quadrotor), ``max_boxes`` boxes each, ``min_width``, ``enclosure`` (None: affine from 4 states on).
+    Rounds: at most ``rounds`` retraining rounds, all within ``total_time`` seconds (None: no limit); each trains
+    ``iters_per_round`` iterations (None: half the run's ``iters``) on the states collected so far (at most
+    ``max_extra``, repeated ``replicate`` times in every batch): the proof's counterexample, the centres of at most
+    ``keep_boxes`` unverified boxes, and a falsifier's counterexamples (``falsifier_starts`` starts, None: 512
+    uniform, or 2,048 half near x* where training draws states near x*; ``falsifier_steps`` ascent steps; each with
+    ``neighbours`` jittered copies). ``settle_starts``: falsifier starts that settle an unknown verdict.
+    Checks of ``verify``: ``uniform_time`` seconds for the uniform DR margin, ``roa_time`` for the region of
+    attraction (None: 3x ``time_limit``), ``band_time`` for its band proof (None: ``roa_time`` again; 0: off).
+    """
+
+    rounds: int = 5
+    time_limit: float | None = None
+    total_time: float | None = None
+    max_boxes: int = 2_000_000
+    min_width: float = 1e-4
+    enclosure: str | None = None
+    iters_per_round: int | None = None
+    max_extra: int = 2000
+    replicate: int = 2
+    keep_boxes: int = 200
+    falsifier_starts: int | None = None
+    falsifier_steps: int = 30
+    neighbours: int = 3
+    settle_starts: int = DEFAULT_SETTLE_STARTS
+    uniform_time: float = 3.0
+    roa_time: float | None = None
+    band_time: float | None = None
+
+    def validate(self) -> None:
+        """A ValueError naming every setting out of range."""
+        problems = []
+        if int(self.rounds) < 0:
+            problems.append(f"rounds = {self.rounds} (must be >= 0)")
+        for name in ("time_limit", "total_time", "roa_time"):
+            value = getattr(self, name)
+            if value is not None and not (math.isfinite(value) and value > 0):
+                problems.append(f"{name} = {value} (must be > 0 seconds)")
+        if self.band_time is not None and not (math.isfinite(self.band_time) and self.band_time >= 0):
+            problems.append(f"band_time = {self.band_time} (must be >= 0 seconds)")
+        if not (math.isfinite(self.uniform_time) and self.uniform_time > 0):
+            problems.append(f"uniform_time = {self.uniform_time} (must be > 0 seconds)")
+        if not self.min_width > 0 or int(self.max_boxes) < 1:
+            problems.append(f"min_width = {self.min_width} (> 0) / max_boxes = {self.max_boxes} (>= 1)")
+        if self.iters_per_round is not None and int(self.iters_per_round) < 1:
+            problems.append(f"iters_per_round = {self.iters_per_round} (must be >= 1)")
+        if int(self.max_extra) < 1 or int(self.replicate) < 1:
+            problems.append(f"max_extra = {self.max_extra} / replicate = {self.replicate} (must be >= 1)")
+        for name in ("keep_boxes", "falsifier_steps", "neighbours", "settle_starts"):
+            if int(getattr(self, name)) < 0:
+                problems.append(f"{name} = {getattr(self, name)} (must be >= 0)")
+        if self.falsifier_starts is not None and int(self.falsifier_starts) < 0:
+            problems.append(f"falsifier_starts = {self.falsifier_starts} (must be >= 0)")
+        if self.enclosure is not None and self.enclosure not in ENCLOSURES:
+            problems.append(f"enclosure {self.enclosure!r} (valid: {', '.join(ENCLOSURES)})")
+        if problems:
+            raise ValueError("invalid proof settings: " + "; ".join(problems))
+
+    def resolved(self, system) -> ProofConfig:
+        """A copy with the system's defaults filled in (seconds per proof, the enclosure), validated."""
+        self.validate()
+        return dataclasses.replace(self, time_limit=float(self.time_limit or system.defaults.verify_time),
+                                   enclosure=self.enclosure or default_enclosure(system.n))
+
+    @property
+    def is_resolved(self) -> bool:
+        return self.time_limit is not None and self.enclosure is not None
+
+    def budget(self, seconds: float | None = None) -> Budget:
+        """The :class:`Budget` of one proof (``seconds`` instead of ``time_limit`` when given)."""
+        if not self.is_resolved:
+            raise ValueError("resolve the proof settings for a system first (ProofConfig.resolved)")
+        return Budget(seconds=float(seconds if seconds is not None else self.time_limit), boxes=int(self.max_boxes),
+                      min_width=self.min_width, enclosure=self.enclosure)
+
+    def to_dict(self) -> dict:
+        return dataclasses.asdict(self)
+
+    @classmethod
+    def from_dict(cls, data: dict) -> ProofConfig:
+        return from_fields(cls, data, "proof settings")
+
+
+def legacy_proof(data: dict) -> ProofConfig | None:
+    """The proof settings an older run's ``config.json`` held (``verify``, ``verify_rounds``, ``verify_time``,
+    ``verify_budget``), or None when it was trained without proof rounds."""
+    if data.get("verify") is False:
+        return None
+    return ProofConfig(rounds=int(data.get("verify_rounds", 5)), time_limit=data.get("verify_time"),
+                       total_time=data.get("verify_budget"))

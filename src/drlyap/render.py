@@ -1,0 +1,319 @@
+"""Every sentence the tool prints about a proof: typed results (:mod:`drlyap.verification.results`) in words.
+
+A claim is worded exactly as it was proved: "verified" names the condition and the region, a region of attraction
+is called one only when every trajectory from it converges to x*, a proved share is never rounded up to a proof,
+and what was only sampled says so. The command line, the reports, the comparison table and the figures all take
+their wording from here; none of them decides again from the numbers what was proved.
+"""
+
+from __future__ import annotations
+
+import math
+
+from drlyap.io import proved_percent
+from drlyap.verification.results import (
+    Certificate,
+    ConditionProof,
+    CoveringCheck,
+    ProofAttempt,
+    RegionOfAttraction,
+    RunRobustness,
+    RunVerification,
+    UniformMargin,
+)
+
+
+def proved_share(result: ConditionProof, decimals: int = 4) -> str:
+    """The share of X_delta a proof covered, never rounded up to 100% unless it is verified."""
+    return proved_percent(result.verified_fraction, result.status == "verified", decimals)
+
+
+def _num(value, digits: int = 4) -> str:
+    """Bounds left unbounded by a time limit come back as None (or infinite)."""
+    return "unbounded" if value is None or not math.isfinite(value) else f"{value:.{digits}g}"
+
+
+# --------------------------------------------------------------------------- a run's trained condition
+def condition_region(level: float | None, delta: float) -> str:
+    """The region a trained condition is proved on: X_delta, or with a level its sublevel set."""
+    region = f"state box minus the open ball ||x - x*|| < {delta:g}"
+    if level is not None:
+        region = (f"{{V <= {level:g}}} minus the open ball ||x - x*|| < {delta:g}, with V > {level:g} on the box's "
+                  "faces")
+    return region
+
+
+def certificate_line(cert: Certificate) -> str:
+    """The one line that says what was proved about a run's trained condition."""
+    status = cert.status
+    if status == "not checked":
+        return f"certificate: NOT CHECKED ({cert.condition} condition; run `drlyap verify RUN`)"
+    where = cert.region or "X_delta"
+    if status == "verified":
+        return (f"certificate: VERIFIED - the {cert.condition} condition holds at every state of the {where} "
+                f"(proof {cert.time_s:.2f} s, {cert.boxes} boxes)")
+    share = cert.verified_fraction
+    proved = "" if share is None else f"; {100 * share:.4f}% of it proved"
+    cex = cert.counterexample
+    found = " (found by the falsifier after the proof ran out of time)" if cert.counterexample_source else ""
+    extra = f"; counterexample x = {[round(v, 5) for v in cex]}{found}" if cex else ""
+    return f"certificate: NOT VERIFIED ({status}) - the {cert.condition} condition on the {where}{proved}{extra}"
+
+
+def unverified_warning(cert: Certificate, system: str, method: str, retrainable: bool) -> str:
+    """The warning of a training run whose trained condition is not verified."""
+    share = cert.verified_fraction
+    detail = "" if share is None else f"; {100 * share:.4f}% of X_delta proved"
+    return (f"drlyap: the trained {cert.condition} condition of this {system} {method} run is NOT verified "
+            f"({cert.status}{detail}){'; raise verify_rounds' if retrainable else ''}")
+
+
+def proof_round_line(entry: dict) -> str:
+    """One line per proof round of counterexample-guided training (``entry``: a round of ``metrics["cegis"]``)."""
+    v = ConditionProof.from_dict(entry["verification"])
+    line = f"  proof round {entry['round']}: {v.status.upper()}, {proved_share(v)} of X_delta proved ({v.time_s:.2f} s)"
+    if "counterexamples_added" in entry:
+        line += (f"; retraining with {entry['counterexamples_added']} counterexamples (+{entry['neighbours_added']} "
+                 f"neighbours, {entry['box_centres_added']} box centres)")
+    return line
+
+
+# --------------------------------------------------------------------------- verify
+def condition_lines(proof: ConditionProof, title: str) -> list[str]:
+    """What ``drlyap verify`` prints for one condition's proof."""
+    where = "X_delta" if proof.level is None else f"X_delta (condition or V > {proof.level:g})"
+    lines = [f"{title}: {proof.status.upper()}; verified {proved_share(proof)} of {where} "
+             f"({proof.boxes_processed} boxes, {proof.time_s:.2f} s, {proof.stopped})"]
+    if proof.level is not None:
+        low = proof.boundary_min_lower
+        inside = low is not None and low > proof.level
+        digits = 6 if low is None or inside or f"{low:.6g}" != f"{proof.level:.6g}" else 12  # 0.9999999 is not 1
+        bound = "unbounded (time limit)" if low is None else f">= {low:.{digits}g}"
+        lines.append(f"  on {{V <= {proof.level:g}}} only; min of V on the box's faces {bound} (so the set lies "
+                     f"inside the box: {'proved' if inside else 'NOT proved'})")
+    if proof.counterexample is not None:
+        by = " (the falsifier's, after the proof ran out of time)" if proof.counterexample_source else ""
+        lines.append(f"  counterexample x = {[round(v, 6) for v in proof.counterexample]}{by} with residual "
+                     f"{proof.counterexample_value:.4g} > 0 (float32 networks: {proof.counterexample_value_float32:.4g})")
+    elif proof.status != "verified":
+        lines.append(f"  {proof.n_unverified} boxes left unverified")
+    return lines
+
+
+def margin_line(uni: UniformMargin) -> str:
+    """The uniform DR condition's bracket."""
+    return (f"uniform DR condition: {uni.status.upper()}; margin in [{_num(uni.margin_lower)}, "
+            f"{_num(uni.margin_upper)}] (<= 0 required), (r/eps) L_h <= {_num(uni.lipschitz_term[1])}")
+
+
+def roa_line(r: RegionOfAttraction, true_model: bool) -> str:
+    """What a certified-region search proved, named for what it is."""
+    if r.error is not None:
+        return f"region of attraction: {r.error}"
+    model = "the true model at --xi" if true_model else "the design model at each training sample"
+    share = r.share_of_box
+    size = (f"{100 * share:.2f}% of the box" if share >= 1e-4 or share == 0 else f"{share:.2g} of the box (estimated)"
+            ) + f", limited by {r.limited_by}"
+    if r.kind == "region of attraction":
+        local = r.local
+        how = ""
+        if r.method == "linearisation":
+            how = (f"; near x* by the closed-loop linearisation's z'Pz, proved decreasing on {{z'Pz <= "
+                   f"{local['q_level']:.3g}}} which contains {{V <= {local['inner_level']:.3g}}}")
+        elif r.method == "band":
+            low = local["v_on_ellipsoid"][0]
+            how = (f"; V proved decreasing on it outside the closed loop's certified ellipsoid {{z'Pz <= "
+                   f"{local['q_level']:.3g}}} (--json: roa.band.P), on whose boundary V is as low as {low:.3g} "
+                   f"(sampled): " + ("the set reaches beyond the ellipsoid" if r.beyond_ellipsoid else
+                                     "the set may lie inside the ellipsoid"))
+        return (f"region of attraction: CERTIFIED {{V <= {r.level:.4g}}} ({size}): every trajectory of {model} "
+                f"that starts there converges to x*{how}")
+    if r.kind == "practical stability":
+        line = (f"region of attraction: NOT CERTIFIED ({r.local['reason']}); practical stability instead: "
+                f"trajectories of {model} from {{V <= {r.level:.4g}}} ({size}) end up in "
+                f"{{V <= {r.practical_level:.4g}}}")
+    else:
+        proved = "none" if r.level is None or not math.isfinite(r.level) else f"{r.level:.4g}"
+        line = (f"region of attraction: NOT CERTIFIED (largest proved level {proved}, limited by "
+                f"{r.limited_by}; inside the ball: {r.local.get('reason') or 'proved'})")
+    quad = r.quadratic
+    if r.ellipsoid_certified:
+        line += (f"\n  the closed loop's own quadratic certificate: CERTIFIED region of attraction {{z'Pz <= "
+                 f"{quad['q_level']:.4g}}} ({quad['share_of_box']:.3g} of the box, |x_i - x*_i| up to "
+                 f"{[float(f'{e:.3g}') for e in quad['extent']]}; P chosen from the closed-loop linearisation, --json: "
+                 f"roa.quadratic.P): every trajectory of {model} that starts there converges to x*")
+    elif quad:
+        line += f"\n  the closed loop's own quadratic certificate: none ({quad['reason']})"
+    return line
+
+
+def verification_lines(ver: RunVerification, system: str, method: str) -> list[str]:
+    """Everything ``drlyap verify`` prints about a run."""
+    lines = [f"{system} ({method}), delta = {ver.delta:g}"]
+    if isinstance(ver.trained, ConditionProof):
+        lines += condition_lines(ver.trained, f"  trained condition ({ver.trained.condition})")
+    lines.append("  " + margin_line(ver.uniform))
+    if ver.true_model is not None:
+        lines += condition_lines(ver.true_model, f"  true model at xi = {ver.true_model.xi}")
+    if ver.roa is not None:
+        lines.append("  " + roa_line(ver.roa, ver.true_model is not None))
+    if ver.robustness is not None:
+        lines += [f"  {line}" for line in robustness_lines(ver.robustness)]
+    return lines
+
+
+# --------------------------------------------------------------------------- robustness
+def robustness_lines(result: RunRobustness) -> list[str]:
+    """The certified radius and shift box (what ``drlyap verify --max-radius`` prints)."""
+    lines = []
+    rad, box = result.radius, result.shift_box
+    decay = f"gamma={rad.decay_rate:g}" + (f", alpha={rad.exp_rate:g}" if rad.exp_rate else "")
+    at = f"eps={rad.risk_level:g}, N={rad.n_samples}, {decay}"
+    trained = (f"run trained at r={result.trained_radius:g}" if result.trained_radius is not None
+               else f"{result.method} run: radius of the DR condition at its N samples")
+    if rad.radius is None:
+        lines.append(f"certified Wasserstein radius (DR pointwise over X_delta): NONE at {at} ({trained}): {rad.reason}"
+                     + _witness_text(rad))
+    else:
+        lines.append(f"certified Wasserstein radius (DR pointwise over X_delta): r* in [{rad.radius:.4g}, "
+                     f"{_upper(rad)}) at {at} ({trained}); {_why(rad)}; {rad.proofs} proofs, {rad.time_s:.1f} s")
+    own = result.radius_training_sample
+    if own is not None:
+        at = f"eps={own.risk_level:g}, N=1"
+        if own.radius is None:
+            lines.append(f"  around its training sample (the mean, {at}): NONE: {own.reason}" + _witness_text(own))
+        else:
+            lines.append(f"  around its training sample (the mean, {at}): r* in [{own.radius:.4g}, {_upper(own)}); "
+                         f"{_why(own)}; {own.proofs} proofs, {own.time_s:.1f} s")
+    decay = f"gamma={box.decay_rate:g}" + (f", alpha={box.exp_rate:.3g}" if box.exp_rate else "")
+    if box.s is None:
+        lines.append(f"certified shift box: NONE (decrease on the true model over X_delta with {decay}): {box.reason}"
+                     + _witness_text(box))
+    else:
+        parts = ", ".join(f"{name} in [{lo:.4g}, {hi:.4g}]" for name, (lo, hi) in box.box.items())
+        unit = ", ".join(f"{w:.3g}" for w in box.scale)
+        lines.append(f"certified shift box: {parts} (decrease on the true model over X_delta for every xi in the "
+                     f"box, with {decay}; s* = {box.s:.4g} x ({unit}), s in [{box.s:.4g}, {_upper(box)}); "
+                     f"{_why(box)}; {box.proofs} proofs, {box.time_s:.1f} s)")
+    return lines
+
+
+def _upper(res) -> str:
+    return "unbounded" if res.unproved is None else f"{res.unproved:.4g}"
+
+
+def _why(res) -> str:
+    if res.unproved is None:
+        return f"nothing unproved found ({res.stopped})"
+    text = f"upper end {res.unproved_status} ({res.unproved_by})"
+    if res.stopped != "tolerance":
+        text += f", stopped: {res.stopped}"
+    return text
+
+
+def _witness_text(res) -> str:
+    w = res.witness
+    if not w:
+        return ""
+    return f" at x = {[round(v, 5) for v in w['state']]} (residual {w['residual']:.3g} > 0)"
+
+
+# --------------------------------------------------------------------------- report cells and figure labels
+def roa_cell(roa: RegionOfAttraction | None) -> str | None:
+    """A short name of a region-of-attraction result for a report table."""
+    if roa is None or roa.error is not None or roa.level is None:
+        return None
+    if roa.kind == "region of attraction":
+        share = roa.share_of_box
+        text = f"{100 * share:.1f}%" if share >= 1e-3 or share == 0 else f"{share:.2g} of box"
+        if roa.method != "band":
+            return text
+        return text + (" (V, band)" if roa.beyond_ellipsoid else " (V, within z'Pz)")
+    if roa.ellipsoid_certified:  # V's sublevel sets are not certified; the closed loop's quadratic one is
+        return f"z'Pz only, {roa.quadratic['share_of_box']:.2g} of box"
+    return roa.kind or "none"
+
+
+def decrease_cell(status: str | None, fraction: float | None) -> str:
+    """A condition's verdict for a report table: ``verified``, or the status with the share proved."""
+    if status is None:
+        return "-"
+    if status == "verified":
+        return "verified"
+    return f"{status} ({proved_percent(fraction or 0, False)} proved)"
+
+
+def region_label(roa: RegionOfAttraction | None, where: str) -> str:
+    """What a sublevel set ``{V <= c}`` drawn on a figure is, in words, at ``where`` (a shift text).
+
+    "practical stability: ... converges to {V <= c0}" when ``kind`` says so; "certified region of attraction"
+    only when it is certified (and ``kind``, if set, says so); otherwise what was proved and that it certifies
+    nothing. An empty string when there is no level to draw.
+    """
+    if roa is None or roa.level is None or not roa.level > 0:
+        return ""
+    c = float(roa.level)
+    c0 = roa.ball_max_upper
+    inner = f"{{V <= {float(c0):.3g}}}" if c0 is not None else "the delta-ball"
+    if roa.kind == "practical stability":
+        return f"practical stability at {where}: from {{V <= {c:.3g}}} converges to {inner}"
+    if roa.certified and roa.kind in (None, "region of attraction"):
+        return f"certified region of attraction {{V <= {c:.3g}}} at {where}"
+    bound = f", but V may reach {float(c0):.3g} on the delta-ball" if c0 is not None else ""
+    return f"not certified at {where}: decrease proved on {{V <= {c:.3g}}} outside the delta-ball{bound}"
+
+
+def attempt_cells(attempt: ProofAttempt | None) -> tuple[str, str, str]:
+    """The comparison table's cells for what a run proves at the shift: the decrease, the certified region of
+    attraction, and the certified radius and shift box."""
+    if attempt is None:
+        return "not checked", "not checked", "-"
+    if attempt.verified_fraction is None:
+        return attempt.status, "none", _robust_cell(attempt)
+    proof = (f"{attempt.status} ({proved_percent(attempt.verified_fraction, attempt.status == 'verified')} "
+             "of X_delta)")
+    if attempt.exp_rate is not None:
+        proof += f", decay {attempt.exp_rate:.3g} V"
+    if attempt.roa_certified:
+        roa = f"{100 * attempt.roa_share:.1f}% of the box"
+    elif attempt.roa_kind == "practical stability":
+        roa = f"none (practical stability on {100 * attempt.roa_share:.1f}% of the box)"
+    else:
+        roa = "none"
+    return proof, roa, _robust_cell(attempt)
+
+
+def _robust_cell(attempt: ProofAttempt) -> str:
+    rob = attempt.robustness
+    if not rob:
+        return "-"
+    if rob["radius"] is not None:
+        r = f"r* {rob['radius']:.3g} (eps {rob['risk_level']:g}, N {rob['n_samples']})"
+    else:
+        r = "r* none" if "n_samples" in rob else "r* n/a"
+    scale = ", ".join(f"{w:.3g}" for w in rob["shift_scale"])
+    s = "none" if rob["shift_box_s"] is None else f"{rob['shift_box_s']:.3g} x ({scale})"
+    return f"{r}; shift box {s}"
+
+
+# --------------------------------------------------------------------------- the covering check
+def covering_lines(check: CoveringCheck, system: str, method: str) -> list[str]:
+    """What ``drlyap lipschitz`` prints."""
+    lines = [f"{system} ({method}), {check.condition}, delta = {check.delta:g}",
+             f"  grid: {check.cells} cells ({' x '.join(map(str, check.per_axis))}), spacing <= {check.spacing:.4g}, "
+             f"covering radius rho = {check.covering_radius:.4g}",
+             f"  max residual at the cell centres: {check.max_residual:.4g} (in X_delta: "
+             f"{check.max_residual_in_x_delta:.4g})",
+             f"  Lipschitz constant: {check.lipschitz_sound:.4g} (sound, interval gradient bounds); "
+             f"{check.lipschitz_sampled:.4g} (largest sampled gradient)",
+             f"  covering certificate: {'CERTIFIED' if check.certified else 'NOT CERTIFIED'} "
+             f"(needs max residual <= -L rho = {check.required_max_residual:.4g}); with {check.safety:g} x the "
+             f"sampled L: {'holds' if check.certified_estimate else 'fails'}"]
+    if check.spacing_needed is not None:
+        lines.append(f"  spacing needed with this L and maximum: {check.spacing_needed:.3g} "
+                     f"(about {check.samples_needed:.3g} samples)")
+    ver = check.verifier
+    if ver is not None:
+        lines.append(f"  branch and bound: {ver.status.upper()}, verified {proved_share(ver)} "
+                     f"({ver.boxes_processed} boxes, {ver.time_s:.2f} s)")
+    return lines

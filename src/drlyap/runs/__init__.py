@@ -1,0 +1,13 @@
+"""Run directories: writing them atomically, loading them, and one interface for runs of every kind.
+
+* :mod:`~drlyap.runs.directory` -- Lyapunov runs: :func:`save_run`, :func:`load_run`, :class:`Run`;
+* :mod:`~drlyap.runs.policies` -- :class:`PolicyRun`, the interface of runs of every kind;
+* :mod:`~drlyap.runs.lqr` -- LQR runs (:func:`train_lqr`).
+"""
+
+from drlyap.runs.directory import FORMAT_VERSION, Run, RunDirError, atomic_dir, ensure_new, load_run, read_run_kind, save_run
+from drlyap.runs.lqr import load_lqr_run, save_lqr_run, train_lqr
+from drlyap.runs.policies import PolicyRun, load_lyapunov_policy_run
+
+__all__ = ["FORMAT_VERSION", "PolicyRun", "Run", "RunDirError", "atomic_dir", "ensure_new", "load_lqr_run",
+           "load_lyapunov_policy_run", "load_run", "read_run_kind", "save_lqr_run", "save_run", "train_lqr"]

@@ -1,0 +1,262 @@
+"""Run directories of trained pairs: the unit every command reads and writes.
+
+Layout (all written into a temporary sibling and renamed into place at the end, so an interrupted
+or failed run never leaves a directory that looks complete)::
+
+    RUN_DIR/
+      run.json        kind, drlyap version, system description (marks the directory complete)
+      config.json     the exact TrainConfig the run used
+      weights.pt      state dicts of the certificate and the controller
+      metrics.json    acceptance check, training summary, xi samples, later evaluations
+      history.csv     iteration, loss, seconds
+      figures/        PNG figures written by commands that plot
+"""
+
+from __future__ import annotations
+
+import csv
+import json
+import os
+import shutil
+import tempfile
+from collections.abc import Callable
+from dataclasses import dataclass
+from functools import cached_property
+from pathlib import Path
+
+import torch
+from torch import Tensor
+
+from drlyap.closed_loop import ClosedLoop
+from drlyap.conditions import Condition
+from drlyap.config import ProofConfig, legacy_proof
+from drlyap.io import write_json
+from drlyap.networks import Controller, Lyapunov
+from drlyap.systems import UncertainSystem, default_source, get_system, identity_mismatch, resolve_system
+from drlyap.training import TrainConfig, TrainResult, build_networks, run_condition
+from drlyap.verification import Certificate
+
+FORMAT_VERSION = 1
+
+
+class RunDirError(ValueError):
+    """A run directory is missing, incomplete, or does not fit the request."""
+
+
+def ensure_new(out: str | os.PathLike) -> None:
+    """Refuse an output directory that already exists (checked before long work starts)."""
+    if Path(out).exists():
+        raise RunDirError(f"{out} already exists; choose another --out or remove it")
+
+
+def atomic_dir(out: Path, fill: Callable[[Path], None], overwrite: bool = False) -> Path:
+    """Create ``out`` by filling a temporary sibling and renaming it into place.
+
+    ``fill(tmp)`` writes the contents. If it raises (or the process is interrupted) the temporary
+    directory is removed and ``out`` is untouched.
+    """
+    out = Path(out)
+    if not overwrite:
+        ensure_new(out)
+    out.parent.mkdir(parents=True, exist_ok=True)
+    tmp = Path(tempfile.mkdtemp(prefix=f".{out.name}.tmp-", dir=out.parent))
+    try:
+        fill(tmp)
+        if out.exists():
+            shutil.rmtree(out)
+        os.replace(tmp, out)
+    except BaseException:
+        shutil.rmtree(tmp, ignore_errors=True)
+        raise
+    return out
+
+
+def run_record(kind: str, system: UncertainSystem, source: dict | None = None) -> dict:
+    """The ``run.json`` of a run of ``kind``: format, ``system.describe()`` and where the system came from
+    (``source``: :func:`drlyap.systems.system_source`; default :func:`drlyap.systems.default_source`)."""
+    return {"kind": kind, "format": FORMAT_VERSION, "system": system.describe(),
+            "system_source": source if source is not None else default_source(system)}
+
+
+def save_run(out: Path, result: TrainResult, overwrite: bool = False,
+             extra: Callable[[Path], None] | None = None, source: dict | None = None) -> Path:
+    """Write a trained pair as a run directory at ``out`` (atomically); ``extra(tmp)`` may add files.
+
+    ``source`` records where the system came from (see :func:`run_record`) so that commands reload it.
+    """
+
+    def fill(tmp: Path) -> None:
+        write_json(tmp / "config.json", result.config.to_dict())
+        torch.save({"lyapunov": result.lyapunov.state_dict(), "controller": result.controller.state_dict()},
+                   tmp / "weights.pt")
+        write_json(tmp / "metrics.json", result.metrics)
+        with open(tmp / "history.csv", "w", newline="") as fh:
+            writer = csv.DictWriter(fh, fieldnames=["iteration", "loss", "time_s"])
+            writer.writeheader()
+            writer.writerows(result.history)
+        (tmp / "figures").mkdir()
+        if extra is not None:
+            extra(tmp)
+        write_json(tmp / "run.json", run_record("lyapunov", result.system, source))
+
+    return atomic_dir(out, fill, overwrite)
+
+
+@dataclass
+class Run:
+    """A loaded run: the system, the networks and the record. Callables take user coordinates.
+
+    ``run.controller(x)`` maps states ``x (B, n)`` (user coordinates, angles in any branch) to inputs
+    ``(B, m)``; ``run.lyapunov(x)`` to certificate values ``(B,)``. Both accept any float tensor and
+    return float64.
+    """
+
+    path: Path
+    system: UncertainSystem
+    config: TrainConfig
+    metrics: dict
+    lyapunov_net: Lyapunov
+    controller_net: Controller
+    proof: ProofConfig | None = None
+
+    @cached_property
+    def loop(self) -> ClosedLoop:
+        """The run's closed loop (system, V, pi), what every proof of it is about."""
+        return ClosedLoop(self.system, self.lyapunov_net, self.controller_net)
+
+    @property
+    def condition(self) -> Condition:
+        """The condition the run was trained on (:func:`~drlyap.training.run_condition`)."""
+        return run_condition(self.config, self.xi_train)
+
+    def true_condition(self, xi) -> Condition:
+        """Plain decrease on the true model at the shift ``xi (k,)``, with the run's decay terms."""
+        return run_condition(self.config, self.system.check_xi(xi)[None], "true")
+
+    @property
+    def certificate(self) -> Certificate | None:
+        """What was proved about the run's trained condition (``metrics["certificate"]``), or None."""
+        cert = self.metrics.get("certificate")
+        return Certificate.from_dict(cert) if isinstance(cert, dict) and "status" in cert else None
+
+    @property
+    def xi_samples(self) -> Tensor:
+        """The training samples of xi, ``(N, k)``."""
+        return torch.as_tensor(self.metrics["xi_samples"], dtype=torch.float64)
+
+    @property
+    def xi_train(self) -> Tensor:
+        """The samples the condition used: all of them for DR, their mean for the baseline."""
+        return torch.as_tensor(self.metrics["xi_train"], dtype=torch.float64)
+
+    def _check(self, x: Tensor) -> Tensor:
+        x = torch.as_tensor(x)
+        if x.ndim != 2 or x.shape[1] != self.system.n:
+            raise ValueError(f"{self.system.name} states must have shape (B, {self.system.n}), got {tuple(x.shape)}")
+        return x.to(torch.float64)
+
+    @torch.no_grad()
+    def controller(self, x: Tensor) -> Tensor:
+        z = self.system.to_local(self._check(x))
+        return self.controller_net(z.float()).double()
+
+    @torch.no_grad()
+    def lyapunov(self, x: Tensor) -> Tensor:
+        z = self.system.to_local(self._check(x))
+        return self.lyapunov_net(z.float()).double()
+
+    def save_metrics(self) -> None:
+        """Rewrite ``metrics.json`` (atomically, via a temporary file)."""
+        tmp = self.path / ".metrics.json.tmp"
+        write_json(tmp, self.metrics)
+        os.replace(tmp, self.path / "metrics.json")
+
+
+def read_run_kind(path: Path) -> dict:
+    """The ``run.json`` of a complete run directory, or a clear error."""
+    path = Path(path)
+    if not path.is_dir():
+        raise RunDirError(f"run directory {path} does not exist")
+    marker = path / "run.json"
+    if not marker.is_file():
+        raise RunDirError(f"{path} is not a complete drlyap run directory (no run.json)")
+    try:
+        return json.loads(marker.read_text())
+    except json.JSONDecodeError as err:
+        raise RunDirError(f"{marker} is not valid JSON: {err}") from err
+
+
+def read_run_json(path: str | os.PathLike, kind: str, *names: str) -> list[dict]:
+    """Check that ``path`` is a complete run directory of ``kind`` and parse its JSON files ``names``."""
+    path = Path(path)
+    info = read_run_kind(path)
+    if info.get("kind") != kind:
+        raise RunDirError(f"{path} holds a {info.get('kind')!r} run, not a {kind!r} run")
+    try:
+        return [json.loads((path / name).read_text()) for name in names]
+    except (OSError, json.JSONDecodeError) as err:
+        raise RunDirError(f"cannot read run directory {path}: {err}") from err
+
+
+def run_system(path: str | os.PathLike, name: str, system: UncertainSystem | None,
+               info: dict | None = None) -> UncertainSystem:
+    """The system a run was made for, never one with other dynamics.
+
+    ``name``: the system named by the run's config; ``info``: its ``run.json``. Without ``system``, it is
+    rebuilt from the recorded source (a registered name, module or file) or, for older runs, the registry.
+    The result must carry ``name`` and match the recorded description (dimensions, parameters, boxes,
+    equilibrium, uncertain names); a mismatch (e.g. an edited system file) is refused.
+    """
+    info = info or {}
+    recorded = info.get("system") or {}
+    if recorded.get("name", name) != name:
+        raise RunDirError(f"{path}: config.json names system {name!r} but run.json records {recorded['name']!r}; "
+                          "the run directory is inconsistent")
+    if system is None:
+        source = info.get("system_source") or {}
+        spec = source.get("reload")
+        try:
+            system = resolve_system(spec) if spec else get_system(name)
+        except ValueError as err:
+            hint = f" (recorded source {source.get('spec')!r})" if spec else \
+                " (run.json records no source: pass the system, or register it with drlyap.register_system)"
+            raise RunDirError(f"cannot rebuild system {name!r} of {path}{hint}: {err}") from err
+    if system.name != name:
+        raise RunDirError(f"{path} was made for system {name!r}, not {system.name!r}")
+    diff = identity_mismatch(recorded, system)
+    if diff:
+        raise RunDirError(f"{path} was trained on other dynamics than system {name!r} has now; refusing to load it "
+                          f"({'; '.join(diff)})")
+    return system
+
+
+def load_run(path: str | os.PathLike, system: UncertainSystem | None = None) -> Run:
+    """Load a Lyapunov run directory.
+
+    ``system`` is needed for a user-defined system that is not registered by name; its name must
+    match the one the run was trained on.
+    """
+    path = Path(path)
+    info, raw_config, metrics = read_run_json(path, "lyapunov", "run.json", "config.json", "metrics.json")
+    try:
+        config = TrainConfig.from_dict(raw_config)
+        weights = torch.load(path / "weights.pt", map_location="cpu", weights_only=True)
+    except (OSError, RuntimeError) as err:
+        raise RunDirError(f"cannot read run directory {path}: {err}") from err
+    system = run_system(path, config.system, system, info)
+    if info["system"]["n"] != system.n or info["system"]["m"] != system.m:
+        raise RunDirError(f"{path} has dimensions n={info['system']['n']}, m={info['system']['m']}; "
+                          f"system {system.name} has n={system.n}, m={system.m}")
+    lyapunov, controller = build_networks(system, config)
+    try:
+        lyapunov.load_state_dict(weights["lyapunov"])
+        controller.load_state_dict(weights["controller"])
+    except (KeyError, RuntimeError) as err:
+        raise RunDirError(f"{path}: weights.pt does not fit config.json ({str(err).splitlines()[0]})") from err
+    missing = [key for key in ("xi_samples", "xi_train") if key not in metrics]
+    if missing:
+        raise RunDirError(f"{path}: metrics.json lacks {missing}")
+    lyapunov.eval()
+    controller.eval()
+    proof = ProofConfig.from_dict(metrics["proof"]) if isinstance(metrics.get("proof"), dict) else legacy_proof(raw_config)
+    return Run(path, system, config, metrics, lyapunov, controller, proof)

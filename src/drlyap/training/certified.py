@@ -1,0 +1,271 @@
+"""Training with proofs: the default way to train (:func:`train`), and counterexample-guided rounds (SPEC §6: "a
+falsifier that searches for violating states and adds them").
+
+:func:`train_cegis` alternates training and sound verification:
+
+1. an ordinary :func:`~drlyap.training.trainer.fit` run;
+2. per round, the branch-and-bound verifier of :mod:`drlyap.verification` checks the trained condition on
+   the whole of X_delta (or on ``{V <= roa_level}`` of it; the networks read as float64). If it is proved, CEGIS
+   stops;
+3. otherwise new training states are collected, in local coordinates:
+
+   * the verifier's counterexample and the centres of (at most ``keep_boxes``) unverified boxes,
+   * a gradient falsifier (:func:`~drlyap.verification.falsifier.falsify`): a few steps of projected gradient
+     ascent on the condition's residual (float64 networks) from random states of X_delta and from the unverified
+     boxes' centres, projected back into X_delta after every step;
+
+   the states with a positive residual (the *counterexamples*), with ``neighbours`` jittered copies each, and
+   the unverified box centres are added (deduplicated, at most ``max_extra``, the newest kept) to the
+   accumulated extra states that :func:`~drlyap.training.trainer.fit` appends to every batch (``replicate``
+   times, to weigh them);
+4. training continues from the current networks for ``iters_per_round`` iterations (default ``iters // 2``; the
+   acceptance check may stop it earlier), with explicit xi samples (the same ones as the first run) and a
+   per-round seed (fresh batches), and the result is verified again.
+
+All of these settings are a :class:`~drlyap.verification.ProofConfig`. The pair returned is the best one seen
+(verified first, then one that passes the acceptance check, then Hurwitz at x* and free of other equilibria, then
+the largest verified fraction), so a round that makes things worse does not lose a better earlier pair.
+``metrics["cegis"]`` records every round (the branch and bound's verdicts) and, as ``final``, the returned pair's
+proof, an ``unknown`` one settled by the falsifier (:func:`~drlyap.verification.falsifier.settle_unknown`:
+``violated`` where a violation is certain). Only per-state conditions are retrained on (DR pointwise and the
+baseline's nominal condition); the uniform DR condition is bounded once.
+"""
+
+from __future__ import annotations
+
+import dataclasses
+import time
+import warnings
+
+import torch
+from torch import Tensor
+
+from drlyap.closed_loop import ClosedLoop
+from drlyap.conditions import Condition
+from drlyap.config import ProofConfig
+from drlyap.io import jsonable
+from drlyap.networks import Controller, Lyapunov
+from drlyap.regions import Region
+from drlyap.render import condition_region, unverified_warning
+from drlyap.systems import UncertainSystem, get_system
+from drlyap.training.config import TrainConfig
+from drlyap.training.trainer import TrainResult, fit
+from drlyap.verification import Certificate, ConditionProof, UniformMargin, prove_trained, uniform_margin
+from drlyap.verification.falsifier import box_centres, falsifier_starts, falsify, settle_unknown
+
+F64 = torch.float64
+
+
+def _dedupe(z: Tensor, scale: Tensor, resolution: float = 1e-6) -> Tensor:
+    if z.shape[0] == 0:
+        return z
+    keys = torch.round(z / (scale * resolution)).to(torch.int64)
+    _, idx = torch.unique(keys, dim=0, return_inverse=True)
+    first = torch.full((int(idx.max()) + 1,), z.shape[0], dtype=torch.int64)
+    first = first.scatter_reduce(0, idx, torch.arange(z.shape[0]), reduce="amin")
+    return z[first.sort().values]
+
+
+def collect_counterexamples(loop: ClosedLoop, condition: Condition, region: Region, verification: ConditionProof,
+                            generator: torch.Generator, n_random: int = 512, max_boxes: int = 200, steps: int = 30,
+                            neighbours: int = 3, level: float | None = None, near: bool = False) -> dict:
+    """New training states from a failed verification: counterexamples (residual > 0) and unverified box centres.
+
+    The falsifier starts from the verification's counterexample, the centres of its unverified boxes (user
+    coordinates there) and ``n_random`` random states of X_delta: uniform, or with ``near`` half of them spread over
+    the distance from x* (:func:`~drlyap.verification.falsifier.falsifier_starts`). Returns local states:
+    ``counterexamples`` (each re-evaluated, residual > 0), ``neighbours`` (jittered copies of them, in X_delta),
+    ``box_centres`` (unverified boxes, in X_delta, any residual) and the counts. ``level``: the claim is about
+    ``{V <= level}`` only (region-of-attraction training), so only states there count as counterexamples.
+    """
+    system = loop.system
+    scale = region.scale
+    cand = []
+    if verification.counterexample_local is not None:
+        cand.append(torch.as_tensor([verification.counterexample_local], dtype=F64))
+    centres = box_centres(system, (verification.unverified_boxes or [])[:max_boxes])
+    centres = centres[region.in_region(centres)]
+    if centres.shape[0]:
+        cand.append(centres)
+    if n_random:
+        cand.append(falsifier_starts(region, n_random, generator) if near else region.sample(n_random, generator))
+    starts = torch.cat(cand) if cand else torch.empty(0, system.n, dtype=F64)
+    if starts.shape[0] == 0:
+        empty = torch.empty(0, system.n, dtype=F64)
+        return {"counterexamples": empty, "neighbours": empty, "box_centres": centres, "max_residual": None,
+                "falsifier_starts": 0, "falsifier_violations": 0, "falsify_time_s": 0.0}
+    tic = time.perf_counter()
+    found, values = falsify(loop, condition, region, starts, steps=steps)
+    falsify_time = time.perf_counter() - tic
+    pool = torch.cat([starts, found])
+    res = loop.exact(condition, pool)
+    if level is not None:
+        v = loop.f64.value(pool)
+        res = torch.where(v <= level, res, -torch.inf)
+    cex = _dedupe(pool[res > 0], scale)
+    near = torch.empty(0, system.n, dtype=F64)
+    if neighbours and cex.shape[0]:
+        noise = 0.01 * scale * torch.randn(cex.shape[0] * neighbours, system.n, generator=generator, dtype=F64)
+        near = region.project(cex.repeat(neighbours, 1) + noise)
+    return {"counterexamples": cex, "neighbours": near, "box_centres": centres,
+            "max_residual": float(res.max()),
+            "falsifier_starts": int(starts.shape[0]), "falsifier_violations": int((values > 0).sum()),
+            "falsify_time_s": falsify_time}
+
+
+def train_cegis(cfg: TrainConfig, system: UncertainSystem, proof: ProofConfig, progress: bool = True,
+                init: tuple[Lyapunov, Controller] | None = None, log=None) -> tuple[TrainResult, list[dict]]:
+    """Train with counterexample-guided rounds (see the module docstring), for a resolved ``cfg`` and resolved
+    ``proof`` settings (:meth:`TrainConfig.resolved`, :meth:`ProofConfig.resolved`).
+
+    Returns the best :class:`TrainResult` (its ``config`` is the first run's config, its ``history`` the training of
+    every round up to it, iterations counted on, its ``metrics["cegis"]`` the record) and the list of rounds. Each
+    round dict has ``round``, ``verification`` (:meth:`ConditionProof.summary`), ``verified``,
+    ``verified_fraction``, times, counts of states added and, when states were added, ``counterexamples`` (a
+    float64 ``(C, n)`` tensor of the violating local states found; not in the metrics). ``log(round_dict)`` is
+    called after each verification. No new retraining round starts once ``proof.total_time`` seconds (from the
+    start) are spent. ``proof.falsifier_starts``: the falsifier's random starts per round; None: 512 uniform in
+    X_delta, or, where training draws states near x* (``near_share > 0``: cart-pole, quadrotor), 2,048, half of
+    them spread over the distance from x* (in 6 states uniform starts miss the violations near x*:
+    docs/tuning.md).
+    """
+    if not proof.is_resolved:
+        raise ValueError("resolve the proof settings for the system first (ProofConfig.resolved(system))")
+    if cfg.method == "dr" and cfg.loss != "pointwise":
+        raise ValueError("CEGIS needs a per-state condition (method dr with loss pointwise, or baseline); "
+                         "the uniform DR condition has no per-state residual to falsify")
+    rounds, time_budget = int(proof.rounds), proof.total_time
+    start = time.perf_counter()
+    result = fit(cfg, system, progress=progress, init=init)
+    base_cfg = result.config
+    condition = result.condition
+    iters_round = int(proof.iters_per_round if proof.iters_per_round is not None else max(1, base_cfg.iters // 2))
+    region = Region.of(system, float(base_cfg.delta))
+    near = bool(base_cfg.near_share)
+    n_random = proof.falsifier_starts if proof.falsifier_starts is not None else (2048 if near else 512)
+    budget = proof.budget()
+    gen = torch.Generator().manual_seed(base_cfg.seed + 7919)
+    extra = torch.empty(0, system.n, dtype=F64)
+    record: list[dict] = []
+    best: tuple | None = None
+    total_iters = result.metrics["iterations"]
+    history = list(result.history)  # all rounds' training, iterations and seconds counted from the first run
+    train_time = time.perf_counter() - start
+    for r in range(rounds + 1):
+        tic = time.perf_counter()
+        ver = prove_trained(result.loop, condition, region, budget, base_cfg.roa_level, keep_boxes=proof.keep_boxes,
+                            falsify_starts=0)  # its own falsifier below
+        entry: dict = {"round": r, "verification": ver.summary(), "verified": ver.verified,
+                       "status": ver.status, "verified_fraction": ver.verified_fraction,
+                       "verify_time_s": time.perf_counter() - tic, "train_time_s": train_time,
+                       "train_iterations": result.metrics["iterations"], "acceptance_passed": result.metrics["passed"]}
+        acc = result.metrics["acceptance"]
+        # a proof first; among unproved pairs, one that passes the acceptance check (Hurwitz at x*, no other
+        # equilibrium) before a larger proved share: retraining on counterexamples of an infeasible condition
+        # can trade stability for area (measured on pendulum-u9: 0/200 stabilised instead of 170/200)
+        score = (entry["verified"], bool(result.metrics["passed"]), bool(acc["jacobian"]["hurwitz"]),
+                 not acc["other_equilibria"], ver.verified_fraction, -(ver.counterexample_value or 0.0))
+        if best is None or score > best[0]:
+            best = (score, result, r, list(history))
+        out_of_time = time_budget is not None and time.perf_counter() - start > time_budget
+        if entry["verified"] or r == rounds or out_of_time:
+            if out_of_time and not entry["verified"] and r < rounds:
+                entry["stopped"] = "time budget"
+            record.append(entry)
+            if log is not None:
+                log(entry)
+            break
+        found = collect_counterexamples(result.loop, condition, region, ver, gen, n_random=n_random,
+                                        max_boxes=proof.keep_boxes, steps=proof.falsifier_steps,
+                                        neighbours=proof.neighbours, level=base_cfg.roa_level, near=near)
+        # newest last, the counterexamples at the very end: the cap keeps the tail
+        new = torch.cat([found["box_centres"], found["neighbours"], found["counterexamples"]])
+        extra = _dedupe(torch.cat([extra, new]), region.scale)[-int(proof.max_extra):]
+        entry.update({"counterexamples_added": int(found["counterexamples"].shape[0]),
+                      "neighbours_added": int(found["neighbours"].shape[0]),
+                      "box_centres_added": int(found["box_centres"].shape[0]),
+                      "falsifier_max_residual": found["max_residual"], "falsify_time_s": found["falsify_time_s"],
+                      "extra_states": int(extra.shape[0]), "counterexamples": found["counterexamples"]})
+        record.append(entry)
+        if log is not None:
+            log(entry)
+        round_cfg = dataclasses.replace(base_cfg, iters=iters_round, seed=base_cfg.seed + 1000 * (r + 1),
+                                        xi_samples=result.xi_samples.tolist())
+        tic = time.perf_counter()
+        result = fit(round_cfg, system, progress=progress, init=(result.lyapunov, result.controller),
+                     extra_states=extra.repeat(int(proof.replicate), 1))
+        train_time = time.perf_counter() - tic
+        offset_t = history[-1]["time_s"] if history else 0.0
+        history += [{"iteration": h["iteration"] + total_iters, "loss": h["loss"], "time_s": h["time_s"] + offset_t}
+                    for h in result.history]
+        total_iters += result.metrics["iterations"]
+    _, chosen, chosen_round, chosen_history = best
+    metrics = dict(chosen.metrics)
+    final = record[chosen_round] if chosen_round < len(record) else record[-1]
+    # the returned pair's verdict: an unknown proof becomes violated where the falsifier finds a certain violation
+    verdict = settle_unknown(ConditionProof.from_dict(final["verification"]), chosen.loop, condition, region,
+                             base_cfg.roa_level, starts=proof.settle_starts, seed=base_cfg.seed)
+    metrics["cegis"] = jsonable({
+        "rounds": [{k: v for k, v in e.items() if k != "counterexamples"} for e in record],
+        "final": verdict.to_dict(),
+        "verified": final["verified"], "returned_round": chosen_round,
+        "retraining_rounds": len(record) - 1, "max_rounds": rounds, "iters_per_round": iters_round,
+        "total_iterations": total_iters, "extra_states": int(extra.shape[0]), "replicate": int(proof.replicate),
+        "verify_time_limit_s": budget.seconds, "total_time_s": time.perf_counter() - start,
+    })
+    out = dataclasses.replace(chosen, config=base_cfg, metrics=metrics, history=chosen_history)
+    return out, record
+
+
+def certificate(proof: ConditionProof | UniformMargin, delta: float, rounds: int | None = None) -> Certificate:
+    """``metrics["certificate"]``: what the verifier proved about a run's trained condition.
+
+    ``status`` is ``verified`` (proved at every state of X_delta = the state box minus the open ball of radius
+    ``delta`` around x*; with a ``level`` in the proof, at every state of X_delta with ``V <= level``, and
+    ``V > level`` on the box's boundary), ``violated`` (a counterexample state, re-checked) or ``unknown`` (time or
+    box budget ran out); ``verified_fraction`` a lower bound of the share of X_delta proved.
+    """
+    level = getattr(proof, "level", None)
+    return Certificate(
+        status=proof.status, condition=proof.condition, region=condition_region(level, delta), level=level,
+        delta=delta, verified_fraction=proof.verified_fraction, time_s=proof.time_s, boxes=proof.boxes_processed,
+        counterexample=getattr(proof, "counterexample", None),
+        counterexample_source=getattr(proof, "counterexample_source", None), rounds=rounds,
+        margin_upper=getattr(proof, "margin_upper", None))
+
+
+def train(config: TrainConfig, system: UncertainSystem | None = None, proof: ProofConfig | None = ProofConfig(), *,
+          progress: bool = True, init: tuple[Lyapunov, Controller] | None = None, log=None,
+          warn: bool = True) -> TrainResult:
+    """Train a pair for ``config`` and prove its trained condition: the default way to train.
+
+    ``system``: the system object (default: the registered one ``config.system`` names). ``config`` and ``proof``
+    are resolved for it here, once. ``proof``: the proof settings (:class:`~drlyap.verification.ProofConfig`);
+    None trains without proving. Per-state conditions (baseline, DR pointwise) run :func:`train_cegis`; the uniform
+    DR condition is bounded once (:func:`~drlyap.verification.uniform_margin`, no per-state residual to retrain
+    on). ``metrics["certificate"]`` records the verdict (:class:`~drlyap.verification.Certificate`); with ``warn``
+    a run that is not verified raises a :class:`UserWarning` saying so. ``init``: networks to start from (copied);
+    ``log(round)``: called after each proof round.
+    """
+    system = system or get_system(config.system)
+    cfg = config.resolved(system)
+    if proof is None:
+        result = fit(cfg, system, progress=progress, init=init)
+        result.metrics["certificate"] = Certificate(status="not checked", condition=result.condition.label).to_dict()
+        return result
+    proof = proof.resolved(system)
+    uniform = cfg.method == "dr" and cfg.loss == "uniform"
+    if uniform:
+        result = fit(cfg, system, progress=progress, init=init)
+        delta = float(result.config.delta)
+        margin = uniform_margin(result.loop, result.condition, Region.of(system, delta), proof.budget())
+        cert = certificate(margin, delta)
+    else:
+        result, _ = train_cegis(cfg, system, proof, progress=progress, init=init, log=log)
+        final = ConditionProof.from_dict(result.metrics["cegis"]["final"])
+        cert = certificate(final, float(result.config.delta), rounds=result.metrics["cegis"]["retraining_rounds"])
+    result.metrics["certificate"] = jsonable(cert.to_dict())
+    result.metrics["proof"] = proof.to_dict()
+    if warn and not cert.verified:
+        warnings.warn(unverified_warning(cert, cfg.system, cfg.method, not uniform), stacklevel=2)
+    return result

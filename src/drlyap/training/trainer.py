@@ -1,0 +1,248 @@
+"""Training a controller and its Lyapunov certificate (paper Sec. V, SPEC §3 and §5).
+
+:func:`fit` samples the training states uniformly in X minus the delta-ball (and, for region-of-attraction
+training, inside the sublevel set), trains both networks with Adam on the condition's loss (batched over states and
+xi samples), and runs the acceptance check of :mod:`drlyap.training.acceptance` every ``check_every`` iterations.
+It stops as soon as the check passes or at ``iters``, and returns the best checkpoint (passing first, then smallest
+validation violation). A diverging loss (NaN/inf) stops training with the last good weights and says so.
+"""
+
+from __future__ import annotations
+
+import copy
+import time
+from dataclasses import dataclass
+from functools import cached_property
+
+import torch
+from torch import Tensor
+
+from drlyap.closed_loop import ClosedLoop
+from drlyap.conditions import Condition, local_rates
+from drlyap.lqr import lqr_design
+from drlyap.networks import Controller, Lyapunov
+from drlyap.progress import progress as show_progress
+from drlyap.regions import Region
+from drlyap.systems import UncertainSystem
+from drlyap.training.acceptance import acceptance_check
+from drlyap.training.config import TrainConfig, build_networks, draw_xi_samples, resolve_device, run_condition, training_region
+
+LOCAL_EVERY = 4  # iterations between evaluations of the local term (second derivatives at x*: ~2x an iteration)
+
+
+@dataclass
+class TrainResult:
+    """What :func:`train` returns: the networks, the data, and the record of the run."""
+
+    config: TrainConfig
+    system: UncertainSystem
+    lyapunov: Lyapunov
+    controller: Controller
+    xi_samples: Tensor  # (N, k) float64
+    condition: Condition
+    history: list[dict]
+    metrics: dict
+
+    @cached_property
+    def loop(self) -> ClosedLoop:
+        """The trained closed loop (what is proved)."""
+        return ClosedLoop(self.system, self.lyapunov, self.controller)
+
+
+def warm_start_lqr(system: UncertainSystem, lyapunov: Lyapunov, controller: Controller, cfg: TrainConfig,
+                   region: Region, generator: torch.Generator, iters: int = 500, n_states: int = 4096) -> dict:
+    """Fit the networks to an LQR pair by regression (in place): ``V ~ s z^T P z`` and ``varphi(z) - varphi(0) ~ -K z``.
+
+    ``P``, ``K``: the LQR design for ``cfg.lqr_weights`` (``[Q diagonal, R diagonal]``; None: Bryson's rule) on the
+    nominal linearisation; ``s`` puts the quadratic's minimum over the faces of the box at ``1.2 cfg.roa_level``
+    (1.2 without a level). States: half uniform in X_delta, half spread over the distance from x*. Returns the
+    design's gain, the scale and the final relative errors.
+    """
+    q, r = cfg.lqr_weights if cfg.lqr_weights is not None else (None, None)
+    design = lqr_design(system, q, r)
+    half = torch.maximum(-region.lo, region.hi)
+    scale = 1.2 * (cfg.roa_level or 1.0) / float((half.square() / torch.linalg.inv(design.P).diagonal()).min())
+    ref = next(lyapunov.parameters())
+    p_mat, k_mat = (design.P * scale).to(ref), design.K.to(ref)
+    opt = torch.optim.Adam(list(lyapunov.parameters()) + list(controller.parameters()), lr=cfg.lr)
+    for _ in range(iters):
+        z = torch.cat([region.sample(n_states // 2, generator), region.sample_near(n_states - n_states // 2, generator)])
+        z = z.to(ref)
+        v_target, u_target = ((z @ p_mat) * z).sum(-1), -(z @ k_mat.T)
+        v_err = (lyapunov(z) - v_target).square().mean() / v_target.square().mean()
+        u_err = (controller.raw(z) - u_target).square().mean() / u_target.square().mean().clamp_min(1e-12)
+        opt.zero_grad(set_to_none=True)
+        (v_err + u_err).backward()
+        opt.step()
+    return {"method": "lqr", "K": design.K.tolist(), "P_scale": scale, "v_relative_error": float(v_err.detach()),
+            "u_relative_error": float(u_err.detach()), "iterations": iters}
+
+
+def inside_states(lyapunov: Lyapunov, region: Region, level: float, count: int, device: torch.device,
+                  generator: torch.Generator, tries: int = 20) -> Tensor:
+    """Up to ``count`` states ``(C, n)`` of X_delta with ``V <= level``: uniform draws kept by rejection, at most
+    ``tries`` rounds of ``4 count`` draws; float32 on ``device``."""
+    kept = []
+    found = 0
+    with torch.no_grad():
+        for _ in range(tries):
+            z = region.sample(4 * count, generator).float().to(device)
+            z = z[lyapunov(z) <= level]
+            kept.append(z)
+            found += z.shape[0]
+            if found >= count:
+                break
+    return torch.cat(kept)[:count]
+
+
+def fit(cfg: TrainConfig, system: UncertainSystem, progress: bool = True, init: tuple[Lyapunov, Controller] | None = None,
+        extra_states: Tensor | None = None) -> TrainResult:
+    """Train a pair for the resolved config ``cfg`` (:meth:`TrainConfig.resolved` for ``system``), without proving
+    it (:func:`drlyap.training.train` trains and proves).
+
+    ``init`` warm-starts from given networks (copied, not modified). ``extra_states`` ``(E, n)`` are
+    local states (e.g. counterexamples found by the verifier) added to every training batch.
+    """
+    if system.name != cfg.system:
+        raise ValueError(f"TrainConfig(system={cfg.system!r}) names another system than the one passed "
+                         f"({system.name!r}); set TrainConfig(system={system.name!r})")
+    if cfg.missing():
+        raise ValueError(f"the training config leaves {cfg.missing()} open: resolve it first "
+                         "(TrainConfig.resolved(system))")
+    device = resolve_device(cfg.device)
+    torch.manual_seed(cfg.seed)
+    gen = torch.Generator().manual_seed(cfg.seed)
+
+    xi_all = draw_xi_samples(system, cfg)
+    xi_train = xi_all.mean(0, keepdim=True) if cfg.method == "baseline" else xi_all
+    condition = run_condition(cfg, xi_train)
+    region = Region.of(system, cfg.delta)
+    lyapunov, controller = build_networks(system, cfg)
+    if init:
+        if (init[0].phi.sizes != lyapunov.phi.sizes or init[0].alpha_hat != lyapunov.alpha_hat
+                or init[1].varphi.sizes != controller.varphi.sizes):
+            raise ValueError(f"warm-start networks (V {init[0].phi.sizes}, alpha_hat {init[0].alpha_hat}; pi "
+                             f"{init[1].varphi.sizes}) do not match the config (V {lyapunov.phi.sizes}, alpha_hat "
+                             f"{lyapunov.alpha_hat}; pi {controller.varphi.sizes})")
+        lyapunov, controller = copy.deepcopy(init[0]), copy.deepcopy(init[1])
+    lyapunov.to(device)
+    controller.to(device)
+    loop = ClosedLoop(system, lyapunov, controller)  # the live networks: no float64 copy is taken of this loop
+    if extra_states is not None:
+        extra_states = torch.as_tensor(extra_states, dtype=torch.float64)
+        if extra_states.ndim != 2 or extra_states.shape[1] != system.n or not torch.isfinite(extra_states).all():
+            raise ValueError(f"extra_states must be a finite (E, {system.n}) tensor of local states")
+        extra_states = extra_states.float().to(device)
+
+    sampling = region if cfg.train_box is None else Region.of(training_region(system, cfg.train_box), cfg.delta)
+
+    n_near = int(round(float(cfg.near_share) * int(cfg.n_states)))
+    level = cfg.roa_level
+    warm = None
+    if cfg.warm_start == "lqr" and not init:
+        warm = warm_start_lqr(system, lyapunov, controller, cfg, region, gen, n_states=min(4096, int(cfg.n_states)))
+
+    def batch() -> Tensor:
+        n_uniform = int(cfg.n_states) - n_near
+        z = sampling.sample(n_uniform, gen)
+        if level is not None:  # up to half of the uniform share from inside (or just outside) the sublevel set
+            inside = inside_states(lyapunov, sampling, 1.25 * level, n_uniform // 2, device, gen, tries=1)
+            z = torch.cat([inside.double().cpu(), z[: n_uniform - inside.shape[0]]])
+        if n_near:
+            z = torch.cat([z, sampling.sample_near(n_near, gen)])
+        z = z.float().to(device)
+        return z if extra_states is None else torch.cat([z, extra_states])
+
+    faces_val = None
+    if level is not None:
+        faces_val = region.sample_faces(20000, torch.Generator().manual_seed(12345)).float().to(device)
+
+    z_train = batch()
+    z_val = region.grid().float().to(device)
+
+    params = list(lyapunov.parameters()) + list(controller.parameters())
+    opt = torch.optim.Adam(params, lr=cfg.lr, fused=True)
+    history: list[dict] = []
+    checks: list[dict] = []
+    best: tuple | None = None
+    last_good = (copy.deepcopy(lyapunov.state_dict()), copy.deepcopy(controller.state_dict()))
+    status = "iteration cap reached without passing the acceptance check"
+    start = time.perf_counter()
+
+    check_time = 0.0
+
+    def run_check(iteration: int) -> dict:
+        nonlocal best, check_time
+        tic = time.perf_counter()
+        validation = z_val
+        if level is not None:  # the set is a few % of the box: add 20,000 states drawn inside it (fixed seed)
+            inside = inside_states(lyapunov, region, level, 20000, device, torch.Generator().manual_seed(12345))
+            validation = torch.cat([z_val, inside])
+        check = acceptance_check(loop, condition, xi_all.to(device), region, validation=validation, level=level,
+                                 faces=faces_val, local=bool(cfg.local_rate))
+        check["iteration"] = iteration
+        checks.append({k: check[k] for k in ("iteration", "passed", "max_violation", "violating_fraction")}
+                      | {"hurwitz": check["jacobian"]["hurwitz"], "n_other_equilibria": len(check["other_equilibria"]),
+                         "local_rate_max": check["local_rate_max"]})
+        score = (check["passed"], check["jacobian"]["hurwitz"], not check["other_equilibria"],
+                 -check["violating_fraction"], -check["max_violation"])
+        if best is None or score > best[0]:
+            best = (score, copy.deepcopy(lyapunov.state_dict()), copy.deepcopy(controller.state_dict()), check)
+        check_time += time.perf_counter() - tic
+        return check
+
+    bar = show_progress(cfg.iters, f"{cfg.system} {cfg.method}", progress)
+    iteration = 0
+    try:
+        for iteration in range(1, cfg.iters + 1):
+            if cfg.resample and iteration > 1:
+                z_train = batch()
+            terms = condition.terms(loop, z_train)
+            loss = condition.loss(terms, cfg.margin, cfg.margin_rate, level)
+            if level is not None:  # V above the level on the faces of X: {V <= level} inside X
+                loss = loss + torch.relu(level - lyapunov(region.sample_faces(1024, gen).float().to(device))).mean()
+            if cfg.local_rate and (iteration - 1) % LOCAL_EVERY == 0:  # V a Lyapunov function of the linearisation
+                loss = loss + torch.relu(local_rates(condition, loop) + cfg.local_rate).mean()
+            if not torch.isfinite(loss):
+                lyapunov.load_state_dict(last_good[0])
+                controller.load_state_dict(last_good[1])
+                status = f"diverged: loss became {float(loss.detach())} at iteration {iteration}; kept the last good weights"
+                break
+            if iteration % 50 == 1:
+                last_good = (copy.deepcopy(lyapunov.state_dict()), copy.deepcopy(controller.state_dict()))
+            opt.zero_grad(set_to_none=True)
+            loss.backward()
+            opt.step()
+            if iteration % 10 == 0 or iteration == 1:
+                history.append({"iteration": iteration, "loss": float(loss.detach()), "time_s": time.perf_counter() - start})
+                bar.set_postfix(loss=f"{float(loss.detach()):.2e}")
+            bar.update(1)
+            if iteration % cfg.check_every == 0 or iteration == cfg.iters:
+                if run_check(iteration)["passed"]:
+                    status = f"passed the acceptance check at iteration {iteration}"
+                    break
+    finally:
+        bar.close()
+    if best is None or (checks and checks[-1]["iteration"] != iteration):
+        run_check(iteration)
+    _, v_state, c_state, check = best
+    lyapunov.load_state_dict(v_state)
+    controller.load_state_dict(c_state)
+    elapsed = time.perf_counter() - start
+    metrics = {
+        "status": status,
+        "passed": bool(check["passed"]),
+        "iterations": iteration,
+        "best_iteration": check["iteration"],
+        "train_time_s": elapsed,
+        "check_time_s": check_time,
+        "ms_per_iteration": 1000 * (elapsed - check_time) / max(iteration, 1),
+        "final_loss": history[-1]["loss"] if history else None,
+        "acceptance": check,
+        "checks": checks,
+        "condition": condition.describe(),
+        "xi_samples": xi_all.tolist(),
+        "xi_train": xi_train.tolist(),
+        "warm_start": warm,
+    }
+    return TrainResult(cfg, system, lyapunov.cpu(), controller.cpu(), xi_all, condition, history, metrics)

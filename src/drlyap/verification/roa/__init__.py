@@ -1,0 +1,14 @@
+"""Certified regions of attraction (:func:`certified_roa`) and the proofs they rest on, one module each:
+:mod:`~drlyap.verification.roa.sublevel` (V's sublevel sets by V's own proofs), :mod:`~drlyap.verification.roa.local`
+(V's decrease near x*), :mod:`~drlyap.verification.roa.quadratic` (the closed loop's linearisation and its
+ellipsoid), :mod:`~drlyap.verification.roa.band` (V's decrease outside that ellipsoid) and
+:mod:`~drlyap.verification.roa.levels` (the level search they share)."""
+
+from drlyap.verification.roa.band import band_roa
+from drlyap.verification.roa.certify import certified_roa
+from drlyap.verification.roa.local import local_decrease
+from drlyap.verification.roa.quadratic import linearisation_local, quadratic_roa
+from drlyap.verification.roa.sublevel import share_of_box, sublevel_roa
+
+__all__ = ["band_roa", "certified_roa", "linearisation_local", "local_decrease", "quadratic_roa", "share_of_box",
+           "sublevel_roa"]

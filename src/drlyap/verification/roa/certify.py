@@ -1,0 +1,68 @@
+"""Certified regions of attraction: sublevel sets of V on which V provably decreases all the way to x*.
+
+:func:`certified_roa` tries, in this order, and reports the first that certifies a sublevel set of V (each is a
+module of this package, with its argument in its docstring):
+
+1. V's own proofs (:mod:`~drlyap.verification.roa.sublevel`): the condition on ``{V <= c}`` outside the
+   delta-ball, V above ``c`` on the faces, and inside the ball V's second-order decrease
+   (:mod:`~drlyap.verification.roa.local`);
+2. where the proof inside the ball fails, the closed loop's linearisation (:mod:`~drlyap.verification.roa.quadratic`):
+   ``{V <= c_1}`` inside the closed loop's certified ellipsoid ``{z^T P z <= c_q}``, V strictly decreasing on the
+   rest;
+3. where no sublevel set of V is certified but the ellipsoid is, the band proof (:mod:`~drlyap.verification.roa.band`):
+   V strictly decreasing on ``{V <= c}`` outside the ellipsoid.
+
+Nothing is called a region of attraction unless every trajectory from it converges to x*; a set whose decrease is
+proved only outside the delta-ball is practical stability (trajectories end up in ``{V <= c0}``), and where V's sets
+are not certified the closed loop's own ellipsoid is reported beside them (``quadratic``: a region of attraction of
+the same closed loop, not a sublevel set of V).
+"""
+
+from __future__ import annotations
+
+import math
+import time
+from dataclasses import replace
+
+from drlyap.closed_loop import ClosedLoop
+from drlyap.conditions import Condition
+from drlyap.config import Budget
+from drlyap.regions import Region
+from drlyap.verification.results import RegionOfAttraction
+from drlyap.verification.roa.band import band_roa
+from drlyap.verification.roa.local import local_decrease
+from drlyap.verification.roa.quadratic import linearisation_local, quadratic_roa
+from drlyap.verification.roa.sublevel import finish, outer_search
+
+
+def certified_roa(loop: ClosedLoop, condition: Condition, region: Region, budget: Budget = Budget(seconds=10.0), *,
+                  samples_per_axis: int = 400, max_level: float = math.inf,
+                  band_time: float | None = None) -> RegionOfAttraction:
+    """The largest level ``c`` (up to the search's resolution) with ``S = {V <= c}`` certified for the closed loop
+    on the model of ``condition`` (module docstring), within ``budget`` (its ``enclosure`` bounds V and the
+    conditions in every branch and bound here, inside the ball too; None: by the dimension; the Hessian enclosure
+    on the cube around x* is interval arithmetic on nested dual numbers).
+
+    ``max_level`` caps the search (e.g. at the level a region of attraction was trained for: ``limited_by`` then
+    reads ``"level asked for"`` when the cap is proved). ``band_time``: seconds for the band proof, where it runs
+    (None: ``budget.seconds`` again; 0: not run). ``samples_per_axis``: the grid that estimates the share of the box
+    in S (n <= 2).
+    """
+    budget = replace(budget, enclosure=budget.enclosure_for(loop.n))
+    outer = outer_search(loop, condition, region, budget, max_level)
+    c = outer.level
+    left = max(1.0, (outer.deadline - time.perf_counter()) / 2)
+    local = local_decrease(loop, condition, region, replace(budget, seconds=left), level=c if c > 0 else None)
+    if not local["proved"] and local.get("equilibrium") and c > 0:
+        left = max(3.0, outer.deadline - time.perf_counter())
+        local = linearisation_local(loop, condition, region, c, replace(budget, seconds=left)) | {"second_order": local}
+    quadratic = None  # the closed loop's own certificate, reported where V's sublevel sets are not certified
+    if not (c > 0 and local["proved"]):
+        quadratic = local.get("quadratic") or quadratic_roa(
+            loop, condition, region, replace(budget, seconds=max(3.0, outer.deadline - time.perf_counter())))
+        quadratic = {k: v for k, v in quadratic.items() if k not in ("jacobians", "eigenvalues")}
+    band = None
+    if quadratic is not None and quadratic.get("proved") and (band_time is None or band_time > 0):
+        band = band_roa(loop, condition, region, quadratic, outer.top, outer.why,
+                        replace(budget, seconds=budget.seconds if band_time is None else band_time))
+    return finish(loop, condition, region, outer, local, samples_per_axis, quadratic, band)

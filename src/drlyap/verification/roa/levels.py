@@ -1,0 +1,165 @@
+"""The level search behind every region of attraction: the largest level ``c`` such that a condition holds on
+``{V <= c}`` (over given boxes, optionally outside an ellipsoid ``{z^T P z <= c_q}``), by branch and bound with
+the boxes of lowest V first (:func:`level_search`)."""
+
+from __future__ import annotations
+
+import math
+import time
+
+import torch
+from torch import Tensor
+
+from drlyap.closed_loop import ClosedLoop
+from drlyap.conditions import Condition
+from drlyap.enclosures import F64, REL1, Interval, round_down, round_up, vertices
+from drlyap.networks import QuadraticLyapunov
+from drlyap.regions import split
+from drlyap.verification.bounds import (
+    box_bounds,
+    combine_lower,
+    combine_upper,
+    condition_and_value_objective,
+    sublevel_upper,
+    value_objective,
+)
+
+
+def below(level: float) -> float:
+    """A level rounded one float64 step down (a sound level stays sound below), infinities as they are."""
+    return float(round_down(torch.tensor(level, dtype=F64), REL1)) if math.isfinite(level) else level
+
+
+def level_search(loop: ClosedLoop, condition: Condition, lo: Tensor, hi: Tensor, scale: Tensor, level: float,
+                 limited_by: str, deadline: float, *, meets, in_region, floor: float = -math.inf,
+                 min_width: float = 1e-4, batch: int = 4096, enclosure: str = "mean-value",
+                 ellipsoid: tuple[Tensor, float] | None = None) -> tuple[float, str, Tensor | None, int]:
+    """The largest level (at most ``level``) such that ``condition`` holds on every state of the boxes
+    ``[lo, hi]`` (and of their parts where ``meets(lo, hi)``, a ``(B,)`` mask) with ``floor <= V <= level``
+    (with ``ellipsoid = (P, c_q)``: and ``z^T P z >= c_q``, outside the ellipsoid ``L``).
+
+    Boxes with V's lower bound above the level, or V's upper bound below ``floor``, need no proof; the rest are
+    proved or split, those with the lowest bound on V first (a box's parts inherit its bound), so that the
+    sets ``{V <= c}`` are settled from small ``c`` up and a time limit costs the least level. A box that cannot
+    be proved lowers the level to (a lower bound of) V on it: to V at its centre when that centre is a
+    confirmed violation in the region (``in_region(centre, V enclosure)``), else to V's lower bound on it once
+    it reaches the minimum size or the time runs out.
+
+    With ``ellipsoid`` (the affine enclosure only): boxes inside ``L`` (every vertex; ``L`` is convex) need no proof,
+    V's lower bound is taken on each box's part outside ``L`` (:func:`outside_lower`), and boxes are split on the side
+    that adds most to the bounds (``split``'s sensitivity): the search behind
+    :func:`~drlyap.verification.roa.band.band_roa`. Returns the level, what limited it, the counterexample (local, or
+    None) and the number of boxes processed."""
+    base = condition_and_value_objective(loop, condition)
+    if ellipsoid is None:
+        objective = base
+    else:
+        if enclosure != "affine":
+            raise ValueError("the search outside an ellipsoid needs the affine enclosure")
+        w = QuadraticLyapunov(ellipsoid[0])
+        c_q = float(ellipsoid[1])
+
+        def objective(z):  # the condition's components, W, then V (W's form shares the box's symbols)
+            out = base(z)
+            return torch.cat([out[..., :-1], w(z).unsqueeze(-1), out[..., -1:]], -1)
+    vobj = value_objective(loop.lyapunov)
+    processed = 0
+    cex = None
+    known = torch.full((lo.shape[0],), -math.inf, dtype=lo.dtype)  # a lower bound of V on each queued box
+    while lo.shape[0]:
+        if time.perf_counter() > deadline:
+            order = known.argsort()
+            first = order[:16 * batch]  # tighten the lowest inherited bounds, the rest stand as they are
+            v_min = float(known[order[16 * batch:]].min()) if order.shape[0] > first.shape[0] else math.inf
+            for i in range(0, first.shape[0], batch):
+                rows = first[i:i + batch]
+                fresh = box_bounds(vobj, lo[rows], hi[rows], enclosure)[0][:, 0]
+                v_min = min(v_min, float(torch.maximum(fresh, known[rows]).min()))  # both are lower bounds
+            if v_min < level:
+                level, limited_by = v_min, "time limit"
+            break
+        if lo.shape[0] > batch:
+            take = torch.zeros(lo.shape[0], dtype=torch.bool)
+            take[torch.topk(known, batch, largest=False).indices] = True
+        else:
+            take = torch.ones(lo.shape[0], dtype=torch.bool)
+        clo, chi = lo[take], hi[take]
+        lo, hi, known = lo[~take], hi[~take], known[~take]
+        if ellipsoid is not None:
+            inside = vertex_max(w.P, clo, chi) <= c_q
+            clo, chi = clo[~inside], chi[~inside]
+            if not clo.shape[0]:
+                continue
+        bounds = box_bounds(objective, clo, chi, enclosure, sensitivity=ellipsoid is not None, keep_form=True)
+        lb, ub, at, form = bounds[0], bounds[1], bounds[2], bounds[-1]
+        sens = bounds[3] if ellipsoid is not None else None
+        processed += clo.shape[0]
+        v_lb = lb[:, -1]
+        if ellipsoid is not None:
+            v_lb = torch.maximum(v_lb, outside_lower(form[:, -1], form[:, -2], at.mid[:, -1], at.mid[:, -2], c_q, level))
+            keep = [*range(lb.shape[1] - 2), lb.shape[1] - 1]
+            lb, ub, at, form = lb[:, keep], ub[:, keep], at[:, keep], form[:, keep]
+        active = (v_lb <= level) & (ub[:, -1] >= floor)
+        res_ub = combine_upper(condition, ub[:, :-1])
+        if form is not None:  # a box proved on {V <= level} is proved on every smaller sublevel set
+            res_ub = torch.minimum(res_ub, sublevel_upper(condition, form, level))
+        centre = (clo + chi) / 2
+        open_ = active & (res_ub > 0)
+        bad = (open_ & in_region(centre, at[:, -1]) & (at.hi[:, -1] >= floor)
+               & (combine_lower(condition, at.lo[:, :-1]) > 0))
+        if ellipsoid is not None:  # a violation inside L does not count against the band
+            bad = bad & (w(centre) > c_q)
+        if bad.any():
+            values = loop.exact(condition, centre[bad])
+            if (values > 0).any():
+                v_at = at.hi[:, -1][bad][values > 0]
+                j = int(v_at.argmin())
+                if float(v_at[j]) < level:
+                    level, limited_by = float(v_at[j]), "counterexample"
+                    cex = centre[bad][values > 0][j]
+        small = open_ & (((chi - clo) / scale).amax(-1) < min_width)
+        if small.any() and float(v_lb[small].min()) < level:
+            level, limited_by = float(v_lb[small].min()), "unverified box at minimum size"
+        divide = open_ & ~small & (v_lb <= level)
+        if divide.any():
+            nlo, nhi = split(clo[divide], chi[divide], scale, None if sens is None else sens[divide])
+            nknown = v_lb[divide].repeat(2)
+            fits = meets(nlo, nhi)
+            lo, hi, known = torch.cat([lo, nlo[fits]]), torch.cat([hi, nhi[fits]]), torch.cat([known, nknown[fits]])
+        above = known > level  # queued boxes the lowered level no longer asks about
+        if above.any():
+            lo, hi, known = lo[~above], hi[~above], known[~above]
+    return level, limited_by, cex, processed
+
+
+def vertex_max(p: Tensor, lo: Tensor, hi: Tensor) -> Tensor:
+    """``max z^T P z`` over each box ``[lo, hi] (B, n)`` (at a vertex: the form is convex), rounded up."""
+    n = lo.shape[-1]
+    p = p.to(lo)
+    if n > 8:  # 2^n vertices per box: beyond that, the interval bound
+        return QuadraticLyapunov(p)(Interval(lo, hi)).hi
+    corners = torch.where(vertices(n, lo.device)[None] > 0, hi[:, None, :], lo[:, None, :])  # (B, 2^n, n)
+    values = (corners @ p * corners).sum(-1)
+    mag = (corners.abs() @ p.abs() * corners.abs()).sum(-1)
+    return round_up(values, 4 * (n + 2) * REL1, mag).amax(-1)
+
+
+def outside_lower(v_form, w_form, v_centre: Tensor, w_centre: Tensor, c_q: float, level: float) -> Tensor:
+    """A lower bound ``(B,)`` of V on the part of each box where ``W >= c_q`` (``-inf`` where none is found).
+
+    For any ``mu >= 0`` and ``W(z) >= c_q``: ``V(z) >= V(z) - mu (W(z) - c_q) >= min_box (V - mu W) + mu c_q``.
+    ``V - mu W`` is bounded on the affine forms of V and W over the box (the same noise symbols, so the parts of
+    V's variation that follow W's cancel); ``mu`` is tried at 1/2 and 1 times ``V / W`` at the box centre (where
+    V and W vary alike) and at 1/2, 1 and 2 times ``level / c_q`` (V at the level where W is at ``c_q``). Near a
+    boundary of ``L = {W <= c_q}`` on which V is above the level, this shows V above the level on the box's part
+    outside L, which V's own bound on the whole box (down to V's values inside L) cannot."""
+    ratio = torch.where(w_centre > 0, v_centre / w_centre, 0.0).clamp(min=0.0)
+    best = torch.full_like(v_centre, -math.inf)
+    ref = max(level, 0.0) / c_q if math.isfinite(level) else 0.0
+    for mu in (0.5 * ratio, ratio, torch.full_like(ratio, 0.5 * ref), torch.full_like(ratio, ref),
+               torch.full_like(ratio, 2 * ref)):
+        low = (v_form - w_form * mu).tight_interval().lo
+        shift = mu * c_q
+        bound = round_down(low + shift, 4 * REL1, low.abs() + shift.abs())  # the product's and the sum's rounding
+        best = torch.maximum(best, torch.where(torch.isnan(bound), -math.inf, bound))
+    return best

@@ -1,0 +1,173 @@
+"""The first route to a region of attraction: V's sublevel sets, V's own proofs.
+
+For a closed loop and a condition (:mod:`drlyap.conditions`) :func:`outer_search` finds the largest level ``c``
+such that ``S = {z in box : V(z) <= c}``
+
+1. lies inside the state box (``V > c`` on the box boundary: :func:`~drlyap.verification.sublevel.boundary_minimum`),
+2. satisfies the condition's decrease on ``S`` outside the delta-ball (:func:`~drlyap.verification.roa.levels.level_search`),
+
+and bounds V on the delta-ball. With, 3., ``Vdot < 0`` on S inside the ball except at x*
+(:func:`~drlyap.verification.roa.local.local_decrease`), ``Vdot < 0`` on ``S`` minus x*, so ``S`` is forward
+invariant and every trajectory that starts in it converges to x* (Lyapunov / LaSalle): ``S`` is a **region of
+attraction** of the model the condition is about. Where 3 cannot be proved, only **practical stability** is
+claimed: if ``c`` exceeds an upper bound ``c0`` of V on the delta-ball, trajectories from ``S`` stay in ``S`` and
+end up in ``{V <= c0}`` (:func:`finish` decides which). :func:`sublevel_roa` is this route alone (the one
+:func:`~drlyap.verification.roa.quadratic.quadratic_roa` runs on ``W = z^T P z``);
+:func:`~drlyap.verification.roa.certify.certified_roa` adds the other proofs where it fails.
+"""
+
+from __future__ import annotations
+
+import math
+import time
+from dataclasses import dataclass, replace
+
+import torch
+from torch import Tensor
+
+from drlyap.closed_loop import ClosedLoop
+from drlyap.conditions import Condition
+from drlyap.config import Budget
+from drlyap.enclosures import F64
+from drlyap.regions import Region, box_grid, default_grid, near_dist
+from drlyap.verification.bounds import value_objective
+from drlyap.verification.branch_and_bound import maximize
+from drlyap.verification.results import RegionOfAttraction
+from drlyap.verification.roa.levels import below, level_search
+from drlyap.verification.roa.local import local_decrease
+from drlyap.verification.sublevel import boundary_minimum
+
+
+@dataclass
+class OuterSearch:
+    """Steps 1 and 2 of the route (module docstring) and V's bound on the delta-ball: ``level`` (rounded down) the
+    largest proved, ``top`` the level the search started from (V's lower bound on the faces, or the cap asked for)
+    with ``why`` it, ``counterexample`` (local) one that limited it, ``deadline`` the end of the whole budget."""
+
+    boundary_min_lower: float
+    ball_max_upper: float
+    level: float
+    limited_by: str
+    counterexample: Tensor | None
+    boxes: int
+    top: float
+    why: str
+    start: float
+    deadline: float
+
+
+def outer_search(loop: ClosedLoop, condition: Condition, region: Region, budget: Budget,
+                 max_level: float = math.inf) -> OuterSearch:
+    """The faces' minimum of V (a quarter of the budget's time), V's maximum on the delta-ball (a quarter), and the
+    level search outside the ball (until 60% of the time is spent, all of it when ``delta = 0``), capped at
+    ``max_level``. Box budgets: a million for each bound of V, the budget's boxes for the level search."""
+    start = time.perf_counter()
+    system, lyapunov = loop.system, loop.lyapunov
+    enclosure = budget.enclosure_for(system.n)
+    time_limit, min_width = budget.seconds, budget.min_width
+    delta = region.delta
+    box_lo, box_hi, scale = region.lo, region.hi, region.scale
+    grid = default_grid(system.n)
+    quarter = replace(budget, seconds=time_limit / 4, boxes=1_000_000, enclosure=enclosure)
+    # 1. min of V on the boundary of the box
+    boundary_min_lower = boundary_minimum(lyapunov, region, quarter)[0]
+    # 2. max of V on the delta-ball
+    ball_max_upper = 0.0
+    if delta > 0:
+        blo = torch.maximum(box_lo, torch.full_like(box_lo, -delta))
+        bhi = torch.minimum(box_hi, torch.full_like(box_hi, delta))
+        glo, ghi = box_grid(blo, bhi, grid)
+        _, up, _ = maximize(value_objective(lyapunov), glo, ghi, scale, quarter,
+                            box_ok=lambda a, b: near_dist(a, b) < delta)
+        ball_max_upper = float(up[0])
+    # 3. the decrease condition on the sublevel set outside the ball
+    lo, hi = region.boxes(grid)
+    top, why = (boundary_min_lower, "box boundary") if boundary_min_lower <= max_level else (max_level,
+                                                                                             "level asked for")
+    level, limited_by, cex, processed = level_search(
+        loop, condition, lo, hi, scale, top, why,
+        start + (0.6 if delta > 0 else 1.0) * time_limit, meets=region.meets,  # 40% kept for the ball
+        in_region=lambda centre, v: region.in_region(centre),
+        min_width=min_width, batch=budget.batch, enclosure=enclosure)
+    return OuterSearch(boundary_min_lower, ball_max_upper, below(level), limited_by, cex, processed, top, why, start,
+                       start + time_limit)
+
+
+def finish(loop: ClosedLoop, condition: Condition, region: Region, outer: OuterSearch, local: dict,
+           samples_per_axis: int = 400, quadratic: dict | None = None, band: dict | None = None) -> RegionOfAttraction:
+    """The region the proofs add up to: a region of attraction where the band proof certified a level (``band``), or
+    where the outer level is positive and the proof near x* (``local``) holds (the annulus inside the ball may
+    lower the level); practical stability where the outer level only exceeds V's bound on the ball; else none."""
+    system = loop.system
+    c, limited_by = outer.level, outer.limited_by
+    counterexample = None if outer.counterexample is None else system.to_user(outer.counterexample[None])[0].tolist()
+    if band is not None and band["proved"]:  # V's sublevel set from the band proof (the outer search's stays)
+        kind, c, limited_by, local = "region of attraction", band["level"], band["limited_by"], band
+        counterexample = band["counterexample"]
+    elif c > 0 and local["proved"]:
+        kind = "region of attraction"
+        if local.get("level") is not None and local["level"] < c:  # the annulus inside the ball may lower it
+            c = local["level"]
+            if local["annulus"]["limited_by"] != "outer proof":
+                limited_by = f"inside the ball: {local['annulus']['limited_by']}"
+    elif c > 0 and c > outer.ball_max_upper:
+        kind = "practical stability"
+    else:
+        kind = None
+    share = share_of_box(loop.f64.lyapunov, region, c, samples_per_axis) if c > 0 else 0.0
+    return RegionOfAttraction(
+        level=c, kind=kind, certified=kind == "region of attraction",
+        practical_level=outer.ball_max_upper if kind == "practical stability" else None, outer_level=outer.level,
+        contains_ball=c > outer.ball_max_upper, limited_by=limited_by, local=local,
+        boundary_min_lower=outer.boundary_min_lower, ball_max_upper=outer.ball_max_upper, share_of_box=share,
+        counterexample=counterexample, boxes_processed=outer.boxes, time_s=time.perf_counter() - outer.start,
+        delta=float(region.delta), condition=condition.label, quadratic=quadratic, band=band)
+
+
+def sublevel_roa(loop: ClosedLoop, condition: Condition, region: Region, budget: Budget = Budget(seconds=10.0), *,
+                 samples_per_axis: int = 400, max_level: float = math.inf) -> RegionOfAttraction:
+    """The largest certified ``{V <= c}`` by V's own proofs (module docstring), within ``budget``."""
+    outer = outer_search(loop, condition, region, budget, max_level)
+    c = outer.level
+    left = max(1.0, outer.deadline - time.perf_counter())
+    local = local_decrease(loop, condition, region, replace(budget, seconds=left,
+                                                            enclosure=budget.enclosure_for(loop.n)),
+                           level=c if c > 0 else None)
+    return finish(loop, condition, region, outer, local, samples_per_axis)
+
+
+def share_of_box(lyapunov, region: Region, level: float, samples_per_axis: int) -> float:
+    """Share of the box volume in ``{V <= level}``: on a grid for n <= 3, else from 100,000 uniform samples; where
+    fewer than 1,000 of those fall in the set (a share below 1%), stratified over the nested boxes
+    ``B_k = 2^-k X`` around x*: 20,000 uniform samples in each ``B_k`` estimate the set's share of the shell
+    ``B_k \\ B_{k+1}``, down to the first ``B_k`` the set fills at least half of (its samples then estimate all of
+    it), or until the shells left are below 1e-6 of the estimate. ``lyapunov``: V in float64 (``loop.f64.lyapunov``)."""
+    n = region.n
+
+    def values_at(z: Tensor) -> Tensor:
+        with torch.no_grad():
+            return torch.cat([lyapunov(z[i:i + 50_000]) for i in range(0, z.shape[0], 50_000)])
+
+    if n <= 3:
+        per = samples_per_axis if n <= 2 else 60
+        axes = [region.lo[i] + region.scale[i] * (torch.arange(per, dtype=F64) + 0.5) / per for i in range(n)]
+        return float((values_at(torch.cartesian_prod(*axes).reshape(-1, n)) <= level).double().mean())
+    g = torch.Generator().manual_seed(0)
+    z = region.lo + region.scale * torch.rand(100_000, n, generator=g, dtype=F64)
+    hits = values_at(z) <= level
+    if int(hits.sum()) >= 1000:
+        return float(hits.double().mean())
+    share = 0.0
+    for k in range(64):
+        lo, hi = region.lo * 2.0 ** -k, region.hi * 2.0 ** -k  # x* = 0 (local coordinates) lies in every B_k
+        if k:
+            z = lo + (hi - lo) * torch.rand(20_000, n, generator=g, dtype=F64)
+            hits = values_at(z) <= level
+        inner = ((z >= lo / 2) & (z <= hi / 2)).all(-1)
+        weight = 2.0 ** (-n * k)  # B_k's share of the box
+        if float(hits.double().mean()) >= 0.5:
+            return share + weight * float(hits.double().mean())
+        share += weight * float((hits & ~inner).double().mean())
+        if weight * 2.0 ** -n < 1e-6 * share:
+            break
+    return share

@@ -1,0 +1,100 @@
+"""Proofs on a sublevel set ``{V <= level}``: V's minimum on the box's faces (the set lies inside the box when it is
+above the level), and the condition of region-of-attraction training proved there (:func:`verify_sublevel`);
+:func:`prove_trained` proves a run's trained condition either way and settles an unknown verdict with the
+falsifier."""
+
+from __future__ import annotations
+
+import time
+from dataclasses import replace
+
+import torch
+from torch import Tensor
+
+from drlyap.closed_loop import ClosedLoop
+from drlyap.conditions import Condition
+from drlyap.config import DEFAULT_SETTLE_STARTS, Budget
+from drlyap.enclosures import F64, round_down
+from drlyap.networks import QuadraticLyapunov
+from drlyap.regions import Region, box_grid, default_grid
+from drlyap.verification.bounds import value_objective
+from drlyap.verification.branch_and_bound import maximize, verify_condition
+from drlyap.verification.falsifier import settle_unknown
+from drlyap.verification.results import ConditionProof
+
+
+def box_faces(lo: Tensor, hi: Tensor, per_axis: list[int]) -> tuple[Tensor, Tensor]:
+    """Boxes covering the boundary of the box ``[lo, hi]`` (one coordinate pinned per face)."""
+    out_lo, out_hi = [], []
+    for i in range(lo.shape[0]):
+        per = list(per_axis)
+        per[i] = 1
+        for side in (lo[i], hi[i]):
+            flo, fhi = box_grid(lo, hi, per)
+            flo[:, i] = side
+            fhi[:, i] = side
+            out_lo.append(flo)
+            out_hi.append(fhi)
+    return torch.cat(out_lo), torch.cat(out_hi)
+
+
+def boundary_minimum(lyapunov, region: Region, budget: Budget = Budget(seconds=5.0, boxes=1_000_000),
+                     rel_tol: float = 1e-3) -> tuple[float, float]:
+    """``(lower, upper)``: a sound lower bound of the minimum of V over the boundary of the state box, and a value
+    of V taken at a point of the boundary (so ``lower <= min <= upper``); boxes are refined until ``lower`` is
+    within ``rel_tol`` of ``upper`` (or the budget runs out: ``lower`` is then ``-inf``). ``lyapunov``: V (a
+    network, or a quadratic form, whose minimum on the faces is computed exactly)."""
+    if isinstance(lyapunov, QuadraticLyapunov):  # min of z'Pz on the hyperplane z_i = b is b^2 / (P^-1)_ii
+        p = lyapunov.P.to(F64)
+        inv_diag = torch.linalg.inv(p).diagonal()
+        sides = torch.stack([region.lo, region.hi], -1)  # (n, 2)
+        minima = sides.square() / inv_diag[:, None]  # on each face's hyperplane
+        low = float(round_down(minima.min(), 1e-9))
+        i, j = divmod(int(minima.argmin()), 2)
+        point = torch.clamp(torch.linalg.solve(p, torch.eye(region.n, dtype=F64)[i]) * (sides[i, j] / inv_diag[i]),
+                            region.lo, region.hi)
+        point[i] = sides[i, j]
+        return low, float(lyapunov(point[None])[0])
+    vobj = value_objective(lyapunov)
+    flo, fhi = box_faces(region.lo, region.hi, default_grid(region.n))
+    best, neg_up, _ = maximize(lambda z: -vobj(z), flo, fhi, region.scale, budget, rel_tol=rel_tol)
+    return float(-neg_up[0]), float(-best[0])
+
+
+def verify_sublevel(loop: ClosedLoop, condition: Condition, region: Region, level: float, budget: Budget = Budget(),
+                    **kwargs) -> ConditionProof:
+    """Prove what region-of-attraction training asks (``TrainConfig.roa_level``): the condition on
+    ``{V <= level}`` minus the delta-ball (:func:`verify_condition` with ``level``) and ``V > level`` on the
+    boundary of the box (:func:`boundary_minimum`), so that the sublevel set lies inside the box.
+
+    The result's ``boundary_min_lower`` / ``boundary_min_upper`` bracket V's minimum on the faces; ``status`` is
+    ``verified`` only when both hold, ``violated`` when a boundary point has ``V <= level`` or a state of the set
+    violates the condition. A quarter of the budget goes to the faces (with boxes up to a million), the rest to
+    the condition.
+    """
+    start = time.perf_counter()
+    enclosure = budget.enclosure_for(loop.n)
+    faces_budget = replace(budget, seconds=budget.seconds / 4, boxes=1_000_000, enclosure=enclosure)
+    low, high = boundary_minimum(loop.lyapunov, region, faces_budget, rel_tol=0.02)
+    left = max(1.0, budget.seconds - (time.perf_counter() - start))
+    out = verify_condition(loop, condition, region, replace(budget, seconds=left, enclosure=enclosure), level=level,
+                           **kwargs)
+    out.boundary_min_lower, out.boundary_min_upper, out.time_s = low, high, time.perf_counter() - start
+    if high <= level:
+        out.status, out.stopped = "violated", f"V = {high:.6g} <= {level:g} at a point of the box's boundary"
+    elif low <= level and out.status == "verified":
+        out.status, out.stopped = "unknown", f"V > {level:g} on the box's boundary not proved (bound {low:.6g})"
+    return out
+
+
+def prove_trained(loop: ClosedLoop, condition: Condition, region: Region, budget: Budget = Budget(),
+                  level: float | None = None, falsify_starts: int = DEFAULT_SETTLE_STARTS, **kwargs) -> ConditionProof:
+    """The proof of a trained condition: :func:`verify_condition` on X_delta (``level`` None) or
+    :func:`verify_sublevel` on ``{V <= level}`` (region-of-attraction training). Where the proof comes back
+    ``unknown``, a falsifier from ``falsify_starts`` states looks for a certain violation
+    (:func:`~drlyap.verification.falsifier.settle_unknown`; 0: none)."""
+    if level is None:
+        out = verify_condition(loop, condition, region, budget, **kwargs)
+    else:
+        out = verify_sublevel(loop, condition, region, level, budget, **kwargs)
+    return settle_unknown(out, loop, condition, region, level, starts=falsify_starts)

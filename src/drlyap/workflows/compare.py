@@ -1,0 +1,229 @@
+"""Comparing controllers of any kind (Lyapunov pairs, LQR, RL) on the true model (``drlyap compare``).
+
+Every run is simulated from the same initial states at one shift; the table reports success (as
+:func:`drlyap.simulation.evaluate`), samples and training time, how often the certificate increases
+along successful trajectories (:func:`monotonicity`), and what each run *proves*: the sound verifier's
+verdict for Lyapunov pairs (:func:`certify`). Figures follow the paper's Figs. 3/4.
+"""
+
+from __future__ import annotations
+
+import json
+import os
+import time
+from collections.abc import Sequence
+from dataclasses import replace
+from pathlib import Path
+
+import torch
+from torch import Tensor
+
+from drlyap import plotting
+from drlyap.closed_loop import ClosedLoop
+from drlyap.conditions import TrueDecrease
+from drlyap.io import jsonable
+from drlyap.networks import LinearController, QuadraticLyapunov
+from drlyap.progress import progress as show_progress
+from drlyap.regions import Region
+from drlyap.render import attempt_cells
+from drlyap.runs import PolicyRun, atomic_dir, ensure_new
+from drlyap.simulation import initial_states, simulate, success_mask, wrap_steps
+from drlyap.systems import UncertainSystem
+from drlyap.verification import (
+    Budget,
+    CertifiedRadius,
+    CertifiedShiftBox,
+    ProofAttempt,
+    certified_roa,
+    certified_shift_box,
+    shift_scale,
+    verify_condition,
+)
+from drlyap.workflows.policies import load_policy_run
+from drlyap.workflows.verify import run_proof, run_robustness, verify_run
+
+
+def monotonicity(system: UncertainSystem, x: Tensor, values: Tensor, success: Tensor, rel_tol: float = 1e-4) -> dict:
+    """How often a certificate increases along successful trajectories.
+
+    ``x (T, B, n)`` states, ``values (T, B)`` certificate along them, ``success (B,)``. A step counts
+    as an increase when ``v(t+1) - v(t) > rel_tol * (max_t v - min_t v)`` of that trajectory (so that
+    float32 rounding of a network near x* is not counted). Steps where an angle crosses the wrap
+    (the certificate lives on the box, not the circle) are left out. Returns ``increase_fraction``
+    (increasing steps / counted steps over successful trajectories), ``monotone_fraction`` (successful
+    trajectories with no increase) and ``counted_steps``; None values without successful trajectories.
+    """
+    dv = values[1:] - values[:-1]
+    valid = torch.isfinite(dv) & ~wrap_steps(system, x)
+    span = (values.amax(0) - values.amin(0)).clamp_min(0)
+    increase = (dv > rel_tol * span) & valid
+    ok = success.bool()
+    if not ok.any():
+        return {"increase_fraction": None, "monotone_fraction": None, "counted_steps": 0}
+    counted = int(valid[:, ok].sum())
+    return {"increase_fraction": float(increase[:, ok].sum()) / max(counted, 1),
+            "monotone_fraction": float((~increase[:, ok].any(0)).double().mean()),
+            "counted_steps": counted}
+
+
+def score_run(run: PolicyRun, x0: Tensor, xi: Tensor, horizon: float | None = None) -> dict:
+    """Simulate ``run`` from ``x0`` on the true model at ``xi``: success (as :func:`simulation.evaluate`),
+    certificate monotonicity along successful trajectories, samples and training time."""
+    system = run.system
+    tic = time.perf_counter()
+    traj = simulate(system, run.controller, x0, xi, horizon=horizon)
+    success, dev = success_mask(system, traj.x)
+    row = {"run_dir": str(run.path), "kind": run.kind, "label": run.label, "system": system.name,
+           "n": int(x0.shape[0]), "n_success": int(success.sum()), "success_rate": float(success.double().mean()),
+           "success": success.tolist(), "samples": run.samples, "train_time_s": run.train_time_s,
+           "distinct_states": run.info.get("distinct_states")}
+    if run.certificate is not None:
+        values = run.certificate(traj.x.reshape(-1, system.n)).reshape(dev.shape)
+        row["certificate"] = monotonicity(system, traj.x, values, success)
+    else:
+        row["certificate"] = {"increase_fraction": None, "monotone_fraction": None, "counted_steps": 0}
+    row["simulation_s"] = time.perf_counter() - tic
+    return row
+
+
+def certify(run: PolicyRun, xi: Tensor, time_limit: float) -> ProofAttempt:
+    """What a run *proves* at the shift ``xi`` on the true model, by the sound verifier over X_delta:
+    the decrease condition and the largest certified sublevel set (region of attraction).
+
+    Lyapunov pairs: ``Vdot + gamma||z|| (+ alpha V) <= 0`` with the run's own gamma and delta
+    (:func:`drlyap.workflows.verify.verify_run`). LQR: ``d/dt z'Pz + alpha z'Pz <= 0``, a decay that does not
+    depend on the scale of P, with alpha half the rate ``lambda_min(Q + K'RK) / lambda_max(P)`` that the
+    linearisation guarantees, and the system's default delta. RL critics: nothing is proved.
+
+    ``robustness`` (None when nothing is proved): the certified Wasserstein radius of the DR pointwise condition at
+    the run's samples (Lyapunov pairs; None for LQR, which has no samples) and the certified box of shifts for
+    decrease on the true model with the row's decay (:mod:`drlyap.verification.robustness`; each proof
+    ``time_limit`` seconds, each search at most 4x that).
+    """
+    search = Budget(seconds=time_limit, enclosure="mean-value")
+    if run.kind == "lyapunov":
+        lyap_run = run.info["run"]
+        result = verify_run(lyap_run, replace(run_proof(lyap_run), time_limit=time_limit), xi=xi, roa=True)
+        roa = result.roa
+        robust = run_robustness(lyap_run, budget=search, total_time=4 * time_limit)
+        main = result.main
+        return ProofAttempt(status=main.status, verified_fraction=main.verified_fraction,
+                            counterexample=main.counterexample, time_s=main.time_s, roa_certified=roa.certified,
+                            roa_kind=roa.kind, roa_share=roa.share_of_box,
+                            robustness=_robust_summary(robust.radius, robust.shift_box))
+    if run.kind == "lqr":
+        system, design = run.system, run.info["design"]
+        loop = ClosedLoop(system, QuadraticLyapunov(design.P),
+                          LinearController(design.K, system.input_box, system.equilibrium_input))
+        # scale-free decay alpha V: half the rate z'(Q + K'RK)z / z'Pz >= lambda_min / lambda_max of the linearisation
+        rate = float(torch.linalg.eigvalsh(design.Q + design.K.T @ design.R @ design.K).min()
+                     / torch.linalg.eigvalsh(design.P).max())
+        alpha = 0.5 * max(rate, 0.0)
+        condition = TrueDecrease(xi[None], decay_rate=0.0, exp_rate=alpha)
+        region = Region.of(system, system.defaults.delta)
+        result = verify_condition(loop, condition, region, search)
+        roa = certified_roa(loop, condition, region, Budget(seconds=time_limit))
+        box = certified_shift_box(loop, 0.0, alpha, region, shift_scale(system), search, total_time=4 * time_limit)
+        return ProofAttempt(status=result.status, verified_fraction=result.verified_fraction,
+                            counterexample=result.counterexample, time_s=result.time_s, roa_certified=roa.certified,
+                            roa_kind=roa.kind, roa_share=roa.share_of_box, decay_rate=0.0, exp_rate=alpha,
+                            robustness=_robust_summary(None, box))
+    return ProofAttempt(status="none", note="no certificate")
+
+
+def _robust_summary(radius: CertifiedRadius | None, box: CertifiedShiftBox) -> dict:
+    """The numbers of a certified radius / shift box search that the comparison keeps."""
+    out = {"shift_box_s": box.s, "shift_box": box.box, "shift_box_reason": box.reason, "shift_scale": box.scale,
+           "shift_decay": [box.decay_rate, box.exp_rate], "time_s": box.time_s}
+    if radius is not None:
+        out.update(radius=radius.radius, radius_unproved=radius.unproved, risk_level=radius.risk_level,
+                   n_samples=radius.n_samples, radius_reason=radius.reason)
+        out["time_s"] += radius.time_s
+    else:
+        out.update(radius=None, radius_reason="no Wasserstein condition (no samples)")
+    return out
+
+
+def compare_runs(paths: Sequence[str | os.PathLike], xi: Sequence[float], n_init: int = 200, seed: int = 0,
+                 out: str | os.PathLike | None = None, horizon: float | None = None,
+                 certify_time_limit: float | None = 10.0, progress: bool = True) -> dict:
+    """Score every run directory at the shift ``xi`` from the same ``n_init`` initial states (drawn from
+    each system's test box with ``seed``); with ``out``, write compare.json, compare.md and figures.
+
+    ``certify_time_limit`` (seconds per run; None skips it) runs the verifier on each Lyapunov pair at ``xi``.
+    ``progress``: report scoring progress on stderr (:func:`drlyap.progress.progress`).
+    """
+    if not paths:
+        raise ValueError("give at least one run directory")
+    if n_init < 1:
+        raise ValueError(f"--n-init must be >= 1, got {n_init}")
+    if out is not None:
+        ensure_new(out)
+    runs = [load_policy_run(p) for p in paths]
+    shifts = [run.system.check_xi(xi) for run in runs]
+    rows = []
+    bar = show_progress(len(runs), "compare: scoring runs", progress)
+    for run, shift in zip(runs, shifts):
+        x0 = initial_states(run.system, n_init, torch.Generator().manual_seed(seed))
+        row = score_run(run, x0, shift, horizon)
+        if certify_time_limit is not None:
+            row["certified"] = jsonable(certify(run, shift, certify_time_limit).to_dict())
+        rows.append(row)
+        bar.update(1)
+    bar.close()
+    report = {"xi": [float(v) for v in xi], "n_init": n_init, "seed": seed, "rows": rows}
+    if out is not None:
+        def fill(tmp: Path) -> None:
+            figures = compare_figures(runs, shifts, tmp / "figures", horizon)
+            report["figures"] = [str(Path(out) / "figures" / f.name) for f in figures]
+            (tmp / "compare.json").write_text(json.dumps(report, indent=2) + "\n")
+            (tmp / "compare.md").write_text(format_comparison(report) + "\n")
+
+        atomic_dir(Path(out), fill)
+    return report
+
+
+def compare_figures(runs: Sequence[PolicyRun], shifts: Sequence[Tensor], folder: Path,
+                    horizon: float | None = None) -> list[Path]:
+    """Like the paper's Figs. 3/4: certificate (V, z^T P z, or negated value) and input over time, one
+    figure per start state of the first run's system (:meth:`UncertainSystem.figure_starts`)."""
+    folder.mkdir(parents=True, exist_ok=True)
+    paths = []
+    for i, start in enumerate(runs[0].system.figure_starts()):
+        series = {}
+        for run, shift in zip(runs, shifts):
+            x0 = torch.tensor([start], dtype=torch.float64)
+            if x0.shape[1] != run.system.n:
+                continue
+            traj = simulate(run.system, run.controller, x0, shift, horizon=horizon)
+            value = run.certificate(traj.x[:, 0]) if run.certificate is not None else torch.full_like(traj.t, float("nan"))
+            series[f"{run.label} ({run.path.name})"] = (traj.t, value, traj.u[:, 0])
+        where = ", ".join(f"{v:.3g}" for v in start)
+        shift = ", ".join(f"{v:+g}" for v in shifts[0].tolist())
+        system = runs[0].system
+        paths.append(plotting.time_series(series, folder / f"certificate_and_input_{i}.png",
+                                          f"{system.name} from ({where}), true model at xi = ({shift})",
+                                          value_label="certificate: V, z'Pz or -value",
+                                          input_label=plotting.input_label(system), time_label=plotting.time_label(system),
+                                          limits=plotting.input_limits_of([run.system for run in runs]),
+                                          input_names=system.input_names))
+    return paths
+
+
+def format_comparison(report: dict) -> str:
+    """A markdown table of a :func:`compare_runs` report."""
+    lines = [f"## comparison at xi = {report['xi']} ({report['n_init']} initial states, seed {report['seed']})", "",
+             "| run | kind | system | success | samples | train s | certificate increases | monotone trajectories "
+             "| verified decrease at xi | certified region of attraction at xi | certified radius; shift box |",
+             "|---|---|---|---|---|---|---|---|---|---|---|"]
+    for r in report["rows"]:
+        c = r["certificate"]
+        inc = "-" if c["increase_fraction"] is None else f"{100 * c['increase_fraction']:.2f}%"
+        mono = "-" if c["monotone_fraction"] is None else f"{100 * c['monotone_fraction']:.0f}%"
+        t = "-" if r["train_time_s"] is None else f"{r['train_time_s']:.1f}"
+        cert = r.get("certified")
+        proof, roa, robust = attempt_cells(None if cert is None else ProofAttempt.from_dict(cert))
+        lines.append(f"| {r['run_dir']} | {r['label']} | {r['system']} | {r['n_success']}/{r['n']} "
+                     f"({100 * r['success_rate']:.1f}%) | {r['samples'] if r['samples'] is not None else '-'} | {t} | "
+                     f"{inc} | {mono} | {proof} | {roa} | {robust} |")
+    return "\n".join(lines)

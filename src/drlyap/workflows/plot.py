@@ -1,0 +1,126 @@
+"""The figures of one trained pair (``drlyap plot RUN_DIR``).
+
+Simulates the run on the true model at a shift and hands the data to :mod:`drlyap.plotting`
+(which only draws): a phase portrait with labelled level sets of V and the certified set, V(t) and u(t) with
+the input limits, and heatmaps of V and of the decrease residual on the plane.
+"""
+
+from __future__ import annotations
+
+import os
+from collections.abc import Sequence
+from dataclasses import replace
+from pathlib import Path
+
+import torch
+from torch import Tensor
+
+from drlyap import plotting
+from drlyap.render import region_label
+from drlyap.runs import Run, load_run
+from drlyap.simulation import Trajectories, initial_states, simulate, success_mask
+from drlyap.verification import RegionOfAttraction
+from drlyap.workflows.verify import run_proof, verify_run
+
+
+def region_to_draw(run: Run, roa: RegionOfAttraction | None) -> dict | None:
+    """``{"level", "certified", "label"}`` for :func:`~drlyap.plotting.draw_phase`, or None when there is no
+    level."""
+    if roa is None:
+        return None
+    where = (plotting.shift_text(run.system, roa.xi) + " (true model)" if roa.xi is not None
+             else "the trained condition (design model)")
+    label = region_label(roa, where)
+    if not label:
+        return None
+    return {"level": float(roa.level), "certified": bool(roa.certified), "label": label}
+
+
+def decrease_residual(run: Run, x: Tensor, xi: Tensor | None) -> Tensor:
+    """The residual of plain decrease on the true model at ``xi`` (``Vdot + gamma |z| (+ alpha V)``, float64
+    networks) at user states ``x (B, n)`` -> ``(B,)``: the condition ``verify --xi`` proves."""
+    system = run.system
+    condition = run.true_condition(torch.zeros(system.k, dtype=torch.float64) if xi is None else xi)
+    return run.loop.exact(condition, system.to_local(x.to(torch.float64)))
+
+
+def plot_run(run_dir: str | os.PathLike, xi: Sequence[float] | None = None, n_init: int = 20, seed: int = 0,
+             roa: bool | None = None, out: str | os.PathLike | None = None, time_limit: float = 30.0,
+             per_axis: int = 160, horizon: float | None = None) -> dict:
+    """Write the figures of one Lyapunov run to ``out`` (default ``RUN_DIR/figures``) and return what was drawn.
+
+    ``xi``: the shift of the true model (default: the system's test shift, or the nominal model); ``horizon``:
+    simulated time (default: the system's).
+    ``roa``: True computes the certified sublevel set now (:func:`drlyap.verification.verify_run` at ``xi``),
+    False draws none, None uses ``metrics["certificate"]["roa"]`` when the run has one.
+    Returns ``{"run_dir", "xi", "n", "n_success", "region", "figures": [paths]}``.
+    """
+    run = load_run(run_dir)
+    system = run.system
+    if n_init < 1:
+        raise ValueError(f"--n-init must be >= 1, got {n_init}")
+    if xi is None and system.test_xi is not None:
+        xi = system.test_xi
+    shift = None if xi is None else system.check_xi(xi)
+    folder = Path(out) if out is not None else Path(run_dir) / "figures"
+    folder.mkdir(parents=True, exist_ok=True)
+    where = plotting.shift_text(system, shift)
+
+    if roa:
+        proof = replace(run_proof(run), time_limit=time_limit, roa_time=time_limit)
+        found = verify_run(run, proof, xi=shift, roa=True).roa
+        missing = found.error or "the verifier certified no sublevel set of V (level <= 0)"
+        if found.error is not None:
+            found = None
+        elif found.xi is None and shift is not None:
+            found.xi = shift.tolist()
+    elif roa is None:
+        found = run.certificate.region_of_attraction() if run.certificate else None
+        missing = "none stored in metrics.json; --roa computes one"
+    else:
+        found, missing = None, "--no-roa"
+    region = region_to_draw(run, found)
+    if found is not None and region is None:
+        missing = f"the verifier's level is {found.level}: no sublevel set certified"
+
+    x0 = initial_states(system, n_init, torch.Generator().manual_seed(seed))
+    starts = [tuple(float(v) for v in s) for s in getattr(system, "reference_states", ()) or ()] or \
+        [tuple(v) for v in x0[:3].tolist()]
+    both = simulate(system, run.controller, torch.cat([x0, torch.tensor(starts, dtype=torch.float64)]), shift,
+                    horizon=horizon)  # one simulation: the per-step cost dominates, not the batch
+    traj = Trajectories(both.t, both.x[:, :n_init], both.u[:, :n_init])
+    ref = Trajectories(both.t, both.x[:, n_init:], both.u[:, n_init:])
+    success, _ = success_mask(system, traj.x)
+    grid = plotting.lyapunov_grid(system, run.lyapunov, per_axis)
+    if region is None:
+        note = f"no certified set drawn ({missing})"
+    else:
+        note = "shaded: " + ("certified" if region["certified"] else "not certified")
+    title = (f"{system.name} ({run.config.method}), true model at {where}\n"
+             f"{int(success.sum())}/{n_init} stabilised; {note}")
+    paths = [plotting.phase_portrait(system, traj, success.tolist(), folder / "phase_portrait.png", title, grid,
+                                     region, run.config.delta)]
+
+    series = {}
+    for i, start in enumerate(starts):
+        text = ", ".join(f"{v:.3g}" for v in start)
+        series[f"from ({text})"] = (ref.t, run.lyapunov(ref.x[:, i]), ref.u[:, i])
+    paths.append(plotting.time_series(series, folder / "certificate_and_input.png",
+                                      f"{system.name} ({run.config.method}), true model at {where}",
+                                      value_label="V(x(t))", input_label=plotting.input_label(system),
+                                      time_label=plotting.time_label(system), limits=plotting.input_limits(system),
+                                      input_names=system.input_names))
+    paths.append(plotting.states_over_time(system, {label: (ref.t, ref.x[:, i]) for i, label in enumerate(series)},
+                                           folder / "states.png",
+                                           f"{system.name} ({run.config.method}), true model at {where}"))
+
+    gx, gy, gv = grid
+    x = plotting.plane_states(system, gx, gy)
+    residual = decrease_residual(run, x, shift)
+    residual[system.to_local(x).norm(dim=-1) < run.config.delta] = float("nan")
+    condition = "Vdot + gamma |x - x*|" + (" + alpha V" if run.config.exp_rate else "")
+    paths.append(plotting.decrease_map(system, grid, residual.reshape(gx.shape), folder / "decrease_map.png",
+                                       f"{system.name} ({run.config.method}), true model at {where}", condition,
+                                       run.config.delta))
+    return {"run_dir": str(run_dir), "xi": None if shift is None else shift.tolist(), "n": n_init,
+            "n_success": int(success.sum()), "region": region, "figures": [str(p) for p in paths]}

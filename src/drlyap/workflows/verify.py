@@ -1,0 +1,127 @@
+"""Proving what a run directory holds: its trained condition, the uniform DR margin, the decrease on the true model
+at a shift, its certified region of attraction (:func:`verify_run`), its robustness (:func:`run_robustness`) and
+the Lipschitz covering check (:func:`run_covering`). The proofs themselves are :mod:`drlyap.verification`'s; this
+module picks the run's conditions, region and proof settings."""
+
+from __future__ import annotations
+
+import math
+from collections.abc import Sequence
+
+from torch import Tensor
+
+from drlyap.regions import Region
+from drlyap.runs import Run
+from drlyap.training import run_condition
+from drlyap.verification import (
+    Budget,
+    CoveringCheck,
+    ProofConfig,
+    RegionOfAttraction,
+    RunRobustness,
+    RunVerification,
+    certified_radius,
+    certified_roa,
+    certified_shift_box,
+    lipschitz_covering,
+    prove_trained,
+    shift_scale,
+    uniform_margin,
+)
+from drlyap.verification.robustness import SEARCH_BUDGET
+
+
+def run_proof(run: Run, proof: ProofConfig | None = None) -> ProofConfig:
+    """The proof settings for ``run``, resolved for its system: ``proof``, else those the run was trained with,
+    else the defaults."""
+    return (proof or run.proof or ProofConfig()).resolved(run.system)
+
+
+def _region(run: Run, delta: float | None) -> Region:
+    delta = float(run.config.delta if delta is None else delta)
+    if not (math.isfinite(delta) and delta >= 0):
+        raise ValueError(f"delta must be finite and >= 0, got {delta}")
+    return Region.of(run.system, delta)
+
+
+def verify_run(run: Run, proof: ProofConfig | None = None, *, delta: float | None = None,
+               xi: Sequence[float] | Tensor | None = None, roa: bool = False) -> RunVerification:
+    """Verify a loaded run (:func:`drlyap.runs.load_run`) on X_delta (``delta``: the run's by default).
+
+    ``trained``: the run's own condition (pointwise / nominal by :func:`~drlyap.verification.prove_trained`, uniform
+    by :func:`~drlyap.verification.uniform_margin`); ``uniform``: always, the uniform DR margin at the run's radius,
+    risk level and samples; with ``xi``, ``true_model``: plain decrease on the true model at that shift; with
+    ``roa``, the certified region of attraction of the main condition (the true model's when ``xi`` is given), for
+    ``proof.roa_time`` seconds (None: 3x ``proof.time_limit``), up to the level a region-of-attraction run was
+    trained for. A run trained for a region of attraction (``config.roa_level``) has its trained and true-model
+    conditions proved on ``{V <= roa_level}`` with V above the level on the box's faces. ``proof``: the settings
+    (:func:`run_proof`).
+    """
+    proof = run_proof(run, proof)
+    cfg, system, loop = run.config, run.system, run.loop
+    region = _region(run, delta)
+    level = cfg.roa_level
+    budget = proof.budget()
+    trained_condition = run.condition
+    uniform_condition = run_condition(cfg, run.xi_samples, "uniform")
+    if trained_condition.name == "uniform":
+        trained = uniform_margin(loop, trained_condition, region, budget)
+        uniform = trained
+    else:
+        trained = prove_trained(loop, trained_condition, region, budget, level, falsify_starts=proof.settle_starts)
+        uniform = uniform_margin(loop, uniform_condition, region, proof.budget(proof.uniform_time))
+    true_model, main_condition = None, trained_condition
+    if xi is not None:
+        main_condition = run.true_condition(xi)
+        true_model = prove_trained(loop, main_condition, region, budget, level, falsify_starts=proof.settle_starts)
+        true_model.xi = main_condition.xi[0].tolist()
+    region_of_attraction = None
+    if roa:
+        if not main_condition.per_state:
+            region_of_attraction = RegionOfAttraction.unavailable(
+                "no per-state residual for the uniform condition; no sublevel-set certificate")
+        else:
+            seconds = 3 * proof.time_limit if proof.roa_time is None else proof.roa_time
+            region_of_attraction = certified_roa(loop, main_condition, region, budget.with_seconds(seconds),
+                                                 max_level=math.inf if level is None else float(level),
+                                                 band_time=proof.band_time)
+            if true_model is not None:
+                region_of_attraction.xi = true_model.xi
+    return RunVerification(run_dir=str(run.path), system=system.name, method=cfg.method,
+                           loss=cfg.loss if cfg.method == "dr" else None, delta=region.delta,
+                           enclosure=proof.enclosure, trained=trained, uniform=uniform, true_model=true_model,
+                           roa=region_of_attraction)
+
+
+def run_robustness(run: Run, delta: float | None = None, tol: float = 0.01, budget: Budget = SEARCH_BUDGET,
+                   total_time: float = 120.0, scale: Tensor | None = None) -> RunRobustness:
+    """:func:`~drlyap.verification.certified_radius` of the DR pointwise condition at the run's samples (all N, also
+    for a baseline run, which trained on their mean), risk level and decay (its configured radius is only a start
+    of the search), and :func:`~drlyap.verification.certified_shift_box` with the run's decay (``scale`` default
+    :func:`~drlyap.verification.shift_scale` of the run's samples), over the run's X_delta (``delta`` default the
+    run's); ``budget`` of each proof, ``total_time`` seconds of each search. For a baseline run also the radius
+    of the DR condition around the single sample it trained on (``run.xi_train``, N = 1)."""
+    cfg, system, loop = run.config, run.system, run.loop
+    region = _region(run, delta)
+    radius = certified_radius(loop, run_condition(cfg, run.xi_samples, "pointwise"), region, budget, tol=tol,
+                              total_time=total_time)
+    scale = shift_scale(system, run.xi_samples) if scale is None else scale
+    box = certified_shift_box(loop, cfg.decay_rate, cfg.exp_rate, region, scale, budget, tol=tol,
+                              total_time=total_time)
+    own = None
+    if cfg.method == "baseline":  # also around the one sample it trained on (the mean: a ball around a point mass)
+        own = certified_radius(loop, run_condition(cfg, run.xi_train, "pointwise"), region, budget, tol=tol,
+                               total_time=total_time)
+    return RunRobustness(method=cfg.method, trained_radius=cfg.wasserstein_radius if cfg.method == "dr" else None,
+                         delta=region.delta, radius=radius, shift_box=box, radius_training_sample=own)
+
+
+def run_covering(run: Run, spacing: float | None = None, xi: Sequence[float] | Tensor | None = None,
+                 compare_seconds: float = 0.0, n_samples: int = 20000) -> CoveringCheck:
+    """The Lipschitz covering check (:func:`~drlyap.verification.lipschitz_covering`) of the run's trained condition,
+    or with ``xi`` of plain decrease on the true model there, on the run's X_delta; with ``compare_seconds`` the
+    branch and bound (mean-value form) on the same condition beside it."""
+    condition = run.condition if xi is None else run.true_condition(xi)
+    compare = Budget(seconds=compare_seconds, enclosure="mean-value") if compare_seconds > 0 else None
+    return lipschitz_covering(run.loop, condition, _region(run, None), spacing=spacing, n_samples=n_samples,
+                              compare=compare)

@@ -1,0 +1,76 @@
+"""The layout the architecture page describes: no import loop between drlyap's modules (lazy imports included), no
+module over 600 lines, the verifier never imports the trainer, and --help loads no numerical code."""
+
+import ast
+import subprocess
+import sys
+from pathlib import Path
+
+SRC = Path(__file__).resolve().parents[1] / "src" / "drlyap"
+
+
+def _module(path: Path) -> str:
+    parts = path.relative_to(SRC.parent).with_suffix("").parts
+    return ".".join(parts[:-1] if parts[-1] == "__init__" else parts)
+
+
+def _graph() -> dict[str, set[str]]:
+    modules = {_module(p): p for p in SRC.rglob("*.py")}
+    graph: dict[str, set[str]] = {}
+    for name, path in modules.items():
+        deps = set()
+        for node in ast.walk(ast.parse(path.read_text())):  # every import, at the top or inside a function
+            targets = []
+            if isinstance(node, ast.ImportFrom) and node.module and node.level == 0:
+                targets = [node.module] + [f"{node.module}.{a.name}" for a in node.names]
+            elif isinstance(node, ast.Import):
+                targets = [a.name for a in node.names]
+            deps.update(t for t in targets if t in modules and t != name)
+        graph[name] = deps
+    return graph
+
+
+def test_no_import_loop_not_even_a_lazy_one():
+    graph = _graph()
+    # a package's __init__ importing its own submodules is its face, not a loop: drop package -> child edges
+    # and child -> own package edges are imports of siblings through the face, so keep them
+    def children_of(pkg: str) -> set[str]:
+        return {d for d in graph[pkg] if d.startswith(pkg + ".")}
+
+    edges = {m: {d for d in deps if d not in children_of(m)} for m, deps in graph.items()}
+    state: dict[str, int] = {}
+    stack: list[str] = []
+
+    def visit(m: str) -> None:
+        state[m] = 1
+        stack.append(m)
+        for d in sorted(edges[m]):
+            if state.get(d) == 1:
+                raise AssertionError("import loop: " + " -> ".join(stack[stack.index(d):] + [d]))
+            if d not in state:
+                visit(d)
+        stack.pop()
+        state[m] = 2
+
+    for m in sorted(edges):
+        if m not in state:
+            visit(m)
+
+
+def test_no_module_over_600_lines():
+    long = {str(p.relative_to(SRC)): n for p in SRC.rglob("*.py") if (n := len(p.read_text().splitlines())) > 600}
+    assert not long
+
+
+def test_the_verifier_never_imports_the_trainer_or_run_directories():
+    graph = _graph()
+    for name, deps in graph.items():
+        if name.startswith("drlyap.verification"):
+            bad = {d for d in deps if d.startswith(("drlyap.training", "drlyap.runs", "drlyap.workflows", "drlyap.cli"))}
+            assert not bad, (name, bad)
+
+
+def test_help_loads_no_numerical_code():
+    code = "import sys; from drlyap.cli import main; print('torch' in sys.modules)"
+    out = subprocess.run([sys.executable, "-c", code], capture_output=True, text=True, check=True)
+    assert out.stdout.strip() == "False"
