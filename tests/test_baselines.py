@@ -87,7 +87,7 @@ def test_lqr_run_dir_round_trip(tmp_path):
     metrics = train_lqr("pendulum", tmp_path / "lqr", evaluate_test=False)
     assert metrics["samples"] == 0
     info = json.loads((tmp_path / "lqr" / "run.json").read_text())
-    assert info["kind"] == "lqr" and info["format"] == 1 and info["system"]["name"] == "pendulum"
+    assert info["kind"] == "lqr" and info["format"] == 2 and info["system"]["name"] == "pendulum"
     config = json.loads((tmp_path / "lqr" / "config.json").read_text())
     assert config["system"] == "pendulum" and len(config["Q"]) == 2 and len(config["R"]) == 1
     run = load_policy_run(tmp_path / "lqr")
@@ -103,8 +103,10 @@ def test_lqr_run_dir_round_trip(tmp_path):
 
 
 def test_load_policy_run_unknown_kind(tmp_path):
-    (tmp_path / "run.json").write_text(json.dumps({"kind": "mystery"}))
-    with pytest.raises(RunDirError, match="unknown kind"):
+    from drlyap.runs.directory import run_record
+
+    (tmp_path / "run.json").write_text(json.dumps({**run_record("lqr", get_system("pendulum")), "kind": "mystery"}))
+    with pytest.raises(RunDirError, match="run.json: kind: 'mystery' is not one of"):
         load_policy_run(tmp_path)
 
 

@@ -39,7 +39,7 @@ def test_rl_run_dir_round_trip(runs, algo):
     config = json.loads((path / "config.json").read_text())
     assert config["algo"] == algo and config["steps"] == 200 and config["seed"] == 0 and config["wall_time_s"] > 0
     metrics = json.loads((path / "metrics.json").read_text())
-    assert metrics["samples"] == 200 and (path / "model.zip").is_file()
+    assert metrics["samples"] == 200 and (path / "policy.pt").is_file() and not (path / "model.zip").exists()
     run = load_policy_run(path)
     assert run.kind == "rl" and run.samples == 200 and run.label == f"rl-{algo}"
     x = torch.tensor([[3.0, 0.0], [0.1, -0.3], [0.1 + 6.283185307179586, -0.3], [0.0, 30.0]], dtype=torch.float64)

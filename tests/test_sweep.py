@@ -1,5 +1,6 @@
 import json
 import shutil
+from pathlib import Path
 
 import pytest
 from click.testing import CliRunner
@@ -152,3 +153,106 @@ def test_cli_sweep_help_and_bad_input(tmp_path):
     result = runner.invoke(main, ["sweep", "pendulum", "--radius", "0,abc", "--out", str(tmp_path / "x")])
     assert result.exit_code != 0 and "--radius: 'abc' is not a number" in result.output
     assert not (tmp_path / "x").exists()
+
+
+KILLED_SWEEP = """
+import sys
+from pathlib import Path
+sys.path.insert(0, sys.argv[2])
+from test_sweep import tiny_spec
+from drlyap.workflows.sweep import LocalBackend, run_sweep
+with LocalBackend(workers=2) as backend:
+    run_sweep(tiny_spec(), Path(sys.argv[1]), backend)
+"""
+
+
+def _children(pid: int) -> set[int]:
+    found = set()
+    for stat in Path("/proc").glob("[0-9]*/stat"):
+        try:
+            fields = stat.read_text().rsplit(")", 1)[1].split()
+        except OSError:
+            continue
+        if int(fields[1]) == pid:
+            found.add(int(stat.parent.name))
+    return found
+
+
+def _alive(pid: int) -> bool:
+    try:
+        state = Path(f"/proc/{pid}/stat").read_text().rsplit(")", 1)[1].split()[0]
+    except OSError:
+        return False
+    return state != "Z"
+
+
+@pytest.mark.skipif(not Path("/proc/self/stat").exists(), reason="reads the process table from /proc")
+def test_kill_9_of_a_sweep_leaves_no_process_and_a_rerun_gives_the_same_table(local_sweep, tmp_path):
+    import os
+    import signal
+    import subprocess
+    import sys
+    import time
+
+    out = tmp_path / "killed"
+    main_proc = subprocess.Popen([sys.executable, "-c", KILLED_SWEEP, str(out), str(Path(__file__).parent)])
+    workers: set[int] = set()
+    deadline = time.monotonic() + 120
+    while time.monotonic() < deadline and not list((out / ".staging").glob("*")):
+        workers |= _children(main_proc.pid)
+        time.sleep(0.05)
+    workers |= _children(main_proc.pid)
+    assert workers, "the sweep started no worker"
+    os.kill(main_proc.pid, signal.SIGKILL)
+    main_proc.wait()
+    gone_by = time.monotonic() + 10
+    while time.monotonic() < gone_by and any(_alive(p) for p in workers):
+        time.sleep(0.1)
+    assert not [p for p in workers if _alive(p)], "workers outlived the killed sweep by 10 s"
+    rerun = run_sweep(tiny_spec(), out, LocalBackend(workers=1), figures=False)
+    _, clean = local_sweep
+    assert rerun["failed"] == 0 and [r["name"] for r in rerun["rows"]] == [r["name"] for r in clean["rows"]]
+    for a, b in zip(clean["rows"], rerun["rows"]):
+        for key in ("status", "iterations", "passed_acceptance", "violating_fraction", "success", "weights_sha256"):
+            assert a[key] == b[key], (a["name"], key)
+
+
+def test_a_second_sweep_into_a_running_one_is_refused(tmp_path):
+    from drlyap.runs import DirectoryLock, RunDirError
+
+    with DirectoryLock(tmp_path / "s", "a sweep"):
+        with pytest.raises(RunDirError, match="in use by another drlyap process"):
+            run_sweep(tiny_spec(seeds=[0], radii=[0.0]), tmp_path / "s")
+    assert not (tmp_path / "s" / "sweep.json").exists()
+
+
+def test_damaged_combinations_are_redone_and_a_garbled_sweep_json_rebuilt(local_sweep, tmp_path):
+    src, clean = local_sweep
+    out = tmp_path / "damaged"
+    shutil.copytree(src, out)
+    names = [c.name for c in tiny_spec().combinations()]
+    weights = out / names[0] / "weights.pt"
+    weights.write_bytes(weights.read_bytes()[:100])  # truncated
+    (out / "sweep.json").write_text("{garbled")
+    report = run_sweep(tiny_spec(), out, LocalBackend(workers=1), figures=False)
+    assert report["damaged"] == [names[0]] and report["computed"] == [names[0]]
+    assert sorted(report["reused"]) == sorted(names[1:]) and report["failed"] == 0
+    assert json.loads((out / "sweep.json").read_text()) == json.loads((src / "sweep.json").read_text())
+    redone = {r["name"]: r for r in report["rows"]}[names[0]]
+    assert redone["weights_sha256"] == {r["name"]: r for r in clean["rows"]}[names[0]]["weights_sha256"]
+    (out / "sweep.json").write_text("{garbled")
+    with pytest.raises(SweepError, match="do not record this grid"):
+        run_sweep(tiny_spec(radii=[0.0, 0.05]), out)
+
+
+def test_cli_sweep_exits_non_zero_when_a_combination_failed(tmp_path, monkeypatch):
+    from drlyap.workflows import sweep as sw
+
+    monkeypatch.setattr(sw.SweepSpec, "validate", lambda self: None)  # let an invalid combination reach a worker
+    result = CliRunner().invoke(main, ["sweep", "pendulum", "--seeds", "0", "--radius", "-1", "--iters", "2",
+                                       "--no-verify", "--n-init", "2", "--shifts", "1", "--out", str(tmp_path / "s")])
+    assert result.exit_code == 1 and "1 of 1 combination(s) failed" in result.output
+    assert "sweep.png" not in result.output and not (tmp_path / "s" / "figures" / "sweep.png").exists()
+    result = CliRunner().invoke(main, ["sweep", "pendulum", "--seeds", "0", "--device", "cuda:7", "--out",
+                                       str(tmp_path / "c")])
+    assert result.exit_code != 0 and "cuda" in result.output and not (tmp_path / "c").exists()

@@ -65,17 +65,18 @@ def test_user_file_system_trains_evaluates_verifies_and_compares(user_runs):
     assert trained["metrics"]["certificate"]["status"] in {"verified", "violated", "unknown"}
     assert lqr["system"] == "user-dint" and len(lqr["gains"]["K"][0]) == 2
     with pytest.raises(ValueError, match="unknown system"):
-        get_system("user-dint")  # nothing registered it: every command below rebuilds it from run.json
+        get_system("user-dint")  # nothing registered it: every command below is given it or trusts run.json
     source = json.loads((tmp / "run" / "run.json").read_text())["system_source"]
     assert source["path"] == str(file.resolve()) and source["reload"] == f"{file.resolve()}:make"
 
-    ev = invoke("evaluate", tmp / "run", "--xi", "-0.2", "--n-init", "4", "--horizon", "1", "--json")
+    ev = invoke("evaluate", tmp / "run", "--system", f"{file}:make", "--xi", "-0.2", "--n-init", "4", "--horizon", "1",
+                "--json")
     assert ev.exit_code == 0, ev.output
     assert json.loads(ev.stdout)["n"] == 4
-    ver = invoke("verify", tmp / "run", "--time-limit", "1", "--json")
+    ver = invoke("verify", tmp / "run", "--trust-run", "--time-limit", "1", "--json")
     assert ver.exit_code == 0, ver.output
     assert json.loads(ver.stdout)["trained"]["status"] in {"verified", "violated", "unknown"}
-    cmp_ = invoke("compare", tmp / "run", tmp / "lqr", "--xi", "-0.2", "--n-init", "4", "--horizon", "1",
+    cmp_ = invoke("compare", tmp / "run", tmp / "lqr", "--trust-run", "--xi", "-0.2", "--n-init", "4", "--horizon", "1",
                   "--certify-time", "0.5", "--json", "--out", tmp / "cmp")
     assert cmp_.exit_code == 0, cmp_.output
     rows = json.loads(cmp_.stdout)["rows"]
@@ -90,12 +91,12 @@ def test_a_changed_system_file_is_refused(user_runs, tmp_path):
         write_system(file, damping=0.7)
         for path in (tmp / "run", tmp / "lqr"):
             with pytest.raises(RunDirError, match="other dynamics.*damping"):
-                load_policy_run(path)
-        result = invoke("evaluate", tmp / "run", "--xi", "-0.2", "--n-init", "2")
+                load_policy_run(path, trust=True)
+        result = invoke("evaluate", tmp / "run", "--trust-run", "--xi", "-0.2", "--n-init", "2")
         assert result.exit_code != 0 and "other dynamics" in result.output
     finally:
         file.write_text(original)
-    assert load_run(tmp / "run").system.nominal_params == (0.5,)
+    assert load_run(tmp / "run", trust=True).system.nominal_params == (0.5,)
 
 
 def test_config_and_run_json_must_name_the_same_system(user_runs, tmp_path):
@@ -178,7 +179,7 @@ def test_reproduce_takes_a_user_file(user_runs):
     assert result.exit_code == 0, result.output
     report = json.loads(result.stdout)
     assert report["system"] == "user-dint" and report["test_xi"] == [-0.2]
-    assert load_run(tmp / "rep" / "seed0" / "dr").system.name == "user-dint"
+    assert load_run(tmp / "rep" / "seed0" / "dr", trust=True).system.name == "user-dint"
 
 
 def test_sweep_takes_a_user_file(user_runs):
@@ -188,7 +189,7 @@ def test_sweep_takes_a_user_file(user_runs):
     assert result.exit_code == 0, result.output
     report = json.loads(result.stdout)
     assert report["failed"] == 0 and len(report["rows"]) == 2
-    run = load_run(tmp / "sw" / report["rows"][0]["name"])
+    run = load_run(tmp / "sw" / report["rows"][0]["name"], trust=True)
     assert run.system.name == "user-dint" and run.metrics["certificate"]["status"] in ("verified", "violated", "unknown")
 
 

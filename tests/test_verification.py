@@ -318,7 +318,8 @@ def test_cli_verify_on_a_run_directory(tmp_path, tiny_config):
     result = plain_train(tiny_config(iters=5, check_every=5), progress=False)
     save_run(tmp_path / "run", result)
     runner = CliRunner()
-    out = runner.invoke(main, ["verify", str(tmp_path / "run"), "--time-limit", "2", "--xi", "0.1,0.05", "--json"])
+    out = runner.invoke(main, ["verify", str(tmp_path / "run"), "--time-limit", "2", "--xi", "0.1,0.05", "--uniform",
+                               "--json"])
     assert out.exit_code == 0, out.output
     data = json.loads(out.output)
     assert data["status"] in ("verified", "violated", "unknown")
@@ -327,7 +328,9 @@ def test_cli_verify_on_a_run_directory(tmp_path, tiny_config):
     if data["counterexample"] is not None:
         assert data["counterexample_value"] > 0
     text = runner.invoke(main, ["verify", str(tmp_path / "run"), "--time-limit", "1", "--roa"])
-    assert text.exit_code == 0 and "uniform DR condition" in text.output and "region of attraction" in text.output
+    assert text.exit_code == 0 and "uniform DR condition" not in text.output and "region of attraction" in text.output
+    assert "drawn by `drlyap plot`" in text.output  # verify --roa keeps its region for plot
+    assert "roa" in json.loads((tmp_path / "run" / "metrics.json").read_text())["certificate"]
     bad = runner.invoke(main, ["verify", str(tmp_path / "run"), "--xi", "1"])
     assert bad.exit_code != 0 and "takes 2 xi" in bad.output
     missing = runner.invoke(main, ["verify", str(tmp_path / "nope")])

@@ -24,7 +24,10 @@ class SystemDefaults:
 
     A system declares only what differs (``UncertainSystem(..., defaults={"delta": 0.5, "margin": 0.1})`` or a
     ``SystemDefaults``); the field defaults below are the rest. Units: ``wasserstein_radius`` in the units of xi,
-    ``delta`` and ``train_box`` in local state units, ``lr`` per Adam step, ``verify_time`` seconds per proof.
+    ``delta`` and ``train_box`` in local state units, ``lr`` per Adam step, ``verify_time`` seconds per check of
+    ``verify``, ``verify_boxes`` boxes per proof (the work budget that makes the proof rounds of training give the
+    same pair on an idle and on a loaded machine), ``round_time`` the outer cap in seconds of each proof of those
+    rounds (reported when hit).
     """
 
     wasserstein_radius: float = 0.01  # r
@@ -46,7 +49,9 @@ class SystemDefaults:
     local_rate: float = 0.0
     warm_start: str | None = None
     lqr_weights: tuple[tuple[float, ...], tuple[float, ...]] | None = None
-    verify_time: float = 30.0  # seconds per proof
+    verify_time: float = 30.0  # seconds per check of `verify`
+    verify_boxes: int = 200_000  # boxes per proof: about 30 s of a 2-state proof on one thread of a laptop core
+    round_time: float = 300.0  # outer cap (seconds) of each proof of the training rounds
 
     def __post_init__(self) -> None:
         for f in fields(self):
@@ -339,9 +344,12 @@ class ProofConfig:
     """Every setting of a run's proofs: the counterexample-guided rounds after training (``drlyap train``) and the
     checks of ``drlyap verify``. ``None`` fields are resolved from the system (:meth:`resolved`).
 
-    Proofs: ``time_limit`` seconds each (None: the system's ``defaults.verify_time``: 30, 120 for the cart-pole and
-    the quadrotor), ``max_boxes`` boxes each, ``min_width``, ``enclosure`` (None: affine from 4 states on).
-    Rounds: at most ``rounds`` retraining rounds, all within ``total_time`` seconds (None: no limit); each trains
+Proofs: at most ``max_boxes`` boxes each (None: the system's ``defaults.verify_boxes``), ``min_width``,
+    ``enclosure`` (None: affine from 4 states on); the checks of ``verify`` stop after ``time_limit`` seconds too
+    (None: ``defaults.verify_time``: 30, 120 for the cart-pole and the quadrotor), the proofs of the training rounds
+    after ``round_time`` (None: ``time_limit`` when given, else ``defaults.round_time``, an outer cap: the rounds are budgeted by boxes, so that the
+    same command gives the same pair on a busy machine). Rounds: at most ``rounds`` retraining rounds, all within
+    ``total_time`` seconds (None: no limit, the default: a limit makes the pair depend on machine speed); each trains
     ``iters_per_round`` iterations (None: half the run's ``iters``) on the states collected so far (at most
     ``max_extra``, repeated ``replicate`` times in every batch): the proof's counterexample, the centres of at most
     ``keep_boxes`` unverified boxes, and a falsifier's counterexamples (``falsifier_starts`` starts, None: 512
@@ -354,7 +362,8 @@ class ProofConfig:
     rounds: int = 5
     time_limit: float | None = None
     total_time: float | None = None
-    max_boxes: int = 2_000_000
+    max_boxes: int | None = None
+    round_time: float | None = None
     min_width: float = 1e-4
     enclosure: str | None = None
     iters_per_round: int | None = None
@@ -374,7 +383,7 @@ class ProofConfig:
         problems = []
         if int(self.rounds) < 0:
             problems.append(f"rounds = {self.rounds} (must be >= 0)")
-        for name in ("time_limit", "total_time", "roa_time"):
+        for name in ("time_limit", "total_time", "roa_time", "round_time"):
             value = getattr(self, name)
             if value is not None and not (math.isfinite(value) and value > 0):
                 problems.append(f"{name} = {value} (must be > 0 seconds)")
@@ -382,7 +391,7 @@ class ProofConfig:
             problems.append(f"band_time = {self.band_time} (must be >= 0 seconds)")
         if not (math.isfinite(self.uniform_time) and self.uniform_time > 0):
             problems.append(f"uniform_time = {self.uniform_time} (must be > 0 seconds)")
-        if not self.min_width > 0 or int(self.max_boxes) < 1:
+        if not self.min_width > 0 or (self.max_boxes is not None and int(self.max_boxes) < 1):
             problems.append(f"min_width = {self.min_width} (> 0) / max_boxes = {self.max_boxes} (>= 1)")
         if self.iters_per_round is not None and int(self.iters_per_round) < 1:
             problems.append(f"iters_per_round = {self.iters_per_round} (must be >= 1)")
@@ -399,21 +408,29 @@ class ProofConfig:
             raise ValueError("invalid proof settings: " + "; ".join(problems))
 
     def resolved(self, system) -> ProofConfig:
-        """A copy with the system's defaults filled in (seconds per proof, the enclosure), validated."""
+        """A copy with the system's defaults filled in (seconds and boxes per proof, the enclosure), validated."""
         self.validate()
-        return dataclasses.replace(self, time_limit=float(self.time_limit or system.defaults.verify_time),
+        d = system.defaults
+        return dataclasses.replace(self, time_limit=float(self.time_limit or d.verify_time),
+                                   max_boxes=int(self.max_boxes or d.verify_boxes),
+                                   round_time=float(self.round_time or self.time_limit or d.round_time),
                                    enclosure=self.enclosure or default_enclosure(system.n))
 
     @property
     def is_resolved(self) -> bool:
-        return self.time_limit is not None and self.enclosure is not None
+        return None not in (self.time_limit, self.max_boxes, self.round_time, self.enclosure)
 
     def budget(self, seconds: float | None = None) -> Budget:
-        """The :class:`Budget` of one proof (``seconds`` instead of ``time_limit`` when given)."""
+        """The :class:`Budget` of one check of ``verify`` (``seconds`` instead of ``time_limit`` when given)."""
         if not self.is_resolved:
             raise ValueError("resolve the proof settings for a system first (ProofConfig.resolved)")
         return Budget(seconds=float(seconds if seconds is not None else self.time_limit), boxes=int(self.max_boxes),
                       min_width=self.min_width, enclosure=self.enclosure)
+
+    def round_budget(self) -> Budget:
+        """The :class:`Budget` of each proof of the training rounds: ``max_boxes`` boxes, ``round_time`` seconds at
+        most."""
+        return self.budget(self.round_time)
 
     def to_dict(self) -> dict:
         return dataclasses.asdict(self)

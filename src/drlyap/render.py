@@ -71,7 +71,9 @@ def unverified_warning(cert: Certificate, system: str, method: str, retrainable:
 def proof_round_line(entry: dict) -> str:
     """One line per proof round of counterexample-guided training (``entry``: a round of ``metrics["cegis"]``)."""
     v = ConditionProof.from_dict(entry["verification"])
-    line = f"  proof round {entry['round']}: {v.status.upper()}, {proved_share(v)} of X_delta proved ({v.time_s:.2f} s)"
+    capped = ", stopped by its time cap: the pair may differ on a faster machine" if v.stopped == "time limit" else ""
+    line = (f"  proof round {entry['round']}: {v.status.upper()}, {proved_share(v)} of X_delta proved "
+            f"({v.boxes_processed:,} boxes, {v.time_s:.2f} s{capped})")
     if "counterexamples_added" in entry:
         line += (f"; retraining with {entry['counterexamples_added']} counterexamples (+{entry['neighbours_added']} "
                  f"neighbours, {entry['box_centres_added']} box centres)")
@@ -152,7 +154,8 @@ def verification_lines(ver: RunVerification, system: str, method: str) -> list[s
     lines = [f"{system} ({method}), delta = {ver.delta:g}"]
     if isinstance(ver.trained, ConditionProof):
         lines += condition_lines(ver.trained, f"  trained condition ({ver.trained.condition})")
-    lines.append("  " + margin_line(ver.uniform))
+    if ver.uniform is not None and ver.uniform is not ver.trained:
+        lines.append("  " + margin_line(ver.uniform))
     if ver.true_model is not None:
         lines += condition_lines(ver.true_model, f"  true model at xi = {ver.true_model.xi}")
     if ver.roa is not None:

@@ -44,3 +44,23 @@ def floats(text: str | None, what: str) -> list[float] | None:
 def fail(err: Exception) -> None:
     """A one-line error (exit status 1)."""
     raise click.ClickException(str(err))
+
+
+def run_source_options(command):
+    """``--system`` and ``--trust-run``: how a run whose system came from a file or a module is loaded (the
+    run's recorded code is never run unless the user names it or trusts the run)."""
+    command = click.option("--trust-run", is_flag=True,
+                           help="Trust the run directory: rebuild its system from the file or module it records (that "
+                                "runs that code), and read an older RL run's pickled model.zip.")(command)
+    return click.option("--system", "system_spec", default=None,
+                        help="The run's system, when it came from a file or a module: path/to/file.py:factory or "
+                             "package.module:factory (run as you name it; default: refuse to run recorded code).")(command)
+
+
+def run_system_of(spec: str | None):
+    """The system object ``--system`` names, or None."""
+    if spec is None:
+        return None
+    from drlyap.systems import resolve_system
+
+    return resolve_system(spec)

@@ -7,7 +7,7 @@ from pathlib import Path
 
 import click
 
-from drlyap.cli.common import fail, floats
+from drlyap.cli.common import fail, floats, run_source_options, run_system_of
 
 
 @click.command()
@@ -17,7 +17,9 @@ from drlyap.cli.common import fail, floats
 @click.option("--seed", type=int, default=0, show_default=True, help="Seed of the initial states.")
 @click.option("--horizon", type=float, default=None, help="Simulated time [system default].")
 @click.option("--json", "as_json", is_flag=True, help="Print one JSON object.")
-def evaluate(run_dir: Path, xi: str, n_init: int, seed: int, horizon: float | None, as_json: bool) -> None:
+@run_source_options
+def evaluate(run_dir: Path, xi: str, n_init: int, seed: int, horizon: float | None, as_json: bool,
+             system_spec: str | None, trust_run: bool) -> None:
     """Simulate RUN_DIR's controller (a run of any kind) on the true model at parameter shift --xi."""
     import torch
 
@@ -26,7 +28,7 @@ def evaluate(run_dir: Path, xi: str, n_init: int, seed: int, horizon: float | No
     from drlyap.workflows.policies import load_policy_run
 
     try:
-        run = load_policy_run(run_dir)
+        run = load_policy_run(run_dir, run_system_of(system_spec), trust_run)
         shift = run.system.check_xi(floats(xi, "--xi"))
         if horizon is not None and horizon <= 0:
             raise ValueError(f"--horizon must be > 0, got {horizon}")
@@ -57,8 +59,9 @@ def evaluate(run_dir: Path, xi: str, n_init: int, seed: int, horizon: float | No
 @click.option("--horizon", type=float, default=None, help="Simulated time [system default].")
 @click.option("--out", type=click.Path(path_type=Path), default=None, help="Folder for the PNGs [RUN_DIR/figures].")
 @click.option("--json", "as_json", is_flag=True, help="Print one JSON object with the written paths.")
+@run_source_options
 def plot(run_dir: Path, xi: str | None, n_init: int, seed: int, roa: bool | None, time_limit: float,
-         horizon: float | None, out: Path | None, as_json: bool) -> None:
+         horizon: float | None, out: Path | None, as_json: bool, system_spec: str | None, trust_run: bool) -> None:
     """Figures of RUN_DIR on the true model: phase portrait with labelled level sets of V and the certified set,
     V(t) and u(t) with the input limits, and heatmaps of V and of the decrease condition."""
     from drlyap.workflows.plot import plot_run
@@ -67,7 +70,7 @@ def plot(run_dir: Path, xi: str | None, n_init: int, seed: int, roa: bool | None
         if time_limit <= 0:
             raise ValueError(f"--time-limit must be > 0, got {time_limit}")
         result = plot_run(run_dir, xi=floats(xi, "--xi"), n_init=n_init, seed=seed, roa=roa, out=out,
-                          time_limit=time_limit, horizon=horizon)
+                          time_limit=time_limit, horizon=horizon, system=run_system_of(system_spec), trust=trust_run)
     except ValueError as err:
         fail(err)
     if as_json:

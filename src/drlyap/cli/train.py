@@ -54,16 +54,22 @@ def systems(as_json: bool) -> None:
                    "proved or the rounds/budget run out. --no-verify: training and the acceptance check only.")
 @click.option("--verify-rounds", type=int, default=default(ProofConfig, "rounds"), show_default=True,
               help="Retraining rounds at most.")
+@click.option("--verify-boxes", type=int, default=None,
+              help="Boxes per proof round: the work budget that makes the same command give the same pair on any "
+                   "machine [the system's: 200,000; 350,000 for cartpole, 60,000 for quadrotor2d].")
 @click.option("--verify-time", type=float, default=None,
-              help="Seconds per proof [the system's: 30; 120 for cartpole and quadrotor2d].")
-@click.option("--verify-budget", type=float, default=None, help="Total seconds for the retraining rounds [no limit].")
+              help="Outer cap in seconds of each proof round, reported when hit [the system's: 300; 900 for cartpole "
+                   "and quadrotor2d].")
+@click.option("--verify-budget", type=float, default=None,
+              help="Total seconds for the retraining rounds [no limit; a limit makes the pair depend on the machine's "
+                   "speed].")
 @click.option("--local-rate", type=float, default=None,
               help="Ask V to decay at this rate near x* on every training sample's linearisation (a loss term; the "
                    "acceptance check then asks V to decrease there) [0: not asked].")
 @click.option("--json", "as_json", is_flag=True, help="Print one JSON object (run_dir, system, metrics) on stdout.")
 def train(system: str, method: str, loss: str, radius: float | None, eps: float | None, gamma: float | None,
           exp_rate: float | None, xi_samples: str | None, iters: int, seed: int, device: str, warm_start: Path | None,
-          out: Path, quiet: bool, verify: bool, verify_rounds: int, verify_time: float | None,
+          out: Path, quiet: bool, verify: bool, verify_rounds: int, verify_boxes: int | None, verify_time: float | None,
           verify_budget: float | None, local_rate: float | None, as_json: bool) -> None:
     """Train a controller and Lyapunov certificate for SYSTEM, prove the trained condition, save a run directory.
 
@@ -72,7 +78,7 @@ def train(system: str, method: str, loss: str, radius: float | None, eps: float 
     delta-ball), VIOLATED (a counterexample) or UNKNOWN (budget ran out).
     """
     from drlyap.render import certificate_line, proof_round_line
-    from drlyap.runs import ensure_new, load_run, save_run
+    from drlyap.runs import check_writable, load_run, save_run
     from drlyap.systems import resolve_system, system_source
     from drlyap.training import train as train_pair
     from drlyap.verification import Certificate
@@ -89,8 +95,9 @@ def train(system: str, method: str, loss: str, radius: float | None, eps: float 
                           device=device, local_rate=local_rate).resolved(sys_)  # a bad config is refused here
         proof = None
         if verify:
-            proof = ProofConfig(rounds=verify_rounds, time_limit=verify_time, total_time=verify_budget).resolved(sys_)
-        ensure_new(out)
+            proof = ProofConfig(rounds=verify_rounds, max_boxes=verify_boxes, round_time=verify_time,
+                                total_time=verify_budget).resolved(sys_)
+        check_writable(out)
         init = None
         if warm_start is not None:
             prior = load_run(warm_start, sys_)
@@ -106,7 +113,12 @@ def train(system: str, method: str, loss: str, radius: float | None, eps: float 
         return
     c = m.get("cegis")
     iterations, seconds = (c["total_iterations"], c["total_time_s"]) if c else (m["iterations"], m["train_time_s"])
-    click.echo(f"{sys_.name} {method}: {m['status']} ({iterations} iterations, {seconds:.1f} s in all)")
+    if c and c["retraining_rounds"]:
+        kept = "the first training" if c["returned_round"] == 0 else f"retraining round {c['returned_round']}"
+        click.echo(f"{sys_.name} {method}: {iterations} iterations in all ({seconds:.1f} s, {c['retraining_rounds']} "
+                   f"retraining round(s)); the pair kept is from {kept} (in that run: {m['status']})")
+    else:
+        click.echo(f"{sys_.name} {method}: {m['status']} ({iterations} iterations, {seconds:.1f} s in all)")
     acc = m["acceptance"]
     click.echo(f"  acceptance: {'PASSED' if m['passed'] else 'NOT PASSED'}; max violation {acc['max_violation']:.3g} "
                f"on {100 * acc['violating_fraction']:.2f}% of {acc['validation_states']} validation states; "

@@ -8,7 +8,7 @@ from pathlib import Path
 
 import click
 
-from drlyap.cli.common import default, fail, floats
+from drlyap.cli.common import default, fail, floats, run_source_options, run_system_of
 from drlyap.config import ENCLOSURES, ProofConfig
 
 
@@ -17,12 +17,16 @@ from drlyap.config import ENCLOSURES, ProofConfig
 @click.option("--delta", type=float, default=None, help="Radius of the excluded ball around x* [the run's delta].")
 @click.option("--xi", default=None, help="Also verify plain decrease on the true model at this shift (comma-separated).")
 @click.option("--time-limit", type=float, default=None,
-              help="Seconds per branch and bound [the run's seconds per proof: 30; 120 for cartpole, quadrotor2d].")
+              help="Seconds per branch and bound, besides its box budget [the system's: 30; 120 for cartpole, "
+                   "quadrotor2d].")
 @click.option("--roa/--no-roa", default=False, show_default=True, help="Certify a sublevel set of V as region of attraction.")
 @click.option("--roa-time", type=float, default=None,
               help="Seconds for --roa's search: the condition on a sublevel set, then decrease inside the ball "
                    "[3x --time-limit]; where that certifies no sublevel set of V but the closed loop's own ellipsoid "
                    "{z'Pz <= c}, as many seconds again for V's decrease outside that ellipsoid (the band proof).")
+@click.option("--uniform", is_flag=True,
+              help="Also bound the uniform DR condition's margin at the run's radius, risk level and samples (a "
+                   "stricter condition than the pointwise one the default pairs are trained on).")
 @click.option("--max-radius", is_flag=True,
               help="Also find the largest Wasserstein radius for which the DR pointwise condition (the run's eps, "
                    "samples, gamma) is proved, and the largest box of shifts for which decrease on the true model "
@@ -34,8 +38,10 @@ from drlyap.config import ENCLOSURES, ProofConfig
                    "part (second-order Taylor models: far tighter from 4 states on, several times the cost per box) "
                    "[affine from 4 states on, else mean-value]; the region-of-attraction search uses the same.")
 @click.option("--json", "as_json", is_flag=True, help="Print one JSON object.")
+@run_source_options
 def verify(run_dir: Path, delta: float | None, xi: str | None, time_limit: float | None, roa: bool,
-           roa_time: float | None, max_radius: bool, radius_tol: float, enclosure: str | None, as_json: bool) -> None:
+           roa_time: float | None, uniform: bool, max_radius: bool, radius_tol: float, enclosure: str | None, as_json: bool,
+           system_spec: str | None, trust_run: bool) -> None:
     """Prove the decrease condition of RUN_DIR on the whole state box minus the delta-ball, or find a counterexample.
 
     A run trained for a region of attraction (cartpole's default) has its condition proved on the sublevel set
@@ -48,7 +54,7 @@ def verify(run_dir: Path, delta: float | None, xi: str | None, time_limit: float
     from drlyap.render import verification_lines
     from drlyap.runs import load_run
     from drlyap.verification import Budget
-    from drlyap.workflows.verify import run_proof, run_robustness, verify_run
+    from drlyap.workflows.verify import record_region, run_proof, run_robustness, verify_run
 
     try:
         if time_limit is not None and not time_limit > 0:
@@ -57,13 +63,20 @@ def verify(run_dir: Path, delta: float | None, xi: str | None, time_limit: float
             raise ValueError(f"--roa-time must be > 0, got {roa_time}")
         if not radius_tol > 0:
             raise ValueError(f"--radius-tol must be > 0, got {radius_tol}")
-        run = load_run(run_dir)
+        run = load_run(run_dir, run_system_of(system_spec), trust_run)
         settings = dataclasses.replace(run.proof or ProofConfig(), roa_time=roa_time, enclosure=enclosure)
         if time_limit is not None:
             settings = dataclasses.replace(settings, time_limit=time_limit)
         settings = run_proof(run, settings)
         shift = None if xi is None else run.system.check_xi(floats(xi, "--xi"))
-        result = verify_run(run, settings, delta=delta, xi=shift, roa=roa)
+        result = verify_run(run, settings, delta=delta, xi=shift, roa=roa, uniform=uniform)
+        stored = None
+        if roa:
+            try:
+                record_region(run, result)
+                stored = f"  stored in {run.path / 'metrics.json'} (drawn by `drlyap plot`)"
+            except OSError as err:
+                stored = f"  not stored: {run.path / 'metrics.json'} cannot be written ({err.strerror or err})"
         if max_radius:
             result.robustness = run_robustness(run, delta=delta, tol=radius_tol,
                                                budget=Budget(seconds=settings.time_limit, enclosure="mean-value"),
@@ -75,6 +88,8 @@ def verify(run_dir: Path, delta: float | None, xi: str | None, time_limit: float
         return
     for line in verification_lines(result, run.system.name, run.config.method):
         click.echo(line)
+    if stored:
+        click.echo(stored)
 
 
 @click.command("guarantee")
@@ -92,8 +107,9 @@ def verify(run_dir: Path, delta: float | None, xi: str | None, time_limit: float
 @click.option("--radius-constants", default=None,
               help="c1,c2,rho of eq. wasserstein_r_guarantee: also report r_N(eps_bar) for the run's k and N.")
 @click.option("--json", "as_json", is_flag=True, help="Print one JSON object.")
+@run_source_options
 def guarantee(run_dir: Path, dist: str, n: int, method: str, eps_bar: float, seed: int, time_limit: float,
-              radius_constants: str | None, as_json: bool) -> None:
+              radius_constants: str | None, as_json: bool, system_spec: str | None, trust_run: bool) -> None:
     """Estimate P(sup_x Vdot + gamma||x - x*|| <= 0) on the true model under a distribution of xi, next to the
     bound (1 - eps)(1 - eps_bar) of the paper's lemma."""
     from drlyap.runs import load_run
@@ -105,7 +121,7 @@ def guarantee(run_dir: Path, dist: str, n: int, method: str, eps_bar: float, see
             constants = floats(radius_constants, "--radius-constants")
             if len(constants) != 3:
                 raise ValueError(f"--radius-constants takes c1,c2,rho, got {radius_constants!r}")
-        run = load_run(run_dir)
+        run = load_run(run_dir, run_system_of(system_spec), trust_run)
         result = estimate(run, dist, n, method=method, seed=seed, eps_bar=eps_bar, time_limit=time_limit,
                           radius_constants=constants)
     except ValueError as err:
@@ -141,7 +157,9 @@ def guarantee(run_dir: Path, dist: str, n: int, method: str, eps_bar: float, see
 @click.option("--verify-time", type=float, default=10.0, show_default=True,
               help="Seconds for the branch and bound on the same condition, for comparison (0: skip).")
 @click.option("--json", "as_json", is_flag=True, help="Print one JSON object.")
-def lipschitz(run_dir: Path, spacing: float | None, xi: str | None, verify_time: float, as_json: bool) -> None:
+@run_source_options
+def lipschitz(run_dir: Path, spacing: float | None, xi: str | None, verify_time: float, as_json: bool,
+              system_spec: str | None, trust_run: bool) -> None:
     """Lipschitz covering check of RUN_DIR's condition on a grid of X_delta (the paper's covering argument).
 
     Certified when the residual at every cell centre is <= -L * rho (L: a sound Lipschitz constant from interval
@@ -155,7 +173,7 @@ def lipschitz(run_dir: Path, spacing: float | None, xi: str | None, verify_time:
     try:
         if verify_time < 0:
             raise ValueError(f"--verify-time must be >= 0, got {verify_time}")
-        run = load_run(run_dir)
+        run = load_run(run_dir, run_system_of(system_spec), trust_run)
         shift = None if xi is None else run.system.check_xi(floats(xi, "--xi"))
         result = run_covering(run, spacing=spacing, xi=shift, compare_seconds=verify_time)
     except ValueError as err:

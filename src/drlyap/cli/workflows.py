@@ -8,7 +8,7 @@ from pathlib import Path
 
 import click
 
-from drlyap.cli.common import default, fail, floats
+from drlyap.cli.common import default, fail, floats, run_source_options, run_system_of
 from drlyap.config import ProofConfig, TrainConfig
 
 
@@ -35,8 +35,9 @@ def seed_values(text: str) -> list[int]:
 @click.option("--verify-rounds", type=int, default=default(ProofConfig, "rounds"), show_default=True,
               help="Retraining rounds at most.")
 @click.option("--verify-time", type=float, default=None,
-              help="Seconds per proof, in training and at the test shift [the system's: 30; 120 for cartpole and "
-                   "quadrotor2d].")
+              help="Seconds per proof at the test shift [the system's: 30; 120 for cartpole and quadrotor2d], also "
+                   "the cap of each proof round in training [the system's cap: 300 s, 900 s; the rounds are "
+                   "budgeted by boxes].")
 @click.option("--horizon", type=float, default=None, help="Simulated time of the evaluations [system default].")
 @click.option("--json", "as_json", is_flag=True, help="Print one JSON object with both methods' results.")
 def reproduce(system: str, seeds: str, out: Path | None, iters: int | None, device: str, verify: bool,
@@ -87,8 +88,9 @@ def reproduce(system: str, seeds: str, out: Path | None, iters: int | None, devi
 @click.option("--certify-time", type=float, default=10.0, show_default=True,
               help="Seconds of sound verification per check of a Lyapunov or LQR run at --xi (0 skips it).")
 @click.option("--json", "as_json", is_flag=True, help="Print one JSON object.")
+@run_source_options
 def compare(run_dirs: tuple[Path, ...], xi: str, n_init: int, seed: int, horizon: float | None, out: Path | None,
-            certify_time: float, as_json: bool) -> None:
+            certify_time: float, as_json: bool, system_spec: str | None, trust_run: bool) -> None:
     """Compare runs of any kind (lyapunov, lqr, rl) at parameter shift --xi on the true model.
 
     Per run: success rate; samples used in training (Lyapunov: model evaluations at training states,
@@ -108,7 +110,8 @@ def compare(run_dirs: tuple[Path, ...], xi: str, n_init: int, seed: int, horizon
         if certify_time < 0:
             raise ValueError(f"--certify-time must be >= 0, got {certify_time}")
         report = compare_runs(list(run_dirs), floats(xi, "--xi"), n_init, seed, out, horizon,
-                              certify_time if certify_time > 0 else None, progress=True)
+                              certify_time if certify_time > 0 else None, progress=True,
+                              system=run_system_of(system_spec), trust=trust_run)
     except ValueError as err:
         fail(err)
     if as_json:
@@ -143,7 +146,9 @@ def compare(run_dirs: tuple[Path, ...], xi: str, n_init: int, seed: int, horizon
               help="cpu or cuda (for every combination).")
 @click.option("--shifts", default="1,2,3,4,5", show_default=True, help="Evaluate at these multiples of the test shift.")
 @click.option("--n-init", type=int, default=200, show_default=True, help="Evaluation initial states per seed.")
-@click.option("--verify-time-limit", type=float, default=30.0, show_default=True, help="Seconds per branch and bound.")
+@click.option("--verify-time-limit", type=float, default=None,
+              help="Seconds per branch and bound [the system's: 30 s per check, 120 for cartpole and quadrotor2d; the "
+                   "proof rounds are budgeted by boxes, with this as their cap].")
 @click.option("--json", "as_json", is_flag=True, help="Print one JSON object (progress goes to stderr).")
 def sweep(system: str, seeds: str, radius: str | None, eps: str | None, method: str, out: Path | None, backend: str,
           workers: int, address: str | None, iters: int | None, verify: bool, verify_rounds: int, device: str,
@@ -166,6 +171,10 @@ def sweep(system: str, seeds: str, radius: str | None, eps: str | None, method: 
                             device=device, shift_factors=sw.parse_values(shifts, "--shifts"), n_init=n_init,
                             verify_time_limit=verify_time_limit)
         spec.validate()
+        if backend == "local":
+            from drlyap.training.config import resolve_device
+
+            resolve_device(device)
         out = out or Path("runs") / f"sweep-{sys_.name}"
         total = len(spec.combinations())
         log = (lambda s: click.echo(s, err=True)) if as_json else click.echo
@@ -190,9 +199,15 @@ def sweep(system: str, seeds: str, radius: str | None, eps: str | None, method: 
         fail(err)
     if as_json:
         click.echo(json.dumps(report))
-        return
-    click.echo("")
-    click.echo(sw.format_summary(report))
-    click.echo(f"\n{len(report['computed'])} combination(s) run, {len(report['reused'])} reused from an earlier run, "
-               f"{report['failed']} failed; {report['wall_s']:.1f} s on the {report['backend']} backend")
-    click.echo(f"wrote {out} (results.csv, results.json, figures/sweep.png, one run directory per combination)")
+    else:
+        click.echo("")
+        click.echo(sw.format_summary(report))
+        damaged = f", {len(report['damaged'])} damaged one(s) redone" if report["damaged"] else ""
+        click.echo(f"\n{len(report['computed'])} combination(s) run, {len(report['reused'])} reused from an earlier run"
+                   f"{damaged}, {report['failed']} failed; {report['wall_s']:.1f} s on the {report['backend']} backend")
+        figure = ", figures/sweep.png" if report["figures"] else ""
+        click.echo(f"wrote {out} (results.csv, results.json{figure}, one run directory per finished combination)")
+    if report["failed"]:
+        click.echo(f"Error: {report['failed']} of {len(report['rows'])} combination(s) failed (see their error above "
+                   "and in results.csv); rerun the same command to retry them", err=True)
+        sys.exit(1)

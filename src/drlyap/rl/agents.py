@@ -8,11 +8,14 @@ rest of drlyap works without it.
 do) and writes a run directory of kind ``rl`` (atomically)::
 
     RUN_DIR/
-      run.json       {"kind": "rl", "format": 1, "system": system.describe()}
+      run.json       {"kind": "rl", "format": 2, "system": system.describe()}
       config.json    algo, steps, seed, env settings (dt, episode steps), hyperparameters, wall time
-      model.zip      the stable-baselines3 model
+      policy.pt      the policy's weights (tensors only: the policy is rebuilt from config.json, nothing is unpickled)
       metrics.json   samples (= steps, environment transitions), train_time_s, ms per 1000 steps,
                      returns of the last training episodes
+
+Runs of format 1 kept a ``model.zip`` (stable-baselines3's own format, which unpickles objects: loading it can
+run code); they load only when trusted (``trust=True``, ``--trust-run``).
 
 Using a trained agent as a feedback (:func:`load_rl_run`): ``controller(x)`` maps user-coordinate
 states through :func:`drlyap.rl.envs.observe` (wrap, clip to X) to the deterministic action
@@ -32,8 +35,10 @@ from pathlib import Path
 import numpy as np
 import torch
 
-from drlyap.runs.directory import RunDirError, atomic_dir, ensure_new, read_run_json, run_record, run_system
+from drlyap.runs.directory import RunDirError, atomic_dir, read_run_json, run_record, run_system
 from drlyap.runs.policies import PolicyRun
+from drlyap.runs.publish import check_writable
+from drlyap.runs.validate import load_weights
 from drlyap.systems import UncertainSystem, resolve_system, system_source
 
 ALGOS = ("sac", "ppo")
@@ -87,7 +92,7 @@ def train_rl(system: str | UncertainSystem, algo: str, steps: int | None, seed: 
         raise ValueError(f"steps must be >= 1, got {steps}")
     out = Path(out)
     if not overwrite:
-        ensure_new(out)
+        check_writable(out)
     hyper = {**DEFAULT_HYPER[algo], **(hyperparameters or {})}
     env = Monitor(UncertainSystemEnv(system))
     env.reset(seed=seed)
@@ -112,7 +117,7 @@ def train_rl(system: str | UncertainSystem, algo: str, steps: int | None, seed: 
 
     def fill(tmp: Path) -> None:
         (tmp / "config.json").write_text(json.dumps(config, indent=2) + "\n")
-        model.save(tmp / "model.zip")
+        torch.save({"policy": model.policy.state_dict()}, tmp / "policy.pt")
         (tmp / "metrics.json").write_text(json.dumps(metrics, indent=2) + "\n")
         (tmp / "figures").mkdir()
         (tmp / "run.json").write_text(json.dumps(run_record("rl", system, source), indent=2) + "\n")
@@ -163,17 +168,63 @@ class RLPolicy:
         return -value.double()
 
 
-def load_rl_run(path: str | os.PathLike, system: UncertainSystem | None = None) -> PolicyRun:
-    """Load a run directory of kind ``rl`` as a :class:`drlyap.runs.PolicyRun`."""
+def _plain(value) -> bool:
+    """Whether ``value`` is JSON data of numbers, flags and short names only (nothing a constructor could import)."""
+    if isinstance(value, dict):
+        return all(isinstance(k, str) and _plain(v) for k, v in value.items())
+    if isinstance(value, list):
+        return all(_plain(v) for v in value)
+    return value is None or isinstance(value, (bool, int, float)) or (isinstance(value, str) and len(value) <= 64)
+
+
+def _rebuild(cls, algo: str, system: UncertainSystem, config: dict, path: Path):
+    """The agent of an RL run rebuilt from its config (algorithm, hyperparameters, the env's spaces) with the
+    policy's weights read as tensors."""
+    from drlyap.rl.envs import UncertainSystemEnv
+
+    hyper = config.get("hyperparameters") or DEFAULT_HYPER[algo]
+    if not isinstance(hyper, dict) or not _plain(hyper) or set(hyper.get("policy_kwargs") or {}) - {"net_arch", "use_sde"}:
+        raise RunDirError(f"{path / 'config.json'}: hyperparameters must be numbers, flags and names (policy_kwargs: "
+                          "net_arch only), as drlyap writes them")
+    hyper = dict(hyper)
+    if algo == "sac":
+        hyper["buffer_size"] = 1  # the replay buffer is not part of a trained policy
+    try:
+        model = cls("MlpPolicy", UncertainSystemEnv(system), seed=int(config.get("seed", 0)), device="cpu",
+                    verbose=0, **hyper)
+    except (TypeError, ValueError) as err:
+        raise RunDirError(f"{path / 'config.json'}: cannot rebuild the {algo} policy ({err})") from None
+    state = load_weights(path / "policy.pt")
+    try:
+        model.policy.load_state_dict(state["policy"])
+    except (KeyError, RuntimeError) as err:
+        raise RunDirError(f"{path}: policy.pt does not fit config.json ({str(err).splitlines()[0]})") from None
+    return model
+
+
+def load_rl_run(path: str | os.PathLike, system: UncertainSystem | None = None, trust: bool = False) -> PolicyRun:
+    """Load a run directory of kind ``rl`` as a :class:`drlyap.runs.PolicyRun` (``system``, ``trust``: as
+    :func:`drlyap.runs.load_run`; an older run's pickled ``model.zip`` is read only with ``trust``)."""
     path = Path(path)
     info, config, metrics = read_run_json(path, "rl", "run.json", "config.json", "metrics.json")
-    system = run_system(path, config["system"], system, info)
+    if not isinstance(config.get("system"), str) or config.get("algo") not in ALGOS:
+        raise RunDirError(f"{path / 'config.json'}: an RL run's config needs 'system' and 'algo' (one of "
+                          f"{', '.join(ALGOS)})")
+    system = run_system(path, config["system"], system, info, trust)
     algo = config["algo"]
     cls = _algo_class(algo)
-    try:
-        model = cls.load(path / "model.zip", device="cpu")
-    except (OSError, ValueError, KeyError) as err:
-        raise RunDirError(f"cannot load the {algo} model of {path}: {err}") from err
+    if (path / "policy.pt").is_file():
+        model = _rebuild(cls, algo, system, config, path)
+    elif (path / "model.zip").is_file():
+        if not trust:
+            raise RunDirError(f"{path}: model.zip is a pickled stable-baselines3 model; loading it can run code. "
+                              "Retrain the agent (runs now keep policy.pt) or trust the run (--trust-run, trust=True)")
+        try:
+            model = cls.load(path / "model.zip", device="cpu")
+        except (OSError, ValueError, KeyError) as err:
+            raise RunDirError(f"cannot load the {algo} model of {path}: {err}") from err
+    else:
+        raise RunDirError(f"{path}: the RL run has no policy.pt")
     agent = RLPolicy(system, algo, model)
     return PolicyRun(path, "rl", system, agent.controller, agent.certificate, int(config["steps"]),
                      metrics.get("train_time_s"), f"rl-{algo}", config, metrics, {"agent": agent})

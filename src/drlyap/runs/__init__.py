@@ -8,6 +8,8 @@
 from drlyap.runs.directory import FORMAT_VERSION, Run, RunDirError, atomic_dir, ensure_new, load_run, read_run_kind, save_run
 from drlyap.runs.lqr import load_lqr_run, save_lqr_run, train_lqr
 from drlyap.runs.policies import PolicyRun, load_lyapunov_policy_run
+from drlyap.runs.publish import DirectoryLock, check_writable
 
-__all__ = ["FORMAT_VERSION", "PolicyRun", "Run", "RunDirError", "atomic_dir", "ensure_new", "load_lqr_run",
-           "load_lyapunov_policy_run", "load_run", "read_run_kind", "save_lqr_run", "save_run", "train_lqr"]
+__all__ = ["FORMAT_VERSION", "DirectoryLock", "PolicyRun", "Run", "RunDirError", "atomic_dir", "check_writable",
+           "ensure_new", "load_lqr_run", "load_lyapunov_policy_run", "load_run", "read_run_kind", "save_lqr_run",
+           "save_run", "train_lqr"]

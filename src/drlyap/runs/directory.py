@@ -1,15 +1,19 @@
-"""Run directories of trained pairs: the unit every command reads and writes.
+"""Run directories of trained pairs: the unit every command reads and writes (docs/run-directory.md).
 
 Layout (all written into a temporary sibling and renamed into place at the end, so an interrupted
 or failed run never leaves a directory that looks complete)::
 
     RUN_DIR/
-      run.json        kind, drlyap version, system description (marks the directory complete)
+      run.json        kind, format, system description and source (marks the directory complete)
       config.json     the exact TrainConfig the run used
-      weights.pt      state dicts of the certificate and the controller
-      metrics.json    acceptance check, training summary, xi samples, later evaluations
+      weights.pt      state dicts of the certificate and the controller (tensors only)
+      metrics.json    acceptance check, training summary, xi samples, proofs, later evaluations
       history.csv     iteration, loss, seconds
       figures/        PNG figures written by commands that plot
+
+Loading a run reads data only: its files are validated (:mod:`drlyap.runs.validate`), its weights are read as
+tensors, and a system that came from a file or a module is rebuilt only from code the caller names (``system=``)
+or explicitly trusts (``trust=True``), never from what the run directory says to import.
 """
 
 from __future__ import annotations
@@ -17,8 +21,6 @@ from __future__ import annotations
 import csv
 import json
 import os
-import shutil
-import tempfile
 from collections.abc import Callable
 from dataclasses import dataclass
 from functools import cached_property
@@ -32,43 +34,17 @@ from drlyap.conditions import Condition
 from drlyap.config import ProofConfig, legacy_proof
 from drlyap.io import write_json
 from drlyap.networks import Controller, Lyapunov
+from drlyap.runs.publish import RunDirError, atomic_dir, ensure_new
+from drlyap.runs.validate import check_config, check_samples, check_schema, load_weights
 from drlyap.systems import UncertainSystem, default_source, get_system, identity_mismatch, resolve_system
 from drlyap.training import TrainConfig, TrainResult, build_networks, run_condition
 from drlyap.verification import Certificate
 
-FORMAT_VERSION = 1
+FORMAT_VERSION = 2
+"""2: proof settings in metrics.json (``proof``); runs of format 1 load too."""
 
-
-class RunDirError(ValueError):
-    """A run directory is missing, incomplete, or does not fit the request."""
-
-
-def ensure_new(out: str | os.PathLike) -> None:
-    """Refuse an output directory that already exists (checked before long work starts)."""
-    if Path(out).exists():
-        raise RunDirError(f"{out} already exists; choose another --out or remove it")
-
-
-def atomic_dir(out: Path, fill: Callable[[Path], None], overwrite: bool = False) -> Path:
-    """Create ``out`` by filling a temporary sibling and renaming it into place.
-
-    ``fill(tmp)`` writes the contents. If it raises (or the process is interrupted) the temporary
-    directory is removed and ``out`` is untouched.
-    """
-    out = Path(out)
-    if not overwrite:
-        ensure_new(out)
-    out.parent.mkdir(parents=True, exist_ok=True)
-    tmp = Path(tempfile.mkdtemp(prefix=f".{out.name}.tmp-", dir=out.parent))
-    try:
-        fill(tmp)
-        if out.exists():
-            shutil.rmtree(out)
-        os.replace(tmp, out)
-    except BaseException:
-        shutil.rmtree(tmp, ignore_errors=True)
-        raise
-    return out
+__all__ = ["FORMAT_VERSION", "Run", "RunDirError", "atomic_dir", "ensure_new", "load_run", "read_run_json",
+           "read_run_kind", "run_record", "run_system", "save_run"]
 
 
 def run_record(kind: str, system: UncertainSystem, source: dict | None = None) -> dict:
@@ -181,9 +157,11 @@ def read_run_kind(path: Path) -> dict:
     if not marker.is_file():
         raise RunDirError(f"{path} is not a complete drlyap run directory (no run.json)")
     try:
-        return json.loads(marker.read_text())
-    except json.JSONDecodeError as err:
+        info = json.loads(marker.read_text())
+    except (json.JSONDecodeError, UnicodeDecodeError) as err:
         raise RunDirError(f"{marker} is not valid JSON: {err}") from err
+    check_schema(marker, info, "run")
+    return info
 
 
 def read_run_json(path: str | os.PathLike, kind: str, *names: str) -> list[dict]:
@@ -192,20 +170,26 @@ def read_run_json(path: str | os.PathLike, kind: str, *names: str) -> list[dict]
     info = read_run_kind(path)
     if info.get("kind") != kind:
         raise RunDirError(f"{path} holds a {info.get('kind')!r} run, not a {kind!r} run")
-    try:
-        return [json.loads((path / name).read_text()) for name in names]
-    except (OSError, json.JSONDecodeError) as err:
-        raise RunDirError(f"cannot read run directory {path}: {err}") from err
+    out = []
+    for name in names:
+        try:
+            out.append(json.loads((path / name).read_text()))
+        except FileNotFoundError:
+            raise RunDirError(f"{path / name} is missing: the run directory is incomplete") from None
+        except (OSError, json.JSONDecodeError, UnicodeDecodeError) as err:
+            raise RunDirError(f"{path / name} is damaged: {err}") from None
+    return out
 
 
 def run_system(path: str | os.PathLike, name: str, system: UncertainSystem | None,
-               info: dict | None = None) -> UncertainSystem:
+               info: dict | None = None, trust: bool = False) -> UncertainSystem:
     """The system a run was made for, never one with other dynamics.
 
-    ``name``: the system named by the run's config; ``info``: its ``run.json``. Without ``system``, it is
-    rebuilt from the recorded source (a registered name, module or file) or, for older runs, the registry.
-    The result must carry ``name`` and match the recorded description (dimensions, parameters, boxes,
-    equilibrium, uncertain names); a mismatch (e.g. an edited system file) is refused.
+    ``name``: the system named by the run's config; ``info``: its ``run.json``. Without ``system``, a registered
+    name is rebuilt from the registry; a system that came from a file or a module is rebuilt from it only with
+    ``trust`` (importing it runs its code: otherwise an error names the code and how to pass it). The result must
+    carry ``name`` and match the recorded description (dimensions, parameters, boxes, equilibrium, uncertain
+    names); a mismatch (e.g. an edited system file) is refused.
     """
     info = info or {}
     recorded = info.get("system") or {}
@@ -215,6 +199,10 @@ def run_system(path: str | os.PathLike, name: str, system: UncertainSystem | Non
     if system is None:
         source = info.get("system_source") or {}
         spec = source.get("reload")
+        if spec and ":" in str(spec) and not trust:
+            raise RunDirError(f"{path}: its system {name!r} comes from {spec}; loading the run would run that code. "
+                              f"Name it yourself (--system {spec}, or system= in Python) or trust the run "
+                              "(--trust-run, or trust=True)")
         try:
             system = resolve_system(spec) if spec else get_system(name)
         except ValueError as err:
@@ -230,33 +218,38 @@ def run_system(path: str | os.PathLike, name: str, system: UncertainSystem | Non
     return system
 
 
-def load_run(path: str | os.PathLike, system: UncertainSystem | None = None) -> Run:
-    """Load a Lyapunov run directory.
+def load_run(path: str | os.PathLike, system: UncertainSystem | None = None, trust: bool = False) -> Run:
+    """Load a Lyapunov run directory (its files validated, its weights read as tensors).
 
-    ``system`` is needed for a user-defined system that is not registered by name; its name must
-    match the one the run was trained on.
+    ``system``: the system object, needed for a user-defined system that came from a file or a module (its name
+    must match the one the run was trained on); ``trust``: rebuild such a system from the file or module the run
+    records instead (that runs its code). A registered system needs neither.
     """
     path = Path(path)
     info, raw_config, metrics = read_run_json(path, "lyapunov", "run.json", "config.json", "metrics.json")
-    try:
-        config = TrainConfig.from_dict(raw_config)
-        weights = torch.load(path / "weights.pt", map_location="cpu", weights_only=True)
-    except (OSError, RuntimeError) as err:
-        raise RunDirError(f"cannot read run directory {path}: {err}") from err
-    system = run_system(path, config.system, system, info)
+    config = check_config(path / "config.json", raw_config)
+    check_schema(path / "metrics.json", metrics, "metrics")
+    system = run_system(path, config.system, system, info, trust)
     if info["system"]["n"] != system.n or info["system"]["m"] != system.m:
         raise RunDirError(f"{path} has dimensions n={info['system']['n']}, m={info['system']['m']}; "
                           f"system {system.name} has n={system.n}, m={system.m}")
+    try:
+        config.validate(system)
+    except ValueError as err:
+        raise RunDirError(f"{path / 'config.json'}: {err}") from None
+    check_samples(path / "metrics.json", metrics, system.k)
+    weights = load_weights(path / "weights.pt")
     lyapunov, controller = build_networks(system, config)
     try:
         lyapunov.load_state_dict(weights["lyapunov"])
         controller.load_state_dict(weights["controller"])
     except (KeyError, RuntimeError) as err:
         raise RunDirError(f"{path}: weights.pt does not fit config.json ({str(err).splitlines()[0]})") from err
-    missing = [key for key in ("xi_samples", "xi_train") if key not in metrics]
-    if missing:
-        raise RunDirError(f"{path}: metrics.json lacks {missing}")
     lyapunov.eval()
     controller.eval()
-    proof = ProofConfig.from_dict(metrics["proof"]) if isinstance(metrics.get("proof"), dict) else legacy_proof(raw_config)
+    try:
+        proof = ProofConfig.from_dict(metrics["proof"]) if isinstance(metrics.get("proof"), dict) else \
+            legacy_proof(raw_config)
+    except (TypeError, ValueError) as err:
+        raise RunDirError(f"{path / 'metrics.json'}: proof: {err}") from None
     return Run(path, system, config, metrics, lyapunov, controller, proof)

@@ -22,8 +22,9 @@ import torch
 
 from drlyap.io import write_json
 from drlyap.lqr import LQRDesign, lqr_design
-from drlyap.runs.directory import RunDirError, atomic_dir, ensure_new, read_run_json, run_record, run_system
+from drlyap.runs.directory import RunDirError, atomic_dir, read_run_json, run_record, run_system
 from drlyap.runs.policies import PolicyRun
+from drlyap.runs.publish import check_writable
 from drlyap.simulation import evaluate, initial_states
 from drlyap.systems import UncertainSystem, resolve_system, system_source
 
@@ -61,7 +62,8 @@ def train_lqr(system: str | UncertainSystem, out: str | os.PathLike, Q: Sequence
     if isinstance(system, str):
         spec, system = system, resolve_system(system)
         source = system_source(spec, system)
-    ensure_new(out)
+    check_writable(out)
+    system.check_finite()
     tic = time.perf_counter()
     design = lqr_design(system, Q, R)
     elapsed = time.perf_counter() - tic
@@ -74,10 +76,11 @@ def train_lqr(system: str | UncertainSystem, out: str | os.PathLike, Q: Sequence
     return json.loads((Path(out) / "metrics.json").read_text())
 
 
-def load_lqr_run(path: str | os.PathLike, system: UncertainSystem | None = None) -> PolicyRun:
+def load_lqr_run(path: str | os.PathLike, system: UncertainSystem | None = None, trust: bool = False) -> PolicyRun:
+    """An LQR run directory as a :class:`PolicyRun` (``system``, ``trust``: as :func:`drlyap.runs.load_run`)."""
     path = Path(path)
     info, config, gains, metrics = read_run_json(path, "lqr", "run.json", "config.json", "lqr.json", "metrics.json")
-    system = run_system(path, config["system"], system, info)
+    system = run_system(path, config["system"], system, info, trust)
     t = {k: torch.tensor(gains[k], dtype=torch.float64) for k in ("K", "P", "A", "B")}
     if t["K"].shape != (system.m, system.n) or t["P"].shape != (system.n, system.n):
         raise RunDirError(f"{path}: K/P shapes {tuple(t['K'].shape)}/{tuple(t['P'].shape)} do not fit {system.name}")

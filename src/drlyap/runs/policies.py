@@ -43,9 +43,9 @@ class PolicyRun:
     info: dict = field(default_factory=dict)
 
 
-def load_lyapunov_policy_run(path: Path, system: UncertainSystem | None = None) -> PolicyRun:
+def load_lyapunov_policy_run(path: Path, system: UncertainSystem | None = None, trust: bool = False) -> PolicyRun:
     """A Lyapunov run directory as a :class:`PolicyRun` (V as its certificate; samples counted over every round)."""
-    run = load_run(path, system)
+    run = load_run(path, system, trust)
     cfg = run.config
     cegis = run.metrics.get("cegis") or {}  # counterexample-guided runs: count every round
     iters = int(cegis.get("total_iterations") or run.metrics.get("iterations") or 0)

@@ -160,7 +160,7 @@ def cartpole() -> UncertainSystem:
         defaults=SystemDefaults(n_states=4096, wasserstein_radius=0.005, risk_level=0.1, n_xi=5,
                                 decay_rate=0.0, exp_rate=0.3, delta=0.1, near_share=0.25, roa_level=1.0,
                                 margin_rate=0.8, warm_start="lqr", lqr_weights=((0.1, 1.0, 0.1, 1.0), (0.1,)),
-                                verify_time=120.0),
+                                verify_time=120.0, verify_boxes=350_000, round_time=900.0),
         sim_dt=0.01, horizon=10.0, state_units=("m", "rad", "m/s", "rad/s"), input_units=("N",), time_unit="s",
         plot_dims=(1, 3),  # (theta, theta_dot): the pole's phase plane
         description=("Cart-pole (Tedrake, Underactuated Robotics), theta=0 upright: m_c=1, m_p=0.1, l=1, g=9.81, "
@@ -212,7 +212,7 @@ def quadrotor2d() -> UncertainSystem:
         defaults=SystemDefaults(n_states=4096, wasserstein_radius=0.05, risk_level=0.1, n_xi=5,
                                 decay_rate=0.0, exp_rate=0.3, delta=0.1, near_share=0.25, roa_level=1.0,
                                 margin_rate=0.1, warm_start="lqr", lqr_weights=((1.0,) * 6, (1.0, 1.0)), lr=0.0005,
-                                verify_time=120.0, local_rate=0.5),
+                                verify_time=120.0, verify_boxes=60_000, round_time=900.0, local_rate=0.5),
         sim_dt=0.01, horizon=10.0, state_units=("m", "m", "rad", "m/s", "m/s", "rad/s"), input_units=("N", "N"),
         time_unit="s",
         description=("Planar quadrotor (Yang et al. 2024): m=0.486 kg, I=3.83 g m^2, l=25 cm, thrusts in [0, 5.96] N, "

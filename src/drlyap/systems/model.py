@@ -315,6 +315,37 @@ class UncertainSystem:
         """True model ``F(x, u, p0 + E xi)``: ``x (B, n)``, ``u (B, m)``, ``xi`` ``(k,)`` or ``(B, k)`` -> ``(B, n)``."""
         return self.dynamics(x, u, self.params(xi, x))
 
+    def check_finite(self, xi_samples: Tensor | None = None, states: Tensor | None = None, count: int = 4096,
+                     seed: int = 0) -> None:
+        """A ValueError naming the system and the first state at which the true model is not finite (NaN or inf).
+
+        Evaluated before any training or proof, on ``states (S, n)`` (user coordinates, e.g. a training grid),
+        the box's corners and ``count`` states drawn uniformly from the state box, with inputs drawn uniformly
+        from U, at the nominal parameters and at the rows of ``xi_samples (N, k)`` (cycled over the states):
+        dynamics that are not finite on the box would otherwise surface as errors deep inside linear algebra."""
+        gen = torch.Generator().manual_seed(seed)
+        lo, hi = (torch.tensor(b, dtype=torch.float64) for b in self.state_box)
+        ulo, uhi = (torch.tensor(b, dtype=torch.float64) for b in self.input_box)
+        corners = torch.cartesian_prod(*[torch.stack([lo[i], hi[i]]) for i in range(self.n)]).reshape(-1, self.n)
+        drawn = lo + (hi - lo) * torch.rand(count, self.n, generator=gen, dtype=torch.float64)
+        given = torch.zeros(0, self.n, dtype=torch.float64) if states is None else states.detach().double().cpu()
+        x = torch.cat([given, corners[:count], drawn])
+        u = ulo + (uhi - ulo) * torch.rand(x.shape[0], self.m, generator=gen, dtype=torch.float64)
+        shifts: list[Tensor | None] = [None]
+        if xi_samples is not None and len(xi_samples):
+            xi = torch.as_tensor(xi_samples, dtype=torch.float64).reshape(-1, self.k)
+            shifts.append(xi[torch.arange(x.shape[0]) % xi.shape[0]])
+        for xi in shifts:
+            with torch.no_grad():
+                f = self.true_dynamics(x, u, xi)
+            bad = ~torch.isfinite(f).all(-1)
+            if bool(bad.any()):
+                i = int(bad.nonzero()[0, 0])
+                at = "" if xi is None else f", xi = {[round(float(v), 6) for v in xi[i]]}"
+                raise ValueError(f"{self.name}: the dynamics are not finite ({[float(v) for v in f[i]]}) at "
+                                 f"x = {[round(float(v), 6) for v in x[i]]}, u = {[round(float(v), 6) for v in u[i]]}"
+                                 f"{at}; F must be finite on the whole state box and input set")
+
     def design_model(self, x: Tensor, u: Tensor) -> tuple[Tensor, Tensor]:
         """Design model terms ``f (B, n)`` and ``W (B, n, k)`` at ``x (B, n)``, ``u (B, m)``.
 

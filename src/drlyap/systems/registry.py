@@ -8,6 +8,7 @@ import importlib
 import importlib.util
 import math
 import sys
+import traceback
 from collections.abc import Callable
 from pathlib import Path
 
@@ -62,9 +63,14 @@ def _import_file(path: Path):
     sys.modules[name] = module
     try:
         spec.loader.exec_module(module)
+    except SyntaxError as err:
+        sys.modules.pop(name, None)
+        raise ValueError(f"{err.filename or path}:{err.lineno}: {err.msg} (system file)") from None
     except Exception as err:
         sys.modules.pop(name, None)
-        raise ValueError(f"importing system file {path} failed: {err!r}") from err
+        frames = [f for f in traceback.extract_tb(err.__traceback__) if Path(f.filename).resolve() == path]
+        where = f"{path}:{frames[-1].lineno}" if frames else str(path)
+        raise ValueError(f"{where}: importing the system file failed: {type(err).__name__}: {err}") from None
     return module
 
 
@@ -103,7 +109,11 @@ def resolve_system(spec: str) -> UncertainSystem:
         try:
             obj = obj()
         except TypeError as err:
-            raise ValueError(f"{spec}: the factory must take no arguments ({err})") from err
+            raise ValueError(f"{spec}: the factory must take no arguments, or it failed ({err})") from None
+        except ValueError:
+            raise
+        except Exception as err:
+            raise ValueError(f"{spec}: the factory failed: {type(err).__name__}: {err}") from None
     if not isinstance(obj, UncertainSystem):
         raise ValueError(f"{spec} gives a {type(obj).__name__}, not an UncertainSystem")
     return obj

@@ -50,11 +50,14 @@ def jacobian_check(loop: ClosedLoop, xi_samples: Tensor) -> dict:
     xis = with_mean(xi_samples).to(ref)
     z = torch.zeros(xis.shape[0], loop.n, dtype=ref.dtype, device=ref.device)
     _, jac = loop.jacobian(z, xis)
-    eig = torch.linalg.eigvals(jac.double().cpu())
-    max_real = eig.real.amax(-1)
+    jac = jac.double().cpu()
+    finite = torch.isfinite(jac).flatten(1).all(-1)
+    max_real = torch.full((jac.shape[0],), float("nan"), dtype=torch.float64)
+    if bool(finite.any()):  # a non-finite Jacobian (diverged networks) has no eigenvalues: reported as NaN
+        max_real[finite] = torch.linalg.eigvals(jac[finite]).real.amax(-1)
     return {
         "max_real_eigenvalue": [float(v) for v in max_real],
-        "hurwitz": bool((max_real < 0).all()),
+        "hurwitz": bool((max_real < 0).all()),  # False where NaN
         "labels": [f"xi_{i}" for i in range(xi_samples.shape[0])] + ["mean"],
     }
 
@@ -84,7 +87,11 @@ def find_equilibria(loop: ClosedLoop, xi_samples: Tensor, delta: float, starts_p
     for _ in range(iterations):
         f, jac = loop.jacobian(z, xi)
         # tiny n x n least-squares solves: on the CPU in float64 (CUDA's lstsq assumes full rank)
-        step = torch.linalg.lstsq(jac.double().cpu(), -f.double().cpu().unsqueeze(-1)).solution.squeeze(-1)
+        jac, f = jac.double().cpu(), f.double().cpu()
+        ok = torch.isfinite(jac).flatten(1).all(-1) & torch.isfinite(f).all(-1)
+        jac = torch.where(ok[:, None, None], jac, torch.eye(system.n, dtype=jac.dtype))
+        f = torch.where(ok[:, None], f, 0.0)  # a start where the loop is not finite stays put (and is not a root)
+        step = torch.linalg.lstsq(jac, -f.unsqueeze(-1)).solution.squeeze(-1)
         step = torch.nan_to_num(step).to(z)
         limit = 0.1 * width
         step = torch.maximum(torch.minimum(step, limit), -limit)

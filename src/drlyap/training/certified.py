@@ -143,7 +143,7 @@ def train_cegis(cfg: TrainConfig, system: UncertainSystem, proof: ProofConfig, p
     region = Region.of(system, float(base_cfg.delta))
     near = bool(base_cfg.near_share)
     n_random = proof.falsifier_starts if proof.falsifier_starts is not None else (2048 if near else 512)
-    budget = proof.budget()
+    budget = proof.round_budget()
     gen = torch.Generator().manual_seed(base_cfg.seed + 7919)
     extra = torch.empty(0, system.n, dtype=F64)
     record: list[dict] = []
@@ -211,7 +211,7 @@ def train_cegis(cfg: TrainConfig, system: UncertainSystem, proof: ProofConfig, p
         "verified": final["verified"], "returned_round": chosen_round,
         "retraining_rounds": len(record) - 1, "max_rounds": rounds, "iters_per_round": iters_round,
         "total_iterations": total_iters, "extra_states": int(extra.shape[0]), "replicate": int(proof.replicate),
-        "verify_time_limit_s": budget.seconds, "total_time_s": time.perf_counter() - start,
+        "verify_time_limit_s": budget.seconds, "verify_boxes": budget.boxes, "total_time_s": time.perf_counter() - start,
     })
     out = dataclasses.replace(chosen, config=base_cfg, metrics=metrics, history=chosen_history)
     return out, record
@@ -258,7 +258,7 @@ def train(config: TrainConfig, system: UncertainSystem | None = None, proof: Pro
     if uniform:
         result = fit(cfg, system, progress=progress, init=init)
         delta = float(result.config.delta)
-        margin = uniform_margin(result.loop, result.condition, Region.of(system, delta), proof.budget())
+        margin = uniform_margin(result.loop, result.condition, Region.of(system, delta), proof.round_budget())
         cert = certificate(margin, delta)
     else:
         result, _ = train_cegis(cfg, system, proof, progress=progress, init=init, log=log)

@@ -117,6 +117,8 @@ def fit(cfg: TrainConfig, system: UncertainSystem, progress: bool = True, init: 
     xi_train = xi_all.mean(0, keepdim=True) if cfg.method == "baseline" else xi_all
     condition = run_condition(cfg, xi_train)
     region = Region.of(system, cfg.delta)
+    grid = region.grid()
+    system.check_finite(xi_all, system.to_user(grid))
     lyapunov, controller = build_networks(system, cfg)
     if init:
         if (init[0].phi.sizes != lyapunov.phi.sizes or init[0].alpha_hat != lyapunov.alpha_hat
@@ -125,6 +127,12 @@ def fit(cfg: TrainConfig, system: UncertainSystem, progress: bool = True, init: 
                              f"{init[1].varphi.sizes}) do not match the config (V {lyapunov.phi.sizes}, alpha_hat "
                              f"{lyapunov.alpha_hat}; pi {controller.varphi.sizes})")
         lyapunov, controller = copy.deepcopy(init[0]), copy.deepcopy(init[1])
+        for name, net in (("V", lyapunov), ("pi", controller)):
+            bad = [key for key, value in net.state_dict().items()
+                   if value.is_floating_point() and not bool(torch.isfinite(value).all())]
+            if bad:
+                raise ValueError(f"warm-start network {name} holds NaN or inf in {', '.join(bad)}: it cannot be "
+                                 "trained from")
     lyapunov.to(device)
     controller.to(device)
     loop = ClosedLoop(system, lyapunov, controller)  # the live networks: no float64 copy is taken of this loop
@@ -158,7 +166,7 @@ def fit(cfg: TrainConfig, system: UncertainSystem, progress: bool = True, init: 
         faces_val = region.sample_faces(20000, torch.Generator().manual_seed(12345)).float().to(device)
 
     z_train = batch()
-    z_val = region.grid().float().to(device)
+    z_val = grid.float().to(device)
 
     params = list(lyapunov.parameters()) + list(controller.parameters())
     opt = torch.optim.Adam(params, lr=cfg.lr, fused=True)

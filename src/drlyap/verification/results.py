@@ -374,7 +374,7 @@ class Certificate(Result):
         if not isinstance(self.roa, dict) or "level" not in self.roa:
             return None
         roa = RegionOfAttraction.from_dict(self.roa)
-        if roa.xi is None and self.true_model:
+        if "xi" not in self.roa and self.true_model:  # older runs kept the shift with the true model's proof only
             roa.xi = self.true_model.get("xi")
         return roa
 
@@ -382,13 +382,13 @@ class Certificate(Result):
 @dataclass
 class RunVerification(Result):
     """Everything ``drlyap verify`` proves about a run: its trained condition (a :class:`ConditionProof`, or a
-    :class:`UniformMargin` for the uniform DR condition), the uniform DR margin, with a shift the decrease on the
+    :class:`UniformMargin` for the uniform DR condition), the uniform DR margin when asked, with a shift the decrease on the
     true model there (``true_model``), the certified region (``roa``) and the robustness searches.
 
     ``main`` is what the run's status is about: the true model at the shift when one was given, else the trained
     condition."""
 
-    OPTIONAL: ClassVar[tuple[str, ...]] = ("true_model", "robustness")
+    OPTIONAL: ClassVar[tuple[str, ...]] = ("uniform", "true_model", "robustness")
     run_dir: str
     system: str
     method: str
@@ -396,7 +396,7 @@ class RunVerification(Result):
     delta: float
     enclosure: str
     trained: Any
-    uniform: UniformMargin
+    uniform: UniformMargin | None = None
     true_model: ConditionProof | None = None
     roa: RegionOfAttraction | None = None
     robustness: RunRobustness | None = None
@@ -428,6 +428,6 @@ class RunVerification(Result):
         roa = data.get("roa")
         rob = data.get("robustness")
         return cls(data["run_dir"], data["system"], data["method"], data.get("loss"), data["delta"], data["enclosure"],
-                   proof(data["trained"]), UniformMargin.from_dict(data["uniform"]), proof(data.get("true_model")),
+                   proof(data["trained"]), proof(data.get("uniform")), proof(data.get("true_model")),
                    None if roa is None else RegionOfAttraction.from_dict(roa),
                    None if rob is None else RunRobustness.from_dict(rob))

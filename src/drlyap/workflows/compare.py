@@ -26,7 +26,7 @@ from drlyap.networks import LinearController, QuadraticLyapunov
 from drlyap.progress import progress as show_progress
 from drlyap.regions import Region
 from drlyap.render import attempt_cells
-from drlyap.runs import PolicyRun, atomic_dir, ensure_new
+from drlyap.runs import PolicyRun, atomic_dir, check_writable, read_run_kind
 from drlyap.simulation import initial_states, simulate, success_mask, wrap_steps
 from drlyap.systems import UncertainSystem
 from drlyap.verification import (
@@ -146,20 +146,22 @@ def _robust_summary(radius: CertifiedRadius | None, box: CertifiedShiftBox) -> d
 
 def compare_runs(paths: Sequence[str | os.PathLike], xi: Sequence[float], n_init: int = 200, seed: int = 0,
                  out: str | os.PathLike | None = None, horizon: float | None = None,
-                 certify_time_limit: float | None = 10.0, progress: bool = True) -> dict:
+                 certify_time_limit: float | None = 10.0, progress: bool = True, system=None,
+                 trust: bool = False) -> dict:
     """Score every run directory at the shift ``xi`` from the same ``n_init`` initial states (drawn from
     each system's test box with ``seed``); with ``out``, write compare.json, compare.md and figures.
 
     ``certify_time_limit`` (seconds per run; None skips it) runs the verifier on each Lyapunov pair at ``xi``.
-    ``progress``: report scoring progress on stderr (:func:`drlyap.progress.progress`).
+    ``system``, ``trust``: how runs whose system came from a file or module are loaded
+    (:func:`drlyap.runs.load_run`). ``progress``: report scoring progress on stderr (:func:`drlyap.progress.progress`).
     """
     if not paths:
         raise ValueError("give at least one run directory")
     if n_init < 1:
         raise ValueError(f"--n-init must be >= 1, got {n_init}")
     if out is not None:
-        ensure_new(out)
-    runs = [load_policy_run(p) for p in paths]
+        check_writable(out)
+    runs = [_load(p, system, trust) for p in paths]
     shifts = [run.system.check_xi(xi) for run in runs]
     rows = []
     bar = show_progress(len(runs), "compare: scoring runs", progress)
@@ -181,6 +183,12 @@ def compare_runs(paths: Sequence[str | os.PathLike], xi: Sequence[float], n_init
 
         atomic_dir(Path(out), fill)
     return report
+
+
+def _load(path, system, trust: bool) -> PolicyRun:
+    """A run of the comparison; ``system`` (the one ``--system`` names) serves the runs made for it."""
+    named = system if system is not None and read_run_kind(path).get("system", {}).get("name") == system.name else None
+    return load_policy_run(path, named, trust)
 
 
 def compare_figures(runs: Sequence[PolicyRun], shifts: Sequence[Tensor], folder: Path,

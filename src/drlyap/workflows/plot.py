@@ -46,16 +46,16 @@ def decrease_residual(run: Run, x: Tensor, xi: Tensor | None) -> Tensor:
 
 def plot_run(run_dir: str | os.PathLike, xi: Sequence[float] | None = None, n_init: int = 20, seed: int = 0,
              roa: bool | None = None, out: str | os.PathLike | None = None, time_limit: float = 30.0,
-             per_axis: int = 160, horizon: float | None = None) -> dict:
+             per_axis: int = 160, horizon: float | None = None, system=None, trust: bool = False) -> dict:
     """Write the figures of one Lyapunov run to ``out`` (default ``RUN_DIR/figures``) and return what was drawn.
 
     ``xi``: the shift of the true model (default: the system's test shift, or the nominal model); ``horizon``:
-    simulated time (default: the system's).
+    simulated time (default: the system's). ``system``, ``trust``: as :func:`drlyap.runs.load_run`.
     ``roa``: True computes the certified sublevel set now (:func:`drlyap.verification.verify_run` at ``xi``),
     False draws none, None uses ``metrics["certificate"]["roa"]`` when the run has one.
     Returns ``{"run_dir", "xi", "n", "n_success", "region", "figures": [paths]}``.
     """
-    run = load_run(run_dir)
+    run = load_run(run_dir, system, trust)
     system = run.system
     if n_init < 1:
         raise ValueError(f"--n-init must be >= 1, got {n_init}")

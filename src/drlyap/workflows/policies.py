@@ -13,10 +13,11 @@ LOADERS = {"lyapunov": load_lyapunov_policy_run, "lqr": load_lqr_run, "rl": load
 """Run kind -> loader ``(path, system or None) -> PolicyRun``."""
 
 
-def load_policy_run(path: str | os.PathLike, system: UncertainSystem | None = None) -> PolicyRun:
-    """Load a run directory of any kind (``lyapunov``, ``lqr``, ``rl``) as a :class:`~drlyap.runs.PolicyRun`."""
+def load_policy_run(path: str | os.PathLike, system: UncertainSystem | None = None, trust: bool = False) -> PolicyRun:
+    """Load a run directory of any kind (``lyapunov``, ``lqr``, ``rl``) as a :class:`~drlyap.runs.PolicyRun`
+    (``system``, ``trust``: as :func:`drlyap.runs.load_run`)."""
     path = Path(path)
     kind = read_run_kind(path).get("kind")
     if kind not in LOADERS:
         raise RunDirError(f"{path} holds a run of unknown kind {kind!r}; valid: {', '.join(sorted(LOADERS))}")
-    return LOADERS[kind](path, system)
+    return LOADERS[kind](path, system, trust)

@@ -15,16 +15,15 @@ from pathlib import Path
 import torch
 
 from drlyap import plotting
-from drlyap.io import jsonable
 from drlyap.progress import progress as show_progress
 from drlyap.render import decrease_cell, roa_cell
-from drlyap.runs import Run, atomic_dir, load_run, save_run
+from drlyap.runs import Run, atomic_dir, check_writable, load_run, save_run
 from drlyap.simulation import evaluate, initial_states, score, simulate
 from drlyap.systems import UncertainSystem, resolve_system, system_source
 from drlyap.training import TrainConfig, train
 from drlyap.verification import ProofConfig
 from drlyap.workflows.plot import region_to_draw
-from drlyap.workflows.verify import verify_run
+from drlyap.workflows.verify import record_region, verify_run
 
 METHODS = ("baseline", "dr")
 SWEEP = (1, 2, 3, 4, 5)  # evaluation shifts, as multiples of the paper's test shift
@@ -58,7 +57,8 @@ def reproduce(system: str | UncertainSystem, seeds: Sequence[int], out: Path, it
     condition; then each pair's decrease on the true model at the test shift and its certified region of attraction
     there are proved (:func:`drlyap.workflows.verify.verify_run`, ``verify_time`` seconds per check, three times that
     for the region; None: the run's seconds per proof, 30 or the system's) and stored in its
-    ``metrics["certificate"]``. ``verify_time`` also sets the seconds per proof of the training rounds.
+    ``metrics["certificate"]``. ``verify_time`` also caps the seconds of each proof of the training rounds (None:
+    the system's cap; they are budgeted by boxes).
     ``horizon``: simulated time of every evaluation and figure (None: the system's). ``source``
     (:func:`drlyap.systems.system_source`) is recorded in each run directory; by default it is derived from a spec,
     or the registry name.
@@ -71,6 +71,7 @@ def reproduce(system: str | UncertainSystem, seeds: Sequence[int], out: Path, it
     if missing:
         raise ValueError(f"{system.name} declares no {' and no '.join(missing)}; reproduce needs a test shift "
                          "(UncertainSystem.test_xi) and a training distribution (UncertainSystem.xi_sampler)")
+    check_writable(out)
     system_name = system.name
     if not seeds:
         raise ValueError("need at least one seed")
@@ -101,9 +102,7 @@ def reproduce(system: str | UncertainSystem, seeds: Sequence[int], out: Path, it
                 if verify:  # what the pair proves on the true model at the test shift (the figures draw its region)
                     checks = run.proof if verify_time is None else replace(run.proof, time_limit=verify_time)
                     ver = verify_run(run, checks, xi=xi_test, roa=True)
-                    keys = ("status", "xi", "verified_fraction", "time_s", "counterexample", "counterexample_source")
-                    run.metrics["certificate"]["true_model"] = jsonable({k: getattr(ver.true_model, k) for k in keys})
-                    run.metrics["certificate"]["roa"] = jsonable(ver.roa.to_dict())
+                    record_region(run, ver)
                     region = ver.roa
                 run.save_metrics()
                 runs[method] = run
@@ -171,8 +170,8 @@ def draw_figures(system: UncertainSystem, runs: dict[str, Run], xi: torch.Tensor
 
 def format_row(row: dict) -> str:
     p, m = row["paper_10"], row["more_200"]
-    return (f"seed {row['seed']} {row['method']:>8}: paper states {p['n_success']:>2}/{p['n']}, "
-            f"more {m['n_success']:>3}/{m['n']}, acceptance {'PASSED' if row['passed_acceptance'] else 'not passed'} "
+    return (f"seed {row['seed']} {row['method']:>8}: {p['n']} test states {p['n_success']:>2}/{p['n']}, "
+            f"{m['n']} more {m['n_success']:>3}/{m['n']}, acceptance {'PASSED' if row['passed_acceptance'] else 'not passed'} "
             f"(max violation {row['max_violation']:.3g}, violating {100 * row['violating_fraction']:.2f}%, "
             f"Hurwitz {row['hurwitz']}, other equilibria {row['other_equilibria']}), {row['train_time_s']:.0f}s, "
             f"certificate {row['certificate'].upper()}; at the test shift: decrease {_decrease(row)}, region of "
@@ -184,8 +183,10 @@ def _decrease(row: dict) -> str:
 
 
 def format_table(report: dict) -> str:
+    first = report["results"][0] if report["results"] else {"paper_10": {"n": 10}, "more_200": {"n": 200}}
     lines = [f"## {report['system']} at test shift xi = {report['test_xi']}", "",
-             "| seed | method | paper 10 | 200 more | acceptance | max violation | violating % | Hurwitz | other eq. | train s |",
+             f"| seed | method | {first['paper_10']['n']} test states | {first['more_200']['n']} more | acceptance "
+             "| max violation | violating % | Hurwitz | other eq. | train s |",
              "|---|---|---|---|---|---|---|---|---|---|"]
     lines[2] += " trained condition (verifier) | decrease on the true model at the test shift | certified region of attraction |"
     lines[3] += "---|---|---|"

@@ -10,6 +10,7 @@ from collections.abc import Sequence
 
 from torch import Tensor
 
+from drlyap.io import jsonable
 from drlyap.regions import Region
 from drlyap.runs import Run
 from drlyap.training import run_condition
@@ -45,17 +46,17 @@ def _region(run: Run, delta: float | None) -> Region:
 
 
 def verify_run(run: Run, proof: ProofConfig | None = None, *, delta: float | None = None,
-               xi: Sequence[float] | Tensor | None = None, roa: bool = False) -> RunVerification:
+               xi: Sequence[float] | Tensor | None = None, roa: bool = False, uniform: bool = False) -> RunVerification:
     """Verify a loaded run (:func:`drlyap.runs.load_run`) on X_delta (``delta``: the run's by default).
 
     ``trained``: the run's own condition (pointwise / nominal by :func:`~drlyap.verification.prove_trained`, uniform
-    by :func:`~drlyap.verification.uniform_margin`); ``uniform``: always, the uniform DR margin at the run's radius,
-    risk level and samples; with ``xi``, ``true_model``: plain decrease on the true model at that shift; with
-    ``roa``, the certified region of attraction of the main condition (the true model's when ``xi`` is given), for
-    ``proof.roa_time`` seconds (None: 3x ``proof.time_limit``), up to the level a region-of-attraction run was
-    trained for. A run trained for a region of attraction (``config.roa_level``) has its trained and true-model
-    conditions proved on ``{V <= roa_level}`` with V above the level on the box's faces. ``proof``: the settings
-    (:func:`run_proof`).
+    by :func:`~drlyap.verification.uniform_margin`); with ``uniform``, the uniform DR margin at the run's radius,
+    risk level and samples (the trained condition itself for a run trained on it); with ``xi``, ``true_model``:
+    plain decrease on the true model at that shift; with ``roa``, the certified region of attraction of the main
+    condition (the true model's when ``xi`` is given), for ``proof.roa_time`` seconds (None: 3x
+    ``proof.time_limit``), up to the level a region-of-attraction run was trained for. A run trained for a region
+    of attraction (``config.roa_level``) has its trained and true-model conditions proved on ``{V <= roa_level}``
+    with V above the level on the box's faces. ``proof``: the settings (:func:`run_proof`).
     """
     proof = run_proof(run, proof)
     cfg, system, loop = run.config, run.system, run.loop
@@ -63,13 +64,15 @@ def verify_run(run: Run, proof: ProofConfig | None = None, *, delta: float | Non
     level = cfg.roa_level
     budget = proof.budget()
     trained_condition = run.condition
-    uniform_condition = run_condition(cfg, run.xi_samples, "uniform")
     if trained_condition.name == "uniform":
         trained = uniform_margin(loop, trained_condition, region, budget)
-        uniform = trained
+        margin = trained
     else:
         trained = prove_trained(loop, trained_condition, region, budget, level, falsify_starts=proof.settle_starts)
-        uniform = uniform_margin(loop, uniform_condition, region, proof.budget(proof.uniform_time))
+        margin = None
+        if uniform:
+            margin = uniform_margin(loop, run_condition(cfg, run.xi_samples, "uniform"), region,
+                                     proof.budget(proof.uniform_time))
     true_model, main_condition = None, trained_condition
     if xi is not None:
         main_condition = run.true_condition(xi)
@@ -89,8 +92,22 @@ def verify_run(run: Run, proof: ProofConfig | None = None, *, delta: float | Non
                 region_of_attraction.xi = true_model.xi
     return RunVerification(run_dir=str(run.path), system=system.name, method=cfg.method,
                            loss=cfg.loss if cfg.method == "dr" else None, delta=region.delta,
-                           enclosure=proof.enclosure, trained=trained, uniform=uniform, true_model=true_model,
+                           enclosure=proof.enclosure, trained=trained, uniform=margin, true_model=true_model,
                            roa=region_of_attraction)
+
+
+def record_region(run: Run, ver: RunVerification) -> None:
+    """Keep what ``ver`` proved at a shift in the run's ``metrics["certificate"]``: the decrease on the true model
+    (``true_model``) and the region of attraction (``roa``), which ``drlyap plot`` draws; then rewrite
+    ``metrics.json`` (atomically). Nothing is kept of a verification without a region."""
+    if ver.roa is None:
+        return
+    certificate = run.metrics.setdefault("certificate", {})
+    if ver.true_model is not None:
+        keys = ("status", "xi", "verified_fraction", "time_s", "counterexample", "counterexample_source")
+        certificate["true_model"] = jsonable({k: getattr(ver.true_model, k) for k in keys})
+    certificate["roa"] = jsonable({**ver.roa.to_dict(), "xi": ver.roa.xi})  # xi None: about the trained condition
+    run.save_metrics()
 
 
 def run_robustness(run: Run, delta: float | None = None, tol: float = 0.01, budget: Budget = SEARCH_BUDGET,

@@ -8,11 +8,12 @@ The sweep directory::
     OUT/results.json        the grid, the rows, a summary per (method, radius, eps) and the wall time
     OUT/figures/sweep.png   success, verified share and certified region against the radius
 
-Resuming is running the same sweep again: finished combinations are read back from their
-``result.json`` and not redone; failed and interrupted ones run again. Every task seeds its own
-training and evaluation, so a combination gives the same numbers on either backend as long as no
-time limit stopped a branch and bound: the proof rounds retrain on the counterexamples the time-limited
-verifier found, so with ``verify`` a retrained pair can differ between a fast and a slow worker.
+A running sweep owns its directory (a lock file: a second sweep, or a run written into it, is refused). Resuming is
+running the same sweep again: finished combinations are read back from their ``result.json`` once their weights
+load and match the recorded sha256, and not redone; failed, interrupted and damaged ones run again. A damaged or
+missing ``sweep.json`` is rebuilt when the finished combinations on disk record the same grid (its sha256). Every
+task seeds its own training and evaluation and its proofs are budgeted by work (boxes), so a combination gives
+the same numbers on either backend and on a busy machine, unless a proof hit its outer time cap (reported).
 """
 
 from __future__ import annotations
@@ -28,42 +29,76 @@ from pathlib import Path
 
 from drlyap import plotting
 from drlyap.io import jsonable, write_json
+from drlyap.runs.publish import LOCK_FILE, DirectoryLock, RunDirError, check_writable
+from drlyap.runs.validate import load_weights
 from drlyap.workflows.sweep.backends import Backend, LocalBackend
 from drlyap.workflows.sweep.grid import RESULT_FILE, SPEC_FILE, STAGING, Combination, SweepError, SweepSpec
+from drlyap.workflows.sweep.task import file_sha256, spec_sha256
+
+
+def _recorded_grids(out: Path) -> set[str]:
+    """The grid sha256 recorded by the finished combinations in ``out``."""
+    grids = set()
+    for path in out.glob(f"*/{RESULT_FILE}"):
+        try:
+            grids.add(json.loads(path.read_text()).get("spec_sha256"))
+        except (OSError, json.JSONDecodeError, AttributeError):
+            continue
+    return grids - {None}
 
 
 def _prepare(spec: SweepSpec, out: Path) -> None:
-    """Create ``out`` with ``sweep.json``, or check that an existing one holds the same grid."""
-    out.mkdir(parents=True, exist_ok=True)
+    """Give ``out`` (owned by this process) its ``sweep.json``, or check that the one there holds the same grid; a
+    damaged or missing one is rebuilt when the finished combinations record this grid."""
     path = out / SPEC_FILE
     wanted = jsonable(spec.to_dict())
+    stored = None
     if path.exists():
         try:
             stored = json.loads(path.read_text())
-        except json.JSONDecodeError as err:
-            raise SweepError(f"{path} is not valid JSON ({err}); remove it or choose another --out") from None
+        except (json.JSONDecodeError, UnicodeDecodeError) as err:
+            grids = _recorded_grids(out)
+            if grids != {spec_sha256(wanted)}:
+                raise SweepError(f"{path} is damaged ({err}) and the combinations in {out} do not record this grid; "
+                                 "rerun with the sweep's own options to rebuild it, or choose another --out") from None
+            write_json(path, wanted)  # rebuilt: every finished combination was run with this grid
+            stored = wanted
+    if stored is not None:
         if stored != wanted:
             diff = sorted(k for k in set(stored) | set(wanted) if stored.get(k) != wanted.get(k))
             shown = "; ".join(f"{k}: stored {stored.get(k)!r}, asked {wanted.get(k)!r}" for k in diff)
             raise SweepError(f"{out} holds a different sweep ({shown}); rerun with the same grid to resume it, "
                              "or choose another --out")
-    elif any(p for p in out.iterdir() if p.name != STAGING):
-        raise SweepError(f"{out} exists and is not a sweep directory (no {SPEC_FILE}); choose another --out")
+    elif any(p for p in out.iterdir() if p.name not in (STAGING, LOCK_FILE)):
+        if _recorded_grids(out) != {spec_sha256(wanted)}:
+            raise SweepError(f"{out} exists and is not a sweep directory (no {SPEC_FILE}); choose another --out")
+        write_json(path, wanted)  # rebuilt from the finished combinations, which all record this grid
     else:
         write_json(path, wanted)
-    shutil.rmtree(out / STAGING, ignore_errors=True)  # half-done tasks of an interrupted sweep
+    shutil.rmtree(out / STAGING, ignore_errors=True)  # half-done tasks of an interrupted sweep (none runs: locked)
 
 
 def finished_row(out: Path, combo: Combination) -> dict | None:
-    """The stored row of a finished combination, or None if it has to run (missing, incomplete, failed)."""
-    path = out / combo.name / RESULT_FILE
-    if not (path.is_file() and (out / combo.name / "run.json").is_file()):
+    """The stored row of a finished combination, or None if it has to run (missing, incomplete, failed, or damaged:
+    weights that do not load or do not match the recorded sha256). A damaged combination directory is removed."""
+    folder = out / combo.name
+    path = folder / RESULT_FILE
+    if not folder.exists():
         return None
+    row = None
     try:
         row = json.loads(path.read_text())
-    except (OSError, json.JSONDecodeError):
+        weights = folder / "weights.pt"
+        intact = ((folder / "run.json").is_file() and row.get("status") == "ok" and row.get("name") == combo.name
+                  and row.get("weights_sha256") == file_sha256(weights))
+        if intact:
+            load_weights(weights)
+    except (OSError, json.JSONDecodeError, UnicodeDecodeError, AttributeError, RunDirError):
+        intact = False
+    if not intact:
+        shutil.rmtree(folder, ignore_errors=True)  # redone below; the sweep owns its directory
         return None
-    return row if row.get("status") == "ok" and row.get("name") == combo.name else None
+    return row
 
 
 CSV_COLUMNS = ("name", "status", "method", "seed", "radius", "eps", "passed_acceptance", "iterations", "train_time_s",
@@ -129,14 +164,26 @@ def run_sweep(spec: SweepSpec, out: str | os.PathLike, backend: Backend | None =
     """
     start = time.perf_counter()
     out = Path(out)
+    if not out.exists():
+        check_writable(out)
+    with DirectoryLock(out, "a sweep"):
+        return _run_locked(spec, out, backend, on_result, figures, start)
+
+
+def _run_locked(spec: SweepSpec, out: Path, backend: Backend | None, on_result: Callable[[dict, int, int], None] | None,
+                figures: bool, start: float) -> dict:
     _prepare(spec, out)
     combos = spec.combinations()
     rows: dict[str, dict] = {}
     todo = []
+    damaged = []
     for combo in combos:
+        existed = (out / combo.name).exists()
         row = finished_row(out, combo)
         if row is None:
             todo.append(combo)
+            if existed:
+                damaged.append(combo.name)
         else:
             rows[combo.name] = row
     reused = sorted(rows)
@@ -159,8 +206,9 @@ def run_sweep(spec: SweepSpec, out: str | os.PathLike, backend: Backend | None =
         (out / STAGING).rmdir()  # empty once every task has moved its directory into place
     except OSError:
         pass
-    extra = {"backend": backend.name, "computed": sorted(computed), "reused": reused,
+    extra = {"backend": backend.name, "computed": sorted(computed), "reused": reused, "damaged": damaged,
              "failed": sum(r["status"] != "ok" for r in rows.values()), "wall_s": time.perf_counter() - start}
+    extra["figures"] = []
     report = write_tables(out, spec, list(rows.values()), extra)
     if figures and any(r["status"] == "ok" for r in rows.values()):
         path = plotting.against_radius(report["summary"], spec.shift_factors, out / "figures" / "sweep.png",

@@ -102,7 +102,8 @@ class SweepSpec:
     fields applied to every combination (e.g. smaller networks). ``verify``/``verify_rounds``: prove each
     trained pair with up to this many retraining rounds, as ``drlyap train`` does. ``shift_factors``:
     evaluation at k x the system's test shift. ``n_init`` evaluation states per seed; ``horizon`` simulated time (system units,
-    ``None``: the system's). ``verify_time_limit``: seconds per branch and bound.
+    ``None``: the system's). ``verify_time_limit``: seconds per branch and bound
+    (None: the system's; the proofs of the training rounds are budgeted by boxes, with this as their outer cap).
     """
 
     system: str
@@ -117,7 +118,7 @@ class SweepSpec:
     shift_factors: list[float] = field(default_factory=lambda: [1.0, 2.0, 3.0, 4.0, 5.0])
     n_init: int = 200
     horizon: float | None = None
-    verify_time_limit: float = 30.0
+    verify_time_limit: float | None = None
     config: dict = field(default_factory=dict)
 
     def combinations(self) -> list[Combination]:
@@ -142,7 +143,9 @@ class SweepSpec:
 
     def proof(self) -> ProofConfig | None:
         """The proof settings of every combination's training (None: trained without proof rounds)."""
-        return ProofConfig(rounds=self.verify_rounds, time_limit=self.verify_time_limit) if self.verify else None
+        if not self.verify:
+            return None
+        return ProofConfig(rounds=self.verify_rounds, time_limit=self.verify_time_limit)
 
     def validate(self) -> None:
         """Check the whole grid before anything runs (every combination's config, the evaluation settings)."""
@@ -156,7 +159,7 @@ class SweepSpec:
             problems.append(f"n_init = {self.n_init} (must be >= 1)")
         if self.horizon is not None and not self.horizon > 0:
             problems.append(f"horizon = {self.horizon} (must be > 0)")
-        if not self.verify_time_limit > 0:
+        if self.verify_time_limit is not None and not self.verify_time_limit > 0:
             problems.append(f"verify_time_limit = {self.verify_time_limit} (must be > 0)")
         if not self.shift_factors or not all(math.isfinite(k) for k in self.shift_factors):
             problems.append(f"shift_factors = {self.shift_factors} (need finite numbers)")

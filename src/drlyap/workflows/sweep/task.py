@@ -8,13 +8,16 @@
    of attraction there;
 4. evaluates it on the true model at k x the test shift (:func:`drlyap.workflows.reproduce.evaluate_run`) from the
    seed's evaluation states (:func:`drlyap.workflows.reproduce.test_initial_states`);
-5. writes ``result.json`` into the run directory and renames the staging folder to ``OUT/<combination>/``: a
+5. writes ``result.json`` (the row, the sha256 of ``weights.pt`` and of the grid) into the run directory and renames
+   the staging folder to ``OUT/<combination>/`` by a rename that never replaces a directory already there: a
    combination directory exists only when it is complete.
 """
 
 from __future__ import annotations
 
 import dataclasses
+import hashlib
+import json
 import os
 import shutil
 import time
@@ -25,6 +28,7 @@ import torch
 
 from drlyap.io import jsonable, write_json
 from drlyap.runs import load_run, save_run
+from drlyap.runs.publish import rename_noreplace
 from drlyap.systems import resolve_system, system_source
 from drlyap.training import train
 from drlyap.verification import ProofConfig, RunVerification
@@ -48,6 +52,23 @@ def verification_row(ver: RunVerification) -> dict:
     }
 
 
+def file_sha256(path: Path) -> str:
+    """The sha256 of a file's bytes (hex)."""
+    return hashlib.sha256(Path(path).read_bytes()).hexdigest()
+
+
+def spec_sha256(spec_dict: dict) -> str:
+    """The sha256 of a grid (its canonical JSON): recorded with every finished combination, so that a damaged
+    ``sweep.json`` can be rebuilt from the combinations on disk."""
+    return hashlib.sha256(json.dumps(jsonable(spec_dict), sort_keys=True).encode()).hexdigest()
+
+
+def staging_dir(out: Path, name: str) -> Path:
+    """Where this process writes combination ``name`` before publishing it (one folder per process, so that a
+    worker left over from a killed sweep never writes into the folder of a running one)."""
+    return Path(out) / STAGING / f"{name}.{os.getpid()}"
+
+
 def run_combination(spec_dict: dict, combo_dict: dict, out: str, threads: int = 1) -> dict:
     """Train, save, verify and evaluate one combination into ``out/<name>/`` (the worker's task).
 
@@ -58,15 +79,14 @@ def run_combination(spec_dict: dict, combo_dict: dict, out: str, threads: int = 
     spec, combo = SweepSpec.from_dict(spec_dict), Combination(**combo_dict)
     row: dict = {"name": combo.name, **dataclasses.asdict(combo)}
     tic = time.perf_counter()
-    staging = Path(out) / STAGING / combo.name
+    staging = staging_dir(Path(out), combo.name)
     try:
         system = resolve_system(spec.system)
         result = train(spec.train_config(combo, system), system, spec.proof(), progress=False, warn=False)
         if staging.exists():
             shutil.rmtree(staging)
         save_run(staging, result, source=system_source(spec.system, system))
-        run = load_run(staging)
-        system = run.system
+        run = load_run(staging, system)
         xi_test = torch.tensor(system.test_xi, dtype=torch.float64)
         m = result.metrics
         row.update({"passed_acceptance": bool(m["passed"]), "iterations": int(m["iterations"]),
@@ -86,11 +106,10 @@ def run_combination(spec_dict: dict, combo_dict: dict, out: str, threads: int = 
         row["run_dir"] = combo.name
         run.metrics["sweep"] = {k: row[k] for k in ("trained_condition", "test_decrease", "roa_share", "success")}
         run.save_metrics()
+        row["weights_sha256"] = file_sha256(staging / "weights.pt")
+        row["spec_sha256"] = spec_sha256(spec_dict)
         write_json(staging / RESULT_FILE, row)
-        final = Path(out) / combo.name
-        if final.exists():
-            shutil.rmtree(final)
-        os.replace(staging, final)
+        rename_noreplace(staging, Path(out) / combo.name)  # the driver removed a broken one before this task ran
         return jsonable(row)
     except Exception as err:  # a failing combination is recorded, the others go on
         shutil.rmtree(staging, ignore_errors=True)

@@ -1,0 +1,191 @@
+"""Writing a directory so that nothing is lost: checked before the work starts, filled in a temporary sibling,
+published by a rename that never replaces what is there, and locked while a process owns it.
+
+* :func:`check_writable` -- an output directory's place is writable and has room, before long work starts;
+* :func:`atomic_dir` -- fill a temporary sibling, then rename it into place (:func:`rename_noreplace`); an
+  interrupted fill leaves nothing, and temporaries of processes that died are cleaned on the next write there;
+* :class:`DirectoryLock` -- a directory owned by one process (a running sweep); :func:`held_by_another` says
+  whether one is, so that a second sweep, or a run written into it, is refused.
+"""
+
+from __future__ import annotations
+
+import ctypes
+import ctypes.util
+import errno
+import os
+import shutil
+import sys
+import tempfile
+from collections.abc import Callable
+from pathlib import Path
+
+from filelock import FileLock, Timeout
+
+
+class RunDirError(ValueError):
+    """A run directory is missing, incomplete, damaged, or does not fit the request."""
+
+
+MIN_FREE_BYTES = 64 * 2**20
+"""Room an output directory's file system must have before a run starts (a run directory is a few MB)."""
+
+LOCK_FILE = ".drlyap.lock"
+_HELD: set[str] = set()  # lock files this process holds
+
+
+def ensure_new(out: str | os.PathLike) -> None:
+    """Refuse an output directory that already exists (checked before long work starts)."""
+    if Path(out).exists():
+        raise RunDirError(f"{out} already exists; choose another --out or remove it")
+
+
+def check_writable(out: str | os.PathLike, need: int | None = None) -> None:
+    """Refuse ``out`` before any work when it exists, when a process owns its parent (a running sweep), or when
+    the nearest existing folder above it cannot be written to (a read-only file system) or has less than ``need``
+    bytes free."""
+    out = Path(out)
+    ensure_new(out)
+    if held_by_another(out.parent):
+        raise RunDirError(f"{out.parent} is in use by another drlyap process (a sweep is running there); "
+                          "choose another --out")
+    base = out.parent
+    while not base.exists() and base != base.parent:
+        base = base.parent
+    if not base.is_dir():
+        raise RunDirError(f"cannot create {out}: {base} is not a directory")
+    try:
+        fd, probe = tempfile.mkstemp(prefix=".drlyap-probe-", dir=base)
+        os.close(fd)
+        os.unlink(probe)
+    except OSError as err:
+        raise RunDirError(f"cannot write to {base} ({err.strerror or err}); choose another --out") from None
+    need = MIN_FREE_BYTES if need is None else need
+    free = shutil.disk_usage(base).free
+    if free < need:
+        raise RunDirError(f"{base} has {free / 2**20:.1f} MB free, less than the {need / 2**20:.0f} MB a run needs; "
+                          "free some space or choose another --out")
+
+
+_RENAME_NOREPLACE = 1
+_libc = None
+
+
+def rename_noreplace(src: Path, dst: Path) -> None:
+    """Rename ``src`` to ``dst``, failing with :class:`FileExistsError` if ``dst`` exists (even as an empty
+    directory, which a plain rename would replace). Atomic on Linux (``renameat2``); elsewhere the existence check
+    and the rename are two steps."""
+    global _libc
+    if sys.platform.startswith("linux"):
+        if _libc is None:
+            _libc = ctypes.CDLL(ctypes.util.find_library("c") or "libc.so.6", use_errno=True)
+        renameat2 = getattr(_libc, "renameat2", None)
+        if renameat2 is not None:
+            at_fdcwd = -100
+            if renameat2(at_fdcwd, os.fsencode(src), at_fdcwd, os.fsencode(dst), _RENAME_NOREPLACE) == 0:
+                return
+            code = ctypes.get_errno()
+            if code == errno.EEXIST:
+                raise FileExistsError(code, f"{dst} already exists", str(dst))
+            if code not in (errno.ENOSYS, errno.EINVAL):
+                raise OSError(code, os.strerror(code), str(dst))
+    if dst.exists():
+        raise FileExistsError(errno.EEXIST, f"{dst} already exists", str(dst))
+    os.rename(src, dst)
+
+
+def _umask() -> int:
+    mask = os.umask(0)
+    os.umask(mask)
+    return mask
+
+
+def _alive(pid: int) -> bool:
+    try:
+        os.kill(pid, 0)
+    except ProcessLookupError:
+        return False
+    except PermissionError:
+        return True
+    return True
+
+
+def clean_stale(parent: Path) -> list[Path]:
+    """Remove the temporary directories in ``parent`` that :func:`atomic_dir` left when its process died (killed
+    before it could clean up); returns them. Those of live processes stay."""
+    removed = []
+    for tmp in parent.glob(".*.tmp-*-*"):
+        pid = tmp.name.rsplit(".tmp-", 1)[-1].split("-", 1)[0]
+        if tmp.is_dir() and pid.isdigit() and int(pid) != os.getpid() and not _alive(int(pid)):
+            shutil.rmtree(tmp, ignore_errors=True)
+            removed.append(tmp)
+    return removed
+
+
+def atomic_dir(out: Path, fill: Callable[[Path], None], overwrite: bool = False) -> Path:
+    """Create ``out`` by filling a temporary sibling and renaming it into place.
+
+    ``fill(tmp)`` writes the contents. If it raises (or the process is interrupted) the temporary directory is
+    removed and ``out`` is untouched. The rename never replaces an ``out`` that appeared meanwhile (that is
+    refused); with ``overwrite`` an existing ``out`` is replaced. The directory gets the permissions the umask
+    allows (readable by the group, as any directory the user makes).
+    """
+    out = Path(out)
+    if not overwrite:
+        ensure_new(out)
+    if held_by_another(out.parent):
+        raise RunDirError(f"{out.parent} is in use by another drlyap process (a sweep is running there)")
+    out.parent.mkdir(parents=True, exist_ok=True)
+    clean_stale(out.parent)
+    tmp = Path(tempfile.mkdtemp(prefix=f".{out.name}.tmp-{os.getpid()}-", dir=out.parent))
+    try:
+        fill(tmp)
+        os.chmod(tmp, 0o777 & ~_umask())
+        if overwrite and out.exists():
+            shutil.rmtree(out)
+        try:
+            rename_noreplace(tmp, out)
+        except FileExistsError:
+            raise RunDirError(f"{out} was created by another process while this one ran; nothing was replaced "
+                              f"(this run is lost: choose another --out)") from None
+    except BaseException:
+        shutil.rmtree(tmp, ignore_errors=True)
+        raise
+    return out
+
+
+class DirectoryLock:
+    """Ownership of a directory by this process for the duration of a ``with`` block (a lock file in it, released
+    when the process ends, however it ends). Raises :class:`RunDirError` when another process holds it."""
+
+    def __init__(self, directory: Path, what: str = "this directory") -> None:
+        self.directory, self.what = Path(directory), what
+        self._lock = FileLock(str(self.directory / LOCK_FILE))
+
+    def __enter__(self) -> DirectoryLock:
+        self.directory.mkdir(parents=True, exist_ok=True)
+        try:
+            self._lock.acquire(timeout=0)
+        except Timeout:
+            raise RunDirError(f"{self.directory} is in use by another drlyap process ({self.what}); wait for it to end "
+                              "or choose another --out") from None
+        _HELD.add(str(self.directory.resolve() / LOCK_FILE))
+        return self
+
+    def __exit__(self, *exc) -> None:
+        _HELD.discard(str(self.directory.resolve() / LOCK_FILE))
+        self._lock.release()
+
+
+def held_by_another(directory: Path) -> bool:
+    """Whether another process owns ``directory`` (a :class:`DirectoryLock` held elsewhere)."""
+    path = Path(directory) / LOCK_FILE
+    if not path.exists() or str(path.resolve()) in _HELD:
+        return False
+    lock = FileLock(str(path))
+    try:
+        lock.acquire(timeout=0)
+    except Timeout:
+        return True
+    lock.release()
+    return False
