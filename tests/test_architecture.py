@@ -6,7 +6,8 @@ import subprocess
 import sys
 from pathlib import Path
 
-SRC = Path(__file__).resolve().parents[1] / "src" / "drlyap"
+ROOT = Path(__file__).resolve().parents[1]
+SRC = ROOT / "src" / "drlyap"
 
 
 def _module(path: Path) -> str:
@@ -74,3 +75,26 @@ def test_help_loads_no_numerical_code():
     code = "import sys; from drlyap.cli import main; print('torch' in sys.modules)"
     out = subprocess.run([sys.executable, "-c", code], capture_output=True, text=True, check=True)
     assert out.stdout.strip() == "False"
+
+
+def test_the_command_reference_lists_every_option():
+    """docs/cli.md stays true: every command and every option of it appears there."""
+    import click
+
+    from drlyap.cli import main
+
+    text = (ROOT / "docs" / "cli.md").read_text()
+
+    def walk(cmd, path):
+        yield path, cmd
+        if isinstance(cmd, click.Group):
+            for name, sub in cmd.commands.items():
+                yield from walk(sub, [*path, name])
+
+    missing = []
+    for path, cmd in walk(main, []):
+        if path and f"## drlyap {' '.join(path)}" not in text and not isinstance(cmd, click.Group):
+            missing.append(" ".join(path))
+        for param in cmd.params:
+            missing += [f"{' '.join(path)} {opt}" for opt in param.opts if opt.startswith("--") and opt not in text]
+    assert not missing, f"docs/cli.md lacks {missing}: regenerate it from --help"

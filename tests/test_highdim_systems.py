@@ -83,7 +83,7 @@ def test_quadrotor_hover_input_and_asymmetric_input_box():
 
 
 def test_cartpole_equals_tedrake_without_damping_and_lagrange_with_it():
-    """b = 0: the issue's (Tedrake's) equations; b > 0: the solution of M(q) qddot = forces with tau = -b thd."""
+    """b = 0: Tedrake's equations; b > 0: the solution of M(q) qddot = forces with tau = -b thd."""
     system = get_system("cartpole")
     x, u = _points(system, 50, seed=3, scale=2.0)
     _, th, _, thd = x.unbind(-1)

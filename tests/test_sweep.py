@@ -8,6 +8,7 @@ from click.testing import CliRunner
 from drlyap.cli import main
 from drlyap.runs import load_run
 from drlyap.workflows.sweep import (
+    Backend,
     LocalBackend,
     SweepError,
     SweepSpec,
@@ -17,8 +18,20 @@ from drlyap.workflows.sweep import (
     parse_values,
     run_sweep,
 )
+from drlyap.workflows.sweep.task import run_combination
 
 TINY = dict(n_states=256, iters=20, check_every=20, lyapunov_hidden=[8], lyapunov_out=4, controller_hidden=[8])
+
+
+class InProcess(Backend):
+    """The tasks run one after another in this process: for tests of what the driver does with their rows (the
+    local backend's worker processes are tested on their own)."""
+
+    name = "in-process"
+
+    def run(self, tasks):
+        for task in tasks:
+            yield run_combination(*task)
 
 
 def tiny_spec(**over) -> SweepSpec:
@@ -118,7 +131,7 @@ def test_resume_redoes_only_missing_and_incomplete(local_sweep, tmp_path):
     (out / incomplete / "run.json").unlink()  # as if interrupted before the directory was complete
     (out / ".staging" / "junk").mkdir(parents=True)
     before = {n: (out / n / "result.json").stat().st_mtime_ns for n in kept}
-    report = run_sweep(tiny_spec(), out, LocalBackend(workers=1))
+    report = run_sweep(tiny_spec(), out, InProcess())
     assert sorted(report["computed"]) == sorted([gone, incomplete])
     assert sorted(report["reused"]) == sorted(kept)
     assert {n: (out / n / "result.json").stat().st_mtime_ns for n in kept} == before
@@ -134,14 +147,14 @@ def test_resume_refuses_a_different_grid(local_sweep):
 
 def test_failing_combination_is_recorded_and_retried(tmp_path):
     spec = tiny_spec(seeds=[0], radii=[-1.0, 0.02])  # r = -1 is an invalid training config
-    report = run_sweep(spec, tmp_path / "s", LocalBackend(workers=1))
+    report = run_sweep(spec, tmp_path / "s", InProcess())
     rows = {r["name"]: r for r in report["rows"]}
     bad, good = "dr-r-1-eps0.1-seed0", "dr-r0.02-eps0.1-seed0"
     assert rows[bad]["status"] == "failed" and "wasserstein_radius = -1" in rows[bad]["error"]
     assert rows[bad]["traceback"] and rows[good]["status"] == "ok" and report["failed"] == 1
     assert not (tmp_path / "s" / bad).exists()
     assert "failed" in (tmp_path / "s" / "results.csv").read_text()
-    again = run_sweep(spec, tmp_path / "s", LocalBackend(workers=1), figures=False)
+    again = run_sweep(spec, tmp_path / "s", InProcess(), figures=False)
     assert again["computed"] == [bad] and again["reused"] == [good]
 
 
@@ -162,7 +175,7 @@ sys.path.insert(0, sys.argv[2])
 from test_sweep import tiny_spec
 from drlyap.workflows.sweep import LocalBackend, run_sweep
 with LocalBackend(workers=2) as backend:
-    run_sweep(tiny_spec(), Path(sys.argv[1]), backend)
+    run_sweep(tiny_spec(seeds=[0]), Path(sys.argv[1]), backend)
 """
 
 
@@ -209,10 +222,10 @@ def test_kill_9_of_a_sweep_leaves_no_process_and_a_rerun_gives_the_same_table(lo
     while time.monotonic() < gone_by and any(_alive(p) for p in workers):
         time.sleep(0.1)
     assert not [p for p in workers if _alive(p)], "workers outlived the killed sweep by 10 s"
-    rerun = run_sweep(tiny_spec(), out, LocalBackend(workers=1), figures=False)
-    _, clean = local_sweep
-    assert rerun["failed"] == 0 and [r["name"] for r in rerun["rows"]] == [r["name"] for r in clean["rows"]]
-    for a, b in zip(clean["rows"], rerun["rows"]):
+    rerun = run_sweep(tiny_spec(seeds=[0]), out, InProcess(), figures=False)
+    same = [r for r in local_sweep[1]["rows"] if r["seed"] == 0]
+    assert rerun["failed"] == 0 and [r["name"] for r in rerun["rows"]] == [r["name"] for r in same]
+    for a, b in zip(same, rerun["rows"]):
         for key in ("status", "iterations", "passed_acceptance", "violating_fraction", "success", "weights_sha256"):
             assert a[key] == b[key], (a["name"], key)
 
@@ -234,7 +247,7 @@ def test_damaged_combinations_are_redone_and_a_garbled_sweep_json_rebuilt(local_
     weights = out / names[0] / "weights.pt"
     weights.write_bytes(weights.read_bytes()[:100])  # truncated
     (out / "sweep.json").write_text("{garbled")
-    report = run_sweep(tiny_spec(), out, LocalBackend(workers=1), figures=False)
+    report = run_sweep(tiny_spec(), out, InProcess(), figures=False)
     assert report["damaged"] == [names[0]] and report["computed"] == [names[0]]
     assert sorted(report["reused"]) == sorted(names[1:]) and report["failed"] == 0
     assert json.loads((out / "sweep.json").read_text()) == json.loads((src / "sweep.json").read_text())

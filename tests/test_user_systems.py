@@ -184,11 +184,11 @@ def test_reproduce_takes_a_user_file(user_runs):
 
 def test_sweep_takes_a_user_file(user_runs):
     tmp, file, _, _ = user_runs
-    result = invoke("sweep", f"{file}:make", "--seeds", "0", "--radius", "0,0.01", "--iters", "10", "--verify-rounds",
+    result = invoke("sweep", f"{file}:make", "--seeds", "0", "--radius", "0.01", "--iters", "10", "--verify-rounds",
                     "0", "--verify-time-limit", "1", "--n-init", "4", "--shifts", "1", "--json", "--out", tmp / "sw")
     assert result.exit_code == 0, result.output
     report = json.loads(result.stdout)
-    assert report["failed"] == 0 and len(report["rows"]) == 2
+    assert report["failed"] == 0 and len(report["rows"]) == 1
     run = load_run(tmp / "sw" / report["rows"][0]["name"], trust=True)
     assert run.system.name == "user-dint" and run.metrics["certificate"]["status"] in ("verified", "violated", "unknown")
 
