@@ -250,7 +250,7 @@ def test_quadratic_region_of_the_quadrotor_decreases_and_converges():
     for xi in shifts:
         assert float(ClosedLoop(system, w, ctrl).exact(TrueDecrease(torch.tensor([xi], dtype=F64), 0.0), z).max()) < 0
         traj = simulate(system, lambda x: ctrl(system.to_local(x)), system.to_user(z[:100]),
-                        torch.tensor(xi, dtype=F64), dt=0.002, horizon=10.0)
+                        torch.tensor(xi, dtype=F64), dt=0.004, horizon=10.0)
         with torch.no_grad():
             values = w(system.to_local(traj.x.reshape(-1, 6))).reshape(traj.x.shape[:2])
         assert float(values.max()) <= level * (1 + 1e-9)

@@ -300,22 +300,29 @@ def test_metrics_json_is_validated(pendulum_run, tmp_path):
 
 # ------------------------------------------------------------------ 5. work, not seconds
 def test_proof_rounds_give_the_same_pair_on_a_slow_machine(tiny_config, monkeypatch):
-    """The rounds are budgeted by boxes: a clock running 20x faster (a machine 20x slower) gives the same pair."""
+    """The rounds are budgeted by boxes: a clock running 100x faster (a machine 100x slower) gives the same pair,
+    where a proof limited by seconds stops early under the same clock."""
     import drlyap
     from drlyap.verification import ProofConfig
 
-    cfg = tiny_config(iters=30, check_every=10)
-    proof = ProofConfig(rounds=2, max_boxes=3000, iters_per_round=10)
+    cfg = tiny_config(iters=20, check_every=10)
+    by_work = ProofConfig(rounds=1, max_boxes=3000, iters_per_round=10, round_time=1e5)
 
     def weights(result):
         return [p.detach().clone() for p in (*result.lyapunov.parameters(), *result.controller.parameters())]
 
-    fast = drlyap.train(cfg, proof=proof, progress=False, warn=False)
+    def rounds(result):
+        return [(r["verification"]["boxes_processed"], r["verification"]["stopped"])
+                for r in result.metrics["cegis"]["rounds"]]
+
+    fast = drlyap.train(cfg, proof=by_work, progress=False, warn=False)
     real = time.perf_counter
     start = real()
-    monkeypatch.setattr(time, "perf_counter", lambda: start + 20 * (real() - start))
-    slow = drlyap.train(cfg, proof=proof, progress=False, warn=False)
+    monkeypatch.setattr(time, "perf_counter", lambda: start + 100 * (real() - start))
+    slow = drlyap.train(cfg, proof=by_work, progress=False, warn=False)
+    by_seconds = drlyap.train(cfg, proof=ProofConfig(rounds=0, max_boxes=3000, time_limit=0.5), progress=False,
+                              warn=False)
     monkeypatch.undo()
-    assert [r["verification"]["boxes_processed"] for r in fast.metrics["cegis"]["rounds"]] == \
-        [r["verification"]["boxes_processed"] for r in slow.metrics["cegis"]["rounds"]]
+    assert rounds(fast) == rounds(slow) and all(stop != "time limit" for _, stop in rounds(fast))
     assert all(torch.equal(a, b) for a, b in zip(weights(fast), weights(slow)))
+    assert rounds(by_seconds)[0][1] == "time limit"  # the clock did slow the proofs down

@@ -344,12 +344,13 @@ class ProofConfig:
     """Every setting of a run's proofs: the counterexample-guided rounds after training (``drlyap train``) and the
     checks of ``drlyap verify``. ``None`` fields are resolved from the system (:meth:`resolved`).
 
-Proofs: at most ``max_boxes`` boxes each (None: the system's ``defaults.verify_boxes``), ``min_width``,
+    Proofs: at most ``max_boxes`` boxes each (None: the system's ``defaults.verify_boxes``), ``min_width``,
     ``enclosure`` (None: affine from 4 states on); the checks of ``verify`` stop after ``time_limit`` seconds too
     (None: ``defaults.verify_time``: 30, 120 for the cart-pole and the quadrotor), the proofs of the training rounds
-    after ``round_time`` (None: ``time_limit`` when given, else ``defaults.round_time``, an outer cap: the rounds are budgeted by boxes, so that the
-    same command gives the same pair on a busy machine). Rounds: at most ``rounds`` retraining rounds, all within
-    ``total_time`` seconds (None: no limit, the default: a limit makes the pair depend on machine speed); each trains
+    after ``round_time`` (None: ``time_limit`` when given, else ``defaults.round_time``, an outer cap: the rounds
+    are budgeted by boxes, so that the same command gives the same pair on a busy machine).
+    Rounds: at most ``rounds`` retraining rounds, all within ``total_time`` seconds (None: no limit, the default: a
+    limit makes the pair depend on machine speed); each trains
     ``iters_per_round`` iterations (None: half the run's ``iters``) on the states collected so far (at most
     ``max_extra``, repeated ``replicate`` times in every batch): the proof's counterexample, the centres of at most
     ``keep_boxes`` unverified boxes, and a falsifier's counterexamples (``falsifier_starts`` starts, None: 512

@@ -67,10 +67,14 @@ def load_weights(path: Path) -> dict:
     except FileNotFoundError:
         raise RunDirError(f"{path} is missing") from None
     except Exception as err:  # any failure to parse the bytes (torch's reader raises many kinds) is damage
-        if isinstance(err, pickle.UnpicklingError) and "Weights only load failed" in str(err):
+        if isinstance(err, EOFError):
+            reason = "empty or cut short"
+        elif isinstance(err, pickle.UnpicklingError) and "Weights only load failed" in str(err):
             reason = "its contents are not tensors saved by torch; nothing in it was unpickled"
+        elif isinstance(err, RuntimeError) and str(err).strip():
+            reason = str(err).strip().splitlines()[0]
         else:
-            reason = str(err).strip().splitlines()[0] if str(err).strip() else type(err).__name__
+            reason = "unreadable contents"
         raise RunDirError(f"{path} is damaged: not a torch weights file drlyap wrote ({reason[:120]})") from None
     if not isinstance(weights, dict):
         raise RunDirError(f"{path} is damaged: it holds a {type(weights).__name__}, not the networks' weights")

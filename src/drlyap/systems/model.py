@@ -250,7 +250,17 @@ class UncertainSystem:
         return len(self.uncertain)
 
     def _tensor(self, values: Sequence[float], like: Tensor) -> Tensor:
-        return torch.as_tensor(values, dtype=like.dtype, device=like.device)
+        """``values`` (a tuple of the system's) as a constant tensor of ``like``'s dtype and device, made once per
+        dtype and device (simulation calls this at every step). Callers must not write into it."""
+        key = (values, like.dtype, like.device)
+        cached = self.__dict__.get("_constants")
+        if cached is None:
+            cached = {}
+            object.__setattr__(self, "_constants", cached)
+        out = cached.get(key)
+        if out is None:
+            out = cached[key] = torch.as_tensor(values, dtype=like.dtype, device=like.device)
+        return out
 
     @property
     def uncertain_index(self) -> list[int]:
