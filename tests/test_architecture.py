@@ -71,6 +71,18 @@ def test_the_verifier_never_imports_the_trainer_or_run_directories():
             assert not bad, (name, bad)
 
 
+def test_the_checker_shares_no_bounding_code_with_the_verifier():
+    """The certificate checker's own modules import none of the code whose results it re-checks (the run directory's
+    files are read through drlyap.runs, lazily, in check_run)."""
+    graph = _graph()
+    shared = ("drlyap.enclosures", "drlyap.networks", "drlyap.conditions", "drlyap.verification", "drlyap.closed_loop",
+              "drlyap.regions")
+    for name, deps in graph.items():
+        if name.startswith("drlyap.checker"):
+            bad = {d for d in deps if d.startswith(shared)}
+            assert not bad, (name, bad)
+
+
 def test_help_loads_no_numerical_code():
     code = "import sys; from drlyap.cli import main; print('torch' in sys.modules)"
     out = subprocess.run([sys.executable, "-c", code], capture_output=True, text=True, check=True)

@@ -320,3 +320,18 @@ def covering_lines(check: CoveringCheck, system: str, method: str) -> list[str]:
         lines.append(f"  branch and bound: {ver.status.upper()}, verified {proved_share(ver)} "
                      f"({ver.boxes_processed} boxes, {ver.time_s:.2f} s)")
     return lines
+
+
+def check_lines(results) -> list[str]:
+    """What ``drlyap check`` prints about each re-checked certificate (:class:`drlyap.checker.CheckResult`)."""
+    lines = []
+    for r in results:
+        if r.ok:
+            refined = f", {r.refined} of them bisected into {r.pieces} pieces" if r.refined else ""
+            lines.append(f"{r.name}: CHECKED - {r.claim}")
+            lines.append(f"  {r.proved} boxes re-proved by the checker{refined}, {r.inside_ball} inside the ball; the "
+                         f"boxes cover the region ({r.time_s:.2f} s)")
+        else:
+            lines.append(f"{r.name}: FAILED - the certificate does not establish: {r.claim or 'its claim'}")
+            lines.extend(f"  {reason}" for reason in r.failures)
+    return lines

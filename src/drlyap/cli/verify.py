@@ -54,7 +54,7 @@ def verify(run_dir: Path, delta: float | None, xi: str | None, time_limit: float
     from drlyap.render import verification_lines
     from drlyap.runs import load_run
     from drlyap.verification import Budget
-    from drlyap.workflows.verify import record_region, run_proof, run_robustness, verify_run
+    from drlyap.workflows.verify import record_certificates, record_region, run_proof, run_robustness, verify_run
 
     try:
         if time_limit is not None and not time_limit > 0:
@@ -77,6 +77,11 @@ def verify(run_dir: Path, delta: float | None, xi: str | None, time_limit: float
                 stored = f"  stored in {run.path / 'metrics.json'} (drawn by `drlyap plot`)"
             except OSError as err:
                 stored = f"  not stored: {run.path / 'metrics.json'} cannot be written ({err.strerror or err})"
+        try:
+            written = [f"  certificate: {p} (re-check it with `drlyap check {run_dir}`)"
+                       for p in record_certificates(run, result)]
+        except OSError as err:
+            written = [f"  no certificate written: {run.path} cannot be written ({err.strerror or err})"]
         if max_radius:
             result.robustness = run_robustness(run, delta=delta, tol=radius_tol,
                                                budget=Budget(seconds=settings.time_limit, enclosure="mean-value"),
@@ -90,6 +95,8 @@ def verify(run_dir: Path, delta: float | None, xi: str | None, time_limit: float
         click.echo(line)
     if stored:
         click.echo(stored)
+    for line in written:
+        click.echo(line)
 
 
 @click.command("guarantee")

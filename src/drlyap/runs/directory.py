@@ -34,6 +34,8 @@ from drlyap.conditions import Condition
 from drlyap.config import ProofConfig, legacy_proof
 from drlyap.io import write_json
 from drlyap.networks import Controller, Lyapunov
+from drlyap.regions import Region
+from drlyap.runs.certificates import write_certificate
 from drlyap.runs.publish import RunDirError, atomic_dir, ensure_new
 from drlyap.runs.validate import check_config, check_samples, check_schema, load_weights
 from drlyap.systems import UncertainSystem, default_source, get_system, identity_mismatch, resolve_system
@@ -65,6 +67,10 @@ def save_run(out: Path, result: TrainResult, overwrite: bool = False,
         write_json(tmp / "config.json", result.config.to_dict())
         torch.save({"lyapunov": result.lyapunov.state_dict(), "controller": result.controller.state_dict()},
                    tmp / "weights.pt")
+        proof = result.trained_proof
+        if proof is not None and proof.partition is not None and proof.level is None:
+            write_certificate(tmp, "trained", proof, result.condition, Region.of(result.system, float(result.config.delta)),
+                              result.system, tmp / "weights.pt", float(result.config.alpha_hat))
         write_json(tmp / "metrics.json", result.metrics)
         with open(tmp / "history.csv", "w", newline="") as fh:
             writer = csv.DictWriter(fh, fieldnames=["iteration", "loss", "time_s"])

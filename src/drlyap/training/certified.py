@@ -166,7 +166,7 @@ def train_cegis(cfg: TrainConfig, system: UncertainSystem, proof: ProofConfig, p
         score = (entry["verified"], bool(result.metrics["passed"]), bool(acc["jacobian"]["hurwitz"]),
                  not acc["other_equilibria"], ver.verified_fraction, -(ver.counterexample_value or 0.0))
         if best is None or score > best[0]:
-            best = (score, result, r, list(history))
+            best = (score, result, r, list(history), ver)
         out_of_time = time_budget is not None and time.perf_counter() - start > time_budget
         if entry["verified"] or r == rounds or out_of_time:
             if out_of_time and not entry["verified"] and r < rounds:
@@ -199,7 +199,7 @@ def train_cegis(cfg: TrainConfig, system: UncertainSystem, proof: ProofConfig, p
         history += [{"iteration": h["iteration"] + total_iters, "loss": h["loss"], "time_s": h["time_s"] + offset_t}
                     for h in result.history]
         total_iters += result.metrics["iterations"]
-    _, chosen, chosen_round, chosen_history = best
+    _, chosen, chosen_round, chosen_history, chosen_proof = best
     metrics = dict(chosen.metrics)
     final = record[chosen_round] if chosen_round < len(record) else record[-1]
     # the returned pair's verdict: an unknown proof becomes violated where the falsifier finds a certain violation
@@ -213,7 +213,8 @@ def train_cegis(cfg: TrainConfig, system: UncertainSystem, proof: ProofConfig, p
         "total_iterations": total_iters, "extra_states": int(extra.shape[0]), "replicate": int(proof.replicate),
         "verify_time_limit_s": budget.seconds, "verify_boxes": budget.boxes, "total_time_s": time.perf_counter() - start,
     })
-    out = dataclasses.replace(chosen, config=base_cfg, metrics=metrics, history=chosen_history)
+    out = dataclasses.replace(chosen, config=base_cfg, metrics=metrics, history=chosen_history,
+                              trained_proof=chosen_proof if chosen_proof.verified else None)
     return out, record
 
 

@@ -26,6 +26,7 @@ from drlyap.regions import Region
 from drlyap.systems import UncertainSystem
 from drlyap.training.acceptance import acceptance_check
 from drlyap.training.config import TrainConfig, build_networks, draw_xi_samples, resolve_device, run_condition, training_region
+from drlyap.verification.results import ConditionProof
 
 LOCAL_EVERY = 4  # iterations between evaluations of the local term (second derivatives at x*: ~2x an iteration)
 
@@ -42,6 +43,7 @@ class TrainResult:
     condition: Condition
     history: list[dict]
     metrics: dict
+    trained_proof: ConditionProof | None = None  # the verified proof of the trained condition, with its partition
 
     @cached_property
     def loop(self) -> ClosedLoop:

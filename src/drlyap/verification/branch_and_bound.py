@@ -30,7 +30,7 @@ from drlyap.closed_loop import ClosedLoop
 from drlyap.conditions import Condition, DRUniform
 from drlyap.config import Budget
 from drlyap.enclosures import EPS, F64, round_down, round_up
-from drlyap.regions import Region, inside_ball, split
+from drlyap.regions import Region, box_grid, default_grid, inside_ball, split
 from drlyap.verification.bounds import (
     box_bounds,
     combine_lower,
@@ -39,6 +39,7 @@ from drlyap.verification.bounds import (
     condition_objective,
     sublevel_upper,
 )
+from drlyap.verification.partition import PartitionRecorder
 from drlyap.verification.results import ConditionProof, UniformMargin
 
 
@@ -69,7 +70,12 @@ def verify_condition(loop: ClosedLoop, condition: Condition, region: Region, bud
     start = time.perf_counter()
     objective = (condition_objective if level is None else condition_and_value_objective)(loop, condition)
     scale = region.scale
-    lo, hi = region.boxes(grid)
+    per_axis = list(grid or default_grid(system.n))
+    lo, hi = box_grid(region.lo, region.hi, per_axis)
+    tree = PartitionRecorder(per_axis, lo.shape[0], enclosure)
+    keep = region.meets(lo, hi)
+    tree.inside_ball(tree.roots[~keep])
+    lo, hi, ids = lo[keep], hi[keep], tree.roots[keep]
     volume = region.volume()
     processed = verified_count = 0
     unverified_vol = 0.0
@@ -87,6 +93,7 @@ def verify_condition(loop: ClosedLoop, condition: Condition, region: Region, bud
             stopped = "box budget"
             break
         clo, chi, lo, hi = lo[:batch], hi[:batch], lo[batch:], hi[batch:]
+        cids, ids = ids[:batch], ids[batch:]
         lb_c, ub_c, at, sens, form = box_bounds(objective, clo, chi, enclosure, sensitivity=True, keep_form=True)
         processed += clo.shape[0]
         centre = (clo + chi) / 2
@@ -104,6 +111,8 @@ def verify_condition(loop: ClosedLoop, condition: Condition, region: Region, bud
             sup_lo = max(sup_lo, float(centre_lb[in_region].max()))
         ub = torch.where(outside, -torch.inf, ub)
         ok = ub <= 0
+        tree.proved(cids[ok & ~outside], ub[ok & ~outside])
+        tree.above_level(cids[ok & outside], lb_c[ok & outside, -1] if level is not None else lb_c[:0, 0])
         verified_count += int(ok.sum())
         if (ok & ~outside).any():
             sup_hi = max(sup_hi, float(ub[ok & ~outside].max()))
@@ -144,8 +153,11 @@ def verify_condition(loop: ClosedLoop, condition: Condition, region: Region, bud
             leaves_hi.append(chi[small])
         divide = rest & ~small
         if divide.any():
-            nlo, nhi = region.keep(*split(clo[divide], chi[divide], scale, sens[divide]))
-            lo, hi = torch.cat([lo, nlo]), torch.cat([hi, nhi])
+            nlo, nhi = split(clo[divide], chi[divide], scale, sens[divide])
+            children = tree.split(cids[divide], chi[divide], nhi)
+            keep = region.meets(nlo, nhi)
+            tree.inside_ball(children[~keep])
+            lo, hi, ids = torch.cat([lo, nlo[keep]]), torch.cat([hi, nhi[keep]]), torch.cat([ids, children[keep]])
     if lo.shape[0]:
         unverified_vol += float((hi - lo).prod(-1).sum())
         leaves_lo.append(lo)
@@ -169,6 +181,8 @@ def verify_condition(loop: ClosedLoop, condition: Condition, region: Region, bud
         boxes_processed=processed, boxes_verified=verified_count, time_s=time.perf_counter() - start,
         n_unverified=int(left_lo.shape[0]), unverified_boxes=boxes, n_counterexample_boxes=n_cex_boxes,
         sup_bounds=[sup_lo, sup_hi], stopped=stopped, level=level)
+    if status == "verified":
+        result.partition = tree.finish()
     if cex is not None:
         result.counterexample_value = cex[0]
         result.counterexample_value_float32 = float(loop.exact(condition, cex[1][None], torch.float32)[0])

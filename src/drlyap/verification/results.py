@@ -43,6 +43,8 @@ class Result:
         out = {}
         for f in dataclasses.fields(self):
             value = getattr(self, f.name)
+            if f.metadata.get("json") is False:
+                continue
             if f.name in self.OPTIONAL and value is None:
                 continue
             out[f.name] = value.to_dict() if isinstance(value, Result) else value
@@ -68,7 +70,9 @@ class ConditionProof(Result):
     coordinates, ``counterexample_local`` in local ones, ``counterexample_value`` the float64 residual there,
     ``counterexample_value_float32`` with the networks in float32. ``xi``: the shift of the true model the
     condition is about, when it is one. ``boundary_min_lower`` / ``_upper``: V's minimum on the faces (sublevel
-    proofs). ``falsifier``: the search that settled an unknown proof.
+    proofs). ``falsifier``: the search that settled an unknown proof. ``partition``: the tree of boxes a verified
+    branch and bound proved it on (:class:`~drlyap.verification.partition.Partition`; not part of the JSON, written
+    as a certificate file by :mod:`drlyap.runs.certificates`).
     """
 
     OPTIONAL: ClassVar[tuple[str, ...]] = ("boundary_min_lower", "boundary_min_upper", "counterexample_source",
@@ -95,6 +99,7 @@ class ConditionProof(Result):
     counterexample_source: str | None = None
     falsifier: dict | None = None
     xi: list[float] | None = None
+    partition: Any = field(default=None, repr=False, compare=False, metadata={"json": False})
 
     @property
     def verified(self) -> bool:

@@ -7,15 +7,18 @@ from __future__ import annotations
 
 import math
 from collections.abc import Sequence
+from pathlib import Path
 
 from torch import Tensor
 
 from drlyap.io import jsonable
 from drlyap.regions import Region
 from drlyap.runs import Run
+from drlyap.runs.certificates import write_certificate
 from drlyap.training import run_condition
 from drlyap.verification import (
     Budget,
+    ConditionProof,
     CoveringCheck,
     ProofConfig,
     RegionOfAttraction,
@@ -108,6 +111,21 @@ def record_region(run: Run, ver: RunVerification) -> None:
         certificate["true_model"] = jsonable({k: getattr(ver.true_model, k) for k in keys})
     certificate["roa"] = jsonable({**ver.roa.to_dict(), "xi": ver.roa.xi})  # xi None: about the trained condition
     run.save_metrics()
+
+
+def record_certificates(run: Run, ver: RunVerification) -> list[Path]:
+    """Write a certificate file (:mod:`drlyap.runs.certificates`) into the run directory for each proof of ``ver``
+    that is verified on X_delta and kept its partition: ``trained`` and, with a shift, ``true-model``. Returns the
+    headers' paths (an OSError where the directory cannot be written)."""
+    region = Region.of(run.system, float(ver.delta))
+    written = []
+    for name, proof, condition in (("trained", ver.trained, run.condition),
+                                   ("true-model", ver.true_model,
+                                    None if ver.true_model is None else run.true_condition(ver.true_model.xi))):
+        if isinstance(proof, ConditionProof) and proof.verified and proof.partition is not None and proof.level is None:
+            written.append(write_certificate(run.path, name, proof, condition, region, run.system,
+                                             run.path / "weights.pt", float(run.config.alpha_hat)))
+    return written
 
 
 def run_robustness(run: Run, delta: float | None = None, tol: float = 0.01, budget: Budget = SEARCH_BUDGET,

@@ -1,0 +1,268 @@
+"""Re-check a certificate file box by box (``drlyap check RUN``), with the checker's own arithmetic.
+
+What the checker takes on trust (its trust base): the float64 arithmetic of the machine with round-to-nearest, the
+library functions ``sin cos tanh exp sqrt`` to within 8 ulps, torch's elementwise operations and matrix products as
+used in :mod:`drlyap.checker.arith` (whose results it pads outward), numpy's reading of the arrays file, and the
+system's dynamics function (the user's code, run on the checker's intervals). What it re-derives: every box (from the
+state box, the starting grid and the splits; the file stores no coordinates, so the boxes cover the box by
+construction), that every leaf is proved, that leaves said to lie in the delta-ball do, the sha256 of the weights and
+of the system's description, and the residual of the claimed condition from V's and pi's weights (its own forward and
+gradient code, not the library's networks).
+
+A proved leaf is re-proved by the tighter of the interval bound and the mean-value form; where that bound is not
+``<= 0`` (the verifier may have used affine forms, which are tighter), the leaf is bisected along its widest side up
+to ``refine`` times and every piece must be proved. A leaf whose recorded bound lies below the residual at its centre
+is a false record and fails the check.
+"""
+
+from __future__ import annotations
+
+import math
+import time
+from dataclasses import dataclass, field
+from pathlib import Path
+
+import numpy as np
+import torch
+from torch import Tensor
+
+from drlyap.checker.arith import EPS, F64, Iv
+from drlyap.checker.model import Pair, Residual, upper_bounds
+
+INTERNAL, PROVED, INSIDE_BALL, ABOVE_LEVEL = 0, 1, 2, 3
+
+
+@dataclass
+class CheckResult:
+    """The outcome of re-checking one certificate: ``ok`` when every box holds and the boxes cover the region."""
+
+    name: str
+    ok: bool
+    claim: str
+    failures: list[str] = field(default_factory=list)
+    boxes: int = 0
+    proved: int = 0
+    inside_ball: int = 0
+    refined: int = 0
+    pieces: int = 0
+    time_s: float = 0.0
+
+    def to_dict(self) -> dict:
+        return dict(self.__dict__)
+
+
+class CertificateError(ValueError):
+    """The certificate is inconsistent with itself or with the run (a structural failure, found before any bound)."""
+
+
+def _grid_cells(lo: Tensor, hi: Tensor, grid: list[int]) -> tuple[Tensor, Tensor]:
+    axes_lo, axes_hi = [], []
+    for i, k in enumerate(grid):
+        edges = lo[i] + (hi[i] - lo[i]) * torch.arange(k + 1, dtype=F64) / k
+        edges[0], edges[-1] = lo[i], hi[i]
+        axes_lo.append(edges[:-1])
+        axes_hi.append(edges[1:])
+    return (torch.cartesian_prod(*axes_lo).reshape(-1, len(grid)),
+            torch.cartesian_prod(*axes_hi).reshape(-1, len(grid)))
+
+
+def check_tree(arrays: dict[str, np.ndarray], cells: int, n: int, level: float | None) -> None:
+    """Structural checks: roots are exactly the grid's cells, every other node names an earlier internal node as its
+    parent, every internal node has exactly one lower and one upper half, every leaf has a verdict that proves it."""
+    parent, side = arrays["parent"].astype(np.int64), arrays["side"].astype(np.int64)
+    axis, verdict = arrays["axis"].astype(np.int64), arrays["verdict"].astype(np.int64)
+    size = parent.shape[0]
+    if any(a.shape != (size,) for a in arrays.values()):
+        raise CertificateError("the partition's arrays differ in length")
+    if size < cells or (parent[:cells] != -1).any() or (parent[cells:] < 0).any():
+        raise CertificateError(f"the partition does not start with the {cells} cells of its grid")
+    ids = np.arange(size)
+    if (parent[cells:] >= ids[cells:]).any():
+        raise CertificateError("a node names a later node as its parent")
+    internal = verdict == INTERNAL
+    if (internal & ((axis < 0) | (axis >= n))).any() or (~internal & (axis != -1)).any():
+        raise CertificateError("a split axis is missing or out of range")
+    kids = parent[cells:]
+    if not internal[kids].all():
+        raise CertificateError("a node's parent is not a split node")
+    if ((side[cells:] != 0) & (side[cells:] != 1)).any():
+        raise CertificateError("a node is neither the lower nor the upper half of its parent")
+    slots = np.bincount(kids * 2 + side[cells:], minlength=2 * size).reshape(size, 2)
+    if (slots[internal] != 1).any() or (slots[~internal] != 0).any():
+        raise CertificateError("a split node does not have exactly one lower and one upper half (a box is missing "
+                               "or duplicated)")
+    allowed = {PROVED, INSIDE_BALL} | ({ABOVE_LEVEL} if level is not None else set())
+    leaves = verdict[~internal]
+    bad = ~np.isin(leaves, sorted(allowed))
+    if bad.any():
+        raise CertificateError(f"{int(bad.sum())} leaves are not proved (verdict {int(leaves[bad][0])})")
+
+
+def rebuild_boxes(lo: Tensor, hi: Tensor, grid: list[int], arrays: dict[str, np.ndarray]) -> tuple[Tensor, Tensor]:
+    """Every node's box ``(N, n)``: the grid's cells, then each half from its parent (halved at the midpoint of the
+    parent's split axis), generation by generation."""
+    parent = torch.as_tensor(arrays["parent"].astype(np.int64))
+    side = torch.as_tensor(arrays["side"].astype(np.int64))
+    axis = torch.as_tensor(arrays["axis"].astype(np.int64))
+    size, n = parent.shape[0], lo.shape[0]
+    glo, ghi = _grid_cells(lo, hi, grid)
+    blo = torch.full((size, n), math.nan, dtype=F64)
+    bhi = torch.full((size, n), math.nan, dtype=F64)
+    cells = glo.shape[0]
+    blo[:cells], bhi[:cells] = glo, ghi
+    done = torch.zeros(size, dtype=torch.bool)
+    done[:cells] = True
+    while not bool(done.all()):
+        ready = ~done & done[parent.clamp(min=0)]
+        if not bool(ready.any()):
+            raise CertificateError("the partition's tree is not connected")
+        ids = ready.nonzero().squeeze(-1)
+        p, ax, upper = parent[ids], axis[parent[ids]], side[ids] == 1
+        plo, phi = blo[p], bhi[p]
+        rows = torch.arange(ids.shape[0])
+        mid = (plo[rows, ax] + phi[rows, ax]) / 2
+        clo, chi = plo.clone(), phi.clone()
+        clo[rows[upper], ax[upper]] = mid[upper]
+        chi[rows[~upper], ax[~upper]] = mid[~upper]
+        blo[ids], bhi[ids] = clo, chi
+        done |= ready
+    return blo, bhi
+
+
+def inside_open_ball(lo: Tensor, hi: Tensor, delta: float) -> Tensor:
+    """``(B,)``: boxes whose every point has ``||z|| < delta`` (sound: the far corner's squared distance, rounded up,
+    below ``delta^2`` rounded down)."""
+    far = Iv(torch.maximum(lo.abs(), hi.abs()), torch.maximum(lo.abs(), hi.abs())).square().sum(-1).hi
+    d2 = (Iv.point(delta) * Iv.point(delta)).lo
+    return far < d2
+
+
+def _widest_split(lo: Tensor, hi: Tensor, scale: Tensor) -> tuple[Tensor, Tensor]:
+    dim = ((hi - lo) / scale).argmax(-1)
+    rows = torch.arange(lo.shape[0])
+    mid = (lo[rows, dim] + hi[rows, dim]) / 2
+    hi1, lo2 = hi.clone(), lo.clone()
+    hi1[rows, dim] = mid
+    lo2[rows, dim] = mid
+    return torch.cat([lo, lo2]), torch.cat([hi1, hi])
+
+
+def prove_boxes(residual: Residual, lo: Tensor, hi: Tensor, scale: Tensor, refine: int,
+                batch: int = 4096) -> tuple[Tensor, Tensor, int, int]:
+    """Re-prove ``residual <= 0`` on boxes ``(B, n)``: ``ok (B,)``, lower bounds of the residual at the centres
+    ``(B,)``, and how many boxes needed bisection and into how many pieces in all."""
+    ok = torch.zeros(lo.shape[0], dtype=torch.bool)
+    centre_low = torch.empty(lo.shape[0], dtype=F64)
+    refined = pieces = 0
+    for start in range(0, lo.shape[0], batch):
+        a, b = lo[start:start + batch], hi[start:start + batch]
+        upper, low = upper_bounds(residual, a, b)
+        centre_low[start:start + batch] = low
+        good = upper <= 0
+        todo = (~good).nonzero().squeeze(-1)
+        if todo.numel():
+            refined += int(todo.numel())
+            owner, plo, phi = todo, a[todo], b[todo]
+            for _ in range(refine):
+                plo, phi = _widest_split(plo, phi, scale)
+                owner = owner.repeat(2)
+                up = torch.cat([upper_bounds(residual, plo[i:i + batch], phi[i:i + batch])[0]
+                                for i in range(0, plo.shape[0], batch)])
+                pieces += int(plo.shape[0])
+                failed = up > 0
+                plo, phi, owner = plo[failed], phi[failed], owner[failed]
+                if not owner.numel():
+                    break
+            good[todo] = True
+            good[owner.unique()] = False
+        ok[start:start + batch] = good
+    return ok, centre_low, refined, pieces
+
+
+def check_certificate(run_dir: str | Path, name: str, header: dict, arrays: dict[str, np.ndarray], system,
+                      weights: dict, weights_sha256: str, system_sha256: str, refine: int = 3) -> CheckResult:
+    """Re-check one certificate of ``run_dir`` against the run's own weights (``weights``: the two state dicts read
+    from ``weights.pt``, whose file has ``weights_sha256``) and system (``system_sha256`` its description's)."""
+    start = time.perf_counter()
+    claim = header.get("claim") or {}
+    out = CheckResult(name=name, ok=False, claim=str(claim.get("statement", "")))
+    try:
+        if header["networks"]["weights_sha256"] != weights_sha256:
+            raise CertificateError("weights.pt is not the file the certificate was proved for (sha256 differs)")
+        if header["system"]["description_sha256"] != system_sha256:
+            raise CertificateError(f"the system {system.name!r} is not the one the certificate was proved for "
+                                   "(its description's sha256 differs)")
+        region = claim["region"]
+        lo, hi = (torch.as_tensor(region[k], dtype=F64) for k in ("box_lo", "box_hi"))
+        box_lo, box_hi = (torch.as_tensor(b, dtype=F64) - torch.as_tensor(system.equilibrium, dtype=F64)
+                          for b in system.state_box)
+        if not (torch.equal(lo, box_lo) and torch.equal(hi, box_hi)):
+            raise CertificateError("the certificate's state box is not the system's")
+        delta, level = float(region["delta"]), region.get("level")
+        if level is not None:
+            raise CertificateError("certificates on a sublevel set are not checked by this version")
+        grid = [int(k) for k in header["partition"]["grid"]]
+        if len(grid) != system.n or min(grid) < 1:
+            raise CertificateError(f"the starting grid {grid} does not fit {system.n} states")
+        check_tree(arrays, int(np.prod(grid)), system.n, level)
+        pair = Pair(weights, float(header["networks"]["alpha_hat"]), system.n)
+        residual = Residual(claim["condition"], pair, system)
+    except (CertificateError, KeyError, TypeError, ValueError) as err:
+        out.failures.append(str(err) if not isinstance(err, KeyError) else f"the header lacks {err}")
+        out.time_s = time.perf_counter() - start
+        return out
+    blo, bhi = rebuild_boxes(lo, hi, grid, arrays)
+    verdict = torch.as_tensor(arrays["verdict"].astype(np.int64))
+    bound = torch.as_tensor(arrays["bound"].astype(np.float64))
+    out.boxes = int((verdict != INTERNAL).sum())
+    ball = (verdict == INSIDE_BALL).nonzero().squeeze(-1)
+    inside = inside_open_ball(blo[ball], bhi[ball], delta)
+    out.inside_ball = int(inside.sum())
+    if not bool(inside.all()):
+        out.failures.append(f"{int((~inside).sum())} boxes said to lie in the open ball ||z|| < {delta:g} do not")
+    proved = (verdict == PROVED).nonzero().squeeze(-1)
+    ok, centre_low, out.refined, out.pieces = prove_boxes(residual, blo[proved], bhi[proved], hi - lo, refine)
+    out.proved = int(ok.sum())
+    if not bool(ok.all()):
+        first = proved[~ok][0]
+        out.failures.append(f"{int((~ok).sum())} boxes are not proved by the checker's bounds (first: node "
+                            f"{int(first)}, [{_fmt(blo[first])}] to [{_fmt(bhi[first])}])")
+    false = bound[proved] < centre_low - 4 * EPS * centre_low.abs()
+    if bool(false.any()):
+        first = proved[false][0]
+        out.failures.append(f"{int(false.sum())} recorded bounds lie below the residual at their box's centre (first: "
+                            f"node {int(first)}, recorded {float(bound[first]):.6g})")
+    out.ok = not out.failures
+    out.time_s = time.perf_counter() - start
+    return out
+
+
+def _fmt(v: Tensor) -> str:
+    return ", ".join(f"{float(a):.6g}" for a in v)
+
+
+def check_run(run_dir: str | Path, system=None, trust: bool = False, names: list[str] | None = None,
+              refine: int = 3) -> list[CheckResult]:
+    """Re-check the certificates of a run directory (``names``: which; default every one it holds). ``system`` and
+    ``trust``: as for :func:`drlyap.runs.load_run` (a system from a file runs only when named or trusted). A run
+    without certificates is a ValueError that says so."""
+    from drlyap.runs.certificates import FOLDER, NAMES, read_certificate, sha256_file, system_digest
+    from drlyap.runs.directory import read_run_json, run_system
+    from drlyap.runs.validate import load_weights
+
+    run_dir = Path(run_dir)
+    info, config = read_run_json(run_dir, "lyapunov", "run.json", "config.json")
+    system = run_system(run_dir, str(config.get("system")), system, info, trust)
+    present = [k for k in NAMES if (run_dir / FOLDER / f"{k}.json").is_file()]
+    names = present if names is None else names
+    if not names:
+        raise ValueError(f"{run_dir} holds no certificate ({run_dir / FOLDER} is empty or missing): a verified "
+                         "`drlyap train` or `drlyap verify` writes one")
+    weights_path = run_dir / "weights.pt"
+    weights = load_weights(weights_path)
+    digest, system_sha = sha256_file(weights_path), system_digest(system)
+    out = []
+    for name in names:
+        header, arrays = read_certificate(run_dir, name)
+        out.append(check_certificate(run_dir, name, header, arrays, system, weights, digest, system_sha, refine))
+    return out

@@ -1,0 +1,206 @@
+"""The checker's reading of a certificate's claim: the networks V and pi from their weights, and the residual of the
+claimed condition, written with the checker's own arithmetic (:mod:`drlyap.checker.arith`), not with the library's
+networks, conditions or enclosures. Only the system's dynamics are shared: they are the user's code, run here on the
+checker's intervals and duals.
+
+States are local coordinates ``z = x - x*`` (``(B, n)``). The formulas are the ones docs/method.md states:
+
+* ``V(z) = ||phi(z) - phi(0)||^2 + alpha_hat ||z / s||^2`` with ``phi`` a tanh MLP on ``z / s``;
+* ``pi(z) = u* + clamp(varphi(z) - varphi(0), U - u*)``;
+* ``Vdot_j = grad V . (f + W xi_j)`` on the design model (``W = dF/dp`` at the nominal parameters, in the uncertain
+  ones) or ``grad V . F(x, u, p0 + E xi_j)`` on the true model; ``decay = gamma ||z|| + alpha V``;
+* components ``Vdot_j + decay`` (+ ``(r / eps) ||W^T grad V||`` for the DR pointwise condition), combined by the
+  maximum or the sample CVaR (both non-decreasing in every component).
+"""
+
+from __future__ import annotations
+
+import math
+from collections.abc import Callable, Sequence
+
+import torch
+from torch import Tensor
+
+from drlyap.checker.arith import EPS, F64, Du, Iv, lift
+
+CONDITIONS = ("nominal", "pointwise", "plain", "true")
+
+
+class Mlp:
+    """A tanh MLP from its state dict entries ``{prefix}layers.{i}.weight/bias`` and ``{prefix}input_scale``."""
+
+    def __init__(self, state: dict[str, Tensor], prefix: str) -> None:
+        head = prefix + "layers."
+        count = len({k[len(head):].split(".")[0] for k in state if k.startswith(head)})
+        self.weights = [state[f"{prefix}layers.{i}.weight"].to(F64) for i in range(count)]
+        self.biases = [state[f"{prefix}layers.{i}.bias"].to(F64) for i in range(count)]
+        self.scale = state[f"{prefix}input_scale"].to(F64)
+        if count < 1:
+            raise ValueError(f"no layers under {prefix!r}")
+
+    def forward(self, z) -> tuple[object, list]:
+        h = z / self.scale
+        hidden = []
+        for w, b in zip(self.weights[:-1], self.biases[:-1]):
+            h = h.linear(w, b).tanh()
+            hidden.append(h)
+        return h.linear(self.weights[-1], self.biases[-1]), hidden
+
+    def at_origin(self, n: int) -> Iv:
+        return self.forward(Iv.point(torch.zeros(1, n, dtype=F64)))[0]
+
+
+class Pair:
+    """V and pi of a run, read from ``weights.pt``'s state dicts (``lyapunov``, ``controller``)."""
+
+    def __init__(self, weights: dict, alpha_hat: float, n: int) -> None:
+        self.phi = Mlp(weights["lyapunov"], "phi.")
+        self.varphi = Mlp(weights["controller"], "varphi.")
+        ctrl = weights["controller"]
+        self.u_star, self.low, self.high = (ctrl[k].to(F64) for k in ("u_star", "room_low", "room_high"))
+        self.alpha_hat, self.n = float(alpha_hat), n
+        self.phi0, self.varphi0 = self.phi.at_origin(n), self.varphi.at_origin(n)
+
+    def value_and_grad(self, z) -> tuple[object, object]:
+        out, hidden = self.phi.forward(z)
+        d = out - self.phi0
+        zs = z / self.phi.scale
+        value = d.square().sum(-1) + zs.square().sum(-1) * self.alpha_hat
+        g = (d * 2.0).linear(self.phi.weights[-1].T)
+        for i in range(len(hidden) - 1, -1, -1):
+            g = (g * (1.0 - hidden[i].square())).linear(self.phi.weights[i].T)
+        return value, g / self.phi.scale + zs / self.phi.scale * (2.0 * self.alpha_hat)
+
+    def controller(self, z):
+        raw = self.varphi.forward(z)[0] - self.varphi0
+        return raw.clamp(self.low, self.high) + self.u_star
+
+
+class Residual:
+    """The claimed condition's components ``(B, Q)`` at local states, and their combination.
+
+    ``claim``: the certificate's ``claim.condition`` (name, model, xi, decay_rate, exp_rate, and for the DR condition
+    wasserstein_radius, risk_level); ``system``: the run's :class:`~drlyap.systems.UncertainSystem` (its dynamics,
+    nominal parameters, uncertain indices, equilibrium).
+    """
+
+    def __init__(self, claim: dict, pair: Pair, system) -> None:
+        self.name = claim["name"]
+        if self.name not in CONDITIONS:
+            raise ValueError(f"the checker does not know the condition {self.name!r} (known: {', '.join(CONDITIONS)})")
+        self.model = "true" if self.name == "true" else claim.get("model", "design")
+        self.xi = torch.as_tensor(claim["xi"], dtype=F64).reshape(len(claim["xi"]), -1)
+        self.gamma, self.alpha = float(claim.get("decay_rate") or 0.0), float(claim.get("exp_rate") or 0.0)
+        self.r = float(claim.get("wasserstein_radius") or 0.0)
+        self.eps = float(claim.get("risk_level") or 1.0)
+        self.pair, self.system = pair, system
+        self.x_star = torch.as_tensor(system.equilibrium, dtype=F64)
+        self.p0 = torch.as_tensor(system.nominal_params, dtype=F64)
+        self.uncertain = list(system.uncertain_index)
+
+    def _params(self, z, batch: int, xi: Tensor | None):
+        p = self.p0.expand(batch, -1).clone()
+        if xi is not None:
+            shifted = Iv.point(p[:, self.uncertain]) + Iv.point(xi.expand(batch, -1))
+            lo, hi = p.clone(), p.clone()
+            lo[:, self.uncertain], hi[:, self.uncertain] = shifted.lo, shifted.hi
+            return lift(Iv(lo, hi), z.level, z if z.level > 0 else None)
+        return lift(Iv.point(p), z.level, z if z.level > 0 else None)
+
+    def components(self, z) -> object:
+        """``(B, Q)``: one component per sample of xi, for ``z`` an :class:`Iv` or a :class:`Du` of local states."""
+        batch = z.shape[0]
+        value, grad = self.pair.value_and_grad(z)
+        x, u = z + self.x_star, self.pair.controller(z)
+        dynamics: Callable = self.system.dynamics
+        if self.model == "true":
+            vdots = [(grad * dynamics(x, u, self._params(z, batch, xi))).sum(-1) for xi in self.xi]
+            lip = None
+        else:
+            if getattr(self.system, "perturbation", None) is not None:
+                raise ValueError("the checker does not take systems with a hand-written perturbation matrix W")
+            base = self._params(z, batch, None)
+            tangents = []
+            for i in self.uncertain:
+                e = torch.zeros(batch, self.p0.shape[0], dtype=F64)
+                e[:, i] = 1.0
+                tangents.append(lift(Iv.point(e), z.level, z if z.level > 0 else None))
+            out = dynamics(x, u, Du(base, tangents))
+            s = (grad * out).sum(-1)
+            vdots = [s.v + sum((s.d[i] * float(xi[i]) for i in range(len(self.uncertain))), start=s.v * 0.0)
+                     for xi in self.xi]
+            lip = torch.stack(s.d, -1).norm() if self.name == "pointwise" else None
+        decay = value * 0.0
+        if self.gamma:
+            decay = decay + z.norm() * self.gamma
+        if self.alpha:
+            decay = decay + value * self.alpha
+        extra = decay if lip is None else decay + lip * (self.r / self.eps)
+        return torch.stack([v + extra for v in vdots], -1)
+
+    def combine_upper(self, upper: Tensor) -> Tensor:
+        """An upper bound ``(B,)`` of the residual from upper bounds ``(B, Q)`` of its components."""
+        if self.name == "nominal" or upper.shape[-1] == 1:
+            return upper[..., 0]
+        if self.name in ("plain", "true"):
+            return upper.amax(-1)
+        count = upper.shape[-1]
+        j = max(1, math.ceil(self.eps * count - 1e-12))
+        if j == 1:
+            return upper.amax(-1)
+        top = torch.topk(upper, j, dim=-1).values
+        hj = Iv.point(top[..., -1])
+        spread = (Iv.point(top[..., :-1]) - hj.unsqueeze(-1)).sum(-1)
+        return (spread / (Iv.point(float(count)) * Iv.point(self.eps)) + hj).hi
+
+
+def radius(lo: Tensor, hi: Tensor) -> tuple[Tensor, Tensor]:
+    """Centres ``(B, n)`` of boxes and half-widths rounded up so that ``[c - r, c + r]`` holds each box."""
+    centre = (lo + hi) / 2
+    rad = torch.maximum(hi - centre, centre - lo)
+    return centre, torch.nextafter(rad + EPS * rad, torch.full_like(rad, math.inf))
+
+
+def upper_bounds(residual: Residual, lo: Tensor, hi: Tensor) -> tuple[Tensor, Tensor]:
+    """Upper bounds ``(B,)`` of the residual over the boxes ``[lo, hi] (B, n)`` (the tighter of the interval bound
+    and the mean-value form ``f(c) + sum_i |df/dz_i over the box| r_i``), and lower bounds ``(B,)`` of the residual
+    at the boxes' centres."""
+    n = lo.shape[1]
+    centre, rad = radius(lo, hi)
+    at_centre = residual.components(Iv.point(centre))
+    form = residual.components(Du.seed(Iv(lo, hi), n, list(range(n))))
+    spread = Iv.point(torch.zeros_like(at_centre.hi))
+    for i, t in enumerate(form.d):
+        spread = spread + Iv.point(t.mag()) * Iv.point(rad[:, i:i + 1])
+    mean_value = (Iv.point(at_centre.hi) + spread).hi
+    upper = torch.minimum(form.v.hi, mean_value)
+    upper = torch.where(torch.isnan(upper), math.inf, upper)
+    low_centre = _combine_lower(residual, at_centre.lo)
+    return residual.combine_upper(upper), low_centre
+
+
+def _combine_lower(residual: Residual, lower: Tensor) -> Tensor:
+    """A lower bound of the residual from lower bounds of its components (the combination is monotone): the
+    negated upper bound of the negated components is not the same formula, so the maximum/CVaR is computed and
+    lowered by its rounding pad."""
+    if residual.name == "nominal" or lower.shape[-1] == 1:
+        out = lower[..., 0]
+    elif residual.name in ("plain", "true"):
+        out = lower.amax(-1)
+    else:
+        count = lower.shape[-1]
+        j = max(1, math.ceil(residual.eps * count - 1e-12))
+        top = torch.topk(lower, j, dim=-1).values
+        hj = top[..., -1]
+        out = (top[..., :-1] - hj[..., None]).sum(-1) / (count * residual.eps) + hj if j > 1 else top[..., 0]
+    pad = 64 * EPS * lower.abs().amax(-1) + 1e-300
+    return torch.where(torch.isnan(out), -math.inf, out - pad)
+
+
+def value_lower(pair: Pair, lo: Tensor, hi: Tensor) -> Tensor:
+    """Lower bounds ``(B,)`` of V over the boxes (interval bound)."""
+    return pair.value_and_grad(Iv(lo, hi))[0].lo
+
+
+def sequence(values: Sequence[float]) -> Tensor:
+    return torch.as_tensor(list(values), dtype=F64)

@@ -1,0 +1,45 @@
+"""``drlyap check``: re-check a run's certificate files with the independent checker."""
+
+from __future__ import annotations
+
+import json
+import sys
+from pathlib import Path
+
+import click
+
+from drlyap.cli.common import fail, run_source_options, run_system_of
+
+
+@click.command()
+@click.argument("run_dir", type=click.Path(path_type=Path))
+@click.option("--name", "names", multiple=True, type=click.Choice(["trained", "true-model"]),
+              help="Which certificate to check (repeatable) [every one the run holds].")
+@click.option("--refine", type=click.IntRange(0, 12), default=3, show_default=True,
+              help="Times the checker may bisect a box its own bound does not prove (the verifier's affine bounds "
+                   "are tighter than the checker's).")
+@click.option("--json", "as_json", is_flag=True, help="Print one JSON object.")
+@run_source_options
+def check(run_dir: Path, names: tuple[str, ...], refine: int, as_json: bool, system_spec: str | None,
+          trust_run: bool) -> None:
+    """Re-check the certificates in RUN_DIR/certificates/ box by box with a small checker of its own (its own float64
+    interval arithmetic, its own reading of V, pi and the condition), and say whether every box holds and the boxes
+    cover the claimed region. Exits 1 when a certificate fails.
+
+    A certificate is written by `drlyap train` and `drlyap verify` for every proof that ends verified on the state box
+    minus the delta-ball.
+    """
+    from drlyap.checker import check_run
+    from drlyap.render import check_lines
+
+    try:
+        results = check_run(run_dir, run_system_of(system_spec), trust_run, list(names) or None, refine)
+    except ValueError as err:
+        fail(err)
+    if as_json:
+        click.echo(json.dumps({"ok": all(r.ok for r in results), "certificates": [r.to_dict() for r in results]}))
+    else:
+        for line in check_lines(results):
+            click.echo(line)
+    if not all(r.ok for r in results):
+        sys.exit(1)

@@ -1,0 +1,152 @@
+"""Certificate files: a verified proof written down so that anyone can check it again (``drlyap check RUN``).
+
+A certificate is two files in ``RUN/certificates/``: ``NAME.json``, the header, and ``NAME.npz``, the partition
+the branch and bound proved the condition on (numpy arrays, read with ``allow_pickle=False``). ``NAME`` is
+``trained`` (the run's trained condition) or ``true-model`` (plain decrease on the true model at a shift, written by
+``drlyap verify RUN --xi ...``). The header (format ``drlyap-certificate``, version 1) holds:
+
+* ``claim``: the condition (name, model, samples or shift ``xi``, decay, Wasserstein radius and risk level), the
+  region (the state box in local coordinates, ``delta``) and a sentence saying what is claimed;
+* ``system``: its name and the sha256 of its description (``UncertainSystem.describe()`` as canonical JSON);
+* ``networks``: the sha256 of ``weights.pt`` and V's ``alpha_hat`` (the rest of V and pi is in the weights);
+* ``partition``: the arrays file, its sha256, the starting grid, the node count, the enclosure the proof used.
+
+The partition's arrays (one entry per node, see :mod:`drlyap.verification.partition`): ``parent`` (int64),
+``side``, ``axis``, ``verdict`` (int8) and ``bound`` (float64: the verifier's upper bound of the residual on proved
+leaves, V's lower bound on leaves above a level). docs/run-directory.md describes the format and the checker.
+"""
+
+from __future__ import annotations
+
+import hashlib
+import io
+import json
+import os
+from pathlib import Path
+
+import numpy as np
+
+from drlyap.conditions import Condition
+from drlyap.io import jsonable
+from drlyap.regions import Region
+from drlyap.render import condition_region
+from drlyap.systems import UncertainSystem
+from drlyap.verification.results import ConditionProof
+
+FORMAT = "drlyap-certificate"
+VERSION = 1
+FOLDER = "certificates"
+NAMES = ("trained", "true-model")
+ARRAYS = ("parent", "side", "axis", "verdict", "bound")
+
+
+def sha256_file(path: str | os.PathLike) -> str:
+    return hashlib.sha256(Path(path).read_bytes()).hexdigest()
+
+
+def system_digest(system: UncertainSystem) -> str:
+    """sha256 of the system's description as canonical JSON (what a certificate names its system by)."""
+    text = json.dumps(jsonable(system.describe()), sort_keys=True, separators=(",", ":"))
+    return hashlib.sha256(text.encode()).hexdigest()
+
+
+def condition_claim(condition: Condition) -> dict:
+    """The condition as a certificate states it (what the checker rebuilds its residual from)."""
+    xi = condition.xi
+    return jsonable(condition.describe() | {"model": condition.model, "label": condition.label,
+                                            "xi": xi.tolist() if xi is not None else None})
+
+
+def claim_text(condition: Condition) -> str:
+    """The condition in words, with the numbers that define it."""
+    xi = condition.xi.tolist() if condition.xi is not None else []
+    decay = f"gamma = {condition.decay_rate:g}" + (f", alpha = {condition.exp_rate:g}" if condition.exp_rate else "")
+    if condition.name == "true":
+        return f"decrease on the true model at xi = {xi[0] if len(xi) == 1 else xi} ({decay})"
+    if condition.name == "pointwise":
+        return (f"the DR pointwise condition (r = {condition.r:g}, eps = {condition.eps:g}, {len(xi)} samples of xi, "
+                f"{decay})")
+    return f"the {condition.label} condition ({len(xi)} sample(s) of xi, {decay})"
+
+
+def certificate_header(proof: ConditionProof, condition: Condition, region: Region, system: UncertainSystem,
+                       weights_sha256: str, alpha_hat: float, arrays_file: str, arrays_sha256: str) -> dict:
+    """The JSON header of a certificate (see the module docstring)."""
+    part = proof.partition
+    statement = f"{claim_text(condition)} holds at every state of the {condition_region(proof.level, region.delta)}"
+    return jsonable({
+        "format": FORMAT, "version": VERSION,
+        "claim": {"statement": statement, "condition": condition_claim(condition),
+                  "region": {"box_lo": region.lo.tolist(), "box_hi": region.hi.tolist(), "delta": region.delta,
+                             "level": proof.level, "coordinates": "local (z = x - x*)"}},
+        "system": {"name": system.name, "description_sha256": system_digest(system)},
+        "networks": {"weights_sha256": weights_sha256, "alpha_hat": alpha_hat},
+        "partition": {"file": arrays_file, "sha256": arrays_sha256, "grid": part.grid, "nodes": part.size,
+                      "enclosure": part.enclosure, "counts": part.counts()},
+        "proof": {"boxes_processed": proof.boxes_processed, "time_s": proof.time_s},
+    })
+
+
+def write_certificate(folder: str | os.PathLike, name: str, proof: ConditionProof, condition: Condition,
+                      region: Region, system: UncertainSystem, weights: str | os.PathLike, alpha_hat: float) -> Path:
+    """Write ``folder/certificates/NAME.json`` and ``.npz`` for a verified proof that kept its partition; each file
+    is written to a temporary name and renamed, the header last. Returns the header's path."""
+    if name not in NAMES:
+        raise ValueError(f"unknown certificate name {name!r}; valid: {', '.join(NAMES)}")
+    if proof.partition is None or not proof.verified:
+        raise ValueError("only a verified proof that kept its partition can be written as a certificate")
+    if proof.level is not None:
+        raise ValueError("certificates of proofs on a sublevel set are not written yet")
+    target = Path(folder) / FOLDER
+    target.mkdir(exist_ok=True)
+    part = proof.partition
+    buffer = io.BytesIO()
+    np.savez_compressed(buffer, **{k: getattr(part, k).numpy() for k in ARRAYS})
+    data = buffer.getvalue()
+    arrays = target / f"{name}.npz"
+    _replace(arrays, data)
+    header = certificate_header(proof, condition, region, system, sha256_file(weights), alpha_hat, arrays.name,
+                                hashlib.sha256(data).hexdigest())
+    path = target / f"{name}.json"
+    _replace(path, (json.dumps(header, indent=1) + "\n").encode())
+    return path
+
+
+def _replace(path: Path, data: bytes) -> None:
+    tmp = path.with_name(f".{path.name}.tmp")
+    tmp.write_bytes(data)
+    os.replace(tmp, path)
+
+
+def read_certificate(run_dir: str | os.PathLike, name: str) -> tuple[dict, dict[str, np.ndarray]]:
+    """A certificate's header and arrays, read as data (``allow_pickle=False``), or a ValueError naming the file and
+    what is wrong (missing, not JSON, another format, arrays that do not match the header's sha256)."""
+    folder = Path(run_dir) / FOLDER
+    path = folder / f"{name}.json"
+    if not path.is_file():
+        raise ValueError(f"{path} does not exist: no {name} certificate in {run_dir} "
+                         "(a verified `drlyap train` or `drlyap verify` writes one)")
+    try:
+        header = json.loads(path.read_text())
+    except (OSError, UnicodeDecodeError, json.JSONDecodeError) as err:
+        raise ValueError(f"{path} is damaged: {err}") from None
+    if not isinstance(header, dict) or header.get("format") != FORMAT:
+        raise ValueError(f"{path} is not a drlyap certificate")
+    if header.get("version") != VERSION:
+        raise ValueError(f"{path} has certificate version {header.get('version')!r}; this drlyap reads {VERSION}")
+    try:
+        part = header["partition"]
+        arrays_path = folder / Path(str(part["file"])).name
+        data = arrays_path.read_bytes()
+    except (KeyError, TypeError) as err:
+        raise ValueError(f"{path}: no partition file named ({err})") from None
+    except OSError as err:
+        raise ValueError(f"{path}: its partition file cannot be read ({err.strerror or err})") from None
+    if hashlib.sha256(data).hexdigest() != part.get("sha256"):
+        raise ValueError(f"{arrays_path} does not match the sha256 in {path}: the partition was changed or damaged")
+    try:
+        with np.load(io.BytesIO(data), allow_pickle=False) as npz:
+            arrays = {k: npz[k] for k in ARRAYS}
+    except (KeyError, ValueError, OSError) as err:
+        raise ValueError(f"{arrays_path} is damaged: {err}") from None
+    return header, arrays

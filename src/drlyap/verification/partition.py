@@ -1,0 +1,103 @@
+"""The partition a branch and bound proved a condition on: a tree of boxes over the starting grid, kept so that the
+proof can be written down and checked again by :mod:`drlyap.checker` without searching.
+
+Nodes are numbered as the boxes are made: first the cells of the starting grid (in ``box_grid``'s order), then the
+two halves of every box that is split, lower half first. A node records its parent (``-1`` for a grid cell), which
+half of its parent it is (``side``: 0 lower, 1 upper), the axis along which it was split (``-1`` for a leaf) and,
+for a leaf, the verdict the proof reached on it, with the bound behind it:
+
+* ``PROVED``: the residual's upper bound over the box is ``bound <= 0``;
+* ``INSIDE_BALL``: the box lies in the open delta-ball (not part of X_delta);
+* ``ABOVE_LEVEL``: V's lower bound over the box is ``bound > level`` (a proof on ``{V <= level}``);
+* ``OPEN``: nothing was proved (a proof that leaves such leaves is not verified and keeps no partition).
+
+The boxes themselves are not stored: they follow from the grid and the splits (halving at the midpoint), which is
+what makes a dropped or an extra box visible to a checker.
+"""
+
+from __future__ import annotations
+
+from dataclasses import dataclass
+
+import torch
+from torch import Tensor
+
+INTERNAL, PROVED, INSIDE_BALL, ABOVE_LEVEL, OPEN = 0, 1, 2, 3, 4
+VERDICTS = {INTERNAL: "internal", PROVED: "proved", INSIDE_BALL: "inside ball", ABOVE_LEVEL: "above level",
+            OPEN: "open"}
+
+
+@dataclass
+class Partition:
+    """A proof's tree of boxes (see the module docstring): ``N`` nodes over a starting grid of ``prod(grid)`` cells.
+
+    ``parent``, ``side``, ``axis``, ``verdict``: ``(N,)`` integer tensors; ``bound``: ``(N,)`` float64 (NaN on
+    internal nodes and on leaves inside the ball); ``enclosure``: how the boxes were bounded (``mean-value`` or
+    ``affine``, each together with the plain interval bound).
+    """
+
+    grid: list[int]
+    parent: Tensor
+    side: Tensor
+    axis: Tensor
+    verdict: Tensor
+    bound: Tensor
+    enclosure: str
+
+    @property
+    def size(self) -> int:
+        return int(self.parent.shape[0])
+
+    def counts(self) -> dict[str, int]:
+        """How many nodes of each verdict."""
+        return {name: int((self.verdict == code).sum()) for code, name in VERDICTS.items()}
+
+
+class PartitionRecorder:
+    """Collects a branch and bound's tree as it runs (ids of the boxes in its queue, verdicts as they come)."""
+
+    def __init__(self, grid: list[int], cells: int, enclosure: str) -> None:
+        self.grid, self.enclosure = list(grid), enclosure
+        self.roots = torch.arange(cells)
+        self.count = cells
+        self._parent = [torch.full((cells,), -1, dtype=torch.int64)]
+        self._side = [torch.zeros(cells, dtype=torch.int8)]
+        self._axis: list[tuple[Tensor, Tensor]] = []
+        self._leaf: list[tuple[Tensor, int, Tensor | None]] = []
+
+    def inside_ball(self, ids: Tensor) -> None:
+        self._leaf.append((ids, INSIDE_BALL, None))
+
+    def proved(self, ids: Tensor, bound: Tensor) -> None:
+        self._leaf.append((ids, PROVED, bound))
+
+    def above_level(self, ids: Tensor, bound: Tensor) -> None:
+        self._leaf.append((ids, ABOVE_LEVEL, bound))
+
+    def split(self, ids: Tensor, parent_hi: Tensor, lower_hi: Tensor) -> Tensor:
+        """Record the split of boxes ``ids (D,)`` (upper corners ``parent_hi (D, n)``) into the halves that
+        :func:`~drlyap.regions.split` returned (upper corners ``lower_hi (2D, n)``, lower halves first); returns
+        the halves' ids ``(2D,)``."""
+        d = ids.shape[0]
+        axis = (lower_hi[:d] != parent_hi).to(torch.int8).argmax(-1)
+        self._axis.append((ids, axis))
+        children = torch.arange(self.count, self.count + 2 * d)
+        self.count += 2 * d
+        self._parent.append(ids.repeat(2))
+        self._side.append(torch.cat([torch.zeros(d, dtype=torch.int8), torch.ones(d, dtype=torch.int8)]))
+        return children
+
+    def finish(self) -> Partition:
+        n = self.count
+        axis = torch.full((n,), -1, dtype=torch.int8)
+        verdict = torch.full((n,), OPEN, dtype=torch.int8)
+        bound = torch.full((n,), float("nan"), dtype=torch.float64)
+        for ids, ax in self._axis:
+            axis[ids] = ax.to(torch.int8)
+            verdict[ids] = INTERNAL
+        for ids, code, values in self._leaf:
+            verdict[ids] = code
+            if values is not None:
+                bound[ids] = values.to(torch.float64)
+        return Partition(self.grid, torch.cat(self._parent), torch.cat(self._side), axis, verdict, bound,
+                         self.enclosure)

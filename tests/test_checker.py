@@ -1,0 +1,311 @@
+"""The independent checker (drlyap.checker) and certificate files (drlyap.runs.certificates): its arithmetic encloses
+dense samples, it agrees with the verifier's proofs, and it rejects altered certificates."""
+
+import json
+import math
+import shutil
+
+import numpy as np
+import pytest
+import torch
+
+from drlyap.checker.arith import Du, Iv
+from drlyap.checker.check import CertificateError, check_certificate, check_tree, rebuild_boxes
+from drlyap.checker.model import Pair, Residual
+from drlyap.conditions import DRPointwise, TrueDecrease
+from drlyap.config import Budget
+from drlyap.regions import Region
+from drlyap.runs.certificates import condition_claim, read_certificate, sha256_file, system_digest, write_certificate
+from drlyap.verification import verify_condition
+from handmade import linear_pair, small_pendulum
+
+F64 = torch.float64
+
+
+def random_boxes(count, seed, scale=3.0):
+    g = torch.Generator().manual_seed(seed)
+    a = (torch.rand(count, generator=g, dtype=F64) * 2 - 1) * scale
+    w = torch.rand(count, generator=g, dtype=F64) ** 3 * scale
+    return a, a + w
+
+
+def samples(lo, hi, k=64, seed=1):
+    g = torch.Generator().manual_seed(seed)
+    t = torch.rand(k, *lo.shape, generator=g, dtype=F64)
+    t[0], t[1] = 0.0, 1.0  # the end points too
+    return lo + (hi - lo) * t
+
+
+def assert_encloses(box: Iv, values, tol=0.0):
+    assert bool(((values >= box.lo - tol) | torch.isnan(values)).all()), "lower bound above a sampled value"
+    assert bool(((values <= box.hi + tol) | torch.isnan(values)).all()), "upper bound below a sampled value"
+
+
+@pytest.mark.parametrize("name, fn", [
+    ("sin", torch.sin), ("cos", torch.cos), ("tanh", torch.tanh), ("exp", torch.exp), ("square", torch.square),
+    ("abs", torch.abs)])
+def test_unary_functions_enclose_dense_samples(name, fn):
+    lo, hi = random_boxes(4000, 0, scale=8.0)
+    x = samples(lo, hi)
+    assert_encloses(getattr(Iv(lo, hi), name)(), fn(x))
+
+
+def test_sqrt_and_arithmetic_enclose_dense_samples():
+    alo, ahi = random_boxes(3000, 1)
+    blo, bhi = random_boxes(3000, 2)
+    a, b = samples(alo, ahi, seed=3), samples(blo, bhi, seed=4)
+    ia, ib = Iv(alo, ahi), Iv(blo, bhi)
+    assert_encloses(ia + ib, a + b)
+    assert_encloses(ia - ib, a - b)
+    assert_encloses(ia * ib, a * b)
+    assert_encloses(ia / ib, a / b)
+    assert_encloses(ia ** 3, a ** 3)
+    assert_encloses(Iv(alo.abs(), alo.abs() + (ahi - alo)).sqrt(), samples(alo.abs(), alo.abs() + (ahi - alo)).sqrt())
+    assert bool((Iv(alo, ahi).sqrt().lo == -math.inf)[alo < 0].all())  # outside the domain: nothing proved
+
+
+def test_linear_norm_and_clamp_enclose_dense_samples():
+    g = torch.Generator().manual_seed(5)
+    lo = torch.randn(500, 3, generator=g, dtype=F64)
+    hi = lo + torch.rand(500, 3, generator=g, dtype=F64)
+    w, b = torch.randn(4, 3, generator=g, dtype=F64), torch.randn(4, generator=g, dtype=F64)
+    x = samples(lo, hi)
+    assert_encloses(Iv(lo, hi).linear(w, b), x @ w.T + b)
+    assert_encloses(Iv(lo, hi).norm(), x.norm(dim=-1))
+    low, high = torch.tensor([-0.5, -0.2, 0.0], dtype=F64), torch.tensor([0.5, 0.3, 0.1], dtype=F64)
+    assert_encloses(Iv(lo, hi).clamp(low, high), torch.minimum(torch.maximum(x, low), high))
+
+
+def test_dual_tangents_enclose_the_derivative_at_every_sampled_point():
+    """d/dz of f(z) = tanh(W z + b) . c + ||z|| * sin(z_0) over boxes: the tangents of the dual enclose autograd's
+    gradient at points of the box (the mean-value form rests on this)."""
+    g = torch.Generator().manual_seed(6)
+    lo = torch.randn(300, 2, generator=g, dtype=F64)
+    hi = lo + 0.5 * torch.rand(300, 2, generator=g, dtype=F64)
+    w, b = torch.randn(3, 2, generator=g, dtype=F64), torch.randn(3, generator=g, dtype=F64)
+    c = torch.randn(3, generator=g, dtype=F64)
+
+    def f(z):
+        return (torch.tanh(z @ w.T + b) * c).sum(-1) + z.norm(dim=-1) * torch.sin(z[:, 0])
+
+    def f_checker(z):
+        return (z.linear(w, b).tanh() * c).sum(-1) + z.norm() * z[:, 0].sin()
+
+    out = f_checker(Du.seed(Iv(lo, hi), 2, [0, 1]))
+    x = samples(lo, hi, k=16).reshape(-1, 2).requires_grad_(True)
+    grad = torch.autograd.grad(f(x).sum(), x)[0].reshape(16, 300, 2)
+    for i in range(2):
+        assert_encloses(out.d[i], grad[..., i], tol=1e-12)
+    assert_encloses(out.v, f(x.detach()).reshape(16, 300), tol=1e-12)
+
+
+def test_nested_duals_give_the_design_models_w_and_its_gradient():
+    """The pendulum's W = dF/dp in (mass, damping) and its derivative in the state, from nested duals."""
+    system = small_pendulum()
+    lo = torch.tensor([[0.1, -0.3]], dtype=F64)
+    hi = lo + 1e-9
+    z = Du.seed(Iv(lo, hi), 2, [0, 1])
+    p0 = torch.tensor([[1.0, 1.0, 0.13, 9.81]], dtype=F64)
+    tangents = []
+    for i in system.uncertain_index:
+        e = torch.zeros(1, 4, dtype=F64)
+        e[0, i] = 1.0
+        tangents.append(Du(Iv.point(e), [Iv.point(torch.zeros(1, 4, dtype=F64))] * 2))
+    p = Du(Du(Iv.point(p0), [Iv.point(torch.zeros(1, 4, dtype=F64))] * 2), tangents)
+    u = torch.tensor([[0.7]], dtype=F64)
+    out = system.dynamics(z, u, p)  # (1, 2): value, d/dmass, d/ddamping, each with d/dz
+    theta, omega = float(lo[0, 0]), float(lo[0, 1])
+    dmass = -(0.7 - 0.13 * omega) / 1.0  # d/dm of (m g sin - b w + u) / m at m = 1: -(u - b w)
+    assert abs(float(out.d[0].v.lo[0, 1]) - dmass) < 1e-6
+    assert abs(float(out.d[1].v.lo[0, 1]) + omega) < 1e-6  # d/db = -omega
+    assert abs(float(out.d[1].d[1].lo[0, 1]) + 1.0) < 1e-6  # d/domega of d/db = -1
+    assert abs(float(out.v.d[0].lo[0, 1]) - 9.81 * math.cos(theta)) < 1e-6
+
+
+# --------------------------------------------------------------------------- certificates
+@pytest.fixture(scope="module")
+def proved(tmp_path_factory):
+    """A verified DR pointwise proof of the hand-made linear pair on the small pendulum, as a certificate file."""
+    system = small_pendulum()
+    lyap, ctrl = linear_pair(system)
+    from drlyap.closed_loop import ClosedLoop
+
+    loop = ClosedLoop(system, lyap, ctrl)
+    xi = torch.tensor([[0.02, 0.01], [-0.03, 0.0], [0.05, -0.02]], dtype=F64)
+    condition = DRPointwise(0.01, 0.3, xi, decay_rate=0.05)
+    region = Region.of(system, 0.1)
+    proof = verify_condition(loop, condition, region, Budget(seconds=1e9, boxes=200_000, enclosure="mean-value"))
+    assert proof.status == "verified" and proof.partition is not None
+    folder = tmp_path_factory.mktemp("cert")
+    weights = {"lyapunov": lyap.state_dict(), "controller": ctrl.state_dict()}
+    torch.save(weights, folder / "weights.pt")
+    write_certificate(folder, "trained", proof, condition, region, system, folder / "weights.pt", lyap.alpha_hat)
+    return {"system": system, "folder": folder, "weights": weights, "proof": proof, "loop": loop,
+            "condition": condition, "region": region}
+
+
+def run_check(proved, folder=None, weights=None, header_change=None, arrays_change=None):
+    folder = folder or proved["folder"]
+    header, arrays = read_certificate(folder, "trained")
+    if header_change is not None:
+        header_change(header)
+    if arrays_change is not None:
+        arrays = {k: v.copy() for k, v in arrays.items()}
+        arrays = arrays_change(arrays) or arrays
+    system = proved["system"]
+    return check_certificate(folder, "trained", header, arrays, system, weights or proved["weights"],
+                             sha256_file(folder / "weights.pt"), system_digest(system))
+
+
+def test_the_checker_re_proves_the_verifiers_certificate(proved):
+    result = run_check(proved)
+    assert result.ok, result.failures
+    counts = proved["proof"].partition.counts()
+    assert result.proved == counts["proved"] and result.inside_ball == counts["inside ball"]
+    assert "DR pointwise condition (r = 0.01, eps = 0.3, 3 samples of xi" in result.claim
+
+
+def test_the_checkers_residual_is_the_conditions(proved):
+    loop, condition = proved["loop"], proved["condition"]
+    pair = Pair(proved["weights"], loop.lyapunov.alpha_hat, 2)
+    residual = Residual(condition_claim(condition), pair, proved["system"])
+    z = proved["region"].sample(200, torch.Generator().manual_seed(0))
+    mine = residual.components(Iv.point(z))
+    theirs = condition.components(condition.terms(loop.f64, z)).detach()
+    assert_encloses(mine, theirs, tol=1e-12)
+    assert float((mine.hi - mine.lo).max()) < 1e-9
+
+
+def test_the_boxes_cover_the_state_box(proved):
+    header, arrays = read_certificate(proved["folder"], "trained")
+    region = proved["region"]
+    blo, bhi = rebuild_boxes(region.lo, region.hi, header["partition"]["grid"], arrays)
+    leaves = arrays["verdict"] != 0
+    volume = float((bhi[leaves] - blo[leaves]).prod(-1).sum())
+    assert volume == pytest.approx(float(region.scale.prod()), rel=1e-12)
+
+
+def test_a_weight_changed_by_1e_6_is_rejected(proved, tmp_path):
+    folder = tmp_path / "changed"
+    shutil.copytree(proved["folder"], folder)
+    weights = {k: {n: t.clone() for n, t in v.items()} for k, v in proved["weights"].items()}
+    weights["controller"]["varphi.layers.0.weight"][0, 0] += 1e-6
+    torch.save(weights, folder / "weights.pt")
+    result = run_check(proved, folder=folder, weights=weights)
+    assert not result.ok and "weights.pt" in result.failures[0]
+
+
+def test_a_removed_box_is_rejected(proved):
+    def drop_last(arrays):
+        return {k: v[:-1] for k, v in arrays.items()}
+
+    result = run_check(proved, arrays_change=drop_last)
+    assert not result.ok and "exactly one lower and one upper half" in result.failures[0]
+
+
+def test_a_lowered_bound_is_rejected(proved):
+    def lower_one(arrays):
+        i = int(np.flatnonzero(arrays["verdict"] == 1)[0])
+        arrays["bound"][i] = -1e6
+
+    result = run_check(proved, arrays_change=lower_one)
+    assert not result.ok and "recorded bounds lie below" in result.failures[-1]
+
+
+def test_a_stronger_claim_than_proved_is_rejected(proved):
+    """The same partition claimed for a far larger decay rate: the checker's own bounds refuse the boxes."""
+    def stronger(header):
+        header["claim"]["condition"]["decay_rate"] = 50.0
+
+    result = run_check(proved, header_change=stronger)
+    assert not result.ok and "not proved by the checker's bounds" in result.failures[0]
+
+
+def test_a_box_moved_into_the_ball_is_rejected(proved):
+    def into_ball(arrays):
+        i = int(np.flatnonzero(arrays["verdict"] == 1)[0])
+        arrays["verdict"][i] = 2
+
+    result = run_check(proved, arrays_change=into_ball)
+    assert not result.ok and "open ball" in result.failures[0]
+
+
+def test_tree_checks_name_the_problem():
+    arrays = {"parent": np.array([-1, -1, 0]), "side": np.zeros(3, np.int8), "axis": np.array([0, -1, -1], np.int8),
+              "verdict": np.array([0, 1, 1], np.int8), "bound": np.zeros(3)}
+    with pytest.raises(CertificateError, match="exactly one lower and one upper half"):
+        check_tree(arrays, 2, 2, None)
+    arrays["verdict"][1] = 4
+    with pytest.raises(CertificateError, match="not proved"):
+        check_tree({**arrays, "parent": np.array([-1, -1]), "side": np.zeros(2, np.int8),
+                    "axis": np.array([-1, -1], np.int8), "verdict": np.array([1, 4], np.int8),
+                    "bound": np.zeros(2)}, 2, 2, None)
+
+
+def test_a_changed_partition_file_is_named(proved, tmp_path):
+    folder = tmp_path / "changed"
+    shutil.copytree(proved["folder"], folder)
+    data = bytearray((folder / "certificates" / "trained.npz").read_bytes())
+    data[-40] ^= 0xFF
+    (folder / "certificates" / "trained.npz").write_bytes(bytes(data))
+    with pytest.raises(ValueError, match="does not match the sha256"):
+        read_certificate(folder, "trained")
+    header = json.loads((folder / "certificates" / "trained.json").read_text())
+    header["version"] = 99
+    (folder / "certificates" / "trained.json").write_text(json.dumps(header))
+    with pytest.raises(ValueError, match="version 99"):
+        read_certificate(folder, "trained")
+
+
+def test_true_model_certificate_of_a_shift(proved, tmp_path):
+    """Decrease on the true model at a shift: proved, written and re-checked."""
+    loop, region, system = proved["loop"], proved["region"], proved["system"]
+    condition = TrueDecrease(torch.tensor([[0.1, 0.05]], dtype=F64), decay_rate=0.05)
+    proof = verify_condition(loop, condition, region, Budget(seconds=1e9, boxes=200_000, enclosure="mean-value"))
+    assert proof.verified
+    folder = tmp_path / "shift"
+    shutil.copytree(proved["folder"], folder)
+    write_certificate(folder, "true-model", proof, condition, region, system, folder / "weights.pt", 1e-3)
+    header, arrays = read_certificate(folder, "true-model")
+    result = check_certificate(folder, "true-model", header, arrays, system, proved["weights"],
+                               sha256_file(folder / "weights.pt"), system_digest(system))
+    assert result.ok, result.failures
+    assert "true model at xi = [0.1, 0.05]" in result.claim
+
+
+def test_verify_writes_and_check_re_checks_a_run(tmp_path):
+    """`drlyap verify RUN --xi` writes certificates of the proofs that end verified; `drlyap check RUN` re-checks
+    them (exit 0) and fails (exit 1) once the weights changed."""
+    from pathlib import Path
+
+    from click.testing import CliRunner
+
+    from drlyap.cli import main
+    from drlyap.runs import save_run
+    from drlyap.training import TrainConfig
+    from handmade import plain_train
+
+    system = small_pendulum()
+    cfg = TrainConfig(system="small-pendulum", method="dr", n_states=64, iters=1, check_every=1, lyapunov_hidden=[2],
+                      lyapunov_out=2, controller_hidden=[1], alpha_hat=1e-3, decay_rate=0.05, wasserstein_radius=0.01,
+                      risk_level=0.3, delta=0.1, xi_samples=[[0.02, 0.01], [-0.03, 0.0], [0.05, -0.02]], seed=0)
+    result = plain_train(cfg, system, progress=False)
+    lyap, ctrl = linear_pair(system)
+    result.lyapunov.load_state_dict(lyap.state_dict())
+    result.controller.load_state_dict(ctrl.state_dict())
+    run = save_run(tmp_path / "run", result)
+    spec = f"{Path(__file__).parent / 'handmade.py'}:small_pendulum"
+    runner = CliRunner()
+    out = runner.invoke(main, ["verify", str(run), "--system", spec, "--xi", "0.1,0.05"])
+    assert out.exit_code == 0, out.output
+    assert "certificates/trained.json" in out.output and "certificates/true-model.json" in out.output
+    out = runner.invoke(main, ["check", str(run), "--system", spec])
+    assert out.exit_code == 0, out.output
+    assert out.output.count("CHECKED") == 2 and "the boxes cover the region" in out.output
+    weights = torch.load(run / "weights.pt", weights_only=True)
+    weights["lyapunov"]["phi.layers.0.weight"][0, 0] += 1e-6
+    torch.save(weights, run / "weights.pt")
+    out = runner.invoke(main, ["check", str(run), "--system", spec])
+    assert out.exit_code == 1 and "FAILED" in out.output and "sha256 differs" in out.output
+    out = runner.invoke(main, ["check", str(tmp_path / "nothing")])
+    assert out.exit_code != 0 and "does not exist" in out.output
