@@ -309,3 +309,27 @@ def test_verify_writes_and_check_re_checks_a_run(tmp_path):
     assert out.exit_code == 1 and "FAILED" in out.output and "sha256 differs" in out.output
     out = runner.invoke(main, ["check", str(tmp_path / "nothing")])
     assert out.exit_code != 0 and "does not exist" in out.output
+
+
+def test_a_sublevel_set_certificate_is_checked_with_its_faces(proved, tmp_path):
+    """The condition on {V <= c} minus the ball, with V > c on the faces: written, re-checked; the same partition
+    claimed for a level above V's minimum on the faces fails there."""
+    from drlyap.verification.sublevel import boundary_minimum, verify_sublevel
+
+    loop, region, system, condition = proved["loop"], proved["region"], proved["system"], proved["condition"]
+    faces_low, _ = boundary_minimum(loop.f64.lyapunov, region)
+    level = 0.5 * faces_low
+    proof = verify_sublevel(loop, condition, region, level, Budget(seconds=1e9, boxes=200_000, enclosure="mean-value"))
+    assert proof.verified and proof.partition is not None and proof.partition.counts()["above level"] > 0
+    folder = tmp_path / "level"
+    shutil.copytree(proved["folder"], folder)
+    write_certificate(folder, "trained", proof, condition, region, system, folder / "weights.pt", 1e-3)
+    result = run_check(proved, folder=folder)
+    assert result.ok, result.failures
+    assert result.faces_min > level and "{V <= " in result.claim
+
+    def too_high(header):
+        header["claim"]["region"]["level"] = 1.5 * faces_low
+
+    result = run_check(proved, folder=folder, header_change=too_high)
+    assert not result.ok and any("faces" in f for f in result.failures)

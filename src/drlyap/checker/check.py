@@ -13,6 +13,10 @@ A proved leaf is re-proved by the tighter of the interval bound and the mean-val
 ``<= 0`` (the verifier may have used affine forms, which are tighter), the leaf is bisected along its widest side up
 to ``refine`` times and every piece must be proved. A leaf whose recorded bound lies below the residual at its centre
 is a false record and fails the check.
+
+A claim on a sublevel set ``{V <= level}`` of X_delta is checked the same way, a box (or piece) counting as proved
+where the residual is ``<= 0`` or V is ``> level`` on it; and ``V > level`` on the state box's faces is established
+by the checker's own bisection of the faces (it is not in the file).
 """
 
 from __future__ import annotations
@@ -27,7 +31,7 @@ import torch
 from torch import Tensor
 
 from drlyap.checker.arith import EPS, F64, Iv
-from drlyap.checker.model import Pair, Residual, upper_bounds
+from drlyap.checker.model import Pair, Residual, upper_bounds, value_lower
 
 INTERNAL, PROVED, INSIDE_BALL, ABOVE_LEVEL = 0, 1, 2, 3
 
@@ -45,6 +49,8 @@ class CheckResult:
     inside_ball: int = 0
     refined: int = 0
     pieces: int = 0
+    faces_min: float | None = None
+    faces_boxes: int = 0
     time_s: float = 0.0
 
     def to_dict(self) -> dict:
@@ -147,36 +153,77 @@ def _widest_split(lo: Tensor, hi: Tensor, scale: Tensor) -> tuple[Tensor, Tensor
     return torch.cat([lo, lo2]), torch.cat([hi1, hi])
 
 
-def prove_boxes(residual: Residual, lo: Tensor, hi: Tensor, scale: Tensor, refine: int,
-                batch: int = 4096) -> tuple[Tensor, Tensor, int, int]:
-    """Re-prove ``residual <= 0`` on boxes ``(B, n)``: ``ok (B,)``, lower bounds of the residual at the centres
-    ``(B,)``, and how many boxes needed bisection and into how many pieces in all."""
-    ok = torch.zeros(lo.shape[0], dtype=torch.bool)
-    centre_low = torch.empty(lo.shape[0], dtype=F64)
-    refined = pieces = 0
-    for start in range(0, lo.shape[0], batch):
-        a, b = lo[start:start + batch], hi[start:start + batch]
-        upper, low = upper_bounds(residual, a, b)
-        centre_low[start:start + batch] = low
+def _holds(residual: Residual, lo: Tensor, hi: Tensor, level: float | None, batch: int) -> tuple[Tensor, Tensor]:
+    """``(B,)``: boxes on which the residual is proved ``<= 0`` (or, with a level, V is proved ``> level``), and lower
+    bounds of the residual at the centres ``(B,)`` (``-inf`` where V may exceed the level there)."""
+    ok, low = [], []
+    for i in range(0, lo.shape[0], batch):
+        a, b = lo[i:i + batch], hi[i:i + batch]
+        upper, centre_low = upper_bounds(residual, a, b)
         good = upper <= 0
-        todo = (~good).nonzero().squeeze(-1)
-        if todo.numel():
-            refined += int(todo.numel())
-            owner, plo, phi = todo, a[todo], b[todo]
-            for _ in range(refine):
-                plo, phi = _widest_split(plo, phi, scale)
-                owner = owner.repeat(2)
-                up = torch.cat([upper_bounds(residual, plo[i:i + batch], phi[i:i + batch])[0]
-                                for i in range(0, plo.shape[0], batch)])
-                pieces += int(plo.shape[0])
-                failed = up > 0
-                plo, phi, owner = plo[failed], phi[failed], owner[failed]
-                if not owner.numel():
-                    break
-            good[todo] = True
-            good[owner.unique()] = False
-        ok[start:start + batch] = good
+        if level is not None:
+            good = good | (value_lower(residual.pair, a, b) > level)
+            v_centre = residual.pair.value_and_grad(Iv.point((a + b) / 2))[0].hi
+            centre_low = torch.where(v_centre <= level, centre_low, -math.inf)
+        ok.append(good)
+        low.append(centre_low)
+    return torch.cat(ok), torch.cat(low)
+
+
+def prove_boxes(residual: Residual, lo: Tensor, hi: Tensor, scale: Tensor, refine: int, level: float | None = None,
+                batch: int = 4096) -> tuple[Tensor, Tensor, int, int]:
+    """Re-prove ``residual <= 0`` on boxes ``(B, n)`` (with ``level``: at the boxes' states where ``V <= level``):
+    ``ok (B,)``, lower bounds of the residual at the centres ``(B,)``, and how many boxes needed bisection and into
+    how many pieces in all."""
+    ok, centre_low = _holds(residual, lo, hi, level, batch)
+    todo = (~ok).nonzero().squeeze(-1)
+    refined, pieces = int(todo.numel()), 0
+    owner, plo, phi = todo, lo[todo], hi[todo]
+    for _ in range(refine if todo.numel() else 0):
+        plo, phi = _widest_split(plo, phi, scale)
+        owner = owner.repeat(2)
+        pieces += int(plo.shape[0])
+        failed = ~_holds(residual, plo, phi, level, batch)[0]
+        plo, phi, owner = plo[failed], phi[failed], owner[failed]
+        if not owner.numel():
+            break
+    ok[todo] = True
+    ok[owner.unique()] = False
     return ok, centre_low, refined, pieces
+
+
+def faces_above(pair: Pair, lo: Tensor, hi: Tensor, level: float, max_boxes: int = 200_000,
+                batch: int = 4096) -> tuple[bool, float, int]:
+    """Whether ``V > level`` on every face of the box ``[lo, hi]`` (``(n,)``), by bisecting face boxes (4 cells per free
+    axis at the start) until V's lower bound exceeds the level on each, a face point has ``V <= level`` (the claim is
+    then false) or ``max_boxes`` are spent. Returns (holds, the smallest lower bound of V kept, boxes bounded)."""
+    n = lo.shape[0]
+    flo, fhi = [], []
+    for i in range(n):
+        grid = [4] * n
+        grid[i] = 1
+        for side in (lo[i], hi[i]):
+            a, b = _grid_cells(lo, hi, grid)
+            a[:, i], b[:, i] = side, side
+            flo.append(a)
+            fhi.append(b)
+    qlo, qhi = torch.cat(flo), torch.cat(fhi)
+    scale = torch.where(hi > lo, hi - lo, 1.0)
+    low, spent = math.inf, 0
+    while qlo.shape[0]:
+        a, b, qlo, qhi = qlo[:batch], qhi[:batch], qlo[batch:], qhi[batch:]
+        spent += a.shape[0]
+        bound = value_lower(pair, a, b)
+        above = bound > level
+        if above.any():
+            low = min(low, float(bound[above].min()))
+        if not bool(above.all()):
+            centre = pair.value_and_grad(Iv.point((a + b) / 2))[0].hi
+            if bool((centre[~above] <= level).any()) or spent >= max_boxes:
+                return False, float(bound[~above].min()), spent
+            slo, shi = _widest_split(a[~above], b[~above], scale)
+            qlo, qhi = torch.cat([qlo, slo]), torch.cat([qhi, shi])
+    return True, low, spent
 
 
 def check_certificate(run_dir: str | Path, name: str, header: dict, arrays: dict[str, np.ndarray], system,
@@ -199,8 +246,7 @@ def check_certificate(run_dir: str | Path, name: str, header: dict, arrays: dict
         if not (torch.equal(lo, box_lo) and torch.equal(hi, box_hi)):
             raise CertificateError("the certificate's state box is not the system's")
         delta, level = float(region["delta"]), region.get("level")
-        if level is not None:
-            raise CertificateError("certificates on a sublevel set are not checked by this version")
+        level = None if level is None else float(level)
         grid = [int(k) for k in header["partition"]["grid"]]
         if len(grid) != system.n or min(grid) < 1:
             raise CertificateError(f"the starting grid {grid} does not fit {system.n} states")
@@ -220,14 +266,23 @@ def check_certificate(run_dir: str | Path, name: str, header: dict, arrays: dict
     out.inside_ball = int(inside.sum())
     if not bool(inside.all()):
         out.failures.append(f"{int((~inside).sum())} boxes said to lie in the open ball ||z|| < {delta:g} do not")
-    proved = (verdict == PROVED).nonzero().squeeze(-1)
-    ok, centre_low, out.refined, out.pieces = prove_boxes(residual, blo[proved], bhi[proved], hi - lo, refine)
+    proved = ((verdict == PROVED) | (verdict == ABOVE_LEVEL)).nonzero().squeeze(-1)
+    ok, centre_low, out.refined, out.pieces = prove_boxes(residual, blo[proved], bhi[proved], hi - lo, refine, level)
     out.proved = int(ok.sum())
     if not bool(ok.all()):
         first = proved[~ok][0]
         out.failures.append(f"{int((~ok).sum())} boxes are not proved by the checker's bounds (first: node "
                             f"{int(first)}, [{_fmt(blo[first])}] to [{_fmt(bhi[first])}])")
-    false = bound[proved] < centre_low - 4 * EPS * centre_low.abs()
+    kind = verdict[proved]
+    false = (kind == PROVED) & (bound[proved] < centre_low - 4 * EPS * centre_low.abs())
+    if level is not None:  # V's recorded lower bound must not exceed V at the box's centre
+        above = kind == ABOVE_LEVEL
+        v_centre = pair.value_and_grad(Iv.point((blo[proved] + bhi[proved]) / 2))[0].lo
+        false = false | (above & (bound[proved] > v_centre + 4 * EPS * v_centre.abs()))
+        holds, out.faces_min, out.faces_boxes = faces_above(pair, lo, hi, level)
+        if not holds:
+            out.failures.append(f"V > {level:g} is not established on the box's faces (V's lower bound there "
+                                f"{out.faces_min:.6g}, {out.faces_boxes} face boxes)")
     if bool(false.any()):
         first = proved[false][0]
         out.failures.append(f"{int(false.sum())} recorded bounds lie below the residual at their box's centre (first: "

@@ -16,7 +16,7 @@ States are local coordinates ``z = x - x*`` (``(B, n)``). The formulas are the o
 from __future__ import annotations
 
 import math
-from collections.abc import Callable, Sequence
+from collections.abc import Callable
 
 import torch
 from torch import Tensor
@@ -198,9 +198,14 @@ def _combine_lower(residual: Residual, lower: Tensor) -> Tensor:
 
 
 def value_lower(pair: Pair, lo: Tensor, hi: Tensor) -> Tensor:
-    """Lower bounds ``(B,)`` of V over the boxes (interval bound)."""
-    return pair.value_and_grad(Iv(lo, hi))[0].lo
-
-
-def sequence(values: Sequence[float]) -> Tensor:
-    return torch.as_tensor(list(values), dtype=F64)
+    """Lower bounds ``(B,)`` of V over the boxes ``[lo, hi] (B, n)``: the tighter of the interval bound and the
+    mean-value form ``V(c) - sum_i |dV/dz_i over the box| r_i``."""
+    n = lo.shape[1]
+    centre, rad = radius(lo, hi)
+    at_centre = pair.value_and_grad(Iv.point(centre))[0]
+    form = pair.value_and_grad(Du.seed(Iv(lo, hi), n, list(range(n))))[0]
+    spread = Iv.point(torch.zeros_like(at_centre.lo))
+    for i, t in enumerate(form.d):
+        spread = spread + Iv.point(t.mag()) * Iv.point(rad[:, i])
+    lower = torch.maximum(form.v.lo, (Iv.point(at_centre.lo) - spread).lo)
+    return torch.where(torch.isnan(lower), -math.inf, lower)

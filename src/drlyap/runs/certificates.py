@@ -83,7 +83,8 @@ def certificate_header(proof: ConditionProof, condition: Condition, region: Regi
         "networks": {"weights_sha256": weights_sha256, "alpha_hat": alpha_hat},
         "partition": {"file": arrays_file, "sha256": arrays_sha256, "grid": part.grid, "nodes": part.size,
                       "enclosure": part.enclosure, "counts": part.counts()},
-        "proof": {"boxes_processed": proof.boxes_processed, "time_s": proof.time_s},
+        "proof": {"boxes_processed": proof.boxes_processed, "time_s": proof.time_s,
+                  "faces_min_lower": proof.boundary_min_lower},
     })
 
 
@@ -95,8 +96,6 @@ def write_certificate(folder: str | os.PathLike, name: str, proof: ConditionProo
         raise ValueError(f"unknown certificate name {name!r}; valid: {', '.join(NAMES)}")
     if proof.partition is None or not proof.verified:
         raise ValueError("only a verified proof that kept its partition can be written as a certificate")
-    if proof.level is not None:
-        raise ValueError("certificates of proofs on a sublevel set are not written yet")
     target = Path(folder) / FOLDER
     target.mkdir(exist_ok=True)
     part = proof.partition

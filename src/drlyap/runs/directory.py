@@ -68,7 +68,7 @@ def save_run(out: Path, result: TrainResult, overwrite: bool = False,
         torch.save({"lyapunov": result.lyapunov.state_dict(), "controller": result.controller.state_dict()},
                    tmp / "weights.pt")
         proof = result.trained_proof
-        if proof is not None and proof.partition is not None and proof.level is None:
+        if proof is not None and proof.partition is not None:
             write_certificate(tmp, "trained", proof, result.condition, Region.of(result.system, float(result.config.delta)),
                               result.system, tmp / "weights.pt", float(result.config.alpha_hat))
         write_json(tmp / "metrics.json", result.metrics)

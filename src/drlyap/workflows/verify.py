@@ -122,7 +122,7 @@ def record_certificates(run: Run, ver: RunVerification) -> list[Path]:
     for name, proof, condition in (("trained", ver.trained, run.condition),
                                    ("true-model", ver.true_model,
                                     None if ver.true_model is None else run.true_condition(ver.true_model.xi))):
-        if isinstance(proof, ConditionProof) and proof.verified and proof.partition is not None and proof.level is None:
+        if isinstance(proof, ConditionProof) and proof.verified and proof.partition is not None:
             written.append(write_certificate(run.path, name, proof, condition, region, run.system,
                                              run.path / "weights.pt", float(run.config.alpha_hat)))
     return written
