@@ -7,7 +7,8 @@ library and printing what :mod:`drlyap.render` words. Every command has ``--help
 * :mod:`~drlyap.cli.baselines` -- ``lqr``, ``rl train``;
 * :mod:`~drlyap.cli.workflows` -- ``reproduce``, ``compare``, ``sweep``;
 * :mod:`~drlyap.cli.export` -- ``export``;
-* :mod:`~drlyap.cli.check` -- ``check``.
+* :mod:`~drlyap.cli.check` -- ``check``;
+* :mod:`~drlyap.cli.imported` -- ``import``.
 
 The numerical code is imported only when a command runs, so ``drlyap --help`` answers at once.
 """
@@ -16,7 +17,7 @@ from __future__ import annotations
 
 import click
 
-from drlyap.cli import baselines, check, evaluate, export, train, verify, workflows
+from drlyap.cli import baselines, check, evaluate, export, imported, train, verify, workflows
 from drlyap.cli.common import setup_threads
 
 
@@ -33,7 +34,7 @@ def main() -> None:
 
 for command in (train.systems, train.train, evaluate.evaluate, workflows.reproduce, baselines.lqr, baselines.rl,
                 workflows.compare, verify.verify, verify.guarantee, verify.lipschitz, evaluate.plot, workflows.sweep,
-                export.export, check.check):
+                export.export, check.check, imported.import_pair):
     main.add_command(command)
 
 if __name__ == "__main__":

@@ -48,11 +48,13 @@ def verify(run_dir: Path, delta: float | None, xi: str | None, time_limit: float
     {V <= level} minus the ball instead, together with V > level on the faces of the box.
 
     Sound bounds (interval mean-value form, or affine forms with --enclosure affine) with branch and bound,
-    in float64 with outward rounding.
+    in float64 with outward rounding. Every proof that ends verified is written as a certificate file into
+    RUN_DIR/certificates/ (re-checked by `drlyap check`). A pair brought with `drlyap import` has no trained
+    condition: its decrease on the true model at --xi (the system's test shift by default) is proved.
     """
     from drlyap.io import jsonable
     from drlyap.render import verification_lines
-    from drlyap.runs import load_run
+    from drlyap.runs import load_run, read_run_kind
     from drlyap.verification import Budget
     from drlyap.workflows.verify import record_certificates, record_region, run_proof, run_robustness, verify_run
 
@@ -63,6 +65,9 @@ def verify(run_dir: Path, delta: float | None, xi: str | None, time_limit: float
             raise ValueError(f"--roa-time must be > 0, got {roa_time}")
         if not radius_tol > 0:
             raise ValueError(f"--radius-tol must be > 0, got {radius_tol}")
+        if read_run_kind(run_dir).get("kind") == "imported":
+            _verify_imported(run_dir, delta, xi, time_limit, roa, roa_time, enclosure, as_json, system_spec, trust_run)
+            return
         run = load_run(run_dir, run_system_of(system_spec), trust_run)
         settings = dataclasses.replace(run.proof or ProofConfig(), roa_time=roa_time, enclosure=enclosure)
         if time_limit is not None:
@@ -97,6 +102,33 @@ def verify(run_dir: Path, delta: float | None, xi: str | None, time_limit: float
         click.echo(stored)
     for line in written:
         click.echo(line)
+
+
+def _verify_imported(run_dir: Path, delta: float | None, xi: str | None, time_limit: float | None, roa: bool,
+                     roa_time: float | None, enclosure: str | None, as_json: bool, system_spec: str | None,
+                     trust_run: bool) -> None:
+    """``drlyap verify`` on an imported pair: decrease on the true model at --xi (the system's test shift by default)
+    and with --roa its region of attraction; no certificate file (the checker reads drlyap's own networks only)."""
+    from drlyap.io import jsonable
+    from drlyap.render import verification_lines
+    from drlyap.runs import load_imported_run
+    from drlyap.workflows.verify import verify_imported
+
+    run = load_imported_run(run_dir, run_system_of(system_spec), trust_run)
+    system = run.system
+    if xi is None and system.test_xi is None:
+        raise ValueError(f"an imported pair has no trained condition: give --xi ({system.k} values)")
+    shift = system.check_xi(floats(xi, "--xi") if xi is not None else list(system.test_xi))
+    settings = dataclasses.replace(ProofConfig(), roa_time=roa_time, enclosure=enclosure)
+    if time_limit is not None:
+        settings = dataclasses.replace(settings, time_limit=time_limit)
+    result = verify_imported(run.info["pair"], str(run_dir), settings, xi=shift, delta=delta, roa=roa)
+    if as_json:
+        click.echo(json.dumps(jsonable(result.to_dict())))
+        return
+    for line in verification_lines(result, system.name, "imported pair"):
+        click.echo(line)
+    click.echo("  no certificate file: the checker reads drlyap's own networks only")
 
 
 @click.command("guarantee")

@@ -86,12 +86,12 @@ def reproduce(system: str, seeds: str, out: Path | None, iters: int | None, devi
 @click.option("--out", type=click.Path(path_type=Path), default=None,
               help="Write compare.json, compare.md and figures (certificate and input over time) here.")
 @click.option("--certify-time", type=float, default=10.0, show_default=True,
-              help="Seconds of sound verification per check of a Lyapunov or LQR run at --xi (0 skips it).")
+              help="Seconds of sound verification per check of a run at --xi (0 skips it).")
 @click.option("--json", "as_json", is_flag=True, help="Print one JSON object.")
 @run_source_options
 def compare(run_dirs: tuple[Path, ...], xi: str, n_init: int, seed: int, horizon: float | None, out: Path | None,
             certify_time: float, as_json: bool, system_spec: str | None, trust_run: bool) -> None:
-    """Compare runs of any kind (lyapunov, lqr, rl) at parameter shift --xi on the true model.
+    """Compare runs of any kind (lyapunov, lqr, rl, imported) at parameter shift --xi on the true model.
 
     Per run: success rate; samples used in training (Lyapunov: model evaluations at training states,
     n_states x iterations with the default resampling; RL: environment steps; LQR: 0); training wall
@@ -99,8 +99,9 @@ def compare(run_dirs: tuple[Path, ...], xi: str, n_init: int, seed: int, horizon
     along successful trajectories (a step counts when it rises by more than 1e-4 of that trajectory's
     range; lower is better, 0 means monotone); and what each run proves on the true model at --xi,
     by the sound verifier over the whole region: the decrease condition (learned pairs with their
-    own gamma, LQR's z'Pz with a scale-free decay alpha z'Pz) and the certified region of attraction (a sublevel
-    set of the certificate from which every trajectory converges to x*).
+    own gamma, LQR's z'Pz with a scale-free decay alpha z'Pz; an RL policy's deterministic actor, or an imported
+    controller without V, with the z'Pz of its linearisation, where x* is its equilibrium) and the certified region
+    of attraction (a sublevel set of the certificate from which every trajectory converges to x*).
     """
     from drlyap.workflows.compare import compare_runs, format_comparison
 

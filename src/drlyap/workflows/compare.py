@@ -27,6 +27,7 @@ from drlyap.progress import progress as show_progress
 from drlyap.regions import Region
 from drlyap.render import attempt_cells
 from drlyap.runs import PolicyRun, atomic_dir, check_writable, read_run_kind
+from drlyap.runs.imported import quadratic_loop, rl_actor_graph
 from drlyap.simulation import initial_states, simulate, success_mask, wrap_steps
 from drlyap.systems import UncertainSystem
 from drlyap.verification import (
@@ -93,7 +94,12 @@ def certify(run: PolicyRun, xi: Tensor, time_limit: float) -> ProofAttempt:
     Lyapunov pairs: ``Vdot + gamma||z|| (+ alpha V) <= 0`` with the run's own gamma and delta
     (:func:`drlyap.workflows.verify.verify_run`). LQR: ``d/dt z'Pz + alpha z'Pz <= 0``, a decay that does not
     depend on the scale of P, with alpha half the rate ``lambda_min(Q + K'RK) / lambda_max(P)`` that the
-    linearisation guarantees, and the system's default delta. RL critics: nothing is proved.
+    linearisation guarantees, and the system's default delta (:func:`certify_loop`). Imported pairs
+    (``drlyap import``): their V from ONNX with the system's default gamma and alpha, or the quadratic V of the
+    closed loop's linearisation with its scale-free decay as LQR's. RL runs: the deterministic actor, read from the
+    policy's layers as a graph (:func:`drlyap.runs.imported.rl_actor_graph`), with the quadratic V of its
+    linearisation; where x* is not an equilibrium of the actor or the linearisation is not Hurwitz, the attempt's
+    ``note`` says so and nothing is proved (the critics certify nothing).
 
     ``robustness`` (None when nothing is proved): the certified Wasserstein radius of the DR pointwise condition at
     the run's samples (Lyapunov pairs; None for LQR, which has no samples) and the certified box of shifts for
@@ -118,17 +124,39 @@ def certify(run: PolicyRun, xi: Tensor, time_limit: float) -> ProofAttempt:
         # scale-free decay alpha V: half the rate z'(Q + K'RK)z / z'Pz >= lambda_min / lambda_max of the linearisation
         rate = float(torch.linalg.eigvalsh(design.Q + design.K.T @ design.R @ design.K).min()
                      / torch.linalg.eigvalsh(design.P).max())
-        alpha = 0.5 * max(rate, 0.0)
-        condition = TrueDecrease(xi[None], decay_rate=0.0, exp_rate=alpha)
-        region = Region.of(system, system.defaults.delta)
-        result = verify_condition(loop, condition, region, search)
-        roa = certified_roa(loop, condition, region, Budget(seconds=time_limit))
-        box = certified_shift_box(loop, 0.0, alpha, region, shift_scale(system), search, total_time=4 * time_limit)
-        return ProofAttempt(status=result.status, verified_fraction=result.verified_fraction,
-                            counterexample=result.counterexample, time_s=result.time_s, roa_certified=roa.certified,
-                            roa_kind=roa.kind, roa_share=roa.share_of_box, decay_rate=0.0, exp_rate=alpha,
-                            robustness=_robust_summary(None, box))
+        return certify_loop(loop, xi, time_limit, 0.0, 0.5 * max(rate, 0.0))
+    # --- imported pairs and RL actors (drlyap import; drlyap.runs.imported) ---
+    if run.kind == "imported":
+        pair = run.info["pair"]
+        return certify_loop(pair.loop, xi, time_limit, pair.decay_rate, pair.exp_rate)
+    if run.kind == "rl":
+        try:
+            actor = rl_actor_graph(run.system, run.config["algo"], run.info["agent"].model.policy)
+            loop, checks = quadratic_loop(run.system, actor, f"the {run.config['algo']} policy")
+        except ValueError as err:
+            return ProofAttempt(status="none", note=f"{err}; nothing is proved")
+        return certify_loop(loop, xi, time_limit, 0.0, checks["exp_rate"])
     return ProofAttempt(status="none", note="no certificate")
+
+
+def certify_loop(loop: ClosedLoop, xi: Tensor, time_limit: float, decay_rate: float, exp_rate: float) -> ProofAttempt:
+    """What a closed loop proves at the shift ``xi (k,)`` on the true model over the system's X_delta (its default
+    delta): decrease ``Vdot + gamma ||z|| + alpha V <= 0`` (``decay_rate`` gamma, ``exp_rate`` alpha), the certified
+    region of attraction, and the certified box of shifts with that decay (``time_limit`` seconds per proof; the
+    search at most 4x that). What ``certify`` runs for LQR, imported pairs and RL actors."""
+    system = loop.system
+    search = Budget(seconds=time_limit, enclosure="mean-value")
+    condition = TrueDecrease(xi[None], decay_rate=decay_rate, exp_rate=exp_rate)
+    region = Region.of(system, system.defaults.delta)
+    result = verify_condition(loop, condition, region, search)
+    roa = certified_roa(loop, condition, region, Budget(seconds=time_limit))
+    box = certified_shift_box(loop, decay_rate, exp_rate, region, shift_scale(system), search,
+                              total_time=4 * time_limit)
+    return ProofAttempt(status=result.status, verified_fraction=result.verified_fraction,
+                        counterexample=result.counterexample, time_s=result.time_s, roa_certified=roa.certified,
+                        roa_kind=roa.kind, roa_share=roa.share_of_box, decay_rate=decay_rate,
+                        exp_rate=exp_rate if exp_rate or not decay_rate else None,  # a scale-free decay is shown
+                        robustness=_robust_summary(None, box))
 
 
 def _robust_summary(radius: CertifiedRadius | None, box: CertifiedShiftBox) -> dict:
@@ -151,7 +179,7 @@ def compare_runs(paths: Sequence[str | os.PathLike], xi: Sequence[float], n_init
     """Score every run directory at the shift ``xi`` from the same ``n_init`` initial states (drawn from
     each system's test box with ``seed``); with ``out``, write compare.json, compare.md and figures.
 
-    ``certify_time_limit`` (seconds per run; None skips it) runs the verifier on each Lyapunov pair at ``xi``.
+    ``certify_time_limit`` (seconds per run; None skips it) runs the verifier on each run at ``xi`` (:func:`certify`).
     ``system``, ``trust``: how runs whose system came from a file or module are loaded
     (:func:`drlyap.runs.load_run`). ``progress``: report scoring progress on stderr (:func:`drlyap.progress.progress`).
     """
@@ -231,6 +259,8 @@ def format_comparison(report: dict) -> str:
         t = "-" if r["train_time_s"] is None else f"{r['train_time_s']:.1f}"
         cert = r.get("certified")
         proof, roa, robust = attempt_cells(None if cert is None else ProofAttempt.from_dict(cert))
+        if cert is not None and cert.get("note") and cert.get("verified_fraction") is None:
+            proof = f"{proof}: {cert['note']}"  # why nothing was proved (e.g. x* is not the policy's equilibrium)
         lines.append(f"| {r['run_dir']} | {r['label']} | {r['system']} | {r['n_success']}/{r['n']} "
                      f"({100 * r['success_rate']:.1f}%) | {r['samples'] if r['samples'] is not None else '-'} | {t} | "
                      f"{inc} | {mono} | {proof} | {roa} | {robust} |")

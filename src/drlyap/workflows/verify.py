@@ -11,6 +11,7 @@ from pathlib import Path
 
 from torch import Tensor
 
+from drlyap.conditions import TrueDecrease
 from drlyap.io import jsonable
 from drlyap.regions import Region
 from drlyap.runs import Run
@@ -97,6 +98,30 @@ def verify_run(run: Run, proof: ProofConfig | None = None, *, delta: float | Non
                            loss=cfg.loss if cfg.method == "dr" else None, delta=region.delta,
                            enclosure=proof.enclosure, trained=trained, uniform=margin, true_model=true_model,
                            roa=region_of_attraction)
+
+
+def verify_imported(pair, run_dir: str, proof: ProofConfig | None = None, *, xi: Tensor, delta: float | None = None,
+                    roa: bool = False) -> RunVerification:
+    """Verify an imported pair (:class:`drlyap.runs.imported.ImportedPair`, ``drlyap import``): plain decrease on the
+    true model at the shift ``xi (k,)`` with the pair's decay, on X_delta (``delta``: the system's default), by the
+    same proof as for a trained run's ``--xi`` (and with ``roa`` its certified region of attraction there). An
+    imported pair has no trained condition (``trained`` is None)."""
+    loop = pair.loop
+    system = loop.system
+    proof = (proof or ProofConfig()).resolved(system)
+    region = Region.of(system, float(system.defaults.delta if delta is None else delta))
+    budget = proof.budget()
+    condition = TrueDecrease(system.check_xi(xi)[None], decay_rate=pair.decay_rate, exp_rate=pair.exp_rate)
+    true_model = prove_trained(loop, condition, region, budget, None, falsify_starts=proof.settle_starts)
+    true_model.xi = condition.xi[0].tolist()
+    region_of_attraction = None
+    if roa:
+        seconds = 3 * proof.time_limit if proof.roa_time is None else proof.roa_time
+        region_of_attraction = certified_roa(loop, condition, region, budget.with_seconds(seconds),
+                                             band_time=proof.band_time)
+        region_of_attraction.xi = true_model.xi
+    return RunVerification(run_dir=str(run_dir), system=system.name, method="imported", loss=None, delta=region.delta,
+                           enclosure=proof.enclosure, trained=None, true_model=true_model, roa=region_of_attraction)
 
 
 def record_region(run: Run, ver: RunVerification) -> None:

@@ -1,0 +1,309 @@
+"""Bring your own pair: a controller and V read from ONNX files get the same proofs as the pair of a run directory;
+unsupported files are refused with one line; controllers without V get the quadratic V of their linearisation."""
+
+import json
+import warnings
+
+import pytest
+import torch
+from click.testing import CliRunner
+from torch import nn
+
+from drlyap.cli import main
+from drlyap.conditions import TrueDecrease
+from drlyap.config import Budget
+from drlyap.enclosures import Affine, Dual, Interval
+from drlyap.regions import Region
+from drlyap.runs import load_run, save_run
+from drlyap.runs.imported import import_pair, import_run, load_onnx_pair, quadratic_loop, rl_actor_graph
+from drlyap.systems import get_system
+from drlyap.training import TrainConfig, fit
+from drlyap.verification import verify_condition
+from drlyap.workflows.export import export_run
+from drlyap.workflows.policies import load_policy_run
+
+onnx = pytest.importorskip("onnx")
+F64 = torch.float64
+
+
+@pytest.fixture(scope="module")
+def exported(tmp_path_factory):
+    """A tiny trained pendulum pair, saved and exported by ``drlyap export``: (run, export folder)."""
+    torch.set_num_threads(1)
+    system = get_system("pendulum")
+    cfg = TrainConfig(system="pendulum", n_states=256, iters=60, check_every=60, lyapunov_hidden=[8], lyapunov_out=4,
+                      controller_hidden=[8], seed=0).resolved(system)
+    path = save_run(tmp_path_factory.mktemp("import") / "run", fit(cfg, system, progress=False))
+    run = load_run(path)
+    export_run(run)
+    return run, path / "export"
+
+
+def states(system, count=1000, seed=0):
+    lo, hi = (torch.tensor(b, dtype=F64) for b in system.state_box)
+    return lo + (hi - lo) * torch.rand(count, system.n, generator=torch.Generator().manual_seed(seed), dtype=F64)
+
+
+def same(a, b) -> bool:
+    """Two enclosures with bit-identical bounds."""
+    if isinstance(a, Dual):
+        return same(a.v, b.v) and (a.d is None) == (b.d is None) and (a.d is None or same(a.d, b.d))
+    if isinstance(a, Affine):
+        parts = [(a.c, b.c), (a.g, b.g), (a.q, b.q)]
+        return all(p is None and q is None or torch.equal(p, q) for p, q in parts) and same(a.r, b.r)
+    return torch.equal(a.lo, b.lo) and torch.equal(a.hi, b.hi)
+
+
+def test_an_exported_pair_imports_and_is_proved_the_same(exported):
+    run, folder = exported
+    system = run.system
+    loop = load_onnx_pair(system, folder / "controller.onnx", folder / "lyapunov.onnx")
+    x = states(system)
+    z = system.to_local(x)
+    with torch.no_grad():  # float64 graphs vs the run's float32 networks
+        u, v = loop.controller(z), loop.lyapunov(z)
+    assert float((u - run.controller(x)).abs().max()) <= 1e-5 * float(u.abs().max())
+    assert float((v - run.lyapunov(x)).abs().max()) <= 1e-5 * float(v.abs().max())
+    native = run.loop.f64
+    assert torch.equal(u, native.controller(z)) and torch.equal(v, native.lyapunov(z))  # the same float64 reading
+    lo = z[:4]
+    boxes = [Interval(lo, lo + 0.05), Affine.box(lo, lo + 0.05),
+             Dual(Interval(lo, lo + 0.05), Interval(torch.eye(2, dtype=F64).expand(4, 2, 2).clone()))]
+    for box in boxes:  # the same enclosures, bit for bit, as the built-in networks give
+        assert same(loop.controller(box), native.controller(box))
+        assert all(same(a, b) for a, b in zip(loop.lyapunov.value_and_grad(box), native.lyapunov.value_and_grad(box)))
+    xi = torch.tensor(system.test_xi, dtype=F64)
+    condition = TrueDecrease(xi[None], decay_rate=run.config.decay_rate, exp_rate=run.config.exp_rate)
+    region, budget = Region.of(system, run.config.delta), Budget(boxes=4000, seconds=1e9)
+    ours, theirs = verify_condition(loop, condition, region, budget), verify_condition(run.loop, condition, region, budget)
+    mine, other = ours.to_dict(), theirs.to_dict()
+    for d in (mine, other):
+        d.pop("time_s")
+    assert mine == other and ours.boxes_processed > 1000
+    print(f"native and imported: {ours.status}, {100 * ours.verified_fraction:.2f}% proved, "
+          f"{ours.boxes_processed} boxes ({ours.boxes_verified} verified)")
+
+
+def test_import_writes_a_run_that_loads_and_compares(exported, tmp_path):
+    run, folder = exported
+    out = tmp_path / "imported"
+    result = CliRunner().invoke(main, ["import", "pendulum", "--controller", str(folder / "controller.onnx"),
+                                       "--lyapunov", str(folder / "lyapunov.onnx"), "--out", str(out), "--json"])
+    assert result.exit_code == 0, result.output
+    record = json.loads(result.stdout)
+    assert record["certificate"] == "onnx" and record["checks"]["pi_minus_u_star"] == [0.0]
+    assert any("angle wrap" in note for note in record["notes"]["controller"])
+    loaded = load_policy_run(out)
+    assert loaded.kind == "imported" and (out / "source" / "controller.onnx").is_file()
+    x = states(run.system, 200)
+    assert torch.equal(loaded.controller(x), run.loop.f64.controller(run.system.to_local(x)))
+    assert torch.equal(loaded.certificate(x), run.loop.f64.lyapunov(run.system.to_local(x)))
+    again = CliRunner().invoke(main, ["import", "pendulum", "--controller", str(folder / "controller.onnx"),
+                                      "--out", str(out)])
+    assert again.exit_code != 0 and "already exists" in again.output
+    # drlyap verify proves the imported pair as the run itself: the same proof of decrease at the shift
+    args = ["--xi", "0.1,0.05", "--time-limit", "1e9", "--json"]
+    own = CliRunner().invoke(main, ["verify", str(exported[0].path), *args])
+    imported = CliRunner().invoke(main, ["verify", str(out), *args])
+    assert own.exit_code == 0 and imported.exit_code == 0, imported.output
+    own, imported = json.loads(own.stdout)["true_model"], json.loads(imported.stdout)["true_model"]
+    for key in ("status", "verified_fraction", "boxes_processed", "boxes_verified", "counterexample"):
+        assert own[key] == imported[key], key
+    shown = CliRunner().invoke(main, ["compare", str(out), "--xi", "0.1,0.05", "--n-init", "4", "--certify-time", "0.5",
+                                      "--json"])
+    assert shown.exit_code == 0, shown.output
+    attempt = json.loads(shown.stdout)["rows"][0]["certified"]
+    assert attempt["status"] in ("verified", "violated", "unknown") and attempt["verified_fraction"] is not None
+
+
+def _export(module: nn.Module, n: int, path, input_dim: int | None = None) -> None:
+    with warnings.catch_warnings():
+        warnings.simplefilter("ignore")
+        torch.onnx.export(module.double(), (torch.zeros(2, input_dim or n, dtype=F64),), str(path), dynamo=False,
+                          opset_version=17, input_names=["x"], output_names=["u"],
+                          dynamic_axes={"x": {0: "batch"}, "u": {0: "batch"}})
+
+
+class Saturated(nn.Module):
+    """``clamp(u* - K z + 0.05 (relu(W z + b) - relu(b)) . w + 0.05 (sigmoid(a . z) - 1/2), U)`` on user states."""
+
+    def __init__(self, system, gain, relu=True) -> None:
+        super().__init__()
+        g = torch.Generator().manual_seed(1)
+        self.register_buffer("x_star", torch.tensor([system.equilibrium], dtype=F64))
+        self.register_buffer("gain", gain)
+        self.register_buffer("w1", torch.randn(4, system.n, generator=g, dtype=F64))
+        self.register_buffer("b1", torch.rand(4, generator=g, dtype=F64) + 0.5)
+        self.register_buffer("w2", torch.randn(system.m, 4, generator=g, dtype=F64))
+        self.register_buffer("a", torch.randn(system.n, system.m, generator=g, dtype=F64) * 0.3)
+        self.low, self.high = system.input_box[0][0], system.input_box[1][0]
+        self.relu = relu
+
+    def forward(self, x):
+        z = x - self.x_star
+        u = -z @ self.gain.T
+        if self.relu:
+            u = u + 0.05 * ((torch.relu(z @ self.w1.T + self.b1) - torch.relu(self.b1)) @ self.w2.T)
+            u = u + 0.05 * (torch.sigmoid(z @ self.a) - 0.5)
+        return torch.clamp(u, self.low, self.high)
+
+
+def test_a_controller_without_v_gets_the_quadratic_certificate_of_its_linearisation(tmp_path):
+    from drlyap.lqr import lqr_design
+
+    system = get_system("pendulum")
+    design = lqr_design(system)
+    _export(Saturated(system, design.K), system.n, tmp_path / "c.onnx")
+    pair = import_pair(system, tmp_path / "c.onnx")
+    assert pair.certificate == "quadratic" and pair.exp_rate > 0
+    assert any("clamp to U" in n or "lies in U" in n for n in pair.notes["controller"])
+    z = system.to_local(states(system, 500))
+    expected = Saturated(system, design.K)(system.to_user(z))
+    with torch.no_grad():
+        assert torch.allclose(pair.loop.controller(z), expected, rtol=1e-12, atol=1e-12)
+    import_run("pendulum", tmp_path / "c.onnx", tmp_path / "run")
+    saved = load_policy_run(tmp_path / "run")
+    with torch.no_grad():  # saved and loaded again: the same graph (the relu's one-sided bound, inf, kept)
+        assert torch.equal(saved.controller(system.to_user(z)), pair.loop.controller(z))
+    assert torch.equal(saved.info["loop"].lyapunov.P, pair.loop.lyapunov.P)
+    a = torch.tensor(pair.checks["A"], dtype=F64)
+    p = pair.loop.lyapunov.P
+    s = (torch.tensor(system.state_box[1], dtype=F64) - torch.tensor(system.state_box[0], dtype=F64)) / 2
+    assert torch.allclose(a.T @ p + p @ a, -torch.diag(1 / s**2), atol=1e-9)  # A'P + PA = -S^-2
+    # the graph's ReLU and sigmoid run on enclosures; x* needs V's proof only outside the delta-ball
+    result = verify_condition(pair.loop, TrueDecrease(torch.zeros(1, system.k, dtype=F64), 0.0, pair.exp_rate),
+                              Region.of(system, 0.5), Budget(boxes=2000, seconds=1e9))
+    assert result.boxes_processed > 0 and result.status in ("verified", "violated", "unknown")
+    # a controller that does not hold x*: refused, one line
+    shifted = Saturated(system, design.K, relu=False)
+    shifted.x_star += torch.tensor([[0.0, 0.1]], dtype=F64)
+    _export(shifted, system.n, tmp_path / "off.onnx")
+    with pytest.raises(ValueError, match="equilibrium") as err:
+        import_pair(system, tmp_path / "off.onnx")
+    assert "\n" not in str(err.value)
+
+
+def _graph_model(path, ops: list[str], n_in: int = 2, hidden: int = 3):
+    """An ONNX model x (batch, n_in) -> Gemm -> ops... -> Gemm -> u (batch, 1)."""
+    from onnx import TensorProto, helper, numpy_helper
+
+    g = torch.Generator().manual_seed(0)
+    inits = [numpy_helper.from_array(torch.randn(hidden, n_in, generator=g, dtype=F64).numpy(), "w1"),
+             numpy_helper.from_array(torch.randn(1, hidden, generator=g, dtype=F64).numpy(), "w2")]
+    nodes, last = [helper.make_node("Gemm", ["x", "w1"], ["h0"], transB=1)], "h0"
+    for i, op in enumerate(ops):
+        nodes.append(helper.make_node(op, [last], [f"a{i}"]))
+        last = f"a{i}"
+    nodes.append(helper.make_node("Gemm", [last, "w2"], ["u"], transB=1))
+    graph = helper.make_graph(nodes, "g", [helper.make_tensor_value_info("x", TensorProto.DOUBLE, ["batch", n_in])],
+                              [helper.make_tensor_value_info("u", TensorProto.DOUBLE, ["batch", 1])], inits)
+    onnx.save(helper.make_model(graph, opset_imports=[helper.make_opsetid("", 17)]), str(path))
+
+
+def test_unsupported_ops_and_other_dimensions_are_refused(tmp_path):
+    system = get_system("pendulum")
+    _graph_model(tmp_path / "softplus.onnx", ["Tanh", "Softplus"])
+    with pytest.raises(ValueError) as err:
+        import_pair(system, tmp_path / "softplus.onnx")
+    message = str(err.value)
+    assert "Softplus" in message and "softplus.onnx" in message and "\n" not in message
+    _graph_model(tmp_path / "three.onnx", ["Tanh"], n_in=3)
+    with pytest.raises(ValueError, match=r"\(batch, 3\).*n = 2") as err:
+        import_pair(system, tmp_path / "three.onnx")
+    assert "\n" not in str(err.value)
+    (tmp_path / "junk.onnx").write_bytes(b"not a model")
+    with pytest.raises(ValueError, match="junk.onnx"):
+        import_pair(system, tmp_path / "junk.onnx")
+
+
+def test_an_export_made_for_another_equilibrium_is_refused(exported, tmp_path):
+    run, folder = exported
+    model = onnx.load(str(folder / "controller.onnx"))
+    for t in model.graph.initializer:
+        if t.name == "x_star":
+            t.CopyFrom(onnx.numpy_helper.from_array(onnx.numpy_helper.to_array(t) + 0.25, "x_star"))
+    onnx.save(model, str(tmp_path / "moved.onnx"))
+    with pytest.raises(ValueError, match="another equilibrium"):
+        load_onnx_pair(run.system, tmp_path / "moved.onnx", folder / "lyapunov.onnx")
+
+
+@pytest.mark.parametrize("algo", ["sac", "ppo"])
+def test_rl_actors_read_as_graphs(algo):
+    pytest.importorskip("stable_baselines3")
+    from drlyap.rl.agents import DEFAULT_HYPER, RLPolicy, _algo_class
+    from drlyap.rl.envs import UncertainSystemEnv
+    from drlyap.runs import PolicyRun
+    from drlyap.workflows.compare import certify
+
+    system = get_system("pendulum")
+    hyper = dict(DEFAULT_HYPER[algo]) | ({"buffer_size": 1} if algo == "sac" else {})
+    model = _algo_class(algo)("MlpPolicy", UncertainSystemEnv(system), seed=0, device="cpu", verbose=0, **hyper)
+    agent = RLPolicy(system, algo, model)
+    actor = rl_actor_graph(system, algo, model.policy)
+    x = states(system)
+    with torch.no_grad():
+        u = actor(system.to_local(x))
+    expected = agent.controller(x)
+    assert float((u - expected).abs().max()) <= 1e-5 * max(float(expected.abs().max()), 1.0)
+    lo, hi = system.input_box
+    assert bool(((u >= lo[0]) & (u <= hi[0])).all())
+    box = Interval(system.to_local(x[:8]), system.to_local(x[:8]) + 0.01)
+    out = actor(box)  # runs on enclosures
+    assert bool((out.lo <= u[:8]).all() and (out.hi >= u[:8]).all())
+    offset = float(actor(torch.zeros(1, 2, dtype=F64))[0, 0])
+    run = PolicyRun(None, "rl", system, agent.controller, agent.certificate, 0, 0.0, f"rl-{algo}", {"algo": algo}, {},
+                    {"agent": agent})
+    # an untrained actor does not hold x* (SAC) or does not stabilise its linearisation (PPO's zero action net):
+    # the attempt says why and proves nothing
+    why = "not an equilibrium" if abs(offset) > 1e-5 else "not Hurwitz"
+    attempt = certify(run, torch.tensor(system.test_xi, dtype=F64), 1.0)
+    assert attempt.status == "none" and why in attempt.note and "\n" not in attempt.note
+    with pytest.raises(ValueError, match=why):
+        quadratic_loop(system, actor)
+
+
+class Bowl(nn.Module):
+    """``V(z) = |tanh(W z + b) - tanh(b)|^2 + (z.z + sum z^4 / 100) exp(a.z / 10) / (1 + sigmoid(c.z)) + offset``:
+    the reverse mode through products and quotients of state-dependent values, exp, powers and sigmoids."""
+
+    def __init__(self, n: int, offset: float = 0.5, tilt: float = 0.0) -> None:
+        super().__init__()
+        g = torch.Generator().manual_seed(2)
+        for name, shape in (("w", (3, n)), ("b", (3,)), ("a", (n,)), ("c", (n,))):
+            self.register_buffer(name, torch.randn(*shape, generator=g, dtype=F64))
+        self.offset, self.tilt = offset, tilt
+
+    def forward(self, x):
+        z = x - torch.zeros(1, x.shape[1], dtype=x.dtype)
+        d = torch.tanh(z @ self.w.T + self.b) - torch.tanh(self.b)
+        bowl = (z * z).sum(-1) + (z**4).sum(-1) / 100
+        scale = torch.exp((z @ self.a) / 10) / (1 + torch.sigmoid(z @ self.c))
+        return (d * d).sum(-1) + bowl * scale + self.offset + self.tilt * z[:, 0]
+
+
+def test_an_imported_v_has_sound_values_and_gradients(tmp_path):
+    system = get_system("pendulum")
+    bowl = Bowl(system.n)
+    _export(bowl, system.n, tmp_path / "v.onnx")
+    _export(Saturated(system, torch.tensor([[20.0, 5.0]], dtype=F64), relu=False), system.n, tmp_path / "c.onnx")
+    pair = import_pair(system, tmp_path / "c.onnx", tmp_path / "v.onnx")
+    v_net = pair.loop.lyapunov
+    assert pair.certificate == "onnx" and pair.checks["V_at_equilibrium"] == 0.5  # pinned: V - V(x*)
+    z = system.to_local(states(system, 500)).requires_grad_(True)
+    expected = bowl(z) - bowl(torch.zeros(1, 2, dtype=F64))
+    (grad,) = torch.autograd.grad(expected.sum(), z)
+    value, ours = v_net.value_and_grad(z.detach())
+    assert torch.allclose(value, expected.detach(), rtol=1e-12, atol=1e-12)
+    assert torch.allclose(ours, grad, rtol=1e-10, atol=1e-12)
+    lo = z.detach()[:6]
+    hi = lo + 0.2
+    pts = lo + (hi - lo) * torch.rand(50, 6, 2, generator=torch.Generator().manual_seed(3), dtype=F64)
+    pv, pg = zip(*[v_net.value_and_grad(p) for p in pts])
+    pv, pg = torch.stack(pv), torch.stack(pg)
+    for box in (Interval(lo, hi), Affine.box(lo, hi)):  # the enclosures contain every sampled value and gradient
+        bv, bg = v_net.value_and_grad(box)
+        bv, bg = (e.to_interval() if isinstance(e, Affine) else e for e in (bv, bg))
+        assert bool((bv.lo <= pv).all() and (pv <= bv.hi).all() and (bg.lo <= pg).all() and (pg <= bg.hi).all())
+    _export(Bowl(system.n, tilt=0.3), system.n, tmp_path / "tilted.onnx")
+    with pytest.raises(ValueError, match="not a minimum of V"):
+        import_pair(system, tmp_path / "c.onnx", tmp_path / "tilted.onnx")
