@@ -276,6 +276,8 @@ def test_damaged_weights_are_named(pendulum_run, tmp_path, content, message):
     (lambda c: c.update(delta="0.5"), "delta"),
     (lambda c: c.update(seed="zero"), "seed"),
     (lambda c: c.update(iters=2.5), "iters"),
+    (lambda c: c.pop("method"), "missing method"),  # never defaulted: a baseline would be proved as a DR run
+    (lambda c: c.pop("roa_level"), "missing roa_level"),
 ])
 def test_config_json_is_validated(pendulum_run, tmp_path, change, message):
     run = copy_run(pendulum_run, tmp_path)
@@ -326,3 +328,10 @@ def test_proof_rounds_give_the_same_pair_on_a_slow_machine(tiny_config, monkeypa
     assert rounds(fast) == rounds(slow) and all(stop != "time limit" for _, stop in rounds(fast))
     assert all(torch.equal(a, b) for a, b in zip(weights(fast), weights(slow)))
     assert rounds(by_seconds)[0][1] == "time limit"  # the clock did slow the proofs down
+
+
+def test_plot_into_an_unwritable_folder_is_one_line(pendulum_run, tmp_path):
+    blocker = tmp_path / "a-file"
+    blocker.write_text("")
+    line = one_line_error(invoke("plot", pendulum_run, "--out", blocker / "figures"))
+    assert "cannot write the figures to" in line and "a-file" in line

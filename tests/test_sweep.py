@@ -269,3 +269,19 @@ def test_cli_sweep_exits_non_zero_when_a_combination_failed(tmp_path, monkeypatc
     result = CliRunner().invoke(main, ["sweep", "pendulum", "--seeds", "0", "--device", "cuda:7", "--out",
                                        str(tmp_path / "c")])
     assert result.exit_code != 0 and "cuda" in result.output and not (tmp_path / "c").exists()
+
+
+def test_a_folder_the_sweep_did_not_write_is_never_removed(tmp_path):
+    """A run a user put at a combination's name (no result.json) stops the sweep with one line; nothing is deleted."""
+    from drlyap.workflows.sweep.driver import finished_row
+    from drlyap.workflows.sweep.grid import Combination, SweepError
+
+    combo = Combination("dr", 1, 0.01, 0.1)
+    folder = tmp_path / combo.name
+    folder.mkdir()
+    (folder / "run.json").write_text("{}")
+    with pytest.raises(SweepError, match="not written by this sweep"):
+        finished_row(tmp_path, combo)
+    assert (folder / "run.json").is_file()
+    (folder / "result.json").write_text("{not json")  # the sweep's own, damaged: redone
+    assert finished_row(tmp_path, combo) is None and not folder.exists()

@@ -10,6 +10,18 @@ import click
 from drlyap.cli.common import fail, floats, run_source_options, run_system_of
 
 
+def _writable_folder(folder: Path) -> None:
+    """A ValueError naming ``folder`` where figures cannot be written there (checked before any work)."""
+    import tempfile
+
+    try:
+        folder.mkdir(parents=True, exist_ok=True)
+        with tempfile.NamedTemporaryFile(dir=folder, prefix=".probe-"):
+            pass
+    except OSError as err:
+        raise ValueError(f"cannot write the figures to {folder} ({err.strerror or err}); choose another --out") from None
+
+
 @click.command()
 @click.argument("run_dir", type=click.Path(path_type=Path))
 @click.option("--xi", required=True, help="Parameter shift, comma-separated in the system's uncertain order.")
@@ -69,6 +81,8 @@ def plot(run_dir: Path, xi: str | None, n_init: int, seed: int, roa: bool | None
     try:
         if time_limit <= 0:
             raise ValueError(f"--time-limit must be > 0, got {time_limit}")
+        if (run_dir / "run.json").is_file():  # a run to draw: its figures' folder must take files
+            _writable_folder(out if out is not None else run_dir / "figures")
         result = plot_run(run_dir, xi=floats(xi, "--xi"), n_init=n_init, seed=seed, roa=roa, out=out,
                           time_limit=time_limit, horizon=horizon, system=run_system_of(system_spec), trust=trust_run)
     except ValueError as err:

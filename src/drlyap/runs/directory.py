@@ -233,7 +233,7 @@ def load_run(path: str | os.PathLike, system: UncertainSystem | None = None, tru
     """
     path = Path(path)
     info, raw_config, metrics = read_run_json(path, "lyapunov", "run.json", "config.json", "metrics.json")
-    config = check_config(path / "config.json", raw_config)
+    config = check_config(path / "config.json", raw_config, int(info.get("format", 1)))
     check_schema(path / "metrics.json", metrics, "metrics")
     system = run_system(path, config.system, system, info, trust)
     if info["system"]["n"] != system.n or info["system"]["m"] != system.m:

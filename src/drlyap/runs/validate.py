@@ -4,6 +4,7 @@ types and ranges, the samples against the system, the weights as tensors only (n
 
 from __future__ import annotations
 
+import dataclasses
 import json
 import math
 import pickle
@@ -34,10 +35,21 @@ def check_schema(path: Path, data, name: str) -> None:
         raise RunDirError(f"{path}: {where}: {err.message}")
 
 
-def check_config(path: Path, data: dict) -> TrainConfig:
-    """``config.json`` as a complete training configuration (types, every resolved field present)."""
+CORE_KEYS = ("system", "method", "loss", "wasserstein_radius", "risk_level", "decay_rate", "delta", "seed", "iters",
+             "n_states", "lyapunov_hidden", "controller_hidden")
+"""Keys every run's ``config.json`` has held since format 1 (a format-2 run holds every field of TrainConfig)."""
+
+
+def check_config(path: Path, data: dict, format_version: int = 2) -> TrainConfig:
+    """``config.json`` as a complete training configuration: every field present (format 2; format 1: the
+    :data:`CORE_KEYS`), of the right type, every resolved field filled. A missing key is refused, never defaulted:
+    a default would silently prove another condition (a baseline run without ``method`` read as DR)."""
     if not isinstance(data, dict):
         raise RunDirError(f"{path}: a JSON object of training settings expected, got {type(data).__name__}")
+    expected = [f.name for f in dataclasses.fields(TrainConfig)] if format_version >= 2 else list(CORE_KEYS)
+    absent = [k for k in expected if k not in data]
+    if absent:
+        raise RunDirError(f"{path}: invalid training config: missing {', '.join(absent)} (the file is incomplete)")
     try:
         config = TrainConfig.from_dict(data)
     except (TypeError, ValueError) as err:

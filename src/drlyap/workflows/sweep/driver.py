@@ -80,11 +80,15 @@ def _prepare(spec: SweepSpec, out: Path) -> None:
 
 def finished_row(out: Path, combo: Combination) -> dict | None:
     """The stored row of a finished combination, or None if it has to run (missing, incomplete, failed, or damaged:
-    weights that do not load or do not match the recorded sha256). A damaged combination directory is removed."""
+    weights that do not load or do not match the recorded sha256). A damaged combination directory is removed; a
+    folder at a combination's name that the sweep did not write (no ``result.json``) is a :class:`SweepError`."""
     folder = out / combo.name
     path = folder / RESULT_FILE
     if not folder.exists():
         return None
+    if not path.is_file() and not path.is_symlink():  # every combination the sweep publishes carries its result.json
+        raise SweepError(f"{folder} was not written by this sweep (no {RESULT_FILE}): move it away or choose another "
+                         "--out; the sweep removes nothing it did not write")
     row = None
     try:
         row = json.loads(path.read_text())
