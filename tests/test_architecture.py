@@ -87,6 +87,11 @@ def test_help_loads_no_numerical_code():
     code = "import sys; from drlyap.cli import main; print('torch' in sys.modules)"
     out = subprocess.run([sys.executable, "-c", code], capture_output=True, text=True, check=True)
     assert out.stdout.strip() == "False"
+    for command in (["--help"], ["train", "--help"], ["sweep", "--help"], ["rl", "train", "--help"]):
+        code = (f"import sys; from drlyap.cli import main\ntry:\n    main({command!r})\nexcept SystemExit:\n    pass\n"
+                "print('torch' in sys.modules, file=sys.stderr)")
+        out = subprocess.run([sys.executable, "-c", code], capture_output=True, text=True, check=True)
+        assert out.stderr.strip().splitlines()[-1] == "False", (command, out.stderr)
 
 
 def test_the_command_reference_lists_every_option():

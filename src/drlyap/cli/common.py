@@ -6,6 +6,7 @@ from __future__ import annotations
 import dataclasses
 import math
 import os
+import sys
 
 import click
 
@@ -15,9 +16,10 @@ def setup_threads() -> None:
     value = os.environ.get("DRLYAP_THREADS", "1")
     if not value.isdigit() or int(value) < 1:
         raise click.ClickException(f"DRLYAP_THREADS must be a positive integer, got {value!r}")
-    import torch
-
-    torch.set_num_threads(int(value))
+    if "torch" in sys.modules:
+        sys.modules["torch"].set_num_threads(int(value))
+    else:  # torch takes its thread count from here when a command first imports it (a --help never does)
+        os.environ["OMP_NUM_THREADS"] = os.environ["MKL_NUM_THREADS"] = value
 
 
 def default(cls, name: str):
