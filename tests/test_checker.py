@@ -302,6 +302,11 @@ def test_verify_writes_and_check_re_checks_a_run(tmp_path):
     out = runner.invoke(main, ["check", str(run), "--system", spec])
     assert out.exit_code == 0, out.output
     assert out.output.count("CHECKED") == 2 and "the boxes cover the region" in out.output
+    header = json.loads((run / "certificates" / "trained.json").read_text())
+    header["claim"]["condition"]["wasserstein_radius"] = 0.0  # a weaker condition than the run was trained on
+    (run / "certificates" / "trained.json").write_text(json.dumps(header))
+    out = runner.invoke(main, ["check", str(run), "--system", spec, "--name", "trained"])
+    assert out.exit_code == 1 and "not the run's trained condition (wasserstein_radius" in out.output
     weights = torch.load(run / "weights.pt", weights_only=True)
     weights["lyapunov"]["phi.layers.0.weight"][0, 0] += 1e-6
     torch.save(weights, run / "weights.pt")

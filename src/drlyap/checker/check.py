@@ -309,7 +309,7 @@ def check_run(run_dir: str | Path, system=None, trust: bool = False, names: list
     from drlyap.runs.validate import load_weights
 
     run_dir = Path(run_dir)
-    info, config = read_run_json(run_dir, "lyapunov", "run.json", "config.json")
+    info, config, metrics = read_run_json(run_dir, "lyapunov", "run.json", "config.json", "metrics.json")
     system = run_system(run_dir, str(config.get("system")), system, info, trust)
     present = [k for k in NAMES if (run_dir / FOLDER / f"{k}.json").is_file()]
     names = present if names is None else names
@@ -322,5 +322,36 @@ def check_run(run_dir: str | Path, system=None, trust: bool = False, names: list
     out = []
     for name in names:
         header, arrays = read_certificate(run_dir, name)
-        out.append(check_certificate(run_dir, name, header, arrays, system, weights, digest, system_sha, refine))
+        result = check_certificate(run_dir, name, header, arrays, system, weights, digest, system_sha, refine)
+        result.failures += claim_mismatch(name, header, config, metrics)
+        result.ok = not result.failures
+        out.append(result)
     return out
+
+
+def claim_mismatch(name: str, header: dict, config: dict, metrics: dict) -> list[str]:
+    """Where a certificate's claim is not the run's: for ``trained``, the condition the run was trained on (method
+    and loss, radius, risk level, decay, samples, delta, level); for ``true-model``, the run's decay. A certificate
+    that proves a weaker condition than the run's is then not taken for the run's."""
+    try:
+        claim = header["claim"]["condition"]
+        region = header["claim"]["region"]
+    except (KeyError, TypeError):
+        return ["the header has no claim"]
+    expected = {"decay_rate": float(config.get("decay_rate") or 0.0), "exp_rate": float(config.get("exp_rate") or 0.0)}
+    if name == "trained":
+        dr = config.get("method") == "dr"
+        expected |= {"name": (config.get("loss") if dr else "nominal"), "xi": metrics.get("xi_train")}
+        if dr:
+            expected |= {"wasserstein_radius": config.get("wasserstein_radius"), "risk_level": config.get("risk_level")}
+        stated = {"delta": region.get("delta"), "level": region.get("level")}
+        wanted = {"delta": config.get("delta"), "level": config.get("roa_level")}
+        expected_region = [k for k in stated if stated[k] != wanted[k]]
+    else:
+        expected |= {"name": "true"}
+        expected_region = []
+    differ = [k for k, v in expected.items() if claim.get(k) != v] + expected_region
+    if not differ:
+        return []
+    return [f"the certificate's claim is not the run's {name.replace('-', ' ')} condition ({', '.join(differ)} "
+            "differ from config.json / metrics.json)"]

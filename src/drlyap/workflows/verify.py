@@ -144,7 +144,8 @@ def record_certificates(run: Run, ver: RunVerification) -> list[Path]:
     headers' paths (an OSError where the directory cannot be written)."""
     region = Region.of(run.system, float(ver.delta))
     written = []
-    for name, proof, condition in (("trained", ver.trained, run.condition),
+    own_region = float(ver.delta) == float(run.config.delta)  # the trained claim is about the run's own X_delta
+    for name, proof, condition in (("trained", ver.trained if own_region else None, run.condition),
                                    ("true-model", ver.true_model,
                                     None if ver.true_model is None else run.true_condition(ver.true_model.xi))):
         if isinstance(proof, ConditionProof) and proof.verified and proof.partition is not None:
