@@ -72,6 +72,8 @@ def test_linear_norm_and_clamp_enclose_dense_samples():
     x = samples(lo, hi)
     assert_encloses(Iv(lo, hi).linear(w, b), x @ w.T + b)
     assert_encloses(Iv(lo, hi).norm(), x.norm(dim=-1))
+    straddling = Iv(torch.tensor([[-1.0, -2.0]], dtype=F64), torch.tensor([[1.0, 3.0]], dtype=F64)).norm()
+    assert float(straddling.lo[0]) == 0.0 and math.isfinite(float(straddling.hi[0]))  # not "outside sqrt's domain"
     low, high = torch.tensor([-0.5, -0.2, 0.0], dtype=F64), torch.tensor([0.5, 0.3, 0.1], dtype=F64)
     assert_encloses(Iv(lo, hi).clamp(low, high), torch.minimum(torch.maximum(x, low), high))
 

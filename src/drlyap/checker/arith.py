@@ -327,8 +327,10 @@ class Iv(_Ops):
                   _pad_up(self.hi.sum(dim), rel, self.hi.abs().sum(dim)))
 
     def norm(self) -> Iv:
-        """The Euclidean norm along the last axis."""
-        return self.square().sum(-1).sqrt()
+        """The Euclidean norm along the last axis (the sum of squares is >= 0: its padded lower end is raised to 0,
+        not read as leaving sqrt's domain)."""
+        total = self.square().sum(-1)
+        return Iv(total.lo.clamp(min=0.0), total.hi).sqrt()
 
 
 class Du(_Ops):
