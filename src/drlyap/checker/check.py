@@ -232,7 +232,7 @@ def check_certificate(run_dir: str | Path, name: str, header: dict, arrays: dict
     from ``weights.pt``, whose file has ``weights_sha256``) and system (``system_sha256`` its description's)."""
     start = time.perf_counter()
     claim = header.get("claim") or {}
-    out = CheckResult(name=name, ok=False, claim=str(claim.get("statement", "")))
+    out = CheckResult(name=name, ok=False, claim=_statement(claim))
     try:
         if header["networks"]["weights_sha256"] != weights_sha256:
             raise CertificateError("weights.pt is not the file the certificate was proved for (sha256 differs)")
@@ -295,6 +295,28 @@ def check_certificate(run_dir: str | Path, name: str, header: dict, arrays: dict
     return out
 
 
+def _statement(claim: dict) -> str:
+    """What the certificate claims, in words built from the fields the checker checks (not the header's sentence)."""
+    try:
+        c, r = claim["condition"], claim["region"]
+        xi = c.get("xi") or []
+        decay = f"gamma = {float(c.get('decay_rate') or 0):g}" + (
+            f", alpha = {float(c['exp_rate']):g}" if c.get("exp_rate") else "")
+        if c.get("name") == "true":
+            what = f"decrease on the true model at xi = {xi[0] if len(xi) == 1 else xi} ({decay})"
+        elif c.get("name") == "pointwise":
+            what = (f"the DR pointwise condition (r = {float(c['wasserstein_radius']):g}, eps = "
+                    f"{float(c['risk_level']):g}, {len(xi)} samples of xi, {decay}, model {c.get('model')})")
+        else:
+            what = f"the {c.get('name')} condition ({len(xi)} sample(s) of xi, {decay}, model {c.get('model')})"
+        where = f"the state box minus the open ball ||x - x*|| < {float(r['delta']):g}"
+        if r.get("level") is not None:
+            where = f"{{V <= {float(r['level']):g}}} of {where}, with V > {float(r['level']):g} on the box's faces"
+        return f"{what} holds at every state of {where}"
+    except (KeyError, TypeError, ValueError, IndexError):
+        return "(an unreadable claim)"
+
+
 def _fmt(v: Tensor) -> str:
     return ", ".join(f"{float(a):.6g}" for a in v)
 
@@ -338,19 +360,27 @@ def claim_mismatch(name: str, header: dict, config: dict, metrics: dict) -> list
         region = header["claim"]["region"]
     except (KeyError, TypeError):
         return ["the header has no claim"]
-    expected = {"decay_rate": float(config.get("decay_rate") or 0.0), "exp_rate": float(config.get("exp_rate") or 0.0)}
+    expected = {"decay_rate": float(config.get("decay_rate") or 0.0), "exp_rate": float(config.get("exp_rate") or 0.0),
+                "model": "design" if name == "trained" else "true"}
+    problems = []
+    if header.get("networks", {}).get("alpha_hat") != config.get("alpha_hat"):
+        problems.append("alpha_hat")
+    delta, level = region.get("delta"), region.get("level")
+    if not (isinstance(delta, (int, float)) and math.isfinite(delta) and delta >= 0):
+        problems.append("delta (not a finite number >= 0)")
+    if level is not None and not (isinstance(level, (int, float)) and math.isfinite(level)):
+        problems.append("level (not finite)")
     if name == "trained":
         dr = config.get("method") == "dr"
         expected |= {"name": (config.get("loss") if dr else "nominal"), "xi": metrics.get("xi_train")}
         if dr:
             expected |= {"wasserstein_radius": config.get("wasserstein_radius"), "risk_level": config.get("risk_level")}
-        stated = {"delta": region.get("delta"), "level": region.get("level")}
-        wanted = {"delta": config.get("delta"), "level": config.get("roa_level")}
-        expected_region = [k for k in stated if stated[k] != wanted[k]]
     else:
         expected |= {"name": "true"}
-        expected_region = []
-    differ = [k for k, v in expected.items() if claim.get(k) != v] + expected_region
+    stated = {"delta": delta, "level": level}
+    wanted = {"delta": config.get("delta"), "level": config.get("roa_level")}
+    expected_region = [k for k in stated if stated[k] != wanted[k]]
+    differ = [k for k, v in expected.items() if claim.get(k) != v] + expected_region + problems
     if not differ:
         return []
     return [f"the certificate's claim is not the run's {name.replace('-', ' ')} condition ({', '.join(differ)} "
