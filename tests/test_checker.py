@@ -8,6 +8,7 @@ import shutil
 import numpy as np
 import pytest
 import torch
+from torch import Tensor
 
 from drlyap.checker.arith import Du, Iv
 from drlyap.checker.check import CertificateError, check_certificate, check_tree, rebuild_boxes
@@ -62,6 +63,18 @@ def test_sqrt_and_arithmetic_enclose_dense_samples():
     assert_encloses(ia ** 3, a ** 3)
     assert_encloses(Iv(alo.abs(), alo.abs() + (ahi - alo)).sqrt(), samples(alo.abs(), alo.abs() + (ahi - alo)).sqrt())
     assert bool((Iv(alo, ahi).sqrt().lo == -math.inf)[alo < 0].all())  # outside the domain: nothing proved
+
+
+def test_tensor_operands_on_either_side():
+    """A tensor met by a checker value, in either order and through torch's reflected operators."""
+    iv = Iv(torch.tensor([1.0, 2.0], dtype=F64), torch.tensor([1.0, 2.0], dtype=F64))
+    t = torch.tensor([3.0, 5.0], dtype=F64)
+    for got, want in ((t - iv, [2.0, 3.0]), (Tensor.__rsub__(t, iv), [-2.0, -3.0]), (t / iv, [3.0, 2.5]),
+                      (Tensor.__rtruediv__(t, iv), [1 / 3, 0.4]), (torch.sub(t, iv), [2.0, 3.0])):
+        assert_encloses(got, torch.tensor(want, dtype=F64), tol=1e-15)
+        assert float((got.hi - got.lo).max()) < 1e-14
+    with pytest.raises(TypeError, match="does not support"):
+        torch.sum(Iv(t[None], t[None]), -1, keepdim=True)
 
 
 def test_linear_norm_and_clamp_enclose_dense_samples():

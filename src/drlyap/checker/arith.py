@@ -84,7 +84,7 @@ class _Ops:
         return _binary(self, o, "add")
 
     def __radd__(self, o):
-        return _binary(o, self, "add") if level(o) >= 0 else _binary(self, o, "add")
+        return _binary(self, o, "add")
 
     def __sub__(self, o):
         return _binary(self, o, "sub")
@@ -159,17 +159,19 @@ class _Ops:
         binary = {"add": "__add__", "sub": "__sub__", "mul": "__mul__", "div": "__truediv__",
                   "true_divide": "__truediv__", "__add__": "__add__", "__sub__": "__sub__", "__mul__": "__mul__",
                   "__truediv__": "__truediv__", "__radd__": "__radd__", "__rsub__": "__rsub__",
-                  "__rmul__": "__rmul__", "__rtruediv__": "__rtruediv__", "__neg__": "__neg__"}
+                  "__rmul__": "__rmul__", "__rtruediv__": "__rtruediv__", "__rdiv__": "__rtruediv__",
+                  "__div__": "__truediv__", "__neg__": "__neg__"}
         if name in binary and not kwargs:
             a, *rest = args
-            if not isinstance(a, (Iv, Du)):  # tensor OP checker value: the checker value is the right operand
-                flipped = {"__add__": "__radd__", "__sub__": "__rsub__", "__mul__": "__rmul__",
-                           "__truediv__": "__rtruediv__"}
-                return getattr(rest[0], flipped.get(binary[name], binary[name]))(a)
+            if not isinstance(a, (Iv, Du)):  # tensor OP checker value: the checker value is the other operand
+                swapped = {"__add__": "__radd__", "__sub__": "__rsub__", "__mul__": "__rmul__",
+                           "__truediv__": "__rtruediv__", "__radd__": "__add__", "__rsub__": "__sub__",
+                           "__rmul__": "__mul__", "__rtruediv__": "__truediv__"}
+                return getattr(rest[0], swapped[binary[name]])(a)
             return getattr(a, binary[name])(*rest)
         if name in ("pow", "__pow__") and isinstance(args[0], (Iv, Du)):
             return args[0] ** args[1]
-        if name == "sum" and isinstance(args[0], (Iv, Du)):
+        if name == "sum" and isinstance(args[0], (Iv, Du)) and set(kwargs) <= {"dim"}:
             return args[0].sum(kwargs.get("dim", args[1] if len(args) > 1 else None))
         raise TypeError(f"the checker's arithmetic does not support {name or func}: use +, -, *, /, ** int, "
                         "torch.sin/cos/tanh/exp/sqrt/square/abs, torch.stack/cat, unbind and indexing")
