@@ -43,6 +43,28 @@ def condition_region(level: float | None, delta: float) -> str:
     return region
 
 
+def claim_sentence(claim: dict) -> str:
+    """A certificate file's claim (``claim`` of its header: ``condition`` and ``region`` as written by
+    :mod:`drlyap.runs.certificates`) in words, from its fields: what the file states and what ``drlyap check``
+    re-proves."""
+    try:
+        c, r = claim["condition"], claim["region"]
+        xi = c.get("xi") or []
+        decay = f"gamma = {float(c.get('decay_rate') or 0):g}" + (
+            f", alpha = {float(c['exp_rate']):g}" if c.get("exp_rate") else "")
+        if c.get("name") == "true":
+            what = f"decrease on the true model at xi = {xi[0] if len(xi) == 1 else xi} ({decay})"
+        elif c.get("name") == "pointwise":
+            what = (f"the DR pointwise condition (r = {float(c['wasserstein_radius']):g}, eps = "
+                    f"{float(c['risk_level']):g}, {len(xi)} samples of xi, {decay})")
+        else:
+            what = f"the {c.get('label', c.get('name'))} condition ({len(xi)} sample(s) of xi, {decay})"
+        level = r.get("level")
+        return f"{what} holds at every state of the {condition_region(level, float(r['delta']))}"
+    except (KeyError, TypeError, ValueError, IndexError):
+        return "(an unreadable claim)"
+
+
 def certificate_line(cert: Certificate) -> str:
     """The one line that says what was proved about a run's trained condition."""
     status = cert.status

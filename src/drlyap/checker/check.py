@@ -32,6 +32,7 @@ from torch import Tensor
 
 from drlyap.checker.arith import EPS, F64, Iv
 from drlyap.checker.model import Pair, Residual, upper_bounds, value_lower
+from drlyap.render import claim_sentence
 
 INTERNAL, PROVED, INSIDE_BALL, ABOVE_LEVEL = 0, 1, 2, 3
 
@@ -232,7 +233,7 @@ def check_certificate(run_dir: str | Path, name: str, header: dict, arrays: dict
     from ``weights.pt``, whose file has ``weights_sha256``) and system (``system_sha256`` its description's)."""
     start = time.perf_counter()
     claim = header.get("claim") or {}
-    out = CheckResult(name=name, ok=False, claim=_statement(claim))
+    out = CheckResult(name=name, ok=False, claim=claim_sentence(claim))
     try:
         if header["networks"]["weights_sha256"] != weights_sha256:
             raise CertificateError("weights.pt is not the file the certificate was proved for (sha256 differs)")
@@ -293,28 +294,6 @@ def check_certificate(run_dir: str | Path, name: str, header: dict, arrays: dict
     out.ok = not out.failures
     out.time_s = time.perf_counter() - start
     return out
-
-
-def _statement(claim: dict) -> str:
-    """What the certificate claims, in words built from the fields the checker checks (not the header's sentence)."""
-    try:
-        c, r = claim["condition"], claim["region"]
-        xi = c.get("xi") or []
-        decay = f"gamma = {float(c.get('decay_rate') or 0):g}" + (
-            f", alpha = {float(c['exp_rate']):g}" if c.get("exp_rate") else "")
-        if c.get("name") == "true":
-            what = f"decrease on the true model at xi = {xi[0] if len(xi) == 1 else xi} ({decay})"
-        elif c.get("name") == "pointwise":
-            what = (f"the DR pointwise condition (r = {float(c['wasserstein_radius']):g}, eps = "
-                    f"{float(c['risk_level']):g}, {len(xi)} samples of xi, {decay}, model {c.get('model')})")
-        else:
-            what = f"the {c.get('name')} condition ({len(xi)} sample(s) of xi, {decay}, model {c.get('model')})"
-        where = f"the state box minus the open ball ||x - x*|| < {float(r['delta']):g}"
-        if r.get("level") is not None:
-            where = f"{{V <= {float(r['level']):g}}} of {where}, with V > {float(r['level']):g} on the box's faces"
-        return f"{what} holds at every state of {where}"
-    except (KeyError, TypeError, ValueError, IndexError):
-        return "(an unreadable claim)"
 
 
 def _fmt(v: Tensor) -> str:

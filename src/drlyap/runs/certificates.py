@@ -29,7 +29,7 @@ import numpy as np
 from drlyap.conditions import Condition
 from drlyap.io import jsonable
 from drlyap.regions import Region
-from drlyap.render import condition_region
+from drlyap.render import claim_sentence
 from drlyap.systems import UncertainSystem
 from drlyap.verification.results import ConditionProof
 
@@ -57,28 +57,16 @@ def condition_claim(condition: Condition) -> dict:
                                             "xi": xi.tolist() if xi is not None else None})
 
 
-def claim_text(condition: Condition) -> str:
-    """The condition in words, with the numbers that define it."""
-    xi = condition.xi.tolist() if condition.xi is not None else []
-    decay = f"gamma = {condition.decay_rate:g}" + (f", alpha = {condition.exp_rate:g}" if condition.exp_rate else "")
-    if condition.name == "true":
-        return f"decrease on the true model at xi = {xi[0] if len(xi) == 1 else xi} ({decay})"
-    if condition.name == "pointwise":
-        return (f"the DR pointwise condition (r = {condition.r:g}, eps = {condition.eps:g}, {len(xi)} samples of xi, "
-                f"{decay})")
-    return f"the {condition.label} condition ({len(xi)} sample(s) of xi, {decay})"
-
-
 def certificate_header(proof: ConditionProof, condition: Condition, region: Region, system: UncertainSystem,
                        weights_sha256: str, alpha_hat: float, arrays_file: str, arrays_sha256: str) -> dict:
     """The JSON header of a certificate (see the module docstring)."""
     part = proof.partition
-    statement = f"{claim_text(condition)} holds at every state of the {condition_region(proof.level, region.delta)}"
+    claim = jsonable({"condition": condition_claim(condition),
+                      "region": {"box_lo": region.lo.tolist(), "box_hi": region.hi.tolist(), "delta": region.delta,
+                                 "level": proof.level, "coordinates": "local (z = x - x*)"}})
     return jsonable({
         "format": FORMAT, "version": VERSION,
-        "claim": {"statement": statement, "condition": condition_claim(condition),
-                  "region": {"box_lo": region.lo.tolist(), "box_hi": region.hi.tolist(), "delta": region.delta,
-                             "level": proof.level, "coordinates": "local (z = x - x*)"}},
+        "claim": {"statement": claim_sentence(claim), **claim},
         "system": {"name": system.name, "description_sha256": system_digest(system)},
         "networks": {"weights_sha256": weights_sha256, "alpha_hat": alpha_hat},
         "partition": {"file": arrays_file, "sha256": arrays_sha256, "grid": part.grid, "nodes": part.size,
