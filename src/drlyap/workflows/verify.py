@@ -140,12 +140,14 @@ def record_region(run: Run, ver: RunVerification) -> None:
 
 def record_certificates(run: Run, ver: RunVerification) -> list[Path]:
     """Write a certificate file (:mod:`drlyap.runs.certificates`) into the run directory for each proof of ``ver``
-    that is verified on X_delta and kept its partition: ``trained`` and, with a shift, ``true-model``. Returns the
-    headers' paths (an OSError where the directory cannot be written)."""
+    that is verified on X_delta and kept its partition: ``trained`` and, with a shift, ``true-model``. Only on the
+    run's own delta (the claim ``drlyap check`` compares with the run). Returns the headers' paths (an OSError where
+    the directory cannot be written)."""
+    if float(ver.delta) != float(run.config.delta):  # a certificate states the run's own X_delta (check compares)
+        return []
     region = Region.of(run.system, float(ver.delta))
     written = []
-    own_region = float(ver.delta) == float(run.config.delta)  # the trained claim is about the run's own X_delta
-    for name, proof, condition in (("trained", ver.trained if own_region else None, run.condition),
+    for name, proof, condition in (("trained", ver.trained, run.condition),
                                    ("true-model", ver.true_model,
                                     None if ver.true_model is None else run.true_condition(ver.true_model.xi))):
         if isinstance(proof, ConditionProof) and proof.verified and proof.partition is not None:
