@@ -112,7 +112,7 @@ def verify_condition(loop: ClosedLoop, condition: Condition, region: Region, bud
         ub = torch.where(outside, -torch.inf, ub)
         ok = ub <= 0
         tree.proved(cids[ok & ~outside], ub[ok & ~outside])
-        tree.above_level(cids[ok & outside], lb_c[ok & outside, -1] if level is not None else lb_c[:0, 0])
+        tree.above_level(cids[ok & outside], lb_c[ok & outside, -1])  # none without a level: outside is all False
         verified_count += int(ok.sum())
         if (ok & ~outside).any():
             sup_hi = max(sup_hi, float(ub[ok & ~outside].max()))
