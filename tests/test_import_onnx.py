@@ -13,6 +13,7 @@ from drlyap.cli import main
 from drlyap.conditions import TrueDecrease
 from drlyap.config import Budget
 from drlyap.enclosures import Affine, Dual, Interval
+from drlyap.graph import read_onnx
 from drlyap.regions import Region
 from drlyap.runs import load_run, save_run
 from drlyap.runs.imported import import_pair, import_run, load_onnx_pair, quadratic_loop, rl_actor_graph
@@ -214,6 +215,60 @@ def test_unsupported_ops_and_other_dimensions_are_refused(tmp_path):
     (tmp_path / "junk.onnx").write_bytes(b"not a model")
     with pytest.raises(ValueError, match="junk.onnx"):
         import_pair(system, tmp_path / "junk.onnx")
+
+
+def _one_extra_node(path, node_maker):
+    """x (batch, 2) -> Gemm -> (a node from ``node_maker(last)``, with its own inits) -> Gemm -> u (batch, 1)."""
+    from onnx import TensorProto, helper, numpy_helper
+
+    g = torch.Generator().manual_seed(0)
+    inits = [numpy_helper.from_array(torch.randn(3, 2, generator=g, dtype=F64).numpy(), "w1"),
+             numpy_helper.from_array(torch.randn(1, 3, generator=g, dtype=F64).numpy(), "w2")]
+    extra_nodes, extra_inits = node_maker("h0", "h1")
+    graph = helper.make_graph([helper.make_node("Gemm", ["x", "w1"], ["h0"], transB=1), *extra_nodes,
+                               helper.make_node("Gemm", ["h1", "w2"], ["u"], transB=1)], "g",
+                              [helper.make_tensor_value_info("x", TensorProto.DOUBLE, ["batch", 2])],
+                              [helper.make_tensor_value_info("u", TensorProto.DOUBLE, ["batch", 1])],
+                              inits + extra_inits)
+    onnx.save(helper.make_model(graph, opset_imports=[helper.make_opsetid("", 17)]), str(path))
+
+
+def test_files_that_would_read_elsewhere_or_be_read_unsoundly_are_refused(tmp_path):
+    from onnx import TensorProto, helper, numpy_helper
+
+    system = get_system("pendulum")
+    secret = tmp_path / "secret.bin"
+    secret.write_bytes(b"\x00" * 24)
+
+    def external_constant(last, out):  # a Constant whose value names a file beside the model
+        t = helper.make_tensor("c", TensorProto.DOUBLE, [3], [0.0, 0.0, 0.0])
+        t.ClearField("double_data")
+        t.data_location = TensorProto.EXTERNAL
+        entry = t.external_data.add()
+        entry.key, entry.value = "location", "secret.bin"
+        return [helper.make_node("Constant", [], ["c"], value=t), helper.make_node("Add", [last, "c"], [out])], []
+
+    _one_extra_node(tmp_path / "external.onnx", external_constant)
+    with pytest.raises(ValueError, match="stored outside the file") as err:
+        import_pair(system, tmp_path / "external.onnx")
+    assert "\n" not in str(err.value)
+
+    def inverted_clip(last, out):  # min > max: ONNX outputs max everywhere; no rewrite may read it as a range
+        return [helper.make_node("Clip", [last, "low", "high"], [out])], [
+            numpy_helper.from_array(torch.tensor(1.0, dtype=F64).numpy(), "low"),
+            numpy_helper.from_array(torch.tensor(0.5, dtype=F64).numpy(), "high")]
+
+    _one_extra_node(tmp_path / "inverted.onnx", inverted_clip)
+    with pytest.raises(ValueError, match="min > max"):
+        import_pair(system, tmp_path / "inverted.onnx")
+
+    def scaled(last, out):  # a product with a constant vector is read (no ambiguous comparison of arrays)
+        return [helper.make_node("Mul", [last, "s"], [out])], [
+            numpy_helper.from_array(torch.tensor([0.5, 2.0, -1.0], dtype=F64).numpy(), "s")]
+
+    _one_extra_node(tmp_path / "scaled.onnx", scaled)
+    graph, _ = read_onnx(tmp_path / "scaled.onnx", system, "controller")
+    assert graph.n == 2
 
 
 def test_an_export_made_for_another_equilibrium_is_refused(exported, tmp_path):

@@ -76,7 +76,13 @@ def read_onnx(path: str | os.PathLike, system: UncertainSystem, role: str) -> tu
         raise ValueError(f"{path}: no such file") from None
     except Exception as err:  # protobuf's decode errors have many types: any is a damaged file
         raise ValueError(f"{path}: not a readable ONNX model ({type(err).__name__})") from None
-    return _Reader(model, path, system, role, onnx, numpy_helper).read()
+    try:
+        return _Reader(model, path, system, role, onnx, numpy_helper).read()
+    except ValueError:
+        raise
+    except Exception as err:  # onnx's own checks (ValidationError...) on a malformed graph: a damaged file
+        first = (str(err).splitlines() or [""])[0]
+        raise ValueError(f"{path}: not a readable ONNX model ({type(err).__name__}: {first})") from None
 
 
 class _Reader:
@@ -95,7 +101,7 @@ class _Reader:
     def read(self) -> tuple[Graph, list[str]]:
         graph = self.model.graph
         for t in graph.initializer:
-            if t.data_location == self.onnx.TensorProto.EXTERNAL:
+            if self.onnx.external_data_helper.uses_external_data(t):
                 raise self.fail(f"tensor {t.name!r} is stored outside the file; drlyap reads self-contained models only")
             self.values[t.name] = self.nh.to_array(t)
         inputs = [i for i in graph.input if i.name not in self.values]
@@ -183,6 +189,9 @@ class _Reader:
         for a in node.attribute:
             value = self.onnx.helper.get_attribute_value(a)
             if isinstance(value, self.onnx.TensorProto):
+                if self.onnx.external_data_helper.uses_external_data(value):
+                    raise self.fail(f"attribute {a.name!r} of node {node.name or node.op_type!r} is stored outside "
+                                    "the file; drlyap reads self-contained models only")
                 value = self.nh.to_array(value)
             out[a.name] = value
         return out
@@ -223,7 +232,7 @@ def _emit_elementwise(r: _Reader, op: str, a, b=None):
     args = [a] if b is None else [a, b]
     if all(_is_const(v) and np.issubdtype(v.dtype, np.integer) for v in args) and op in ("add", "sub", "mul"):
         return {"add": np.add, "sub": np.subtract, "mul": np.multiply}[op](*args)  # shape arithmetic, exact
-    if op == "mul" and isinstance(a, str) and a == b:
+    if op == "mul" and isinstance(a, str) and isinstance(b, str) and a == b:
         return r.b.emit("square", [a])
     out = r.b.emit(op, [r.name(v) for v in args])
     shape = tuple(r.b.example(out).shape)
@@ -276,6 +285,10 @@ def _clamp(r: _Reader, x, low, high):
     hi = np.array(np.inf) if high is None else np.asarray(high, dtype=np.float64)
     if not (_is_const(lo) and _is_const(hi)):
         raise ValueError("its bounds must be constants")
+    if np.isnan(lo).any() or np.isnan(hi).any():
+        raise ValueError("a bound is NaN")
+    if (lo > hi).any():
+        raise ValueError("a lower bound exceeds its upper bound (min > max)")
     out = r.b.emit("clamp", [r.name(x), r.name(lo), r.name(hi)])
     if isinstance(x, str) and tuple(r.b.example(out).shape) != tuple(r.b.example(x).shape):
         raise ValueError("its bounds broadcast the state-dependent value")
