@@ -50,7 +50,7 @@ def _t(x) -> Tensor:
 
 def level(x) -> int:
     """0 for an interval, 1 + the level of its value for a dual, -1 for a tensor or number."""
-    return x.level if isinstance(x, (Iv, Du)) else -1
+    return x.level if isinstance(x, _Ops) else -1
 
 
 def lift(x, lv: int, like=None):
@@ -71,10 +71,16 @@ def _binary(a, b, op: str):
     if la >= lb:
         if la > lb and la > 0:  # b is a constant for a's tangents
             return getattr(a, op + "_const")(b)
-        return getattr(a, op)(lift(b, la, a if la > 0 else None))
-    if lb > 0:
-        return getattr(b, "r" + op + "_const")(a)
-    return getattr(lift(a, lb), op)(b)
+        a, b = a, lift(b, la, a if la > 0 else None)
+    else:
+        if lb > 0:
+            return getattr(b, "r" + op + "_const")(a)
+        a = lift(a, lb)
+    if getattr(b, "affine", False) and not getattr(a, "affine", False):  # an interval with an affine form
+        if op in ("add", "mul"):
+            return getattr(b, op)(a)
+        a = b.promote(a)
+    return getattr(a, op)(b)
 
 
 class _Ops:
@@ -90,7 +96,7 @@ class _Ops:
         return _binary(self, o, "sub")
 
     def __rsub__(self, o):
-        return lift(o, self.level, self if self.level > 0 else None).sub(self)
+        return _binary(o, self, "sub")
 
     def __mul__(self, o):
         return _binary(self, o, "mul")
@@ -102,7 +108,7 @@ class _Ops:
         return _binary(self, o, "div")
 
     def __rtruediv__(self, o):
-        return lift(o, self.level, self if self.level > 0 else None).div(self)
+        return _binary(o, self, "div")
 
     def __neg__(self):
         return self.neg()
@@ -163,15 +169,15 @@ class _Ops:
                   "__div__": "__truediv__", "__neg__": "__neg__"}
         if name in binary and not kwargs:
             a, *rest = args
-            if not isinstance(a, (Iv, Du)):  # tensor OP checker value: the checker value is the other operand
+            if not isinstance(a, _Ops):  # tensor OP checker value: the checker value is the other operand
                 swapped = {"__add__": "__radd__", "__sub__": "__rsub__", "__mul__": "__rmul__",
                            "__truediv__": "__rtruediv__", "__radd__": "__add__", "__rsub__": "__sub__",
                            "__rmul__": "__mul__", "__rtruediv__": "__truediv__"}
                 return getattr(rest[0], swapped[binary[name]])(a)
             return getattr(a, binary[name])(*rest)
-        if name in ("pow", "__pow__") and isinstance(args[0], (Iv, Du)):
+        if name in ("pow", "__pow__") and isinstance(args[0], _Ops):
             return args[0] ** args[1]
-        if name == "sum" and isinstance(args[0], (Iv, Du)) and set(kwargs) <= {"dim"}:
+        if name == "sum" and isinstance(args[0], _Ops) and set(kwargs) <= {"dim"}:
             return args[0].sum(kwargs.get("dim", args[1] if len(args) > 1 else None))
         raise TypeError(f"the checker's arithmetic does not support {name or func}: use +, -, *, /, ** int, "
                         "torch.sin/cos/tanh/exp/sqrt/square/abs, torch.stack/cat, unbind and indexing")
@@ -182,6 +188,9 @@ def join(items: list, dim: int, new_axis: bool):
     lv = max(level(x) for x in items)
     like = next((x for x in items if level(x) == lv), None) if lv > 0 else None
     items = [lift(x if level(x) >= 0 else _t(x), lv, like) for x in items]
+    affine = next((x for x in items if getattr(x, "affine", False)), None)
+    if lv == 0 and affine is not None:
+        return type(affine).join([affine.promote(x) for x in items], dim, new_axis)
     if lv == 0:
         f = torch.stack if new_axis else torch.cat
         return Iv(f([x.lo for x in items], dim), f([x.hi for x in items], dim))
@@ -471,8 +480,9 @@ class Du(_Ops):
         value = self.v.norm()
         out = []
         for t in self.d:
-            bound = _base(t).mag().square().sum(-1).sqrt()
-            bound = _up(bound + 8 * EPS * bound)
+            mag = _base(t).mag()
+            bound = mag.square().sum(-1).sqrt()  # n squares summed and a root: (n + 4) eps of the result covers both
+            bound = _up(bound + (mag.shape[-1] + 4) * EPS * bound + TINY)
             slope = (self.v * t).sum(-1) / value
             positive = _base(value).lo > 0
             out.append(_hull_where(positive, slope, bound))

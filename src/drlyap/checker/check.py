@@ -2,25 +2,29 @@
 
 What the checker takes on trust (its trust base): the float64 arithmetic of the machine with round-to-nearest, the
 library functions ``sin cos tanh exp sqrt`` to within 8 ulps, torch's elementwise operations and matrix products as
-used in :mod:`drlyap.checker.arith` (whose results it pads outward), numpy's reading of the arrays file, and the
+used in :mod:`drlyap.checker.arith` and :mod:`drlyap.checker.affine` (whose results it pads outward), numpy's
+reading of the arrays file, and the
 system's dynamics function (the user's code, run on the checker's intervals). What it re-derives: every box (from the
 state box, the starting grid and the splits; the file stores no coordinates, so the boxes cover the box by
 construction), that every leaf is proved, that leaves said to lie in the delta-ball do, the sha256 of the weights and
 of the system's description, and the residual of the claimed condition from V's and pi's weights (its own forward and
 gradient code, not the library's networks).
 
-A proved leaf is re-proved by the tighter of the interval bound and the mean-value form; where that bound is not
-``<= 0`` (the verifier may have used affine forms, which are tighter), the leaf is bisected along its widest side up
-to ``refine`` times and every piece must be proved. A leaf whose recorded bound lies below the residual at its centre
-is a false record and fails the check.
+A proved leaf is re-proved by the checker's second-order forms (:class:`~drlyap.checker.affine.Af`), and where they
+do not prove it, by the tighter of the interval bound and the mean-value form; where neither bound is ``<= 0``, the
+leaf is bisected along its widest side up to ``refine`` times and every piece must be proved. A leaf whose recorded
+bound lies below the residual at its centre is a false record and fails the check.
 
 A claim on a sublevel set ``{V <= level}`` of X_delta is checked the same way, a box (or piece) counting as proved
-where the residual is ``<= 0`` or V is ``> level`` on it; and ``V > level`` on the state box's faces is established
-by the checker's own bisection of the faces (it is not in the file).
+where V is ``> level`` on it or the residual is ``<= 0`` at its states with ``V <= level`` (the S-procedure on the
+second-order forms of the residual and V: ``R - lam (V - level) <= 0`` for one of a fixed list of ``lam >= 0``);
+and ``V > level`` on the state box's faces is established by the checker's own bisection of the faces (it is not in
+the file).
 """
 
 from __future__ import annotations
 
+import hashlib
 import math
 import time
 from dataclasses import dataclass, field
@@ -31,7 +35,7 @@ import torch
 from torch import Tensor
 
 from drlyap.checker.arith import EPS, F64, Iv
-from drlyap.checker.model import Pair, Residual, upper_bounds, value_lower
+from drlyap.checker.model import Pair, Residual, affine_upper, centre_lower, upper_bounds, value_lower
 from drlyap.render import claim_sentence
 
 INTERNAL, PROVED, INSIDE_BALL, ABOVE_LEVEL = 0, 1, 2, 3
@@ -157,13 +161,18 @@ def _widest_split(lo: Tensor, hi: Tensor, scale: Tensor) -> tuple[Tensor, Tensor
 def _holds(residual: Residual, lo: Tensor, hi: Tensor, level: float | None, batch: int) -> tuple[Tensor, Tensor]:
     """``(B,)``: boxes on which the residual is proved ``<= 0`` (or, with a level, V is proved ``> level``), and lower
     bounds of the residual at the centres ``(B,)`` (``-inf`` where V may exceed the level there)."""
-    ok, low = [], []
+    ok, low = [torch.zeros(0, dtype=torch.bool)], [torch.zeros(0, dtype=F64)]
     for i in range(0, lo.shape[0], batch):
         a, b = lo[i:i + batch], hi[i:i + batch]
-        upper, centre_low = upper_bounds(residual, a, b)
-        good = upper <= 0
+        good = torch.zeros(a.shape[0], dtype=torch.bool)
         if level is not None:
-            good = good | (value_lower(residual.pair, a, b) > level)
+            good = value_lower(residual.pair, a, b) > level
+        for bound in (lambda *args: affine_upper(*args, level), lambda *args: upper_bounds(*args)[0]):
+            rest = (~good).nonzero().squeeze(-1)  # the mean-value form where the second-order one fails
+            if rest.numel():
+                good[rest] = bound(residual, a[rest], b[rest]) <= 0
+        centre_low = centre_lower(residual, a, b)
+        if level is not None:
             v_centre = residual.pair.value_and_grad(Iv.point((a + b) / 2))[0].hi
             centre_low = torch.where(v_centre <= level, centre_low, -math.inf)
         ok.append(good)
@@ -273,8 +282,8 @@ def check_certificate(run_dir: str | Path, name: str, header: dict, arrays: dict
     if not bool(ok.all()):
         first = proved[~ok][0]
         why = ("" if header["partition"].get("enclosure") != "affine" else
-               "; the verifier bounded them with affine forms with a quadratic part, tighter than this checker's "
-               "mean-value form: the certificate is not confirmed, which does not show it false")
+               "; the verifier bounded them with its own second-order forms, and this checker's do not reach its "
+               "bounds there: the certificate is not confirmed, which does not show it false")
         out.failures.append(f"{int((~ok).sum())} of {proved.numel()} boxes are not proved by the checker's bounds "
                             f"(first: node {int(first)}, [{_fmt(blo[first])}] to [{_fmt(bhi[first])}]){why}")
     kind = verdict[proved]
@@ -305,9 +314,9 @@ def check_run(run_dir: str | Path, system=None, trust: bool = False, names: list
     """Re-check the certificates of a run directory (``names``: which; default every one it holds). ``system`` and
     ``trust``: as for :func:`drlyap.runs.load_run` (a system from a file runs only when named or trusted). A run
     without certificates is a ValueError that says so."""
-    from drlyap.runs.certificates import FOLDER, NAMES, read_certificate, sha256_file, system_digest
+    from drlyap.runs.certificates import FOLDER, NAMES, read_certificate, system_digest
     from drlyap.runs.directory import read_run_json, run_system
-    from drlyap.runs.validate import load_weights
+    from drlyap.runs.validate import RunDirError, load_weights
 
     run_dir = Path(run_dir)
     info, config, metrics = read_run_json(run_dir, "lyapunov", "run.json", "config.json", "metrics.json")
@@ -318,8 +327,12 @@ def check_run(run_dir: str | Path, system=None, trust: bool = False, names: list
         raise ValueError(f"{run_dir} holds no certificate ({run_dir / FOLDER} is empty or missing): a verified "
                          "`drlyap train` or `drlyap verify` writes one")
     weights_path = run_dir / "weights.pt"
-    weights = load_weights(weights_path)
-    digest, system_sha = sha256_file(weights_path), system_digest(system)
+    try:
+        data = weights_path.read_bytes()  # read once: the bytes hashed are the bytes checked
+    except FileNotFoundError:
+        raise RunDirError(f"{weights_path} is missing") from None
+    weights = load_weights(weights_path, data)
+    digest, system_sha = hashlib.sha256(data).hexdigest(), system_digest(system)
     out = []
     for name in names:
         header, arrays = read_certificate(run_dir, name)
@@ -332,8 +345,9 @@ def check_run(run_dir: str | Path, system=None, trust: bool = False, names: list
 
 def claim_mismatch(name: str, header: dict, config: dict, metrics: dict) -> list[str]:
     """Where a certificate's claim is not the run's: for ``trained``, the condition the run was trained on (method
-    and loss, radius, risk level, decay, samples, delta, level); for ``true-model``, the run's decay. A certificate
-    that proves a weaker condition than the run's is then not taken for the run's."""
+    and loss, radius, risk level, decay, samples, delta, level); for ``true-model``, the run's decay and the shift
+    its metrics report the decrease at (where they report one). A certificate that proves a weaker condition than
+    the run's is then not taken for the run's."""
     try:
         claim = header["claim"]["condition"]
         region = header["claim"]["region"]
@@ -356,6 +370,9 @@ def claim_mismatch(name: str, header: dict, config: dict, metrics: dict) -> list
             expected |= {"wasserstein_radius": config.get("wasserstein_radius"), "risk_level": config.get("risk_level")}
     else:
         expected |= {"name": "true"}
+        reported = (metrics.get("certificate") or {}).get("true_model") or {}
+        if reported.get("xi") is not None:  # the shift the run reports its decrease and region at
+            expected |= {"xi": [list(map(float, reported["xi"]))]}
     stated = {"delta": delta, "level": level}
     wanted = {"delta": config.get("delta"), "level": config.get("roa_level")}
     expected_region = [k for k in stated if stated[k] != wanted[k]]

@@ -21,7 +21,8 @@ from collections.abc import Callable
 import torch
 from torch import Tensor
 
-from drlyap.checker.arith import EPS, F64, Du, Iv, lift
+from drlyap.checker.affine import Af, quad_max
+from drlyap.checker.arith import EPS, F64, TINY, Du, Iv, lift
 
 CONDITIONS = ("nominal", "pointwise", "plain", "true")
 
@@ -108,7 +109,12 @@ class Residual:
         return lift(Iv.point(p), z.level, z if z.level > 0 else None)
 
     def components(self, z) -> object:
-        """``(B, Q)``: one component per sample of xi, for ``z`` an :class:`Iv` or a :class:`Du` of local states."""
+        """``(B, Q)``: one component per sample of xi, for ``z`` an :class:`Iv`, a :class:`Du` or an :class:`Af` of
+        local states."""
+        return self.terms(z)[0]
+
+    def terms(self, z) -> tuple[object, object]:
+        """The components ``(B, Q)`` and V ``(B,)`` at ``z``."""
         batch = z.shape[0]
         value, grad = self.pair.value_and_grad(z)
         x, u = z + self.x_star, self.pair.controller(z)
@@ -136,7 +142,7 @@ class Residual:
         if self.alpha:
             decay = decay + value * self.alpha
         extra = decay if lip is None else decay + lip * (self.r / self.eps)
-        return torch.stack([v + extra for v in vdots], -1)
+        return torch.stack([v + extra for v in vdots], -1), value
 
     def combine_upper(self, upper: Tensor) -> Tensor:
         """An upper bound ``(B,)`` of the residual from upper bounds ``(B, Q)`` of its components."""
@@ -161,6 +167,41 @@ def radius(lo: Tensor, hi: Tensor) -> tuple[Tensor, Tensor]:
     return centre, torch.nextafter(rad + EPS * rad, torch.full_like(rad, math.inf))
 
 
+MULTIPLIERS = [0.0] + [2.0 ** j for j in range(-6, 11)]
+"""The S-procedure's multipliers: powers of two, so that multiplying a form by one is exact."""
+
+
+def affine_upper(residual: Residual, lo: Tensor, hi: Tensor, level: float | None = None) -> Tensor:
+    """Upper bounds ``(B,)`` of the residual over the boxes ``[lo, hi] (B, n)`` from its components as second-order
+    forms over each box (:class:`~drlyap.checker.affine.Af`). With ``level``: over the boxes' states where
+    ``V <= level`` only, by the S-procedure: for any ``lam >= 0``, ``R <= R - lam (V - level)`` there, and the
+    right side is again a form of the box's coordinates, bounded as one; the least bound over
+    :data:`MULTIPLIERS`, for each component."""
+    comps, value = residual.terms(Af.seed(lo, hi))
+    if level is None:
+        upper = comps.hi
+    else:
+        upper = sublevel_form_upper(comps, value, level)
+    return residual.combine_upper(torch.where(torch.isnan(upper), math.inf, upper))
+
+
+def sublevel_form_upper(comps: Af, value: Af, level: float) -> Tensor:
+    """``min over lam`` of an upper bound of ``comps - lam (value - level)`` (``comps (B, Q)``, ``value (B,)``
+    forms of the same boxes) over the boxes: ``(B, Q)``."""
+    lam = torch.tensor(MULTIPLIERS, dtype=F64)  # (L,)
+    shift = value.c - level  # (B,)
+    c = comps.c[..., None] - lam * shift[:, None, None]  # (B, Q, L)
+    lin = comps.l[:, :, None, :] - lam[:, None] * value.l[:, None, None, :]
+    q = comps.q[:, :, None] - lam[:, None, None] * value.q[:, None, None]
+    mag = (c.abs() + lam * shift.abs()[:, None, None] + lin.abs().sum(-1) + q.abs().flatten(-2).sum(-1)
+           + lam * (value.l.abs().sum(-1) + value.q.abs().flatten(-2).sum(-1))[:, None, None])
+    rest = comps.r.hi[..., None] - lam * value.r.lo[:, None, None]
+    top = c + quad_max(lin, q) + rest
+    upper = top + 8 * EPS * (mag + rest.abs() + top.abs()) + TINY
+    upper = torch.nextafter(upper, torch.full_like(upper, math.inf))
+    return torch.where(torch.isnan(upper), math.inf, upper).amin(-1)
+
+
 def upper_bounds(residual: Residual, lo: Tensor, hi: Tensor) -> tuple[Tensor, Tensor]:
     """Upper bounds ``(B,)`` of the residual over the boxes ``[lo, hi] (B, n)`` (the tighter of the interval bound
     and the mean-value form ``f(c) + sum_i |df/dz_i over the box| r_i``), and lower bounds ``(B,)`` of the residual
@@ -177,6 +218,11 @@ def upper_bounds(residual: Residual, lo: Tensor, hi: Tensor) -> tuple[Tensor, Te
     upper = torch.where(torch.isnan(upper), math.inf, upper)
     low_centre = _combine_lower(residual, at_centre.lo)
     return residual.combine_upper(upper), low_centre
+
+
+def centre_lower(residual: Residual, lo: Tensor, hi: Tensor) -> Tensor:
+    """Lower bounds ``(B,)`` of the residual at the boxes' centres."""
+    return _combine_lower(residual, residual.components(Iv.point(radius(lo, hi)[0])).lo)
 
 
 def _combine_lower(residual: Residual, lower: Tensor) -> Tensor:
@@ -198,8 +244,8 @@ def _combine_lower(residual: Residual, lower: Tensor) -> Tensor:
 
 
 def value_lower(pair: Pair, lo: Tensor, hi: Tensor) -> Tensor:
-    """Lower bounds ``(B,)`` of V over the boxes ``[lo, hi] (B, n)``: the tighter of the interval bound and the
-    mean-value form ``V(c) - sum_i |dV/dz_i over the box| r_i``."""
+    """Lower bounds ``(B,)`` of V over the boxes ``[lo, hi] (B, n)``: the tightest of the affine form, the interval
+    bound and the mean-value form ``V(c) - sum_i |dV/dz_i over the box| r_i``."""
     n = lo.shape[1]
     centre, rad = radius(lo, hi)
     at_centre = pair.value_and_grad(Iv.point(centre))[0]
@@ -208,4 +254,5 @@ def value_lower(pair: Pair, lo: Tensor, hi: Tensor) -> Tensor:
     for i, t in enumerate(form.d):
         spread = spread + Iv.point(t.mag()) * Iv.point(rad[:, i])
     lower = torch.maximum(form.v.lo, (Iv.point(at_centre.lo) - spread).lo)
+    lower = torch.maximum(lower, pair.value_and_grad(Af.seed(lo, hi))[0].lo)
     return torch.where(torch.isnan(lower), -math.inf, lower)

@@ -16,8 +16,8 @@ from drlyap.cli.common import fail, run_source_options, run_system_of
 @click.option("--name", "names", multiple=True, type=click.Choice(["trained", "true-model"]),
               help="Which certificate to check (repeatable) [every one the run holds].")
 @click.option("--refine", type=click.IntRange(0, 12), default=3, show_default=True,
-              help="Times the checker may bisect a box its own bound does not prove (the verifier's affine bounds "
-                   "are tighter than the checker's).")
+              help="Times the checker may bisect a box its own bounds do not prove (the verifier's bounds may be "
+                   "tighter than the checker's).")
 @click.option("--json", "as_json", is_flag=True, help="Print one JSON object.")
 @run_source_options
 def check(run_dir: Path, names: tuple[str, ...], refine: int, as_json: bool, system_spec: str | None,

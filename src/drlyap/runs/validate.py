@@ -5,6 +5,7 @@ types and ranges, the samples against the system, the weights as tensors only (n
 from __future__ import annotations
 
 import dataclasses
+import io
 import json
 import math
 import pickle
@@ -71,11 +72,12 @@ def check_samples(path: Path, metrics: dict, k: int) -> None:
             raise RunDirError(f"{path}: {key} contains NaN, inf or non-numbers")
 
 
-def load_weights(path: Path) -> dict:
+def load_weights(path: Path, data: bytes | None = None) -> dict:
     """The state dicts in a weights file, read as tensors only (``weights_only``: no object is unpickled), every
-    one finite; a damaged file or non-finite weights are named as such."""
+    one finite; a damaged file or non-finite weights are named as such. ``data``: the file's bytes, already read
+    (what was hashed is then what is loaded)."""
     try:
-        weights = torch.load(path, map_location="cpu", weights_only=True)
+        weights = torch.load(path if data is None else io.BytesIO(data), map_location="cpu", weights_only=True)
     except FileNotFoundError:
         raise RunDirError(f"{path} is missing") from None
     except Exception as err:  # any failure to parse the bytes (torch's reader raises many kinds) is damage

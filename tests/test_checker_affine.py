@@ -1,0 +1,120 @@
+"""The checker's second-order forms (drlyap.checker.affine): every bound holds at dense samples of its boxes (corners
+included), the quadratic maximisation is never below a brute-force maximum, and the forms are tighter than
+intervals on small boxes (what they are for)."""
+
+import pytest
+import torch
+
+from drlyap.checker.affine import Af, quad_max
+from drlyap.checker.arith import Iv
+from drlyap.checker.model import Pair, Residual, affine_upper, sublevel_form_upper
+from drlyap.conditions import DRPointwise
+from drlyap.runs.certificates import condition_claim
+from handmade import linear_pair, small_pendulum
+
+F64 = torch.float64
+
+
+def boxes(count: int, k: int, width: float, seed: int) -> tuple[torch.Tensor, torch.Tensor]:
+    g = torch.Generator().manual_seed(seed)
+    lo = (torch.rand(count, k, generator=g, dtype=F64) * 2 - 1) * 2
+    return lo, lo + torch.rand(count, k, generator=g, dtype=F64) * width
+
+
+def points(lo: torch.Tensor, hi: torch.Tensor, count: int = 3000, seed: int = 1) -> torch.Tensor:
+    """``(count + 2^k, B, k)``: uniform samples and every corner of each box."""
+    k = lo.shape[-1]
+    g = torch.Generator().manual_seed(seed)
+    t = torch.rand(count, *lo.shape, generator=g, dtype=F64)
+    corners = torch.cartesian_prod(*[torch.tensor([0.0, 1.0], dtype=F64)] * k).reshape(-1, 1, k)
+    return lo + (hi - lo) * torch.cat([t, corners.expand(-1, *lo.shape)])
+
+
+G = torch.Generator().manual_seed(5)
+W1, B1, W2 = (torch.randn(6, 3, generator=G, dtype=F64), torch.randn(6, generator=G, dtype=F64),
+              torch.randn(2, 6, generator=G, dtype=F64))
+LOW, HIGH = torch.tensor(-0.5, dtype=F64), torch.tensor(1.0, dtype=F64)
+
+
+def expression(x):
+    """A network, the dynamics' functions, products, a quotient, a clamp, abs and a norm: ``(B, 3) -> (B, 7)``."""
+    h = x.linear(W1, B1).tanh()
+    y = h.linear(W2)
+    a = torch.sin(y[:, 0:1]) * torch.cos(x[:, 1:2]) + y[:, 1:2].square() - x[:, 0:1] / (2.5 + torch.cos(x[:, 2:3]))
+    a = a + torch.exp(x[:, 0:1] * 0.3) - (x.square().sum(-1) + 0.1).unsqueeze(-1).sqrt()
+    c = a.clamp(LOW, HIGH)
+    return torch.cat([a, c, x.norm().unsqueeze(-1), 1.0 - a, (a * c).abs(), y[..., 1:2] * 2.0, x[:, 0:1] ** 3], -1)
+
+
+@pytest.mark.parametrize("width", [0.02, 0.3, 2.0])
+def test_forms_enclose_dense_samples(width):
+    lo, hi = boxes(300, 3, width, seed=int(width * 100))
+    form = expression(Af.seed(lo, hi))
+    pts = points(lo, hi)
+    values = expression(Iv.point(pts.reshape(-1, 3)))
+    values = values.lo.reshape(pts.shape[0], 300, -1)
+    assert bool((values >= form.lo).all()), "a lower bound lies above a sampled value"
+    assert bool((values <= form.hi).all()), "an upper bound lies below a sampled value"
+
+
+def test_forms_are_tighter_than_intervals_on_small_boxes():
+    lo, hi = boxes(300, 3, 0.05, seed=9)
+    form, plain = expression(Af.seed(lo, hi)), expression(Iv(lo, hi))
+    pts = points(lo, hi, count=2000)
+    values = expression(Iv.point(pts.reshape(-1, 3))).lo.reshape(pts.shape[0], 300, -1)
+    true = values.amax(0) - values.amin(0)
+    column = 0  # the network through sin, cos, a quotient, exp and sqrt
+    assert float(((form.hi - form.lo)[:, column] / true[:, column]).median()) < 1.1
+    assert float(((plain.hi - plain.lo)[:, column] / true[:, column]).median()) > 2.0
+
+
+@pytest.mark.parametrize("k", [1, 3, 4])
+def test_quad_max_is_never_below_the_brute_force_maximum(k):
+    g = torch.Generator().manual_seed(k)
+    lin = torch.randn(500, k, generator=g, dtype=F64)
+    q = torch.randn(500, k, k, generator=g, dtype=F64)
+    grid = torch.linspace(-1, 1, 9 if k < 4 else 7, dtype=F64)
+    e = torch.cartesian_prod(*[grid] * k).reshape(-1, k)  # (P, k), the corners among them
+    values = (lin[:, None] * e).sum(-1) + torch.einsum("pi,bij,pj->bp", e, q, e)
+    top = quad_max(lin, q)
+    assert bool((top >= values.amax(-1)).all())
+    convex = q @ q.transpose(-1, -2)  # positive semidefinite: the maximum is at a corner, found exactly
+    corners = torch.cartesian_prod(*[torch.tensor([-1.0, 1.0], dtype=F64)] * k).reshape(-1, k)
+    exact = ((lin[:, None] * corners).sum(-1) + torch.einsum("pi,bij,pj->bp", corners, convex, corners)).amax(-1)
+    assert torch.allclose(quad_max(lin, convex), exact, rtol=1e-12, atol=1e-12)
+
+
+def test_a_norm_whose_argument_reaches_zero_is_enclosed():
+    lo, hi = boxes(400, 3, 1.0, seed=3)
+    lo[:100], hi[:100] = -hi[:100].abs(), hi[:100].abs()  # boxes around the origin
+    form = Af.seed(lo, hi).norm()
+    pts = points(lo, hi)
+    values = pts.norm(dim=-1)
+    assert bool((values >= form.lo).all()) and bool((values <= form.hi).all())
+    sqrt = Af.seed(lo - 0.5, hi)[:, 0].sqrt()  # outside the domain somewhere: the whole line there
+    assert bool(torch.isinf(sqrt.hi[(lo[:, 0] - 0.5) < 0]).all())
+
+
+def test_the_residual_and_its_sublevel_bound_hold_at_samples():
+    """On the hand-made pendulum pair: the residual's second-order bound over boxes is above the residual at every
+    sample, and the S-procedure's bound above it at every sample where V <= level."""
+    system = small_pendulum()
+    lyap, ctrl = linear_pair(system)
+    weights = {"lyapunov": lyap.state_dict(), "controller": ctrl.state_dict()}
+    xi = torch.tensor([[0.02, 0.01], [-0.03, 0.0], [0.05, -0.02]], dtype=F64)
+    residual = Residual(condition_claim(DRPointwise(0.01, 0.3, xi, decay_rate=0.05)), Pair(weights, lyap.alpha_hat,
+                                                                                          2), system)
+    lo, hi = boxes(200, 2, 0.4, seed=11)
+    pts = points(lo, hi, count=1500)
+    comps, value = residual.terms(Iv.point(pts.reshape(-1, 2)))
+    actual = residual.combine_upper(comps.hi).reshape(pts.shape[0], 200)
+    assert bool((actual <= affine_upper(residual, lo, hi)).all())
+    v = value.hi.reshape(pts.shape[0], 200)
+    level = float(v.median())
+    bound = affine_upper(residual, lo, hi, level)
+    where = v <= level
+    assert bool((torch.where(where, actual, -torch.inf) <= bound).all())
+    forms, values = residual.terms(Af.seed(lo, hi))
+    per_component = sublevel_form_upper(forms, values, level)  # (B, Q)
+    sampled = comps.hi.reshape(pts.shape[0], 200, -1)
+    assert bool((torch.where(where[..., None], sampled, -torch.inf) <= per_component).all())
