@@ -5,7 +5,7 @@ intervals on small boxes (what they are for)."""
 import pytest
 import torch
 
-from drlyap.checker.affine import Af, quad_max
+from drlyap.checker.affine import Af, _quick_span, quad_max
 from drlyap.checker.arith import Iv
 from drlyap.checker.model import Pair, Residual, affine_upper, sublevel_form_upper
 from drlyap.conditions import DRPointwise
@@ -76,12 +76,29 @@ def test_quad_max_is_never_below_the_brute_force_maximum(k):
     grid = torch.linspace(-1, 1, 9 if k < 4 else 7, dtype=F64)
     e = torch.cartesian_prod(*[grid] * k).reshape(-1, k)  # (P, k), the corners among them
     values = (lin[:, None] * e).sum(-1) + torch.einsum("pi,bij,pj->bp", e, q, e)
-    top = quad_max(lin, q)
-    assert bool((top >= values.amax(-1)).all())
+    for dual in (False, True):
+        assert bool((quad_max(lin, q, dual=dual) >= values.amax(-1)).all())
+    quick = _quick_span(lin, q)  # the cheap bound used inside products
+    assert bool((quick.hi >= values.amax(-1)).all()) and bool((quick.lo <= values.amin(-1)).all())
     convex = q @ q.transpose(-1, -2)  # positive semidefinite: the maximum is at a corner, found exactly
     corners = torch.cartesian_prod(*[torch.tensor([-1.0, 1.0], dtype=F64)] * k).reshape(-1, k)
     exact = ((lin[:, None] * corners).sum(-1) + torch.einsum("pi,bij,pj->bp", corners, convex, corners)).amax(-1)
     assert torch.allclose(quad_max(lin, convex), exact, rtol=1e-12, atol=1e-12)
+
+
+def test_the_dual_bound_sees_curvature_along_mixed_directions():
+    """``q`` curved downward along ``(1, 1, ..)`` with a linear part along it: the corner bound cannot see that the
+    two cancel, the dual bound does; both stay above the brute-force maximum."""
+    k = 4
+    g = torch.Generator().manual_seed(7)
+    ones = torch.ones(k, dtype=F64)
+    q = -3.0 * torch.outer(ones, ones).expand(200, k, k) + 0.05 * torch.randn(200, k, k, generator=g, dtype=F64)
+    lin = 2.0 * ones + 0.1 * torch.randn(200, k, generator=g, dtype=F64)
+    e = torch.cartesian_prod(*[torch.linspace(-1, 1, 11, dtype=F64)] * k).reshape(-1, k)
+    brute = ((lin[:, None] * e).sum(-1) + torch.einsum("pi,bij,pj->bp", e, q, e)).amax(-1)
+    corner, dual = quad_max(lin, q), quad_max(lin, q, dual=True)
+    assert bool((dual >= brute).all()) and bool((dual <= corner).all())
+    assert float((dual - brute).median()) < 0.5 * float((corner - brute).median())
 
 
 def test_a_norm_whose_argument_reaches_zero_is_enclosed():

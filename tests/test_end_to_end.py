@@ -83,3 +83,20 @@ def test_default_mountain_car_dr_seed_1_stabilises_at_the_test_shift(tmp_path):
     x0 = initial_states(system, 200, torch.Generator().manual_seed(7))
     res = evaluate(system, run.controller, x0, torch.tensor(system.test_xi, dtype=torch.float64))
     assert int(res["n_success"]) >= 195
+
+
+@pytest.mark.slow
+def test_the_checker_confirms_the_default_cartpole_certificate(tmp_path):
+    """The cart-pole's default DR pair is proved on {V <= 1} with the verifier's affine forms; the independent
+    checker re-proves every leaf of that certificate with its own second-order forms."""
+    from click.testing import CliRunner
+
+    from drlyap.cli import main
+
+    out = CliRunner().invoke(main, ["train", "cartpole", "--seed", "0", "--quiet", "--out", str(tmp_path / "cp")])
+    assert out.exit_code == 0, out.output
+    assert out.output.strip().splitlines()[-1].startswith("certificate: VERIFIED")
+    checked = CliRunner().invoke(main, ["check", str(tmp_path / "cp"), "--json"])
+    assert checked.exit_code == 0, checked.output
+    result = json.loads(checked.output)["certificates"][0]
+    assert result["ok"] and result["proved"] > 0 and not result["failures"]

@@ -15,9 +15,9 @@ the operation can take:
   ``[a, b]`` (``tanh``: the minimum-range slope; ``sqrt``: the chord, concave remainder; ``clamp``: the chord,
   piecewise-linear remainder; ``1/x``: the midpoint's derivative and a second-derivative bound), or a second-order
   Taylor form at the midpoint with a third-derivative bound (``tanh sin cos exp``); where the interval enclosure of
-  ``f`` is much narrower, that interval as a constant form;
+  ``f`` is three times narrower, that interval as a constant form;
 * the range of ``l . e + e^T q e`` is bounded by :func:`quad_max` (every corner of the cube, after replacing the
-  concave diagonal terms by tangents);
+  concave diagonal terms by tangents; for final bounds also a dual bound through a semidefinite ``t I - q``);
 * rounding: the coefficients are computed with round-to-nearest, and the remainder grows by a bound of their
   rounding errors (``(m + 2) eps`` times the magnitudes of the ``m`` terms each was summed from); the remainder's
   own arithmetic is outward rounded. A NaN or infinity anywhere makes the remainder the whole line.
@@ -25,10 +25,20 @@ the operation can take:
 
 from __future__ import annotations
 
+import math
+
 import torch
 from torch import Tensor
 
 from drlyap.checker.arith import EPS, F64, INF, TINY, Iv, _Ops, _t
+
+PICK_RATIO = 3.0
+"""A function's interval enclosure replaces its form where it is this many times narrower: the form keeps the
+dependence on the box (a norm whose argument reaches 0 is worth a form twice as wide as its interval, once the
+residual sums it with the rest)."""
+BEST_RATIO = 1.5
+CORNERS_IN_PRODUCTS = False
+"""Of two forms of a function, the one with the smaller remainder unless it is this many times wider."""
 
 
 def _up(x: Tensor) -> Tensor:
@@ -47,13 +57,14 @@ def _nonneg_sum(*terms: Tensor) -> Tensor:
 class Af(_Ops):
     """Second-order forms ``c + l . e + e^T q e + r`` over a batch of boxes (see the module's docstring)."""
 
-    __slots__ = ("c", "l", "q", "r")
+    __slots__ = ("c", "l", "q", "r", "_range")
     level = 0
     affine = True
 
     def __init__(self, c: Tensor, lin: Tensor, q: Tensor, r: Iv) -> None:
-        bad = ~(torch.isfinite(c) & torch.isfinite(lin).all(-1) & torch.isfinite(q).flatten(-2).all(-1))
-        bad = bad | torch.isnan(r.lo) | torch.isnan(r.hi)
+        total = c + lin.sum(-1) + q.flatten(-2).sum(-1)  # NaN or inf anywhere stays non-finite in the sum
+        bad = ~torch.isfinite(total) | torch.isnan(r.lo) | torch.isnan(r.hi)
+        self._range: Iv | None = None
         self.c = torch.where(bad, 0.0, c)
         self.l = torch.where(bad[..., None], 0.0, lin)
         self.q = torch.where(bad[..., None, None], 0.0, q)
@@ -96,17 +107,27 @@ class Af(_Ops):
     def _qmag(self) -> Tensor:
         return self.q.abs().flatten(-2).sum(-1)
 
-    def _span(self) -> Iv:
-        """Bounds of ``l . e + e^T q e`` over ``e in [-1, 1]^k`` (:func:`quad_max` of it and of its negation)."""
-        return Iv(-quad_max(-self.l, -self.q), quad_max(self.l, self.q))
+    def _span(self, dual: bool = False, corners: bool = True) -> Iv:
+        """Bounds of ``l . e + e^T q e`` over ``e in [-1, 1]^k`` (:func:`quad_max` of it and of its negation;
+        without ``corners``, :func:`_quick_span`)."""
+        if not corners:
+            return _quick_span(self.l, self.q)
+        return Iv(-quad_max(-self.l, -self.q, dual), quad_max(self.l, self.q, dual))
 
-    def _qrange(self) -> Iv:
+    def _qrange(self, corners: bool = True) -> Iv:
         """Bounds of ``e^T q e`` alone."""
         zero = torch.zeros_like(self.l)
+        if not corners:
+            return _quick_span(zero, self.q)
         return Iv(-quad_max(zero, -self.q), quad_max(zero, self.q))
 
-    def interval(self) -> Iv:
-        return Iv.point(self.c) + self._span() + self.r
+    def interval(self, dual: bool = False) -> Iv:
+        """The form's range; ``dual``: with the tighter, costlier bound of its quadratic part (:func:`quad_max`)."""
+        if dual:
+            return Iv.point(self.c) + self._span(True) + self.r
+        if self._range is None:  # forms are not changed once made: their range is kept
+            self._range = Iv.point(self.c) + self._span() + self.r
+        return self._range
 
     @property
     def lo(self) -> Tensor:
@@ -115,6 +136,10 @@ class Af(_Ops):
     @property
     def hi(self) -> Tensor:
         return self.interval().hi
+
+    def rough_width(self) -> Tensor:
+        """An upper bound of the width from magnitudes alone (cheap: what chooses between forms, not a bound)."""
+        return 2 * (self._lmag() + self._qmag()) + (self.r.hi - self.r.lo)
 
     def width(self) -> Tensor:
         rng = self.interval()
@@ -199,8 +224,8 @@ class Af(_Ops):
         lin = c1[..., None] * o.l + c2[..., None] * self.l
         q = self.l[..., :, None] * o.l[..., None, :] + c1[..., None, None] * o.q + c2[..., None, None] * self.q
         a1 = self._lmag()
-        rest = (Iv.point(c1) * o.r + Iv.point(c2) * self.r + Iv(-a1, a1) * (o._qrange() + o.r)
-                + (self._qrange() + self.r) * (o._span() + o.r))
+        rest = (Iv.point(c1) * o.r + Iv.point(c2) * self.r + Iv(-a1, a1) * (o._qrange(CORNERS_IN_PRODUCTS) + o.r)
+                + (self._qrange(CORNERS_IN_PRODUCTS) + self.r) * (o._span(corners=CORNERS_IN_PRODUCTS) + o.r))
         return Af(c, lin, q, self._padded(rest, 4 * EPS * self._mags(c, lin, q)))
 
     def square(self) -> Af:
@@ -240,11 +265,11 @@ class Af(_Ops):
         return out.add(g)
 
     def _pick(self, form: Af, enclosure: Iv) -> Af:
-        """Per element, ``form``, or the interval ``enclosure`` as a constant form where that is much narrower (the
-        form keeps the dependence on the box's coordinates, worth a wider range: a monotone function's minimum-range
-        form is exactly as wide as its interval)."""
+        """Per element, ``form``, or the interval ``enclosure`` as a constant form where that is :data:`PICK_RATIO`
+        times narrower (the form keeps the dependence on the box's coordinates, worth a wider range: a monotone
+        function's minimum-range form is exactly as wide as its interval)."""
         flat = self.constant(enclosure)
-        return _where(form.width() <= 1.5 * flat.width(), form, flat)
+        return _where(form.rough_width() <= PICK_RATIO * flat.rough_width(), form, flat)
 
     def _taylor(self, f, df, d2_mag, enclosure: Iv) -> Af:
         """``f`` linearised at the range's midpoint ``m``: ``g = f(m) - s m +- (M2 rad^2 / 2 + |f'(m) - s| rad)`` with
@@ -284,7 +309,7 @@ class Af(_Ops):
         best = forms[0]
         for other in forms[1:]:
             smaller = (other.r.hi - other.r.lo) < (best.r.hi - best.r.lo)
-            best = _where(smaller & (other.width() <= 1.5 * best.width()), other, best)
+            best = _where(smaller & (other.rough_width() <= BEST_RATIO * best.rough_width()), other, best)
         return self._pick(best, enclosure)
 
     def tanh(self) -> Af:
@@ -399,18 +424,19 @@ def _vertices(k: int) -> Tensor:
     return torch.cartesian_prod(*[torch.tensor([-1.0, 1.0], dtype=F64)] * k).reshape(-1, k)
 
 
-def quad_max(lin: Tensor, q: Tensor) -> Tensor:
+def quad_max(lin: Tensor, q: Tensor, dual: bool = False, corners: bool = True) -> Tensor:
     """An upper bound ``(...)`` of ``max over e in [-1, 1]^k of lin . e + e^T q e`` (``lin (..., k)``, ``q (..., k,
     k)``). A concave diagonal term ``q_ii e_i^2`` (``q_ii < 0``) lies below its tangent at ``t_i`` (the coordinate's
     own maximiser ``-lin_i / (2 q_ii)`` clipped to ``[-1, 1]``): ``q_ii (2 t_i e_i - t_i^2)``; what remains is convex
     in each coordinate alone, so its maximum over the cube is at a corner, and every corner is evaluated. Above
     ``k = 10`` coordinates, each coordinate's term exactly and the cross terms by their magnitudes. Padded for the
-    rounding of the float64 sums."""
+    rounding of the float64 sums. ``dual``: also :func:`_dual_max`, and the smaller of the two (an eigen-
+    decomposition and a factorisation per entry: used for final bounds, not inside every product)."""
     k = lin.shape[-1]
     diag = torch.diagonal(q, dim1=-2, dim2=-1)
     mag = lin.abs().sum(-1) + 2.0 * q.abs().flatten(-2).sum(-1)
     pad = 4 * (k * k + k + 8) * EPS * mag + TINY
-    if k > _MAX_VERTICES_K:
+    if k > _MAX_VERTICES_K or not corners:
         a = lin.abs()
         sym = (q + q.transpose(-1, -2)).abs().flatten(-2).sum(-1)
         cross = (sym - 2 * diag.abs().sum(-1)).clamp(min=0.0) / 2
@@ -424,7 +450,58 @@ def quad_max(lin: Tensor, q: Tensor) -> Tensor:
     corners = _vertices(k)
     outer = (corners[:, :, None] * corners[:, None, :]).reshape(corners.shape[0], k * k)
     values = lin_t @ corners.T + q_t.reshape(*q.shape[:-2], k * k) @ outer.T
-    return _up(values.amax(-1) - (concave * t * t).sum(-1) + pad)
+    corner = _up(values.amax(-1) - (concave * t * t).sum(-1) + pad)
+    return torch.minimum(corner, _dual_max(lin, q)) if dual else corner
+
+
+def _quick_span(lin: Tensor, q: Tensor) -> Iv:
+    """Bounds of ``lin . e + e^T q e`` over the cube, cheaply: each coordinate's ``q_ii e_i^2 + lin_i e_i`` exactly
+    (its ends and vertex), the cross terms ``(q_ij + q_ji) e_i e_j`` by their magnitudes; padded for rounding."""
+    k = lin.shape[-1]
+    diag = torch.diagonal(q, dim1=-2, dim2=-1)
+    a = lin.abs()
+    total = (q + q.transpose(-1, -2)).abs().flatten(-2).sum(-1)
+    cross = (total - 2 * diag.abs().sum(-1)).clamp(min=0.0) / 2
+    vertex = -(lin * lin) / (4 * torch.where(diag != 0, diag, 1.0))
+    top = torch.where((diag < 0) & (a < -2 * diag), vertex, diag + a).sum(-1)
+    bottom = torch.where((diag > 0) & (a < 2 * diag), vertex, diag - a).sum(-1)
+    pad = 4 * (k * k + k + 8) * EPS * (a.sum(-1) + 2.0 * q.abs().flatten(-2).sum(-1)) + TINY
+    return Iv(torch.nextafter(bottom - cross - pad, torch.full_like(bottom, -INF)), _up(top + cross + pad))
+
+
+def _dual_max(lin: Tensor, q: Tensor) -> Tensor:
+    """A second upper bound of ``max over e in [-1, 1]^k of lin . e + e^T q e``, for ``q`` curved downward along
+    directions that mix the coordinates (which the corner bound cannot see). For ``M = t I - q_s`` positive
+    semidefinite (``q_s`` the symmetric part) and any ``y``: ``-e^T M e <= -2 y^T M e + y^T M y``, so the function is
+    at most ``max(t, 0) k + sum |lin - 2 M y| + y^T M y``. ``t`` is chosen on a geometric grid above the largest
+    eigenvalue (estimated), ``y = M^-1 lin / 2``; the bound needs ``M`` semidefinite only, established by a Cholesky
+    factorisation of ``M - p I`` with ``p`` above its backward error (``2 (k + 1)^2 eps max_i M_ii``).
+    ``inf`` where that fails or an input is not finite."""
+    k = lin.shape[-1]
+    finite = torch.isfinite(lin).all(-1) & torch.isfinite(q).flatten(-2).all(-1)
+    lin = torch.where(finite[..., None], lin, 0.0)
+    q = torch.where(finite[..., None, None], q, 0.0)
+    sym_pad = EPS * q.abs().flatten(-2).sum(-1)
+    qs = (q + q.transpose(-1, -2)) / 2
+    lam, vec = torch.linalg.eigh(qs)
+    lv = (vec.transpose(-1, -2) @ lin[..., None])[..., 0]
+    scale = (lin.norm(dim=-1, keepdim=True) / (2 * math.sqrt(k))).clamp(min=TINY)
+    steps = 2.0 ** torch.arange(-14, 15, dtype=F64)
+    grid = lam[..., -1:] + scale * steps + 1e-10 * qs.flatten(-2).norm(dim=-1)[..., None]
+    guess = grid.clamp(min=0.0) * k + 0.25 * (lv[..., None, :] ** 2 / (grid[..., None] - lam[..., None, :])).sum(-1)
+    t = grid.gather(-1, guess.argmin(-1, keepdim=True))[..., 0]
+    y = 0.5 * (vec @ (lv / (t[..., None] - lam))[..., None])[..., 0]
+    eye = torch.eye(k, dtype=F64)
+    m = t[..., None, None] * eye - qs
+    diag = torch.diagonal(m, dim1=-2, dim2=-1)
+    backward = 2 * (k + 1) ** 2 * EPS * diag.abs().amax(-1) + TINY
+    semidefinite = torch.linalg.cholesky_ex(m - backward[..., None, None] * eye).info == 0
+    my = (m @ y[..., None])[..., 0]
+    mag_my = (m.abs() @ y.abs()[..., None])[..., 0]
+    value = t.clamp(min=0.0) * k + (lin - 2 * my).abs().sum(-1) + (y * my).sum(-1)
+    pad = 8 * (k + 2) * EPS * (lin.abs().sum(-1) + 2 * mag_my.sum(-1) + (y.abs() * mag_my).sum(-1) + t.abs() * k)
+    value = _up(value + pad + 4 * k * k * sym_pad + 2 * EPS * m.abs().flatten(-2).sum(-1) + TINY)
+    return torch.where(finite & semidefinite & torch.isfinite(value), value, INF)
 
 
 def _where(mask: Tensor, a: Af, b: Af) -> Af:

@@ -2,8 +2,8 @@
 
 What the checker takes on trust (its trust base): the float64 arithmetic of the machine with round-to-nearest, the
 library functions ``sin cos tanh exp sqrt`` to within 8 ulps, torch's elementwise operations and matrix products as
-used in :mod:`drlyap.checker.arith` and :mod:`drlyap.checker.affine` (whose results it pads outward), numpy's
-reading of the arrays file, and the
+used in :mod:`drlyap.checker.arith` and :mod:`drlyap.checker.affine` (whose results it pads outward), the backward
+error bound of a Cholesky factorisation (the dual bound's semidefiniteness), numpy's reading of the arrays file, and the
 system's dynamics function (the user's code, run on the checker's intervals). What it re-derives: every box (from the
 state box, the starting grid and the splits; the file stores no coordinates, so the boxes cover the box by
 construction), that every leaf is proved, that leaves said to lie in the delta-ball do, the sha256 of the weights and
@@ -34,8 +34,9 @@ import numpy as np
 import torch
 from torch import Tensor
 
+from drlyap.checker.affine import Af
 from drlyap.checker.arith import EPS, F64, Iv
-from drlyap.checker.model import Pair, Residual, affine_upper, centre_lower, upper_bounds, value_lower
+from drlyap.checker.model import Pair, Residual, centre_lower, form_upper, upper_bounds, value_lower
 from drlyap.render import claim_sentence
 
 INTERNAL, PROVED, INSIDE_BALL, ABOVE_LEVEL = 0, 1, 2, 3
@@ -164,13 +165,19 @@ def _holds(residual: Residual, lo: Tensor, hi: Tensor, level: float | None, batc
     ok, low = [torch.zeros(0, dtype=torch.bool)], [torch.zeros(0, dtype=F64)]
     for i in range(0, lo.shape[0], batch):
         a, b = lo[i:i + batch], hi[i:i + batch]
+        comps, value = residual.terms(Af.seed(a, b))  # the second-order forms of the residual and V, once
         good = torch.zeros(a.shape[0], dtype=torch.bool)
         if level is not None:
-            good = value_lower(residual.pair, a, b) > level
-        for bound in (lambda *args: affine_upper(*args, level), lambda *args: upper_bounds(*args)[0]):
-            rest = (~good).nonzero().squeeze(-1)  # the mean-value form where the second-order one fails
-            if rest.numel():
-                good[rest] = bound(residual, a[rest], b[rest]) <= 0
+            good = value.interval(dual=True).lo > level
+        rest = (~good).nonzero().squeeze(-1)
+        if rest.numel():
+            good[rest] = form_upper(residual, comps[rest], value[rest], level) <= 0
+        rest = (~good).nonzero().squeeze(-1)
+        if rest.numel():  # the interval and mean-value bounds, where the forms did not prove the box
+            more = upper_bounds(residual, a[rest], b[rest])[0] <= 0
+            if level is not None:
+                more = more | (value_lower(residual.pair, a[rest], b[rest]) > level)
+            good[rest] = more
         centre_low = centre_lower(residual, a, b)
         if level is not None:
             v_centre = residual.pair.value_and_grad(Iv.point((a + b) / 2))[0].hi

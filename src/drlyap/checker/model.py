@@ -177,29 +177,48 @@ def affine_upper(residual: Residual, lo: Tensor, hi: Tensor, level: float | None
     ``V <= level`` only, by the S-procedure: for any ``lam >= 0``, ``R <= R - lam (V - level)`` there, and the
     right side is again a form of the box's coordinates, bounded as one; the least bound over
     :data:`MULTIPLIERS`, for each component."""
-    comps, value = residual.terms(Af.seed(lo, hi))
-    if level is None:
-        upper = comps.hi
-    else:
-        upper = sublevel_form_upper(comps, value, level)
-    return residual.combine_upper(torch.where(torch.isnan(upper), math.inf, upper))
+    return form_upper(residual, *residual.terms(Af.seed(lo, hi)), level)
 
 
-def sublevel_form_upper(comps: Af, value: Af, level: float) -> Tensor:
+def form_upper(residual: Residual, comps: Af, value: Af, level: float | None) -> Tensor:
+    """:func:`affine_upper` from the forms of the components ``(B, Q)`` and of V ``(B,)``: first with the corner
+    bound of the quadratic parts, then, for the boxes that leaves above 0, with the dual bound too."""
+    def bound(c: Af, v: Af, dual: bool) -> Tensor:
+        if level is None:
+            upper = c.interval(dual=dual).hi
+        else:
+            upper = sublevel_form_upper(c, v, level, dual)
+        return residual.combine_upper(torch.where(torch.isnan(upper), math.inf, upper))
+
+    upper = bound(comps, value, False)
+    again = (upper > 0).nonzero().squeeze(-1)
+    if again.numel():
+        upper[again] = torch.minimum(upper[again], bound(comps[again], value[again], True))
+    return upper
+
+
+def sublevel_form_upper(comps: Af, value: Af, level: float, dual: bool = True) -> Tensor:
     """``min over lam`` of an upper bound of ``comps - lam (value - level)`` (``comps (B, Q)``, ``value (B,)``
-    forms of the same boxes) over the boxes: ``(B, Q)``."""
+    forms of the same boxes) over the boxes: ``(B, Q)``, each multiplier's quadratic part bounded by the smaller of
+    the corner and (``dual``) the dual bound (:func:`~drlyap.checker.affine.quad_max`)."""
     lam = torch.tensor(MULTIPLIERS, dtype=F64)  # (L,)
+    return _s_procedure(comps, value, level, lam.expand(*comps.shape, -1), dual=dual).amin(-1)
+
+
+def _s_procedure(comps: Af, value: Af, level: float, lam: Tensor, dual: bool) -> Tensor:
+    """Upper bounds ``(B, Q, L)`` of ``comps - lam (value - level)`` for multipliers ``lam (B, Q, L)`` (powers of
+    two: the products with them are exact)."""
     shift = value.c - level  # (B,)
     c = comps.c[..., None] - lam * shift[:, None, None]  # (B, Q, L)
-    lin = comps.l[:, :, None, :] - lam[:, None] * value.l[:, None, None, :]
-    q = comps.q[:, :, None] - lam[:, None, None] * value.q[:, None, None]
+    lin = comps.l[:, :, None, :] - lam[..., None] * value.l[:, None, None, :]
+    q = comps.q[:, :, None] - lam[..., None, None] * value.q[:, None, None]
     mag = (c.abs() + lam * shift.abs()[:, None, None] + lin.abs().sum(-1) + q.abs().flatten(-2).sum(-1)
            + lam * (value.l.abs().sum(-1) + value.q.abs().flatten(-2).sum(-1))[:, None, None])
     rest = comps.r.hi[..., None] - lam * value.r.lo[:, None, None]
-    top = c + quad_max(lin, q) + rest
+    top = c + quad_max(lin, q, dual=dual) + rest
     upper = top + 8 * EPS * (mag + rest.abs() + top.abs()) + TINY
     upper = torch.nextafter(upper, torch.full_like(upper, math.inf))
-    return torch.where(torch.isnan(upper), math.inf, upper).amin(-1)
+    return torch.where(torch.isnan(upper), math.inf, upper)
 
 
 def upper_bounds(residual: Residual, lo: Tensor, hi: Tensor) -> tuple[Tensor, Tensor]:
@@ -254,5 +273,5 @@ def value_lower(pair: Pair, lo: Tensor, hi: Tensor) -> Tensor:
     for i, t in enumerate(form.d):
         spread = spread + Iv.point(t.mag()) * Iv.point(rad[:, i])
     lower = torch.maximum(form.v.lo, (Iv.point(at_centre.lo) - spread).lo)
-    lower = torch.maximum(lower, pair.value_and_grad(Af.seed(lo, hi))[0].lo)
+    lower = torch.maximum(lower, pair.value_and_grad(Af.seed(lo, hi))[0].interval(dual=True).lo)
     return torch.where(torch.isnan(lower), -math.inf, lower)
