@@ -165,13 +165,12 @@ def _holds(residual: Residual, lo: Tensor, hi: Tensor, level: float | None, batc
     ok, low = [torch.zeros(0, dtype=torch.bool)], [torch.zeros(0, dtype=F64)]
     for i in range(0, lo.shape[0], batch):
         a, b = lo[i:i + batch], hi[i:i + batch]
-        comps, value = residual.terms(Af.seed(a, b))  # the second-order forms of the residual and V, once
         good = torch.zeros(a.shape[0], dtype=torch.bool)
-        if level is not None:
-            good = value.interval(dual=True).lo > level
+        if level is not None:  # V alone first: above the level, nothing is claimed
+            good = residual.pair.value(Af.seed(a, b)).interval(dual=True).lo > level
         rest = (~good).nonzero().squeeze(-1)
-        if rest.numel():
-            good[rest] = form_upper(residual, comps[rest], value[rest], level) <= 0
+        if rest.numel():  # the second-order forms of the residual and V, together
+            good[rest] = form_upper(residual, *residual.terms(Af.seed(a[rest], b[rest])), level) <= 0
         rest = (~good).nonzero().squeeze(-1)
         if rest.numel():  # the interval and mean-value bounds, where the forms did not prove the box
             more = upper_bounds(residual, a[rest], b[rest])[0] <= 0

@@ -62,6 +62,12 @@ class Pair:
         self.alpha_hat, self.n = float(alpha_hat), n
         self.phi0, self.varphi0 = self.phi.at_origin(n), self.varphi.at_origin(n)
 
+    def value(self, z):
+        """V alone (no gradient): ``||phi(z) - phi(0)||^2 + alpha_hat ||z / s||^2``."""
+        d = self.phi.forward(z)[0] - self.phi0
+        zs = z / self.phi.scale
+        return d.square().sum(-1) + zs.square().sum(-1) * self.alpha_hat
+
     def value_and_grad(self, z) -> tuple[object, object]:
         out, hidden = self.phi.forward(z)
         d = out - self.phi0
