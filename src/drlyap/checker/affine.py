@@ -65,10 +65,12 @@ class Af(_Ops):
         total = c + lin.sum(-1) + q.flatten(-2).sum(-1)  # NaN or inf anywhere stays non-finite in the sum
         bad = ~torch.isfinite(total) | torch.isnan(r.lo) | torch.isnan(r.hi)
         self._range: Iv | None = None
-        self.c = torch.where(bad, 0.0, c)
-        self.l = torch.where(bad[..., None], 0.0, lin)
-        self.q = torch.where(bad[..., None, None], 0.0, q)
-        self.r = Iv(torch.where(bad, -INF, r.lo), torch.where(bad, INF, r.hi))
+        self.c, self.l, self.q, self.r = c, lin, q, r
+        if bool(bad.any()):
+            self.c = torch.where(bad, 0.0, c)
+            self.l = torch.where(bad[..., None], 0.0, lin)
+            self.q = torch.where(bad[..., None, None], 0.0, q)
+            self.r = Iv(torch.where(bad, -INF, r.lo), torch.where(bad, INF, r.hi))
 
     # ---- construction
     @staticmethod

@@ -159,18 +159,25 @@ def _widest_split(lo: Tensor, hi: Tensor, scale: Tensor) -> tuple[Tensor, Tensor
     return torch.cat([lo, lo2]), torch.cat([hi1, hi])
 
 
-def _holds(residual: Residual, lo: Tensor, hi: Tensor, level: float | None, batch: int) -> tuple[Tensor, Tensor]:
+def _holds(residual: Residual, lo: Tensor, hi: Tensor, level: float | None, batch: int,
+           above: Tensor) -> tuple[Tensor, Tensor]:
     """``(B,)``: boxes on which the residual is proved ``<= 0`` (or, with a level, V is proved ``> level``), and lower
-    bounds of the residual at the centres ``(B,)`` (``-inf`` where V may exceed the level there)."""
+    bounds of the residual at the centres ``(B,)`` (``-inf`` where V may exceed the level there). ``above (B,)``:
+    where to try V alone first."""
     ok, low = [torch.zeros(0, dtype=torch.bool)], [torch.zeros(0, dtype=F64)]
     for i in range(0, lo.shape[0], batch):
         a, b = lo[i:i + batch], hi[i:i + batch]
         good = torch.zeros(a.shape[0], dtype=torch.bool)
-        if level is not None:  # V alone first: above the level, nothing is claimed
-            good = residual.pair.value(Af.seed(a, b)).interval(dual=True).lo > level
+        first = above[i:i + batch].nonzero().squeeze(-1) if level is not None else above[:0].nonzero().squeeze(-1)
+        if first.numel():  # V alone: above the level, nothing is claimed
+            good[first] = residual.pair.value(Af.seed(a[first], b[first])).interval(dual=True).lo > level
         rest = (~good).nonzero().squeeze(-1)
         if rest.numel():  # the second-order forms of the residual and V, together
-            good[rest] = form_upper(residual, *residual.terms(Af.seed(a[rest], b[rest])), level) <= 0
+            comps, value = residual.terms(Af.seed(a[rest], b[rest]))
+            more = form_upper(residual, comps, value, level) <= 0
+            if level is not None:
+                more = more | (value.interval(dual=True).lo > level)
+            good[rest] = more
         rest = (~good).nonzero().squeeze(-1)
         if rest.numel():  # the interval and mean-value bounds, where the forms did not prove the box
             more = upper_bounds(residual, a[rest], b[rest])[0] <= 0
@@ -187,11 +194,15 @@ def _holds(residual: Residual, lo: Tensor, hi: Tensor, level: float | None, batc
 
 
 def prove_boxes(residual: Residual, lo: Tensor, hi: Tensor, scale: Tensor, refine: int, level: float | None = None,
-                batch: int = 4096) -> tuple[Tensor, Tensor, int, int]:
+                batch: int = 4096, above: Tensor | None = None) -> tuple[Tensor, Tensor, int, int]:
     """Re-prove ``residual <= 0`` on boxes ``(B, n)`` (with ``level``: at the boxes' states where ``V <= level``):
     ``ok (B,)``, lower bounds of the residual at the centres ``(B,)``, and how many boxes needed bisection and into
-    how many pieces in all."""
-    ok, centre_low = _holds(residual, lo, hi, level, batch)
+    how many pieces in all. ``above (B,)``: boxes to try ``V > level`` on first (the certificate's word, a hint
+    only: each box is proved one way or the other whatever it says)."""
+    above = torch.zeros(lo.shape[0], dtype=torch.bool) if above is None else above
+    order = torch.argsort(above.to(torch.int8), stable=True)  # the hinted boxes together, so that batches share a path
+    ok, centre_low = torch.empty_like(above), torch.empty(lo.shape[0], dtype=F64)
+    ok[order], centre_low[order] = _holds(residual, lo[order], hi[order], level, batch, above[order])
     todo = (~ok).nonzero().squeeze(-1)
     refined, pieces = int(todo.numel()), 0
     owner, plo, phi = todo, lo[todo], hi[todo]
@@ -199,7 +210,7 @@ def prove_boxes(residual: Residual, lo: Tensor, hi: Tensor, scale: Tensor, refin
         plo, phi = _widest_split(plo, phi, scale)
         owner = owner.repeat(2)
         pieces += int(plo.shape[0])
-        failed = ~_holds(residual, plo, phi, level, batch)[0]
+        failed = ~_holds(residual, plo, phi, level, batch, above[owner])[0]
         plo, phi, owner = plo[failed], phi[failed], owner[failed]
         if not owner.numel():
             break
@@ -283,7 +294,8 @@ def check_certificate(run_dir: str | Path, name: str, header: dict, arrays: dict
     if not bool(inside.all()):
         out.failures.append(f"{int((~inside).sum())} boxes said to lie in the open ball ||z|| < {delta:g} do not")
     proved = ((verdict == PROVED) | (verdict == ABOVE_LEVEL)).nonzero().squeeze(-1)
-    ok, centre_low, out.refined, out.pieces = prove_boxes(residual, blo[proved], bhi[proved], hi - lo, refine, level)
+    ok, centre_low, out.refined, out.pieces = prove_boxes(residual, blo[proved], bhi[proved], hi - lo, refine, level,
+                                                          above=verdict[proved] == ABOVE_LEVEL)
     out.proved = int(ok.sum())
     if not bool(ok.all()):
         first = proved[~ok][0]

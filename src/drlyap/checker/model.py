@@ -175,6 +175,8 @@ def radius(lo: Tensor, hi: Tensor) -> tuple[Tensor, Tensor]:
 
 MULTIPLIERS = [0.0] + [2.0 ** j for j in range(-6, 11)]
 """The S-procedure's multipliers: powers of two, so that multiplying a form by one is exact."""
+DUAL_TRIES = 4
+"""How many of the multipliers (those with the least corner bound) are tried again with the dual bound."""
 
 
 def affine_upper(residual: Residual, lo: Tensor, hi: Tensor, level: float | None = None) -> Tensor:
@@ -207,8 +209,12 @@ def sublevel_form_upper(comps: Af, value: Af, level: float, dual: bool = True) -
     """``min over lam`` of an upper bound of ``comps - lam (value - level)`` (``comps (B, Q)``, ``value (B,)``
     forms of the same boxes) over the boxes: ``(B, Q)``, each multiplier's quadratic part bounded by the smaller of
     the corner and (``dual``) the dual bound (:func:`~drlyap.checker.affine.quad_max`)."""
-    lam = torch.tensor(MULTIPLIERS, dtype=F64)  # (L,)
-    return _s_procedure(comps, value, level, lam.expand(*comps.shape, -1), dual=dual).amin(-1)
+    lam = torch.tensor(MULTIPLIERS, dtype=F64).expand(*comps.shape, -1)  # (B, Q, L)
+    corner = _s_procedure(comps, value, level, lam, dual=False)
+    if not dual:
+        return corner.amin(-1)
+    best = lam.gather(-1, corner.topk(DUAL_TRIES, -1, largest=False).indices)  # the dual bound at the best few
+    return torch.minimum(corner.amin(-1), _s_procedure(comps, value, level, best, dual=True).amin(-1))
 
 
 def _s_procedure(comps: Af, value: Af, level: float, lam: Tensor, dual: bool) -> Tensor:
