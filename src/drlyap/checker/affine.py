@@ -17,7 +17,8 @@ the operation can take:
   Taylor form at the midpoint with a third-derivative bound (``tanh sin cos exp``); where the interval enclosure of
   ``f`` is three times narrower, that interval as a constant form;
 * the range of ``l . e + e^T q e`` is bounded by :func:`quad_max` (every corner of the cube, after replacing the
-  concave diagonal terms by tangents; for final bounds also a dual bound through a semidefinite ``t I - q``);
+  concave diagonal terms by tangents; for final bounds also a dual bound through a semidefinite ``t I - q``), and
+  inside products by the cheaper :func:`_quick_span`;
 * rounding: the coefficients are computed with round-to-nearest, and the remainder grows by a bound of their
   rounding errors (``(m + 2) eps`` times the magnitudes of the ``m`` terms each was summed from); the remainder's
   own arithmetic is outward rounded. A NaN or infinity anywhere makes the remainder the whole line.
@@ -30,20 +31,14 @@ import math
 import torch
 from torch import Tensor
 
-from drlyap.checker.arith import EPS, F64, INF, TINY, Iv, _Ops, _t
+from drlyap.checker.arith import EPS, F64, INF, TINY, Iv, _Ops, _t, _up
 
 PICK_RATIO = 3.0
 """A function's interval enclosure replaces its form where it is this many times narrower: the form keeps the
 dependence on the box (a norm whose argument reaches 0 is worth a form twice as wide as its interval, once the
 residual sums it with the rest)."""
 BEST_RATIO = 1.5
-CORNERS_IN_PRODUCTS = False
 """Of two forms of a function, the one with the smaller remainder unless it is this many times wider."""
-
-
-def _up(x: Tensor) -> Tensor:
-    x = torch.nextafter(x, torch.full_like(x, INF))
-    return torch.where(torch.isnan(x), INF, x)
 
 
 def _nonneg_sum(*terms: Tensor) -> Tensor:
@@ -109,19 +104,9 @@ class Af(_Ops):
     def _qmag(self) -> Tensor:
         return self.q.abs().flatten(-2).sum(-1)
 
-    def _span(self, dual: bool = False, corners: bool = True) -> Iv:
-        """Bounds of ``l . e + e^T q e`` over ``e in [-1, 1]^k`` (:func:`quad_max` of it and of its negation;
-        without ``corners``, :func:`_quick_span`)."""
-        if not corners:
-            return _quick_span(self.l, self.q)
+    def _span(self, dual: bool = False) -> Iv:
+        """Bounds of ``l . e + e^T q e`` over ``e in [-1, 1]^k`` (:func:`quad_max` of it and of its negation)."""
         return Iv(-quad_max(-self.l, -self.q, dual), quad_max(self.l, self.q, dual))
-
-    def _qrange(self, corners: bool = True) -> Iv:
-        """Bounds of ``e^T q e`` alone."""
-        zero = torch.zeros_like(self.l)
-        if not corners:
-            return _quick_span(zero, self.q)
-        return Iv(-quad_max(zero, -self.q), quad_max(zero, self.q))
 
     def interval(self, dual: bool = False) -> Iv:
         """The form's range; ``dual``: with the tighter, costlier bound of its quadratic part (:func:`quad_max`)."""
@@ -142,10 +127,6 @@ class Af(_Ops):
     def rough_width(self) -> Tensor:
         """An upper bound of the width from magnitudes alone (cheap: what chooses between forms, not a bound)."""
         return 2 * (self._lmag() + self._qmag()) + (self.r.hi - self.r.lo)
-
-    def width(self) -> Tensor:
-        rng = self.interval()
-        return rng.hi - rng.lo
 
     def mag(self) -> Tensor:
         return self.interval().mag()
@@ -226,8 +207,9 @@ class Af(_Ops):
         lin = c1[..., None] * o.l + c2[..., None] * self.l
         q = self.l[..., :, None] * o.l[..., None, :] + c1[..., None, None] * o.q + c2[..., None, None] * self.q
         a1 = self._lmag()
-        rest = (Iv.point(c1) * o.r + Iv.point(c2) * self.r + Iv(-a1, a1) * (o._qrange(CORNERS_IN_PRODUCTS) + o.r)
-                + (self._qrange(CORNERS_IN_PRODUCTS) + self.r) * (o._span(corners=CORNERS_IN_PRODUCTS) + o.r))
+        zero = torch.zeros_like(self.l)  # the parts' ranges by the cheap bound (:func:`_quick_span`): a hot path
+        rest = (Iv.point(c1) * o.r + Iv.point(c2) * self.r + Iv(-a1, a1) * (_quick_span(zero, o.q) + o.r)
+                + (_quick_span(zero, self.q) + self.r) * (_quick_span(o.l, o.q) + o.r))
         return Af(c, lin, q, self._padded(rest, 4 * EPS * self._mags(c, lin, q)))
 
     def square(self) -> Af:
@@ -426,25 +408,19 @@ def _vertices(k: int) -> Tensor:
     return torch.cartesian_prod(*[torch.tensor([-1.0, 1.0], dtype=F64)] * k).reshape(-1, k)
 
 
-def quad_max(lin: Tensor, q: Tensor, dual: bool = False, corners: bool = True) -> Tensor:
+def quad_max(lin: Tensor, q: Tensor, dual: bool = False) -> Tensor:
     """An upper bound ``(...)`` of ``max over e in [-1, 1]^k of lin . e + e^T q e`` (``lin (..., k)``, ``q (..., k,
     k)``). A concave diagonal term ``q_ii e_i^2`` (``q_ii < 0``) lies below its tangent at ``t_i`` (the coordinate's
     own maximiser ``-lin_i / (2 q_ii)`` clipped to ``[-1, 1]``): ``q_ii (2 t_i e_i - t_i^2)``; what remains is convex
     in each coordinate alone, so its maximum over the cube is at a corner, and every corner is evaluated. Above
-    ``k = 10`` coordinates, each coordinate's term exactly and the cross terms by their magnitudes. Padded for the
-    rounding of the float64 sums. ``dual``: also :func:`_dual_max`, and the smaller of the two (an eigen-
-    decomposition and a factorisation per entry: used for final bounds, not inside every product)."""
+    ``k = 10`` coordinates, :func:`_quick_span`. Padded for the rounding of the float64 sums. ``dual``: also
+    :func:`_dual_max`, and the smaller of the two (an eigendecomposition and a factorisation per entry: used for
+    final bounds, not inside every product)."""
     k = lin.shape[-1]
+    if k > _MAX_VERTICES_K:
+        return _quick_span(lin, q).hi
     diag = torch.diagonal(q, dim1=-2, dim2=-1)
-    mag = lin.abs().sum(-1) + 2.0 * q.abs().flatten(-2).sum(-1)
-    pad = 4 * (k * k + k + 8) * EPS * mag + TINY
-    if k > _MAX_VERTICES_K or not corners:
-        a = lin.abs()
-        sym = (q + q.transpose(-1, -2)).abs().flatten(-2).sum(-1)
-        cross = (sym - 2 * diag.abs().sum(-1)).clamp(min=0.0) / 2
-        vertex = -(lin * lin) / (4 * torch.where(diag != 0, diag, 1.0))
-        top = torch.where((diag < 0) & (a < -2 * diag), vertex, diag + a)
-        return _up(top.sum(-1) + cross + pad)
+    pad = 4 * (k * k + k + 8) * EPS * (lin.abs().sum(-1) + 2.0 * q.abs().flatten(-2).sum(-1)) + TINY
     concave = diag.clamp(max=0.0)
     t = torch.where(concave < 0, (lin / (-2.0 * torch.where(concave < 0, concave, -1.0))).clamp(-1.0, 1.0), 0.0)
     lin_t = lin + 2.0 * concave * t

@@ -168,7 +168,7 @@ def _holds(residual: Residual, lo: Tensor, hi: Tensor, level: float | None, batc
     for i in range(0, lo.shape[0], batch):
         a, b = lo[i:i + batch], hi[i:i + batch]
         good = torch.zeros(a.shape[0], dtype=torch.bool)
-        first = above[i:i + batch].nonzero().squeeze(-1) if level is not None else above[:0].nonzero().squeeze(-1)
+        first = (above[i:i + batch] & (level is not None)).nonzero().squeeze(-1)
         if first.numel():  # V alone: above the level, nothing is claimed
             good[first] = residual.pair.value(Af.seed(a[first], b[first])).interval(dual=True).lo > level
         rest = (~good).nonzero().squeeze(-1)
@@ -180,7 +180,7 @@ def _holds(residual: Residual, lo: Tensor, hi: Tensor, level: float | None, batc
             good[rest] = more
         rest = (~good).nonzero().squeeze(-1)
         if rest.numel():  # the interval and mean-value bounds, where the forms did not prove the box
-            more = upper_bounds(residual, a[rest], b[rest])[0] <= 0
+            more = upper_bounds(residual, a[rest], b[rest]) <= 0
             if level is not None:
                 more = more | (value_lower(residual.pair, a[rest], b[rest]) > level)
             good[rest] = more

@@ -233,10 +233,9 @@ def _s_procedure(comps: Af, value: Af, level: float, lam: Tensor, dual: bool) ->
     return torch.where(torch.isnan(upper), math.inf, upper)
 
 
-def upper_bounds(residual: Residual, lo: Tensor, hi: Tensor) -> tuple[Tensor, Tensor]:
-    """Upper bounds ``(B,)`` of the residual over the boxes ``[lo, hi] (B, n)`` (the tighter of the interval bound
-    and the mean-value form ``f(c) + sum_i |df/dz_i over the box| r_i``), and lower bounds ``(B,)`` of the residual
-    at the boxes' centres."""
+def upper_bounds(residual: Residual, lo: Tensor, hi: Tensor) -> Tensor:
+    """Upper bounds ``(B,)`` of the residual over the boxes ``[lo, hi] (B, n)``: the tighter of the interval bound
+    and the mean-value form ``f(c) + sum_i |df/dz_i over the box| r_i``."""
     n = lo.shape[1]
     centre, rad = radius(lo, hi)
     at_centre = residual.components(Iv.point(centre))
@@ -247,8 +246,7 @@ def upper_bounds(residual: Residual, lo: Tensor, hi: Tensor) -> tuple[Tensor, Te
     mean_value = (Iv.point(at_centre.hi) + spread).hi
     upper = torch.minimum(form.v.hi, mean_value)
     upper = torch.where(torch.isnan(upper), math.inf, upper)
-    low_centre = _combine_lower(residual, at_centre.lo)
-    return residual.combine_upper(upper), low_centre
+    return residual.combine_upper(upper)
 
 
 def centre_lower(residual: Residual, lo: Tensor, hi: Tensor) -> Tensor:
