@@ -5,7 +5,7 @@ intervals on small boxes (what they are for)."""
 import pytest
 import torch
 
-from drlyap.checker.affine import Af, _quick_span, quad_max
+from drlyap.checker.affine import Af, _quick_span, _quick_spans, quad_max, quad_max_minus, quad_span
 from drlyap.checker.arith import Iv
 from drlyap.checker.model import Pair, Residual, affine_upper, sublevel_form_upper
 from drlyap.conditions import DRPointwise
@@ -80,10 +80,33 @@ def test_quad_max_is_never_below_the_brute_force_maximum(k):
         assert bool((quad_max(lin, q, dual=dual) >= values.amax(-1)).all())
     quick = _quick_span(lin, q)  # the cheap bound used inside products
     assert bool((quick.hi >= values.amax(-1)).all()) and bool((quick.lo <= values.amin(-1)).all())
+    span = quad_span(lin, q)  # both sides at once: the corner bound of the form and of its negation
+    assert torch.allclose(span.hi, quad_max(lin, q), rtol=1e-12) and torch.allclose(-span.lo, quad_max(-lin, -q))
+    alone = _quick_spans(lin, q, with_lin=False)[0]
+    q_values = torch.einsum("pi,bij,pj->bp", e, q, e)
+    assert bool((alone.hi >= q_values.amax(-1)).all()) and bool((alone.lo <= q_values.amin(-1)).all())
     convex = q @ q.transpose(-1, -2)  # positive semidefinite: the maximum is at a corner, found exactly
     corners = torch.cartesian_prod(*[torch.tensor([-1.0, 1.0], dtype=F64)] * k).reshape(-1, k)
     exact = ((lin[:, None] * corners).sum(-1) + torch.einsum("pi,bij,pj->bp", corners, convex, corners)).amax(-1)
     assert torch.allclose(quad_max(lin, convex), exact, rtol=1e-12, atol=1e-12)
+
+
+@pytest.mark.parametrize("k", [2, 4])
+def test_the_s_procedure_bound_is_never_below_the_brute_force_maximum(k):
+    """``quad_max_minus`` combines two forms' corner values per multiplier without forming the products: it must be
+    the same bound as :func:`quad_max` of the combined form, never below the true maximum."""
+    g = torch.Generator().manual_seed(10 + k)
+    lin, q = torch.randn(60, 3, k, generator=g, dtype=F64), torch.randn(60, 3, k, k, generator=g, dtype=F64)
+    lin2, q2 = torch.randn(60, k, generator=g, dtype=F64), torch.randn(60, k, k, generator=g, dtype=F64)
+    lam = torch.tensor([0.0, 0.25, 1.0, 8.0], dtype=F64).expand(60, 3, 4)
+    e = torch.cartesian_prod(*[torch.linspace(-1, 1, 9, dtype=F64)] * k).reshape(-1, k)
+    combined_l = lin[:, :, None] - lam[..., None] * lin2[:, None, None]
+    combined_q = q[:, :, None] - lam[..., None, None] * q2[:, None, None]
+    brute = ((combined_l[..., None, :] * e).sum(-1) + torch.einsum("pi,bqlij,pj->bqlp", e, combined_q, e)).amax(-1)
+    for dual in (False, True):
+        bound = quad_max_minus(lin, q, lin2, q2, lam, dual)
+        assert bool((bound >= brute).all())
+        assert torch.allclose(bound, quad_max(combined_l, combined_q, dual), rtol=1e-9, atol=1e-9)
 
 
 def test_the_dual_bound_sees_curvature_along_mixed_directions():

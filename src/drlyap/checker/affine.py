@@ -31,7 +31,7 @@ import math
 import torch
 from torch import Tensor
 
-from drlyap.checker.arith import EPS, F64, INF, TINY, Iv, _Ops, _t, _up
+from drlyap.checker.arith import EPS, F64, INF, TINY, Iv, _down, _Ops, _t, _up
 
 PICK_RATIO = 3.0
 """A function's interval enclosure replaces its form where it is this many times narrower: the form keeps the
@@ -106,7 +106,9 @@ class Af(_Ops):
 
     def _span(self, dual: bool = False) -> Iv:
         """Bounds of ``l . e + e^T q e`` over ``e in [-1, 1]^k`` (:func:`quad_max` of it and of its negation)."""
-        return Iv(-quad_max(-self.l, -self.q, dual), quad_max(self.l, self.q, dual))
+        if not dual:
+            return quad_span(self.l, self.q)
+        return Iv(-quad_max(-self.l, -self.q, True), quad_max(self.l, self.q, True))
 
     def interval(self, dual: bool = False) -> Iv:
         """The form's range; ``dual``: with the tighter, costlier bound of its quadratic part (:func:`quad_max`)."""
@@ -166,7 +168,7 @@ class Af(_Ops):
     @staticmethod
     def _padded(r: Iv, pad: Tensor) -> Iv:
         pad = _up(pad + TINY)
-        return Iv(torch.nextafter(r.lo - pad, torch.full_like(r.lo, -INF)), _up(r.hi + pad))
+        return Iv(_down(r.lo - pad), _up(r.hi + pad))
 
     @staticmethod
     def _mags(c: Tensor, lin: Tensor, q: Tensor) -> Tensor:
@@ -207,9 +209,9 @@ class Af(_Ops):
         lin = c1[..., None] * o.l + c2[..., None] * self.l
         q = self.l[..., :, None] * o.l[..., None, :] + c1[..., None, None] * o.q + c2[..., None, None] * self.q
         a1 = self._lmag()
-        zero = torch.zeros_like(self.l)  # the parts' ranges by the cheap bound (:func:`_quick_span`): a hot path
-        rest = (Iv.point(c1) * o.r + Iv.point(c2) * self.r + Iv(-a1, a1) * (_quick_span(zero, o.q) + o.r)
-                + (_quick_span(zero, self.q) + self.r) * (_quick_span(o.l, o.q) + o.r))
+        q2, lq2 = _quick_spans(o.l, o.q)  # the parts' ranges by the cheap bound: a hot path
+        q1 = q2 if o is self else _quick_spans(self.l, self.q, with_lin=False)[0]
+        rest = (Iv.point(c1) * o.r + Iv.point(c2) * self.r + Iv(-a1, a1) * (q2 + o.r) + (q1 + self.r) * (lq2 + o.r))
         return Af(c, lin, q, self._padded(rest, 4 * EPS * self._mags(c, lin, q)))
 
     def square(self) -> Af:
@@ -267,7 +269,7 @@ class Af(_Ops):
         base = fm - Iv.point(m) * Iv.point(s)
         slack = _nonneg_sum(d2_mag(rng) * rad * rad / 2 * (1 + 4 * EPS), (16 * EPS * s.abs() + TINY) * rad)
         g = Iv(base.lo - slack, base.hi + slack)
-        g = Iv(torch.nextafter(g.lo, torch.full_like(g.lo, -INF)), _up(g.hi))
+        g = Iv(_down(g.lo), _up(g.hi))
         return self._pick(self._affine_map(s, g), enclosure)
 
     def _taylor2(self, f, d1, d2, d3_mag) -> Af:
@@ -401,50 +403,118 @@ class Af(_Ops):
 
 
 _MAX_VERTICES_K = 10
+_CORNERS: dict[int, tuple[Tensor, Tensor, Tensor]] = {}
 
 
-def _vertices(k: int) -> Tensor:
-    """The ``2^k`` corners of ``[-1, 1]^k`` as rows."""
-    return torch.cartesian_prod(*[torch.tensor([-1.0, 1.0], dtype=F64)] * k).reshape(-1, k)
+def _corners(k: int) -> tuple[Tensor, Tensor, Tensor]:
+    """The ``2^k`` corners of ``[-1, 1]^k`` as rows ``(2^k, k)``, the index pairs ``i < j`` ``(2, P)`` and the
+    products ``e_i e_j`` at the corners ``(2^k, P)``."""
+    if k not in _CORNERS:
+        corners = torch.cartesian_prod(*[torch.tensor([-1.0, 1.0], dtype=F64)] * k).reshape(-1, k)
+        pairs = torch.triu_indices(k, k, 1)
+        _CORNERS[k] = corners, pairs, corners[:, pairs[0]] * corners[:, pairs[1]]
+    return _CORNERS[k]
+
+
+def _parts(q: Tensor) -> tuple[Tensor, Tensor]:
+    """The diagonal ``(..., k)`` of ``q (..., k, k)`` and the sums ``q_ij + q_ji`` over ``i < j`` ``(..., P)``."""
+    k = q.shape[-1]
+    pairs = _corners(k)[1]
+    return torch.diagonal(q, dim1=-2, dim2=-1), q[..., pairs[0], pairs[1]] + q[..., pairs[1], pairs[0]]
+
+
+def _corner_max(lin: Tensor, diag: Tensor, off: Tensor, base: Tensor, mag: Tensor) -> Tensor:
+    """An upper bound of ``max over e in [-1, 1]^k of lin . e + sum_i diag_i e_i^2 + sum_{i<j} off_ij e_i e_j``
+    (see :func:`quad_max`). ``base (..., 2^k)``: ``lin . e + off . (e_i e_j)`` at the corners as computed (shared by a
+    form's upper and lower bounds); ``mag``: an upper bound of ``|lin|_1 + |diag|_1 + |off|_1``, for the pad."""
+    k = lin.shape[-1]
+    corners = _corners(k)[0]
+    concave = diag.clamp(max=0.0)
+    t = torch.where(concave < 0, (lin / (-2.0 * torch.where(concave < 0, concave, -1.0))).clamp(-1.0, 1.0), 0.0)
+    values = base + (2.0 * concave * t) @ corners.T
+    top = values.amax(-1) - (concave * t * t).sum(-1) + diag.clamp(min=0.0).sum(-1)
+    return _up(top + 4 * (k * k + k + 8) * EPS * 4.0 * mag + TINY)
 
 
 def quad_max(lin: Tensor, q: Tensor, dual: bool = False) -> Tensor:
     """An upper bound ``(...)`` of ``max over e in [-1, 1]^k of lin . e + e^T q e`` (``lin (..., k)``, ``q (..., k,
     k)``). A concave diagonal term ``q_ii e_i^2`` (``q_ii < 0``) lies below its tangent at ``t_i`` (the coordinate's
     own maximiser ``-lin_i / (2 q_ii)`` clipped to ``[-1, 1]``): ``q_ii (2 t_i e_i - t_i^2)``; what remains is convex
-    in each coordinate alone, so its maximum over the cube is at a corner, and every corner is evaluated. Above
-    ``k = 10`` coordinates, :func:`_quick_span`. Padded for the rounding of the float64 sums. ``dual``: also
-    :func:`_dual_max`, and the smaller of the two (an eigendecomposition and a factorisation per entry: used for
-    final bounds, not inside every product)."""
+    in each coordinate alone, so its maximum over the cube is at a corner (where ``e_i^2 = 1``), and every corner is
+    evaluated. Above ``k = 10`` coordinates, :func:`_quick_span`. Padded for the rounding of the float64 sums.
+    ``dual``: also :func:`_dual_max`, and the smaller of the two (an eigendecomposition and a factorisation per entry:
+    used for final bounds, not inside every product)."""
     k = lin.shape[-1]
     if k > _MAX_VERTICES_K:
         return _quick_span(lin, q).hi
-    diag = torch.diagonal(q, dim1=-2, dim2=-1)
-    pad = 4 * (k * k + k + 8) * EPS * (lin.abs().sum(-1) + 2.0 * q.abs().flatten(-2).sum(-1)) + TINY
-    concave = diag.clamp(max=0.0)
-    t = torch.where(concave < 0, (lin / (-2.0 * torch.where(concave < 0, concave, -1.0))).clamp(-1.0, 1.0), 0.0)
-    lin_t = lin + 2.0 * concave * t
-    q_t = q - torch.diag_embed(concave)
-    corners = _vertices(k)
-    outer = (corners[:, :, None] * corners[:, None, :]).reshape(corners.shape[0], k * k)
-    values = lin_t @ corners.T + q_t.reshape(*q.shape[:-2], k * k) @ outer.T
-    corner = _up(values.amax(-1) - (concave * t * t).sum(-1) + pad)
+    corners, _, products = _corners(k)
+    diag, off = _parts(q)
+    mag = lin.abs().sum(-1) + q.abs().flatten(-2).sum(-1)
+    corner = _corner_max(lin, diag, off, lin @ corners.T + off @ products.T, mag)
     return torch.minimum(corner, _dual_max(lin, q)) if dual else corner
+
+
+def quad_max_minus(lin: Tensor, q: Tensor, lin2: Tensor, q2: Tensor, lam: Tensor, dual: bool = False) -> Tensor:
+    """:func:`quad_max` ``(B, Q, L)`` of ``lin - lam lin2`` and ``q - lam q2`` for ``lin (B, Q, k)``, ``q (B, Q, k, k)``,
+    ``lin2 (B, k)``, ``q2 (B, k, k)`` and multipliers ``lam (B, Q, L)``, without forming the ``L`` quadratic parts
+    for the corner bound: the corner values of both forms are computed once and combined (their rounding is in the
+    pad, which is taken on ``|lin|_1 + |q|_1 + lam (|lin2|_1 + |q2|_1)``). ``dual``: the dual bound too, which forms
+    them."""
+    k = lin.shape[-1]
+    if k > _MAX_VERTICES_K:
+        return quad_max(lin[:, :, None] - lam[..., None] * lin2[:, None, None],
+                        q[:, :, None] - lam[..., None, None] * q2[:, None, None], dual)
+    corners, _, products = _corners(k)
+    (d1, o1), (d2, o2) = _parts(q), _parts(q2)
+    scaled = lam[..., None]
+    combined = lin[:, :, None] - scaled * lin2[:, None, None]
+    base = ((lin @ corners.T + o1 @ products.T)[:, :, None]
+            - scaled * (lin2 @ corners.T + o2 @ products.T)[:, None, None])
+    mag = ((lin.abs().sum(-1) + q.abs().flatten(-2).sum(-1))[..., None]
+           + lam * (lin2.abs().sum(-1) + q2.abs().flatten(-2).sum(-1))[:, None, None]) * (1 + 8 * EPS)
+    corner = _corner_max(combined, d1[:, :, None] - scaled * d2[:, None, None],
+                         o1[:, :, None] - scaled * o2[:, None, None], base, mag)
+    if not dual:
+        return corner
+    return torch.minimum(corner, _dual_max(combined, q[:, :, None] - lam[..., None, None] * q2[:, None, None]))
+
+
+def quad_span(lin: Tensor, q: Tensor) -> Iv:
+    """Bounds of ``lin . e + e^T q e`` over the cube by :func:`quad_max` of it and of its negation (the corner values
+    computed once)."""
+    k = lin.shape[-1]
+    if k > _MAX_VERTICES_K:
+        return _quick_span(lin, q)
+    corners, _, products = _corners(k)
+    diag, off = _parts(q)
+    mag = lin.abs().sum(-1) + q.abs().flatten(-2).sum(-1)
+    base = lin @ corners.T + off @ products.T
+    top = _corner_max(lin, diag, off, base, mag)
+    bottom = -_corner_max(-lin, -diag, -off, -base, mag)
+    return Iv(torch.where(torch.isnan(bottom), -INF, bottom), top)
 
 
 def _quick_span(lin: Tensor, q: Tensor) -> Iv:
     """Bounds of ``lin . e + e^T q e`` over the cube, cheaply: each coordinate's ``q_ii e_i^2 + lin_i e_i`` exactly
     (its ends and vertex), the cross terms ``(q_ij + q_ji) e_i e_j`` by their magnitudes; padded for rounding."""
-    k = lin.shape[-1]
-    diag = torch.diagonal(q, dim1=-2, dim2=-1)
+    return _quick_spans(lin, q)[1]
+
+
+def _quick_spans(lin: Tensor, q: Tensor, with_lin: bool = True) -> tuple[Iv, Iv | None]:
+    """:func:`_quick_span` of ``e^T q e`` alone and (``with_lin``) of ``lin . e + e^T q e``, sharing the work on ``q``."""
+    k = q.shape[-1]
+    diag, off = _parts(q)
+    cross = off.abs().sum(-1)
+    pad_q = 4 * (k * k + k + 8) * EPS * 2.0 * q.abs().flatten(-2).sum(-1) + TINY
+    q_only = Iv(_down(diag.clamp(max=0.0).sum(-1) - cross - pad_q), _up(diag.clamp(min=0.0).sum(-1) + cross + pad_q))
+    if not with_lin:
+        return q_only, None
     a = lin.abs()
-    total = (q + q.transpose(-1, -2)).abs().flatten(-2).sum(-1)
-    cross = (total - 2 * diag.abs().sum(-1)).clamp(min=0.0) / 2
+    pad = pad_q + 4 * (k * k + k + 8) * EPS * a.sum(-1)
     vertex = -(lin * lin) / (4 * torch.where(diag != 0, diag, 1.0))
     top = torch.where((diag < 0) & (a < -2 * diag), vertex, diag + a).sum(-1)
     bottom = torch.where((diag > 0) & (a < 2 * diag), vertex, diag - a).sum(-1)
-    pad = 4 * (k * k + k + 8) * EPS * (a.sum(-1) + 2.0 * q.abs().flatten(-2).sum(-1)) + TINY
-    return Iv(torch.nextafter(bottom - cross - pad, torch.full_like(bottom, -INF)), _up(top + cross + pad))
+    return q_only, Iv(_down(bottom - cross - pad), _up(top + cross + pad))
 
 
 def _dual_max(lin: Tensor, q: Tensor) -> Tensor:
@@ -489,4 +559,4 @@ def _where(mask: Tensor, a: Af, b: Af) -> Af:
               Iv(torch.where(mask, a.r.lo, b.r.lo), torch.where(mask, a.r.hi, b.r.hi)))
 
 
-__all__ = ["Af", "quad_max"]
+__all__ = ["Af", "quad_max", "quad_max_minus"]

@@ -26,14 +26,18 @@ TINY = 1e-300
 INF = math.inf
 
 
+_TO_NEG = torch.tensor(-INF, dtype=F64)
+_TO_POS = torch.tensor(INF, dtype=F64)
+
+
 def _down(x: Tensor) -> Tensor:
-    x = torch.nextafter(x, torch.full_like(x, -INF))
-    return torch.where(torch.isnan(x), -INF, x)
+    """One float64 step down; NaN becomes ``-inf``."""
+    return torch.nextafter(x, _TO_NEG).nan_to_num(nan=-INF, posinf=INF, neginf=-INF)
 
 
 def _up(x: Tensor) -> Tensor:
-    x = torch.nextafter(x, torch.full_like(x, INF))
-    return torch.where(torch.isnan(x), INF, x)
+    """One float64 step up; NaN becomes ``inf``."""
+    return torch.nextafter(x, _TO_POS).nan_to_num(nan=INF, posinf=INF, neginf=-INF)
 
 
 def _pad_down(x: Tensor, rel: float, mag: Tensor) -> Tensor:
@@ -246,17 +250,13 @@ class Iv(_Ops):
 
     def mul(self, o: Iv) -> Iv:
         p = torch.stack([self.lo * o.lo, self.lo * o.hi, self.hi * o.lo, self.hi * o.hi])
-        lo = torch.where(torch.isnan(p), -INF, p).amin(0)
-        hi = torch.where(torch.isnan(p), INF, p).amax(0)
-        return Iv(_down(lo), _up(hi))
+        return Iv(_down(p.amin(0)), _up(p.amax(0)))  # a NaN product (0 inf) propagates: the whole line
 
     def div(self, o: Iv) -> Iv:
         zero = o.contains_zero()
         safe = Iv(torch.where(zero, 1.0, o.lo), torch.where(zero, 1.0, o.hi))
         q = torch.stack([self.lo / safe.lo, self.lo / safe.hi, self.hi / safe.lo, self.hi / safe.hi])
-        lo = torch.where(torch.isnan(q), -INF, q).amin(0)
-        hi = torch.where(torch.isnan(q), INF, q).amax(0)
-        return Iv(torch.where(zero, -INF, _down(lo)), torch.where(zero, INF, _up(hi)))
+        return Iv(torch.where(zero, -INF, _down(q.amin(0))), torch.where(zero, INF, _up(q.amax(0))))
 
     def square(self) -> Iv:
         a, b = self.lo * self.lo, self.hi * self.hi

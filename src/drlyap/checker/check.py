@@ -159,11 +159,26 @@ def _widest_split(lo: Tensor, hi: Tensor, scale: Tensor) -> tuple[Tensor, Tensor
     return torch.cat([lo, lo2]), torch.cat([hi1, hi])
 
 
+def _by_forms(residual: Residual, lo: Tensor, hi: Tensor, level: float | None) -> Tensor:
+    """``(B,)``: boxes proved by the second-order forms of the residual and V, together."""
+    comps, value = residual.terms(Af.seed(lo, hi))
+    good = form_upper(residual, comps, value, level) <= 0
+    return good | (value.interval(dual=True).lo > level) if level is not None else good
+
+
+def _by_mean_value(residual: Residual, lo: Tensor, hi: Tensor, level: float | None) -> Tensor:
+    """``(B,)``: boxes proved by the interval and mean-value bounds."""
+    good = upper_bounds(residual, lo, hi) <= 0
+    return good | (value_lower(residual.pair, lo, hi) > level) if level is not None else good
+
+
 def _holds(residual: Residual, lo: Tensor, hi: Tensor, level: float | None, batch: int,
-           above: Tensor) -> tuple[Tensor, Tensor]:
+           above: Tensor, cheap_first: bool = False) -> tuple[Tensor, Tensor]:
     """``(B,)``: boxes on which the residual is proved ``<= 0`` (or, with a level, V is proved ``> level``), and lower
     bounds of the residual at the centres ``(B,)`` (``-inf`` where V may exceed the level there). ``above (B,)``:
-    where to try V alone first."""
+    where to try V alone first; ``cheap_first``: the mean-value bounds before the forms (the other order otherwise;
+    each box not proved by the first is tried by the second)."""
+    steps = (_by_mean_value, _by_forms) if cheap_first else (_by_forms, _by_mean_value)
     ok, low = [torch.zeros(0, dtype=torch.bool)], [torch.zeros(0, dtype=F64)]
     for i in range(0, lo.shape[0], batch):
         a, b = lo[i:i + batch], hi[i:i + batch]
@@ -171,19 +186,10 @@ def _holds(residual: Residual, lo: Tensor, hi: Tensor, level: float | None, batc
         first = (above[i:i + batch] & (level is not None)).nonzero().squeeze(-1)
         if first.numel():  # V alone: above the level, nothing is claimed
             good[first] = residual.pair.value(Af.seed(a[first], b[first])).interval(dual=True).lo > level
-        rest = (~good).nonzero().squeeze(-1)
-        if rest.numel():  # the second-order forms of the residual and V, together
-            comps, value = residual.terms(Af.seed(a[rest], b[rest]))
-            more = form_upper(residual, comps, value, level) <= 0
-            if level is not None:
-                more = more | (value.interval(dual=True).lo > level)
-            good[rest] = more
-        rest = (~good).nonzero().squeeze(-1)
-        if rest.numel():  # the interval and mean-value bounds, where the forms did not prove the box
-            more = upper_bounds(residual, a[rest], b[rest]) <= 0
-            if level is not None:
-                more = more | (value_lower(residual.pair, a[rest], b[rest]) > level)
-            good[rest] = more
+        for step in steps:
+            rest = (~good).nonzero().squeeze(-1)
+            if rest.numel():
+                good[rest] = step(residual, a[rest], b[rest], level)
         centre_low = centre_lower(residual, a, b)
         if level is not None:
             v_centre = residual.pair.value_and_grad(Iv.point((a + b) / 2))[0].hi
@@ -194,15 +200,18 @@ def _holds(residual: Residual, lo: Tensor, hi: Tensor, level: float | None, batc
 
 
 def prove_boxes(residual: Residual, lo: Tensor, hi: Tensor, scale: Tensor, refine: int, level: float | None = None,
-                batch: int = 4096, above: Tensor | None = None) -> tuple[Tensor, Tensor, int, int]:
+                batch: int = 4096, above: Tensor | None = None,
+                cheap_first: bool = False) -> tuple[Tensor, Tensor, int, int]:
     """Re-prove ``residual <= 0`` on boxes ``(B, n)`` (with ``level``: at the boxes' states where ``V <= level``):
     ``ok (B,)``, lower bounds of the residual at the centres ``(B,)``, and how many boxes needed bisection and into
     how many pieces in all. ``above (B,)``: boxes to try ``V > level`` on first (the certificate's word, a hint
-    only: each box is proved one way or the other whatever it says)."""
+    only: each box is proved one way or the other whatever it says); ``cheap_first``: try the mean-value bounds
+    before the second-order forms (an order, not a shortcut: see :func:`_holds`)."""
     above = torch.zeros(lo.shape[0], dtype=torch.bool) if above is None else above
     order = torch.argsort(above.to(torch.int8), stable=True)  # the hinted boxes together, so that batches share a path
     ok, centre_low = torch.empty_like(above), torch.empty(lo.shape[0], dtype=F64)
-    ok[order], centre_low[order] = _holds(residual, lo[order], hi[order], level, batch, above[order])
+    ok[order], centre_low[order] = _holds(residual, lo[order], hi[order], level, batch, above[order],
+                                          cheap_first)
     todo = (~ok).nonzero().squeeze(-1)
     refined, pieces = int(todo.numel()), 0
     owner, plo, phi = todo, lo[todo], hi[todo]
@@ -210,7 +219,7 @@ def prove_boxes(residual: Residual, lo: Tensor, hi: Tensor, scale: Tensor, refin
         plo, phi = _widest_split(plo, phi, scale)
         owner = owner.repeat(2)
         pieces += int(plo.shape[0])
-        failed = ~_holds(residual, plo, phi, level, batch, above[owner])[0]
+        failed = ~_holds(residual, plo, phi, level, batch, above[owner], cheap_first)[0]
         plo, phi, owner = plo[failed], phi[failed], owner[failed]
         if not owner.numel():
             break
@@ -294,8 +303,10 @@ def check_certificate(run_dir: str | Path, name: str, header: dict, arrays: dict
     if not bool(inside.all()):
         out.failures.append(f"{int((~inside).sum())} boxes said to lie in the open ball ||z|| < {delta:g} do not")
     proved = ((verdict == PROVED) | (verdict == ABOVE_LEVEL)).nonzero().squeeze(-1)
+    cheap_first = header["partition"].get("enclosure") in ("interval", "mean-value")  # an order, as for ``above``
     ok, centre_low, out.refined, out.pieces = prove_boxes(residual, blo[proved], bhi[proved], hi - lo, refine, level,
-                                                          above=verdict[proved] == ABOVE_LEVEL)
+                                                          above=verdict[proved] == ABOVE_LEVEL,
+                                                          cheap_first=cheap_first)
     out.proved = int(ok.sum())
     if not bool(ok.all()):
         first = proved[~ok][0]

@@ -21,7 +21,7 @@ from collections.abc import Callable
 import torch
 from torch import Tensor
 
-from drlyap.checker.affine import Af, quad_max
+from drlyap.checker.affine import Af, quad_max_minus
 from drlyap.checker.arith import EPS, F64, TINY, Du, Iv, lift
 
 CONDITIONS = ("nominal", "pointwise", "plain", "true")
@@ -222,12 +222,11 @@ def _s_procedure(comps: Af, value: Af, level: float, lam: Tensor, dual: bool) ->
     two: the products with them are exact)."""
     shift = value.c - level  # (B,)
     c = comps.c[..., None] - lam * shift[:, None, None]  # (B, Q, L)
-    lin = comps.l[:, :, None, :] - lam[..., None] * value.l[:, None, None, :]
-    q = comps.q[:, :, None] - lam[..., None, None] * value.q[:, None, None]
-    mag = (c.abs() + lam * shift.abs()[:, None, None] + lin.abs().sum(-1) + q.abs().flatten(-2).sum(-1)
-           + lam * (value.l.abs().sum(-1) + value.q.abs().flatten(-2).sum(-1))[:, None, None])
+    vmag = value.l.abs().sum(-1) + value.q.abs().flatten(-2).sum(-1)
+    mag = (c.abs() + lam * shift.abs()[:, None, None] + 2 * lam * vmag[:, None, None]
+           + 2 * (comps.l.abs().sum(-1) + comps.q.abs().flatten(-2).sum(-1))[..., None])
     rest = comps.r.hi[..., None] - lam * value.r.lo[:, None, None]
-    top = c + quad_max(lin, q, dual=dual) + rest
+    top = c + quad_max_minus(comps.l, comps.q, value.l, value.q, lam, dual) + rest
     upper = top + 8 * EPS * (mag + rest.abs() + top.abs()) + TINY
     upper = torch.nextafter(upper, torch.full_like(upper, math.inf))
     return torch.where(torch.isnan(upper), math.inf, upper)
