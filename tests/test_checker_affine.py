@@ -158,3 +158,20 @@ def test_the_residual_and_its_sublevel_bound_hold_at_samples():
     per_component = sublevel_form_upper(forms, values, level)  # (B, Q)
     sampled = comps.hi.reshape(pts.shape[0], 200, -1)
     assert bool((torch.where(where[..., None], sampled, -torch.inf) <= per_component).all())
+
+
+@pytest.mark.parametrize("width", [0.01, 0.5, 3.0])
+def test_tanh_of_a_curved_form_encloses_dense_samples(width):
+    """tanh of a form with a quadratic part, over ranges near 0 (where its third derivative is largest), on its
+    flanks (where the third derivative changes sign) and in saturation: the narrower of the two forms holds."""
+    g = torch.Generator().manual_seed(int(width * 100) + 3)
+    lo = torch.rand(400, 2, generator=g, dtype=F64) * 6 - 3
+    hi = lo + torch.rand(400, 2, generator=g, dtype=F64) * width
+
+    def f(x):
+        return (x[:, 0:1] * 1.7 - x[:, 1:2] * 0.4 + x[:, 0:1] * x[:, 1:2] * 0.3).tanh()
+
+    form = f(Af.seed(lo, hi))
+    pts = points(lo, hi, count=4000)
+    values = torch.tanh(pts[..., 0:1] * 1.7 - pts[..., 1:2] * 0.4 + pts[..., 0:1] * pts[..., 1:2] * 0.3)
+    assert bool((values >= form.lo).all()) and bool((values <= form.hi).all())

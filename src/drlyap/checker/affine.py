@@ -52,20 +52,22 @@ def _nonneg_sum(*terms: Tensor) -> Tensor:
 class Af(_Ops):
     """Second-order forms ``c + l . e + e^T q e + r`` over a batch of boxes (see the module's docstring)."""
 
-    __slots__ = ("c", "l", "q", "r", "_range")
+    __slots__ = ("c", "l", "q", "r", "_range", "_qabs")
     level = 0
     affine = True
 
-    def __init__(self, c: Tensor, lin: Tensor, q: Tensor, r: Iv) -> None:
-        total = c + lin.sum(-1) + q.flatten(-2).sum(-1)  # NaN or inf anywhere stays non-finite in the sum
+    def __init__(self, c: Tensor, lin: Tensor, q: Tensor, r: Iv, qabs: Tensor | None = None) -> None:
+        """``qabs``: ``sum |q_ij|`` per element where the caller has it (kept: pads and cheap bounds read it)."""
+        total = c + lin.sum(-1) + (q.flatten(-2).sum(-1) if qabs is None else qabs)  # NaN or inf stays non-finite
         bad = ~torch.isfinite(total) | torch.isnan(r.lo) | torch.isnan(r.hi)
         self._range: Iv | None = None
-        self.c, self.l, self.q, self.r = c, lin, q, r
+        self.c, self.l, self.q, self.r, self._qabs = c, lin, q, r, qabs
         if bool(bad.any()):
             self.c = torch.where(bad, 0.0, c)
             self.l = torch.where(bad[..., None], 0.0, lin)
             self.q = torch.where(bad[..., None, None], 0.0, q)
             self.r = Iv(torch.where(bad, -INF, r.lo), torch.where(bad, INF, r.hi))
+            self._qabs = None
 
     # ---- construction
     @staticmethod
@@ -102,12 +104,14 @@ class Af(_Ops):
         return self.l.abs().sum(-1)
 
     def _qmag(self) -> Tensor:
-        return self.q.abs().flatten(-2).sum(-1)
+        if self._qabs is None:
+            self._qabs = self.q.abs().flatten(-2).sum(-1)
+        return self._qabs
 
     def _span(self, dual: bool = False) -> Iv:
         """Bounds of ``l . e + e^T q e`` over ``e in [-1, 1]^k`` (:func:`quad_max` of it and of its negation)."""
         if not dual:
-            return quad_span(self.l, self.q)
+            return quad_span(self.l, self.q, self._qmag())
         return Iv(-quad_max(-self.l, -self.q, True), quad_max(self.l, self.q, True))
 
     def interval(self, dual: bool = False) -> Iv:
@@ -171,8 +175,10 @@ class Af(_Ops):
         return Iv(_down(r.lo - pad), _up(r.hi + pad))
 
     @staticmethod
-    def _mags(c: Tensor, lin: Tensor, q: Tensor) -> Tensor:
-        return c.abs() + lin.abs().sum(-1) + q.abs().flatten(-2).sum(-1)
+    def _mags(c: Tensor, lin: Tensor, q: Tensor) -> tuple[Tensor, Tensor]:
+        """``|c| + |l|_1 + |q|_1`` and ``|q|_1``."""
+        qabs = q.abs().flatten(-2).sum(-1)
+        return c.abs() + lin.abs().sum(-1) + qabs, qabs
 
     def neg(self) -> Af:
         return Af(-self.c, -self.l, -self.q, -self.r)
@@ -180,7 +186,8 @@ class Af(_Ops):
     def add(self, o) -> Af:
         if isinstance(o, Af):
             c, lin, q = self.c + o.c, self.l + o.l, self.q + o.q
-            return Af(c, lin, q, self._padded(self.r + o.r, 2 * EPS * self._mags(c, lin, q)))
+            mag, qabs = self._mags(c, lin, q)
+            return Af(c, lin, q, self._padded(self.r + o.r, 2 * EPS * mag), qabs)
         o = o if isinstance(o, Iv) else Iv.point(o)
         mid = (o.lo + o.hi) / 2
         mid = torch.where(torch.isfinite(mid), mid, 0.0)
@@ -193,7 +200,8 @@ class Af(_Ops):
     def _scale(self, t: Tensor) -> Af:
         """Times a float tensor ``t`` (broadcast to the shape)."""
         c, lin, q = self.c * t, self.l * t[..., None], self.q * t[..., None, None]
-        return Af(c, lin, q, self._padded(self.r * Iv.point(t), 2 * EPS * self._mags(c, lin, q)))
+        mag, qabs = self._mags(c, lin, q)
+        return Af(c, lin, q, self._padded(self.r * Iv.point(t), 2 * EPS * mag), qabs)
 
     def mul(self, o) -> Af:
         """The product of ``x = cx + Lx + Qx + Rx`` (constant, linear, quadratic, remainder) and ``y``: ``cx cy``,
@@ -209,10 +217,11 @@ class Af(_Ops):
         lin = c1[..., None] * o.l + c2[..., None] * self.l
         q = self.l[..., :, None] * o.l[..., None, :] + c1[..., None, None] * o.q + c2[..., None, None] * self.q
         a1 = self._lmag()
-        q2, lq2 = _quick_spans(o.l, o.q)  # the parts' ranges by the cheap bound: a hot path
-        q1 = q2 if o is self else _quick_spans(self.l, self.q, with_lin=False)[0]
+        q2, lq2 = _quick_spans(o.l, o.q, o._qmag())  # the parts' ranges by the cheap bound: a hot path
+        q1 = q2 if o is self else _quick_spans(self.l, self.q, self._qmag(), with_lin=False)[0]
         rest = (Iv.point(c1) * o.r + Iv.point(c2) * self.r + Iv(-a1, a1) * (q2 + o.r) + (q1 + self.r) * (lq2 + o.r))
-        return Af(c, lin, q, self._padded(rest, 4 * EPS * self._mags(c, lin, q)))
+        mag, qabs = self._mags(c, lin, q)
+        return Af(c, lin, q, self._padded(rest, 4 * EPS * mag), qabs)
 
     def square(self) -> Af:
         return self.mul(self)
@@ -229,7 +238,7 @@ class Af(_Ops):
         lin = torch.matmul(weight, self.l)
         flat = self.q.reshape(*self.q.shape[:-2], k * k)
         q = torch.matmul(weight, flat).reshape(*flat.shape[:-2], weight.shape[0], k, k)
-        mag = mag + torch.matmul(wa, self.l.abs()).sum(-1) + torch.matmul(wa, flat.abs()).sum(-1)
+        mag = mag + (self._lmag() + self._qmag()) @ wa.T
         return Af(c, lin, q, self._padded(self.r.linear(weight), (a + 3) * EPS * mag))
 
     def sum(self, dim=None) -> Af:
@@ -241,7 +250,7 @@ class Af(_Ops):
         count = self.c.shape[dim]
         ld, qd = self._dims(dim)
         c, lin, q = self.c.sum(dim), self.l.sum(ld), self.q.sum(qd)
-        mag = self.c.abs().sum(dim) + self.l.abs().sum(ld).sum(-1) + self.q.abs().sum(qd).flatten(-2).sum(-1)
+        mag = (self.c.abs() + self._lmag() + self._qmag()).sum(dim)
         return Af(c, lin, q, self._padded(self.r.sum(dim), (count + 2) * EPS * mag))
 
     # ---- nonlinear functions: f(x) = s x + g(x), g enclosed on the form's range
@@ -300,8 +309,8 @@ class Af(_Ops):
 
     def tanh(self) -> Af:
         """The narrower of two forms: minimum-range (a slope ``s <= min tanh'`` on ``[a, b]`` makes ``tanh(x) - s x``
-        non-decreasing there) and second order (the third derivative ``2 t' (3 t^2 - 1)`` has magnitude at most
-        ``min(2, 4 max t')``)."""
+        non-decreasing there) and second order (the third derivative ``-2 (1 - t^2) (1 - 3 t^2)``, ``t = tanh x``,
+        enclosed over the range)."""
         rng = self.interval()
         ends = torch.stack([1 - torch.tanh(rng.lo) ** 2, 1 - torch.tanh(rng.hi) ** 2]).amin(0)
         s = (ends * (1 - 64 * EPS) - TINY).clamp(min=0.0)
@@ -310,9 +319,10 @@ class Af(_Ops):
         gb = Iv.point(rng.hi).tanh() - Iv.point(rng.hi) * Iv.point(s)
         min_range = self._affine_map(s, Iv(ga.lo, gb.hi))
 
-        def d3(r: Iv) -> Tensor:
-            slope_max = (1.0 - r.tanh().square()).hi
-            return torch.minimum(torch.full_like(slope_max, 2.0), _up(4.0 * slope_max))
+        def d3(r: Iv) -> Tensor:  # the third derivative -2 (1 - t^2) (1 - 3 t^2), t = tanh(x), over the range
+            t2 = r.tanh().square()
+            one = Iv.point(torch.ones_like(t2.lo))
+            return torch.minimum(torch.full_like(t2.lo, 2.0), ((one - t2) * (one - t2 * 3.0)).mag() * 2.0)
 
         def d2(m: Tensor) -> Tensor:
             return -2 * torch.tanh(m) * (1 - torch.tanh(m) ** 2)
@@ -407,20 +417,25 @@ _CORNERS: dict[int, tuple[Tensor, Tensor, Tensor]] = {}
 
 
 def _corners(k: int) -> tuple[Tensor, Tensor, Tensor]:
-    """The ``2^k`` corners of ``[-1, 1]^k`` as rows ``(2^k, k)``, the index pairs ``i < j`` ``(2, P)`` and the
-    products ``e_i e_j`` at the corners ``(2^k, P)``."""
+    """The ``2^k`` corners of ``[-1, 1]^k`` as rows ``(2^k, k)``, the products ``e_i e_j`` (``i < j``) at the corners
+    ``(2^k, P)``, and the ``(k * k, P)`` matrix of zeros and ones that sums ``q_ij + q_ji`` from a flattened ``q``."""
     if k not in _CORNERS:
         corners = torch.cartesian_prod(*[torch.tensor([-1.0, 1.0], dtype=F64)] * k).reshape(-1, k)
         pairs = torch.triu_indices(k, k, 1)
-        _CORNERS[k] = corners, pairs, corners[:, pairs[0]] * corners[:, pairs[1]]
+        select = torch.zeros(k * k, pairs.shape[1], dtype=F64)
+        columns = torch.arange(pairs.shape[1])
+        select[pairs[0] * k + pairs[1], columns] = 1.0
+        select[pairs[1] * k + pairs[0], columns] = 1.0
+        _CORNERS[k] = corners, corners[:, pairs[0]] * corners[:, pairs[1]], select
     return _CORNERS[k]
 
 
 def _parts(q: Tensor) -> tuple[Tensor, Tensor]:
-    """The diagonal ``(..., k)`` of ``q (..., k, k)`` and the sums ``q_ij + q_ji`` over ``i < j`` ``(..., P)``."""
+    """The diagonal ``(..., k)`` of ``q (..., k, k)`` and the sums ``q_ij + q_ji`` over ``i < j`` ``(..., P)`` (a
+    product with zeros and ones: each sum is one rounded addition, as written; a non-finite entry makes its row
+    NaN, which no bound reads as finite)."""
     k = q.shape[-1]
-    pairs = _corners(k)[1]
-    return torch.diagonal(q, dim1=-2, dim2=-1), q[..., pairs[0], pairs[1]] + q[..., pairs[1], pairs[0]]
+    return torch.diagonal(q, dim1=-2, dim2=-1), q.flatten(-2) @ _corners(k)[2]
 
 
 def _corner_max(lin: Tensor, diag: Tensor, off: Tensor, base: Tensor, mag: Tensor) -> Tensor:
@@ -447,7 +462,7 @@ def quad_max(lin: Tensor, q: Tensor, dual: bool = False) -> Tensor:
     k = lin.shape[-1]
     if k > _MAX_VERTICES_K:
         return _quick_span(lin, q).hi
-    corners, _, products = _corners(k)
+    corners, products, _ = _corners(k)
     diag, off = _parts(q)
     mag = lin.abs().sum(-1) + q.abs().flatten(-2).sum(-1)
     corner = _corner_max(lin, diag, off, lin @ corners.T + off @ products.T, mag)
@@ -464,7 +479,7 @@ def quad_max_minus(lin: Tensor, q: Tensor, lin2: Tensor, q2: Tensor, lam: Tensor
     if k > _MAX_VERTICES_K:
         return quad_max(lin[:, :, None] - lam[..., None] * lin2[:, None, None],
                         q[:, :, None] - lam[..., None, None] * q2[:, None, None], dual)
-    corners, _, products = _corners(k)
+    corners, products, _ = _corners(k)
     (d1, o1), (d2, o2) = _parts(q), _parts(q2)
     scaled = lam[..., None]
     combined = lin[:, :, None] - scaled * lin2[:, None, None]
@@ -479,15 +494,15 @@ def quad_max_minus(lin: Tensor, q: Tensor, lin2: Tensor, q2: Tensor, lam: Tensor
     return torch.minimum(corner, _dual_max(combined, q[:, :, None] - lam[..., None, None] * q2[:, None, None]))
 
 
-def quad_span(lin: Tensor, q: Tensor) -> Iv:
+def quad_span(lin: Tensor, q: Tensor, qabs: Tensor | None = None) -> Iv:
     """Bounds of ``lin . e + e^T q e`` over the cube by :func:`quad_max` of it and of its negation (the corner values
-    computed once)."""
+    computed once). ``qabs``: ``|q|_1`` where known."""
     k = lin.shape[-1]
     if k > _MAX_VERTICES_K:
         return _quick_span(lin, q)
-    corners, _, products = _corners(k)
+    corners, products, _ = _corners(k)
     diag, off = _parts(q)
-    mag = lin.abs().sum(-1) + q.abs().flatten(-2).sum(-1)
+    mag = lin.abs().sum(-1) + (q.abs().flatten(-2).sum(-1) if qabs is None else qabs)
     base = lin @ corners.T + off @ products.T
     top = _corner_max(lin, diag, off, base, mag)
     bottom = -_corner_max(-lin, -diag, -off, -base, mag)
@@ -500,12 +515,15 @@ def _quick_span(lin: Tensor, q: Tensor) -> Iv:
     return _quick_spans(lin, q)[1]
 
 
-def _quick_spans(lin: Tensor, q: Tensor, with_lin: bool = True) -> tuple[Iv, Iv | None]:
-    """:func:`_quick_span` of ``e^T q e`` alone and (``with_lin``) of ``lin . e + e^T q e``, sharing the work on ``q``."""
+def _quick_spans(lin: Tensor, q: Tensor, qabs: Tensor | None = None,
+                 with_lin: bool = True) -> tuple[Iv, Iv | None]:
+    """:func:`_quick_span` of ``e^T q e`` alone and (``with_lin``) of ``lin . e + e^T q e``, sharing the work on ``q``
+    (``qabs``: ``|q|_1`` where known)."""
     k = q.shape[-1]
     diag, off = _parts(q)
     cross = off.abs().sum(-1)
-    pad_q = 4 * (k * k + k + 8) * EPS * 2.0 * q.abs().flatten(-2).sum(-1) + TINY
+    qabs = q.abs().flatten(-2).sum(-1) if qabs is None else qabs
+    pad_q = 4 * (k * k + k + 8) * EPS * 2.0 * qabs + TINY
     q_only = Iv(_down(diag.clamp(max=0.0).sum(-1) - cross - pad_q), _up(diag.clamp(min=0.0).sum(-1) + cross + pad_q))
     if not with_lin:
         return q_only, None
