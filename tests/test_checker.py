@@ -114,6 +114,23 @@ def test_dual_tangents_enclose_the_derivative_at_every_sampled_point():
     assert_encloses(out.v, f(x.detach()).reshape(16, 300), tol=1e-12)
 
 
+def test_the_norms_tangent_is_enclosed_on_wide_boxes():
+    """d/dz ||W z + b|| over boxes where the vector's norm ranges widely (and where it may reach 0): the tangent
+    encloses autograd's at sampled points, and it is never wider than the Lipschitz bound ``||W||``-like
+    ``[-||t||, ||t||]`` (the unit vector's components lie in [-1, 1])."""
+    g = torch.Generator().manual_seed(8)
+    lo = torch.randn(400, 2, generator=g, dtype=F64) * 2
+    hi = lo + 1.5 * torch.rand(400, 2, generator=g, dtype=F64)
+    w, b = torch.randn(3, 2, generator=g, dtype=F64), torch.randn(3, generator=g, dtype=F64) * 0.3
+    out = Du.seed(Iv(lo, hi), 2, [0, 1]).linear(w, b).norm()
+    x = samples(lo, hi, k=32).reshape(-1, 2).requires_grad_(True)
+    grad = torch.autograd.grad(torch.linalg.vector_norm(x @ w.T + b, dim=-1).sum(), x)[0].reshape(32, 400, 2)
+    for i in range(2):
+        assert_encloses(out.d[i], grad[..., i], tol=1e-12)
+        lipschitz = w[:, i].norm()
+        assert bool((out.d[i].hi <= lipschitz * (1 + 1e-9)).all() and (out.d[i].lo >= -lipschitz * (1 + 1e-9)).all())
+
+
 def test_nested_duals_give_the_design_models_w_and_its_gradient():
     """The pendulum's W = dF/dp in (mass, damping) and its derivative in the state, from nested duals."""
     system = small_pendulum()

@@ -475,17 +475,25 @@ class Du(_Ops):
         return Du(self.v.linear(weight, bias), [t.linear(weight) for t in self.d])
 
     def norm(self) -> Du:
-        """``||v||`` along the last axis; tangent ``v . t / ||v||`` where ``||v|| > 0`` surely, else the Lipschitz
-        enclosure ``[-||t||, ||t||]`` (the Clarke gradient of the norm at 0 is the unit ball)."""
+        """``||v||`` along the last axis. Its tangent is ``u . t`` with ``u = v / ||v||`` a unit vector (the Clarke
+        gradient at 0 is the unit ball), enclosed where ``||v|| > 0`` surely by the intersection of ``(v . t) /
+        ||v||`` and ``u . t`` with ``u``'s components in ``[-1, 1]``, and everywhere by ``[-||t||, ||t||]``."""
         value = self.v.norm()
+        positive = _base(value).lo > 0
+        unit = None
+        if isinstance(self.v, Iv):
+            safe = Iv(torch.where(positive, value.lo, 1.0), torch.where(positive, value.hi, 1.0))
+            unit = self.v / safe.unsqueeze(-1)
+            unit = Iv(unit.lo.clamp(-1.0, 1.0), unit.hi.clamp(-1.0, 1.0))
         out = []
         for t in self.d:
             mag = _base(t).mag()
             bound = mag.square().sum(-1).sqrt()  # n squares summed and a root: (n + 4) eps of the result covers both
             bound = _up(bound + (mag.shape[-1] + 4) * EPS * bound + TINY)
             slope = (self.v * t).sum(-1) / value
-            positive = _base(value).lo > 0
-            out.append(_hull_where(positive, slope, bound))
+            if unit is not None and isinstance(t, Iv):
+                slope = _meet(slope, (unit * t).sum(-1))
+            out.append(_hull_where(positive, _meet(slope, Iv(-bound, bound)), bound))
         return Du(value, out)
 
 
@@ -503,6 +511,13 @@ def _base(x) -> Iv:
 def _sign(v) -> Iv:
     b = _base(v)
     return Iv(torch.where(b.lo > 0, 1.0, -1.0), torch.where(b.hi < 0, -1.0, 1.0))
+
+
+def _meet(a, b: Iv) -> Iv:
+    """The intersection of two enclosures of the same quantity (a NaN end yields to the other's)."""
+    if not isinstance(a, Iv):
+        raise TypeError("the checker takes norms of first-order duals only")
+    return Iv(torch.fmax(a.lo, b.lo), torch.fmin(a.hi, b.hi))
 
 
 def _hull_where(positive: Tensor, slope, bound: Tensor) -> Iv:
