@@ -11,8 +11,9 @@ of the system's description, and the residual of the claimed condition from V's 
 gradient code, not the library's networks).
 
 A proved leaf is re-proved by the checker's second-order forms (:class:`~drlyap.checker.affine.Af`), and where they
-do not prove it, by the tighter of the interval bound and the mean-value form; where neither bound is ``<= 0``, the
-leaf is bisected along its widest side up to ``refine`` times and every piece must be proved. A leaf whose recorded
+do not prove it, by the tighter of the interval bound and the mean-value form (that one first where the header says
+the proof used it); where neither bound is ``<= 0``, the leaf is bisected along its widest side up to ``refine``
+times and every piece must be proved. A leaf whose recorded
 bound lies below the residual at its centre is a false record and fails the check.
 
 A claim on a sublevel set ``{V <= level}`` of X_delta is checked the same way, a box (or piece) counting as proved
