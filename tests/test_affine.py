@@ -14,6 +14,7 @@ from drlyap.closed_loop import ClosedLoop
 from drlyap.conditions import DRPointwise, Nominal, TrueDecrease
 from drlyap.config import Budget
 from drlyap.enclosures import Affine, Dual, Interval, is_enclosure, quadratic_max
+from drlyap.enclosures.quadratic import quadratic_span
 from drlyap.networks import Controller, Lyapunov, TanhMLP
 from drlyap.regions import Region
 from drlyap.systems import get_system
@@ -227,6 +228,8 @@ def test_joint_bound_of_linear_and_quadratic_parts_is_sound_and_exact_for_convex
     convex = q + torch.diag_embed(q.abs().sum(-1))  # diagonally dominant: the maximum is at a vertex
     vals = g @ e.T + torch.einsum("sk,bkl,sl->bs", e, convex, e)
     assert torch.allclose(quadratic_max(g, convex), vals.amax(-1), rtol=1e-9)
+    lo, hi = quadratic_span(g, q)  # both sides at once: the negation's bound from the same eigendecomposition
+    assert torch.equal(hi, bound) and torch.allclose(lo, -quadratic_max(-g, -q), rtol=1e-12, atol=1e-12)
     form = Affine(torch.zeros(60, dtype=F64), g, None, q)
     tight, loose = form.tight_interval(), form.to_interval()
     assert bool((tight.lo <= values.amin(-1)).all() and (values.amax(-1) <= tight.hi).all())

@@ -10,7 +10,7 @@ from torch import Tensor
 
 from drlyap.enclosures.base import Enclosure, fix_index, normdim
 from drlyap.enclosures.interval import Interval
-from drlyap.enclosures.quadratic import max_lin_quad, quadratic_max, sym_outer
+from drlyap.enclosures.quadratic import max_lin_quad, quadratic_span, sym_outer
 from drlyap.enclosures.rounding import EPS, F64, REL1, TINY, as_f64, round_down, round_up, sum_up
 from drlyap.enclosures.univariate import convex_error, drecip, dsqrt, dtanh, secant
 
@@ -150,8 +150,7 @@ class Affine(Enclosure, kind="affine"):
         ``max_symbols`` symbols: ``2^K`` evaluations per entry, for final results rather than every step."""
         if self.q is None or self.g is None or self.n_symbols > max_symbols:
             return self.to_interval()
-        hi = quadratic_max(self.g, self.q)
-        lo = -quadratic_max(-self.g, -self.q)
+        lo, hi = quadratic_span(self.g, self.q)
         dev = Interval(round_down(lo + self.r.lo, REL1), round_up(hi + self.r.hi, REL1))
         tight, plain = Interval.const(self.c) + dev, self.to_interval()
         return Interval(torch.maximum(tight.lo, plain.lo), torch.minimum(tight.hi, plain.hi))

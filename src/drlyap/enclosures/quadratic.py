@@ -22,22 +22,38 @@ def quadratic_max(g: Tensor, q: Tensor) -> Tensor:
     ``q`` curved downward along mixed directions (measured on the cart-pole's default pair: its proof in 114,200
     boxes instead of 168,403).
     """
+    return quadratic_span(g, q, lower=False)[1]
+
+
+def quadratic_span(g: Tensor, q: Tensor, lower: bool = True) -> tuple[Tensor | None, Tensor]:
+    """Lower and upper bounds ``(...)`` of ``g . e + e^T q e`` over ``e in [-1, 1]^K``: :func:`quadratic_max` of it
+    and (``lower``; else None) of its negation, sharing the vertex values and the eigendecomposition."""
     k = g.shape[-1]
     verts = vertices(k, g.device)  # (2^K, K)
     diag = torch.diagonal(q, dim1=-2, dim2=-1)
+    outer = (verts.unsqueeze(-1) * verts.unsqueeze(-2)).flatten(1) - torch.eye(k, dtype=F64).flatten()  # e_k^2 = 1
+    base = g @ verts.T + q.flatten(-2) @ outer.T  # (..., 2^K): the linear and off-diagonal parts at the vertices
+    mag = g.abs().sum(-1) + 4.0 * q.abs().sum((-2, -1))
+    pad = 4 * (k * k + k + 4) * EPS * mag + TINY
+    finite = (torch.isfinite(g).all(-1) & torch.isfinite(q).flatten(-2).all(-1))[..., None, None]
+    lam, u = torch.linalg.eigh(torch.where(finite, (q + q.mT) * 0.5, 0.0))  # eigh reads one triangle
+    hi = torch.minimum(_vertex_max(g, diag, base, verts) + pad, _dual_max(g, q, (lam, u)))
+    if not lower:
+        return None, hi
+    lo = -torch.minimum(_vertex_max(-g, -diag, -base, verts) + pad, _dual_max(-g, -q, (-lam.flip(-1), u.flip(-1))))
+    return lo, hi
+
+
+def _vertex_max(g: Tensor, diag: Tensor, base: Tensor, verts: Tensor) -> Tensor:
+    """The vertex bound of :func:`quadratic_max` before its pad, from ``base``: ``g . e`` plus the off-diagonal part
+    at the vertices."""
     neg = torch.clamp(diag, max=0.0)
     t = torch.where(neg < 0, torch.clamp(g / (-2.0 * torch.where(neg < 0, neg, -1.0)), -1.0, 1.0), 0.0)
-    g_t = g + 2.0 * neg * t
-    q_t = q - torch.diag_embed(neg)
-    outer = (verts.unsqueeze(-1) * verts.unsqueeze(-2)).flatten(1)  # (2^K, K^2)
-    values = g_t @ verts.T + q_t.flatten(-2) @ outer.T  # (..., 2^K)
-    best = values.amax(-1) - (neg * t * t).sum(-1)
-    mag = g.abs().sum(-1) + 2.0 * q.abs().sum((-2, -1))
-    vertex = best + 4 * (k * k + k + 4) * EPS * mag + TINY
-    return torch.minimum(vertex, _dual_max(g, q))
+    values = base + (2.0 * neg * t) @ verts.T
+    return values.amax(-1) - (neg * t * t).sum(-1) + torch.clamp(diag, min=0.0).sum(-1)
 
 
-def _dual_max(g: Tensor, q: Tensor) -> Tensor:
+def _dual_max(g: Tensor, q: Tensor, eig: tuple[Tensor, Tensor] | None = None) -> Tensor:
     """A second upper bound of ``max over e in [-1, 1]^K of g . e + e^T q e``, tight where the vertex bound is
     not: ``q`` strongly curved downward along directions that mix the coordinates (a stiff closed loop's
     ``Vdot`` near x*, where the linear part's growth along the stiff direction is cancelled by the quadratic's
@@ -46,8 +62,9 @@ def _dual_max(g: Tensor, q: Tensor) -> Tensor:
     For ``t >= lambda_max(q)``, ``M = t I - q`` is positive semidefinite and, for any vector ``y``,
     ``g . e + e^T q e = t |e|^2 - (e - y)^T M (e - y) + (g - 2 M y) . e + y^T M y
     <= max(t, 0) K + sum_k |g - 2 M y|_k + y^T M y``. ``t`` is the best of a geometric grid for the
-    eigendecomposition's estimate, ``y = M^-1 g / 2``; the bound holds for any ``y``, so only ``M``'s
-    semidefiniteness is checked (its smallest computed eigenvalue above a pad for the eigensolver's error) and the
+    eigendecomposition's estimate (``eig``: that of ``(q + q^T) / 2`` where the caller has it), ``y = M^-1 g / 2``;
+    the bound holds for any ``y``, so only ``M``'s semidefiniteness is checked: a Cholesky factorisation of
+    ``M - p I`` succeeds, ``p`` above its backward error (``2 (K + 1)^2 eps max_k M_kk``, after Rump's test), and the
     few sums are padded for rounding. ``inf`` where the check fails or an input is not finite.
     """
     k = g.shape[-1]
@@ -55,8 +72,12 @@ def _dual_max(g: Tensor, q: Tensor) -> Tensor:
     g = torch.where(finite[..., None], g, 0.0)
     q = torch.where(finite[..., None, None], q, 0.0)
     asym = EPS * q.abs().sum((-2, -1))  # e'qe = e'q_sym e; rounding of the symmetrised entries
-    q = (q + q.mT) * 0.5  # eigh reads one triangle
-    lam, u = torch.linalg.eigh(q)
+    q = (q + q.mT) * 0.5
+    if eig is None:
+        lam, u = torch.linalg.eigh(q)
+    else:
+        lam, u = (torch.where(finite[..., None], eig[0], 0.0),
+                  torch.where(finite[..., None, None], eig[1], torch.eye(k, dtype=F64, device=g.device)))
     gu = (u.mT @ g.unsqueeze(-1)).squeeze(-1)
     size = q.flatten(-2).norm(dim=-1)
     steps = torch.pow(2.0, torch.arange(-14, 15, dtype=F64, device=g.device))
@@ -65,13 +86,15 @@ def _dual_max(g: Tensor, q: Tensor) -> Tensor:
     estimate = t.clamp_min(0) * k + 0.25 * (gu.unsqueeze(-2).square() / (t[..., None] - lam.unsqueeze(-2))).sum(-1)
     t = t.gather(-1, estimate.argmin(-1, keepdim=True))[..., 0]
     y = 0.5 * (u @ (gu / (t[..., None] - lam)).unsqueeze(-1)).squeeze(-1)
-    m = t[..., None, None] * torch.eye(k, dtype=F64, device=g.device) - q
+    eye = torch.eye(k, dtype=F64, device=g.device)
+    m = t[..., None, None] * eye - q
     my = (m @ y.unsqueeze(-1)).squeeze(-1)
     m_y = (m.abs() @ y.abs().unsqueeze(-1)).squeeze(-1)
     value = t.clamp_min(0) * k + (g - 2 * my).abs().sum(-1) + (y * my).sum(-1)
     pad = 8 * (k + 2) * EPS * (g.abs().sum(-1) + 2 * m_y.sum(-1) + (y.abs() * m_y).sum(-1) + t.abs() * k) + TINY
-    semidefinite = torch.linalg.eigvalsh(m)[..., 0] > 1e-11 * m.flatten(-2).norm(dim=-1) + 4 * EPS * t.abs() + 1e-300
-    value = value + pad + asym
+    backward = 2 * (k + 1) ** 2 * EPS * torch.diagonal(m, dim1=-2, dim2=-1).abs().amax(-1) + 1e-300
+    semidefinite = torch.linalg.cholesky_ex(m - backward[..., None, None] * eye).info == 0
+    value = value + pad + asym + 2 * EPS * m.abs().sum((-2, -1))
     return torch.where(finite & semidefinite & torch.isfinite(value), value, torch.inf)
 
 
