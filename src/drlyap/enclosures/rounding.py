@@ -20,12 +20,16 @@ def as_f64(x) -> Tensor:
 def round_down(x: Tensor, rel: float, mag: Tensor | None = None) -> Tensor:
     """``x`` lowered by ``rel`` times its magnitude (or ``mag``) and an absolute pad: below the real value of a
     float64 result whose relative error is at most ``rel``."""
-    return x - rel * (x.abs() if mag is None else mag) - TINY
+    if mag is None:  # one new tensor, changed in place (a hot path; autograd needs none of the intermediates)
+        return x.abs().mul_(-rel).add_(x).sub_(TINY)
+    return torch.sub(x, rel * mag).sub_(TINY)
 
 
 def round_up(x: Tensor, rel: float, mag: Tensor | None = None) -> Tensor:
     """``x`` raised by ``rel`` times its magnitude (or ``mag``) and an absolute pad (see :func:`round_down`)."""
-    return x + rel * (x.abs() if mag is None else mag) + TINY
+    if mag is None:
+        return x.abs().mul_(rel).add_(x).add_(TINY)
+    return torch.add(x, rel * mag).add_(TINY)
 
 
 def sum_up(t: Tensor, dim: int = -1) -> Tensor:
