@@ -37,7 +37,7 @@ class Affine(Enclosure, kind="affine"):
     of a batch of boxes; :meth:`to_interval` encloses a form.
     """
 
-    __slots__ = ("c", "g", "r", "q", "_qr", "_dv", "_gl", "_qt")
+    __slots__ = ("c", "g", "r", "q", "_qr", "_dv")
     level = 0
 
     def __init__(self, c: Tensor, g: Tensor | None = None, r: Interval | None = None,
@@ -54,8 +54,6 @@ class Affine(Enclosure, kind="affine"):
         self.q = q if q is None or q.shape[:-2] == shape else q.expand(*shape, *q.shape[-2:])
         self._qr: Interval | None = None  # the range of the quadratic part, once computed
         self._dv: Interval | None = None  # the range of x - c, once computed
-        self._gl: Tensor | None = None  # sum_k |g_k| (rounded up), once computed
-        self._qt: Tensor | None = None  # sum_kl |q_kl| (rounded up), once computed
         if r is None:
             z = torch.zeros((), dtype=F64, device=c.device).expand(shape)
             r = Interval(z, z)
@@ -107,7 +105,7 @@ class Affine(Enclosure, kind="affine"):
         if self._qr is None:
             k = q.shape[-1]
             diag = torch.diagonal(q, dim1=-2, dim2=-1)
-            total = self._qabs()
+            total = q.abs().sum((-2, -1))
             off = torch.clamp(total - diag.abs().sum(-1), min=0.0)  # sum_{k != l} |q_kl| >= |off-diagonal part|
             pad = 4 * (k * k + 4) * EPS * total + TINY  # the sums' rounding
             self._qr = Interval(torch.clamp(diag, max=0.0).sum(-1) - off - pad,
@@ -116,19 +114,7 @@ class Affine(Enclosure, kind="affine"):
 
     def _lin(self) -> Tensor:
         """An upper bound ``(B, ...)`` of ``|g . e|`` over ``[-1, 1]^K`` (0 without a linear part)."""
-        if self.g is None:
-            return torch.zeros_like(self.c)
-        if self._gl is None:
-            self._gl = sum_up(self.g.abs())
-        return self._gl
-
-    def _qabs(self) -> Tensor:
-        """An upper bound ``(B, ...)`` of ``sum_kl |q_kl|`` (0 without a quadratic part)."""
-        if self.q is None:
-            return torch.zeros_like(self.c)
-        if self._qt is None:
-            self._qt = Affine._qsize(self.q)
-        return self._qt
+        return torch.zeros_like(self.c) if self.g is None else sum_up(self.g.abs())
 
     def _higher(self) -> Interval:
         """An interval of the part above first order: the quadratic part plus the remainder, ``(B, ...)``."""
@@ -146,11 +132,11 @@ class Affine(Enclosure, kind="affine"):
         if self._dv is None:  # each symbol's g_k e_k + q_kk e_k^2 bounded jointly, the cross terms by |q_kl|
             q, k = self.q, self.q.shape[-1]
             diag = torch.diagonal(q, dim1=-2, dim2=-1)
-            total = self._qabs()
+            total = q.abs().sum((-2, -1))
             off = torch.clamp(total - diag.abs().sum(-1), min=0.0)
             hi = max_lin_quad(self.g, diag).sum(-1) + off
             lo = -max_lin_quad(self.g, -diag).sum(-1) - off
-            pad = 8 * (k * k + 4) * EPS * (self._lin() + total) + TINY
+            pad = 8 * (k * k + 4) * EPS * (self.g.abs().sum(-1) + total) + TINY
             self._dv = Interval(round_down(lo - pad + self.r.lo, REL1), round_up(hi + pad + self.r.hi, REL1))
         return self._dv
 
@@ -189,23 +175,17 @@ class Affine(Enclosure, kind="affine"):
         return f"Affine(c={self.c}, g={self.g}, q={self.q}, r={self.r!r})"
 
     @staticmethod
-    def _centred(const: Interval, g: Tensor | None, pad, q: Tensor | None = None, gl: Tensor | None = None,
-                 qt: Tensor | None = None) -> Affine:
+    def _centred(const: Interval, g: Tensor | None, pad, q: Tensor | None = None) -> Affine:
         """The form ``const + g . e + e^T q e`` re-centred at the midpoint of ``const``, ``pad`` (a bound of the
-        rounding error of the coefficients' parts) added to the remainder on both sides. ``gl``, ``qt``: the new
-        form's ``sum_up(|g|)`` and :meth:`_qsize` where the caller has them (kept, not recomputed)."""
+        rounding error of the coefficients' parts) added to the remainder on both sides."""
         c = const.mid
-        out = Affine(c, g, Interval(round_down(const.lo - c - pad, REL1), round_up(const.hi - c + pad, REL1)), q)
-        if gl is not None and g is not None and out.g is g:
-            out._gl = gl
-        if qt is not None and q is not None and out.q is q:
-            out._qt = qt
-        return out
+        return Affine(c, g, Interval(round_down(const.lo - c - pad, REL1), round_up(const.hi - c + pad, REL1)), q)
 
     @staticmethod
-    def _qsize(q: Tensor) -> Tensor:
-        """An upper bound of ``sum_kl |q_kl|`` per entry."""
-        return sum_up(sum_up(q.abs()))
+    def _qpad(q: Tensor | None, rel: float = REL1):
+        """A bound of the value error of a quadratic part whose every coefficient carries a relative error
+        ``rel`` (``|e_k e_l| <= 1``)."""
+        return 0.0 if q is None else rel * sum_up(sum_up(q.abs()))
 
     @staticmethod
     def _where(mask: Tensor, a: Affine, b: Affine) -> Affine:
@@ -309,36 +289,33 @@ class Affine(Enclosure, kind="affine"):
 
     # ---- arithmetic
     @staticmethod
-    def _gsum(a: Tensor | None, b: Tensor | None) -> tuple[Tensor | None, Tensor | None]:
-        """``a + b`` of coefficient tensors (None = 0) and, where it was summed, ``sum_up(|a + b|)`` (its rounding
-        error summed over symbols is at most ``REL1`` times that)."""
+    def _gsum(a: Tensor | None, b: Tensor | None) -> tuple[Tensor | None, object]:
+        """``a + b`` of coefficient tensors (None = 0) and a bound of its rounding error summed over symbols."""
         if a is None or b is None:
-            return (b if a is None else a), None
+            return (b if a is None else a), 0.0
         if a.shape[-1] != b.shape[-1] or a.ndim != b.ndim or a.shape[0] != b.shape[0]:
             raise ValueError(f"affine forms of different boxes or symbols cannot be combined: coefficient shapes "
                              f"{tuple(a.shape)} and {tuple(b.shape)}")
         g = a + b
-        return g, sum_up(g.abs())
+        return g, REL1 * sum_up(g.abs())
 
     @staticmethod
-    def _qsum(a: Tensor | None, b: Tensor | None) -> tuple[Tensor | None, Tensor | None]:
-        """``a + b`` of quadratic parts (None = 0) and, where it was summed, :meth:`_qsize` of it (its rounding
-        error's value is at most ``REL1`` times that)."""
+    def _qsum(a: Tensor | None, b: Tensor | None) -> tuple[Tensor | None, object]:
+        """``a + b`` of quadratic parts (None = 0) and a bound of its rounding error's value."""
         if a is None or b is None:
-            return (b if a is None else a), None
+            return (b if a is None else a), 0.0
         if a.shape[-1] != b.shape[-1] or a.ndim != b.ndim or a.shape[0] != b.shape[0]:
             raise ValueError(f"affine forms of different boxes or symbols cannot be combined: quadratic shapes "
                              f"{tuple(a.shape)} and {tuple(b.shape)}")
         q = a + b
-        return q, Affine._qsize(q)
+        return q, Affine._qpad(q)
 
     def _add(self, o: Affine) -> Affine:
-        g, gl = Affine._gsum(self.g, o.g)
-        q, qt = Affine._qsum(self.q, o.q)
+        g, pad = Affine._gsum(self.g, o.g)
+        q, qpad = Affine._qsum(self.q, o.q)
         c = self.c + o.c
         const = Interval(round_down(c, REL1), round_up(c, REL1)) + (self.r + o.r)
-        pad = (0.0 if gl is None else REL1 * gl) + (0.0 if qt is None else REL1 * qt)
-        return Affine._centred(const, g, pad, q, gl, qt)
+        return Affine._centred(const, g, pad + qpad, q)
 
     def _sub(self, o: Affine) -> Affine:
         return self._add(o._neg())
@@ -351,13 +328,10 @@ class Affine(Enclosure, kind="affine"):
         lam = lam.expand(self.shape) if lam.shape != self.shape else lam
         const = Interval.const(lam) * (Interval.const(self.c) + self.r) + k
         q = None if self.q is None else lam[..., None, None] * self.q
-        qt = None if q is None else Affine._qsize(q)
-        qpad = 0.0 if q is None else REL1 * qt
         if self.g is None:
-            return Affine._centred(const, None, qpad, q, qt=qt)
+            return Affine._centred(const, None, Affine._qpad(q), q)
         g = lam.unsqueeze(-1) * self.g
-        gl = sum_up(g.abs())
-        return Affine._centred(const, g, REL1 * gl + qpad, q, gl, qt)
+        return Affine._centred(const, g, REL1 * sum_up(g.abs()) + Affine._qpad(q), q)
 
     def _mul(self, o: Affine) -> Affine:
         if self.g is None and o.g is None and self.q is None and o.q is None:
@@ -366,11 +340,9 @@ class Affine(Enclosure, kind="affine"):
         # x y = cx cy + (cx Ly + cy Lx) + (cx Qy + cy Qx + Lx Ly) + cx ry + cy rx + Lx (Qy + ry) + (Qx + rx)(y - cy)
         t1 = None if self.g is None else o.c.unsqueeze(-1) * self.g
         t2 = None if o.g is None else self.c.unsqueeze(-1) * o.g
-        g, gl = Affine._gsum(t1, t2)
-        pad = 0.0
+        g, pad = Affine._gsum(t1, t2)
         if g is not None:
-            gl = sum_up(g.abs()) if gl is None else gl
-            pad = (REL1 if t1 is None or t2 is None else 2 * REL1) * gl  # the products' own rounding, and the sum's
+            pad = pad + REL1 * sum_up(g.abs())  # the products' own rounding
         parts = [o.c[..., None, None] * self.q if self.q is not None else None,
                  self.c[..., None, None] * o.q if o.q is not None else None,
                  sym_outer(self.g, o.g) if self.g is not None and o.g is not None else None]
@@ -378,15 +350,13 @@ class Affine(Enclosure, kind="affine"):
         for part in parts:
             if part is not None:
                 q = part if q is None else q + part
-        qt = None
         if q is not None:
-            qt = Affine._qsize(q)
-            pad = pad + 4 * REL1 * qt  # each entry: up to three products and two sums
+            pad = pad + Affine._qpad(q, 4 * REL1)  # each entry: up to three products and two sums
         cx, cy = Interval.const(self.c), Interval.const(o.c)
         lx = self._lin()
         const = (cx * cy + cx * o.r + cy * self.r + Interval(-lx, lx) * o._higher()
                  + self._higher() * o._dev())
-        return Affine._centred(const, g, pad, q, gl, qt)
+        return Affine._centred(const, g, pad, q)
 
     def reciprocal(self) -> Affine:
         iv = self.to_interval()
@@ -432,8 +402,7 @@ class Affine(Enclosure, kind="affine"):
         q = (a2.unsqueeze(-1) * self.g).unsqueeze(-1) * self.g.unsqueeze(-2)
         if self.q is not None:
             q = q + a1[..., None, None] * self.q
-        gl, qt = sum_up(g.abs()), Affine._qsize(q)
-        return Affine._centred(const, g, REL1 * gl + 4 * REL1 * qt, q, gl, qt)
+        return Affine._centred(const, g, REL1 * sum_up(g.abs()) + Affine._qpad(q, 4 * REL1), q)
 
     @staticmethod
     def _pick(second: Affine, first: Callable[[], Affine], wide: Tensor) -> Affine:
@@ -606,11 +575,11 @@ class Affine(Enclosure, kind="affine"):
         if self.q is not None:
             k = self.q.shape[-1]
             q = torch.matmul(weight, self.q.flatten(-2)).unflatten(-1, (k, k))  # (out, in) @ (..., in, K K)
-            qpad = rel * round_up(self._qabs() @ w_abs, rel)
+            qpad = rel * round_up(sum_up(sum_up(self.q.abs())) @ w_abs, rel)
         if self.g is None:
             return Affine._centred(const, None, qpad, q)
         g = torch.matmul(weight, self.g)  # (out, in) @ (..., in, K)
-        pad = rel * round_up(self._lin() @ w_abs, rel)
+        pad = rel * round_up(sum_up(self.g.abs()) @ w_abs, rel)
         return Affine._centred(const, g, pad + qpad, q)
 
     def clamp(self, low: Tensor, high: Tensor) -> Affine:
