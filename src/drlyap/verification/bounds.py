@@ -6,8 +6,9 @@ mean-value form ``f(centre) + [grad f over the box] . (box - centre)`` (the grad
 numbers; for the controller's clamp and the norms it is an enclosure of the Clarke generalised gradient, for
 which the mean-value theorem still holds). ``enclosure="affine"`` runs the function on affine forms
 (:class:`~drlyap.enclosures.Affine`, one noise symbol per box coordinate, with an exact quadratic part)
-instead of the mean-value form: it keeps the dependence on the coordinates through every layer to second
-order, and its result's linear and quadratic parts are bounded jointly (over the cube's vertices and by a
+instead of both (the interval bound beside them saved 0.5% of the cart-pole's boxes for 9% more time): it
+keeps the dependence on the coordinates through every layer to second order, and its result's linear and
+quadratic parts are bounded jointly (over the cube's vertices and by a
 dual bound, :func:`~drlyap.enclosures.quadratic_max`; :meth:`~drlyap.enclosures.Affine.tight_interval`);
 ``benchmarks/enclosure_bench.py`` compares the widths.
 
@@ -81,7 +82,7 @@ def box_bounds(objective: Objective, lo: Tensor, hi: Tensor, enclosure: str = "m
     """Lower and upper bounds ``(B, Q)`` of ``objective`` over the boxes ``[lo, hi] (B, n)``.
 
     ``enclosure``: ``mean-value`` (the tighter of the plain interval bound and the mean-value form) or
-    ``affine`` (the tighter of the plain interval bound and the affine-form bound). Also returns the enclosure
+    ``affine`` (the affine-form bound, its linear and quadratic parts bounded jointly). Also returns the enclosure
     of the objective at the box centres (an :class:`Interval` ``(B, Q)``). With ``sensitivity``, a fourth
     tensor ``(B, n)``: how much each coordinate's half-width adds to the spread of the bounds, summed over the
     components (``|slope| * radius`` of the mean-value form; ``|coefficient|`` of the affine form plus half of
@@ -95,9 +96,7 @@ def box_bounds(objective: Objective, lo: Tensor, hi: Tensor, enclosure: str = "m
     if check_enclosure(enclosure) == "affine":
         form = objective(Affine.box(lo, hi))
         over = form.tight_interval()
-        plain = objective(Interval(lo, hi))
-        upper = torch.minimum(over.hi, plain.hi)
-        lower = torch.maximum(over.lo, plain.lo)
+        upper, lower = over.hi, over.lo
         if sensitivity:
             sens = torch.zeros_like(lo) if form.g is None else form.g.abs().sum(1)
             if form.q is not None:  # a quadratic term q_kl e_k e_l shrinks with either side: count it on both

@@ -32,8 +32,8 @@ class Partition:
     """A proof's tree of boxes (see the module docstring): ``N`` nodes over a starting grid of ``prod(grid)`` cells.
 
     ``parent``, ``side``, ``axis``, ``verdict``: ``(N,)`` integer tensors; ``bound``: ``(N,)`` float64 (NaN on
-    internal nodes and on leaves inside the ball); ``enclosure``: how the boxes were bounded (``mean-value`` or
-    ``affine``, each together with the plain interval bound).
+    internal nodes and on leaves inside the ball); ``enclosure``: how the boxes were bounded (``mean-value``, with the plain
+    interval bound beside it, or ``affine``).
     """
 
     grid: list[int]
