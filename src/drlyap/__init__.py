@@ -14,7 +14,8 @@ Python API::
 
 The names above are loaded on first use. The first one used sets torch to one thread (as the command line does:
 the numbers here were measured that way, and two threads on two shared cores ran up to 45x slower), unless the
-environment variable ``DRLYAP_THREADS`` says otherwise; ``drlyap.set_threads(n)`` changes it at any time.
+environment variable ``DRLYAP_THREADS`` says otherwise; ``drlyap.set_threads(n)`` changes it at any time. It also
+asks glibc's malloc to keep freed memory for reuse (:mod:`drlyap.memory`; ``DRLYAP_MALLOC=system`` does not).
 """
 
 from __future__ import annotations
@@ -52,7 +53,10 @@ def set_threads(count: int | None = None) -> int:
         raise ValueError(f"the thread count must be a positive integer, got {value!r} (DRLYAP_THREADS or set_threads)")
     import torch
 
+    from drlyap.memory import keep_freed_memory
+
     torch.set_num_threads(int(value))
+    keep_freed_memory()
     _threads_set = True
     return int(value)
 

@@ -12,7 +12,11 @@ import click
 
 
 def setup_threads() -> None:
-    """One torch thread unless ``DRLYAP_THREADS`` says otherwise (the two shared cores of a laptop-class machine)."""
+    """One torch thread unless ``DRLYAP_THREADS`` says otherwise (the two shared cores of a laptop-class machine),
+    and freed memory kept for reuse (:mod:`drlyap.memory`)."""
+    from drlyap.memory import keep_freed_memory
+
+    keep_freed_memory()
     value = os.environ.get("DRLYAP_THREADS", "1")
     if not value.isdigit() or int(value) < 1:
         raise click.ClickException(f"DRLYAP_THREADS must be a positive integer, got {value!r}")
