@@ -148,12 +148,13 @@ def test_roa_config_is_validated():
 
 
 def test_roa_training_warm_starts_from_lqr_and_keeps_v_above_the_level_on_the_faces():
-    cfg = TrainConfig(system="cartpole", iters=20, check_every=10, n_states=512, lyapunov_hidden=[8],
-                      controller_hidden=[8])
+    # 16 units: 8 fit the default warm start's gains (R = 0.01) with a 43% error, no longer Hurwitz at x*
+    cfg = TrainConfig(system="cartpole", iters=20, check_every=10, n_states=512, lyapunov_hidden=[16],
+                      controller_hidden=[16])
     result = plain_train(cfg, progress=False)
     assert result.config.roa_level == 1.0 and result.config.warm_start == "lqr"
     warm = result.metrics["warm_start"]
-    assert warm["method"] == "lqr" and warm["v_relative_error"] < 0.5 and warm["u_relative_error"] < 0.5  # 8 units
+    assert warm["method"] == "lqr" and warm["v_relative_error"] < 0.5 and warm["u_relative_error"] < 0.5  # 16 units
     acc = result.metrics["acceptance"]
     assert acc["level"] == 1.0 and acc["boundary_min"] > 1.0
     # the controller stays the LQR's near x*: its linearisation is Hurwitz at every sample
