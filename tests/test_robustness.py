@@ -113,3 +113,23 @@ def test_cli_max_radius_on_a_baseline_run(tmp_path, tiny_config):
     assert "certified shift box" in text.output
     bad = runner.invoke(main, ["verify", str(tmp_path / "run"), "--max-radius", "--radius-tol", "0"])
     assert bad.exit_code != 0 and "--radius-tol" in bad.output
+
+
+def test_the_radius_on_a_sublevel_set_is_proved_there_and_at_least_the_whole_regions():
+    """Over ``{V <= level}`` the claim asks less than over X_delta: its r* is at least as large, it is proved on
+    that set, and sampled refutations come only from states inside it."""
+    system = small_pendulum()
+    lyap, ctrl = linear_pair(system)
+    loop, region = ClosedLoop(system, lyap, ctrl), Region.of(system, DELTA)
+    condition = DRPointwise(1e-3, 0.1, XI, 0.05)
+    whole = certified_radius(loop, condition, region, TEN, tol=TOL)
+    z = _dense(system)
+    with torch.no_grad():
+        level = float(loop.f64.lyapunov(z).quantile(0.3))  # a set that leaves out most of the box
+    sub = certified_radius(loop, condition, region, TEN, tol=TOL, level=level)
+    assert sub.level == level and whole.level is None
+    assert sub.radius is not None and sub.radius >= whole.radius * (1 - TOL)
+    assert verify_condition(loop, condition.with_radius(sub.radius), region, TEN, level=level).status == "verified"
+    if sub.witness is not None and sub.unproved_by == "sampled state":
+        state = system.to_local(torch.tensor([sub.witness["state"]], dtype=F64))
+        assert float(loop.f64.lyapunov(state)[0]) <= level

@@ -196,11 +196,12 @@ def robustness_lines(result: RunRobustness) -> list[str]:
     at = f"eps={rad.risk_level:g}, N={rad.n_samples}, {decay}"
     trained = (f"run trained at r={result.trained_radius:g}" if result.trained_radius is not None
                else f"{result.method} run: radius of the DR condition at its N samples")
+    where = "X_delta" if rad.level is None else f"{{V <= {rad.level:g}}} of X_delta"
     if rad.radius is None:
-        lines.append(f"certified Wasserstein radius (DR pointwise over X_delta): NONE at {at} ({trained}): {rad.reason}"
+        lines.append(f"certified Wasserstein radius (DR pointwise over {where}): NONE at {at} ({trained}): {rad.reason}"
                      + _witness_text(rad))
     else:
-        lines.append(f"certified Wasserstein radius (DR pointwise over X_delta): r* in [{rad.radius:.4g}, "
+        lines.append(f"certified Wasserstein radius (DR pointwise over {where}): r* in [{rad.radius:.4g}, "
                      f"{_upper(rad)}) at {at} ({trained}); {_why(rad)}; {rad.proofs} proofs, {rad.time_s:.1f} s")
     own = result.radius_training_sample
     if own is not None:
@@ -211,13 +212,14 @@ def robustness_lines(result: RunRobustness) -> list[str]:
             lines.append(f"  around its training sample (the mean, {at}): r* in [{own.radius:.4g}, {_upper(own)}); "
                          f"{_why(own)}; {own.proofs} proofs, {own.time_s:.1f} s")
     decay = f"gamma={box.decay_rate:g}" + (f", alpha={box.exp_rate:.3g}" if box.exp_rate else "")
+    where = "X_delta" if box.level is None else f"{{V <= {box.level:g}}} of X_delta"
     if box.s is None:
-        lines.append(f"certified shift box: NONE (decrease on the true model over X_delta with {decay}): {box.reason}"
+        lines.append(f"certified shift box: NONE (decrease on the true model over {where} with {decay}): {box.reason}"
                      + _witness_text(box))
     else:
         parts = ", ".join(f"{name} in [{lo:.4g}, {hi:.4g}]" for name, (lo, hi) in box.box.items())
         unit = ", ".join(f"{w:.3g}" for w in box.scale)
-        lines.append(f"certified shift box: {parts} (decrease on the true model over X_delta for every xi in the "
+        lines.append(f"certified shift box: {parts} (decrease on the true model over {where} for every xi in the "
                      f"box, with {decay}; s* = {box.s:.4g} x ({unit}), s in [{box.s:.4g}, {_upper(box)}); "
                      f"{_why(box)}; {box.proofs} proofs, {box.time_s:.1f} s)")
     return lines

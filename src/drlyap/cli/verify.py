@@ -55,7 +55,6 @@ def verify(run_dir: Path, delta: float | None, xi: str | None, time_limit: float
     from drlyap.io import jsonable
     from drlyap.render import verification_lines
     from drlyap.runs import load_run, read_run_kind
-    from drlyap.verification import Budget
     from drlyap.workflows.verify import record_certificates, record_region, run_proof, run_robustness, verify_run
 
     try:
@@ -88,8 +87,7 @@ def verify(run_dir: Path, delta: float | None, xi: str | None, time_limit: float
         except OSError as err:
             written = [f"  no certificate written: {run.path} cannot be written ({err.strerror or err})"]
         if max_radius:
-            result.robustness = run_robustness(run, delta=delta, tol=radius_tol,
-                                               budget=Budget(seconds=settings.time_limit, enclosure="mean-value"),
+            result.robustness = run_robustness(run, delta=delta, tol=radius_tol, budget=settings.budget(),
                                                total_time=8 * settings.time_limit)
     except ValueError as err:
         fail(err)

@@ -274,6 +274,7 @@ class _Search(Result):
     decay_rate: float = 0.0
     exp_rate: float = 0.0
     delta: float = 0.0
+    level: float | None = None  # proved on {V <= level} of X_delta only (a region-of-attraction run's set)
 
 
 @dataclass

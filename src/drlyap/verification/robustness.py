@@ -66,6 +66,15 @@ def dense_states(region: Region, per_axis: int = 200, sphere: int = 2000, seed: 
     return z
 
 
+def _in_sublevel(loop: ClosedLoop, z: Tensor, level: float | None, batch: int = 8192) -> Tensor:
+    """The states of ``z (B, n)`` with ``V <= level`` (all of them without a level), by the float64 networks."""
+    if level is None:
+        return z
+    with torch.no_grad():
+        v = torch.cat([loop.f64.lyapunov(z[i:i + batch]) for i in range(0, z.shape[0], batch)])
+    return z[v <= level]
+
+
 def _residuals(loop: ClosedLoop, condition, z: Tensor, batch: int = 8192) -> Tensor:
     """The residual ``(B,)`` of ``condition`` at ``z`` with the float64 networks (the arithmetic of the claims)."""
     f64 = loop.f64
@@ -175,10 +184,10 @@ def _largest_proved(prove: Callable[[float], dict], refute: Callable[[float], di
     return out(lo, hi_res, "tolerance")
 
 
-def _prover(loop: ClosedLoop, region: Region, budget: Budget, make) -> Callable[[float], dict]:
+def _prover(loop: ClosedLoop, region: Region, budget: Budget, make, level: float | None) -> Callable[[float], dict]:
     def prove(v: float) -> dict:
         try:
-            r = verify_condition(loop, make(v), region, budget, stop_at_counterexample=True)
+            r = verify_condition(loop, make(v), region, budget, level=level, stop_at_counterexample=True)
         except ValueError as err:  # e.g. the dynamics are undefined for some shift in the box (a zero mass)
             return {"status": "error", "error": str(err), "time_s": None}
         res = {"status": r.status, "time_s": r.time_s, "verified_fraction": r.verified_fraction}
@@ -192,9 +201,10 @@ def _prover(loop: ClosedLoop, region: Region, budget: Budget, make) -> Callable[
 # --------------------------------------------------------------------------- radius
 def certified_radius(loop: ClosedLoop, condition: DRPointwise, region: Region, budget: Budget = SEARCH_BUDGET, *,
                      tol: float = 0.01, total_time: float = 120.0, max_proofs: int = 40,
-                     cap: float = 1e6) -> CertifiedRadius:
+                     cap: float = 1e6, level: float | None = None) -> CertifiedRadius:
     """The largest Wasserstein radius r for which the pointwise DR condition (at the condition's risk level
-    eps, samples and decay) is proved over the region X_delta.
+    eps, samples and decay) is proved over the region X_delta (``level``: over its sublevel set ``{V <= level}``,
+    the set a region-of-attraction run is trained and proved on; sampled refutations are then taken there too).
 
     ``condition``: a :class:`DRPointwise` (its own radius is only reported; the search sets r with
     :meth:`~DRPointwise.with_radius`). ``tol``: relative width of the final bracket ``[r*, r_unproved)``.
@@ -212,7 +222,7 @@ def certified_radius(loop: ClosedLoop, condition: DRPointwise, region: Region, b
         raise ValueError(f"tol must be > 0, got {tol}")
     system = loop.system
     clock = time.perf_counter()
-    z = dense_states(region)
+    z = _in_sublevel(loop, dense_states(region), level)
     res0, lip = _residuals_and_lip(loop, condition.with_radius(0.0), z)
     best: dict = {"sampled": math.inf, "at": None}  # the smallest sampled ratio and its state
 
@@ -246,7 +256,7 @@ def certified_radius(loop: ClosedLoop, condition: DRPointwise, region: Region, b
         take(state, r0, lips)
         return best["sampled"] if best["sampled"] < before else None
 
-    prove = _prover(loop, region, budget, condition.with_radius)
+    prove = _prover(loop, region, budget, condition.with_radius, level)
     start = condition.r if condition.r > 0 else 1e-3
     found = _largest_proved(prove, refute, first_guess, start, tol, cap, max_proofs, total_time, reguess)
     found["time_s"] = time.perf_counter() - clock
@@ -255,7 +265,7 @@ def certified_radius(loop: ClosedLoop, condition: DRPointwise, region: Region, b
     return CertifiedRadius(radius=radius, **found, sampled_upper=sampled if math.isfinite(sampled) else None,
                            risk_level=condition.eps, n_samples=int(condition.xi.shape[0]),
                            decay_rate=condition.decay_rate, exp_rate=condition.exp_rate, condition_radius=condition.r,
-                           delta=region.delta)
+                           delta=region.delta, level=level)
 
 
 def _witness(system: UncertainSystem, z: Tensor, value: float) -> dict:
@@ -291,12 +301,12 @@ def shift_box_condition(scale: Tensor, s: float, decay_rate: float, exp_rate: fl
 
 def certified_shift_box(loop: ClosedLoop, decay_rate: float, exp_rate: float, region: Region, scale: Tensor,
                         budget: Budget = SEARCH_BUDGET, *, tol: float = 0.01, total_time: float = 120.0,
-                        max_proofs: int = 40, cap: float = 1e3) -> CertifiedShiftBox:
+                        max_proofs: int = 40, cap: float = 1e3, level: float | None = None) -> CertifiedShiftBox:
     """The largest s such that decrease on the TRUE model, ``grad V . F(x, pi(x), p0 + xi) + decay_rate ||z||
     + exp_rate V <= 0``, is proved over X_delta for every shift xi in the box ``[-s scale, s scale]``.
 
     ``scale (k,)``: the box's half-widths at s = 1, in the uncertain parameters' units (see
-    :func:`shift_scale`). Other arguments as :func:`certified_radius`. Returns a
+    :func:`shift_scale`). Other arguments (``level`` too) as :func:`certified_radius`. Returns a
     :class:`~drlyap.verification.results.CertifiedShiftBox`: ``s`` (None when not provable
     even at xi = 0, with ``reason``), ``box`` (``{parameter: [low, high]}`` at s*, in the parameters' units),
     the bracket ``unproved`` / ``unproved_status`` / ``unproved_by`` / ``witness`` (a state and the corner
@@ -311,7 +321,7 @@ def certified_shift_box(loop: ClosedLoop, decay_rate: float, exp_rate: float, re
     if not tol > 0:
         raise ValueError(f"tol must be > 0, got {tol}")
     clock = time.perf_counter()
-    states = {"z": dense_states(region)}
+    states = {"z": _in_sublevel(loop, dense_states(region), level)}
 
     def make(s: float) -> TrueDecrease:
         return shift_box_condition(scale, s, decay_rate, exp_rate)
@@ -333,14 +343,14 @@ def certified_shift_box(loop: ClosedLoop, decay_rate: float, exp_rate: float, re
         return _sampled_threshold(lambda s: refute_at(state, s), cap, tol / 8)
 
     sampled = _sampled_threshold(refute, cap, tol / 8)
-    prove = _prover(loop, region, budget, make)
+    prove = _prover(loop, region, budget, make, level)
     found = _largest_proved(prove, refute, sampled, 1.0, tol, cap, max_proofs, total_time, reguess)
     found["time_s"] = time.perf_counter() - clock
     s = found.pop("certified")
     box = None if s is None else {name: [-s * float(w), s * float(w)] for name, w in zip(system.uncertain, scale)}
     return CertifiedShiftBox(s=s, box=box, **found, scale=scale.tolist(), parameters=list(system.uncertain),
                              sampled_upper=sampled, decay_rate=float(decay_rate), exp_rate=float(exp_rate),
-                             delta=region.delta)
+                             delta=region.delta, level=level)
 
 
 def _sampled_threshold(refute: Callable[[float], dict | None], cap: float, tol: float) -> float | None:

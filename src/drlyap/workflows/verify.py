@@ -162,19 +162,21 @@ def run_robustness(run: Run, delta: float | None = None, tol: float = 0.01, budg
     for a baseline run, which trained on their mean), risk level and decay (its configured radius is only a start
     of the search), and :func:`~drlyap.verification.certified_shift_box` with the run's decay (``scale`` default
     :func:`~drlyap.verification.shift_scale` of the run's samples), over the run's X_delta (``delta`` default the
-    run's); ``budget`` of each proof, ``total_time`` seconds of each search. For a baseline run also the radius
-    of the DR condition around the single sample it trained on (``run.xi_train``, N = 1)."""
+    run's; for a region-of-attraction run over its sublevel set ``{V <= roa_level}``); ``budget`` of each proof,
+    ``total_time`` seconds of each search. For a baseline run also the radius of the DR condition around the single
+    sample it trained on (``run.xi_train``, N = 1)."""
     cfg, system, loop = run.config, run.system, run.loop
     region = _region(run, delta)
+    level = cfg.roa_level  # a region-of-attraction run claims its conditions on {V <= level} only
     radius = certified_radius(loop, run_condition(cfg, run.xi_samples, "pointwise"), region, budget, tol=tol,
-                              total_time=total_time)
+                              total_time=total_time, level=level)
     scale = shift_scale(system, run.xi_samples) if scale is None else scale
     box = certified_shift_box(loop, cfg.decay_rate, cfg.exp_rate, region, scale, budget, tol=tol,
-                              total_time=total_time)
+                              total_time=total_time, level=level)
     own = None
     if cfg.method == "baseline":  # also around the one sample it trained on (the mean: a ball around a point mass)
         own = certified_radius(loop, run_condition(cfg, run.xi_train, "pointwise"), region, budget, tol=tol,
-                               total_time=total_time)
+                               total_time=total_time, level=level)
     return RunRobustness(method=cfg.method, trained_radius=cfg.wasserstein_radius if cfg.method == "dr" else None,
                          delta=region.delta, radius=radius, shift_box=box, radius_training_sample=own)
 
