@@ -28,6 +28,8 @@ def main(argv: list[str] | None = None) -> int:
     args = parser.parse_args(argv)
     torch.set_num_threads(args.threads)
 
+    from shift import run_shift
+
     from drlyap.runs import load_run
     from drlyap.workflows.verify import verify_run
 
@@ -39,9 +41,7 @@ def main(argv: list[str] | None = None) -> int:
     for path in args.runs:
         try:
             run = load_run(path)
-            xi = run.system.test_xi if args.xi == "test" else [float(v) for v in args.xi.split(",")]
-            if xi is None:
-                raise ValueError(f"{run.system.name} declares no test shift")
+            xi = run_shift(run, args.xi)
             tic = time.perf_counter()
             result = verify_run(run, xi=xi, roa=True)
             total = time.perf_counter() - tic

@@ -31,6 +31,8 @@ def main(argv: list[str] | None = None) -> int:
 
     import dataclasses
 
+    from shift import run_shift
+
     from drlyap.runs import load_run
     from drlyap.workflows.verify import run_proof, verify_run
 
@@ -41,12 +43,7 @@ def main(argv: list[str] | None = None) -> int:
     for path in args.runs:
         try:
             run = load_run(path)
-            if args.xi == "test":
-                xi = run.system.test_xi
-                if xi is None:
-                    raise ValueError(f"{run.system.name} declares no test shift")
-            else:
-                xi = None if args.xi is None else [float(v) for v in args.xi.split(",")]
+            xi = run_shift(run, args.xi)
             tic = time.perf_counter()
             proof = dataclasses.replace(run_proof(run), time_limit=args.time_limit)
             result = verify_run(run, proof, delta=args.delta, xi=xi, uniform=True).to_dict()

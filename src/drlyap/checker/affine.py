@@ -462,19 +462,17 @@ def quad_max(lin: Tensor, q: Tensor, dual: bool = False) -> Tensor:
     k = lin.shape[-1]
     if k > _MAX_VERTICES_K:
         return _quick_span(lin, q).hi
-    corners, products, _ = _corners(k)
-    diag, off = _parts(q)
-    mag = lin.abs().sum(-1) + q.abs().flatten(-2).sum(-1)
-    corner = _corner_max(lin, diag, off, lin @ corners.T + off @ products.T, mag)
+    corner = _corner_max(lin, *_corner_inputs(lin, q))
     return torch.minimum(corner, _dual_max(lin, q)) if dual else corner
 
 
-def quad_max_minus(lin: Tensor, q: Tensor, lin2: Tensor, q2: Tensor, lam: Tensor, dual: bool = False) -> Tensor:
+def quad_max_minus(lin: Tensor, q: Tensor, lin2: Tensor, q2: Tensor, lam: Tensor, dual: bool = False,
+                   mags: tuple[Tensor, Tensor] | None = None) -> Tensor:
     """:func:`quad_max` ``(B, Q, L)`` of ``lin - lam lin2`` and ``q - lam q2`` for ``lin (B, Q, k)``, ``q (B, Q, k, k)``,
     ``lin2 (B, k)``, ``q2 (B, k, k)`` and multipliers ``lam (B, Q, L)``, without forming the ``L`` quadratic parts
     for the corner bound: the corner values of both forms are computed once and combined (their rounding is in the
-    pad, which is taken on ``|lin|_1 + |q|_1 + lam (|lin2|_1 + |q2|_1)``). ``dual``: the dual bound too, which forms
-    them."""
+    pad, which is taken on ``|lin|_1 + |q|_1 + lam (|lin2|_1 + |q2|_1)``; ``mags``: those two sums where the caller
+    has them). ``dual``: the dual bound too, which forms them."""
     k = lin.shape[-1]
     if k > _MAX_VERTICES_K:
         return quad_max(lin[:, :, None] - lam[..., None] * lin2[:, None, None],
@@ -485,8 +483,9 @@ def quad_max_minus(lin: Tensor, q: Tensor, lin2: Tensor, q2: Tensor, lam: Tensor
     combined = lin[:, :, None] - scaled * lin2[:, None, None]
     base = ((lin @ corners.T + o1 @ products.T)[:, :, None]
             - scaled * (lin2 @ corners.T + o2 @ products.T)[:, None, None])
-    mag = ((lin.abs().sum(-1) + q.abs().flatten(-2).sum(-1))[..., None]
-           + lam * (lin2.abs().sum(-1) + q2.abs().flatten(-2).sum(-1))[:, None, None]) * (1 + 8 * EPS)
+    if mags is None:
+        mags = lin.abs().sum(-1) + q.abs().flatten(-2).sum(-1), lin2.abs().sum(-1) + q2.abs().flatten(-2).sum(-1)
+    mag = (mags[0][..., None] + lam * mags[1][:, None, None]) * (1 + 8 * EPS)
     corner = _corner_max(combined, d1[:, :, None] - scaled * d2[:, None, None],
                          o1[:, :, None] - scaled * o2[:, None, None], base, mag)
     if not dual:
@@ -500,13 +499,19 @@ def quad_span(lin: Tensor, q: Tensor, qabs: Tensor | None = None) -> Iv:
     k = lin.shape[-1]
     if k > _MAX_VERTICES_K:
         return _quick_span(lin, q)
-    corners, products, _ = _corners(k)
-    diag, off = _parts(q)
-    mag = lin.abs().sum(-1) + (q.abs().flatten(-2).sum(-1) if qabs is None else qabs)
-    base = lin @ corners.T + off @ products.T
+    diag, off, base, mag = _corner_inputs(lin, q, qabs)
     top = _corner_max(lin, diag, off, base, mag)
     bottom = -_corner_max(-lin, -diag, -off, -base, mag)
     return Iv(torch.where(torch.isnan(bottom), -INF, bottom), top)
+
+
+def _corner_inputs(lin: Tensor, q: Tensor, qabs: Tensor | None = None) -> tuple[Tensor, Tensor, Tensor, Tensor]:
+    """What :func:`_corner_max` takes besides ``lin``: ``q``'s diagonal and pair sums (:func:`_parts`), the corner
+    values ``lin . e + off . (e_i e_j)`` and ``|lin|_1 + |q|_1`` (``qabs``: ``|q|_1`` where known)."""
+    corners, products, _ = _corners(lin.shape[-1])
+    diag, off = _parts(q)
+    mag = lin.abs().sum(-1) + (q.abs().flatten(-2).sum(-1) if qabs is None else qabs)
+    return diag, off, lin @ corners.T + off @ products.T, mag
 
 
 def _quick_span(lin: Tensor, q: Tensor) -> Iv:

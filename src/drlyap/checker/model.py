@@ -222,11 +222,10 @@ def _s_procedure(comps: Af, value: Af, level: float, lam: Tensor, dual: bool) ->
     two: the products with them are exact)."""
     shift = value.c - level  # (B,)
     c = comps.c[..., None] - lam * shift[:, None, None]  # (B, Q, L)
-    vmag = value.l.abs().sum(-1) + value.q.abs().flatten(-2).sum(-1)
-    mag = (c.abs() + lam * shift.abs()[:, None, None] + 2 * lam * vmag[:, None, None]
-           + 2 * (comps.l.abs().sum(-1) + comps.q.abs().flatten(-2).sum(-1))[..., None])
+    cmag, vmag = comps._lmag() + comps._qmag(), value._lmag() + value._qmag()  # |l|_1 + |q|_1, kept by the forms
+    mag = c.abs() + lam * shift.abs()[:, None, None] + 2 * lam * vmag[:, None, None] + 2 * cmag[..., None]
     rest = comps.r.hi[..., None] - lam * value.r.lo[:, None, None]
-    top = c + quad_max_minus(comps.l, comps.q, value.l, value.q, lam, dual) + rest
+    top = c + quad_max_minus(comps.l, comps.q, value.l, value.q, lam, dual, (cmag, vmag)) + rest
     upper = top + 8 * EPS * (mag + rest.abs() + top.abs()) + TINY
     upper = torch.nextafter(upper, torch.full_like(upper, math.inf))
     return torch.where(torch.isnan(upper), math.inf, upper)
