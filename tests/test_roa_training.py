@@ -68,6 +68,24 @@ def test_the_loss_on_a_sublevel_set_ignores_states_above_the_level_and_scales_th
     assert float(cond.loss(terms)) == pytest.approx(2.5 / 3)
     assert float(cond.loss(terms, level=1.0)) == pytest.approx(0.5 / 3)  # the state with V = 3 is outside
     assert float(cond.loss(terms, margin_rate=4.0, level=1.0)) == pytest.approx((2.5 + 1.0) / 3)
+    # outside the set the hinge counts with the weight asked for: 0.5 + 0.25 * 2
+    assert float(cond.loss(terms, level=1.0, outside=0.25)) == pytest.approx((0.5 + 0.5) / 3)
+    assert float(cond.loss(terms, level=1.0, outside=1.0)) == pytest.approx(float(cond.loss(terms)))
+
+
+def test_the_exclusion_term_raises_v_at_violating_states_inside_the_set_only():
+    cond = PlainDecrease(torch.zeros(1, 2, dtype=F64))
+    value = torch.tensor([0.5, 0.5, 0.25, 3.0], requires_grad=True)
+    terms = DecreaseTerms(vdot=torch.tensor([[0.5], [-1.0], [-0.5], [2.0]]), lip=None, decay=torch.zeros(4),
+                          value=value)
+    # inside and violating: state 0 only (state 1 holds; state 2 holds; state 3 is outside): 0.5 + 0.2 (1 - 0.5)
+    loss = cond.loss(terms, level=1.0, exclude=0.2)
+    assert float(loss) == pytest.approx((0.5 + 0.2 * 0.5) / 4)
+    loss.backward()
+    assert value.grad.tolist() == pytest.approx([-0.2 / 4, 0.0, 0.0, 0.0])  # lowering the loss raises V at state 0
+    # a margin alone does not make a state violating: only the residual's sign selects it
+    assert float(cond.loss(terms, margin=0.6, level=1.0, exclude=0.2)) == pytest.approx(
+        float(cond.loss(terms, margin=0.6, level=1.0)) + 0.2 * 0.5 / 4)
 
 
 def test_verification_on_a_sublevel_set_proves_what_holds_there_and_refutes_with_states_inside():
@@ -142,7 +160,8 @@ def test_verify_sublevel_needs_the_set_inside_the_box():
 
 def test_roa_config_is_validated():
     for bad in ({"roa_level": 0.0}, {"roa_level": math.nan}, {"warm_start": "sos"},
-                {"lqr_weights": [[1.0, 1.0], [1.0]]}, {"margin_rate": -1.0}):
+                {"lqr_weights": [[1.0, 1.0], [1.0]]}, {"margin_rate": -1.0},
+                {"outside_weight": -0.5}, {"outside_weight": "much"}, {"exclude_weight": math.inf}):
         with pytest.raises(ValueError, match="invalid training config"):
             TrainConfig(system="cartpole", **bad).resolved(cartpole())
 

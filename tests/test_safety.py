@@ -287,6 +287,15 @@ def test_config_json_is_validated(pendulum_run, tmp_path, change, message):
     assert "config.json" in one_line_error(invoke("verify", run, "--time-limit", "1"))
 
 
+def test_a_run_saved_before_a_later_field_loads_with_the_value_it_was_trained_with(pendulum_run, tmp_path):
+    run = copy_run(pendulum_run, tmp_path)
+    edit_json(run / "config.json", lambda c: c.pop("outside_weight"))  # runs saved before the field existed
+    assert load_run(run).config.outside_weight == 0.0
+    edit_json(run / "config.json", lambda c: c.update(outside_weight=None))
+    with pytest.raises(RunDirError, match="outside_weight is missing"):
+        load_run(run)
+
+
 def test_metrics_json_is_validated(pendulum_run, tmp_path):
     run = copy_run(pendulum_run, tmp_path)
     edit_json(run / "metrics.json", lambda m: m.update(xi_samples=[[0.1, 0.0, 0.2]] * 3))

@@ -199,16 +199,25 @@ class Condition:
         return self.combine(self.components(terms))
 
     def loss(self, terms: DecreaseTerms, margin: float = 0.0, margin_rate: float = 0.0,
-             level: float | None = None) -> Tensor:
+             level: float | None = None, outside: float = 0.0, exclude: float = 0.0) -> Tensor:
         """Mean of ``(residual + margin + margin_rate V)_+`` over the batch; with both margins 0 it is zero iff
-        the condition holds at every state. ``level``: only states with ``V <= level`` count (the others add
-        zero): the condition is then asked of the sublevel set ``{V <= level}`` (a region of attraction)."""
-        hinge = self.residual(terms) + margin
+        the condition holds at every state.
+
+        ``level``: the condition is asked of the sublevel set ``{V <= level}`` (a region of attraction): the states
+        with ``V > level`` count with the weight ``outside`` (0: not at all), and each state inside the set whose
+        residual is positive adds ``exclude (level - V) / level``, which raises V there: a violation the
+        controller cannot remove is left out of the set instead of being traded against the rest."""
+        residual = self.residual(terms)
+        hinge = residual + margin
         if margin_rate:
             hinge = hinge + terms.value * margin_rate
         hinge = torch.relu(hinge)
         if level is not None:
-            hinge = hinge * (terms.value <= level).detach().to(hinge.dtype)
+            inside = (terms.value <= level).detach().to(hinge.dtype)
+            hinge = hinge * (inside + (1 - inside) * outside if outside else inside)
+            if exclude:
+                violating = (inside * (residual > 0).to(hinge.dtype)).detach()
+                hinge = hinge + violating * torch.relu(level - terms.value) * (exclude / level)
         return hinge.mean()
 
     def per_sample(self, decay_rate: float = 0.0, exp_rate: float = 0.0) -> PlainDecrease | None:

@@ -46,6 +46,8 @@ class SystemDefaults:
     train_box: tuple[tuple[float, ...], tuple[float, ...]] | None = None
     roa_level: float | None = None
     margin_rate: float = 0.0
+    outside_weight: float = 0.0
+    exclude_weight: float = 0.0
     local_rate: float = 0.0
     warm_start: str | None = None
     lqr_weights: tuple[tuple[float, ...], tuple[float, ...]] | None = None
@@ -96,7 +98,7 @@ def _thawed(value):
 
 RESOLVED = ("wasserstein_radius", "risk_level", "decay_rate", "exp_rate", "n_states", "n_xi", "delta", "lr",
             "alpha_hat", "lyapunov_hidden", "controller_hidden", "margin", "near_share", "train_box", "roa_level",
-            "margin_rate", "local_rate", "warm_start", "lqr_weights")
+            "margin_rate", "outside_weight", "exclude_weight", "local_rate", "warm_start", "lqr_weights")
 """The fields a config leaves to its system (``None``) and :meth:`TrainConfig.resolved` fills."""
 
 OPTIONAL = ("train_box", "roa_level", "warm_start", "lqr_weights")
@@ -122,7 +124,8 @@ _KINDS = {
     "system": "str", "method": "str", "loss": "str", "device": "str", "warm_start": "str",
     "wasserstein_radius": "number", "risk_level": "number", "decay_rate": "number", "exp_rate": "number",
     "delta": "number", "lr": "number", "alpha_hat": "number", "margin": "number", "near_share": "number",
-    "roa_level": "number", "margin_rate": "number", "local_rate": "number", "init_gain": "number",
+    "roa_level": "number", "margin_rate": "number", "outside_weight": "number", "exclude_weight": "number",
+    "local_rate": "number", "init_gain": "number",
     "n_states": "int", "n_xi": "int", "iters": "int", "check_every": "int", "seed": "int", "lyapunov_out": "int",
     "resample": "bool", "lyapunov_hidden": "sizes", "controller_hidden": "sizes",
 }
@@ -174,6 +177,14 @@ class TrainConfig:
     # on it); half of each batch is drawn inside the set. None: the paper's condition on all of X_delta.
     roa_level: float | None = None
     margin_rate: float | None = None  # adds margin_rate * V to the hinge: a margin that scales with V (0 at x*)
+    # region-of-attraction training: the weight of the hinge at states outside {V <= roa_level} (0: the condition is
+    # asked of the set only; > 0: the controller also learns to bring the states outside into it, as the paper's
+    # condition on all of X_delta does, while the claim stays on the set)
+    outside_weight: float | None = None
+    # region-of-attraction training: a state inside {V <= roa_level} that violates the condition adds
+    # exclude_weight (roa_level - V)_+ / roa_level, which raises V there (the set leaves out what no controller
+    # can fix, e.g. where gravity exceeds the control force); 0: none
+    exclude_weight: float | None = None
     # V's local decay rate asked at x*: a hinge (lambda_j + local_rate)_+ on conditions.local_rates at every training
     # sample (every LOCAL_EVERY iterations), and the acceptance check then asks lambda_j < 0. 0: neither.
     local_rate: float | None = None
@@ -231,7 +242,8 @@ class TrainConfig:
             problems.append(f"method {self.method!r} (valid: baseline, dr)")
         if self.loss not in ("pointwise", "uniform"):
             problems.append(f"loss {self.loss!r} (valid: pointwise, uniform)")
-        for name in ("wasserstein_radius", "decay_rate", "exp_rate", "margin", "alpha_hat", "margin_rate", "local_rate"):
+        for name in ("wasserstein_radius", "decay_rate", "exp_rate", "margin", "alpha_hat", "margin_rate", "outside_weight",
+                     "exclude_weight", "local_rate"):
             value = getattr(self, name)
             if not (math.isfinite(value) and value >= 0):
                 problems.append(f"{name} = {value} (must be finite and >= 0)")

@@ -40,6 +40,10 @@ CORE_KEYS = ("system", "method", "loss", "wasserstein_radius", "risk_level", "de
              "n_states", "lyapunov_hidden", "controller_hidden")
 """Keys every run's ``config.json`` has held since format 1 (a format-2 run holds every field of TrainConfig)."""
 
+LATER_FIELDS = {"outside_weight": 0.0, "exclude_weight": 0.0}
+"""TrainConfig fields added after format 2, with the value every run saved before them was trained with (their
+absence means exactly that value)."""
+
 
 def check_config(path: Path, data: dict, format_version: int = 2) -> TrainConfig:
     """``config.json`` as a complete training configuration: every field present (format 2; format 1: the
@@ -48,6 +52,7 @@ def check_config(path: Path, data: dict, format_version: int = 2) -> TrainConfig
     if not isinstance(data, dict):
         raise RunDirError(f"{path}: a JSON object of training settings expected, got {type(data).__name__}")
     expected = [f.name for f in dataclasses.fields(TrainConfig)] if format_version >= 2 else list(CORE_KEYS)
+    data = {**LATER_FIELDS, **data}
     absent = [k for k in expected if k not in data]
     if absent:
         raise RunDirError(f"{path}: invalid training config: missing {', '.join(absent)} (the file is incomplete)")

@@ -208,7 +208,7 @@ def fit(cfg: TrainConfig, system: UncertainSystem, progress: bool = True, init: 
             if cfg.resample and iteration > 1:
                 z_train = batch()
             terms = condition.terms(loop, z_train)
-            loss = condition.loss(terms, cfg.margin, cfg.margin_rate, level)
+            loss = condition.loss(terms, cfg.margin, cfg.margin_rate, level, cfg.outside_weight, cfg.exclude_weight)
             if level is not None:  # V above the level on the faces of X: {V <= level} inside X
                 loss = loss + torch.relu(level - lyapunov(region.sample_faces(1024, gen).float().to(device))).mean()
             if cfg.local_rate and (iteration - 1) % LOCAL_EVERY == 0:  # V a Lyapunov function of the linearisation
