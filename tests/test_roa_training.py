@@ -161,9 +161,29 @@ def test_verify_sublevel_needs_the_set_inside_the_box():
 def test_roa_config_is_validated():
     for bad in ({"roa_level": 0.0}, {"roa_level": math.nan}, {"warm_start": "sos"},
                 {"lqr_weights": [[1.0, 1.0], [1.0]]}, {"margin_rate": -1.0},
-                {"outside_weight": -0.5}, {"outside_weight": "much"}, {"exclude_weight": math.inf}):
+                {"outside_weight": -0.5}, {"outside_weight": "much"}, {"exclude_weight": math.inf},
+                {"grow_weight": -1.0}):
         with pytest.raises(ValueError, match="invalid training config"):
             TrainConfig(system="cartpole", **bad).resolved(cartpole())
+
+
+def test_the_growth_term_enlarges_the_set_and_keeps_v_above_the_level_on_the_faces():
+    """Same seed and settings with and without grow_weight: the share of the box in {V <= 1} rises, and V stays
+    above the level on the faces (the term asks 1.05 there)."""
+    system = small_pendulum(((-0.6, -1.2), (0.6, 1.2)))
+    base = dict(system=system.name, roa_level=1.0, warm_start="lqr", decay_rate=0.0, exp_rate=0.3, iters=60,
+                check_every=60, n_states=512, lyapunov_hidden=[8], controller_hidden=[8], seed=0,
+                xi_samples=[[0.0, 0.0], [0.05, 0.01]])
+    region = Region.of(system, 0.1)
+    grid = region.grid()
+    faces = region.sample_faces(4000, torch.Generator().manual_seed(1)).float()
+    shares = []
+    for grow in (0.0, 0.3):
+        result = plain_train(TrainConfig(**base, grow_weight=grow), system, progress=False)
+        with torch.no_grad():
+            shares.append(float((result.lyapunov(grid.float()) <= 1.0).double().mean()))
+            assert float(result.lyapunov(faces).min()) > 1.0
+    assert shares[1] > shares[0] + 0.05, shares
 
 
 def test_roa_training_warm_starts_from_lqr_and_keeps_v_above_the_level_on_the_faces():

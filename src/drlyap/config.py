@@ -48,6 +48,7 @@ class SystemDefaults:
     margin_rate: float = 0.0
     outside_weight: float = 0.0
     exclude_weight: float = 0.0
+    grow_weight: float = 0.0
     local_rate: float = 0.0
     warm_start: str | None = None
     lqr_weights: tuple[tuple[float, ...], tuple[float, ...]] | None = None
@@ -98,7 +99,8 @@ def _thawed(value):
 
 RESOLVED = ("wasserstein_radius", "risk_level", "decay_rate", "exp_rate", "n_states", "n_xi", "delta", "lr",
             "alpha_hat", "lyapunov_hidden", "controller_hidden", "margin", "near_share", "train_box", "roa_level",
-            "margin_rate", "outside_weight", "exclude_weight", "local_rate", "warm_start", "lqr_weights")
+            "margin_rate", "outside_weight", "exclude_weight", "grow_weight", "local_rate", "warm_start",
+            "lqr_weights")
 """The fields a config leaves to its system (``None``) and :meth:`TrainConfig.resolved` fills."""
 
 OPTIONAL = ("train_box", "roa_level", "warm_start", "lqr_weights")
@@ -125,7 +127,7 @@ _KINDS = {
     "wasserstein_radius": "number", "risk_level": "number", "decay_rate": "number", "exp_rate": "number",
     "delta": "number", "lr": "number", "alpha_hat": "number", "margin": "number", "near_share": "number",
     "roa_level": "number", "margin_rate": "number", "outside_weight": "number", "exclude_weight": "number",
-    "local_rate": "number", "init_gain": "number",
+    "grow_weight": "number", "local_rate": "number", "init_gain": "number",
     "n_states": "int", "n_xi": "int", "iters": "int", "check_every": "int", "seed": "int", "lyapunov_out": "int",
     "resample": "bool", "lyapunov_hidden": "sizes", "controller_hidden": "sizes",
 }
@@ -185,6 +187,9 @@ class TrainConfig:
     # exclude_weight (roa_level - V)_+ / roa_level, which raises V there (the set leaves out what no controller
     # can fix, e.g. where gravity exceeds the control force); 0: none
     exclude_weight: float | None = None
+    # region-of-attraction training: grow_weight (V - roa_level)_+ / roa_level on the training states pulls the set
+    # out towards the box (V is then asked above 1.05 roa_level on the faces, so the set keeps off them); 0: none
+    grow_weight: float | None = None
     # V's local decay rate asked at x*: a hinge (lambda_j + local_rate)_+ on conditions.local_rates at every training
     # sample (every LOCAL_EVERY iterations), and the acceptance check then asks lambda_j < 0. 0: neither.
     local_rate: float | None = None
@@ -243,7 +248,7 @@ class TrainConfig:
         if self.loss not in ("pointwise", "uniform"):
             problems.append(f"loss {self.loss!r} (valid: pointwise, uniform)")
         for name in ("wasserstein_radius", "decay_rate", "exp_rate", "margin", "alpha_hat", "margin_rate", "outside_weight",
-                     "exclude_weight", "local_rate"):
+                     "exclude_weight", "grow_weight", "local_rate"):
             value = getattr(self, name)
             if not (math.isfinite(value) and value >= 0):
                 problems.append(f"{name} = {value} (must be finite and >= 0)")

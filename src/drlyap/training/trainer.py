@@ -29,6 +29,7 @@ from drlyap.training.config import TrainConfig, build_networks, draw_xi_samples,
 from drlyap.verification.results import ConditionProof
 
 LOCAL_EVERY = 4  # iterations between evaluations of the local term (second derivatives at x*: ~2x an iteration)
+GROW_FACES_MARGIN = 0.05  # growing sets: V asked above (1 + this) level on the faces, room for the proof of V > level
 
 
 @dataclass
@@ -164,6 +165,7 @@ def fit(cfg: TrainConfig, system: UncertainSystem, progress: bool = True, init: 
         return z if extra_states is None else torch.cat([z, extra_states])
 
     faces_val = None
+    faces_level = None if level is None else level * (1 + GROW_FACES_MARGIN if cfg.grow_weight else 1.0)
     if level is not None:
         faces_val = region.sample_faces(20000, torch.Generator().manual_seed(12345)).float().to(device)
 
@@ -210,7 +212,9 @@ def fit(cfg: TrainConfig, system: UncertainSystem, progress: bool = True, init: 
             terms = condition.terms(loop, z_train)
             loss = condition.loss(terms, cfg.margin, cfg.margin_rate, level, cfg.outside_weight, cfg.exclude_weight)
             if level is not None:  # V above the level on the faces of X: {V <= level} inside X
-                loss = loss + torch.relu(level - lyapunov(region.sample_faces(1024, gen).float().to(device))).mean()
+                loss = loss + torch.relu(faces_level - lyapunov(region.sample_faces(1024, gen).float().to(device))).mean()
+                if cfg.grow_weight:  # the set pulled out towards the faces
+                    loss = loss + cfg.grow_weight * (torch.relu(terms.value - level) / level).mean()
             if cfg.local_rate and (iteration - 1) % LOCAL_EVERY == 0:  # V a Lyapunov function of the linearisation
                 loss = loss + torch.relu(local_rates(condition, loop) + cfg.local_rate).mean()
             if not torch.isfinite(loss):
