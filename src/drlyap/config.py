@@ -89,14 +89,6 @@ def _thawed(value):
     return [_thawed(v) for v in value] if isinstance(value, (list, tuple)) else value
 
 
-def _frozen(value):
-    return tuple(_frozen(v) for v in value) if isinstance(value, (list, tuple)) else value
-
-
-def _thawed(value):
-    return [_thawed(v) for v in value] if isinstance(value, (list, tuple)) else value
-
-
 RESOLVED = ("wasserstein_radius", "risk_level", "decay_rate", "exp_rate", "n_states", "n_xi", "delta", "lr",
             "alpha_hat", "lyapunov_hidden", "controller_hidden", "margin", "near_share", "train_box", "roa_level",
             "margin_rate", "outside_weight", "exclude_weight", "grow_weight", "local_rate", "warm_start",
@@ -109,8 +101,6 @@ X_delta, no warm start, Bryson's weights)."""
 
 LEGACY_PROOF_KEYS = ("verify", "verify_rounds", "verify_time", "verify_budget")
 """Proof settings older runs stored in ``config.json`` (now a :class:`~drlyap.verification.ProofConfig`)."""
-
-
 
 
 def _is_number(value) -> bool:
