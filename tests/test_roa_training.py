@@ -158,6 +158,30 @@ def test_verify_sublevel_needs_the_set_inside_the_box():
     assert out.status == "violated"
 
 
+def test_a_verified_proof_on_the_set_stands_for_the_level_search_of_the_region():
+    """A region-of-attraction run's proof of its condition on {V <= c} (and V > c on the faces) is steps 1 and 2
+    of the sublevel route: the region is {V <= c} where the proof inside the ball holds, without a new search."""
+    from drlyap.verification import certified_roa
+    from drlyap.verification.roa.sublevel import proved_outer
+
+    system, lyap, ctrl = saturated_pair()
+    loop = ClosedLoop(system, lyap, ctrl)
+    cond = PlainDecrease(torch.zeros(1, 2, dtype=F64), 0.0, 0.05)
+    region = Region.of(system, 0.05)
+    budget = Budget(seconds=20, enclosure="mean-value")
+    ok = verify_sublevel(loop, cond, region, 0.002, budget)
+    assert ok.status == "verified"
+    roa = certified_roa(loop, cond, region, budget, max_level=0.002, proved=ok)
+    assert roa.certified and roa.limited_by == "level asked for" and 0.002 * (1 - 1e-12) < roa.level <= 0.002
+    searched = certified_roa(loop, cond, region, budget, max_level=0.002)  # the search reaches the same set
+    assert searched.level == pytest.approx(roa.level) and searched.share_of_box == pytest.approx(roa.share_of_box)
+    bad = verify_sublevel(loop, cond, region, 1.0, Budget(seconds=5, enclosure="mean-value"))
+    assert not bad.verified
+    with pytest.raises(ValueError, match="verified proof"):
+        proved_outer(loop, bad, region, budget)
+    assert certified_roa(loop, cond, region, budget, max_level=1.0, proved=bad).level < 0.01  # searched instead
+
+
 def test_roa_config_is_validated():
     for bad in ({"roa_level": 0.0}, {"roa_level": math.nan}, {"warm_start": "sos"},
                 {"lqr_weights": [[1.0, 1.0], [1.0]]}, {"margin_rate": -1.0},

@@ -28,16 +28,16 @@ from drlyap.closed_loop import ClosedLoop
 from drlyap.conditions import Condition
 from drlyap.config import Budget
 from drlyap.regions import Region
-from drlyap.verification.results import RegionOfAttraction
+from drlyap.verification.results import ConditionProof, RegionOfAttraction
 from drlyap.verification.roa.band import band_roa
 from drlyap.verification.roa.local import local_decrease
 from drlyap.verification.roa.quadratic import linearisation_local, quadratic_roa
-from drlyap.verification.roa.sublevel import finish, outer_search
+from drlyap.verification.roa.sublevel import finish, outer_search, proved_outer
 
 
 def certified_roa(loop: ClosedLoop, condition: Condition, region: Region, budget: Budget = Budget(seconds=10.0), *,
                   samples_per_axis: int = 400, max_level: float = math.inf,
-                  band_time: float | None = None) -> RegionOfAttraction:
+                  band_time: float | None = None, proved: ConditionProof | None = None) -> RegionOfAttraction:
     """The largest level ``c`` (up to the search's resolution) with ``S = {V <= c}`` certified for the closed loop
     on the model of ``condition`` (module docstring), within ``budget`` (its ``enclosure`` bounds V and the
     conditions in every branch and bound here, inside the ball too; None: by the dimension; the Hessian enclosure
@@ -46,10 +46,15 @@ def certified_roa(loop: ClosedLoop, condition: Condition, region: Region, budget
     ``max_level`` caps the search (e.g. at the level a region of attraction was trained for: ``limited_by`` then
     reads ``"level asked for"`` when the cap is proved). ``band_time``: seconds for the band proof, where it runs
     (None: ``budget.seconds`` again; 0: not run). ``samples_per_axis``: the grid that estimates the share of the box
-    in S (n <= 2).
+    in S (n <= 2). ``proved``: a verified proof of ``condition`` on ``{V <= level}`` (a region-of-attraction run's,
+    :func:`~drlyap.verification.sublevel.verify_sublevel`, ``level <= max_level``), taken for the search outside
+    the ball (:func:`~drlyap.verification.roa.sublevel.proved_outer`); the search runs where it is not verified.
     """
     budget = replace(budget, enclosure=budget.enclosure_for(loop.n))
-    outer = outer_search(loop, condition, region, budget, max_level)
+    if proved is not None and proved.verified and proved.level is not None and proved.level <= max_level:
+        outer = proved_outer(loop, proved, region, budget)
+    else:
+        outer = outer_search(loop, condition, region, budget, max_level)
     c = outer.level
     left = max(1.0, (outer.deadline - time.perf_counter()) / 2)
     local = local_decrease(loop, condition, region, replace(budget, seconds=left), level=c if c > 0 else None)

@@ -32,7 +32,7 @@ from drlyap.enclosures import F64
 from drlyap.regions import Region, box_grid, default_grid, near_dist
 from drlyap.verification.bounds import value_objective
 from drlyap.verification.branch_and_bound import maximize
-from drlyap.verification.results import RegionOfAttraction
+from drlyap.verification.results import ConditionProof, RegionOfAttraction
 from drlyap.verification.roa.levels import below, level_search
 from drlyap.verification.roa.local import local_decrease
 from drlyap.verification.sublevel import boundary_minimum
@@ -66,20 +66,13 @@ def outer_search(loop: ClosedLoop, condition: Condition, region: Region, budget:
     enclosure = budget.enclosure_for(system.n)
     time_limit, min_width = budget.seconds, budget.min_width
     delta = region.delta
-    box_lo, box_hi, scale = region.lo, region.hi, region.scale
+    scale = region.scale
     grid = default_grid(system.n)
     quarter = replace(budget, seconds=time_limit / 4, boxes=1_000_000, enclosure=enclosure)
     # 1. min of V on the boundary of the box
     boundary_min_lower = boundary_minimum(lyapunov, region, quarter)[0]
     # 2. max of V on the delta-ball
-    ball_max_upper = 0.0
-    if delta > 0:
-        blo = torch.maximum(box_lo, torch.full_like(box_lo, -delta))
-        bhi = torch.minimum(box_hi, torch.full_like(box_hi, delta))
-        glo, ghi = box_grid(blo, bhi, grid)
-        _, up, _ = maximize(value_objective(lyapunov), glo, ghi, scale, quarter,
-                            box_ok=lambda a, b: near_dist(a, b) < delta)
-        ball_max_upper = float(up[0])
+    ball_max_upper = _ball_max(lyapunov, region, quarter)
     # 3. the decrease condition on the sublevel set outside the ball
     lo, hi = region.boxes(grid)
     top, why = (boundary_min_lower, "box boundary") if boundary_min_lower <= max_level else (max_level,
@@ -91,6 +84,34 @@ def outer_search(loop: ClosedLoop, condition: Condition, region: Region, budget:
         min_width=min_width, batch=budget.batch, enclosure=enclosure)
     return OuterSearch(boundary_min_lower, ball_max_upper, below(level), limited_by, cex, processed, top, why, start,
                        start + time_limit)
+
+
+def _ball_max(lyapunov, region: Region, budget: Budget) -> float:
+    """An upper bound of V on the delta-ball (0 without a ball)."""
+    delta = region.delta
+    if delta <= 0:
+        return 0.0
+    blo = torch.maximum(region.lo, torch.full_like(region.lo, -delta))
+    bhi = torch.minimum(region.hi, torch.full_like(region.hi, delta))
+    glo, ghi = box_grid(blo, bhi, default_grid(region.lo.shape[0]))
+    _, up, _ = maximize(value_objective(lyapunov), glo, ghi, region.scale, budget,
+                        box_ok=lambda a, b: near_dist(a, b) < delta)
+    return float(up[0])
+
+
+def proved_outer(loop: ClosedLoop, proof: ConditionProof, region: Region, budget: Budget) -> OuterSearch:
+    """Steps 1 and 2 of the route from a verified proof of the same condition on ``{V <= level}``
+    (:func:`~drlyap.verification.sublevel.verify_sublevel`: the condition there outside the delta-ball and V above
+    the level on the faces), instead of a level search; V's bound on the ball as :func:`outer_search` takes it."""
+    if not proof.verified or proof.level is None or proof.boundary_min_lower is None:
+        raise ValueError("a verified proof on a sublevel set {V <= level} is needed")
+    if not proof.boundary_min_lower > proof.level or proof.delta != region.delta:
+        raise ValueError("the proof's faces bound or delta do not fit the region")
+    start = time.perf_counter()
+    quarter = replace(budget, seconds=budget.seconds / 4, boxes=1_000_000, enclosure=budget.enclosure_for(loop.n))
+    ball_max_upper = _ball_max(loop.lyapunov, region, quarter)
+    return OuterSearch(proof.boundary_min_lower, ball_max_upper, below(proof.level), "level asked for", None,
+                       proof.boxes_processed, proof.level, "level asked for", start, start + budget.seconds)
 
 
 def finish(loop: ClosedLoop, condition: Condition, region: Region, outer: OuterSearch, local: dict,
