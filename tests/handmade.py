@@ -2,6 +2,7 @@
 
 import torch
 
+from drlyap.config import PAPER_CONDITION
 from drlyap.networks import Controller, Lyapunov
 from drlyap.systems import UncertainSystem
 
@@ -20,7 +21,7 @@ def small_pendulum(box=((-0.6, -1.2), (0.6, 1.2))) -> UncertainSystem:
         name="small-pendulum", state_names=("theta", "omega"), input_names=("torque",),
         param_names=("mass", "length", "damping", "gravity"), nominal_params=(1.0, 1.0, 0.13, 9.81),
         uncertain=("mass", "damping"), dynamics=_pend, state_box=box,
-        input_box=((-15.0,), (15.0,)), equilibrium=(0.0, 0.0), angle_dims=(0,))
+        input_box=((-15.0,), (15.0,)), equilibrium=(0.0, 0.0), angle_dims=(0,), defaults=PAPER_CONDITION)
 
 
 def linear_pair(system, sign=1.0, eps=1e-2):

@@ -182,6 +182,19 @@ def test_a_verified_proof_on_the_set_stands_for_the_level_search_of_the_region()
     assert certified_roa(loop, cond, region, budget, max_level=1.0, proved=bad).level < 0.01  # searched instead
 
 
+def test_a_system_of_ones_own_trains_for_a_region_of_attraction_unless_it_declares_the_papers_condition():
+    from drlyap.config import PAPER_CONDITION, SystemDefaults
+    from drlyap.systems import pendulum
+
+    own = dataclasses.replace(small_pendulum(), defaults=SystemDefaults())  # declares nothing
+    cfg = TrainConfig(system=own.name).resolved(own)
+    assert (cfg.roa_level, cfg.warm_start, cfg.decay_rate, cfg.exp_rate) == (1.0, "lqr", 0.0, 0.3)
+    assert cfg.grow_weight > 0 and cfg.exclude_weight > 0 and cfg.outside_weight == 1.0 and cfg.local_rate > 0
+    for declared in (small_pendulum(), pendulum()):
+        paper = TrainConfig(system=declared.name).resolved(declared)
+        assert {k: getattr(paper, k) for k in PAPER_CONDITION} == PAPER_CONDITION
+
+
 def test_roa_config_is_validated():
     for bad in ({"roa_level": 0.0}, {"roa_level": math.nan}, {"warm_start": "sos"},
                 {"lqr_weights": [[1.0, 1.0], [1.0]]}, {"margin_rate": -1.0},

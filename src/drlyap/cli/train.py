@@ -39,7 +39,7 @@ def systems(as_json: bool) -> None:
 @click.option("--eps", type=float, default=None, help="Risk level eps in (0, 1) [system default].")
 @click.option("--gamma", type=float, default=None, help="Decay rate gamma in Vdot + gamma||x-x*|| <= 0.")
 @click.option("--exp-rate", type=float, default=None,
-              help="alpha of the exponential variant (adds alpha V inside the condition) [system default; 0].")
+              help="alpha of the exponential variant (adds alpha V inside the condition) [system default].")
 @click.option("--xi-samples", default=None,
               help="Explicit xi samples 'a,b;c,d;...' (one sample per ';'); default: drawn from the system.")
 @click.option("--iters", type=int, default=default(TrainConfig, "iters"), show_default=True, help="Iteration cap.")

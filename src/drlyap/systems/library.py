@@ -11,6 +11,7 @@ import math
 import torch
 from torch import Tensor
 
+from drlyap.config import PAPER_CONDITION
 from drlyap.systems.model import SystemDefaults, UncertainSystem
 
 
@@ -88,8 +89,8 @@ def pendulum(u_max: float = 15.0) -> UncertainSystem:
         xi_sampler=_pendulum_xi, test_xi=(0.1, 0.05), reference_states=((math.pi, 0.0), (-math.pi / 2, 5.5)),
         rl_timing=(0.05, 10.0), rl_reward_weights=((1.0, 0.1), (0.001,)),  # the paper's RL cost, 200-step episodes
         defaults=SystemDefaults(n_states=3600, wasserstein_radius=0.01, risk_level=0.1, n_xi=5,
-                                decay_rate=1.0, alpha_hat=1.0, delta=0.5, margin=0.1,
-                                lyapunov_hidden=(16, 16), controller_hidden=(16, 16)),
+                                alpha_hat=1.0, delta=0.5, margin=0.1, lyapunov_hidden=(16, 16),
+                                controller_hidden=(16, 16), **PAPER_CONDITION),
         sim_dt=0.01, horizon=20.0, state_units=("rad", "rad/s"), input_units=("N m",), time_unit="s",
         description="Inverted pendulum (paper Sec. VII-A): m=1, l=1, b=0.13, g=9.81; xi = (mass, damping) shift.",
     )
@@ -114,7 +115,8 @@ def mountain_car() -> UncertainSystem:
         # enough (alpha_hat 4) that {V <= 0.2} stays inside the band of positions the DR control force holds
         defaults=SystemDefaults(n_states=1600, wasserstein_radius=5e-5, risk_level=0.1, n_xi=3,
                                 decay_rate=0.0, exp_rate=0.003, alpha_hat=4.0, delta=0.1, margin=0.0005,
-                                roa_level=0.2, margin_rate=0.01, outside_weight=0.3, exclude_weight=0.01),
+                                roa_level=0.2, margin_rate=0.01, outside_weight=0.3, exclude_weight=0.01,
+                                grow_weight=0.0, local_rate=0.0, warm_start=None),
         sim_dt=0.5, horizon=1500.0, state_units=("u.", "u./step"), input_units=("u.",), time_unit="step",
         description=("Mountain car (paper Sec. VII-B): p=0.0015, |u|<=2, goal (pi/6, 0); xi = power shift. "
                      "Units are those of the model (u.), time in steps of the gym environment (1 step = 1 time unit)."),
@@ -167,7 +169,8 @@ def cartpole() -> UncertainSystem:
         defaults=SystemDefaults(n_states=4096, wasserstein_radius=0.005, risk_level=0.1, n_xi=5,
                                 decay_rate=0.0, exp_rate=0.3, delta=0.1, near_share=0.25, roa_level=1.0,
                                 margin_rate=0.8, warm_start="lqr", lqr_weights=((0.1, 1.0, 0.02, 0.2), (0.01,)),
-                                verify_time=120.0, verify_boxes=350_000, round_time=900.0),
+                                verify_time=120.0, verify_boxes=350_000, round_time=900.0, outside_weight=0.0,
+                                exclude_weight=0.0, grow_weight=0.0, local_rate=0.0),
         sim_dt=0.01, horizon=10.0, state_units=("m", "rad", "m/s", "rad/s"), input_units=("N",), time_unit="s",
         plot_dims=(1, 3),  # (theta, theta_dot): the pole's phase plane
         description=("Cart-pole (Tedrake, Underactuated Robotics), theta=0 upright: m_c=1, m_p=0.1, l=1, g=9.81, "
@@ -219,7 +222,8 @@ def quadrotor2d() -> UncertainSystem:
         defaults=SystemDefaults(n_states=4096, wasserstein_radius=0.05, risk_level=0.1, n_xi=5,
                                 decay_rate=0.0, exp_rate=0.3, delta=0.1, near_share=0.25, roa_level=1.0,
                                 margin_rate=0.1, warm_start="lqr", lqr_weights=((1.0,) * 6, (1.0, 1.0)), lr=0.0005,
-                                verify_time=120.0, verify_boxes=60_000, round_time=900.0, local_rate=0.5),
+                                verify_time=120.0, verify_boxes=60_000, round_time=900.0, local_rate=0.5,
+                                outside_weight=0.0, exclude_weight=0.0, grow_weight=0.0),
         sim_dt=0.01, horizon=10.0, state_units=("m", "m", "rad", "m/s", "m/s", "rad/s"), input_units=("N", "N"),
         time_unit="s",
         description=("Planar quadrotor (Yang et al. 2024): m=0.486 kg, I=3.83 g m^2, l=25 cm, thrusts in [0, 5.96] N, "
