@@ -2,7 +2,7 @@
 
 Usage::
 
-    python benchmarks/roa_bench.py RUN_DIR [RUN_DIR ...] [--xi V1,V2 | --xi test] [--threads T]
+    python benchmarks/roa_bench.py RUN_DIR [RUN_DIR ...] [--xi V1,V2 | --xi test] [--threads T] [--system SPEC]
 
 Prints one row per run: the system, the LQR weights of its warm start, its training seconds with its proof
 rounds (from its metrics), the proof of its trained condition (status, boxes, seconds), plain decrease on the
@@ -25,12 +25,15 @@ def main(argv: list[str] | None = None) -> int:
     parser.add_argument("--xi", default="test",
                         help="the shift (comma-separated, or 'test': each system's test shift) ['test']")
     parser.add_argument("--threads", type=int, default=1, help="torch threads [1]")
+    parser.add_argument("--system", default=None,
+                        help="the system of runs whose system came from a file or module (path/to/file.py:factory)")
     args = parser.parse_args(argv)
     torch.set_num_threads(args.threads)
 
     from shift import run_shift
 
     from drlyap.runs import load_run
+    from drlyap.systems import resolve_system
     from drlyap.workflows.verify import verify_run
 
     header = (f"{'run':<24} {'system':<12} {'LQR weights (Q; R)':<28} {'train s':>8} {'trained condition':<18} "
@@ -38,9 +41,10 @@ def main(argv: list[str] | None = None) -> int:
     print(header)
     print("-" * len(header))
     failures = 0
+    system = resolve_system(args.system) if args.system else None
     for path in args.runs:
         try:
-            run = load_run(path)
+            run = load_run(path, system)
             xi = run_shift(run, args.xi)
             tic = time.perf_counter()
             result = verify_run(run, xi=xi, roa=True)
