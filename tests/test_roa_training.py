@@ -195,6 +195,19 @@ def test_a_system_of_ones_own_trains_for_a_region_of_attraction_unless_it_declar
         assert {k: getattr(paper, k) for k in PAPER_CONDITION} == PAPER_CONDITION
 
 
+def test_a_system_without_an_lqr_solution_is_told_how_to_train_without_the_warm_start():
+    def dynamics(x, u, p):  # the first state is unstable and no input reaches it
+        return torch.stack([p[:, 0] * x[:, 0], u[:, 0] - x[:, 1]], -1)
+
+    from drlyap.systems import UncertainSystem
+
+    system = UncertainSystem(name="unreachable", state_names=("a", "b"), input_names=("u",), param_names=("a",),
+                             nominal_params=(1.0,), uncertain=("a",), dynamics=dynamics,
+                             state_box=((-1, -1), (1, 1)), input_box=((-1,), (1,)), equilibrium=(0.0, 0.0))
+    with pytest.raises(ValueError, match="no stabilising LQR.*warm_start=None.*PAPER_CONDITION"):
+        plain_train(TrainConfig(system="unreachable", iters=2, xi_samples=[[0.0]]), system, progress=False)
+
+
 def test_roa_config_is_validated():
     for bad in ({"roa_level": 0.0}, {"roa_level": math.nan}, {"warm_start": "sos"},
                 {"lqr_weights": [[1.0, 1.0], [1.0]]}, {"margin_rate": -1.0},

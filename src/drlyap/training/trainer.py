@@ -62,7 +62,12 @@ def warm_start_lqr(system: UncertainSystem, lyapunov: Lyapunov, controller: Cont
     design's gain, the scale and the final relative errors.
     """
     q, r = cfg.lqr_weights if cfg.lqr_weights is not None else (None, None)
-    design = lqr_design(system, q, r)
+    try:
+        design = lqr_design(system, q, r)
+    except ValueError as err:
+        raise ValueError(f"{err}; the LQR warm start needs one (TrainConfig.warm_start = 'lqr', the default for a "
+                         "system of one's own): declare warm_start=None in the system's defaults, or "
+                         "drlyap.config.PAPER_CONDITION for the paper's condition") from None
     half = torch.maximum(-region.lo, region.hi)
     scale = 1.2 * (cfg.roa_level or 1.0) / float((half.square() / torch.linalg.inv(design.P).diagonal()).min())
     ref = next(lyapunov.parameters())
