@@ -43,6 +43,12 @@ def condition_region(level: float | None, delta: float) -> str:
     return region
 
 
+def of_region(region: str) -> str:
+    """``region`` (:func:`condition_region`'s words) after "every state of": with "the" before the state box, not
+    before a set ``{V <= c}`` or X_delta."""
+    return region if region.startswith("{") or region == "X_delta" else f"the {region}"
+
+
 def claim_sentence(claim: dict) -> str:
     """A certificate file's claim (``claim`` of its header: ``condition`` and ``region`` as written by
     :mod:`drlyap.runs.certificates`) in words, from its fields: what the file states and what ``drlyap check``
@@ -60,7 +66,7 @@ def claim_sentence(claim: dict) -> str:
         else:
             what = f"the {c.get('label', c.get('name'))} condition ({len(xi)} sample(s) of xi, {decay})"
         level = r.get("level")
-        return f"{what} holds at every state of the {condition_region(level, float(r['delta']))}"
+        return f"{what} holds at every state of {of_region(condition_region(level, float(r['delta'])))}"
     except (KeyError, TypeError, ValueError, IndexError):
         return "(an unreadable claim)"
 
@@ -72,14 +78,14 @@ def certificate_line(cert: Certificate) -> str:
         return f"certificate: NOT CHECKED ({cert.condition} condition; run `drlyap verify RUN`)"
     where = cert.region or "X_delta"
     if status == "verified":
-        return (f"certificate: VERIFIED - the {cert.condition} condition holds at every state of the {where} "
+        return (f"certificate: VERIFIED - the {cert.condition} condition holds at every state of {of_region(where)} "
                 f"(proof {cert.time_s:.2f} s, {cert.boxes} boxes)")
     share = cert.verified_fraction
     proved = "" if share is None else f"; {100 * share:.4f}% of it proved"
     cex = cert.counterexample
     found = " (found by the falsifier after the proof ran out of time)" if cert.counterexample_source else ""
     extra = f"; counterexample x = {[round(v, 5) for v in cex]}{found}" if cex else ""
-    return f"certificate: NOT VERIFIED ({status}) - the {cert.condition} condition on the {where}{proved}{extra}"
+    return f"certificate: NOT VERIFIED ({status}) - the {cert.condition} condition on {of_region(where)}{proved}{extra}"
 
 
 def unverified_warning(cert: Certificate, system: str, method: str, retrainable: bool) -> str:
