@@ -194,6 +194,11 @@ def verification_lines(ver: RunVerification, system: str, method: str) -> list[s
 
 
 # --------------------------------------------------------------------------- robustness
+def _over(level: float | None) -> str:
+    """What a radius or shift-box search proved over: X_delta, or its sublevel set ``{V <= level}``."""
+    return "X_delta" if level is None else f"{{V <= {level:g}}} of X_delta"
+
+
 def robustness_lines(result: RunRobustness) -> list[str]:
     """The certified radius and shift box (what ``drlyap verify --max-radius`` prints)."""
     lines = []
@@ -202,7 +207,7 @@ def robustness_lines(result: RunRobustness) -> list[str]:
     at = f"eps={rad.risk_level:g}, N={rad.n_samples}, {decay}"
     trained = (f"run trained at r={result.trained_radius:g}" if result.trained_radius is not None
                else f"{result.method} run: radius of the DR condition at its N samples")
-    where = "X_delta" if rad.level is None else f"{{V <= {rad.level:g}}} of X_delta"
+    where = _over(rad.level)
     if rad.radius is None:
         lines.append(f"certified Wasserstein radius (DR pointwise over {where}): NONE at {at} ({trained}): {rad.reason}"
                      + _witness_text(rad))
@@ -218,7 +223,7 @@ def robustness_lines(result: RunRobustness) -> list[str]:
             lines.append(f"  around its training sample (the mean, {at}): r* in [{own.radius:.4g}, {_upper(own)}); "
                          f"{_why(own)}; {own.proofs} proofs, {own.time_s:.1f} s")
     decay = f"gamma={box.decay_rate:g}" + (f", alpha={box.exp_rate:.3g}" if box.exp_rate else "")
-    where = "X_delta" if box.level is None else f"{{V <= {box.level:g}}} of X_delta"
+    where = _over(box.level)
     if box.s is None:
         lines.append(f"certified shift box: NONE (decrease on the true model over {where} with {decay}): {box.reason}"
                      + _witness_text(box))

@@ -89,11 +89,10 @@ def verify_run(run: Run, proof: ProofConfig | None = None, *, delta: float | Non
                 "no per-state residual for the uniform condition; no sublevel-set certificate")
         else:
             seconds = 3 * proof.time_limit if proof.roa_time is None else proof.roa_time
-            main_proof = trained if true_model is None else true_model  # the proof of main_condition
             region_of_attraction = certified_roa(loop, main_condition, region, budget.with_seconds(seconds),
                                                  max_level=math.inf if level is None else float(level),
                                                  band_time=proof.band_time,
-                                                 proved=main_proof if level is not None else None)
+                                                 proved=trained if true_model is None else true_model)
             if true_model is not None:
                 region_of_attraction.xi = true_model.xi
     return RunVerification(run_dir=str(run.path), system=system.name, method=cfg.method,

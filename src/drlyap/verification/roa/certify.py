@@ -32,7 +32,7 @@ from drlyap.verification.results import ConditionProof, RegionOfAttraction
 from drlyap.verification.roa.band import band_roa
 from drlyap.verification.roa.local import local_decrease
 from drlyap.verification.roa.quadratic import linearisation_local, quadratic_roa
-from drlyap.verification.roa.sublevel import finish, outer_search, proved_outer
+from drlyap.verification.roa.sublevel import finish, outer_search, proof_fits, proved_outer
 
 
 def certified_roa(loop: ClosedLoop, condition: Condition, region: Region, budget: Budget = Budget(seconds=10.0), *,
@@ -48,10 +48,11 @@ def certified_roa(loop: ClosedLoop, condition: Condition, region: Region, budget
     (None: ``budget.seconds`` again; 0: not run). ``samples_per_axis``: the grid that estimates the share of the box
     in S (n <= 2). ``proved``: a verified proof of ``condition`` on ``{V <= level}`` (a region-of-attraction run's,
     :func:`~drlyap.verification.sublevel.verify_sublevel`, ``level <= max_level``), taken for the search outside
-    the ball (:func:`~drlyap.verification.roa.sublevel.proved_outer`); the search runs where it is not verified.
+    the ball (:func:`~drlyap.verification.roa.sublevel.proved_outer`); the search runs where it does not fit
+    (:func:`~drlyap.verification.roa.sublevel.proof_fits`).
     """
     budget = replace(budget, enclosure=budget.enclosure_for(loop.n))
-    if proved is not None and proved.verified and proved.level is not None and proved.level <= max_level:
+    if proof_fits(proved, region, max_level):
         outer = proved_outer(loop, proved, region, budget)
     else:
         outer = outer_search(loop, condition, region, budget, max_level)

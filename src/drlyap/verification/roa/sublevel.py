@@ -99,14 +99,21 @@ def _ball_max(lyapunov, region: Region, budget: Budget) -> float:
     return float(up[0])
 
 
+def proof_fits(proof: ConditionProof | None, region: Region, max_level: float = math.inf) -> bool:
+    """Whether ``proof`` can stand for steps 1 and 2 on ``region``: verified on a sublevel set ``{V <= level}``
+    (``level <= max_level``) of the same X_delta, with V proved above the level on the faces."""
+    return (proof is not None and proof.verified and proof.level is not None and proof.level <= max_level
+            and proof.boundary_min_lower is not None and proof.boundary_min_lower > proof.level
+            and proof.delta == region.delta)
+
+
 def proved_outer(loop: ClosedLoop, proof: ConditionProof, region: Region, budget: Budget) -> OuterSearch:
     """Steps 1 and 2 of the route from a verified proof of the same condition on ``{V <= level}``
     (:func:`~drlyap.verification.sublevel.verify_sublevel`: the condition there outside the delta-ball and V above
     the level on the faces), instead of a level search; V's bound on the ball as :func:`outer_search` takes it."""
-    if not proof.verified or proof.level is None or proof.boundary_min_lower is None:
-        raise ValueError("a verified proof on a sublevel set {V <= level} is needed")
-    if not proof.boundary_min_lower > proof.level or proof.delta != region.delta:
-        raise ValueError("the proof's faces bound or delta do not fit the region")
+    if not proof_fits(proof, region):
+        raise ValueError("a verified proof on a sublevel set {V <= level} of this X_delta, with V above the level "
+                         "on the faces, is needed")
     start = time.perf_counter()
     quarter = replace(budget, seconds=budget.seconds / 4, boxes=1_000_000, enclosure=budget.enclosure_for(loop.n))
     ball_max_upper = _ball_max(loop.lyapunov, region, quarter)
