@@ -56,6 +56,7 @@ class SystemDefaults:
     exclude_weight: float = 0.01
     grow_weight: float = 0.03
     local_rate: float = 0.3
+    adversarial_share: float = 0.0
     warm_start: str | None = "lqr"
     lqr_weights: tuple[tuple[float, ...], tuple[float, ...]] | None = None
     verify_time: float = 30.0  # seconds per check of `verify`
@@ -88,7 +89,7 @@ class SystemDefaults:
 
 
 PAPER_CONDITION = {"decay_rate": 1.0, "exp_rate": 0.0, "roa_level": None, "outside_weight": 0.0, "exclude_weight": 0.0,
-                   "grow_weight": 0.0, "local_rate": 0.0, "warm_start": None}
+                   "grow_weight": 0.0, "local_rate": 0.0, "adversarial_share": 0.0, "warm_start": None}
 """The defaults that train the paper's condition on all of X_delta (decay gamma ||z||, no sublevel set, no warm
 start), where :class:`SystemDefaults` train for a region of attraction: a system keeps the paper's condition by
 declaring them (``defaults={**PAPER_CONDITION, ...}``; the pendulum does). A :class:`TrainConfig` cannot ask for it
@@ -105,8 +106,8 @@ def _thawed(value):
 
 RESOLVED = ("wasserstein_radius", "risk_level", "decay_rate", "exp_rate", "n_states", "n_xi", "delta", "lr",
             "alpha_hat", "lyapunov_hidden", "controller_hidden", "margin", "near_share", "train_box", "roa_level",
-            "margin_rate", "outside_weight", "exclude_weight", "grow_weight", "local_rate", "warm_start",
-            "lqr_weights")
+            "margin_rate", "outside_weight", "exclude_weight", "grow_weight", "local_rate", "adversarial_share",
+            "warm_start", "lqr_weights")
 """The fields a config leaves to its system (``None``) and :meth:`TrainConfig.resolved` fills."""
 
 OPTIONAL = ("train_box", "roa_level", "warm_start", "lqr_weights")
@@ -131,7 +132,7 @@ _KINDS = {
     "wasserstein_radius": "number", "risk_level": "number", "decay_rate": "number", "exp_rate": "number",
     "delta": "number", "lr": "number", "alpha_hat": "number", "margin": "number", "near_share": "number",
     "roa_level": "number", "margin_rate": "number", "outside_weight": "number", "exclude_weight": "number",
-    "grow_weight": "number", "local_rate": "number", "init_gain": "number",
+    "grow_weight": "number", "local_rate": "number", "adversarial_share": "number", "init_gain": "number",
     "n_states": "int", "n_xi": "int", "iters": "int", "check_every": "int", "seed": "int", "lyapunov_out": "int",
     "resample": "bool", "lyapunov_hidden": "sizes", "controller_hidden": "sizes",
 }
@@ -197,6 +198,10 @@ class TrainConfig:
     # V's local decay rate asked at x*: a hinge (lambda_j + local_rate)_+ on conditions.local_rates at every training
     # sample (every LOCAL_EVERY iterations), and the acceptance check then asks lambda_j < 0. 0: neither.
     local_rate: float | None = None
+    # share of each batch held by adversarial states: a persistent set moved every iteration by one step of projected
+    # ascent on the residual, kept inside {V <= roa_level} (X_delta without a level); 2% of it redrawn each
+    # iteration. In 6 states uniform draws almost never meet the few corners of the set where the condition fails. 0: none
+    adversarial_share: float | None = None
     # "lqr": before training, fit V to the LQR's z^T P z (scaled to 1.2 roa_level, or 1, on the faces) and pi to
     # its gain, by regression; lqr_weights = [Q diagonal, R diagonal] (None: Bryson's rule)
     warm_start: str | None = None
@@ -220,9 +225,9 @@ class TrainConfig:
                 problems.append(f"{f.name} = {value!r} (must be a string)")
             elif kind == "bool" and not isinstance(value, bool):
                 problems.append(f"{f.name} = {value!r} (must be true or false)")
-            elif kind == "sizes" and not (isinstance(value, (list, tuple)) and value and all(
+            elif kind == "sizes" and not (isinstance(value, (list, tuple)) and all(
                     isinstance(v, int) and not isinstance(v, bool) and v >= 1 for v in value)):
-                problems.append(f"{f.name} = {value!r} (must be a list of positive integers)")
+                problems.append(f"{f.name} = {value!r} (must be a list of positive integers; [] for a linear map)")
         return problems
 
     def resolved(self, system) -> TrainConfig:
@@ -263,8 +268,13 @@ class TrainConfig:
                 problems.append(f"{name} = {getattr(self, name)} (must be >= 1)")
         if not (math.isfinite(self.lr) and self.lr > 0):
             problems.append(f"lr = {self.lr} (must be > 0)")
-        if not (math.isfinite(self.near_share) and 0 <= self.near_share <= 1):
-            problems.append(f"near_share = {self.near_share} (must be in [0, 1])")
+        for name in ("near_share", "adversarial_share"):
+            if not (math.isfinite(getattr(self, name)) and 0 <= getattr(self, name) <= 1):
+                problems.append(f"{name} = {getattr(self, name)} (must be in [0, 1])")
+        if self.adversarial_share and self.method == "dr" and self.loss == "uniform":
+            problems.append("adversarial_share needs a per-state condition (the uniform DR loss has none to ascend)")
+        if self.near_share + self.adversarial_share > 1:
+            problems.append(f"near_share + adversarial_share = {self.near_share + self.adversarial_share} (must be <= 1)")
         if self.roa_level is not None and not (math.isfinite(self.roa_level) and self.roa_level > 0):
             problems.append(f"roa_level = {self.roa_level} (must be > 0, or None)")
         if self.warm_start not in (None, "lqr"):
@@ -367,7 +377,7 @@ class ProofConfig:
 
     Proofs: at most ``max_boxes`` boxes each (None: the system's ``defaults.verify_boxes``), ``min_width``,
     ``enclosure`` (None: affine from 4 states on); the checks of ``verify`` stop after ``time_limit`` seconds too
-    (None: ``defaults.verify_time``: 30, 120 for the cart-pole and the quadrotor), the proofs of the training rounds
+    (None: ``defaults.verify_time``: 30, 120 for the cart-pole, 600 for the quadrotor), the proofs of the training rounds
     after ``round_time`` (None: ``time_limit`` when given, else ``defaults.round_time``, an outer cap: the rounds
     are budgeted by boxes, so that the same command gives the same pair on a busy machine).
     Rounds: at most ``rounds`` retraining rounds, all within ``total_time`` seconds (None: no limit, the default: a

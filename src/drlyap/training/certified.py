@@ -193,7 +193,7 @@ def train_cegis(cfg: TrainConfig, system: UncertainSystem, proof: ProofConfig, p
                                         xi_samples=result.xi_samples.tolist())
         tic = time.perf_counter()
         result = fit(round_cfg, system, progress=progress, init=(result.lyapunov, result.controller),
-                     extra_states=extra.repeat(int(proof.replicate), 1))
+                     extra_states=extra.repeat(int(proof.replicate), 1), grow=False)
         train_time = time.perf_counter() - tic
         offset_t = history[-1]["time_s"] if history else 0.0
         history += [{"iteration": h["iteration"] + total_iters, "loss": h["loss"], "time_s": h["time_s"] + offset_t}
