@@ -280,6 +280,6 @@ def test_systems_default_the_step_size_and_the_exponential_rate():
 
     quad = TrainConfig(system="quadrotor2d").resolved(get_system("quadrotor2d"))
     pend = TrainConfig(system="pendulum").resolved(get_system("pendulum"))
-    assert (quad.lr, quad.exp_rate, quad.roa_level) == (0.002, 0.1, 1.0)
+    assert (quad.lr, quad.exp_rate, quad.roa_level) == (0.0005, 0.3, 1.0)
     assert (pend.lr, pend.exp_rate, pend.roa_level, pend.warm_start) == (0.002, 0.0, None, None)
     assert TrainConfig(system="pendulum", lr=0.01, exp_rate=0.2).resolved(get_system("pendulum")).lr == 0.01

@@ -56,7 +56,7 @@ def systems(as_json: bool) -> None:
               help="Retraining rounds at most.")
 @click.option("--verify-boxes", type=int, default=None,
               help="Boxes per proof round: the work budget that makes the same command give the same pair on any "
-                   "machine [the system's: 200,000; 350,000 for cartpole, 2,000,000 for quadrotor2d].")
+                   "machine [the system's: 200,000; 350,000 for cartpole, 60,000 for quadrotor2d].")
 @click.option("--verify-time", type=float, default=None,
               help="Outer cap in seconds of each proof round, reported when hit [the system's: 300; 900 for cartpole "
                    "and quadrotor2d].")
