@@ -28,6 +28,7 @@ from drlyap.regions import Region
 from drlyap.systems import UncertainSystem
 from drlyap.training.acceptance import acceptance_check
 from drlyap.training.config import TrainConfig, build_networks, draw_xi_samples, resolve_device, run_condition, training_region
+from drlyap.verification.falsifier import ascent_step
 from drlyap.verification.results import ConditionProof
 
 ADVERSARIAL_STEP = 0.01  # one ascent step of the adversarial states, as a share of the box's width per coordinate
@@ -90,14 +91,15 @@ def warm_start_lqr(system: UncertainSystem, lyapunov: Lyapunov, controller: Cont
         u_err = (controller.raw(z) - u_target).square().mean() / u_target.square().mean().clamp_min(1e-12)
         return v_err, u_err
 
-    if opt is None:
+    if opt is None:  # nothing left to fit: the errors of the exact pair
         with torch.no_grad():
             v_err, u_err = errors()
-    for _ in range(iters if opt else 0):
-        v_err, u_err = errors()
-        opt.zero_grad(set_to_none=True)
-        (v_err + u_err).backward()
-        opt.step()
+    else:
+        for _ in range(iters):
+            v_err, u_err = errors()
+            opt.zero_grad(set_to_none=True)
+            (v_err + u_err).backward()
+            opt.step()
     return {"method": "lqr", "K": design.K.tolist(), "P_scale": scale, "v_relative_error": float(v_err.detach()),
             "u_relative_error": float(u_err.detach()), "iterations": iters if opt else 0}
 
@@ -138,13 +140,19 @@ def radial_states(lyapunov: Lyapunov, region: Region, level: float, count: int, 
     draws in the box, moved in the same way, would crowd the box's diagonals)."""
     direction = torch.randn(count, region.n, generator=generator, dtype=region.lo.dtype)
     z = direction / direction.norm(dim=-1, keepdim=True).clamp_min(1e-30) * region.hi.maximum(-region.lo)
+    z = z * (_to_boundary(lyapunov, z, level) * torch.rand(count, generator=generator, dtype=z.dtype)
+             ** (1.0 / region.n))[:, None]
     with torch.no_grad():
-        ref = next(lyapunov.parameters())
-        value = lyapunov(z.to(ref)).double().cpu()
-        shrink = torch.sqrt(level / value.clamp_min(1e-30))
-        z = z * (shrink * torch.rand(count, generator=generator, dtype=z.dtype) ** (1.0 / region.n))[:, None]
-        keep = region.contains(z) & (lyapunov(z.to(ref)).double().cpu() <= level)
+        keep = region.contains(z) & (lyapunov(z.to(next(lyapunov.parameters()))).double().cpu() <= level)
     return z[keep]
+
+
+def _to_boundary(lyapunov: Lyapunov, z: Tensor, level: float) -> Tensor:
+    """``(B,)`` float64: the factor ``sqrt(level / V(z))`` that moves each state of ``z (B, n)`` (float64, CPU) along
+    its ray from x* onto ``{V = level}`` (exactly where V is quadratic)."""
+    with torch.no_grad():
+        value = lyapunov(z.to(next(lyapunov.parameters()))).double().cpu()
+    return torch.sqrt(level / value.clamp_min(1e-30))
 
 
 def adversarial_starts(lyapunov: Lyapunov, region: Region, level: float | None, count: int,
@@ -165,14 +173,9 @@ def ascend(loop: ClosedLoop, condition: Condition, z: Tensor, region: Region, le
     with torch.enable_grad():
         x = z.detach().requires_grad_(True)
         grad = torch.autograd.grad(condition.residual(condition.terms(loop, x)).sum(), x)[0]
-    width = region.scale.to(z)
-    step = grad * width
-    step = step / step.norm(dim=-1, keepdim=True).clamp_min(1e-30)
-    moved = region.project((z.detach() + ADVERSARIAL_STEP * step * width).double().cpu())
+    moved = ascent_step(region, z.detach(), grad, ADVERSARIAL_STEP)
     if level is not None:
-        with torch.no_grad():
-            value = loop.lyapunov(moved.to(z)).double().cpu()
-        moved = region.project(moved * torch.sqrt(level / value.clamp_min(1e-30)).clamp(max=1.0)[:, None])
+        moved = region.project(moved * _to_boundary(loop.lyapunov, moved, level).clamp(max=1.0)[:, None])
     return moved.to(z)
 
 
