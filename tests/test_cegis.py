@@ -103,3 +103,19 @@ def test_cli_train_proves_by_default(tmp_path):
     assert "cegis" not in json.loads((tmp_path / "p" / "metrics.json").read_text())
     bad = runner.invoke(main, ["train", "pendulum", "--verify-rounds", "-1", "--out", str(tmp_path / "x")])
     assert bad.exit_code != 0 and "--verify-rounds must be >= 0" in bad.output
+
+
+def test_proof_rounds_can_end_at_their_first_violation(tiny_config):
+    system = get_system("pendulum")
+    cfg = tiny_config(iters=10, check_every=10).resolved(system)
+    assert ProofConfig().resolved(system).stop_at_counterexample is False  # the system's default
+    runs = {}
+    for stop in (False, True):
+        proof = ProofConfig(rounds=0, time_limit=30.0, max_boxes=20_000, stop_at_counterexample=stop).resolved(system)
+        assert proof.stop_at_counterexample is stop
+        _, rounds = train_cegis(cfg, system, proof, progress=False)
+        runs[stop] = rounds[0]["verification"]
+    assert runs[False]["status"] == runs[True]["status"] == "violated"  # a 10-iteration pair
+    assert runs[True]["stopped"] == "counterexample" and runs[False]["stopped"] != "counterexample"
+    assert runs[True]["boxes_processed"] < runs[False]["boxes_processed"]
+    assert runs[True]["verified_fraction"] <= runs[False]["verified_fraction"]

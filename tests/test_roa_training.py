@@ -2,6 +2,7 @@
 
 import dataclasses
 import math
+import warnings
 
 import pytest
 import torch
@@ -12,7 +13,7 @@ from drlyap.config import Budget, ProofConfig
 from drlyap.lqr import lqr_design
 from drlyap.networks import LinearController, QuadraticLyapunov
 from drlyap.regions import Region, split
-from drlyap.systems import cartpole
+from drlyap.systems import cartpole, get_system
 from drlyap.training import TrainConfig, train
 from drlyap.verification import boundary_minimum, box_bounds, verify_condition, verify_sublevel
 from drlyap.verification.bounds import combine_upper, condition_and_value_objective, sublevel_upper
@@ -212,9 +213,31 @@ def test_roa_config_is_validated():
     for bad in ({"roa_level": 0.0}, {"roa_level": math.nan}, {"warm_start": "sos"},
                 {"lqr_weights": [[1.0, 1.0], [1.0]]}, {"margin_rate": -1.0},
                 {"outside_weight": -0.5}, {"outside_weight": "much"}, {"exclude_weight": math.inf},
-                {"grow_weight": -1.0}):
+                {"grow_weight": -1.0}, {"level_margin": -0.1}, {"level_margin": math.inf}, {"iters": 0}):
         with pytest.raises(ValueError, match="invalid training config"):
             TrainConfig(system="cartpole", **bad).resolved(cartpole())
+    with pytest.raises(ValueError, match="level_margin = 0.2 needs a region-of-attraction level"):
+        TrainConfig(system="pendulum", level_margin=0.2).resolved(get_system("pendulum"))  # the paper's: no level
+
+
+def test_the_level_margin_trains_on_a_larger_set_and_claims_the_smaller_one():
+    """Training with level c and margin m is training for the level c (1 + m), the same pair; the claim and its
+    proof are on {V <= c}."""
+    system = small_pendulum(((-0.6, -1.2), (0.6, 1.2)))
+    base = dict(system=system.name, warm_start="lqr", decay_rate=0.0, exp_rate=0.3, iters=30, check_every=30,
+                n_states=256, lyapunov_hidden=[8], controller_hidden=[8], seed=0, xi_samples=[[0.0, 0.0]])
+    wide = plain_train(TrainConfig(**base, roa_level=1.0), system, progress=False)
+    narrow = plain_train(TrainConfig(**base, roa_level=0.8, level_margin=0.25), system, progress=False)
+    for a, b in zip([*wide.lyapunov.parameters(), *wide.controller.parameters()],
+                    [*narrow.lyapunov.parameters(), *narrow.controller.parameters()]):
+        assert torch.equal(a, b)
+    proof = ProofConfig(rounds=0, time_limit=2.0)
+    with warnings.catch_warnings():
+        warnings.simplefilter("ignore", UserWarning)  # a 30-iteration pair need not be proved
+        result = train(TrainConfig(**base, roa_level=0.8, level_margin=0.25), system, proof=proof, progress=False)
+    cert = result.metrics["certificate"]
+    assert cert["level"] == 0.8 and "{V <= 0.8}" in cert["region"]
+    assert result.config.level_margin == 0.25 and result.metrics["acceptance"]["level"] == 1.0
 
 
 def test_the_growth_term_enlarges_the_set_and_keeps_v_above_the_level_on_the_faces():
@@ -276,10 +299,10 @@ def test_verify_command_names_the_sublevel_set_of_a_roa_run(tmp_path):
 
 
 def test_systems_default_the_step_size_and_the_exponential_rate():
-    from drlyap.systems import get_system
-
     quad = TrainConfig(system="quadrotor2d").resolved(get_system("quadrotor2d"))
     pend = TrainConfig(system="pendulum").resolved(get_system("pendulum"))
-    assert (quad.lr, quad.exp_rate, quad.roa_level) == (0.0005, 0.3, 1.0)
-    assert (pend.lr, pend.exp_rate, pend.roa_level, pend.warm_start) == (0.002, 0.0, None, None)
+    assert (quad.lr, quad.exp_rate, quad.roa_level, quad.level_margin, quad.iters) == (0.003, 0.1, 0.8, 0.25, 4500)
+    assert (quad.lyapunov_hidden, quad.controller_hidden) == ([], [])  # a quadratic V, a saturated linear controller
+    assert (pend.lr, pend.exp_rate, pend.roa_level, pend.warm_start, pend.iters) == (0.002, 0.0, None, None, 3000)
+    assert TrainConfig(system="quadrotor2d", iters=7).resolved(get_system("quadrotor2d")).iters == 7
     assert TrainConfig(system="pendulum", lr=0.01, exp_rate=0.2).resolved(get_system("pendulum")).lr == 0.01

@@ -44,6 +44,7 @@ class SystemDefaults:
     n_xi: int = 5  # samples of xi drawn from the system's distribution
     delta: float = 0.1  # radius of the excluded ball around x*
     lr: float = 0.002  # Adam's step size
+    iters: int = 3000  # iteration cap of training
     alpha_hat: float = 1.0
     lyapunov_hidden: tuple[int, ...] = (32, 32)
     controller_hidden: tuple[int, ...] = (32, 32)
@@ -51,6 +52,7 @@ class SystemDefaults:
     near_share: float = 0.0
     train_box: tuple[tuple[float, ...], tuple[float, ...]] | None = None
     roa_level: float | None = 1.0
+    level_margin: float = 0.0
     margin_rate: float = 0.0
     outside_weight: float = 1.0
     exclude_weight: float = 0.01
@@ -62,6 +64,7 @@ class SystemDefaults:
     verify_time: float = 30.0  # seconds per check of `verify`
     verify_boxes: int = 200_000  # boxes per proof: about 30 s of a 2-state proof on one thread of a laptop core
     round_time: float = 300.0  # outer cap (seconds) of each proof of the training rounds
+    stop_at_counterexample: bool = False  # a proof of the training rounds ends at its first confirmed violation
 
     def __post_init__(self) -> None:
         for f in fields(self):
@@ -104,9 +107,9 @@ def _thawed(value):
     return [_thawed(v) for v in value] if isinstance(value, (list, tuple)) else value
 
 
-RESOLVED = ("wasserstein_radius", "risk_level", "decay_rate", "exp_rate", "n_states", "n_xi", "delta", "lr",
+RESOLVED = ("wasserstein_radius", "risk_level", "decay_rate", "exp_rate", "n_states", "n_xi", "delta", "lr", "iters",
             "alpha_hat", "lyapunov_hidden", "controller_hidden", "margin", "near_share", "train_box", "roa_level",
-            "margin_rate", "outside_weight", "exclude_weight", "grow_weight", "local_rate", "adversarial_share",
+            "level_margin", "margin_rate", "outside_weight", "exclude_weight", "grow_weight", "local_rate", "adversarial_share",
             "warm_start", "lqr_weights")
 """The fields a config leaves to its system (``None``) and :meth:`TrainConfig.resolved` fills."""
 
@@ -131,12 +134,13 @@ _KINDS = {
     "system": "str", "method": "str", "loss": "str", "device": "str", "warm_start": "str",
     "wasserstein_radius": "number", "risk_level": "number", "decay_rate": "number", "exp_rate": "number",
     "delta": "number", "lr": "number", "alpha_hat": "number", "margin": "number", "near_share": "number",
-    "roa_level": "number", "margin_rate": "number", "outside_weight": "number", "exclude_weight": "number",
-    "grow_weight": "number", "local_rate": "number", "adversarial_share": "number", "init_gain": "number",
+    "roa_level": "number", "level_margin": "number", "margin_rate": "number", "outside_weight": "number",
+    "exclude_weight": "number", "grow_weight": "number", "local_rate": "number", "adversarial_share": "number",
+    "init_gain": "number",
     "n_states": "int", "n_xi": "int", "iters": "int", "check_every": "int", "seed": "int", "lyapunov_out": "int",
     "resample": "bool", "lyapunov_hidden": "sizes", "controller_hidden": "sizes",
 }
-_REQUIRED = ("system", "method", "loss", "iters", "check_every", "seed", "device", "lyapunov_out", "init_gain",
+_REQUIRED = ("system", "method", "loss", "check_every", "seed", "device", "lyapunov_out", "init_gain",
              "resample")
 
 
@@ -161,7 +165,7 @@ class TrainConfig:
     xi_samples: list[list[float]] | None = None  # explicit samples (N, k); overrides n_xi
     delta: float | None = None  # radius of the excluded ball around x* (local coordinates)
     lr: float | None = None  # Adam's step size (system default; 0.002)
-    iters: int = 3000  # iteration cap
+    iters: int | None = None  # iteration cap (system default; 3000)
     check_every: int = 250  # acceptance check period (iterations)
     seed: int = 0
     device: str = "cpu"
@@ -183,6 +187,10 @@ class TrainConfig:
     # roa_level on the faces of X (so the set lies inside X and is forward invariant once the condition holds
     # on it); half of each batch is drawn inside the set. None: the paper's condition on all of X_delta.
     roa_level: float | None = None
+    # region-of-attraction training: the condition is trained on {V <= (1 + level_margin) roa_level}, the set that
+    # is claimed and proved being {V <= roa_level}: training grows the set until the condition is tight on its
+    # boundary, and the margin leaves room for the proof there. 0: trained on the claimed set itself
+    level_margin: float | None = None
     margin_rate: float | None = None  # adds margin_rate * V to the hinge: a margin that scales with V (0 at x*)
     # region-of-attraction training: the weight of the hinge at states outside {V <= roa_level} (0: the condition is
     # asked of the set only; > 0: the controller also learns to bring the states outside into it, as the paper's
@@ -257,7 +265,7 @@ class TrainConfig:
         if self.loss not in ("pointwise", "uniform"):
             problems.append(f"loss {self.loss!r} (valid: pointwise, uniform)")
         for name in ("wasserstein_radius", "decay_rate", "exp_rate", "margin", "alpha_hat", "margin_rate", "outside_weight",
-                     "exclude_weight", "grow_weight", "local_rate"):
+                     "exclude_weight", "grow_weight", "local_rate", "level_margin"):
             value = getattr(self, name)
             if not (math.isfinite(value) and value >= 0):
                 problems.append(f"{name} = {value} (must be finite and >= 0)")
@@ -277,6 +285,8 @@ class TrainConfig:
             problems.append(f"near_share + adversarial_share = {self.near_share + self.adversarial_share} (must be <= 1)")
         if self.roa_level is not None and not (math.isfinite(self.roa_level) and self.roa_level > 0):
             problems.append(f"roa_level = {self.roa_level} (must be > 0, or None)")
+        if self.level_margin and self.roa_level is None:
+            problems.append(f"level_margin = {self.level_margin} needs a region-of-attraction level (roa_level)")
         if self.warm_start not in (None, "lqr"):
             problems.append(f"warm_start {self.warm_start!r} (valid: lqr, or None)")
         if self.lqr_weights is not None:
@@ -377,7 +387,7 @@ class ProofConfig:
 
     Proofs: at most ``max_boxes`` boxes each (None: the system's ``defaults.verify_boxes``), ``min_width``,
     ``enclosure`` (None: affine from 4 states on); the checks of ``verify`` stop after ``time_limit`` seconds too
-    (None: ``defaults.verify_time``: 30, 120 for the cart-pole and the quadrotor), the proofs of the training rounds
+    (None: ``defaults.verify_time``: 30, 120 for the cart-pole, 3600 for the quadrotor), the proofs of the training rounds
     after ``round_time`` (None: ``time_limit`` when given, else ``defaults.round_time``, an outer cap: the rounds
     are budgeted by boxes, so that the same command gives the same pair on a busy machine).
     Rounds: at most ``rounds`` retraining rounds, all within ``total_time`` seconds (None: no limit, the default: a
@@ -387,6 +397,9 @@ class ProofConfig:
     ``keep_boxes`` unverified boxes, and a falsifier's counterexamples (``falsifier_starts`` starts, None: 512
     uniform, or 2,048 half near x* where training draws states near x*; ``falsifier_steps`` ascent steps; each with
     ``neighbours`` jittered copies). ``settle_starts``: falsifier starts that settle an unknown verdict.
+    ``stop_at_counterexample``: a proof of the rounds ends at the first batch of boxes holding a confirmed
+    violation instead of spending its whole budget (None: ``defaults.stop_at_counterexample``; its verified
+    fraction then counts every box not yet proved as unproved).
     Checks of ``verify``: ``uniform_time`` seconds for the uniform DR margin, ``roa_time`` for the region of
     attraction (None: 3x ``time_limit``), ``band_time`` for its band proof (None: ``roa_time`` again; 0: off).
     """
@@ -406,6 +419,7 @@ class ProofConfig:
     falsifier_steps: int = 30
     neighbours: int = 3
     settle_starts: int = DEFAULT_SETTLE_STARTS
+    stop_at_counterexample: bool | None = None
     uniform_time: float = 3.0
     roa_time: float | None = None
     band_time: float | None = None
@@ -446,7 +460,10 @@ class ProofConfig:
         return dataclasses.replace(self, time_limit=float(self.time_limit or d.verify_time),
                                    max_boxes=int(self.max_boxes or d.verify_boxes),
                                    round_time=float(self.round_time or self.time_limit or d.round_time),
-                                   enclosure=self.enclosure or default_enclosure(system.n))
+                                   enclosure=self.enclosure or default_enclosure(system.n),
+                                   stop_at_counterexample=bool(d.stop_at_counterexample
+                                                               if self.stop_at_counterexample is None
+                                                               else self.stop_at_counterexample))
 
     @property
     def is_resolved(self) -> bool:

@@ -42,7 +42,8 @@ def systems(as_json: bool) -> None:
               help="alpha of the exponential variant (adds alpha V inside the condition) [system default].")
 @click.option("--xi-samples", default=None,
               help="Explicit xi samples 'a,b;c,d;...' (one sample per ';'); default: drawn from the system.")
-@click.option("--iters", type=int, default=default(TrainConfig, "iters"), show_default=True, help="Iteration cap.")
+@click.option("--iters", type=int, default=None,
+              help="Iteration cap [the system's: 3000; 4500 for quadrotor2d].")
 @click.option("--seed", type=int, default=default(TrainConfig, "seed"), show_default=True)
 @click.option("--device", default=default(TrainConfig, "device"), show_default=True, help="cpu or cuda.")
 @click.option("--warm-start", type=click.Path(path_type=Path), default=None,
@@ -56,10 +57,10 @@ def systems(as_json: bool) -> None:
               help="Retraining rounds at most.")
 @click.option("--verify-boxes", type=int, default=None,
               help="Boxes per proof round: the work budget that makes the same command give the same pair on any "
-                   "machine [the system's: 200,000; 350,000 for cartpole, 60,000 for quadrotor2d].")
+                   "machine [the system's: 200,000; 350,000 for cartpole, 6,000,000 for quadrotor2d].")
 @click.option("--verify-time", type=float, default=None,
-              help="Outer cap in seconds of each proof round, reported when hit [the system's: 300; 900 for cartpole "
-                   "and quadrotor2d].")
+              help="Outer cap in seconds of each proof round, reported when hit [the system's: 300; 900 for cartpole, "
+                   "3600 for quadrotor2d].")
 @click.option("--verify-budget", type=float, default=None,
               help="Total seconds for the retraining rounds [no limit; a limit makes the pair depend on the machine's "
                    "speed].")

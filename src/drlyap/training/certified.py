@@ -154,7 +154,8 @@ def train_cegis(cfg: TrainConfig, system: UncertainSystem, proof: ProofConfig, p
     for r in range(rounds + 1):
         tic = time.perf_counter()
         ver = prove_trained(result.loop, condition, region, budget, base_cfg.roa_level, keep_boxes=proof.keep_boxes,
-                            falsify_starts=0)  # its own falsifier below
+                            falsify_starts=0,  # its own falsifier below
+                            stop_at_counterexample=bool(proof.stop_at_counterexample))
         entry: dict = {"round": r, "verification": ver.summary(), "verified": ver.verified,
                        "status": ver.status, "verified_fraction": ver.verified_fraction,
                        "verify_time_s": time.perf_counter() - tic, "train_time_s": train_time,

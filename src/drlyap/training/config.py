@@ -24,6 +24,14 @@ def training_region(system: UncertainSystem, train_box: list[list[float]] | None
     return dataclasses.replace(system, state_box=tuple(tuple(float(v) for v in side) for side in train_box))
 
 
+def training_level(cfg: TrainConfig) -> float | None:
+    """The sublevel set's level that region-of-attraction training works with: ``(1 + level_margin) roa_level``
+    (the claimed and proved set is ``{V <= roa_level}``); None without a level."""
+    if cfg.roa_level is None:
+        return None
+    return float(cfg.roa_level) * (1.0 + float(cfg.level_margin or 0.0))
+
+
 def build_networks(system: UncertainSystem, cfg: TrainConfig) -> tuple[Lyapunov, Controller]:
     """Fresh networks for ``cfg``; inputs are scaled by the state box's half-widths."""
     lo, hi = system.local_box()

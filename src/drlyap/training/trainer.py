@@ -27,7 +27,15 @@ from drlyap.progress import progress as show_progress
 from drlyap.regions import Region
 from drlyap.systems import UncertainSystem
 from drlyap.training.acceptance import acceptance_check
-from drlyap.training.config import TrainConfig, build_networks, draw_xi_samples, resolve_device, run_condition, training_region
+from drlyap.training.config import (
+    TrainConfig,
+    build_networks,
+    draw_xi_samples,
+    resolve_device,
+    run_condition,
+    training_level,
+    training_region,
+)
 from drlyap.verification.falsifier import ascent_step
 from drlyap.verification.results import ConditionProof
 
@@ -64,9 +72,9 @@ def warm_start_lqr(system: UncertainSystem, lyapunov: Lyapunov, controller: Cont
     a network without hidden layers (:func:`_linear_fit`), by regression for the others.
 
     ``P``, ``K``: the LQR design for ``cfg.lqr_weights`` (``[Q diagonal, R diagonal]``; None: Bryson's rule) on the
-    nominal linearisation; ``s`` puts the quadratic's minimum over the faces of the box at ``1.2 cfg.roa_level``
-    (1.2 without a level). States: half uniform in X_delta, half spread over the distance from x*. Returns the
-    design's gain, the scale and the final relative errors.
+    nominal linearisation; ``s`` puts the quadratic's minimum over the faces of the box at 1.2 times the training
+    level (:func:`~drlyap.training.config.training_level`; 1.2 without a level). States: half uniform in X_delta,
+    half spread over the distance from x*. Returns the design's gain, the scale and the final relative errors.
     """
     q, r = cfg.lqr_weights if cfg.lqr_weights is not None else (None, None)
     try:
@@ -76,7 +84,7 @@ def warm_start_lqr(system: UncertainSystem, lyapunov: Lyapunov, controller: Cont
                          "system of one's own): declare warm_start=None in the system's defaults, or "
                          "drlyap.config.PAPER_CONDITION for the paper's condition") from None
     half = torch.maximum(-region.lo, region.hi)
-    scale = 1.2 * (cfg.roa_level or 1.0) / float((half.square() / torch.linalg.inv(design.P).diagonal()).min())
+    scale = 1.2 * (training_level(cfg) or 1.0) / float((half.square() / torch.linalg.inv(design.P).diagonal()).min())
     ref = next(lyapunov.parameters())
     p_mat, k_mat = (design.P * scale).to(ref), design.K.to(ref)
     exact = _linear_fit(lyapunov, controller, design.P * scale, design.K)
@@ -249,7 +257,7 @@ def fit(cfg: TrainConfig, system: UncertainSystem, progress: bool = True, init: 
 
     n_near = int(round(float(cfg.near_share) * int(cfg.n_states)))
     n_adv = int(round(float(cfg.adversarial_share) * int(cfg.n_states)))
-    level = cfg.roa_level
+    level = training_level(cfg)  # the claimed level, or above it by the level margin
     warm = None
     if cfg.warm_start == "lqr" and not init:
         warm = warm_start_lqr(system, lyapunov, controller, cfg, region, gen, n_states=min(4096, int(cfg.n_states)))
