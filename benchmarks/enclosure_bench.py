@@ -6,8 +6,9 @@ Usage::
                                          [--boxes 256] [--samples 512] [--seed 0] [--threads 1]
 
 For each system (2, 4 and 6 states) it builds untrained networks with ``drlyap.training.build_networks``
-(the default 2x32 tanh V and pi, seeded) and draws ``--boxes`` random boxes whose sides are a fraction
-``--widths`` of the state box's sides, centred uniformly in the state box. For three quantities
+(the default tanh V and pi, seeded; 2x32 where the default has no hidden layer, the quadrotor's) and draws
+``--boxes`` random boxes whose sides are a fraction ``--widths`` of the state box's sides, centred uniformly in
+the state box. For three quantities
 
 * ``V`` -- the certificate's value,
 * ``grad V`` -- its input gradient (the manual backward pass the conditions use),
@@ -81,6 +82,9 @@ def main(argv: list[str] | None = None) -> int:
     for name in args.systems.split(","):
         system = get_system(name)
         cfg = TrainConfig(system=name, seed=args.seed).resolved(system)
+        if not cfg.lyapunov_hidden or not cfg.controller_hidden:  # a quadratic V / linear controller: no tanh
+            cfg = TrainConfig(system=name, seed=args.seed, lyapunov_hidden=[32, 32],
+                              controller_hidden=[32, 32]).resolved(system)
         torch.manual_seed(args.seed)
         lyap, ctrl = build_networks(system, cfg)
         lyap64, ctrl64 = copy.deepcopy(lyap).double(), copy.deepcopy(ctrl).double()
