@@ -1,12 +1,13 @@
 """Training a controller and its Lyapunov certificate (paper Sec. V, SPEC §3 and §5).
 
 :func:`fit` samples the training states uniformly in X minus the delta-ball (and, for region-of-attraction
-training, inside the sublevel set), trains both networks with Adam on the condition's loss (batched over states and
-xi samples), and runs the acceptance check of :mod:`drlyap.training.acceptance` every ``check_every`` iterations.
-It stops as soon as the check passes or at ``iters``, and returns the best checkpoint (passing first, then smallest
-validation violation); a growing set (``grow_weight``) trains every iteration, the growth term on the first
-``GROW_SHARE`` of them and the rest repairing what it broke, and keeps the latest pair that passes. A diverging
-loss (NaN/inf) stops training with the last good weights and says so.
+training, inside the sublevel set ``{V <= (1 + level_margin) roa_level}``: the claimed set and its margin), trains
+both networks with Adam on the condition's loss (batched over states and xi samples), and runs the acceptance
+check of :mod:`drlyap.training.acceptance` every ``check_every`` iterations. It stops as soon as the check passes
+or at ``iters``, and returns the best checkpoint (passing first, then smallest validation violation); a growing
+set (``grow_weight``) trains every iteration, the growth term on the first ``GROW_SHARE`` of them and the rest
+repairing what it broke, and keeps the latest pair that passes. A diverging loss (NaN/inf) stops training with
+the last good weights and says so.
 """
 
 from __future__ import annotations
