@@ -7,7 +7,8 @@ import torch
 
 from drlyap.checker.affine import Af, _quick_span, _quick_spans, quad_max, quad_max_minus, quad_span
 from drlyap.checker.arith import Iv
-from drlyap.checker.model import Pair, Residual, affine_upper, sublevel_form_upper
+from drlyap.checker.check import _by_forms
+from drlyap.checker.model import Pair, Residual, affine_upper, form_upper, sublevel_form_upper
 from drlyap.conditions import DRPointwise
 from drlyap.runs.certificates import condition_claim
 from handmade import linear_pair, small_pendulum
@@ -175,3 +176,32 @@ def test_tanh_of_a_curved_form_encloses_dense_samples(width):
     pts = points(lo, hi, count=4000)
     values = torch.tanh(pts[..., 0:1] * 1.7 - pts[..., 1:2] * 0.4 + pts[..., 0:1] * pts[..., 1:2] * 0.3)
     assert bool((values >= form.lo).all()) and bool((values <= form.hi).all())
+
+
+def test_the_flat_norm_bounds_the_residual_at_samples_and_helps_where_the_norm_nears_zero():
+    """The DR norm as the constant form of its interval norm (``terms(flat_norm=True)``): its bound of the residual
+    holds at every sample (with a level, where V <= level), and ``_by_forms`` proves a box when either the norm's own
+    form or the flat one does."""
+    system = small_pendulum()
+    lyap, ctrl = linear_pair(system)
+    weights = {"lyapunov": lyap.state_dict(), "controller": ctrl.state_dict()}
+    xi = torch.tensor([[0.02, 0.01], [-0.03, 0.0], [0.05, -0.02]], dtype=F64)
+    residual = Residual(condition_claim(DRPointwise(0.05, 0.1, xi, decay_rate=0.05)), Pair(weights, lyap.alpha_hat,
+                                                                                          2), system)
+    assert residual.has_norm
+    lo, hi = boxes(300, 2, 0.4, seed=12)
+    pts = points(lo, hi, count=1500)
+    comps, value = residual.terms(Iv.point(pts.reshape(-1, 2)))
+    sampled = comps.hi.reshape(pts.shape[0], 300, -1)
+    v = value.hi.reshape(pts.shape[0], 300)
+    level = float(v.median())
+    for flat in (False, True):
+        forms, values = residual.terms(Af.seed(lo, hi), flat_norm=flat)
+        assert bool((sampled <= forms.hi).all())  # every component's bound, each sample of xi
+        per_component = sublevel_form_upper(forms, values, level)
+        assert bool((torch.where((v <= level)[..., None], sampled, -torch.inf) <= per_component).all())
+    plain = residual.terms(Af.seed(lo, hi))
+    flat = residual.terms(Af.seed(lo, hi), flat_norm=True)
+    by_form = (form_upper(residual, *plain, level) <= 0) | (plain[1].interval(dual=True).lo > level)
+    by_flat = form_upper(residual, *flat, level) <= 0
+    assert torch.equal(_by_forms(residual, lo, hi, level), by_form | by_flat)

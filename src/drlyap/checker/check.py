@@ -10,7 +10,8 @@ construction), that every leaf is proved, that leaves said to lie in the delta-b
 of the system's description, and the residual of the claimed condition from V's and pi's weights (its own forward and
 gradient code, not the library's networks).
 
-A proved leaf is re-proved by the checker's second-order forms (:class:`~drlyap.checker.affine.Af`), and where they
+A proved leaf is re-proved by the checker's second-order forms (:class:`~drlyap.checker.affine.Af`; where the DR
+norm's own form does not prove it, again with that norm as the interval norm of its vector's ranges), and where they
 do not prove it, by the tighter of the interval bound and the mean-value form (that one first where the header says
 the proof used it); where neither bound is ``<= 0``, the leaf is bisected along its widest side up to ``refine``
 times and every piece must be proved. A leaf whose recorded
@@ -161,10 +162,17 @@ def _widest_split(lo: Tensor, hi: Tensor, scale: Tensor) -> tuple[Tensor, Tensor
 
 
 def _by_forms(residual: Residual, lo: Tensor, hi: Tensor, level: float | None) -> Tensor:
-    """``(B,)``: boxes proved by the second-order forms of the residual and V, together."""
+    """``(B,)``: boxes proved by the second-order forms of the residual and V, together; where the DR norm's own
+    form does not prove a box, the interval norm is tried in its place (either is an enclosure)."""
     comps, value = residual.terms(Af.seed(lo, hi))
     good = form_upper(residual, comps, value, level) <= 0
-    return good | (value.interval(dual=True).lo > level) if level is not None else good
+    if level is not None:
+        good = good | (value.interval(dual=True).lo > level)
+    rest = (~good).nonzero().squeeze(-1)
+    if rest.numel() and residual.has_norm:
+        comps, value = residual.terms(Af.seed(lo[rest], hi[rest]), flat_norm=True)
+        good[rest] = form_upper(residual, comps, value, level) <= 0
+    return good
 
 
 def _by_mean_value(residual: Residual, lo: Tensor, hi: Tensor, level: float | None) -> Tensor:

@@ -119,8 +119,16 @@ class Residual:
         local states."""
         return self.terms(z)[0]
 
-    def terms(self, z) -> tuple[object, object]:
-        """The components ``(B, Q)`` and V ``(B,)`` at ``z``."""
+    @property
+    def has_norm(self) -> bool:
+        """Whether the components hold the DR condition's norm ``(r / eps) ||W^T grad V||``."""
+        return self.model != "true" and self.name == "pointwise" and self.r > 0
+
+    def terms(self, z, flat_norm: bool = False) -> tuple[object, object]:
+        """The components ``(B, Q)`` and V ``(B,)`` at ``z``. ``flat_norm``: the DR norm as the constant form of the
+        interval norm of its vector's ranges (second-order forms ``z`` only), instead of its own second-order form:
+        narrower where the sum of squares reaches near 0, but without the dependence on the box's coordinates that
+        the rest of the residual may cancel against."""
         batch = z.shape[0]
         value, grad = self.pair.value_and_grad(z)
         x, u = z + self.x_star, self.pair.controller(z)
@@ -141,7 +149,10 @@ class Residual:
             s = (grad * out).sum(-1)
             vdots = [s.v + sum((s.d[i] * float(xi[i]) for i in range(len(self.uncertain))), start=s.v * 0.0)
                      for xi in self.xi]
-            lip = torch.stack(s.d, -1).norm() if self.name == "pointwise" else None
+            lip = None
+            if self.name == "pointwise":
+                vector = torch.stack(s.d, -1)
+                lip = vector.constant(vector.interval(dual=True).norm()) if flat_norm else vector.norm()
         decay = value * 0.0
         if self.gamma:
             decay = decay + z.norm() * self.gamma
