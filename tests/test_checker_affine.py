@@ -136,15 +136,20 @@ def test_a_norm_whose_argument_reaches_zero_is_enclosed():
     assert bool(torch.isinf(sqrt.hi[(lo[:, 0] - 0.5) < 0]).all())
 
 
-def test_the_residual_and_its_sublevel_bound_hold_at_samples():
-    """On the hand-made pendulum pair: the residual's second-order bound over boxes is above the residual at every
-    sample, and the S-procedure's bound above it at every sample where V <= level."""
+def pendulum_residual(radius: float, risk_level: float) -> Residual:
+    """The checker's DR pointwise residual of the hand-made pendulum pair, three samples of xi, decay 0.05."""
     system = small_pendulum()
     lyap, ctrl = linear_pair(system)
     weights = {"lyapunov": lyap.state_dict(), "controller": ctrl.state_dict()}
     xi = torch.tensor([[0.02, 0.01], [-0.03, 0.0], [0.05, -0.02]], dtype=F64)
-    residual = Residual(condition_claim(DRPointwise(0.01, 0.3, xi, decay_rate=0.05)), Pair(weights, lyap.alpha_hat,
-                                                                                          2), system)
+    return Residual(condition_claim(DRPointwise(radius, risk_level, xi, decay_rate=0.05)),
+                    Pair(weights, lyap.alpha_hat, 2), system)
+
+
+def test_the_residual_and_its_sublevel_bound_hold_at_samples():
+    """On the hand-made pendulum pair: the residual's second-order bound over boxes is above the residual at every
+    sample, and the S-procedure's bound above it at every sample where V <= level."""
+    residual = pendulum_residual(0.01, 0.3)
     lo, hi = boxes(200, 2, 0.4, seed=11)
     pts = points(lo, hi, count=1500)
     comps, value = residual.terms(Iv.point(pts.reshape(-1, 2)))
@@ -182,12 +187,7 @@ def test_the_flat_norm_bounds_the_residual_at_samples_and_helps_where_the_norm_n
     """The DR norm as the constant form of its interval norm (``terms(flat_norm=True)``): its bound of the residual
     holds at every sample (with a level, where V <= level), and ``_by_forms`` proves a box when either the norm's own
     form or the flat one does."""
-    system = small_pendulum()
-    lyap, ctrl = linear_pair(system)
-    weights = {"lyapunov": lyap.state_dict(), "controller": ctrl.state_dict()}
-    xi = torch.tensor([[0.02, 0.01], [-0.03, 0.0], [0.05, -0.02]], dtype=F64)
-    residual = Residual(condition_claim(DRPointwise(0.05, 0.1, xi, decay_rate=0.05)), Pair(weights, lyap.alpha_hat,
-                                                                                          2), system)
+    residual = pendulum_residual(0.05, 0.1)
     assert residual.has_norm
     lo, hi = boxes(300, 2, 0.4, seed=12)
     pts = points(lo, hi, count=1500)
