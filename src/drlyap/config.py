@@ -207,11 +207,13 @@ class TrainConfig:
     # sample (every LOCAL_EVERY iterations), and the acceptance check then asks lambda_j < 0. 0: neither.
     local_rate: float | None = None
     # share of each batch held by adversarial states: a persistent set moved every iteration by one step of projected
-    # ascent on the residual, kept inside {V <= roa_level} (X_delta without a level); 2% of it redrawn each
-    # iteration. In 6 states uniform draws almost never meet the few corners of the set where the condition fails. 0: none
+    # ascent on the residual, kept inside the training set {V <= (1 + level_margin) roa_level} (X_delta without a
+    # level); 2% of it redrawn each iteration. In 6 states uniform draws almost never meet the few corners of the set
+    # where the condition fails. 0: none
     adversarial_share: float | None = None
-    # "lqr": before training, fit V to the LQR's z^T P z (scaled to 1.2 roa_level, or 1, on the faces) and pi to
-    # its gain, by regression; lqr_weights = [Q diagonal, R diagonal] (None: Bryson's rule)
+    # "lqr": before training, fit V to the LQR's z^T P z (scaled to 1.2 times the training level, or 1, on the faces)
+    # and pi to its gain (exactly without hidden layers, else by regression); lqr_weights = [Q diagonal, R diagonal]
+    # (None: Bryson's rule)
     warm_start: str | None = None
     lqr_weights: list[list[float]] | None = None
 
