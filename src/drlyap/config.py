@@ -345,17 +345,71 @@ def check_enclosure(enclosure: str) -> str:
     return enclosure
 
 
+BACKENDS = ("local", "ray")
+"""Where a proof's worker processes run: this machine, or a Ray cluster."""
+
+
+@dataclass(frozen=True)
+class Compute:
+    """Where a proof's boxes are bounded; it changes how fast a proof runs, never what it proves.
+
+    ``workers``: processes that bound the boxes of each batch (1: this process, the default); ``backend``: ``local``
+    (processes on this machine, one torch thread each) or ``ray`` (actors of a Ray cluster: ``address``, else
+    ``RAY_ADDRESS``, else a local Ray with ``workers`` CPUs); ``device``: where this process bounds them (``cpu`` or
+    ``cuda``, float64 on the device; with one worker only); ``checkpoint_dir``: a directory where a long proof keeps
+    its open boxes and proved leaves every ``checkpoint_every`` seconds, so that the same proof, started again after
+    it was killed, resumes there (None: no checkpoints); ``progress``: a long proof reports its boxes on stderr."""
+
+    workers: int = 1
+    backend: str = "local"
+    address: str | None = None
+    device: str = "cpu"
+    checkpoint_dir: str | None = None
+    checkpoint_every: float = 30.0
+    progress: bool = False
+
+    def __post_init__(self) -> None:
+        problems = compute_problems(self.workers, self.backend, self.address, self.device)
+        if not (math.isfinite(self.checkpoint_every) and self.checkpoint_every >= 0):
+            problems.append(f"checkpoint_every = {self.checkpoint_every} (must be >= 0 seconds)")
+        if problems:
+            raise ValueError("invalid compute settings: " + "; ".join(problems))
+
+    @property
+    def parallel(self) -> bool:
+        """Whether boxes are bounded by worker processes (not by this process)."""
+        return self.workers > 1 or self.backend == "ray"
+
+
+def compute_problems(workers, backend, address, device) -> list[str]:
+    """What is wrong with these settings of :class:`Compute` (each named with what would be valid)."""
+    problems = []
+    if not (isinstance(workers, int) and not isinstance(workers, bool) and workers >= 1):
+        problems.append(f"workers = {workers!r} (must be an integer >= 1)")
+    if backend not in BACKENDS:
+        problems.append(f"backend {backend!r} (valid: {', '.join(BACKENDS)})")
+    if address is not None and backend != "ray":
+        problems.append("address is for the ray backend")
+    if not isinstance(device, str) or device.split(":")[0] not in ("cpu", "cuda"):
+        problems.append(f"device {device!r} (valid: cpu, cuda, cuda:N)")
+    elif device != "cpu" and (backend != "local" or workers != 1):
+        problems.append(f"device {device!r} bounds boxes in this process: it needs workers = 1 and the local backend")
+    return problems
+
+
 @dataclass(frozen=True)
 class Budget:
     """How much one proof may do, and how finely: at most ``boxes`` boxes bounded and ``seconds`` of wall time
     (whichever ends first; the result's ``stopped`` says which), boxes split no finer than ``min_width`` (of the
-    box's sides), ``batch`` boxes bounded at a time, with ``enclosure`` (None: :func:`default_enclosure`)."""
+    box's sides), ``batch`` boxes bounded at a time, with ``enclosure`` (None: :func:`default_enclosure`), where
+    ``compute`` says (:class:`Compute`: this process by default)."""
 
     seconds: float = 30.0
     boxes: int = 2_000_000
     min_width: float = 1e-4
     batch: int = 4096
     enclosure: str | None = None
+    compute: Compute = Compute()
 
     def __post_init__(self) -> None:
         # seconds may be spent (<= 0) where a proof hands what is left of its time to its last step: it stops at once
@@ -363,6 +417,8 @@ class Budget:
             raise ValueError(f"a proof budget needs finite seconds, boxes >= 1, min_width > 0 and batch >= 1, got {self}")
         if self.enclosure is not None:
             check_enclosure(self.enclosure)
+        if not isinstance(self.compute, Compute):
+            raise ValueError(f"a proof budget's compute must be a Compute, got {type(self.compute).__name__}")
 
     def enclosure_for(self, n: int) -> str:
         """The enclosure to bound boxes of an ``n``-state system with."""
@@ -404,6 +460,9 @@ class ProofConfig:
     fraction then counts every box not yet proved as unproved).
     Checks of ``verify``: ``uniform_time`` seconds for the uniform DR margin, ``roa_time`` for the region of
     attraction (None: 3x ``time_limit``), ``band_time`` for its band proof (None: ``roa_time`` again; 0: off).
+    Where the boxes are bounded (:class:`Compute`; how fast, never what is proved, so a run does not record them):
+    ``workers``, ``backend``, ``address``, ``device``, ``checkpoint_dir`` and ``checkpoint_every`` for proofs that
+    resume, ``progress``.
     """
 
     rounds: int = 5
@@ -425,10 +484,17 @@ class ProofConfig:
     uniform_time: float = 3.0
     roa_time: float | None = None
     band_time: float | None = None
+    workers: int = 1
+    backend: str = "local"
+    address: str | None = None
+    device: str = "cpu"
+    checkpoint_dir: str | None = None
+    checkpoint_every: float = 30.0
+    progress: bool = False
 
     def validate(self) -> None:
         """A ValueError naming every setting out of range."""
-        problems = []
+        problems = compute_problems(self.workers, self.backend, self.address, self.device)
         if int(self.rounds) < 0:
             problems.append(f"rounds = {self.rounds} (must be >= 0)")
         for name in ("time_limit", "total_time", "roa_time", "round_time"):
@@ -476,7 +542,20 @@ class ProofConfig:
         if not self.is_resolved:
             raise ValueError("resolve the proof settings for a system first (ProofConfig.resolved)")
         return Budget(seconds=float(seconds if seconds is not None else self.time_limit), boxes=int(self.max_boxes),
-                      min_width=self.min_width, enclosure=self.enclosure)
+                      min_width=self.min_width, enclosure=self.enclosure, compute=self.compute)
+
+    def with_compute(self, compute: Compute) -> ProofConfig:
+        """The same settings, bounding their boxes where ``compute`` says."""
+        return dataclasses.replace(self, workers=compute.workers, backend=compute.backend, address=compute.address,
+                                   device=compute.device, checkpoint_dir=compute.checkpoint_dir,
+                                   checkpoint_every=compute.checkpoint_every, progress=compute.progress)
+
+    @property
+    def compute(self) -> Compute:
+        """Where the boxes of these proofs are bounded (:class:`Compute`)."""
+        return Compute(workers=int(self.workers), backend=self.backend, address=self.address, device=self.device,
+                       checkpoint_dir=None if self.checkpoint_dir is None else str(self.checkpoint_dir),
+                       checkpoint_every=float(self.checkpoint_every), progress=bool(self.progress))
 
     def round_budget(self) -> Budget:
         """The :class:`Budget` of each proof of the training rounds: ``max_boxes`` boxes, ``round_time`` seconds at
@@ -484,11 +563,17 @@ class ProofConfig:
         return self.budget(self.round_time)
 
     def to_dict(self) -> dict:
-        return dataclasses.asdict(self)
+        """The settings a run records: what its proofs were asked, not where they ran (:data:`COMPUTE_FIELDS` are
+        left out)."""
+        return {k: v for k, v in dataclasses.asdict(self).items() if k not in COMPUTE_FIELDS}
 
     @classmethod
     def from_dict(cls, data: dict) -> ProofConfig:
         return from_fields(cls, data, "proof settings")
+
+
+COMPUTE_FIELDS = ("workers", "backend", "address", "device", "checkpoint_dir", "checkpoint_every", "progress")
+"""The fields of :class:`ProofConfig` that say where its proofs run (:class:`Compute`), not what they prove."""
 
 
 def legacy_proof(data: dict) -> ProofConfig | None:

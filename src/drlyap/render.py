@@ -112,8 +112,14 @@ def proof_round_line(entry: dict) -> str:
 def condition_lines(proof: ConditionProof, title: str) -> list[str]:
     """What ``drlyap verify`` prints for one condition's proof."""
     where = "X_delta" if proof.level is None else f"X_delta (condition or V > {proof.level:g})"
-    lines = [f"{title}: {proof.status.upper()}; verified {proved_share(proof)} of {where} "
-             f"({proof.boxes_processed} boxes, {proof.time_s:.2f} s, {proof.stopped})"]
+    if proof.source == "certificate":
+        how = (f"its certificate file ({proof.boxes_processed} boxes) re-checked by the checker in {proof.time_s:.2f} s, "
+               "not proved again (--reprove proves it anew)")
+    else:
+        how = f"{proof.boxes_processed} boxes, {proof.time_s:.2f} s, {proof.stopped}"
+        if proof.resumed_boxes:
+            how += f"; resumed from a checkpoint after {proof.resumed_boxes} boxes"
+    lines = [f"{title}: {proof.status.upper()}; verified {proved_share(proof)} of {where} ({how})"]
     if proof.level is not None:
         low = proof.boundary_min_lower
         inside = low is not None and low > proof.level

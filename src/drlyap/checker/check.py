@@ -39,6 +39,8 @@ from torch import Tensor
 from drlyap.checker.affine import Af
 from drlyap.checker.arith import EPS, F64, Iv
 from drlyap.checker.model import Pair, Residual, centre_lower, form_upper, upper_bounds, value_lower
+from drlyap.config import Compute
+from drlyap.parallel import pool_for
 from drlyap.render import claim_sentence
 
 INTERNAL, PROVED, INSIDE_BALL, ABOVE_LEVEL = 0, 1, 2, 3
@@ -237,6 +239,42 @@ def prove_boxes(residual: Residual, lo: Tensor, hi: Tensor, scale: Tensor, refin
     return ok, centre_low, refined, pieces
 
 
+class LeafJob:
+    """:func:`prove_boxes` on a chunk of leaves, as a job for worker processes (:mod:`drlyap.parallel`): called on
+    ``lo, hi (B, n)`` and ``above (B,)`` it returns ``ok`` and ``centre_low`` ``(B,)`` and the counts ``refined`` and
+    ``pieces`` ``(1,)``."""
+
+    def __init__(self, residual: Residual, scale: Tensor, refine: int, level: float | None, cheap_first: bool) -> None:
+        self.residual, self.scale, self.refine, self.level, self.cheap_first = residual, scale, refine, level, cheap_first
+
+    def __call__(self, lo: Tensor, hi: Tensor, above: Tensor) -> dict:
+        ok, low, refined, pieces = prove_boxes(self.residual, lo, hi, self.scale, self.refine, self.level,
+                                               above=above, cheap_first=self.cheap_first)
+        return {"ok": ok, "centre_low": low, "refined": torch.tensor([refined]), "pieces": torch.tensor([pieces])}
+
+
+def prove_leaves(job: LeafJob, lo: Tensor, hi: Tensor, above: Tensor, compute: Compute = Compute(),
+                 chunk: int = 8192) -> tuple[Tensor, Tensor, int, int]:
+    """:func:`prove_boxes` of ``job`` on every leaf, here or (``compute`` with workers) on worker processes, a few
+    chunks of ``chunk`` leaves per worker in flight at a time; the same four results."""
+    pool = pool_for(compute)
+    if pool is None:
+        out = job(lo, hi, above)
+    else:
+        size = chunk * pool.workers
+        starts = list(range(0, lo.shape[0], size))
+        parts, flight = [], []
+        for i in starts:
+            flight.append(pool.submit(job, lo[i:i + size], hi[i:i + size], above[i:i + size]))
+            if len(flight) > 1:
+                parts.append(flight.pop(0).result())
+        parts += [p.result() for p in flight]
+        if not parts:
+            return torch.zeros(0, dtype=torch.bool), torch.zeros(0, dtype=F64), 0, 0
+        out = {k: torch.cat([p[k] for p in parts]) for k in parts[0]}
+    return out["ok"], out["centre_low"], int(out["refined"].sum()), int(out["pieces"].sum())
+
+
 def faces_above(pair: Pair, lo: Tensor, hi: Tensor, level: float, max_boxes: int = 200_000,
                 batch: int = 4096) -> tuple[bool, float, int]:
     """Whether ``V > level`` on every face of the box ``[lo, hi]`` (``(n,)``), by bisecting face boxes (4 cells per free
@@ -272,9 +310,11 @@ def faces_above(pair: Pair, lo: Tensor, hi: Tensor, level: float, max_boxes: int
 
 
 def check_certificate(run_dir: str | Path, name: str, header: dict, arrays: dict[str, np.ndarray], system,
-                      weights: dict, weights_sha256: str, system_sha256: str, refine: int = 3) -> CheckResult:
+                      weights: dict, weights_sha256: str, system_sha256: str, refine: int = 3,
+                      compute: Compute = Compute()) -> CheckResult:
     """Re-check one certificate of ``run_dir`` against the run's own weights (``weights``: the two state dicts read
-    from ``weights.pt``, whose file has ``weights_sha256``) and system (``system_sha256`` its description's)."""
+    from ``weights.pt``, whose file has ``weights_sha256``) and system (``system_sha256`` its description's); the
+    leaves are bounded where ``compute`` says (here, or by worker processes: the same verdict)."""
     start = time.perf_counter()
     claim = header.get("claim") or {}
     out = CheckResult(name=name, ok=False, claim=claim_sentence(claim))
@@ -313,9 +353,9 @@ def check_certificate(run_dir: str | Path, name: str, header: dict, arrays: dict
         out.failures.append(f"{int((~inside).sum())} boxes said to lie in the open ball ||z|| < {delta:g} do not")
     proved = ((verdict == PROVED) | (verdict == ABOVE_LEVEL)).nonzero().squeeze(-1)
     cheap_first = header["partition"].get("enclosure") in ("interval", "mean-value")  # an order, as for ``above``
-    ok, centre_low, out.refined, out.pieces = prove_boxes(residual, blo[proved], bhi[proved], hi - lo, refine, level,
-                                                          above=verdict[proved] == ABOVE_LEVEL,
-                                                          cheap_first=cheap_first)
+    job = LeafJob(residual, hi - lo, refine, level, cheap_first)
+    ok, centre_low, out.refined, out.pieces = prove_leaves(job, blo[proved], bhi[proved], verdict[proved] == ABOVE_LEVEL,
+                                                           compute)
     out.proved = int(ok.sum())
     if not bool(ok.all()):
         first = proved[~ok][0]
@@ -348,10 +388,10 @@ def _fmt(v: Tensor) -> str:
 
 
 def check_run(run_dir: str | Path, system=None, trust: bool = False, names: list[str] | None = None,
-              refine: int = 3) -> list[CheckResult]:
+              refine: int = 3, compute: Compute = Compute()) -> list[CheckResult]:
     """Re-check the certificates of a run directory (``names``: which; default every one it holds). ``system`` and
-    ``trust``: as for :func:`drlyap.runs.load_run` (a system from a file runs only when named or trusted). A run
-    without certificates is a ValueError that says so."""
+    ``trust``: as for :func:`drlyap.runs.load_run` (a system from a file runs only when named or trusted);
+    ``compute``: where the leaves are bounded. A run without certificates is a ValueError that says so."""
     from drlyap.runs.certificates import FOLDER, NAMES, read_certificate, system_digest
     from drlyap.runs.directory import read_run_json, run_system
     from drlyap.runs.validate import RunDirError, load_weights
@@ -374,7 +414,7 @@ def check_run(run_dir: str | Path, system=None, trust: bool = False, names: list
     out = []
     for name in names:
         header, arrays = read_certificate(run_dir, name)
-        result = check_certificate(run_dir, name, header, arrays, system, weights, digest, system_sha, refine)
+        result = check_certificate(run_dir, name, header, arrays, system, weights, digest, system_sha, refine, compute)
         result.failures += claim_mismatch(name, header, config, metrics)
         result.ok = not result.failures
         out.append(result)

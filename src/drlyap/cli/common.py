@@ -70,3 +70,36 @@ def run_system_of(spec: str | None):
     from drlyap.systems import resolve_system
 
     return resolve_system(spec)
+
+
+def compute_options(with_device: bool = True):
+    """``--workers``, ``--backend``, ``--address`` (and ``--device``): where a command's proofs bound their boxes
+    (:class:`~drlyap.config.Compute`; how fast, never what is proved)."""
+
+    def decorate(command):
+        if with_device:
+            command = click.option("--device", default="cpu", show_default=True,
+                                   help="Where the proofs bound their boxes: cpu, or cuda (float64 on the GPU, "
+                                        "with one worker).")(command)
+        command = click.option("--address", default=None,
+                               help="The Ray cluster of --backend ray (ray://host:10001 or host:6379) [RAY_ADDRESS, "
+                                    "else a local Ray with --workers CPUs].")(command)
+        command = click.option("--backend", type=click.Choice(["local", "ray"]), default="local", show_default=True,
+                               help="Where the proof workers run: processes on this machine, or actors of a Ray "
+                                    "cluster.")(command)
+        return click.option("--workers", type=click.IntRange(min=1), default=1, show_default=True,
+                            help="Processes that bound each proof's boxes, one torch thread each (the verdict and the "
+                                 "certificate are the same for any number).")(command)
+
+    return decorate
+
+
+def compute_settings(workers: int, backend: str, address: str | None, device: str = "cpu") -> dict:
+    """The :class:`~drlyap.config.ProofConfig` fields of ``--workers``, ``--backend``, ``--address``, ``--device``
+    (checked: a usage error names what is wrong), with progress on stderr."""
+    from drlyap.config import compute_problems
+
+    problems = compute_problems(workers, backend, address, device)
+    if problems:
+        raise click.UsageError("; ".join(problems))
+    return {"workers": workers, "backend": backend, "address": address, "device": device, "progress": True}

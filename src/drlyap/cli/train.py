@@ -3,11 +3,12 @@
 from __future__ import annotations
 
 import json
+import shutil
 from pathlib import Path
 
 import click
 
-from drlyap.cli.common import default, fail, floats
+from drlyap.cli.common import compute_options, compute_settings, default, fail, floats
 from drlyap.config import ProofConfig, TrainConfig
 
 
@@ -67,19 +68,23 @@ def systems(as_json: bool) -> None:
 @click.option("--local-rate", type=float, default=None,
               help="Ask V to decay at this rate near x* on every training sample's linearisation (a loss term; the "
                    "acceptance check then asks V to decrease there) [0: not asked].")
+@compute_options(with_device=False)
 @click.option("--json", "as_json", is_flag=True, help="Print one JSON object (run_dir, system, metrics) on stdout.")
 def train(system: str, method: str, loss: str, radius: float | None, eps: float | None, gamma: float | None,
           exp_rate: float | None, xi_samples: str | None, iters: int, seed: int, device: str, warm_start: Path | None,
           out: Path, quiet: bool, verify: bool, verify_rounds: int, verify_boxes: int | None, verify_time: float | None,
-          verify_budget: float | None, local_rate: float | None, as_json: bool) -> None:
+          verify_budget: float | None, local_rate: float | None, workers: int, backend: str, address: str | None,
+          as_json: bool) -> None:
     """Train a controller and Lyapunov certificate for SYSTEM, prove the trained condition, save a run directory.
 
     SYSTEM is a registered name, package.module:factory or path/to/file.py:factory (see `drlyap systems`).
     The last line says whether the condition is VERIFIED (proved at every state of the box minus the
-    delta-ball), VIOLATED (a counterexample) or UNKNOWN (budget ran out).
+    delta-ball), VIOLATED (a counterexample) or UNKNOWN (budget ran out). A long proof keeps its progress beside
+    --out (a hidden folder .NAME.proofs): the same command, run again after an interruption, trains the same pair and
+    resumes the proof.
     """
     from drlyap.render import certificate_line, proof_round_line
-    from drlyap.runs import check_writable, load_run, save_run
+    from drlyap.runs import check_writable, load_run, proof_checkpoints, save_run
     from drlyap.systems import resolve_system, system_source
     from drlyap.training import train as train_pair
     from drlyap.verification import Certificate
@@ -95,9 +100,11 @@ def train(system: str, method: str, loss: str, radius: float | None, eps: float 
                           decay_rate=gamma, exp_rate=exp_rate, xi_samples=samples, iters=iters, seed=seed,
                           device=device, local_rate=local_rate).resolved(sys_)  # a bad config is refused here
         proof = None
+        compute = compute_settings(workers, backend, address, device)
         if verify:
             proof = ProofConfig(rounds=verify_rounds, max_boxes=verify_boxes, round_time=verify_time,
-                                total_time=verify_budget).resolved(sys_)
+                                total_time=verify_budget, **compute,
+                                checkpoint_dir=str(proof_checkpoints(out))).resolved(sys_)
         check_writable(out)
         init = None
         if warm_start is not None:
@@ -106,6 +113,7 @@ def train(system: str, method: str, loss: str, radius: float | None, eps: float 
         result = train_pair(cfg, sys_, proof, progress=not quiet, init=init,
                             log=lambda entry: click.echo(proof_round_line(entry), err=True), warn=False)
         save_run(out, result, source=system_source(system, sys_))
+        shutil.rmtree(proof_checkpoints(out), ignore_errors=True)
     except ValueError as err:
         fail(err)
     m = result.metrics

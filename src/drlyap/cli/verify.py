@@ -8,7 +8,15 @@ from pathlib import Path
 
 import click
 
-from drlyap.cli.common import default, fail, floats, run_source_options, run_system_of
+from drlyap.cli.common import (
+    compute_options,
+    compute_settings,
+    default,
+    fail,
+    floats,
+    run_source_options,
+    run_system_of,
+)
 from drlyap.config import ENCLOSURES, ProofConfig
 
 
@@ -37,10 +45,15 @@ from drlyap.config import ENCLOSURES, ProofConfig
               help="How boxes are bounded: the interval mean-value form, or affine forms with an exact quadratic "
                    "part (second-order Taylor models: far tighter from 4 states on, several times the cost per box) "
                    "[affine from 4 states on, else mean-value]; the region-of-attraction search uses the same.")
+@click.option("--reprove", is_flag=True,
+              help="Prove every condition anew, even one whose certificate file states the same claim and is confirmed "
+                   "by the checker (by default such a certificate is re-checked instead of proved again).")
+@compute_options()
 @click.option("--json", "as_json", is_flag=True, help="Print one JSON object.")
 @run_source_options
 def verify(run_dir: Path, delta: float | None, xi: str | None, time_limit: float | None, roa: bool,
-           roa_time: float | None, uniform: bool, max_radius: bool, radius_tol: float, enclosure: str | None, as_json: bool,
+           roa_time: float | None, uniform: bool, max_radius: bool, radius_tol: float, enclosure: str | None,
+           reprove: bool, workers: int, backend: str, address: str | None, device: str, as_json: bool,
            system_spec: str | None, trust_run: bool) -> None:
     """Prove the decrease condition of RUN_DIR on the whole state box minus the delta-ball, or find a counterexample.
 
@@ -49,14 +62,26 @@ def verify(run_dir: Path, delta: float | None, xi: str | None, time_limit: float
 
     Sound bounds (interval mean-value form, or affine forms with --enclosure affine) with branch and bound,
     in float64 with outward rounding. Every proof that ends verified is written as a certificate file into
-    RUN_DIR/certificates/ (re-checked by `drlyap check`). A pair brought with `drlyap import` has no trained
-    condition: its decrease on the true model at --xi (the system's test shift by default) is proved.
+    RUN_DIR/certificates/ (re-checked by `drlyap check`); a condition whose certificate already states the same
+    claim is re-checked by the checker instead of proved again (--reprove: prove it anyway). A long proof keeps its
+    progress in RUN_DIR/checkpoints/: the same command, run again after an interruption, resumes it. A pair brought
+    with `drlyap import` has no trained condition: its decrease on the true model at --xi (the system's test shift by
+    default) is proved.
     """
     from drlyap.io import jsonable
     from drlyap.render import verification_lines
     from drlyap.runs import load_run, read_run_kind
-    from drlyap.workflows.verify import record_certificates, record_region, run_proof, run_robustness, verify_run
+    from drlyap.workflows.verify import (
+        clear_checkpoints,
+        record_certificates,
+        record_region,
+        run_checkpoints,
+        run_proof,
+        run_robustness,
+        verify_run,
+    )
 
+    compute = compute_settings(workers, backend, address, device)
     try:
         if time_limit is not None and not time_limit > 0:
             raise ValueError(f"--time-limit must be > 0, got {time_limit}")
@@ -65,15 +90,17 @@ def verify(run_dir: Path, delta: float | None, xi: str | None, time_limit: float
         if not radius_tol > 0:
             raise ValueError(f"--radius-tol must be > 0, got {radius_tol}")
         if read_run_kind(run_dir).get("kind") == "imported":
-            _verify_imported(run_dir, delta, xi, time_limit, roa, roa_time, enclosure, as_json, system_spec, trust_run)
+            _verify_imported(run_dir, delta, xi, time_limit, roa, roa_time, enclosure, as_json, system_spec, trust_run,
+                             compute)
             return
         run = load_run(run_dir, run_system_of(system_spec), trust_run)
-        settings = dataclasses.replace(run.proof or ProofConfig(), roa_time=roa_time, enclosure=enclosure)
+        settings = dataclasses.replace(run.proof or ProofConfig(), roa_time=roa_time, enclosure=enclosure, **compute,
+                                       checkpoint_dir=run_checkpoints(run))
         if time_limit is not None:
             settings = dataclasses.replace(settings, time_limit=time_limit)
         settings = run_proof(run, settings)
         shift = None if xi is None else run.system.check_xi(floats(xi, "--xi"))
-        result = verify_run(run, settings, delta=delta, xi=shift, roa=roa, uniform=uniform)
+        result = verify_run(run, settings, delta=delta, xi=shift, roa=roa, uniform=uniform, reprove=reprove)
         stored = None
         if roa:
             try:
@@ -89,6 +116,7 @@ def verify(run_dir: Path, delta: float | None, xi: str | None, time_limit: float
         if max_radius:
             result.robustness = run_robustness(run, delta=delta, tol=radius_tol, budget=settings.budget(),
                                                total_time=8 * settings.time_limit)
+        clear_checkpoints(run)
     except ValueError as err:
         fail(err)
     if as_json:
@@ -104,7 +132,7 @@ def verify(run_dir: Path, delta: float | None, xi: str | None, time_limit: float
 
 def _verify_imported(run_dir: Path, delta: float | None, xi: str | None, time_limit: float | None, roa: bool,
                      roa_time: float | None, enclosure: str | None, as_json: bool, system_spec: str | None,
-                     trust_run: bool) -> None:
+                     trust_run: bool, compute: dict) -> None:
     """``drlyap verify`` on an imported pair: decrease on the true model at --xi (the system's test shift by default)
     and with --roa its region of attraction; no certificate file (the checker reads drlyap's own networks only)."""
     from drlyap.io import jsonable
@@ -117,7 +145,7 @@ def _verify_imported(run_dir: Path, delta: float | None, xi: str | None, time_li
     if xi is None and system.test_xi is None:
         raise ValueError(f"an imported pair has no trained condition: give --xi ({system.k} values)")
     shift = system.check_xi(floats(xi, "--xi") if xi is not None else list(system.test_xi))
-    settings = dataclasses.replace(ProofConfig(), roa_time=roa_time, enclosure=enclosure)
+    settings = dataclasses.replace(ProofConfig(), roa_time=roa_time, enclosure=enclosure, **compute)
     if time_limit is not None:
         settings = dataclasses.replace(settings, time_limit=time_limit)
     result = verify_imported(run.info["pair"], str(run_dir), settings, xi=shift, delta=delta, roa=roa)

@@ -8,7 +8,15 @@ from pathlib import Path
 
 import click
 
-from drlyap.cli.common import default, fail, floats, run_source_options, run_system_of
+from drlyap.cli.common import (
+    compute_options,
+    compute_settings,
+    default,
+    fail,
+    floats,
+    run_source_options,
+    run_system_of,
+)
 from drlyap.config import ProofConfig, TrainConfig
 
 
@@ -39,18 +47,22 @@ def seed_values(text: str) -> list[int]:
                    "also the cap of each proof round in training [the system's cap: 300 s; 900 s, 3600 s; the "
                    "rounds are budgeted by boxes].")
 @click.option("--horizon", type=float, default=None, help="Simulated time of the evaluations [system default].")
+@compute_options(with_device=False)
 @click.option("--json", "as_json", is_flag=True, help="Print one JSON object with both methods' results.")
 def reproduce(system: str, seeds: str, out: Path | None, iters: int | None, device: str, verify: bool,
-              verify_rounds: int, verify_time: float | None, horizon: float | None, as_json: bool) -> None:
+              verify_rounds: int, verify_time: float | None, horizon: float | None, workers: int, backend: str,
+              address: str | None, as_json: bool) -> None:
     """Reproduce the paper's experiment: baseline vs DR at SYSTEM's test shift, every pair proved.
 
     SYSTEM is a registered name (`drlyap systems`), package.module:factory or path/to/file.py:factory;
     it must declare a test shift (test_xi) and a training distribution (xi_sampler)."""
+    from drlyap.config import Compute
     from drlyap.systems import resolve_system, system_source
     from drlyap.workflows.reproduce import format_table
     from drlyap.workflows.reproduce import reproduce as run_reproduce
 
     seed_list = seed_values(seeds)
+    compute = Compute(**compute_settings(workers, backend, address, device))
     log = (lambda s: click.echo(s, err=True)) if as_json else click.echo
     try:
         sys_ = resolve_system(system)
@@ -66,7 +78,7 @@ def reproduce(system: str, seeds: str, out: Path | None, iters: int | None, devi
                 raise ValueError(f"{name} must be > 0, got {value}")
         report = run_reproduce(sys_, seed_list, out, iters=iters, progress=True, device=device, log=log, verify=verify,
                                verify_rounds=verify_rounds, verify_time=verify_time, source=system_source(system, sys_),
-                               horizon=horizon)
+                               horizon=horizon, compute=compute)
     except ValueError as err:
         fail(err)
     if as_json:
@@ -87,10 +99,12 @@ def reproduce(system: str, seeds: str, out: Path | None, iters: int | None, devi
               help="Write compare.json, compare.md and figures (certificate and input over time) here.")
 @click.option("--certify-time", type=float, default=10.0, show_default=True,
               help="Seconds of sound verification per check of a run at --xi (0 skips it).")
+@compute_options()
 @click.option("--json", "as_json", is_flag=True, help="Print one JSON object.")
 @run_source_options
 def compare(run_dirs: tuple[Path, ...], xi: str, n_init: int, seed: int, horizon: float | None, out: Path | None,
-            certify_time: float, as_json: bool, system_spec: str | None, trust_run: bool) -> None:
+            certify_time: float, workers: int, backend: str, address: str | None, device: str, as_json: bool,
+            system_spec: str | None, trust_run: bool) -> None:
     """Compare runs of any kind (lyapunov, lqr, rl, imported) at parameter shift --xi on the true model.
 
     Per run: success rate; samples used in training (Lyapunov: model evaluations at training states,
@@ -103,8 +117,10 @@ def compare(run_dirs: tuple[Path, ...], xi: str, n_init: int, seed: int, horizon
     controller without V, with the z'Pz of its linearisation, where x* is its equilibrium) and the certified region
     of attraction (a sublevel set of the certificate from which every trajectory converges to x*).
     """
+    from drlyap.config import Compute
     from drlyap.workflows.compare import compare_runs, format_comparison
 
+    compute = Compute(**compute_settings(workers, backend, address, device))
     try:
         if horizon is not None and horizon <= 0:
             raise ValueError(f"--horizon must be > 0, got {horizon}")
@@ -112,7 +128,7 @@ def compare(run_dirs: tuple[Path, ...], xi: str, n_init: int, seed: int, horizon
             raise ValueError(f"--certify-time must be >= 0, got {certify_time}")
         report = compare_runs(list(run_dirs), floats(xi, "--xi"), n_init, seed, out, horizon,
                               certify_time if certify_time > 0 else None, progress=True,
-                              system=run_system_of(system_spec), trust=trust_run)
+                              system=run_system_of(system_spec), trust=trust_run, compute=compute)
     except ValueError as err:
         fail(err)
     if as_json:

@@ -10,8 +10,8 @@ from drlyap.runs.directory import FORMAT_VERSION, Run, RunDirError, atomic_dir, 
 from drlyap.runs.imported import import_run, load_imported_run, load_onnx_pair
 from drlyap.runs.lqr import load_lqr_run, save_lqr_run, train_lqr
 from drlyap.runs.policies import PolicyRun, load_lyapunov_policy_run
-from drlyap.runs.publish import DirectoryLock, check_writable
+from drlyap.runs.publish import DirectoryLock, check_writable, proof_checkpoints
 
 __all__ = ["FORMAT_VERSION", "DirectoryLock", "PolicyRun", "Run", "RunDirError", "atomic_dir", "check_writable",
            "ensure_new", "import_run", "load_imported_run", "load_lqr_run", "load_lyapunov_policy_run", "load_onnx_pair",
-           "load_run", "read_run_kind", "save_lqr_run", "save_run", "train_lqr"]
+           "load_run", "proof_checkpoints", "read_run_kind", "save_lqr_run", "save_run", "train_lqr"]

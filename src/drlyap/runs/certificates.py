@@ -57,13 +57,19 @@ def condition_claim(condition: Condition) -> dict:
                                             "xi": xi.tolist() if xi is not None else None})
 
 
+def certificate_claim(condition: Condition, region: Region, level: float | None) -> dict:
+    """What a certificate claims, as its header states it (without the sentence): the condition and the region
+    (the state box in local coordinates, delta, the level of a sublevel set or None)."""
+    return jsonable({"condition": condition_claim(condition),
+                     "region": {"box_lo": region.lo.tolist(), "box_hi": region.hi.tolist(), "delta": region.delta,
+                                "level": level, "coordinates": "local (z = x - x*)"}})
+
+
 def certificate_header(proof: ConditionProof, condition: Condition, region: Region, system: UncertainSystem,
                        weights_sha256: str, alpha_hat: float, arrays_file: str, arrays_sha256: str) -> dict:
     """The JSON header of a certificate (see the module docstring)."""
     part = proof.partition
-    claim = jsonable({"condition": condition_claim(condition),
-                      "region": {"box_lo": region.lo.tolist(), "box_hi": region.hi.tolist(), "delta": region.delta,
-                                 "level": proof.level, "coordinates": "local (z = x - x*)"}})
+    claim = certificate_claim(condition, region, proof.level)
     return jsonable({
         "format": FORMAT, "version": VERSION,
         "claim": {"statement": claim_sentence(claim), **claim},

@@ -40,6 +40,13 @@ def ensure_new(out: str | os.PathLike) -> None:
         raise RunDirError(f"{out} already exists; choose another --out or remove it")
 
 
+def proof_checkpoints(out: str | os.PathLike) -> Path:
+    """Where the proofs of a run that will be published at ``out`` keep their checkpoints while it is made: a hidden
+    sibling ``.NAME.proofs`` (the run directory itself appears only at the end), found again by the same command."""
+    out = Path(out)
+    return out.parent / f".{out.name}.proofs"
+
+
 def check_writable(out: str | os.PathLike, need: int | None = None) -> None:
     """Refuse ``out`` before any work when it exists, when a process owns its parent (a running sweep), or when
     the nearest existing folder above it cannot be written to (a read-only file system) or has less than ``need``

@@ -30,15 +30,11 @@ from drlyap.closed_loop import ClosedLoop
 from drlyap.conditions import Condition, DRUniform
 from drlyap.config import Budget
 from drlyap.enclosures import EPS, F64, round_down, round_up
+from drlyap.progress import progress as show_progress
 from drlyap.regions import Region, box_grid, default_grid, inside_ball, split
-from drlyap.verification.bounds import (
-    box_bounds,
-    combine_lower,
-    combine_upper,
-    condition_and_value_objective,
-    condition_objective,
-    sublevel_upper,
-)
+from drlyap.verification.bounding import ConditionJob, run_batches
+from drlyap.verification.bounds import box_bounds, condition_objective
+from drlyap.verification.checkpoints import load_checkpoint, proof_key, save_checkpoint
 from drlyap.verification.partition import PartitionRecorder
 from drlyap.verification.results import ConditionProof, UniformMargin
 
@@ -47,7 +43,7 @@ def verify_condition(loop: ClosedLoop, condition: Condition, region: Region, bud
                      level: float | None = None, grid: Sequence[int] | None = None, keep_boxes: int = 50,
                      stop_at_counterexample: bool = False, violation_width: float = 1e-2) -> ConditionProof:
     """Prove ``residual(z) <= 0`` for the closed loop on the region X_delta by branch and bound, or find where it
-    fails, within ``budget`` (boxes, seconds, minimum box width, enclosure).
+    fails, within ``budget`` (boxes, seconds, minimum box width, enclosure, and where to bound them).
 
     ``level``: prove it only on the sublevel set ``{V <= level}`` of X_delta (a box on which V provably exceeds
     the level needs nothing more; a counterexample must have ``V <= level``); the verified fraction is then
@@ -60,135 +56,234 @@ def verify_condition(loop: ClosedLoop, condition: Condition, region: Region, bud
     ``stop_at_counterexample``: return at the first confirmed one (the fraction then counts every box not
     yet verified as unverified). ``budget.enclosure``: how boxes are bounded
     (:func:`~drlyap.verification.bounds.box_bounds`: ``mean-value`` or ``affine``; None: by the dimension).
+    ``budget.compute``: where (:class:`~drlyap.config.Compute`): batches go to worker processes in the order a single
+    process takes them, so the result, and the partition a verified proof keeps, are the same for any number of
+    workers; with a ``checkpoint_dir`` the search is saved there every ``checkpoint_every`` seconds and when it ends,
+    and the same proof (:func:`~drlyap.verification.checkpoints.proof_key`) started again continues from it.
     """
     if not condition.per_state:
         raise ValueError("use uniform_margin for the uniform condition")
-    system = loop.system
-    enclosure = budget.enclosure_for(system.n)
-    time_limit, max_boxes, min_width, batch = budget.seconds, budget.boxes, budget.min_width, budget.batch
-    delta = region.delta
-    start = time.perf_counter()
-    objective = (condition_objective if level is None else condition_and_value_objective)(loop, condition)
-    scale = region.scale
-    per_axis = list(grid or default_grid(system.n))
-    lo, hi = box_grid(region.lo, region.hi, per_axis)
-    tree = PartitionRecorder(per_axis, lo.shape[0], enclosure)
-    keep = region.meets(lo, hi)
-    tree.inside_ball(tree.roots[~keep])
-    lo, hi, ids = lo[keep], hi[keep], tree.roots[keep]
-    volume = region.volume()
-    processed = verified_count = 0
-    unverified_vol = 0.0
-    leaves_lo: list[Tensor] = []
-    leaves_hi: list[Tensor] = []
-    sup_lo, sup_hi = -math.inf, -math.inf
-    cex: tuple[float, Tensor] | None = None
-    n_cex_boxes = 0
-    stopped = "finished"
-    while lo.shape[0]:
-        if time.perf_counter() - start > time_limit:
-            stopped = "time limit"
-            break
-        if processed >= max_boxes:
-            stopped = "box budget"
-            break
-        clo, chi, lo, hi = lo[:batch], hi[:batch], lo[batch:], hi[batch:]
-        cids, ids = ids[:batch], ids[batch:]
-        lb_c, ub_c, at, sens, form = box_bounds(objective, clo, chi, enclosure, sensitivity=True, keep_form=True)
-        processed += clo.shape[0]
+    search = _Search(loop, condition, region, budget, level, list(grid or default_grid(loop.system.n)),
+                     stop_at_counterexample, violation_width)
+    if not (search.finished and (search.stopped == "counterexample" or not search.lo.shape[0])):
+        search.run()  # a finished search that ran out of budget goes on where a larger budget allows
+    return search.result(keep_boxes)
+
+
+class _Search:
+    """The state of one branch and bound of :func:`verify_condition` (queue, tree, counters), which a checkpoint
+    holds."""
+
+    def __init__(self, loop: ClosedLoop, condition: Condition, region: Region, budget: Budget, level: float | None,
+                 per_axis: list[int], stop_at_counterexample: bool, violation_width: float) -> None:
+        self.loop, self.condition, self.region, self.budget, self.level = loop, condition, region, budget, level
+        self.stop_at_cex, self.violation_width = stop_at_counterexample, violation_width
+        self.n = loop.system.n
+        self.enclosure = budget.enclosure_for(self.n)
+        self.compute = budget.compute
+        self.volume = region.volume()
+        self.tree = PartitionRecorder(per_axis, int(torch.tensor(per_axis).prod()), self.enclosure)
+        self.processed = self.verified_count = self.n_cex_boxes = self.resumed = 0
+        self.unverified_vol, self.elapsed = 0.0, 0.0
+        self.leaves_lo: list[Tensor] = []
+        self.leaves_hi: list[Tensor] = []
+        self.sup_lo, self.sup_hi = -math.inf, -math.inf
+        self.cex: tuple[float, Tensor] | None = None
+        self.stopped, self.finished = "finished", False
+        self.key = None
+        if self.compute.checkpoint_dir is not None:
+            self.key = proof_key(loop, condition, region, level=level,
+                                 grid=per_axis, enclosure=self.enclosure, batch=int(budget.batch),
+                                 min_width=float(budget.min_width), violation_width=float(violation_width),
+                                 stop_at_counterexample=bool(stop_at_counterexample))
+        saved = load_checkpoint(self.compute.checkpoint_dir, self.key) if self.key else None
+        if saved is not None:
+            self._restore(*saved)
+        else:
+            lo, hi = box_grid(region.lo, region.hi, per_axis)
+            keep = region.meets(lo, hi)
+            self.tree.inside_ball(self.tree.roots[~keep])
+            self.lo, self.hi, self.ids = lo[keep], hi[keep], self.tree.roots[keep]
+
+    # ------------------------------------------------------------------ checkpoints
+    def _arrays(self) -> dict[str, Tensor]:
+        leaves_lo = torch.cat(self.leaves_lo) if self.leaves_lo else torch.empty(0, self.n, dtype=F64)
+        leaves_hi = torch.cat(self.leaves_hi) if self.leaves_hi else torch.empty(0, self.n, dtype=F64)
+        cex = self.cex[1] if self.cex is not None else torch.empty(0, dtype=F64)
+        return {"queue_lo": self.lo, "queue_hi": self.hi, "queue_ids": self.ids, "leaves_lo": leaves_lo,
+                "leaves_hi": leaves_hi, "cex": cex, **self.tree.state()}
+
+    def _meta(self) -> dict:
+        return {"processed": self.processed, "verified_count": self.verified_count, "n_cex_boxes": self.n_cex_boxes,
+                "unverified_vol": self.unverified_vol, "elapsed": self.elapsed, "sup": [self.sup_lo, self.sup_hi],
+                "cex_value": None if self.cex is None else self.cex[0], "stopped": self.stopped,
+                "finished": self.finished}
+
+    def _restore(self, arrays: dict[str, Tensor], meta: dict) -> None:
+        self.lo, self.hi, self.ids = arrays["queue_lo"], arrays["queue_hi"], arrays["queue_ids"].to(torch.int64)
+        self.tree.restore(arrays)
+        self.leaves_lo = [arrays["leaves_lo"]] if arrays["leaves_lo"].shape[0] else []
+        self.leaves_hi = [arrays["leaves_hi"]] if arrays["leaves_hi"].shape[0] else []
+        self.processed, self.verified_count = int(meta["processed"]), int(meta["verified_count"])
+        self.n_cex_boxes, self.unverified_vol = int(meta["n_cex_boxes"]), float(meta["unverified_vol"])
+        self.elapsed, (self.sup_lo, self.sup_hi) = float(meta["elapsed"]), (float(v) for v in meta["sup"])
+        self.cex = None if meta["cex_value"] is None else (float(meta["cex_value"]), arrays["cex"])
+        self.stopped, self.finished = str(meta["stopped"]), bool(meta["finished"])
+        self.resumed = self.processed
+
+    def _save(self) -> None:
+        if self.key is not None:
+            save_checkpoint(self.compute.checkpoint_dir, self.key, self._arrays(), self._meta())
+
+    # ------------------------------------------------------------------ the search
+    def run(self) -> None:
+        budget, region, condition, level = self.budget, self.region, self.condition, self.level
+        scale, batch = region.scale, int(budget.batch)
+        start, saved_at = time.perf_counter(), time.perf_counter()
+        before = self.elapsed
+        taken = self.processed
+        bar = show_progress(int(budget.boxes), "proof: boxes", self.compute.progress)
+        if self.resumed:
+            bar.update(min(self.resumed, int(budget.boxes)))
+
+        def take():
+            nonlocal taken
+            if not self.lo.shape[0]:
+                self.stopped = "finished"
+                return None
+            if before + time.perf_counter() - start > budget.seconds:
+                self.stopped = "time limit"
+                return None
+            if taken >= budget.boxes:
+                self.stopped = "box budget"
+                return None
+            clo, chi, cids = self.lo[:batch], self.hi[:batch], self.ids[:batch]
+            self.lo, self.hi, self.ids = self.lo[batch:], self.hi[batch:], self.ids[batch:]
+            taken += clo.shape[0]
+            return clo, chi, cids
+
+        job = ConditionJob(self.loop, condition, level, self.enclosure)
+        try:
+            for clo, chi, cids, bounds in run_batches(job, self.compute, take, lambda: self.lo.shape[0] >= batch):
+                self.processed += clo.shape[0]
+                bar.update(clo.shape[0])
+                if self._sort(clo, chi, cids, bounds, scale):
+                    break
+                if self.key is not None and time.perf_counter() - saved_at >= self.compute.checkpoint_every:
+                    self.elapsed = before + time.perf_counter() - start
+                    self._save()
+                    saved_at = time.perf_counter()
+                bar.set_postfix(queued=int(self.lo.shape[0]))
+        finally:
+            bar.close()
+        self.elapsed = before + time.perf_counter() - start
+        if self.lo.shape[0] and self.stopped == "finished":  # a search that stopped on its own has none queued
+            self.stopped = "box budget"
+        self.finished = True
+        self._save()
+
+    def _sort(self, clo: Tensor, chi: Tensor, cids: Tensor, bounds: dict, scale: Tensor) -> bool:
+        """Take one batch's bounds: record proved boxes, confirm counterexamples, split the rest. True: stop."""
+        region, condition, level, tree = self.region, self.condition, self.level, self.tree
+        ub, centre_lb, sens = bounds["upper"], bounds["centre_lower"], bounds["sensitivity"]
         centre = (clo + chi) / 2
         in_region = region.in_region(centre)
-        at_lo = at.lo
         outside = torch.zeros(clo.shape[0], dtype=torch.bool)
-        if level is not None:  # the last component is V: boxes above the level are done, centres must lie in the set
-            outside, in_region = lb_c[:, -1] > level, in_region & (at.hi[:, -1] <= level)
-            ub_c, at_lo = ub_c[:, :-1], at_lo[:, :-1]
-        ub = combine_upper(condition, ub_c)
-        if level is not None and form is not None:
-            ub = torch.minimum(ub, sublevel_upper(condition, form, level))
-        centre_lb = combine_lower(condition, at_lo)
+        if level is not None:  # boxes above the level are done, centres must lie in the set
+            outside = bounds["value_lower"] > level
+            in_region = in_region & (bounds["centre_value_upper"] <= level)
         if in_region.any():
-            sup_lo = max(sup_lo, float(centre_lb[in_region].max()))
+            self.sup_lo = max(self.sup_lo, float(centre_lb[in_region].max()))
         ub = torch.where(outside, -torch.inf, ub)
         ok = ub <= 0
         tree.proved(cids[ok & ~outside], ub[ok & ~outside])
-        tree.above_level(cids[ok & outside], lb_c[ok & outside, -1])  # none without a level: outside is all False
-        verified_count += int(ok.sum())
+        if level is not None:
+            tree.above_level(cids[ok & outside], bounds["value_lower"][ok & outside])
+        self.verified_count += int(ok.sum())
         if (ok & ~outside).any():
-            sup_hi = max(sup_hi, float(ub[ok & ~outside].max()))
+            self.sup_hi = max(self.sup_hi, float(ub[ok & ~outside].max()))
         bad = ~ok & in_region & (centre_lb > 0)
         if bad.any():
-            values = loop.exact(condition, centre[bad])
+            values = self.loop.exact(condition, centre[bad])
             confirmed = values > 0
             if confirmed.any():
                 best = int(values.argmax())
-                if cex is None or float(values[best]) > cex[0]:
-                    cex = (float(values[best]), centre[bad][best])
-                n_cex_boxes += int(confirmed.sum())
+                if self.cex is None or float(values[best]) > self.cex[0]:
+                    self.cex = (float(values[best]), centre[bad][best])
+                self.n_cex_boxes += int(confirmed.sum())
                 idx = bad.nonzero().squeeze(-1)[confirmed]
                 bad = torch.zeros_like(bad)
                 bad[idx] = True
             else:
                 bad = torch.zeros_like(bad)
-        if bad.any() and stop_at_counterexample:
-            stopped = "counterexample"
-            unverified_vol += float((chi[~ok] - clo[~ok]).prod(-1).sum())
-            leaves_lo.append(clo[~ok])
-            leaves_hi.append(chi[~ok])
-            sup_hi = math.inf
-            break
+        if bad.any() and self.stop_at_cex:
+            self.stopped = "counterexample"
+            self.unverified_vol += float((chi[~ok] - clo[~ok]).prod(-1).sum())
+            self.leaves_lo.append(clo[~ok])
+            self.leaves_hi.append(chi[~ok])
+            self.sup_hi = math.inf
+            return True
         rel_width = ((chi - clo) / scale).amax(-1)
-        bad = bad & (rel_width < violation_width)  # violating boxes still wide enough are split like the rest
+        bad = bad & (rel_width < self.violation_width)  # violating boxes still wide enough are split like the rest
         if bad.any():
-            unverified_vol += float((chi[bad] - clo[bad]).prod(-1).sum())
-            sup_hi = max(sup_hi, float(ub[bad].max()))
-            leaves_lo.append(clo[bad])
-            leaves_hi.append(chi[bad])
+            self.unverified_vol += float((chi[bad] - clo[bad]).prod(-1).sum())
+            self.sup_hi = max(self.sup_hi, float(ub[bad].max()))
+            self.leaves_lo.append(clo[bad])
+            self.leaves_hi.append(chi[bad])
         rest = ~ok & ~bad
-        small = rest & (rel_width < min_width)
+        small = rest & (rel_width < self.budget.min_width)
         if small.any():
-            unverified_vol += float((chi[small] - clo[small]).prod(-1).sum())
-            sup_hi = max(sup_hi, float(ub[small].max()))
-            leaves_lo.append(clo[small])
-            leaves_hi.append(chi[small])
+            self.unverified_vol += float((chi[small] - clo[small]).prod(-1).sum())
+            self.sup_hi = max(self.sup_hi, float(ub[small].max()))
+            self.leaves_lo.append(clo[small])
+            self.leaves_hi.append(chi[small])
         divide = rest & ~small
         if divide.any():
             nlo, nhi = split(clo[divide], chi[divide], scale, sens[divide])
             children = tree.split(cids[divide], chi[divide], nhi)
             keep = region.meets(nlo, nhi)
             tree.inside_ball(children[~keep])
-            lo, hi, ids = torch.cat([lo, nlo[keep]]), torch.cat([hi, nhi[keep]]), torch.cat([ids, children[keep]])
-    if lo.shape[0]:
-        unverified_vol += float((hi - lo).prod(-1).sum())
-        leaves_lo.append(lo)
-        leaves_hi.append(hi)
-        sup_hi = math.inf
-    left_lo = torch.cat(leaves_lo) if leaves_lo else torch.empty(0, system.n, dtype=F64)
-    left_hi = torch.cat(leaves_hi) if leaves_hi else torch.empty(0, system.n, dtype=F64)
-    if cex is not None:
-        status = "violated"
-    elif left_lo.shape[0] == 0:
-        status = "verified"
-    else:
-        status = "unknown"
-    fraction = max(0.0, min(1.0, 1.0 - unverified_vol / volume)) if volume > 0 else 1.0
-    if status == "verified":
-        fraction = 1.0
-    boxes = [{"lo": system.to_user(a[None])[0].tolist(), "hi": system.to_user(b[None])[0].tolist()}
-             for a, b in zip(left_lo[:keep_boxes], left_hi[:keep_boxes])]
-    result = ConditionProof(
-        condition=condition.label, status=status, verified_fraction=fraction, delta=float(delta),
-        boxes_processed=processed, boxes_verified=verified_count, time_s=time.perf_counter() - start,
-        n_unverified=int(left_lo.shape[0]), unverified_boxes=boxes, n_counterexample_boxes=n_cex_boxes,
-        sup_bounds=[sup_lo, sup_hi], stopped=stopped, level=level)
-    if status == "verified":
-        result.partition = tree.finish()
-    if cex is not None:
-        result.counterexample_value = cex[0]
-        result.counterexample_value_float32 = float(loop.exact(condition, cex[1][None], torch.float32)[0])
-        result.counterexample_local = cex[1].tolist()
-        result.counterexample = system.to_user(cex[1][None])[0].tolist()
-    return result
+            self.lo, self.hi = torch.cat([self.lo, nlo[keep]]), torch.cat([self.hi, nhi[keep]])
+            self.ids = torch.cat([self.ids, children[keep]])
+        return False
+
+    def result(self, keep_boxes: int) -> ConditionProof:
+        system, n = self.loop.system, self.n
+        leaves_lo, leaves_hi = list(self.leaves_lo), list(self.leaves_hi)
+        unverified_vol, sup_hi = self.unverified_vol, self.sup_hi
+        if self.lo.shape[0] and self.stopped != "counterexample":
+            unverified_vol += float((self.hi - self.lo).prod(-1).sum())
+            leaves_lo.append(self.lo)
+            leaves_hi.append(self.hi)
+            sup_hi = math.inf
+        left_lo = torch.cat(leaves_lo) if leaves_lo else torch.empty(0, n, dtype=F64)
+        left_hi = torch.cat(leaves_hi) if leaves_hi else torch.empty(0, n, dtype=F64)
+        if self.cex is not None:
+            status = "violated"
+        elif left_lo.shape[0] == 0:
+            status = "verified"
+        else:
+            status = "unknown"
+        fraction = max(0.0, min(1.0, 1.0 - unverified_vol / self.volume)) if self.volume > 0 else 1.0
+        if status == "verified":
+            fraction = 1.0
+        boxes = [{"lo": system.to_user(a[None])[0].tolist(), "hi": system.to_user(b[None])[0].tolist()}
+                 for a, b in zip(left_lo[:keep_boxes], left_hi[:keep_boxes])]
+        result = ConditionProof(
+            condition=self.condition.label, status=status, verified_fraction=fraction, delta=float(self.region.delta),
+            boxes_processed=self.processed, boxes_verified=self.verified_count, time_s=self.elapsed,
+            n_unverified=int(left_lo.shape[0]), unverified_boxes=boxes, n_counterexample_boxes=self.n_cex_boxes,
+            sup_bounds=[self.sup_lo, sup_hi], stopped=self.stopped, level=self.level,
+            resumed_boxes=self.resumed or None)
+        if status == "verified":
+            result.partition = self.tree.finish()
+        if self.cex is not None:
+            z = self.cex[1]
+            result.counterexample_value = self.cex[0]
+            result.counterexample_value_float32 = float(self.loop.exact(self.condition, z[None], torch.float32)[0])
+            result.counterexample_local = z.tolist()
+            result.counterexample = system.to_user(z[None])[0].tolist()
+        return result
 
 
 # =========================================================================== suprema

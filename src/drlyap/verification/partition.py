@@ -87,6 +87,33 @@ class PartitionRecorder:
         self._side.append(torch.cat([torch.zeros(d, dtype=torch.int8), torch.ones(d, dtype=torch.int8)]))
         return children
 
+    def state(self) -> dict[str, Tensor]:
+        """The tree so far as arrays (for a checkpoint; :meth:`restore` reads them back)."""
+        axis_ids = [a for a, _ in self._axis]
+        leaves = [(ids, torch.full_like(ids, code, dtype=torch.int8),
+                   values.to(torch.float64) if values is not None else torch.full(ids.shape, float("nan"),
+                                                                                  dtype=torch.float64))
+                  for ids, code, values in self._leaf]
+        empty_i, empty_b = torch.zeros(0, dtype=torch.int64), torch.zeros(0, dtype=torch.int8)
+        return {"tree_parent": torch.cat(self._parent), "tree_side": torch.cat(self._side),
+                "tree_axis_ids": torch.cat(axis_ids) if axis_ids else empty_i,
+                "tree_axis": torch.cat([a.to(torch.int8) for _, a in self._axis]) if self._axis else empty_b,
+                "tree_leaf_ids": torch.cat([x[0] for x in leaves]) if leaves else empty_i,
+                "tree_leaf_code": torch.cat([x[1] for x in leaves]) if leaves else empty_b,
+                "tree_leaf_bound": torch.cat([x[2] for x in leaves]) if leaves else torch.zeros(0, dtype=torch.float64)}
+
+    def restore(self, state: dict[str, Tensor]) -> None:
+        """Continue the tree of a checkpoint (:meth:`state`)."""
+        self._parent, self._side = [state["tree_parent"].to(torch.int64)], [state["tree_side"].to(torch.int8)]
+        self.count = int(self._parent[0].shape[0])
+        self._axis = [(state["tree_axis_ids"].to(torch.int64), state["tree_axis"].to(torch.int8))]
+        ids, codes, bound = state["tree_leaf_ids"].to(torch.int64), state["tree_leaf_code"], state["tree_leaf_bound"]
+        self._leaf = []
+        for code in (PROVED, INSIDE_BALL, ABOVE_LEVEL):
+            mine = codes == code
+            if bool(mine.any()):
+                self._leaf.append((ids[mine], code, None if code == INSIDE_BALL else bound[mine]))
+
     def finish(self) -> Partition:
         n = self.count
         axis = torch.full((n,), -1, dtype=torch.int8)

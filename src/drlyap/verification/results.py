@@ -70,13 +70,16 @@ class ConditionProof(Result):
     coordinates, ``counterexample_local`` in local ones, ``counterexample_value`` the float64 residual there,
     ``counterexample_value_float32`` with the networks in float32. ``xi``: the shift of the true model the
     condition is about, when it is one. ``boundary_min_lower`` / ``_upper``: V's minimum on the faces (sublevel
-    proofs). ``falsifier``: the search that settled an unknown proof. ``partition``: the tree of boxes a verified
+    proofs). ``falsifier``: the search that settled an unknown proof. ``resumed_boxes``: boxes an earlier, interrupted
+    run of the same proof had bounded (kept in its checkpoint; ``boxes_processed`` and ``time_s`` count both runs'
+    boxes and this run's time). ``source``: ``certificate`` where the verdict is a certificate file that the checker
+    confirmed instead of a new proof (``boxes_processed`` is then the certificate's). ``partition``: the tree of boxes a verified
     branch and bound proved it on (:class:`~drlyap.verification.partition.Partition`; not part of the JSON, written
     as a certificate file by :mod:`drlyap.runs.certificates`).
     """
 
     OPTIONAL: ClassVar[tuple[str, ...]] = ("boundary_min_lower", "boundary_min_upper", "counterexample_source",
-                                           "falsifier", "xi")
+                                           "falsifier", "xi", "resumed_boxes", "source")
     condition: str
     status: str
     verified_fraction: float
@@ -99,6 +102,8 @@ class ConditionProof(Result):
     counterexample_source: str | None = None
     falsifier: dict | None = None
     xi: list[float] | None = None
+    resumed_boxes: int | None = None
+    source: str | None = None
     partition: Any = field(default=None, repr=False, compare=False, metadata={"json": False})
 
     @property

@@ -21,6 +21,7 @@ from torch import Tensor
 from drlyap import plotting
 from drlyap.closed_loop import ClosedLoop
 from drlyap.conditions import TrueDecrease
+from drlyap.config import Compute, ProofConfig
 from drlyap.io import jsonable
 from drlyap.networks import LinearController, QuadraticLyapunov
 from drlyap.progress import progress as show_progress
@@ -87,7 +88,7 @@ def score_run(run: PolicyRun, x0: Tensor, xi: Tensor, horizon: float | None = No
     return row
 
 
-def certify(run: PolicyRun, xi: Tensor, time_limit: float) -> ProofAttempt:
+def certify(run: PolicyRun, xi: Tensor, time_limit: float, compute: Compute = Compute()) -> ProofAttempt:
     """What a run *proves* at the shift ``xi`` on the true model, by the sound verifier over X_delta:
     the decrease condition and the largest certified sublevel set (region of attraction).
 
@@ -104,12 +105,13 @@ def certify(run: PolicyRun, xi: Tensor, time_limit: float) -> ProofAttempt:
     ``robustness`` (None when nothing is proved): the certified Wasserstein radius of the DR pointwise condition at
     the run's samples (Lyapunov pairs; None for LQR, which has no samples) and the certified box of shifts for
     decrease on the true model with the row's decay (:mod:`drlyap.verification.robustness`; each proof
-    ``time_limit`` seconds, each search at most 4x that).
+    ``time_limit`` seconds, each search at most 4x that). ``compute``: where the proofs bound their boxes.
     """
-    search = Budget(seconds=time_limit, enclosure="mean-value")
+    search = Budget(seconds=time_limit, enclosure="mean-value", compute=compute)
     if run.kind == "lyapunov":
         lyap_run = run.info["run"]
-        result = verify_run(lyap_run, replace(run_proof(lyap_run), time_limit=time_limit), xi=xi, roa=True)
+        settings = run_proof(lyap_run, replace(lyap_run.proof or ProofConfig(), time_limit=time_limit).with_compute(compute))
+        result = verify_run(lyap_run, settings, xi=xi, roa=True)
         roa = result.roa
         robust = run_robustness(lyap_run, budget=search, total_time=4 * time_limit)
         main = result.main
@@ -124,32 +126,33 @@ def certify(run: PolicyRun, xi: Tensor, time_limit: float) -> ProofAttempt:
         # scale-free decay alpha V: half the rate z'(Q + K'RK)z / z'Pz >= lambda_min / lambda_max of the linearisation
         rate = float(torch.linalg.eigvalsh(design.Q + design.K.T @ design.R @ design.K).min()
                      / torch.linalg.eigvalsh(design.P).max())
-        return certify_loop(loop, xi, time_limit, 0.0, 0.5 * max(rate, 0.0))
+        return certify_loop(loop, xi, time_limit, 0.0, 0.5 * max(rate, 0.0), compute)
     # --- imported pairs and RL actors (drlyap import; drlyap.runs.imported) ---
     if run.kind == "imported":
         pair = run.info["pair"]
-        return certify_loop(pair.loop, xi, time_limit, pair.decay_rate, pair.exp_rate)
+        return certify_loop(pair.loop, xi, time_limit, pair.decay_rate, pair.exp_rate, compute)
     if run.kind == "rl":
         try:
             actor = rl_actor_graph(run.system, run.config["algo"], run.info["agent"].model.policy)
             loop, checks = quadratic_loop(run.system, actor, f"the {run.config['algo']} policy")
         except ValueError as err:
             return ProofAttempt(status="none", note=f"{err}; nothing is proved")
-        return certify_loop(loop, xi, time_limit, 0.0, checks["exp_rate"])
+        return certify_loop(loop, xi, time_limit, 0.0, checks["exp_rate"], compute)
     return ProofAttempt(status="none", note="no certificate")
 
 
-def certify_loop(loop: ClosedLoop, xi: Tensor, time_limit: float, decay_rate: float, exp_rate: float) -> ProofAttempt:
+def certify_loop(loop: ClosedLoop, xi: Tensor, time_limit: float, decay_rate: float, exp_rate: float,
+                 compute: Compute = Compute()) -> ProofAttempt:
     """What a closed loop proves at the shift ``xi (k,)`` on the true model over the system's X_delta (its default
     delta): decrease ``Vdot + gamma ||z|| + alpha V <= 0`` (``decay_rate`` gamma, ``exp_rate`` alpha), the certified
     region of attraction, and the certified box of shifts with that decay (``time_limit`` seconds per proof; the
     search at most 4x that). What ``certify`` runs for LQR, imported pairs and RL actors."""
     system = loop.system
-    search = Budget(seconds=time_limit, enclosure="mean-value")
+    search = Budget(seconds=time_limit, enclosure="mean-value", compute=compute)
     condition = TrueDecrease(xi[None], decay_rate=decay_rate, exp_rate=exp_rate)
     region = Region.of(system, system.defaults.delta)
     result = verify_condition(loop, condition, region, search)
-    roa = certified_roa(loop, condition, region, Budget(seconds=time_limit))
+    roa = certified_roa(loop, condition, region, Budget(seconds=time_limit, compute=compute))
     box = certified_shift_box(loop, decay_rate, exp_rate, region, shift_scale(system), search,
                               total_time=4 * time_limit)
     return ProofAttempt(status=result.status, verified_fraction=result.verified_fraction,
@@ -175,13 +178,14 @@ def _robust_summary(radius: CertifiedRadius | None, box: CertifiedShiftBox) -> d
 def compare_runs(paths: Sequence[str | os.PathLike], xi: Sequence[float], n_init: int = 200, seed: int = 0,
                  out: str | os.PathLike | None = None, horizon: float | None = None,
                  certify_time_limit: float | None = 10.0, progress: bool = True, system=None,
-                 trust: bool = False) -> dict:
+                 trust: bool = False, compute: Compute = Compute()) -> dict:
     """Score every run directory at the shift ``xi`` from the same ``n_init`` initial states (drawn from
     each system's test box with ``seed``); with ``out``, write compare.json, compare.md and figures.
 
     ``certify_time_limit`` (seconds per run; None skips it) runs the verifier on each run at ``xi`` (:func:`certify`).
     ``system``, ``trust``: how runs whose system came from a file or module are loaded
     (:func:`drlyap.runs.load_run`). ``progress``: report scoring progress on stderr (:func:`drlyap.progress.progress`).
+    ``compute``: where the proofs bound their boxes (:class:`~drlyap.config.Compute`).
     """
     if not paths:
         raise ValueError("give at least one run directory")
@@ -197,7 +201,7 @@ def compare_runs(paths: Sequence[str | os.PathLike], xi: Sequence[float], n_init
         x0 = initial_states(run.system, n_init, torch.Generator().manual_seed(seed))
         row = score_run(run, x0, shift, horizon)
         if certify_time_limit is not None:
-            row["certified"] = jsonable(certify(run, shift, certify_time_limit).to_dict())
+            row["certified"] = jsonable(certify(run, shift, certify_time_limit, compute).to_dict())
         rows.append(row)
         bar.update(1)
     bar.close()

@@ -15,6 +15,7 @@ from pathlib import Path
 import torch
 
 from drlyap import plotting
+from drlyap.config import Compute
 from drlyap.progress import progress as show_progress
 from drlyap.render import decrease_cell, roa_cell
 from drlyap.runs import Run, atomic_dir, check_writable, load_run, save_run
@@ -47,7 +48,7 @@ def summary_row(result: dict) -> dict:
 def reproduce(system: str | UncertainSystem, seeds: Sequence[int], out: Path, iters: int | None = None,
               progress: bool = True, device: str = "cpu", log=print, n_more: int = 200, sweep: Sequence[int] = SWEEP,
               verify: bool = True, verify_rounds: int = 5, verify_time: float | None = None,
-              source: dict | None = None, horizon: float | None = None) -> dict:
+              source: dict | None = None, horizon: float | None = None, compute: Compute = Compute()) -> dict:
     """Run the paper's experiment for ``system`` (an object, or a spec for
     :func:`drlyap.systems.resolve_system`) and write everything under ``out`` (atomically).
 
@@ -61,12 +62,12 @@ def reproduce(system: str | UncertainSystem, seeds: Sequence[int], out: Path, it
     the system's cap; they are budgeted by boxes).
     ``horizon``: simulated time of every evaluation and figure (None: the system's). ``source``
     (:func:`drlyap.systems.system_source`) is recorded in each run directory; by default it is derived from a spec,
-    or the registry name.
+    or the registry name. ``compute``: where the proofs bound their boxes (:class:`~drlyap.config.Compute`).
     """
     if isinstance(system, str):
         spec, system = system, resolve_system(system)
         source = system_source(spec, system)
-    proof = ProofConfig(rounds=verify_rounds, time_limit=verify_time) if verify else None
+    proof = ProofConfig(rounds=verify_rounds, time_limit=verify_time).with_compute(compute) if verify else None
     missing = [f for f in ("test_xi", "xi_sampler") if getattr(system, f) is None]
     if missing:
         raise ValueError(f"{system.name} declares no {' and no '.join(missing)}; reproduce needs a test shift "
@@ -100,7 +101,8 @@ def reproduce(system: str | UncertainSystem, seeds: Sequence[int], out: Path, it
                 run.metrics["evaluations"] = {"paper_10": paper, "more_200": more}
                 region = None
                 if verify:  # what the pair proves on the true model at the test shift (the figures draw its region)
-                    checks = run.proof if verify_time is None else replace(run.proof, time_limit=verify_time)
+                    checks = (run.proof if verify_time is None else replace(run.proof, time_limit=verify_time)
+                              ).with_compute(compute)
                     ver = verify_run(run, checks, xi=xi_test, roa=True)
                     record_region(run, ver)
                     record_certificates(run, ver)  # the proofs that ended verified, re-checkable by drlyap check

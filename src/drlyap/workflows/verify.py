@@ -35,6 +35,24 @@ from drlyap.verification import (
 )
 from drlyap.verification.robustness import SEARCH_BUDGET
 
+CHECKPOINTS = "checkpoints"
+"""The folder of a run directory where its long proofs keep their progress while they run."""
+
+
+def run_checkpoints(run: Run) -> str | None:
+    """Where ``run``'s proofs keep their checkpoints (``RUN/checkpoints``), or None when the run directory cannot be
+    written (its proofs then do not resume)."""
+    import os
+
+    return str(run.path / CHECKPOINTS) if os.access(run.path, os.W_OK) else None
+
+
+def clear_checkpoints(run: Run) -> None:
+    """Remove ``run``'s checkpoints once the command that proved them has ended (its results are recorded)."""
+    import shutil
+
+    shutil.rmtree(run.path / CHECKPOINTS, ignore_errors=True)
+
 
 def run_proof(run: Run, proof: ProofConfig | None = None) -> ProofConfig:
     """The proof settings for ``run``, resolved for its system: ``proof``, else those the run was trained with,
@@ -49,8 +67,44 @@ def _region(run: Run, delta: float | None) -> Region:
     return Region.of(run.system, delta)
 
 
+def confirmed_certificate(run: Run, name: str, condition, region: Region, level: float | None,
+                          proof: ProofConfig) -> ConditionProof | None:
+    """The verdict of the run's certificate file ``name`` (``trained`` or ``true-model``) when it states exactly this
+    claim (the condition with its samples or shift, the region, the level), is about the run's own weights and
+    system, and the checker (:mod:`drlyap.checker`, its own arithmetic, where ``proof`` says) confirms it: a verified
+    :class:`ConditionProof` with ``source`` ``certificate``; None otherwise (the caller then proves it anew)."""
+    import hashlib
+
+    from drlyap.checker.check import check_certificate
+    from drlyap.runs.certificates import FOLDER, certificate_claim, read_certificate, system_digest
+    from drlyap.runs.validate import load_weights
+
+    if not (run.path / FOLDER / f"{name}.json").is_file() or not (run.path / "weights.pt").is_file():
+        return None
+    try:
+        header, arrays = read_certificate(run.path, name)
+    except ValueError:
+        return None
+    claim = dict(header.get("claim") or {})
+    claim.pop("statement", None)
+    if claim != certificate_claim(condition, region, level):
+        return None
+    data = (run.path / "weights.pt").read_bytes()
+    result = check_certificate(run.path, name, header, arrays, run.system, load_weights(run.path / "weights.pt", data),
+                               hashlib.sha256(data).hexdigest(), system_digest(run.system), compute=proof.compute)
+    if not result.ok:
+        return None
+    counts = (header.get("proof") or {})
+    return ConditionProof(condition=condition.label, status="verified", verified_fraction=1.0, delta=region.delta,
+                          boxes_processed=int(counts.get("boxes_processed") or 0), boxes_verified=result.proved,
+                          time_s=result.time_s, stopped="finished", level=level,
+                          boundary_min_lower=counts.get("faces_min_lower") if level is not None else None,
+                          source="certificate")
+
+
 def verify_run(run: Run, proof: ProofConfig | None = None, *, delta: float | None = None,
-               xi: Sequence[float] | Tensor | None = None, roa: bool = False, uniform: bool = False) -> RunVerification:
+               xi: Sequence[float] | Tensor | None = None, roa: bool = False, uniform: bool = False,
+               reprove: bool = False) -> RunVerification:
     """Verify a loaded run (:func:`drlyap.runs.load_run`) on X_delta (``delta``: the run's by default).
 
     ``trained``: the run's own condition (pointwise / nominal by :func:`~drlyap.verification.prove_trained`, uniform
@@ -60,7 +114,9 @@ def verify_run(run: Run, proof: ProofConfig | None = None, *, delta: float | Non
     condition (the true model's when ``xi`` is given), for ``proof.roa_time`` seconds (None: 3x
     ``proof.time_limit``), up to the level a region-of-attraction run was trained for. A run trained for a region
     of attraction (``config.roa_level``) has its trained and true-model conditions proved on ``{V <= roa_level}``
-    with V above the level on the box's faces. ``proof``: the settings (:func:`run_proof`).
+    with V above the level on the box's faces. ``proof``: the settings (:func:`run_proof`). A condition whose
+    certificate file states the same claim and is confirmed by the checker is not proved again
+    (:func:`confirmed_certificate`), unless ``reprove``.
     """
     proof = run_proof(run, proof)
     cfg, system, loop = run.config, run.system, run.loop
@@ -72,7 +128,10 @@ def verify_run(run: Run, proof: ProofConfig | None = None, *, delta: float | Non
         trained = uniform_margin(loop, trained_condition, region, budget)
         margin = trained
     else:
-        trained = prove_trained(loop, trained_condition, region, budget, level, falsify_starts=proof.settle_starts)
+        trained = None if reprove or float(region.delta) != float(cfg.delta) else \
+            confirmed_certificate(run, "trained", trained_condition, region, level, proof)
+        if trained is None:
+            trained = prove_trained(loop, trained_condition, region, budget, level, falsify_starts=proof.settle_starts)
         margin = None
         if uniform:
             margin = uniform_margin(loop, run_condition(cfg, run.xi_samples, "uniform"), region,
@@ -80,7 +139,10 @@ def verify_run(run: Run, proof: ProofConfig | None = None, *, delta: float | Non
     true_model, main_condition = None, trained_condition
     if xi is not None:
         main_condition = run.true_condition(xi)
-        true_model = prove_trained(loop, main_condition, region, budget, level, falsify_starts=proof.settle_starts)
+        true_model = None if reprove or float(region.delta) != float(cfg.delta) else \
+            confirmed_certificate(run, "true-model", main_condition, region, level, proof)
+        if true_model is None:
+            true_model = prove_trained(loop, main_condition, region, budget, level, falsify_starts=proof.settle_starts)
         true_model.xi = main_condition.xi[0].tolist()
     region_of_attraction = None
     if roa:

@@ -1,0 +1,128 @@
+"""What a branch and bound computes for each batch of boxes, as a job that runs in this process (on its device) or on
+worker processes (:mod:`drlyap.parallel`).
+
+:class:`ConditionJob` bounds a decrease condition over boxes: the residual's upper bound (on a sublevel set
+``{V <= level}`` only, with V's bounds), a lower bound of the residual at the box centres and each coordinate's share of
+the bounds' spread (where to split). It holds the closed loop, the condition, the level and the enclosure; it is
+picklable, so that workers receive it once and then only boxes. :func:`run_batches` submits a branch and bound's
+batches and hands their bounds back in order.
+"""
+
+from __future__ import annotations
+
+import copy
+from collections import deque
+from collections.abc import Callable, Iterator
+
+import torch
+from torch import Tensor
+
+from drlyap.config import Compute
+from drlyap.enclosures import Interval
+from drlyap.parallel import discard_pool, pool_for
+from drlyap.verification.bounds import (
+    box_bounds,
+    combine_lower,
+    combine_upper,
+    condition_and_value_objective,
+    condition_objective,
+    sublevel_upper,
+)
+
+
+class ConditionJob:
+    """Bounds of ``condition``'s residual for the closed loop ``loop`` (its float64 view) over boxes; with ``level``,
+    on the part of each box where ``V <= level``, with V's bounds beside.
+
+    Called on boxes ``lo, hi (B, n)`` it returns a dict of ``(B,)`` tensors: ``upper`` (the residual's upper bound,
+    +inf where undefined), ``centre_lower`` (a lower bound of the residual at the centre), ``sensitivity (B, n)`` and,
+    with a level, ``value_lower`` (V's lower bound over the box) and ``centre_value_upper`` (V's upper bound at the
+    centre)."""
+
+    def __init__(self, loop, condition, level: float | None, enclosure: str, device: str = "cpu") -> None:
+        self.loop, self.condition, self.level, self.enclosure, self.device = loop, condition, level, enclosure, device
+
+    def on(self, device: str) -> ConditionJob:
+        """The same job with the networks and the condition's samples on ``device``."""
+        if device == self.device:
+            return self
+        job = copy.copy(self)
+        job.loop = _loop_on(self.loop, device)
+        job.condition = _condition_on(self.condition, device)
+        job.device = device
+        return job
+
+    def __call__(self, lo: Tensor, hi: Tensor) -> dict:
+        device = torch.device(self.device)
+        lo, hi = lo.to(device), hi.to(device)
+        level, condition = self.level, self.condition
+        make = condition_objective if level is None else condition_and_value_objective
+        lb_c, ub_c, at, sens, form = box_bounds(make(self.loop, condition), lo, hi, self.enclosure, sensitivity=True,
+                                                keep_form=True)
+        out = {"sensitivity": sens}
+        at_lo = at.lo
+        if level is not None:  # the last component is V
+            out["value_lower"], out["centre_value_upper"] = lb_c[:, -1], at.hi[:, -1]
+            ub_c, at_lo = ub_c[:, :-1], at_lo[:, :-1]
+        upper = combine_upper(condition, ub_c)
+        if level is not None and form is not None:
+            upper = torch.minimum(upper, sublevel_upper(condition, form, level))
+        out["upper"] = upper
+        out["centre_lower"] = combine_lower(condition, at_lo)
+        return {k: v.cpu() for k, v in out.items()}
+
+
+def _loop_on(loop, device: str):
+    from drlyap.closed_loop import ClosedLoop
+
+    lyapunov = copy.deepcopy(loop.lyapunov).to(device)
+    controller = copy.deepcopy(loop.controller).to(device)
+    return ClosedLoop(loop.system, lyapunov, controller)
+
+
+def _condition_on(condition, device: str):
+    moved = copy.copy(condition)
+    xi = condition.xi
+    if isinstance(xi, Tensor):
+        moved.xi = xi.to(device)
+    elif isinstance(xi, Interval):
+        moved.xi = Interval(xi.lo.to(device), xi.hi.to(device))
+    moved._xi_cache = {}
+    return moved
+
+
+def run_batches(job: Callable, compute: Compute, take: Callable[[], tuple | None],
+                can_prefetch: Callable[[], bool]) -> Iterator[tuple]:
+    """Bound the batches a branch and bound takes, in the order it takes them: yields ``(lo, hi, *rest, bounds)``.
+
+    ``take()`` returns the next batch ``(lo, hi, *rest)`` (``rest``: what the caller keeps beside it, e.g. the boxes'
+    ids; None: no more); ``can_prefetch()`` says whether the next batch is already fixed before the bounds of the
+    batches in flight come back (its boxes are in the queue, not among their children), so that workers may start on
+    it while this process sorts the last one out. In this process (``compute`` without workers) each batch is bounded
+    when it is taken, on ``compute.device``.
+    """
+    pool = pool_for(compute)
+    if pool is None:
+        local = job.on(compute.device) if hasattr(job, "on") else job
+        while (batch := take()) is not None:
+            yield (*batch, local(batch[0], batch[1]))
+        return
+    flight: deque = deque()
+    try:
+        while True:
+            while len(flight) < 2 and (not flight or can_prefetch()):
+                batch = take()
+                if batch is None:
+                    break
+                flight.append((batch, pool.submit(job, batch[0], batch[1])))
+            if not flight:
+                return
+            batch, pending = flight.popleft()
+            yield (*batch, pending.result())
+    except GeneratorExit:  # the caller stopped early (a counterexample): collect what is still in flight
+        for _, pending in flight:
+            pending.result()
+        raise
+    except BaseException:
+        discard_pool(pool)  # its workers may still hold batches of this search: start afresh next time
+        raise

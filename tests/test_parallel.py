@@ -1,0 +1,258 @@
+"""Proofs on worker processes, on Ray and from checkpoints: the same verdict, the same partition and a certificate the
+checker accepts, for any number of workers; a proof killed half way resumes where it was."""
+
+import json
+import os
+import signal
+import subprocess
+import sys
+import textwrap
+import time
+
+import pytest
+import torch
+
+from drlyap.checker.check import check_certificate
+from drlyap.conditions import DRPointwise
+from drlyap.config import Budget, Compute, ProofConfig
+from drlyap.parallel import WorkerError, close_pools, pool_for
+from drlyap.regions import Region
+from drlyap.runs.certificates import read_certificate, sha256_file, system_digest, write_certificate
+from drlyap.systems import resolve_system
+from drlyap.verification import verify_condition
+from handmade import linear_pair, small_pendulum
+
+F64 = torch.float64
+XI = torch.tensor([[0.02, 0.01], [-0.01, 0.0], [0.05, -0.02]], dtype=F64)
+
+
+@pytest.fixture(scope="module")
+def pendulum_loop():
+    from drlyap.closed_loop import ClosedLoop
+
+    system = small_pendulum()
+    lyap, ctrl = linear_pair(system)
+    yield ClosedLoop(system, lyap, ctrl), DRPointwise(0.01, 0.3, XI, decay_rate=0.05), Region.of(system, 0.1)
+    close_pools()
+
+
+def _same(a, b) -> None:
+    assert (a.status, a.boxes_processed, a.boxes_verified, a.verified_fraction) == \
+        (b.status, b.boxes_processed, b.boxes_verified, b.verified_fraction)
+    assert a.sup_bounds == b.sup_bounds
+    if a.partition is not None:
+        for name in ("parent", "side", "axis", "verdict"):
+            assert torch.equal(getattr(a.partition, name), getattr(b.partition, name)), name
+        assert torch.equal(a.partition.bound.nan_to_num(7.0), b.partition.bound.nan_to_num(7.0))
+
+
+def test_two_workers_prove_the_same_partition_as_one(pendulum_loop):
+    loop, condition, region = pendulum_loop
+    budget = Budget(seconds=600, batch=64)
+    one = verify_condition(loop, condition, region, budget)
+    two = verify_condition(loop, condition, region, Budget(seconds=600, batch=64, compute=Compute(workers=2)))
+    assert one.status == "verified" and one.boxes_processed > 4 * 64  # several batches, prefetched
+    _same(one, two)
+    # a budget that runs out part way: the same boxes, the same unknown verdict and share
+    part = Budget(seconds=600, batch=64, boxes=500)
+    _same(verify_condition(loop, condition, region, part),
+          verify_condition(loop, condition, region, Budget(seconds=600, batch=64, boxes=500,
+                                                           compute=Compute(workers=2))))
+
+
+def test_a_violation_stops_the_workers_and_they_go_on_with_the_next_proof(pendulum_loop):
+    loop, _, region = pendulum_loop
+    strict = DRPointwise(0.01, 0.3, XI, decay_rate=50.0)  # far more decay than the pair has
+    kwargs = dict(stop_at_counterexample=True)
+    one = verify_condition(loop, strict, region, Budget(seconds=600, batch=64), **kwargs)
+    two = verify_condition(loop, strict, region, Budget(seconds=600, batch=64, compute=Compute(workers=2)), **kwargs)
+    assert one.status == two.status == "violated"
+    assert one.counterexample == two.counterexample and one.boxes_processed == two.boxes_processed
+    _, condition, _ = pendulum_loop  # the pool is still usable: nothing of the stopped proof is left in flight
+    assert verify_condition(loop, condition, region,
+                            Budget(seconds=600, batch=64, compute=Compute(workers=2))).status == "verified"
+
+
+def test_the_checker_accepts_a_certificate_proved_by_workers_and_checks_with_workers(pendulum_loop, tmp_path):
+    loop, condition, region = pendulum_loop
+    proof = verify_condition(loop, condition, region, Budget(seconds=600, batch=64, compute=Compute(workers=2)))
+    torch.save({"lyapunov": loop.lyapunov.state_dict(), "controller": loop.controller.state_dict()},
+               tmp_path / "weights.pt")
+    write_certificate(tmp_path, "trained", proof, condition, region, loop.system, tmp_path / "weights.pt",
+                      loop.lyapunov.alpha_hat)
+    header, arrays = read_certificate(tmp_path, "trained")
+    weights = torch.load(tmp_path / "weights.pt", weights_only=True)
+    for compute in (Compute(), Compute(workers=2)):
+        res = check_certificate(tmp_path, "trained", header, arrays, loop.system, weights,
+                                sha256_file(tmp_path / "weights.pt"), system_digest(loop.system), compute=compute)
+        assert res.ok, res.failures
+        assert res.proved == int((torch.as_tensor(arrays["verdict"]) == 1).sum())
+
+
+def test_a_worker_failure_is_an_error_that_names_it(pendulum_loop):
+    pool = pool_for(Compute(workers=2))
+
+    def broken(lo, hi):
+        raise RuntimeError("no bounds here")
+
+    with pytest.raises(WorkerError, match="no bounds here"):
+        pool.submit(broken, torch.zeros(4, 2), torch.ones(4, 2)).result()
+
+
+def test_a_system_from_a_users_file_travels_to_the_workers(tmp_path):
+    path = tmp_path / "mysys.py"
+    path.write_text(textwrap.dedent('''
+        import torch
+        from drlyap import UncertainSystem
+
+        def dynamics(x, u, p):
+            (friction,) = p.unbind(-1)
+            return torch.stack([x[:, 1], -friction * x[:, 1] + u[:, 0]], dim=-1)
+
+        def make():
+            return UncertainSystem(
+                name="mycart", state_names=("q", "v"), input_names=("f",), param_names=("friction",),
+                nominal_params=(0.5,), uncertain=("friction",), dynamics=dynamics,
+                state_box=((-1, -1), (1, 1)), input_box=((-2,), (2,)), equilibrium=(0.0, 0.0))
+        '''))
+    from drlyap.closed_loop import ClosedLoop
+    from drlyap.conditions import TrueDecrease
+    from drlyap.networks import LinearController, QuadraticLyapunov
+
+    system = resolve_system(f"{path}:make")
+    k = torch.tensor([[1.0, 1.5]], dtype=F64)
+    p = torch.tensor([[1.25, 0.5], [0.5, 1.0]], dtype=F64)  # a Lyapunov matrix of the closed loop
+    loop = ClosedLoop(system, QuadraticLyapunov(p), LinearController(k, system.input_box, system.equilibrium_input))
+    condition, region = TrueDecrease(torch.tensor([[0.1]], dtype=F64)), Region.of(system, 0.05)
+    one = verify_condition(loop, condition, region, Budget(seconds=600, batch=128), level=0.5)
+    two = verify_condition(loop, condition, region, Budget(seconds=600, batch=128, compute=Compute(workers=2)),
+                           level=0.5)
+    assert one.status == "verified"
+    _same(one, two)
+    close_pools()
+
+
+def test_compute_settings_are_checked_and_not_recorded_in_a_run():
+    with pytest.raises(ValueError, match="workers = 0"):
+        Compute(workers=0)
+    with pytest.raises(ValueError, match="backend 'mpi'"):
+        Compute(backend="mpi")
+    with pytest.raises(ValueError, match="workers = 1 and the local backend"):
+        Compute(workers=2, device="cuda")
+    with pytest.raises(ValueError, match="address is for the ray backend"):
+        ProofConfig(address="ray://x:10001").validate()
+    record = ProofConfig(workers=4, checkpoint_dir="/tmp/x").to_dict()
+    assert "workers" not in record and "checkpoint_dir" not in record
+    assert ProofConfig.from_dict(record).workers == 1
+
+
+# --------------------------------------------------------------------------- checkpoints
+_SCRIPT = '''
+import sys, json, time, torch
+sys.path.insert(0, {tests!r})
+torch.set_num_threads(1)
+import drlyap.verification.bounding as bounding
+bound = bounding.ConditionJob.__call__
+bounding.ConditionJob.__call__ = lambda self, lo, hi: (time.sleep(0.03), bound(self, lo, hi))[1]  # slow: kill it half way
+from handmade import linear_pair, small_pendulum
+from drlyap.closed_loop import ClosedLoop
+from drlyap.conditions import DRPointwise
+from drlyap.config import Budget, Compute
+from drlyap.regions import Region
+from drlyap.verification import verify_condition
+system = small_pendulum()
+lyap, ctrl = linear_pair(system)
+xi = torch.tensor({xi}, dtype=torch.float64)
+compute = Compute(checkpoint_dir={folder!r}, checkpoint_every=0.0)
+res = verify_condition(ClosedLoop(system, lyap, ctrl), DRPointwise(0.01, 0.3, xi, decay_rate=0.05),
+                       Region.of(system, 0.1), Budget(seconds=600, batch=32, compute=compute))
+print(json.dumps([res.status, res.boxes_processed, res.resumed_boxes]))
+'''
+
+
+def _checkpoint_meta(folder):
+    import numpy as np
+
+    files = list(folder.glob("proof-*.npz"))
+    if not files:
+        return None
+    try:
+        with np.load(files[0], allow_pickle=False) as data:
+            return json.loads(bytes(data["__header__"]).decode())
+    except Exception:  # being replaced right now
+        return None
+
+
+def test_a_proof_killed_half_way_resumes_from_its_checkpoint(pendulum_loop, tmp_path):
+    loop, condition, region = pendulum_loop
+    fresh = verify_condition(loop, condition, region, Budget(seconds=600, batch=32))
+    folder = tmp_path / "checkpoints"
+    script = _SCRIPT.format(tests=os.path.dirname(__file__), xi=XI.tolist(), folder=str(folder))
+    proc = subprocess.Popen([sys.executable, "-c", script], stdout=subprocess.PIPE, stderr=subprocess.PIPE)
+    deadline = time.monotonic() + 120
+    while time.monotonic() < deadline:
+        meta = _checkpoint_meta(folder)
+        if meta is not None and meta["processed"] >= fresh.boxes_processed // 3:
+            break
+        time.sleep(0.005)
+    os.kill(proc.pid, signal.SIGKILL)
+    proc.wait()
+    meta = _checkpoint_meta(folder)
+    assert meta is not None and not meta["finished"], "the proof should have been killed part way"
+    compute = Compute(checkpoint_dir=str(folder), checkpoint_every=0.0)
+    resumed = verify_condition(loop, condition, region, Budget(seconds=600, batch=32, compute=compute))
+    assert resumed.resumed_boxes is not None and 0 < resumed.resumed_boxes < fresh.boxes_processed
+    _same(fresh, resumed)
+    # a finished proof's checkpoint gives its result again without bounding a box
+    again = verify_condition(loop, condition, region, Budget(seconds=600, batch=32, compute=compute))
+    assert again.resumed_boxes == fresh.boxes_processed
+    _same(fresh, again)
+
+
+def test_a_damaged_checkpoint_is_ignored_with_a_warning(pendulum_loop, tmp_path):
+    loop, condition, region = pendulum_loop
+    compute = Compute(checkpoint_dir=str(tmp_path), checkpoint_every=0.0)
+    first = verify_condition(loop, condition, region, Budget(seconds=600, batch=64, compute=compute))
+    (path,) = tmp_path.glob("proof-*.npz")
+    path.write_bytes(b"not a checkpoint")
+    with pytest.warns(UserWarning, match="cannot be read"):
+        again = verify_condition(loop, condition, region, Budget(seconds=600, batch=64, compute=compute))
+    assert again.resumed_boxes is None
+    _same(first, again)
+
+
+def test_another_proof_does_not_read_the_checkpoint(pendulum_loop, tmp_path):
+    loop, condition, region = pendulum_loop
+    compute = Compute(checkpoint_dir=str(tmp_path), checkpoint_every=0.0)
+    verify_condition(loop, condition, region, Budget(seconds=600, batch=64, compute=compute))
+    other = DRPointwise(0.02, 0.3, XI, decay_rate=0.05)  # another radius: another proof
+    res = verify_condition(loop, other, region, Budget(seconds=600, batch=64, compute=compute))
+    assert res.resumed_boxes is None
+    assert len(list(tmp_path.glob("proof-*.npz"))) == 2
+
+
+# --------------------------------------------------------------------------- Ray
+def test_ray_backend_on_two_local_workers_proves_the_same_and_the_checker_accepts_it(pendulum_loop, tmp_path):
+    pytest.importorskip("ray")
+    import cloudpickle
+
+    import handmade
+
+    cloudpickle.register_pickle_by_value(handmade)  # Ray's workers do not see this folder: the test's system travels
+    loop, condition, region = pendulum_loop
+    one = verify_condition(loop, condition, region, Budget(seconds=600, batch=64))
+    try:
+        two = verify_condition(loop, condition, region,
+                               Budget(seconds=600, batch=64, compute=Compute(workers=2, backend="ray")))
+    finally:
+        close_pools()
+    _same(one, two)
+    torch.save({"lyapunov": loop.lyapunov.state_dict(), "controller": loop.controller.state_dict()},
+               tmp_path / "weights.pt")
+    write_certificate(tmp_path, "trained", two, condition, region, loop.system, tmp_path / "weights.pt",
+                      loop.lyapunov.alpha_hat)
+    header, arrays = read_certificate(tmp_path, "trained")
+    res = check_certificate(tmp_path, "trained", header, arrays, loop.system,
+                            torch.load(tmp_path / "weights.pt", weights_only=True), sha256_file(tmp_path / "weights.pt"),
+                            system_digest(loop.system))
+    assert res.ok, res.failures
