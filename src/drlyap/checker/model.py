@@ -201,7 +201,20 @@ def affine_upper(residual: Residual, lo: Tensor, hi: Tensor, level: float | None
 
 def form_upper(residual: Residual, comps: Af, value: Af, level: float | None) -> Tensor:
     """:func:`affine_upper` from the forms of the components ``(B, Q)`` and of V ``(B,)``: first with the corner
-    bound of the quadratic parts, then, for the boxes that leaves above 0, with the dual bound too."""
+    bound of the quadratic parts, then, for the boxes that leaves above 0, with the dual bound too. With a level, the
+    multiplier 0 alone first (most boxes of a sublevel-set proof need no other), then every one for the rest."""
+    if level is not None:
+        lam = torch.zeros(*comps.shape, 1, dtype=F64)
+        upper = residual.combine_upper(_s_procedure(comps, value, level, lam, dual=False)[..., 0])
+        rest = (upper > 0).nonzero().squeeze(-1)
+        if rest.numel():
+            upper[rest] = torch.minimum(upper[rest], _searched_upper(residual, comps[rest], value[rest], level))
+        return upper
+    return _searched_upper(residual, comps, value, level)
+
+
+def _searched_upper(residual: Residual, comps: Af, value: Af, level: float | None) -> Tensor:
+    """:func:`form_upper` over every multiplier (with a level), the corner bound first, the dual one where needed."""
     def bound(c: Af, v: Af, dual: bool) -> Tensor:
         if level is None:
             upper = c.interval(dual=dual).hi
