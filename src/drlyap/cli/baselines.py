@@ -7,11 +7,11 @@ from pathlib import Path
 
 import click
 
-from drlyap.cli.common import fail, floats
+from drlyap.cli.common import fail, floats, known_system
 
 
 @click.command()
-@click.argument("system")
+@click.argument("system", callback=known_system)
 @click.option("--out", type=click.Path(path_type=Path), required=True, help="Run directory to create.")
 @click.option("--q", "q_diag", default=None, help="Diagonal of Q, comma-separated [1/half-width(X)^2].")
 @click.option("--r", "r_diag", default=None, help="Diagonal of R, comma-separated [1/half-width(U)^2].")
@@ -52,7 +52,7 @@ def rl() -> None:
 
 
 @rl.command("train")
-@click.argument("system")
+@click.argument("system", callback=known_system)
 @click.option("--algo", type=click.Choice(["sac", "ppo"]), default="sac", show_default=True)
 @click.option("--steps", type=int, default=None,
               help="Environment steps [sac: 20000, ppo: 100000]. Measured on a shared 2-core CPU, one torch "

@@ -8,11 +8,11 @@ from pathlib import Path
 
 import click
 
-from drlyap.cli.common import fail, run_source_options, run_system_of
+from drlyap.cli.common import complete_runs, fail, run_source_options, run_system_of
 
 
 @click.command()
-@click.argument("run_dir", type=click.Path(path_type=Path))
+@click.argument("run_dir", type=click.Path(path_type=Path), callback=complete_runs)
 @click.option("--name", "names", multiple=True, type=click.Choice(["trained", "true-model"]),
               help="Which certificate to check (repeatable) [every one the run holds].")
 @click.option("--refine", type=click.IntRange(0, 12), default=3, show_default=True,

@@ -52,13 +52,40 @@ def fail(err: Exception) -> None:
     raise click.ClickException(str(err))
 
 
+def known_system(ctx: click.Context | None, param: click.Parameter | None, value: str | None) -> str | None:
+    """Click callback of a SYSTEM spec: one that cannot name a system is refused before the numerical code loads
+    (:func:`drlyap.specs.check_spec`, against the names registered in this process)."""
+    from drlyap.specs import BUILT_IN, check_spec
+
+    if value is not None:
+        registry = sys.modules.get("drlyap.systems.registry")  # loaded where something may have registered more
+        try:
+            check_spec(value, registry.system_names() if registry is not None else BUILT_IN)
+        except ValueError as err:
+            raise click.ClickException(str(err)) from None
+    return value
+
+
+def complete_runs(ctx: click.Context | None, param: click.Parameter | None, value):
+    """Click callback of a RUN_DIR argument (one path or several, or None): each a complete run directory, checked
+    before the numerical code loads (:func:`drlyap.runs.publish.complete_run_dir`)."""
+    from drlyap.runs.publish import RunDirError, complete_run_dir
+
+    for path in value if isinstance(value, tuple) else () if value is None else (value,):
+        try:
+            complete_run_dir(path)
+        except RunDirError as err:
+            raise click.ClickException(str(err)) from None
+    return value
+
+
 def run_source_options(command):
     """``--system`` and ``--trust-run``: how a run whose system came from a file or a module is loaded (the
     run's recorded code is never run unless the user names it or trusts the run)."""
     command = click.option("--trust-run", is_flag=True,
                            help="Trust the run directory: rebuild its system from the file or module it records (that "
                                 "runs that code), and read an older RL run's pickled model.zip.")(command)
-    return click.option("--system", "system_spec", default=None,
+    return click.option("--system", "system_spec", default=None, callback=known_system,
                         help="The run's system, when it came from a file or a module: path/to/file.py:factory or "
                              "package.module:factory (run as you name it; default: refuse to run recorded code).")(command)
 

@@ -7,7 +7,7 @@ from pathlib import Path
 
 import click
 
-from drlyap.cli.common import fail, floats, run_source_options, run_system_of
+from drlyap.cli.common import complete_runs, fail, floats, run_source_options, run_system_of
 
 
 def _writable_folder(folder: Path) -> None:
@@ -23,7 +23,7 @@ def _writable_folder(folder: Path) -> None:
 
 
 @click.command()
-@click.argument("run_dir", type=click.Path(path_type=Path))
+@click.argument("run_dir", type=click.Path(path_type=Path), callback=complete_runs)
 @click.option("--xi", required=True, help="Parameter shift, comma-separated in the system's uncertain order.")
 @click.option("--n-init", type=int, default=200, show_default=True, help="Number of initial states.")
 @click.option("--seed", type=int, default=0, show_default=True, help="Seed of the initial states.")
@@ -60,7 +60,7 @@ def evaluate(run_dir: Path, xi: str, n_init: int, seed: int, horizon: float | No
 
 
 @click.command()
-@click.argument("run_dir", type=click.Path(path_type=Path))
+@click.argument("run_dir", type=click.Path(path_type=Path), callback=complete_runs)
 @click.option("--xi", default=None, help="Shift of the true model, comma-separated [the system's test shift, or nominal].")
 @click.option("--n-init", type=int, default=20, show_default=True, help="Number of trajectories in the phase portrait.")
 @click.option("--seed", type=int, default=0, show_default=True, help="Seed of their initial states.")
@@ -81,8 +81,7 @@ def plot(run_dir: Path, xi: str | None, n_init: int, seed: int, roa: bool | None
     try:
         if time_limit <= 0:
             raise ValueError(f"--time-limit must be > 0, got {time_limit}")
-        if (run_dir / "run.json").is_file():  # a run to draw: its figures' folder must take files
-            _writable_folder(out if out is not None else run_dir / "figures")
+        _writable_folder(out if out is not None else run_dir / "figures")  # checked before any work
         result = plot_run(run_dir, xi=floats(xi, "--xi"), n_init=n_init, seed=seed, roa=roa, out=out,
                           time_limit=time_limit, horizon=horizon, system=run_system_of(system_spec), trust=trust_run)
     except ValueError as err:

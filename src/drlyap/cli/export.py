@@ -7,11 +7,11 @@ from pathlib import Path
 
 import click
 
-from drlyap.cli.common import fail, run_source_options, run_system_of
+from drlyap.cli.common import complete_runs, fail, run_source_options, run_system_of
 
 
 @click.command()
-@click.argument("run_dir", type=click.Path(path_type=Path))
+@click.argument("run_dir", type=click.Path(path_type=Path), callback=complete_runs)
 @click.option("--format", "fmt", type=click.Choice(["onnx", "torchscript"]), default="onnx", show_default=True,
               help="ONNX (onnxruntime and most robot runtimes) or TorchScript (libtorch).")
 @click.option("--out", type=click.Path(path_type=Path), default=None,

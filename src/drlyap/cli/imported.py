@@ -8,11 +8,11 @@ from pathlib import Path
 
 import click
 
-from drlyap.cli.common import fail
+from drlyap.cli.common import fail, known_system
 
 
 @click.command("import")
-@click.argument("system")
+@click.argument("system", callback=known_system)
 @click.option("--controller", "controller", type=click.Path(path_type=Path, dir_okay=False), required=True,
               help="ONNX model of the controller: x (batch, n) -> u (batch, m), e.g. drlyap export's controller.onnx.")
 @click.option("--lyapunov", "lyapunov", type=click.Path(path_type=Path, dir_okay=False), default=None,

@@ -3,11 +3,12 @@
 from __future__ import annotations
 
 import json
+import math
 from pathlib import Path
 
 import click
 
-from drlyap.cli.common import default, fail, floats
+from drlyap.cli.common import complete_runs, default, fail, floats, known_system
 from drlyap.config import ProofConfig, TrainConfig
 
 
@@ -29,8 +30,24 @@ def systems(as_json: bool) -> None:
                    f"U = {d['input_box']}; test xi = {d['test_xi']}")
 
 
+def _check_numbers(**given: float | None) -> None:
+    """The options of ``train`` whose ranges need no system, so that a bad one is refused before the numerical code
+    loads (:meth:`drlyap.config.TrainConfig.validate` checks every field again): a ValueError naming the option and
+    the field."""
+    rules = {"iters": ("iters", lambda v: v >= 1, ">= 1"),
+             "radius": ("wasserstein_radius", lambda v: math.isfinite(v) and v >= 0, "finite and >= 0"),
+             "eps": ("risk_level", lambda v: 0 < v < 1, "in (0, 1)"),
+             "gamma": ("decay_rate", lambda v: math.isfinite(v) and v >= 0, "finite and >= 0"),
+             "exp_rate": ("exp_rate", lambda v: math.isfinite(v) and v >= 0, "finite and >= 0"),
+             "local_rate": ("local_rate", lambda v: math.isfinite(v) and v >= 0, "finite and >= 0")}
+    for option, value in given.items():
+        field, ok, rule = rules[option]
+        if value is not None and not ok(value):
+            raise ValueError(f"--{option.replace('_', '-')}: {field} = {value} (must be {rule})")
+
+
 @click.command()
-@click.argument("system")
+@click.argument("system", callback=known_system)
 @click.option("--method", type=click.Choice(["baseline", "dr"]), default=default(TrainConfig, "method"),
               show_default=True, help="baseline: nominal condition at the mean xi sample; dr: distributionally robust.")
 @click.option("--loss", type=click.Choice(["pointwise", "uniform"]), default=default(TrainConfig, "loss"),
@@ -46,7 +63,7 @@ def systems(as_json: bool) -> None:
               help="Iteration cap [the system's: 3000; 4500 for quadrotor2d].")
 @click.option("--seed", type=int, default=default(TrainConfig, "seed"), show_default=True)
 @click.option("--device", default=default(TrainConfig, "device"), show_default=True, help="cpu or cuda.")
-@click.option("--warm-start", type=click.Path(path_type=Path), default=None,
+@click.option("--warm-start", type=click.Path(path_type=Path), default=None, callback=complete_runs,
               help="Start from the networks of this run directory (e.g. a baseline run).")
 @click.option("--out", type=click.Path(path_type=Path), required=True, help="Run directory to create.")
 @click.option("--quiet", is_flag=True, help="No progress bar.")
@@ -78,34 +95,45 @@ def train(system: str, method: str, loss: str, radius: float | None, eps: float 
     The last line says whether the condition is VERIFIED (proved at every state of the box minus the
     delta-ball), VIOLATED (a counterexample) or UNKNOWN (budget ran out).
     """
+    from drlyap.runs.publish import check_writable
+
+    try:  # what needs no system is checked before the numerical code loads
+        _check_numbers(iters=iters, radius=radius, eps=eps, gamma=gamma, exp_rate=exp_rate, local_rate=local_rate)
+        if verify_rounds < 0:
+            raise ValueError(f"--verify-rounds must be >= 0, got {verify_rounds}")
+        samples = None
+        if xi_samples is not None:
+            samples = [floats(part, "--xi-samples") for part in xi_samples.split(";") if part.strip()]
+        proof = None
+        if verify:
+            proof = ProofConfig(rounds=verify_rounds, max_boxes=verify_boxes, round_time=verify_time,
+                                total_time=verify_budget)
+            proof.validate()
+        check_writable(out)
+    except ValueError as err:
+        fail(err)
+
     from drlyap.render import certificate_line, proof_round_line
-    from drlyap.runs import check_writable, load_run, save_run
+    from drlyap.runs import load_run, save_run
     from drlyap.systems import resolve_system, system_source
     from drlyap.training import train as train_pair
     from drlyap.verification import Certificate
 
     try:
-        if verify_rounds < 0:
-            raise ValueError(f"--verify-rounds must be >= 0, got {verify_rounds}")
         sys_ = resolve_system(system)
-        samples = None
-        if xi_samples is not None:
-            samples = [floats(part, "--xi-samples") for part in xi_samples.split(";") if part.strip()]
+        source = system_source(system, sys_)
         cfg = TrainConfig(system=sys_.name, method=method, loss=loss, wasserstein_radius=radius, risk_level=eps,
                           decay_rate=gamma, exp_rate=exp_rate, xi_samples=samples, iters=iters, seed=seed,
                           device=device, local_rate=local_rate).resolved(sys_)  # a bad config is refused here
-        proof = None
-        if verify:
-            proof = ProofConfig(rounds=verify_rounds, max_boxes=verify_boxes, round_time=verify_time,
-                                total_time=verify_budget).resolved(sys_)
-        check_writable(out)
+        if proof is not None:
+            proof = proof.resolved(sys_)
         init = None
         if warm_start is not None:
             prior = load_run(warm_start, sys_)
             init = (prior.lyapunov_net, prior.controller_net)
         result = train_pair(cfg, sys_, proof, progress=not quiet, init=init,
                             log=lambda entry: click.echo(proof_round_line(entry), err=True), warn=False)
-        save_run(out, result, source=system_source(system, sys_))
+        save_run(out, result, source=source)
     except ValueError as err:
         fail(err)
     m = result.metrics

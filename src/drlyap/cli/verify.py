@@ -8,12 +8,12 @@ from pathlib import Path
 
 import click
 
-from drlyap.cli.common import default, fail, floats, run_source_options, run_system_of
+from drlyap.cli.common import complete_runs, default, fail, floats, run_source_options, run_system_of
 from drlyap.config import ENCLOSURES, ProofConfig
 
 
 @click.command()
-@click.argument("run_dir", type=click.Path(path_type=Path))
+@click.argument("run_dir", type=click.Path(path_type=Path), callback=complete_runs)
 @click.option("--delta", type=float, default=None, help="Radius of the excluded ball around x* [the run's delta].")
 @click.option("--xi", default=None, help="Also verify plain decrease on the true model at this shift (comma-separated).")
 @click.option("--time-limit", type=float, default=None,
@@ -130,7 +130,7 @@ def _verify_imported(run_dir: Path, delta: float | None, xi: str | None, time_li
 
 
 @click.command("guarantee")
-@click.argument("run_dir", type=click.Path(path_type=Path))
+@click.argument("run_dir", type=click.Path(path_type=Path), callback=complete_runs)
 @click.option("--dist", "dist", default="train", show_default=True,
               help="Distribution of xi: 'train' (the system's own), 'normal:M1,M2;S1,S2', 'uniform:L1,L2;H1,H2' "
                    "or 'point:V1,V2'.")
@@ -188,7 +188,7 @@ def guarantee(run_dir: Path, dist: str, n: int, method: str, eps_bar: float, see
 
 
 @click.command()
-@click.argument("run_dir", type=click.Path(path_type=Path))
+@click.argument("run_dir", type=click.Path(path_type=Path), callback=complete_runs)
 @click.option("--spacing", type=float, default=None, help="Grid spacing in local state units [about 20000 cells].")
 @click.option("--xi", default=None, help="Check plain decrease on the true model at this shift instead.")
 @click.option("--verify-time", type=float, default=10.0, show_default=True,

@@ -8,7 +8,7 @@ from pathlib import Path
 
 import click
 
-from drlyap.cli.common import default, fail, floats, run_source_options, run_system_of
+from drlyap.cli.common import complete_runs, default, fail, floats, known_system, run_source_options, run_system_of
 from drlyap.config import ProofConfig, TrainConfig
 
 
@@ -23,7 +23,7 @@ def seed_values(text: str) -> list[int]:
 
 
 @click.command()
-@click.argument("system")
+@click.argument("system", callback=known_system)
 @click.option("--seeds", default="0", show_default=True, help="Training seeds: '0-9', '0,2,5' or '0-4,10'.")
 @click.option("--out", type=click.Path(path_type=Path), default=None,
               help="Output directory [first free runs/reproduce-SYSTEM, -2, -3, ...].")
@@ -78,7 +78,7 @@ def reproduce(system: str, seeds: str, out: Path | None, iters: int | None, devi
 
 
 @click.command()
-@click.argument("run_dirs", nargs=-1, required=True, type=click.Path(path_type=Path))
+@click.argument("run_dirs", nargs=-1, required=True, type=click.Path(path_type=Path), callback=complete_runs)
 @click.option("--xi", required=True, help="Parameter shift, comma-separated in the system's uncertain order.")
 @click.option("--n-init", type=int, default=200, show_default=True, help="Number of initial states.")
 @click.option("--seed", type=int, default=0, show_default=True, help="Seed of the initial states.")
@@ -124,7 +124,7 @@ def compare(run_dirs: tuple[Path, ...], xi: str, n_init: int, seed: int, horizon
 
 
 @click.command("sweep")
-@click.argument("system")
+@click.argument("system", callback=known_system)
 @click.option("--seeds", default="0-4", show_default=True, help="Training seeds: '0-9', '0,2,5' or '0-4,10'.")
 @click.option("--radius", default=None, help="Wasserstein radii r, comma-separated [the system's default].")
 @click.option("--eps", default=None, help="Risk levels eps, comma-separated [the system's default].")

@@ -5,7 +5,10 @@ published by a rename that never replaces what is there, and locked while a proc
 * :func:`atomic_dir` -- fill a temporary sibling, then rename it into place (:func:`rename_noreplace`); an
   interrupted fill leaves nothing, and temporaries of processes that died are cleaned on the next write there;
 * :class:`DirectoryLock` -- a directory owned by one process (a running sweep); :func:`held_by_another` says
-  whether one is, so that a second sweep, or a run written into it, is refused.
+  whether one is, so that a second sweep, or a run written into it, is refused;
+* :func:`complete_run_dir` -- whether a directory was published complete (its ``run.json`` is written last).
+
+Imports no numerical code, so that a command checks its paths at once.
 """
 
 from __future__ import annotations
@@ -32,6 +35,18 @@ MIN_FREE_BYTES = 64 * 2**20
 
 LOCK_FILE = ".drlyap.lock"
 _HELD: set[str] = set()  # lock files this process holds
+
+
+def complete_run_dir(path: str | os.PathLike) -> Path:
+    """The ``run.json`` of the run directory ``path``, the file that marks it complete (written last); a
+    :class:`RunDirError` naming ``path`` where it does not exist or is incomplete."""
+    path = Path(path)
+    if not path.is_dir():
+        raise RunDirError(f"run directory {path} does not exist")
+    marker = path / "run.json"
+    if not marker.is_file():
+        raise RunDirError(f"{path} is not a complete drlyap run directory (no run.json)")
+    return marker
 
 
 def ensure_new(out: str | os.PathLike) -> None:
