@@ -3,6 +3,8 @@
 import io
 import json
 import math
+import re
+import shlex
 
 import pytest
 import torch
@@ -197,3 +199,43 @@ def test_run_kind_loaders_are_one_table():
     from drlyap.workflows.policies import LOADERS
 
     assert {"lyapunov", "lqr", "rl"} <= set(LOADERS)
+
+
+def _run_printed(output: str, pattern: str) -> str:
+    """The command a previous one printed (``pattern``'s group), run through the command line exactly as printed."""
+    found = re.search(pattern, output)
+    assert found, (pattern, output)
+    words = shlex.split(found.group(1))
+    assert words[0] == "drlyap", words
+    result = CliRunner().invoke(main, words[1:])
+    assert result.exit_code == 0, (found.group(1), result.output)
+    return result.output
+
+
+def test_printed_commands_run_as_printed(tmp_path):
+    """The next steps train, verify and import print for a system from a file carry --system with the run's
+    recorded spec, and run as printed."""
+    file = write_system(tmp_path / "dint.py")
+    train = invoke("train", f"{file}:make", "--iters", "20", "--quiet", "--no-verify", "--out", tmp_path / "run")
+    assert train.exit_code == 0, train.output
+    assert f"--system {file.resolve()}:make" in train.output
+    verified = _run_printed(train.output, r"certificate: NOT CHECKED .*; run `([^`]*)`")
+    checked = _run_printed(verified, r"re-check it with `([^`]*)`")
+    assert "trained: CHECKED" in checked
+    exported = invoke("export", tmp_path / "run", "--system", f"{file}:make")
+    assert exported.exit_code == 0, exported.output
+    imported = invoke("import", f"{file}:make", "--controller", tmp_path / "run" / "export" / "controller.onnx",
+                      "--out", tmp_path / "imported")
+    assert imported.exit_code == 0, imported.output
+    proved = _run_printed(imported.output, r"prove it: (.*)")
+    assert "true model at xi = [-0.2]" in proved
+
+
+def test_a_printed_command_quotes_what_the_shell_would_split(tmp_path):
+    from drlyap.cli.common import command_hint
+
+    source = {"spec": "my dir/s.py:make", "reload": "/home/me/my dir/s.py:make", "path": "/home/me/my dir/s.py"}
+    hint = command_hint("check", tmp_path / "a run", source=source)
+    assert shlex.split(hint) == ["drlyap", "check", str(tmp_path / "a run"), "--system", "/home/me/my dir/s.py:make"]
+    assert command_hint("check", "runs/p", source={"spec": "pendulum", "reload": "pendulum", "path": None}) == \
+        "drlyap check runs/p"

@@ -71,11 +71,12 @@ def claim_sentence(claim: dict) -> str:
         return "(an unreadable claim)"
 
 
-def certificate_line(cert: Certificate) -> str:
-    """The one line that says what was proved about a run's trained condition."""
+def certificate_line(cert: Certificate, verify_command: str = "drlyap verify RUN") -> str:
+    """The one line that says what was proved about a run's trained condition; ``verify_command``: the command that
+    proves it, named when nothing was checked."""
     status = cert.status
     if status == "not checked":
-        return f"certificate: NOT CHECKED ({cert.condition} condition; run `drlyap verify RUN`)"
+        return f"certificate: NOT CHECKED ({cert.condition} condition; run `{verify_command}`)"
     where = cert.region or "X_delta"
     if status == "verified":
         return (f"certificate: VERIFIED - the {cert.condition} condition holds at every state of {of_region(where)} "

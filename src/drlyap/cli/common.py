@@ -4,9 +4,12 @@ settings dataclasses. Imports neither torch nor the numerical code, so ``--help`
 from __future__ import annotations
 
 import dataclasses
+import json
 import math
 import os
+import shlex
 import sys
+from pathlib import Path
 
 import click
 
@@ -97,3 +100,22 @@ def run_system_of(spec: str | None):
     from drlyap.systems import resolve_system
 
     return resolve_system(spec)
+
+
+def recorded_source(run_dir: Path) -> dict | None:
+    """Where a run's system came from, as its ``run.json`` records it (``system_source``), read as plain JSON: nothing
+    is imported. None where the file cannot be read."""
+    try:
+        source = json.loads((Path(run_dir) / "run.json").read_text()).get("system_source")
+    except (OSError, ValueError, AttributeError):
+        return None
+    return source if isinstance(source, dict) else None
+
+
+def command_hint(*words: object, source: dict | None = None) -> str:
+    """A ``drlyap`` command to print for the user to run next, quoted for a POSIX shell, with ``--system SPEC`` where
+    the run's system came from a file or a module (``source``: :func:`drlyap.systems.system_source`, as ``run.json``
+    records it), so that it runs as printed."""
+    spec = (source or {}).get("reload")
+    needs = ["--system", str(spec)] if spec and ":" in str(spec) else []
+    return shlex.join(["drlyap", *(str(w) for w in words), *needs])

@@ -8,7 +8,7 @@ from pathlib import Path
 
 import click
 
-from drlyap.cli.common import fail, known_system
+from drlyap.cli.common import command_hint, fail, known_system, recorded_source
 
 
 @click.command("import")
@@ -57,5 +57,8 @@ def import_pair(system: str, controller: Path, lyapunov: Path | None, out: Path,
             click.echo(f"    {note}")
     offset = ", ".join(f"{v:.3g}" for v in pair.checks["pi_minus_u_star"])
     click.echo(f"  at x*: pi(x*) - u* = ({offset})")
-    xi = ",".join(f"{v:g}" for v in sys_.test_xi) if sys_.test_xi is not None else "XI"
-    click.echo(f"  prove it: drlyap verify {out} --xi {xi} --roa")
+    if sys_.test_xi is not None:
+        where, xi = "", ",".join(f"{v:g}" for v in sys_.test_xi)
+    else:  # no test shift declared: the nominal model, xi = 0
+        where, xi = " on the nominal model (--xi: another shift)", ",".join("0" for _ in range(sys_.k))
+    click.echo(f"  prove it{where}: {command_hint('verify', out, '--xi', xi, '--roa', source=recorded_source(out))}")

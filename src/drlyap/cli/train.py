@@ -8,7 +8,7 @@ from pathlib import Path
 
 import click
 
-from drlyap.cli.common import complete_runs, default, fail, floats, known_system
+from drlyap.cli.common import command_hint, complete_runs, default, fail, floats, known_system
 from drlyap.config import ProofConfig, TrainConfig
 
 
@@ -159,4 +159,5 @@ def train(system: str, method: str, loss: str, radius: float | None, eps: float 
     if c:
         click.echo(f"  proof: {c['retraining_rounds']} retraining round(s) (kept round {c['returned_round']})")
     click.echo(f"  saved {out}")
-    click.echo(certificate_line(Certificate.from_dict(m["certificate"])))
+    click.echo(certificate_line(Certificate.from_dict(m["certificate"]),
+                                command_hint("verify", out, source=source)))

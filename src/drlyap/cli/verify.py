@@ -8,7 +8,16 @@ from pathlib import Path
 
 import click
 
-from drlyap.cli.common import complete_runs, default, fail, floats, run_source_options, run_system_of
+from drlyap.cli.common import (
+    command_hint,
+    complete_runs,
+    default,
+    fail,
+    floats,
+    recorded_source,
+    run_source_options,
+    run_system_of,
+)
 from drlyap.config import ENCLOSURES, ProofConfig
 
 
@@ -82,8 +91,8 @@ def verify(run_dir: Path, delta: float | None, xi: str | None, time_limit: float
             except OSError as err:
                 stored = f"  not stored: {run.path / 'metrics.json'} cannot be written ({err.strerror or err})"
         try:
-            written = [f"  certificate: {p} (re-check it with `drlyap check {run_dir}`)"
-                       for p in record_certificates(run, result)]
+            recheck = command_hint("check", run_dir, source=recorded_source(run_dir))
+            written = [f"  certificate: {p} (re-check it with `{recheck}`)" for p in record_certificates(run, result)]
         except OSError as err:
             written = [f"  no certificate written: {run.path} cannot be written ({err.strerror or err})"]
         if max_radius:

@@ -21,6 +21,7 @@ from __future__ import annotations
 import csv
 import json
 import os
+import shlex
 from collections.abc import Callable
 from dataclasses import dataclass
 from functools import cached_property
@@ -202,7 +203,7 @@ def run_system(path: str | os.PathLike, name: str, system: UncertainSystem | Non
         spec = source.get("reload")
         if spec and ":" in str(spec) and not trust:
             raise RunDirError(f"{path}: its system {name!r} comes from {spec}; loading the run would run that code. "
-                              f"Name it yourself (--system {spec}, or system= in Python) or trust the run "
+                              f"Name it yourself (--system {shlex.quote(spec)}, or system= in Python) or trust the run "
                               "(--trust-run, or trust=True)")
         try:
             system = resolve_system(spec) if spec else get_system(name)
