@@ -8,11 +8,11 @@ from pathlib import Path
 
 import click
 
-from drlyap.cli.common import complete_runs, fail, run_source_options, run_system_of
+from drlyap.cli.common import fail, refuse_early, run_source_options, run_system_of
 
 
 @click.command()
-@click.argument("run_dir", type=click.Path(path_type=Path), callback=complete_runs)
+@click.argument("run_dir", type=click.Path(path_type=Path))
 @click.option("--name", "names", multiple=True, type=click.Choice(["trained", "true-model"]),
               help="Which certificate to check (repeatable) [every one the run holds].")
 @click.option("--refine", type=click.IntRange(0, 12), default=3, show_default=True,
@@ -29,6 +29,8 @@ def check(run_dir: Path, names: tuple[str, ...], refine: int, as_json: bool, sys
     A certificate is written by `drlyap train` and `drlyap verify` for every proof that ends verified on the state box
     minus the delta-ball.
     """
+    refuse_early(runs=[run_dir], systems=[system_spec])
+
     from drlyap.checker import check_run
     from drlyap.render import check_lines
 

@@ -9,6 +9,7 @@ import math
 import os
 import shlex
 import sys
+from collections.abc import Iterable
 from pathlib import Path
 
 import click
@@ -55,31 +56,24 @@ def fail(err: Exception) -> None:
     raise click.ClickException(str(err))
 
 
-def known_system(ctx: click.Context | None, param: click.Parameter | None, value: str | None) -> str | None:
-    """Click callback of a SYSTEM spec: one that cannot name a system is refused before the numerical code loads
-    (:func:`drlyap.specs.check_spec`, against the names registered in this process)."""
+def refuse_early(runs: Iterable[Path | None] = (), systems: Iterable[str | None] = ()) -> None:
+    """Refuse, before the numerical code loads, a SYSTEM spec that cannot name a system
+    (:func:`drlyap.specs.check_spec`, against the names registered in this process) and a RUN_DIR that is no complete
+    run directory (:func:`drlyap.runs.publish.complete_run_dir`); None entries are skipped. A one-line error."""
+    from drlyap.runs.publish import complete_run_dir
     from drlyap.specs import BUILT_IN, check_spec
 
-    if value is not None:
-        registry = sys.modules.get("drlyap.systems.registry")  # loaded where something may have registered more
-        try:
-            check_spec(value, registry.system_names() if registry is not None else BUILT_IN)
-        except ValueError as err:
-            raise click.ClickException(str(err)) from None
-    return value
-
-
-def complete_runs(ctx: click.Context | None, param: click.Parameter | None, value):
-    """Click callback of a RUN_DIR argument (one path or several, or None): each a complete run directory, checked
-    before the numerical code loads (:func:`drlyap.runs.publish.complete_run_dir`)."""
-    from drlyap.runs.publish import RunDirError, complete_run_dir
-
-    for path in value if isinstance(value, tuple) else () if value is None else (value,):
-        try:
-            complete_run_dir(path)
-        except RunDirError as err:
-            raise click.ClickException(str(err)) from None
-    return value
+    registry = sys.modules.get("drlyap.systems.registry")  # loaded where something may have registered more names
+    names = registry.system_names() if registry is not None else BUILT_IN
+    try:
+        for spec in systems:
+            if spec is not None:
+                check_spec(spec, names)
+        for path in runs:
+            if path is not None:
+                complete_run_dir(path)
+    except ValueError as err:
+        fail(err)
 
 
 def run_source_options(command):
@@ -88,7 +82,7 @@ def run_source_options(command):
     command = click.option("--trust-run", is_flag=True,
                            help="Trust the run directory: rebuild its system from the file or module it records (that "
                                 "runs that code), and read an older RL run's pickled model.zip.")(command)
-    return click.option("--system", "system_spec", default=None, callback=known_system,
+    return click.option("--system", "system_spec", default=None,
                         help="The run's system, when it came from a file or a module: path/to/file.py:factory or "
                              "package.module:factory (run as you name it; default: refuse to run recorded code).")(command)
 

@@ -7,7 +7,7 @@ from pathlib import Path
 
 import click
 
-from drlyap.cli.common import complete_runs, fail, floats, run_source_options, run_system_of
+from drlyap.cli.common import fail, floats, refuse_early, run_source_options, run_system_of
 
 
 def _writable_folder(folder: Path) -> None:
@@ -23,7 +23,7 @@ def _writable_folder(folder: Path) -> None:
 
 
 @click.command()
-@click.argument("run_dir", type=click.Path(path_type=Path), callback=complete_runs)
+@click.argument("run_dir", type=click.Path(path_type=Path))
 @click.option("--xi", required=True, help="Parameter shift, comma-separated in the system's uncertain order.")
 @click.option("--n-init", type=int, default=200, show_default=True, help="Number of initial states.")
 @click.option("--seed", type=int, default=0, show_default=True, help="Seed of the initial states.")
@@ -33,6 +33,8 @@ def _writable_folder(folder: Path) -> None:
 def evaluate(run_dir: Path, xi: str, n_init: int, seed: int, horizon: float | None, as_json: bool,
              system_spec: str | None, trust_run: bool) -> None:
     """Simulate RUN_DIR's controller (a run of any kind) on the true model at parameter shift --xi."""
+    refuse_early(runs=[run_dir], systems=[system_spec])
+
     import torch
 
     from drlyap.simulation import evaluate as score
@@ -60,7 +62,7 @@ def evaluate(run_dir: Path, xi: str, n_init: int, seed: int, horizon: float | No
 
 
 @click.command()
-@click.argument("run_dir", type=click.Path(path_type=Path), callback=complete_runs)
+@click.argument("run_dir", type=click.Path(path_type=Path))
 @click.option("--xi", default=None, help="Shift of the true model, comma-separated [the system's test shift, or nominal].")
 @click.option("--n-init", type=int, default=20, show_default=True, help="Number of trajectories in the phase portrait.")
 @click.option("--seed", type=int, default=0, show_default=True, help="Seed of their initial states.")
@@ -76,6 +78,8 @@ def plot(run_dir: Path, xi: str | None, n_init: int, seed: int, roa: bool | None
          horizon: float | None, out: Path | None, as_json: bool, system_spec: str | None, trust_run: bool) -> None:
     """Figures of RUN_DIR on the true model: phase portrait with labelled level sets of V and the certified set,
     V(t) and u(t) with the input limits, and heatmaps of V and of the decrease condition."""
+    refuse_early(runs=[run_dir], systems=[system_spec])
+
     from drlyap.workflows.plot import plot_run
 
     try:

@@ -8,11 +8,11 @@ from pathlib import Path
 
 import click
 
-from drlyap.cli.common import command_hint, fail, known_system, recorded_source
+from drlyap.cli.common import command_hint, fail, recorded_source, refuse_early
 
 
 @click.command("import")
-@click.argument("system", callback=known_system)
+@click.argument("system")
 @click.option("--controller", "controller", type=click.Path(path_type=Path, dir_okay=False), required=True,
               help="ONNX model of the controller: x (batch, n) -> u (batch, m), e.g. drlyap export's controller.onnx.")
 @click.option("--lyapunov", "lyapunov", type=click.Path(path_type=Path, dir_okay=False), default=None,
@@ -29,6 +29,8 @@ def import_pair(system: str, controller: Path, lyapunov: Path | None, out: Path,
     Then `drlyap verify OUT --xi ... --roa` proves decrease on the true model and certifies a region of attraction
     as for a trained pair, and `drlyap compare` puts it beside other runs. SYSTEM is a registered name,
     package.module:factory or path/to/file.py:factory."""
+    refuse_early(systems=[system])
+
     from drlyap.runs.imported import import_run
 
     try:

@@ -8,7 +8,7 @@ from pathlib import Path
 
 import click
 
-from drlyap.cli.common import command_hint, complete_runs, default, fail, floats, known_system
+from drlyap.cli.common import command_hint, default, fail, floats, refuse_early
 from drlyap.config import ProofConfig, TrainConfig
 
 
@@ -47,7 +47,7 @@ def _check_numbers(**given: float | None) -> None:
 
 
 @click.command()
-@click.argument("system", callback=known_system)
+@click.argument("system")
 @click.option("--method", type=click.Choice(["baseline", "dr"]), default=default(TrainConfig, "method"),
               show_default=True, help="baseline: nominal condition at the mean xi sample; dr: distributionally robust.")
 @click.option("--loss", type=click.Choice(["pointwise", "uniform"]), default=default(TrainConfig, "loss"),
@@ -63,7 +63,7 @@ def _check_numbers(**given: float | None) -> None:
               help="Iteration cap [the system's: 3000; 4500 for quadrotor2d].")
 @click.option("--seed", type=int, default=default(TrainConfig, "seed"), show_default=True)
 @click.option("--device", default=default(TrainConfig, "device"), show_default=True, help="cpu or cuda.")
-@click.option("--warm-start", type=click.Path(path_type=Path), default=None, callback=complete_runs,
+@click.option("--warm-start", type=click.Path(path_type=Path), default=None,
               help="Start from the networks of this run directory (e.g. a baseline run).")
 @click.option("--out", type=click.Path(path_type=Path), required=True, help="Run directory to create.")
 @click.option("--quiet", is_flag=True, help="No progress bar.")
@@ -95,6 +95,8 @@ def train(system: str, method: str, loss: str, radius: float | None, eps: float 
     The last line says whether the condition is VERIFIED (proved at every state of the box minus the
     delta-ball), VIOLATED (a counterexample) or UNKNOWN (budget ran out).
     """
+    refuse_early(runs=[warm_start], systems=[system])
+
     from drlyap.runs.publish import check_writable
 
     try:  # what needs no system is checked before the numerical code loads

@@ -10,11 +10,11 @@ import click
 
 from drlyap.cli.common import (
     command_hint,
-    complete_runs,
     default,
     fail,
     floats,
     recorded_source,
+    refuse_early,
     run_source_options,
     run_system_of,
 )
@@ -22,7 +22,7 @@ from drlyap.config import ENCLOSURES, ProofConfig
 
 
 @click.command()
-@click.argument("run_dir", type=click.Path(path_type=Path), callback=complete_runs)
+@click.argument("run_dir", type=click.Path(path_type=Path))
 @click.option("--delta", type=float, default=None, help="Radius of the excluded ball around x* [the run's delta].")
 @click.option("--xi", default=None, help="Also verify plain decrease on the true model at this shift (comma-separated).")
 @click.option("--time-limit", type=float, default=None,
@@ -61,6 +61,8 @@ def verify(run_dir: Path, delta: float | None, xi: str | None, time_limit: float
     RUN_DIR/certificates/ (re-checked by `drlyap check`). A pair brought with `drlyap import` has no trained
     condition: its decrease on the true model at --xi (the system's test shift by default) is proved.
     """
+    refuse_early(runs=[run_dir], systems=[system_spec])
+
     from drlyap.io import jsonable
     from drlyap.render import verification_lines
     from drlyap.runs import load_run, read_run_kind
@@ -139,7 +141,7 @@ def _verify_imported(run_dir: Path, delta: float | None, xi: str | None, time_li
 
 
 @click.command("guarantee")
-@click.argument("run_dir", type=click.Path(path_type=Path), callback=complete_runs)
+@click.argument("run_dir", type=click.Path(path_type=Path))
 @click.option("--dist", "dist", default="train", show_default=True,
               help="Distribution of xi: 'train' (the system's own), 'normal:M1,M2;S1,S2', 'uniform:L1,L2;H1,H2' "
                    "or 'point:V1,V2'.")
@@ -158,6 +160,8 @@ def guarantee(run_dir: Path, dist: str, n: int, method: str, eps_bar: float, see
               radius_constants: str | None, as_json: bool, system_spec: str | None, trust_run: bool) -> None:
     """Estimate P(sup_x Vdot + gamma||x - x*|| <= 0) on the true model under a distribution of xi, next to the
     bound (1 - eps)(1 - eps_bar) of the paper's lemma."""
+    refuse_early(runs=[run_dir], systems=[system_spec])
+
     from drlyap.runs import load_run
     from drlyap.workflows.guarantee import guarantee as estimate
 
@@ -197,7 +201,7 @@ def guarantee(run_dir: Path, dist: str, n: int, method: str, eps_bar: float, see
 
 
 @click.command()
-@click.argument("run_dir", type=click.Path(path_type=Path), callback=complete_runs)
+@click.argument("run_dir", type=click.Path(path_type=Path))
 @click.option("--spacing", type=float, default=None, help="Grid spacing in local state units [about 20000 cells].")
 @click.option("--xi", default=None, help="Check plain decrease on the true model at this shift instead.")
 @click.option("--verify-time", type=float, default=10.0, show_default=True,
@@ -211,6 +215,8 @@ def lipschitz(run_dir: Path, spacing: float | None, xi: str | None, verify_time:
     Certified when the residual at every cell centre is <= -L * rho (L: a sound Lipschitz constant from interval
     gradient bounds, rho: the covering radius); compare with the branch and bound of `drlyap verify`.
     """
+    refuse_early(runs=[run_dir], systems=[system_spec])
+
     from drlyap.io import jsonable
     from drlyap.render import covering_lines
     from drlyap.runs import load_run

@@ -8,7 +8,7 @@ from pathlib import Path
 
 import click
 
-from drlyap.cli.common import complete_runs, default, fail, floats, known_system, run_source_options, run_system_of
+from drlyap.cli.common import default, fail, floats, refuse_early, run_source_options, run_system_of
 from drlyap.config import ProofConfig, TrainConfig
 
 
@@ -23,7 +23,7 @@ def seed_values(text: str) -> list[int]:
 
 
 @click.command()
-@click.argument("system", callback=known_system)
+@click.argument("system")
 @click.option("--seeds", default="0", show_default=True, help="Training seeds: '0-9', '0,2,5' or '0-4,10'.")
 @click.option("--out", type=click.Path(path_type=Path), default=None,
               help="Output directory [first free runs/reproduce-SYSTEM, -2, -3, ...].")
@@ -46,6 +46,8 @@ def reproduce(system: str, seeds: str, out: Path | None, iters: int | None, devi
 
     SYSTEM is a registered name (`drlyap systems`), package.module:factory or path/to/file.py:factory;
     it must declare a test shift (test_xi) and a training distribution (xi_sampler)."""
+    refuse_early(systems=[system])
+
     from drlyap.systems import resolve_system, system_source
     from drlyap.workflows.reproduce import format_table
     from drlyap.workflows.reproduce import reproduce as run_reproduce
@@ -78,7 +80,7 @@ def reproduce(system: str, seeds: str, out: Path | None, iters: int | None, devi
 
 
 @click.command()
-@click.argument("run_dirs", nargs=-1, required=True, type=click.Path(path_type=Path), callback=complete_runs)
+@click.argument("run_dirs", nargs=-1, required=True, type=click.Path(path_type=Path))
 @click.option("--xi", required=True, help="Parameter shift, comma-separated in the system's uncertain order.")
 @click.option("--n-init", type=int, default=200, show_default=True, help="Number of initial states.")
 @click.option("--seed", type=int, default=0, show_default=True, help="Seed of the initial states.")
@@ -103,6 +105,8 @@ def compare(run_dirs: tuple[Path, ...], xi: str, n_init: int, seed: int, horizon
     controller without V, with the z'Pz of its linearisation, where x* is its equilibrium) and the certified region
     of attraction (a sublevel set of the certificate from which every trajectory converges to x*).
     """
+    refuse_early(runs=run_dirs, systems=[system_spec])
+
     from drlyap.workflows.compare import compare_runs, format_comparison
 
     try:
@@ -124,7 +128,7 @@ def compare(run_dirs: tuple[Path, ...], xi: str, n_init: int, seed: int, horizon
 
 
 @click.command("sweep")
-@click.argument("system", callback=known_system)
+@click.argument("system")
 @click.option("--seeds", default="0-4", show_default=True, help="Training seeds: '0-9', '0,2,5' or '0-4,10'.")
 @click.option("--radius", default=None, help="Wasserstein radii r, comma-separated [the system's default].")
 @click.option("--eps", default=None, help="Risk levels eps, comma-separated [the system's default].")
@@ -160,6 +164,8 @@ def sweep(system: str, seeds: str, radius: str | None, eps: str | None, method: 
     One run directory per combination under --out, plus results.csv, results.json and figures/sweep.png.
     Running the same command again continues an interrupted sweep and retries failed combinations.
     """
+    refuse_early(systems=[system])
+
     from drlyap.systems import resolve_system
     from drlyap.workflows import sweep as sw
 
