@@ -58,7 +58,7 @@ def test_evaluate_rejects_bad_xi(run_dir, xi, message):
 
 def test_train_refuses_to_overwrite(run_dir):
     result = CliRunner().invoke(main, ["train", "pendulum", "--iters", "1", "--out", str(run_dir)])
-    assert result.exit_code != 0 and "already exists" in result.output
+    assert result.exit_code != 0 and f"{run_dir} already exists; choose another --out or remove it" in result.output
 
 
 def test_reproduce_end_to_end_writes_table_json_and_figures(tmp_path):

@@ -52,8 +52,11 @@ def floats(text: str | None, what: str) -> list[float] | None:
 
 
 def fail(err: Exception) -> None:
-    """A one-line error (exit status 1)."""
-    raise click.ClickException(str(err))
+    """A one-line error (exit status 1); a path to write to that cannot be used is named as the ``--out`` it came
+    from."""
+    from drlyap.runs.publish import DestinationError
+
+    raise click.ClickException(err.for_option("--out") if isinstance(err, DestinationError) else str(err))
 
 
 def refuse_early(runs: Iterable[Path | None] = (), systems: Iterable[str | None] = ()) -> None:
