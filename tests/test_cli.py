@@ -96,3 +96,19 @@ def test_train_with_the_local_term_saves_it_and_reports_the_rate(tmp_path):
     rates = metrics["acceptance"]["local_rates"]
     assert len(rates) == 5 and metrics["acceptance"]["local_rate_max"] == max(rates)
     assert not metrics["passed"] or max(rates) < 0
+
+
+@pytest.mark.parametrize("where", ["drlyap.training.train", "drlyap.runs.directory.write_json"])
+def test_ctrl_c_in_train_exits_130_saying_nothing_was_kept(tmp_path, monkeypatch, where):
+    """Interrupted during training or while the run directory is being written: exit status 130, one line saying
+    that nothing was saved, and nothing left at --out or beside it."""
+    def interrupted(*args, **kwargs):
+        raise KeyboardInterrupt
+
+    monkeypatch.setattr(where, interrupted)
+    out = tmp_path / "run"
+    result = CliRunner().invoke(main, ["train", "pendulum", "--iters", "2", "--quiet", "--no-verify", "--out", str(out)])
+    assert result.exit_code == 130, result.output
+    assert result.output.strip().splitlines() == [
+        f"drlyap: interrupted; nothing was saved ({out} is written only when training and its proofs end)"]
+    assert list(tmp_path.iterdir()) == []

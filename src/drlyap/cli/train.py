@@ -4,6 +4,7 @@ from __future__ import annotations
 
 import json
 import math
+import sys
 from pathlib import Path
 
 import click
@@ -93,7 +94,8 @@ def train(system: str, method: str, loss: str, radius: float | None, eps: float 
 
     SYSTEM is a registered name, package.module:factory or path/to/file.py:factory (see `drlyap systems`).
     The last line says whether the condition is VERIFIED (proved at every state of the box minus the
-    delta-ball), VIOLATED (a counterexample) or UNKNOWN (budget ran out).
+    delta-ball), VIOLATED (a counterexample) or UNKNOWN (budget ran out). OUT is written only when training and
+    its proofs end: interrupted (Ctrl-C, exit status 130), nothing is saved.
     """
     refuse_early(runs=[warm_start], systems=[system])
 
@@ -115,13 +117,13 @@ def train(system: str, method: str, loss: str, radius: float | None, eps: float 
     except ValueError as err:
         fail(err)
 
-    from drlyap.render import certificate_line, proof_round_line
-    from drlyap.runs import load_run, save_run
-    from drlyap.systems import resolve_system, system_source
-    from drlyap.training import train as train_pair
-    from drlyap.verification import Certificate
-
     try:
+        from drlyap.render import certificate_line, proof_round_line
+        from drlyap.runs import load_run, save_run
+        from drlyap.systems import resolve_system, system_source
+        from drlyap.training import train as train_pair
+        from drlyap.verification import Certificate
+
         sys_ = resolve_system(system)
         source = system_source(system, sys_)
         cfg = TrainConfig(system=sys_.name, method=method, loss=loss, wasserstein_radius=radius, risk_level=eps,
@@ -135,9 +137,13 @@ def train(system: str, method: str, loss: str, radius: float | None, eps: float 
             init = (prior.lyapunov_net, prior.controller_net)
         result = train_pair(cfg, sys_, proof, progress=not quiet, init=init,
                             log=lambda entry: click.echo(proof_round_line(entry), err=True), warn=False)
-        save_run(out, result, source=source)
+        save_run(out, result, source=source)  # atomic: an interrupted save leaves nothing at OUT
     except ValueError as err:
         fail(err)
+    except KeyboardInterrupt:
+        click.echo(f"drlyap: interrupted; nothing was saved ({out} is written only when training and its proofs "
+                   "end)", err=True)
+        sys.exit(130)
     m = result.metrics
     if as_json:
         click.echo(json.dumps({"run_dir": str(out), "system": sys_.name, "method": method, "metrics": m}))
