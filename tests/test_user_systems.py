@@ -239,3 +239,35 @@ def test_a_printed_command_quotes_what_the_shell_would_split(tmp_path):
     assert shlex.split(hint) == ["drlyap", "check", str(tmp_path / "a run"), "--system", "/home/me/my dir/s.py:make"]
     assert command_hint("check", "runs/p", source={"spec": "pendulum", "reload": "pendulum", "path": None}) == \
         "drlyap check runs/p"
+
+
+def test_compare_figures_start_from_the_test_box_without_reference_states(tmp_path, monkeypatch):
+    """A system that declares no reference states: compare's figures start from states drawn from its test box
+    with --seed (not from its centre, x* here, where V and u are flat lines)."""
+    from drlyap import plotting
+
+    file = write_system(tmp_path / "plain.py")
+    file.write_text(file.read_text().replace("reference_states=((-0.8, 0.5),), ", ""))
+    system = resolve_system(f"{file}:make")
+    assert system.reference_states == ()
+    train = invoke("train", f"{file}:make", "--iters", "20", "--quiet", "--no-verify", "--out", tmp_path / "run")
+    assert train.exit_code == 0, train.output
+    drawn = []
+    real = plotting.time_series
+
+    def record(series, path, title, **kwargs):
+        drawn.append((title, series))
+        return real(series, path, title, **kwargs)
+
+    monkeypatch.setattr(plotting, "time_series", record)
+    result = invoke("compare", tmp_path / "run", "--system", f"{file}:make", "--xi", "-0.2", "--n-init", "4",
+                    "--seed", "3", "--horizon", "1", "--certify-time", "0", "--out", tmp_path / "cmp")
+    assert result.exit_code == 0, result.output
+    starts = system.figure_starts(3)
+    assert len(drawn) == len(starts) == 2 and starts != system.figure_starts(4)
+    (lo, hi), x_star = system.test_box, system.equilibrium
+    for (title, series), start in zip(drawn, starts):
+        assert all(a <= v <= b for a, v, b in zip(lo, start, hi)) and tuple(start) != tuple(x_star)
+        assert f"from ({', '.join(f'{v:.3g}' for v in start)})" in title
+        (_, value, u), = series.values()
+        assert float(value.max() - value.min()) > 1e-3 and float(u.max() - u.min()) > 0  # not flat lines

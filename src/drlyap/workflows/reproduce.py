@@ -154,7 +154,7 @@ def draw_figures(system: UncertainSystem, runs: dict[str, Run], xi: torch.Tensor
                for method, run in runs.items()}
     phase = plotting.phase_portraits(system, trajs, ok, folder / "trajectories.png",
                                      f"{system.name}, true model at {shift} (seed {seed})", levels, regions)
-    start = torch.tensor([system.figure_starts()[0]], dtype=torch.float64)
+    start = torch.tensor([system.figure_starts(seed)[0]], dtype=torch.float64)
     series, states = {}, {}
     for method, run in runs.items():
         traj = simulate(system, run.controller, start, xi, horizon=horizon)
