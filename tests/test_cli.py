@@ -86,6 +86,36 @@ def test_proved_shares_are_never_rounded_up_to_a_proof():
     assert proved_percent(1.0, verified=True) == "100.00%"
 
 
+def test_a_level_is_never_printed_above_the_one_proved():
+    from hypothesis import given
+    from hypothesis import strategies as st
+
+    from drlyap.render import condition_region, level_text
+
+    assert level_text(0.9999999999999991) == "0.999999" and level_text(1.0) == "1" and level_text(0.3) == "0.3"
+    assert "{V <= 0.999999}" in condition_region(0.9999999999999991, 0.1) and "V <= 1}" not in \
+        condition_region(0.9999999999999991, 0.1)
+
+    @given(st.floats(min_value=1e-9, max_value=1e9), st.integers(min_value=3, max_value=8))
+    def rounded_the_safe_way(level, digits):
+        down, up = float(level_text(level, digits)), float(level_text(level, digits, up=True))
+        assert down <= level <= up
+        assert level - down <= 10 ** (1 - digits) * level and up - level <= 10 ** (1 - digits) * level
+
+    rounded_the_safe_way()
+
+
+def test_the_comparison_names_the_set_a_decrease_was_proved_on():
+    from drlyap.render import attempt_cells
+    from drlyap.verification import ProofAttempt
+
+    on_level = ProofAttempt(status="verified", verified_fraction=1.0, level=0.9999999999999991)
+    assert attempt_cells(on_level)[0] == "verified on {V <= 0.999999}"
+    assert attempt_cells(ProofAttempt(status="verified", verified_fraction=1.0))[0] == "verified on X_delta"
+    unknown = attempt_cells(ProofAttempt(status="unknown", verified_fraction=0.9947, level=1.0))[0]
+    assert unknown.startswith("unknown on {V <= 1} (99.47% of X_delta proved")
+
+
 def test_train_with_the_local_term_saves_it_and_reports_the_rate(tmp_path):
     out = tmp_path / "run"
     result = CliRunner().invoke(main, ["train", "pendulum", "--iters", "8", "--quiet", "--no-verify", "--local-rate", "0.5",

@@ -84,6 +84,11 @@ def test_user_file_system_trains_evaluates_verifies_and_compares(user_runs):
     rows = json.loads(cmp_.stdout)["rows"]
     assert [r["kind"] for r in rows] == ["lyapunov", "lqr"] and all(r["system"] == "user-dint" for r in rows)
     assert (tmp / "cmp" / "figures" / "certificate_and_input_0.png").is_file()  # from the declared reference state
+    # the pair trained for {V <= 1} is proved on that set, the LQR pair on X_delta: each row names its set
+    assert rows[0]["certified"]["level"] == 1.0 and "level" not in rows[1]["certified"]
+    table = (tmp / "cmp" / "compare.md").read_text().splitlines()
+    lyap, lqr = (next(line for line in table if line.startswith(f"| {tmp / name} |")) for name in ("run", "lqr"))
+    assert f"| {rows[0]['certified']['status']} on {{V <= 1}}" in lyap and "X_delta" in lqr
 
 
 def test_a_changed_system_file_is_refused(user_runs, tmp_path):
@@ -271,3 +276,4 @@ def test_compare_figures_start_from_the_test_box_without_reference_states(tmp_pa
         assert f"from ({', '.join(f'{v:.3g}' for v in start)})" in title
         (_, value, u), = series.values()
         assert float(value.max() - value.min()) > 1e-3 and float(u.max() - u.min()) > 0  # not flat lines
+

@@ -116,7 +116,7 @@ def certify(run: PolicyRun, xi: Tensor, time_limit: float) -> ProofAttempt:
         return ProofAttempt(status=main.status, verified_fraction=main.verified_fraction,
                             counterexample=main.counterexample, time_s=main.time_s, roa_certified=roa.certified,
                             roa_kind=roa.kind, roa_share=roa.share_of_box,
-                            robustness=_robust_summary(robust.radius, robust.shift_box))
+                            robustness=_robust_summary(robust.radius, robust.shift_box), level=main.level)
     if run.kind == "lqr":
         system, design = run.system, run.info["design"]
         loop = ClosedLoop(system, QuadraticLyapunov(design.P),
