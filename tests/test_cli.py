@@ -75,6 +75,11 @@ def test_reproduce_end_to_end_writes_table_json_and_figures(tmp_path):
     assert (out / "seed0" / "figures" / "trajectories.png").is_file()
     assert (out / "seed0" / "figures" / "certificate_and_input.png").is_file()
     assert not [p for p in tmp_path.iterdir() if p.name.startswith(".")]  # no temporary leftovers
+    table = (out / "report.md").read_text()
+    header = next(line for line in table.splitlines() if line.startswith("| seed | method | 10 test states"))
+    legend = next(line for line in table.splitlines() if line.startswith("acceptance: "))
+    for column in ("acceptance", "Hurwitz", "other eq."):  # every column not defined elsewhere has its legend
+        assert f"| {column} |" in header and f"{column}: " in legend
 
 
 def test_proved_shares_are_never_rounded_up_to_a_proof():

@@ -277,3 +277,17 @@ def test_compare_figures_start_from_the_test_box_without_reference_states(tmp_pa
         (_, value, u), = series.values()
         assert float(value.max() - value.min()) > 1e-3 and float(u.max() - u.min()) > 0  # not flat lines
 
+
+def test_a_growing_set_says_how_many_iterations_grew_it(tmp_path):
+    """A system of one's own trains a growing set {V <= 1}: the growth term acts on the first two thirds of the
+    iterations (GROW_SHARE), the rest repair the condition, and the training status says so."""
+    from drlyap.training.trainer import GROW_SHARE, growth_words
+
+    system = resolve_system(f"{write_system(tmp_path / 'g.py')}:make")
+    result = drlyap.train(drlyap.TrainConfig(system=system.name, iters=20), system=system, proof=None, progress=False)
+    grown = math.floor(GROW_SHARE * 20)
+    assert grown == 13 and result.config.grow_weight > 0 and result.config.roa_level == 1.0
+    assert result.metrics["passed"]
+    assert result.metrics["status"] == ("grew the set for 13 of 20 iterations, then repaired the condition on it; kept "
+                                        "the latest pair passing the acceptance check")
+    assert growth_words(20, 20) == "grew the set for all 20 iterations"

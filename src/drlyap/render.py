@@ -272,6 +272,17 @@ def _witness_text(res) -> str:
 
 
 # --------------------------------------------------------------------------- report cells and figure labels
+ACCEPTANCE_LEGEND = (
+    "acceptance: the check that ends training, passed when the trained condition holds at every validation state "
+    "(a dense set of X_delta not used in training, within {V <= c} for a sublevel-set run; max violation and "
+    "violating % are over them), Hurwitz is True and no other eq. is found (a sublevel-set run also needs V > c at "
+    "20,000 states on the box's faces; a run with --local-rate, V decaying near x*). Hurwitz: the closed-loop "
+    "Jacobian at x* on the true model is Hurwitz (every eigenvalue's real part < 0) at every xi sample and at their "
+    "mean. other eq.: closed-loop equilibria other than x* that a Newton root search from a grid of starts found in "
+    "X_delta, at any of those xi.")
+"""The definitions of a report's acceptance, Hurwitz and other eq. columns (:mod:`drlyap.training.acceptance`)."""
+
+
 def roa_cell(roa: RegionOfAttraction | None) -> str | None:
     """A short name of a region-of-attraction result for a report table."""
     if roa is None or roa.error is not None or roa.level is None:

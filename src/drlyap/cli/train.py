@@ -157,9 +157,10 @@ def train(system: str, method: str, loss: str, radius: float | None, eps: float 
     else:
         click.echo(f"{sys_.name} {method}: {m['status']} ({iterations} iterations, {seconds:.1f} s in all)")
     acc = m["acceptance"]
-    click.echo(f"  acceptance: {'PASSED' if m['passed'] else 'NOT PASSED'}; max violation {acc['max_violation']:.3g} "
-               f"on {100 * acc['violating_fraction']:.2f}% of {acc['validation_states']} validation states; "
-               f"Hurwitz at x*: {acc['jacobian']['hurwitz']}; other equilibria: {len(acc['other_equilibria'])}")
+    click.echo(f"  acceptance check: {'PASSED' if m['passed'] else 'NOT PASSED'}; the trained condition's max "
+               f"violation {acc['max_violation']:.3g} on {100 * acc['violating_fraction']:.2f}% of "
+               f"{acc['validation_states']} validation states; closed-loop Jacobian at x* Hurwitz at every xi sample: "
+               f"{acc['jacobian']['hurwitz']}; other closed-loop equilibria found: {len(acc['other_equilibria'])}")
     if acc.get("local_rate_max") is not None:
         rate = acc["local_rate_max"]
         click.echo(f"  V near x*: Vdot <= {rate:+.3g} V to second order at the worst training sample "
