@@ -121,6 +121,20 @@ def test_the_comparison_names_the_set_a_decrease_was_proved_on():
     assert unknown.startswith("unknown on {V <= 1} (99.47% of X_delta proved")
 
 
+def test_help_says_which_runs_train_for_a_region_and_which_proofs_become_certificates():
+    from drlyap.config import SystemDefaults
+    from drlyap.systems import get_system, system_names
+
+    roa = {name for name in system_names() if get_system(name).defaults.roa_level is not None}
+    assert roa == {name for name in system_names() if not name.startswith("pendulum")}
+    assert get_system("pendulum").defaults.roa_level is None
+    assert SystemDefaults().roa_level is not None  # a system of one's own trains for a region unless told otherwise
+    verify_help = " ".join(CliRunner().invoke(main, ["verify", "--help"]).output.split())
+    assert "the default of every built-in system but the pendulum, and of your own systems" in verify_help
+    check_help = " ".join(CliRunner().invoke(main, ["check", "--help"]).output.split())
+    assert "or on a sublevel set {V <= c} of it" in check_help
+
+
 def test_train_with_the_local_term_saves_it_and_reports_the_rate(tmp_path):
     out = tmp_path / "run"
     result = CliRunner().invoke(main, ["train", "pendulum", "--iters", "8", "--quiet", "--no-verify", "--local-rate", "0.5",

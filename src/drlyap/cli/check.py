@@ -26,8 +26,8 @@ def check(run_dir: Path, names: tuple[str, ...], refine: int, as_json: bool, sys
     interval arithmetic, its own reading of V, pi and the condition), and say whether every box holds and the boxes
     cover the claimed region. Exits 1 when a certificate fails.
 
-    A certificate is written by `drlyap train` and `drlyap verify` for every proof that ends verified on the state box
-    minus the delta-ball.
+    A certificate is written by `drlyap train` and `drlyap verify` for every proof of a decrease condition that ends
+    verified, on the state box minus the delta-ball or on a sublevel set {V <= c} of it.
     """
     refuse_early(runs=[run_dir], systems=[system_spec])
 

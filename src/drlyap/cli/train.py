@@ -93,9 +93,10 @@ def train(system: str, method: str, loss: str, radius: float | None, eps: float 
     """Train a controller and Lyapunov certificate for SYSTEM, prove the trained condition, save a run directory.
 
     SYSTEM is a registered name, package.module:factory or path/to/file.py:factory (see `drlyap systems`).
-    The last line says whether the condition is VERIFIED (proved at every state of the box minus the
-    delta-ball), VIOLATED (a counterexample) or UNKNOWN (budget ran out). OUT is written only when training and
-    its proofs end: interrupted (Ctrl-C, exit status 130), nothing is saved.
+    The last line says whether the condition is VERIFIED (proved at every state of the region it trained for: the
+    box minus the delta-ball, or a sublevel set {V <= c} of it), VIOLATED (a counterexample) or UNKNOWN (budget ran
+    out). OUT is written only when training and its proofs end: interrupted (Ctrl-C, exit status 130), nothing is
+    saved.
     """
     refuse_early(runs=[warm_start], systems=[system])
 

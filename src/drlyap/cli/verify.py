@@ -53,8 +53,9 @@ def verify(run_dir: Path, delta: float | None, xi: str | None, time_limit: float
            system_spec: str | None, trust_run: bool) -> None:
     """Prove the decrease condition of RUN_DIR on the whole state box minus the delta-ball, or find a counterexample.
 
-    A run trained for a region of attraction (cartpole's default) has its condition proved on the sublevel set
-    {V <= level} minus the ball instead, together with V > level on the faces of the box.
+    A run trained for a region of attraction (the default of every built-in system but the pendulum, and of your own
+    systems) has its condition proved on the sublevel set {V <= level} minus the ball instead, together with
+    V > level on the faces of the box.
 
     Sound bounds (interval mean-value form, or affine forms with --enclosure affine) with branch and bound,
     in float64 with outward rounding. Every proof that ends verified is written as a certificate file into
