@@ -227,6 +227,11 @@ def test_printed_commands_run_as_printed(tmp_path):
     verified = _run_printed(train.output, r"certificate: NOT CHECKED .*; run `([^`]*)`")
     checked = _run_printed(verified, r"re-check it with `([^`]*)`")
     assert "trained: CHECKED" in checked
+    region = invoke("verify", tmp_path / "run", "--system", f"{file}:make", "--xi", "-0.2", "--roa", "--time-limit", "2")
+    assert region.exit_code == 0, region.output
+    assert re.search(r"drawn by `drlyap plot \S+ --xi -0.2 --system ", region.output)  # at the shift it was proved
+    drawn = _run_printed(region.output, r"drawn by `([^`]*)`")
+    assert "trajectories stabilised" in drawn and "phase_portrait.png" in drawn
     exported = invoke("export", tmp_path / "run", "--system", f"{file}:make")
     assert exported.exit_code == 0, exported.output
     imported = invoke("import", f"{file}:make", "--controller", tmp_path / "run" / "export" / "controller.onnx",

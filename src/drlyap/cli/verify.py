@@ -90,7 +90,9 @@ def verify(run_dir: Path, delta: float | None, xi: str | None, time_limit: float
         if roa:
             try:
                 record_region(run, result)
-                stored = f"  stored in {run.path / 'metrics.json'} (drawn by `drlyap plot`)"
+                shift_args = () if xi is None else ("--xi", xi)
+                drawn = command_hint("plot", run_dir, *shift_args, source=recorded_source(run_dir))
+                stored = f"  stored in {run.path / 'metrics.json'} (drawn by `{drawn}`)"
             except OSError as err:
                 stored = f"  not stored: {run.path / 'metrics.json'} cannot be written ({err.strerror or err})"
         try:
