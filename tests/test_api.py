@@ -38,6 +38,24 @@ def test_load_run_returns_controller_and_certificate_in_user_coordinates(tmp_pat
     assert run.system.name == "mountain-car"
 
 
+def test_a_taken_path_is_refused_in_python_words_and_before_training(tmp_path, tiny_config):
+    """The README's API block run twice: the path it saves to is checked first (drlyap.check_writable) and refused
+    before any training; save_run refuses it too. The message names the path and asks for another path, not for
+    a command-line option."""
+    out = tmp_path / "run"
+    result = drlyap.train(tiny_config(iters=2, check_every=2), proof=None, progress=False)
+    drlyap.save_run(out, result)
+    trained = []
+    with pytest.raises(drlyap.RunDirError, match="already exists") as refused:
+        drlyap.check_writable(out)
+        trained.append(drlyap.train(tiny_config(iters=2, check_every=2), proof=None, progress=False))
+    assert not trained
+    assert str(refused.value) == f"{out} already exists; pass another path or remove it"
+    with pytest.raises(drlyap.RunDirError) as again:
+        drlyap.save_run(out, result)
+    assert str(again.value) == str(refused.value) and "--out" not in str(again.value)
+
+
 def test_train_proves_by_default_and_says_so_when_it_cannot(tiny_config):
     """drlyap.train ends with the verifier's verdict in metrics["certificate"]; an unproved run warns."""
     with pytest.warns(UserWarning, match="NOT verified"):

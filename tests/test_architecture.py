@@ -6,6 +6,8 @@ import subprocess
 import sys
 from pathlib import Path
 
+import pytest
+
 ROOT = Path(__file__).resolve().parents[1]
 SRC = ROOT / "src" / "drlyap"
 
@@ -115,3 +117,34 @@ def test_the_command_reference_lists_every_option():
         for param in cmd.params:
             missing += [f"{' '.join(path)} {opt}" for opt in param.opts if opt.startswith("--") and opt not in text]
     assert not missing, f"docs/cli.md lacks {missing}: regenerate it from --help"
+
+
+@pytest.mark.parametrize("args, message", [
+    (["train", "nosuchsystem", "--out", "OUT"], "unknown system 'nosuchsystem'; valid: cartpole"),
+    (["train", "missing.py:make", "--out", "OUT"], "missing.py does not exist"),
+    (["train", "pendulum", "--iters", "-1", "--out", "OUT"], "iters = -1 (must be >= 1)"),
+    (["train", "pendulum", "--eps", "2", "--out", "OUT"], "risk_level = 2.0 (must be in (0, 1))"),
+    (["train", "pendulum", "--out", "TAKEN"], "already exists"),
+    (["verify", "/nonexistent"], "run directory /nonexistent does not exist"),
+    (["evaluate", "TAKEN", "--xi", "0"], "no run.json"),
+    (["compare", "TAKEN", "--xi", "0"], "no run.json"),
+    (["check", "TAKEN", "--system", "nosuchsystem"], "unknown system 'nosuchsystem'"),
+])
+def test_a_bad_argument_is_refused_before_the_numerical_code_loads(tmp_path, args, message):
+    """A command that only reports a bad argument answers at once: it imports no torch."""
+    (tmp_path / "taken").mkdir()
+    args = [str(tmp_path / "out") if a == "OUT" else str(tmp_path / "taken") if a == "TAKEN" else a for a in args]
+    code = (f"import sys; from drlyap.cli import main\ntry:\n    main({args!r})\nexcept SystemExit as exit:\n"
+            "    print(exit.code, 'torch' in sys.modules, file=sys.stderr)")
+    out = subprocess.run([sys.executable, "-c", code], capture_output=True, text=True, check=True, cwd=tmp_path)
+    *lines, last = out.stderr.strip().splitlines()
+    assert last == "1 False", out.stderr
+    assert len(lines) == 1 and lines[0].startswith("Error: ") and message in lines[0], out.stderr
+    assert not (tmp_path / "out").exists()
+
+
+def test_the_names_checked_without_imports_are_the_registry_s():
+    code = ("import sys; from drlyap.specs import BUILT_IN; from drlyap.systems import system_names\n"
+            "print(sorted(BUILT_IN) == system_names())")
+    out = subprocess.run([sys.executable, "-c", code], capture_output=True, text=True, check=True)
+    assert out.stdout.strip() == "True"

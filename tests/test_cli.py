@@ -58,7 +58,7 @@ def test_evaluate_rejects_bad_xi(run_dir, xi, message):
 
 def test_train_refuses_to_overwrite(run_dir):
     result = CliRunner().invoke(main, ["train", "pendulum", "--iters", "1", "--out", str(run_dir)])
-    assert result.exit_code != 0 and "already exists" in result.output
+    assert result.exit_code != 0 and f"{run_dir} already exists; choose another --out or remove it" in result.output
 
 
 def test_reproduce_end_to_end_writes_table_json_and_figures(tmp_path):
@@ -75,6 +75,11 @@ def test_reproduce_end_to_end_writes_table_json_and_figures(tmp_path):
     assert (out / "seed0" / "figures" / "trajectories.png").is_file()
     assert (out / "seed0" / "figures" / "certificate_and_input.png").is_file()
     assert not [p for p in tmp_path.iterdir() if p.name.startswith(".")]  # no temporary leftovers
+    table = (out / "report.md").read_text()
+    header = next(line for line in table.splitlines() if line.startswith("| seed | method | 10 test states"))
+    legend = next(line for line in table.splitlines() if line.startswith("acceptance: "))
+    for column in ("acceptance", "Hurwitz", "other eq."):  # every column not defined elsewhere has its legend
+        assert f"| {column} |" in header and f"{column}: " in legend
 
 
 def test_proved_shares_are_never_rounded_up_to_a_proof():
@@ -84,6 +89,50 @@ def test_proved_shares_are_never_rounded_up_to_a_proof():
     assert proved_percent(0.998449, verified=False) == "99.84%"
     assert proved_percent(1.0, verified=False, decimals=4) == "> 99.9999%"  # a volume sum that reached 1.0
     assert proved_percent(1.0, verified=True) == "100.00%"
+
+
+def test_a_level_is_never_printed_above_the_one_proved():
+    from hypothesis import given
+    from hypothesis import strategies as st
+
+    from drlyap.render import condition_region, level_text
+
+    assert level_text(0.9999999999999991) == "0.999999" and level_text(1.0) == "1" and level_text(0.3) == "0.3"
+    assert "{V <= 0.999999}" in condition_region(0.9999999999999991, 0.1) and "V <= 1}" not in \
+        condition_region(0.9999999999999991, 0.1)
+
+    @given(st.floats(min_value=1e-9, max_value=1e9), st.integers(min_value=3, max_value=8))
+    def rounded_the_safe_way(level, digits):
+        down, up = float(level_text(level, digits)), float(level_text(level, digits, up=True))
+        assert down <= level <= up
+        assert level - down <= 10 ** (1 - digits) * level and up - level <= 10 ** (1 - digits) * level
+
+    rounded_the_safe_way()
+
+
+def test_the_comparison_names_the_set_a_decrease_was_proved_on():
+    from drlyap.render import attempt_cells
+    from drlyap.verification import ProofAttempt
+
+    on_level = ProofAttempt(status="verified", verified_fraction=1.0, level=0.9999999999999991)
+    assert attempt_cells(on_level)[0] == "verified on {V <= 0.999999}"
+    assert attempt_cells(ProofAttempt(status="verified", verified_fraction=1.0))[0] == "verified on X_delta"
+    unknown = attempt_cells(ProofAttempt(status="unknown", verified_fraction=0.9947, level=1.0))[0]
+    assert unknown.startswith("unknown on {V <= 1} (99.47% of X_delta proved")
+
+
+def test_help_says_which_runs_train_for_a_region_and_which_proofs_become_certificates():
+    from drlyap.config import SystemDefaults
+    from drlyap.systems import get_system, system_names
+
+    roa = {name for name in system_names() if get_system(name).defaults.roa_level is not None}
+    assert roa == {name for name in system_names() if not name.startswith("pendulum")}
+    assert get_system("pendulum").defaults.roa_level is None
+    assert SystemDefaults().roa_level is not None  # a system of one's own trains for a region unless told otherwise
+    verify_help = " ".join(CliRunner().invoke(main, ["verify", "--help"]).output.split())
+    assert "the default of every built-in system but the pendulum, and of your own systems" in verify_help
+    check_help = " ".join(CliRunner().invoke(main, ["check", "--help"]).output.split())
+    assert "or on a sublevel set {V <= c} of it" in check_help
 
 
 def test_train_with_the_local_term_saves_it_and_reports_the_rate(tmp_path):
@@ -96,3 +145,19 @@ def test_train_with_the_local_term_saves_it_and_reports_the_rate(tmp_path):
     rates = metrics["acceptance"]["local_rates"]
     assert len(rates) == 5 and metrics["acceptance"]["local_rate_max"] == max(rates)
     assert not metrics["passed"] or max(rates) < 0
+
+
+@pytest.mark.parametrize("where", ["drlyap.training.train", "drlyap.runs.directory.write_json"])
+def test_ctrl_c_in_train_exits_130_saying_nothing_was_kept(tmp_path, monkeypatch, where):
+    """Interrupted during training or while the run directory is being written: exit status 130, one line saying
+    that nothing was saved, and nothing left at --out or beside it."""
+    def interrupted(*args, **kwargs):
+        raise KeyboardInterrupt
+
+    monkeypatch.setattr(where, interrupted)
+    out = tmp_path / "run"
+    result = CliRunner().invoke(main, ["train", "pendulum", "--iters", "2", "--quiet", "--no-verify", "--out", str(out)])
+    assert result.exit_code == 130, result.output
+    assert result.output.strip().splitlines() == [
+        f"drlyap: interrupted; nothing was saved ({out} is written only when training and its proofs end)"]
+    assert list(tmp_path.iterdir()) == []

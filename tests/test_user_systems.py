@@ -3,6 +3,8 @@
 import io
 import json
 import math
+import re
+import shlex
 
 import pytest
 import torch
@@ -82,6 +84,11 @@ def test_user_file_system_trains_evaluates_verifies_and_compares(user_runs):
     rows = json.loads(cmp_.stdout)["rows"]
     assert [r["kind"] for r in rows] == ["lyapunov", "lqr"] and all(r["system"] == "user-dint" for r in rows)
     assert (tmp / "cmp" / "figures" / "certificate_and_input_0.png").is_file()  # from the declared reference state
+    # the pair trained for {V <= 1} is proved on that set, the LQR pair on X_delta: each row names its set
+    assert rows[0]["certified"]["level"] == 1.0 and "level" not in rows[1]["certified"]
+    table = (tmp / "cmp" / "compare.md").read_text().splitlines()
+    lyap, lqr = (next(line for line in table if line.startswith(f"| {tmp / name} |")) for name in ("run", "lqr"))
+    assert f"| {rows[0]['certified']['status']} on {{V <= 1}}" in lyap and "X_delta" in lqr
 
 
 def test_a_changed_system_file_is_refused(user_runs, tmp_path):
@@ -197,3 +204,95 @@ def test_run_kind_loaders_are_one_table():
     from drlyap.workflows.policies import LOADERS
 
     assert {"lyapunov", "lqr", "rl"} <= set(LOADERS)
+
+
+def _run_printed(output: str, pattern: str) -> str:
+    """The command a previous one printed (``pattern``'s group), run through the command line exactly as printed."""
+    found = re.search(pattern, output)
+    assert found, (pattern, output)
+    words = shlex.split(found.group(1))
+    assert words[0] == "drlyap", words
+    result = CliRunner().invoke(main, words[1:])
+    assert result.exit_code == 0, (found.group(1), result.output)
+    return result.output
+
+
+def test_printed_commands_run_as_printed(tmp_path):
+    """The next steps train, verify and import print for a system from a file carry --system with the run's
+    recorded spec, and run as printed."""
+    file = write_system(tmp_path / "dint.py")
+    train = invoke("train", f"{file}:make", "--iters", "20", "--quiet", "--no-verify", "--out", tmp_path / "run")
+    assert train.exit_code == 0, train.output
+    assert f"--system {file.resolve()}:make" in train.output
+    verified = _run_printed(train.output, r"certificate: NOT CHECKED .*; run `([^`]*)`")
+    checked = _run_printed(verified, r"re-check it with `([^`]*)`")
+    assert "trained: CHECKED" in checked
+    region = invoke("verify", tmp_path / "run", "--system", f"{file}:make", "--xi", "-0.2", "--roa", "--time-limit", "2")
+    assert region.exit_code == 0, region.output
+    assert re.search(r"drawn by `drlyap plot \S+ --xi -0.2 --system ", region.output)  # at the shift it was proved
+    drawn = _run_printed(region.output, r"drawn by `([^`]*)`")
+    assert "trajectories stabilised" in drawn and "phase_portrait.png" in drawn
+    exported = invoke("export", tmp_path / "run", "--system", f"{file}:make")
+    assert exported.exit_code == 0, exported.output
+    imported = invoke("import", f"{file}:make", "--controller", tmp_path / "run" / "export" / "controller.onnx",
+                      "--out", tmp_path / "imported")
+    assert imported.exit_code == 0, imported.output
+    proved = _run_printed(imported.output, r"prove it: (.*)")
+    assert "true model at xi = [-0.2]" in proved
+
+
+def test_a_printed_command_quotes_what_the_shell_would_split(tmp_path):
+    from drlyap.cli.common import command_hint
+
+    source = {"spec": "my dir/s.py:make", "reload": "/home/me/my dir/s.py:make", "path": "/home/me/my dir/s.py"}
+    hint = command_hint("check", tmp_path / "a run", source=source)
+    assert shlex.split(hint) == ["drlyap", "check", str(tmp_path / "a run"), "--system", "/home/me/my dir/s.py:make"]
+    assert command_hint("check", "runs/p", source={"spec": "pendulum", "reload": "pendulum", "path": None}) == \
+        "drlyap check runs/p"
+
+
+def test_compare_figures_start_from_the_test_box_without_reference_states(tmp_path, monkeypatch):
+    """A system that declares no reference states: compare's figures start from states drawn from its test box
+    with --seed (not from its centre, x* here, where V and u are flat lines)."""
+    from drlyap import plotting
+
+    file = write_system(tmp_path / "plain.py")
+    file.write_text(file.read_text().replace("reference_states=((-0.8, 0.5),), ", ""))
+    system = resolve_system(f"{file}:make")
+    assert system.reference_states == ()
+    train = invoke("train", f"{file}:make", "--iters", "20", "--quiet", "--no-verify", "--out", tmp_path / "run")
+    assert train.exit_code == 0, train.output
+    drawn = []
+    real = plotting.time_series
+
+    def record(series, path, title, **kwargs):
+        drawn.append((title, series))
+        return real(series, path, title, **kwargs)
+
+    monkeypatch.setattr(plotting, "time_series", record)
+    result = invoke("compare", tmp_path / "run", "--system", f"{file}:make", "--xi", "-0.2", "--n-init", "4",
+                    "--seed", "3", "--horizon", "1", "--certify-time", "0", "--out", tmp_path / "cmp")
+    assert result.exit_code == 0, result.output
+    starts = system.figure_starts(3)
+    assert len(drawn) == len(starts) == 2 and starts != system.figure_starts(4)
+    (lo, hi), x_star = system.test_box, system.equilibrium
+    for (title, series), start in zip(drawn, starts):
+        assert all(a <= v <= b for a, v, b in zip(lo, start, hi)) and tuple(start) != tuple(x_star)
+        assert f"from ({', '.join(f'{v:.3g}' for v in start)})" in title
+        (_, value, u), = series.values()
+        assert float(value.max() - value.min()) > 1e-3 and float(u.max() - u.min()) > 0  # not flat lines
+
+
+def test_a_growing_set_says_how_many_iterations_grew_it(tmp_path):
+    """A system of one's own trains a growing set {V <= 1}: the growth term acts on the first two thirds of the
+    iterations (GROW_SHARE), the rest repair the condition, and the training status says so."""
+    from drlyap.training.trainer import GROW_SHARE, growth_words
+
+    system = resolve_system(f"{write_system(tmp_path / 'g.py')}:make")
+    result = drlyap.train(drlyap.TrainConfig(system=system.name, iters=20), system=system, proof=None, progress=False)
+    grown = math.floor(GROW_SHARE * 20)
+    assert grown == 13 and result.config.grow_weight > 0 and result.config.roa_level == 1.0
+    assert result.metrics["passed"]
+    assert result.metrics["status"] == ("grew the set for 13 of 20 iterations, then repaired the condition on it; kept "
+                                        "the latest pair passing the acceptance check")
+    assert growth_words(20, 20) == "grew the set for all 20 iterations"

@@ -329,7 +329,7 @@ def test_cli_verify_on_a_run_directory(tmp_path, tiny_config):
         assert data["counterexample_value"] > 0
     text = runner.invoke(main, ["verify", str(tmp_path / "run"), "--time-limit", "1", "--roa"])
     assert text.exit_code == 0 and "uniform DR condition" not in text.output and "region of attraction" in text.output
-    assert "drawn by `drlyap plot`" in text.output  # verify --roa keeps its region for plot
+    assert f"drawn by `drlyap plot {tmp_path / 'run'}`" in text.output  # verify --roa keeps its region for plot
     assert "roa" in json.loads((tmp_path / "run" / "metrics.json").read_text())["certificate"]
     bad = runner.invoke(main, ["verify", str(tmp_path / "run"), "--xi", "1"])
     assert bad.exit_code != 0 and "takes 2 xi" in bad.output

@@ -3,6 +3,7 @@
 Python API::
 
     import drlyap
+    drlyap.check_writable("runs/pendulum-dr")                       # a taken path is refused now, not after training
     result = drlyap.train(drlyap.TrainConfig(system="pendulum"))   # trains, then proves the condition
     result.metrics["certificate"]["status"]                          # 'verified', 'violated' or 'unknown'
     path = drlyap.save_run("runs/pendulum-dr", result)
@@ -35,6 +36,7 @@ _API = {
     "TrueDecrease": "drlyap.conditions", "cvar_bound": "drlyap.conditions",
     "wasserstein_radius_guarantee": "drlyap.conditions",
     "Run": "drlyap.runs", "RunDirError": "drlyap.runs", "load_run": "drlyap.runs", "save_run": "drlyap.runs",
+    "check_writable": "drlyap.runs",
     "evaluate": "drlyap.simulation", "simulate": "drlyap.simulation",
     "verify_run": "drlyap.workflows.verify", "load_policy_run": "drlyap.workflows.policies",
 }

@@ -9,6 +9,7 @@ their wording from here; none of them decides again from the numbers what was pr
 from __future__ import annotations
 
 import math
+from decimal import ROUND_CEILING, ROUND_FLOOR, Decimal
 
 from drlyap.io import proved_percent
 from drlyap.verification.results import (
@@ -33,13 +34,26 @@ def _num(value, digits: int = 4) -> str:
     return "unbounded" if value is None or not math.isfinite(value) else f"{value:.{digits}g}"
 
 
+def level_text(level: float, digits: int = 6, up: bool = False) -> str:
+    """A level of V (or of z'Pz) in at most ``digits`` significant digits that never claims more than was proved:
+    rounded down for a set ``{V <= c}`` proved (a smaller set is proved too, and ``V > c`` on the faces then holds
+    as well), so 0.9999999999999991 prints as 0.999999, not 1; rounded up with ``up`` for a set that others are
+    proved to end up in. A number that reads back as the stored one prints as it is (1.0 as 1)."""
+    text = f"{level:.{digits}g}"
+    if not math.isfinite(level) or (float(text) >= level if up else float(text) <= level):
+        return text
+    exact = Decimal(level)
+    step = Decimal(1).scaleb(exact.adjusted() - digits + 1)
+    return f"{float(exact.quantize(step, rounding=ROUND_CEILING if up else ROUND_FLOOR)):.{digits}g}"
+
+
 # --------------------------------------------------------------------------- a run's trained condition
 def condition_region(level: float | None, delta: float) -> str:
     """The region a trained condition is proved on: X_delta, or with a level its sublevel set."""
     region = f"state box minus the open ball ||x - x*|| < {delta:g}"
     if level is not None:
-        region = (f"{{V <= {level:g}}} minus the open ball ||x - x*|| < {delta:g}, with V > {level:g} on the box's "
-                  "faces")
+        c = level_text(level)
+        region = f"{{V <= {c}}} minus the open ball ||x - x*|| < {delta:g}, with V > {c} on the box's faces"
     return region
 
 
@@ -71,11 +85,12 @@ def claim_sentence(claim: dict) -> str:
         return "(an unreadable claim)"
 
 
-def certificate_line(cert: Certificate) -> str:
-    """The one line that says what was proved about a run's trained condition."""
+def certificate_line(cert: Certificate, verify_command: str = "drlyap verify RUN") -> str:
+    """The one line that says what was proved about a run's trained condition; ``verify_command``: the command that
+    proves it, named when nothing was checked."""
     status = cert.status
     if status == "not checked":
-        return f"certificate: NOT CHECKED ({cert.condition} condition; run `drlyap verify RUN`)"
+        return f"certificate: NOT CHECKED ({cert.condition} condition; run `{verify_command}`)"
     where = cert.region or "X_delta"
     if status == "verified":
         return (f"certificate: VERIFIED - the {cert.condition} condition holds at every state of {of_region(where)} "
@@ -111,7 +126,7 @@ def proof_round_line(entry: dict) -> str:
 # --------------------------------------------------------------------------- verify
 def condition_lines(proof: ConditionProof, title: str) -> list[str]:
     """What ``drlyap verify`` prints for one condition's proof."""
-    where = "X_delta" if proof.level is None else f"X_delta (condition or V > {proof.level:g})"
+    where = "X_delta" if proof.level is None else f"X_delta (condition or V > {level_text(proof.level)})"
     if proof.source == "certificate":
         how = (f"its certificate file ({proof.boxes_processed} boxes) re-checked by the checker in {proof.time_s:.2f} s, "
                "not proved again (--reprove proves it anew)")
@@ -125,7 +140,7 @@ def condition_lines(proof: ConditionProof, title: str) -> list[str]:
         inside = low is not None and low > proof.level
         digits = 6 if low is None or inside or f"{low:.6g}" != f"{proof.level:.6g}" else 12  # 0.9999999 is not 1
         bound = "unbounded (time limit)" if low is None else f">= {low:.{digits}g}"
-        lines.append(f"  on {{V <= {proof.level:g}}} only; min of V on the box's faces {bound} (so the set lies "
+        lines.append(f"  on {{V <= {level_text(proof.level)}}} only; min of V on the box's faces {bound} (so the set lies "
                      f"inside the box: {'proved' if inside else 'NOT proved'})")
     if proof.counterexample is not None:
         by = " (the falsifier's, after the proof ran out of time)" if proof.counterexample_source else ""
@@ -155,27 +170,27 @@ def roa_line(r: RegionOfAttraction, true_model: bool) -> str:
         how = ""
         if r.method == "linearisation":
             how = (f"; near x* by the closed-loop linearisation's z'Pz, proved decreasing on {{z'Pz <= "
-                   f"{local['q_level']:.3g}}} which contains {{V <= {local['inner_level']:.3g}}}")
+                   f"{level_text(local['q_level'], 3)}}} which contains {{V <= {level_text(local['inner_level'], 3)}}}")
         elif r.method == "band":
             low = local["v_on_ellipsoid"][0]
             how = (f"; V proved decreasing on it outside the closed loop's certified ellipsoid {{z'Pz <= "
-                   f"{local['q_level']:.3g}}} (--json: roa.band.P), on whose boundary V is as low as {low:.3g} "
+                   f"{level_text(local['q_level'], 3)}}} (--json: roa.band.P), on whose boundary V is as low as {low:.3g} "
                    f"(sampled): " + ("the set reaches beyond the ellipsoid" if r.beyond_ellipsoid else
                                      "the set may lie inside the ellipsoid"))
-        return (f"region of attraction: CERTIFIED {{V <= {r.level:.4g}}} ({size}): every trajectory of {model} "
+        return (f"region of attraction: CERTIFIED {{V <= {level_text(r.level, 4)}}} ({size}): every trajectory of {model} "
                 f"that starts there converges to x*{how}")
     if r.kind == "practical stability":
         line = (f"region of attraction: NOT CERTIFIED ({r.local['reason']}); practical stability instead: "
-                f"trajectories of {model} from {{V <= {r.level:.4g}}} ({size}) end up in "
-                f"{{V <= {r.practical_level:.4g}}}")
+                f"trajectories of {model} from {{V <= {level_text(r.level, 4)}}} ({size}) end up in "
+                f"{{V <= {level_text(r.practical_level, 4, up=True)}}}")
     else:
-        proved = "none" if r.level is None or not math.isfinite(r.level) else f"{r.level:.4g}"
+        proved = "none" if r.level is None or not math.isfinite(r.level) else level_text(r.level, 4)
         line = (f"region of attraction: NOT CERTIFIED (largest proved level {proved}, limited by "
                 f"{r.limited_by}; inside the ball: {r.local.get('reason') or 'proved'})")
     quad = r.quadratic
     if r.ellipsoid_certified:
         line += (f"\n  the closed loop's own quadratic certificate: CERTIFIED region of attraction {{z'Pz <= "
-                 f"{quad['q_level']:.4g}}} ({quad['share_of_box']:.3g} of the box, |x_i - x*_i| up to "
+                 f"{level_text(quad['q_level'], 4)}}} ({quad['share_of_box']:.3g} of the box, |x_i - x*_i| up to "
                  f"{[float(f'{e:.3g}') for e in quad['extent']]}; P chosen from the closed-loop linearisation, --json: "
                  f"roa.quadratic.P): every trajectory of {model} that starts there converges to x*")
     elif quad:
@@ -202,7 +217,7 @@ def verification_lines(ver: RunVerification, system: str, method: str) -> list[s
 # --------------------------------------------------------------------------- robustness
 def _over(level: float | None) -> str:
     """What a radius or shift-box search proved over: X_delta, or its sublevel set ``{V <= level}``."""
-    return "X_delta" if level is None else f"{{V <= {level:g}}} of X_delta"
+    return "X_delta" if level is None else f"{{V <= {level_text(level)}}} of X_delta"
 
 
 def robustness_lines(result: RunRobustness) -> list[str]:
@@ -263,6 +278,17 @@ def _witness_text(res) -> str:
 
 
 # --------------------------------------------------------------------------- report cells and figure labels
+ACCEPTANCE_LEGEND = (
+    "acceptance: the check that ends training, passed when the trained condition holds at every validation state "
+    "(a dense set of X_delta not used in training, within {V <= c} for a sublevel-set run; max violation and "
+    "violating % are over them), Hurwitz is True and no other eq. is found (a sublevel-set run also needs V > c at "
+    "20,000 states on the box's faces; a run with --local-rate, V decaying near x*). Hurwitz: the closed-loop "
+    "Jacobian at x* on the true model is Hurwitz (every eigenvalue's real part < 0) at every xi sample and at their "
+    "mean. other eq.: closed-loop equilibria other than x* that a Newton root search from a grid of starts found in "
+    "X_delta, at any of those xi.")
+"""The definitions of a report's acceptance, Hurwitz and other eq. columns (:mod:`drlyap.training.acceptance`)."""
+
+
 def roa_cell(roa: RegionOfAttraction | None) -> str | None:
     """A short name of a region-of-attraction result for a report table."""
     if roa is None or roa.error is not None or roa.level is None:
@@ -296,26 +322,31 @@ def region_label(roa: RegionOfAttraction | None, where: str) -> str:
     """
     if roa is None or roa.level is None or not roa.level > 0:
         return ""
-    c = float(roa.level)
+    c = level_text(float(roa.level), 3)
     c0 = roa.ball_max_upper
-    inner = f"{{V <= {float(c0):.3g}}}" if c0 is not None else "the delta-ball"
+    inner = f"{{V <= {level_text(float(c0), 3, up=True)}}}" if c0 is not None else "the delta-ball"
     if roa.kind == "practical stability":
-        return f"practical stability at {where}: from {{V <= {c:.3g}}} converges to {inner}"
+        return f"practical stability at {where}: from {{V <= {c}}} converges to {inner}"
     if roa.certified and roa.kind in (None, "region of attraction"):
-        return f"certified region of attraction {{V <= {c:.3g}}} at {where}"
-    bound = f", but V may reach {float(c0):.3g} on the delta-ball" if c0 is not None else ""
-    return f"not certified at {where}: decrease proved on {{V <= {c:.3g}}} outside the delta-ball{bound}"
+        return f"certified region of attraction {{V <= {c}}} at {where}"
+    bound = f", but V may reach {level_text(float(c0), 3, up=True)} on the delta-ball" if c0 is not None else ""
+    return f"not certified at {where}: decrease proved on {{V <= {c}}} outside the delta-ball{bound}"
 
 
 def attempt_cells(attempt: ProofAttempt | None) -> tuple[str, str, str]:
-    """The comparison table's cells for what a run proves at the shift: the decrease, the certified region of
-    attraction, and the certified radius and shift box."""
+    """The comparison table's cells for what a run proves at the shift: the decrease (on the set proved: X_delta,
+    or ``{V <= c}`` of it), the certified region of attraction, and the certified radius and shift box."""
     if attempt is None:
         return "not checked", "not checked", "-"
     if attempt.verified_fraction is None:
         return attempt.status, "none", _robust_cell(attempt)
-    proof = (f"{attempt.status} ({proved_percent(attempt.verified_fraction, attempt.status == 'verified')} "
-             "of X_delta)")
+    where = "X_delta" if attempt.level is None else f"{{V <= {level_text(attempt.level)}}}"
+    if attempt.status == "verified":
+        proof = f"verified on {where}"
+    else:
+        share = proved_percent(attempt.verified_fraction, False)
+        proof = (f"{attempt.status} ({share} of X_delta proved)" if attempt.level is None else
+                 f"{attempt.status} on {where} ({share} of X_delta proved: the condition, or V above the level)")
     if attempt.exp_rate is not None:
         proof += f", decay {attempt.exp_rate:.3g} V"
     if attempt.roa_certified:

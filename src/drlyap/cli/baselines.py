@@ -7,7 +7,7 @@ from pathlib import Path
 
 import click
 
-from drlyap.cli.common import fail, floats
+from drlyap.cli.common import fail, floats, refuse_early
 
 
 @click.command()
@@ -24,6 +24,8 @@ def lqr(system: str, out: Path, q_diag: str | None, r_diag: str | None, n_init: 
     Riccati equation, save a run directory of kind lqr (K, P) with u = clamp(u* - K z, U).
 
     SYSTEM is a registered name, package.module:factory or path/to/file.py:factory."""
+    refuse_early(systems=[system])
+
     from drlyap.runs import train_lqr
 
     try:
@@ -69,6 +71,8 @@ def rl_train(system: str, algo: str, steps: int | None, seed: int, out: Path, as
     The environment (drlyap.envs) steps the true model with RK4 (pendulum: dt 0.05 s, 10 s episodes)
     and rewards -(theta^2 + 0.1 thetadot^2 + 0.001 u^2) (other systems: the normalised analogue).
     """
+    refuse_early(systems=[system])
+
     from drlyap.rl import train_rl
 
     try:

@@ -8,7 +8,7 @@ from pathlib import Path
 
 import click
 
-from drlyap.cli.common import compute_options, compute_settings, fail, run_source_options, run_system_of
+from drlyap.cli.common import compute_options, compute_settings, fail, refuse_early, run_source_options, run_system_of
 
 
 @click.command()
@@ -27,9 +27,11 @@ def check(run_dir: Path, names: tuple[str, ...], refine: int, workers: int, back
     interval arithmetic, its own reading of V, pi and the condition), and say whether every box holds and the boxes
     cover the claimed region. Exits 1 when a certificate fails.
 
-    A certificate is written by `drlyap train` and `drlyap verify` for every proof that ends verified on the state box
-    minus the delta-ball.
+    A certificate is written by `drlyap train` and `drlyap verify` for every proof of a decrease condition that ends
+    verified, on the state box minus the delta-ball or on a sublevel set {V <= c} of it.
     """
+    refuse_early(runs=[run_dir], systems=[system_spec])
+
     from drlyap.checker import check_run
     from drlyap.config import Compute
     from drlyap.render import check_lines

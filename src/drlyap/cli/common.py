@@ -4,9 +4,13 @@ settings dataclasses. Imports neither torch nor the numerical code, so ``--help`
 from __future__ import annotations
 
 import dataclasses
+import json
 import math
 import os
+import shlex
 import sys
+from collections.abc import Iterable
+from pathlib import Path
 
 import click
 
@@ -48,8 +52,31 @@ def floats(text: str | None, what: str) -> list[float] | None:
 
 
 def fail(err: Exception) -> None:
-    """A one-line error (exit status 1)."""
-    raise click.ClickException(str(err))
+    """A one-line error (exit status 1); a path to write to that cannot be used is named as the ``--out`` it came
+    from."""
+    from drlyap.runs.publish import DestinationError
+
+    raise click.ClickException(err.for_option("--out") if isinstance(err, DestinationError) else str(err))
+
+
+def refuse_early(runs: Iterable[Path | None] = (), systems: Iterable[str | None] = ()) -> None:
+    """Refuse, before the numerical code loads, a SYSTEM spec that cannot name a system
+    (:func:`drlyap.specs.check_spec`, against the names registered in this process) and a RUN_DIR that is no complete
+    run directory (:func:`drlyap.runs.publish.complete_run_dir`); None entries are skipped. A one-line error."""
+    from drlyap.runs.publish import complete_run_dir
+    from drlyap.specs import BUILT_IN, check_spec
+
+    registry = sys.modules.get("drlyap.systems.registry")  # loaded where something may have registered more names
+    names = registry.system_names() if registry is not None else BUILT_IN
+    try:
+        for spec in systems:
+            if spec is not None:
+                check_spec(spec, names)
+        for path in runs:
+            if path is not None:
+                complete_run_dir(path)
+    except ValueError as err:
+        fail(err)
 
 
 def run_source_options(command):
@@ -103,3 +130,22 @@ def compute_settings(workers: int, backend: str, address: str | None, device: st
     if problems:
         raise click.UsageError("; ".join(problems))
     return {"workers": workers, "backend": backend, "address": address, "device": device, "progress": True}
+
+
+def recorded_source(run_dir: Path) -> dict | None:
+    """Where a run's system came from, as its ``run.json`` records it (``system_source``), read as plain JSON: nothing
+    is imported. None where the file cannot be read."""
+    try:
+        source = json.loads((Path(run_dir) / "run.json").read_text()).get("system_source")
+    except (OSError, ValueError, AttributeError):
+        return None
+    return source if isinstance(source, dict) else None
+
+
+def command_hint(*words: object, source: dict | None = None) -> str:
+    """A ``drlyap`` command to print for the user to run next, quoted for a POSIX shell, with ``--system SPEC`` where
+    the run's system came from a file or a module (``source``: :func:`drlyap.systems.system_source`, as ``run.json``
+    records it), so that it runs as printed."""
+    spec = (source or {}).get("reload")
+    needs = ["--system", str(spec)] if spec and ":" in str(spec) else []
+    return shlex.join(["drlyap", *(str(w) for w in words), *needs])

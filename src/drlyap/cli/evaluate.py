@@ -7,7 +7,7 @@ from pathlib import Path
 
 import click
 
-from drlyap.cli.common import fail, floats, run_source_options, run_system_of
+from drlyap.cli.common import fail, floats, refuse_early, run_source_options, run_system_of
 
 
 def _writable_folder(folder: Path) -> None:
@@ -33,6 +33,8 @@ def _writable_folder(folder: Path) -> None:
 def evaluate(run_dir: Path, xi: str, n_init: int, seed: int, horizon: float | None, as_json: bool,
              system_spec: str | None, trust_run: bool) -> None:
     """Simulate RUN_DIR's controller (a run of any kind) on the true model at parameter shift --xi."""
+    refuse_early(runs=[run_dir], systems=[system_spec])
+
     import torch
 
     from drlyap.simulation import evaluate as score
@@ -76,13 +78,14 @@ def plot(run_dir: Path, xi: str | None, n_init: int, seed: int, roa: bool | None
          horizon: float | None, out: Path | None, as_json: bool, system_spec: str | None, trust_run: bool) -> None:
     """Figures of RUN_DIR on the true model: phase portrait with labelled level sets of V and the certified set,
     V(t) and u(t) with the input limits, and heatmaps of V and of the decrease condition."""
+    refuse_early(runs=[run_dir], systems=[system_spec])
+
     from drlyap.workflows.plot import plot_run
 
     try:
         if time_limit <= 0:
             raise ValueError(f"--time-limit must be > 0, got {time_limit}")
-        if (run_dir / "run.json").is_file():  # a run to draw: its figures' folder must take files
-            _writable_folder(out if out is not None else run_dir / "figures")
+        _writable_folder(out if out is not None else run_dir / "figures")  # checked before any work
         result = plot_run(run_dir, xi=floats(xi, "--xi"), n_init=n_init, seed=seed, roa=roa, out=out,
                           time_limit=time_limit, horizon=horizon, system=run_system_of(system_spec), trust=trust_run)
     except ValueError as err:

@@ -7,7 +7,7 @@ from pathlib import Path
 
 import click
 
-from drlyap.cli.common import fail, run_source_options, run_system_of
+from drlyap.cli.common import fail, refuse_early, run_source_options, run_system_of
 
 
 @click.command()
@@ -23,6 +23,8 @@ def export(run_dir: Path, fmt: str, out: Path | None, as_json: bool, system_spec
     """Write RUN_DIR's controller (with its saturation to U) and V as models that take the state in user
     coordinates (float64, the system's state order), with export.json: names, units, hashes and what was
     proved about the pair."""
+    refuse_early(runs=[run_dir], systems=[system_spec])
+
     from drlyap.runs import load_run
     from drlyap.workflows.export import export_run
 

@@ -8,7 +8,7 @@ from pathlib import Path
 
 import click
 
-from drlyap.cli.common import fail
+from drlyap.cli.common import command_hint, fail, recorded_source, refuse_early
 
 
 @click.command("import")
@@ -29,6 +29,8 @@ def import_pair(system: str, controller: Path, lyapunov: Path | None, out: Path,
     Then `drlyap verify OUT --xi ... --roa` proves decrease on the true model and certifies a region of attraction
     as for a trained pair, and `drlyap compare` puts it beside other runs. SYSTEM is a registered name,
     package.module:factory or path/to/file.py:factory."""
+    refuse_early(systems=[system])
+
     from drlyap.runs.imported import import_run
 
     try:
@@ -57,5 +59,8 @@ def import_pair(system: str, controller: Path, lyapunov: Path | None, out: Path,
             click.echo(f"    {note}")
     offset = ", ".join(f"{v:.3g}" for v in pair.checks["pi_minus_u_star"])
     click.echo(f"  at x*: pi(x*) - u* = ({offset})")
-    xi = ",".join(f"{v:g}" for v in sys_.test_xi) if sys_.test_xi is not None else "XI"
-    click.echo(f"  prove it: drlyap verify {out} --xi {xi} --roa")
+    if sys_.test_xi is not None:
+        where, xi = "", ",".join(f"{v:g}" for v in sys_.test_xi)
+    else:  # no test shift declared: the nominal model, xi = 0
+        where, xi = " on the nominal model (--xi: another shift)", ",".join("0" for _ in range(sys_.k))
+    click.echo(f"  prove it{where}: {command_hint('verify', out, '--xi', xi, '--roa', source=recorded_source(out))}")

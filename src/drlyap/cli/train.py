@@ -3,12 +3,22 @@
 from __future__ import annotations
 
 import json
+import math
 import shutil
+import sys
 from pathlib import Path
 
 import click
 
-from drlyap.cli.common import compute_options, compute_settings, default, fail, floats
+from drlyap.cli.common import (
+    command_hint,
+    compute_options,
+    compute_settings,
+    default,
+    fail,
+    floats,
+    refuse_early,
+)
 from drlyap.config import ProofConfig, TrainConfig
 
 
@@ -28,6 +38,22 @@ def systems(as_json: bool) -> None:
                    f"k={d['k']} uncertain {d['uncertain']}")
         click.echo(f"    parameters: {params}; x* = {[round(v, 4) for v in d['equilibrium']]}; "
                    f"U = {d['input_box']}; test xi = {d['test_xi']}")
+
+
+def _check_numbers(**given: float | None) -> None:
+    """The options of ``train`` whose ranges need no system, so that a bad one is refused before the numerical code
+    loads (:meth:`drlyap.config.TrainConfig.validate` checks every field again): a ValueError naming the option and
+    the field."""
+    rules = {"iters": ("iters", lambda v: v >= 1, ">= 1"),
+             "radius": ("wasserstein_radius", lambda v: math.isfinite(v) and v >= 0, "finite and >= 0"),
+             "eps": ("risk_level", lambda v: 0 < v < 1, "in (0, 1)"),
+             "gamma": ("decay_rate", lambda v: math.isfinite(v) and v >= 0, "finite and >= 0"),
+             "exp_rate": ("exp_rate", lambda v: math.isfinite(v) and v >= 0, "finite and >= 0"),
+             "local_rate": ("local_rate", lambda v: math.isfinite(v) and v >= 0, "finite and >= 0")}
+    for option, value in given.items():
+        field, ok, rule = rules[option]
+        if value is not None and not ok(value):
+            raise ValueError(f"--{option.replace('_', '-')}: {field} = {value} (must be {rule})")
 
 
 @click.command()
@@ -78,44 +104,66 @@ def train(system: str, method: str, loss: str, radius: float | None, eps: float 
     """Train a controller and Lyapunov certificate for SYSTEM, prove the trained condition, save a run directory.
 
     SYSTEM is a registered name, package.module:factory or path/to/file.py:factory (see `drlyap systems`).
-    The last line says whether the condition is VERIFIED (proved at every state of the box minus the
-    delta-ball), VIOLATED (a counterexample) or UNKNOWN (budget ran out). A long proof keeps its progress beside
-    --out (a hidden folder .NAME.proofs): the same command, run again after an interruption, trains the same pair and
-    resumes the proof.
+    The last line says whether the condition is VERIFIED (proved at every state of the region it trained for: the
+    box minus the delta-ball, or a sublevel set {V <= c} of it), VIOLATED (a counterexample) or UNKNOWN (budget ran
+    out). OUT is written only when training and its proofs end: interrupted (Ctrl-C, exit status 130), nothing is
+    saved but a long proof's progress, kept beside OUT (a hidden folder .OUT.proofs): the same command, run again,
+    trains the same pair and resumes that proof.
     """
-    from drlyap.render import certificate_line, proof_round_line
-    from drlyap.runs import check_writable, load_run, proof_checkpoints, save_run
-    from drlyap.systems import resolve_system, system_source
-    from drlyap.training import train as train_pair
-    from drlyap.verification import Certificate
+    refuse_early(runs=[warm_start], systems=[system])
 
-    try:
+    from drlyap.runs.publish import check_writable, proof_checkpoints
+
+    try:  # what needs no system is checked before the numerical code loads
+        _check_numbers(iters=iters, radius=radius, eps=eps, gamma=gamma, exp_rate=exp_rate, local_rate=local_rate)
         if verify_rounds < 0:
             raise ValueError(f"--verify-rounds must be >= 0, got {verify_rounds}")
-        sys_ = resolve_system(system)
         samples = None
         if xi_samples is not None:
             samples = [floats(part, "--xi-samples") for part in xi_samples.split(";") if part.strip()]
-        cfg = TrainConfig(system=sys_.name, method=method, loss=loss, wasserstein_radius=radius, risk_level=eps,
-                          decay_rate=gamma, exp_rate=exp_rate, xi_samples=samples, iters=iters, seed=seed,
-                          device=device, local_rate=local_rate).resolved(sys_)  # a bad config is refused here
         proof = None
         compute = compute_settings(workers, backend, address, device)
         if verify:
             proof = ProofConfig(rounds=verify_rounds, max_boxes=verify_boxes, round_time=verify_time,
-                                total_time=verify_budget, **compute,
-                                checkpoint_dir=str(proof_checkpoints(out))).resolved(sys_)
+                                total_time=verify_budget, **compute, checkpoint_dir=str(proof_checkpoints(out)))
+            proof.validate()
         check_writable(out)
+    except ValueError as err:
+        fail(err)
+
+    try:
+        from drlyap.render import certificate_line, proof_round_line
+        from drlyap.runs import load_run, save_run
+        from drlyap.systems import resolve_system, system_source
+        from drlyap.training import train as train_pair
+        from drlyap.verification import Certificate
+
+        sys_ = resolve_system(system)
+        source = system_source(system, sys_)
+        cfg = TrainConfig(system=sys_.name, method=method, loss=loss, wasserstein_radius=radius, risk_level=eps,
+                          decay_rate=gamma, exp_rate=exp_rate, xi_samples=samples, iters=iters, seed=seed,
+                          device=device, local_rate=local_rate).resolved(sys_)  # a bad config is refused here
+        if proof is not None:
+            proof = proof.resolved(sys_)
         init = None
         if warm_start is not None:
             prior = load_run(warm_start, sys_)
             init = (prior.lyapunov_net, prior.controller_net)
         result = train_pair(cfg, sys_, proof, progress=not quiet, init=init,
                             log=lambda entry: click.echo(proof_round_line(entry), err=True), warn=False)
-        save_run(out, result, source=system_source(system, sys_))
+        save_run(out, result, source=source)  # atomic: an interrupted save leaves nothing at OUT
         shutil.rmtree(proof_checkpoints(out), ignore_errors=True)
     except ValueError as err:
         fail(err)
+    except KeyboardInterrupt:
+        kept = proof_checkpoints(out)
+        if any(kept.glob("proof-*.npz")):
+            click.echo(f"drlyap: interrupted; {out} was not written; the proof's progress is kept in {kept}: the same "
+                       "command resumes it", err=True)
+        else:
+            click.echo(f"drlyap: interrupted; nothing was saved ({out} is written only when training and its proofs "
+                       "end)", err=True)
+        sys.exit(130)
     m = result.metrics
     if as_json:
         click.echo(json.dumps({"run_dir": str(out), "system": sys_.name, "method": method, "metrics": m}))
@@ -129,9 +177,10 @@ def train(system: str, method: str, loss: str, radius: float | None, eps: float 
     else:
         click.echo(f"{sys_.name} {method}: {m['status']} ({iterations} iterations, {seconds:.1f} s in all)")
     acc = m["acceptance"]
-    click.echo(f"  acceptance: {'PASSED' if m['passed'] else 'NOT PASSED'}; max violation {acc['max_violation']:.3g} "
-               f"on {100 * acc['violating_fraction']:.2f}% of {acc['validation_states']} validation states; "
-               f"Hurwitz at x*: {acc['jacobian']['hurwitz']}; other equilibria: {len(acc['other_equilibria'])}")
+    click.echo(f"  acceptance check: {'PASSED' if m['passed'] else 'NOT PASSED'}; the trained condition's max "
+               f"violation {acc['max_violation']:.3g} on {100 * acc['violating_fraction']:.2f}% of "
+               f"{acc['validation_states']} validation states; closed-loop Jacobian at x* Hurwitz at every xi sample: "
+               f"{acc['jacobian']['hurwitz']}; other closed-loop equilibria found: {len(acc['other_equilibria'])}")
     if acc.get("local_rate_max") is not None:
         rate = acc["local_rate_max"]
         click.echo(f"  V near x*: Vdot <= {rate:+.3g} V to second order at the worst training sample "
@@ -139,4 +188,5 @@ def train(system: str, method: str, loss: str, radius: float | None, eps: float 
     if c:
         click.echo(f"  proof: {c['retraining_rounds']} retraining round(s) (kept round {c['returned_round']})")
     click.echo(f"  saved {out}")
-    click.echo(certificate_line(Certificate.from_dict(m["certificate"])))
+    click.echo(certificate_line(Certificate.from_dict(m["certificate"]),
+                                command_hint("verify", out, source=source)))

@@ -9,11 +9,14 @@ from pathlib import Path
 import click
 
 from drlyap.cli.common import (
+    command_hint,
     compute_options,
     compute_settings,
     default,
     fail,
     floats,
+    recorded_source,
+    refuse_early,
     run_source_options,
     run_system_of,
 )
@@ -57,8 +60,9 @@ def verify(run_dir: Path, delta: float | None, xi: str | None, time_limit: float
            system_spec: str | None, trust_run: bool) -> None:
     """Prove the decrease condition of RUN_DIR on the whole state box minus the delta-ball, or find a counterexample.
 
-    A run trained for a region of attraction (cartpole's default) has its condition proved on the sublevel set
-    {V <= level} minus the ball instead, together with V > level on the faces of the box.
+    A run trained for a region of attraction (the default of every built-in system but the pendulum, and of your own
+    systems) has its condition proved on the sublevel set {V <= level} minus the ball instead, together with
+    V > level on the faces of the box.
 
     Sound bounds (interval mean-value form, or affine forms with --enclosure affine) with branch and bound,
     in float64 with outward rounding. Every proof that ends verified is written as a certificate file into
@@ -68,6 +72,9 @@ def verify(run_dir: Path, delta: float | None, xi: str | None, time_limit: float
     with `drlyap import` has no trained condition: its decrease on the true model at --xi (the system's test shift by
     default) is proved.
     """
+    refuse_early(runs=[run_dir], systems=[system_spec])
+    compute = compute_settings(workers, backend, address, device)
+
     from drlyap.io import jsonable
     from drlyap.render import verification_lines
     from drlyap.runs import load_run, read_run_kind
@@ -81,7 +88,6 @@ def verify(run_dir: Path, delta: float | None, xi: str | None, time_limit: float
         verify_run,
     )
 
-    compute = compute_settings(workers, backend, address, device)
     try:
         if time_limit is not None and not time_limit > 0:
             raise ValueError(f"--time-limit must be > 0, got {time_limit}")
@@ -105,12 +111,14 @@ def verify(run_dir: Path, delta: float | None, xi: str | None, time_limit: float
         if roa:
             try:
                 record_region(run, result)
-                stored = f"  stored in {run.path / 'metrics.json'} (drawn by `drlyap plot`)"
+                shift_args = () if xi is None else ("--xi", xi)
+                drawn = command_hint("plot", run_dir, *shift_args, source=recorded_source(run_dir))
+                stored = f"  stored in {run.path / 'metrics.json'} (drawn by `{drawn}`)"
             except OSError as err:
                 stored = f"  not stored: {run.path / 'metrics.json'} cannot be written ({err.strerror or err})"
         try:
-            written = [f"  certificate: {p} (re-check it with `drlyap check {run_dir}`)"
-                       for p in record_certificates(run, result)]
+            recheck = command_hint("check", run_dir, source=recorded_source(run_dir))
+            written = [f"  certificate: {p} (re-check it with `{recheck}`)" for p in record_certificates(run, result)]
         except OSError as err:
             written = [f"  no certificate written: {run.path} cannot be written ({err.strerror or err})"]
         if max_radius:
@@ -177,6 +185,8 @@ def guarantee(run_dir: Path, dist: str, n: int, method: str, eps_bar: float, see
               radius_constants: str | None, as_json: bool, system_spec: str | None, trust_run: bool) -> None:
     """Estimate P(sup_x Vdot + gamma||x - x*|| <= 0) on the true model under a distribution of xi, next to the
     bound (1 - eps)(1 - eps_bar) of the paper's lemma."""
+    refuse_early(runs=[run_dir], systems=[system_spec])
+
     from drlyap.runs import load_run
     from drlyap.workflows.guarantee import guarantee as estimate
 
@@ -230,6 +240,8 @@ def lipschitz(run_dir: Path, spacing: float | None, xi: str | None, verify_time:
     Certified when the residual at every cell centre is <= -L * rho (L: a sound Lipschitz constant from interval
     gradient bounds, rho: the covering radius); compare with the branch and bound of `drlyap verify`.
     """
+    refuse_early(runs=[run_dir], systems=[system_spec])
+
     from drlyap.io import jsonable
     from drlyap.render import covering_lines
     from drlyap.runs import load_run

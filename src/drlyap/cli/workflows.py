@@ -14,6 +14,7 @@ from drlyap.cli.common import (
     default,
     fail,
     floats,
+    refuse_early,
     run_source_options,
     run_system_of,
 )
@@ -56,6 +57,8 @@ def reproduce(system: str, seeds: str, out: Path | None, iters: int | None, devi
 
     SYSTEM is a registered name (`drlyap systems`), package.module:factory or path/to/file.py:factory;
     it must declare a test shift (test_xi) and a training distribution (xi_sampler)."""
+    refuse_early(systems=[system])
+
     from drlyap.config import Compute
     from drlyap.systems import resolve_system, system_source
     from drlyap.workflows.reproduce import format_table
@@ -117,6 +120,8 @@ def compare(run_dirs: tuple[Path, ...], xi: str, n_init: int, seed: int, horizon
     controller without V, with the z'Pz of its linearisation, where x* is its equilibrium) and the certified region
     of attraction (a sublevel set of the certificate from which every trajectory converges to x*).
     """
+    refuse_early(runs=run_dirs, systems=[system_spec])
+
     from drlyap.config import Compute
     from drlyap.workflows.compare import compare_runs, format_comparison
 
@@ -176,6 +181,8 @@ def sweep(system: str, seeds: str, radius: str | None, eps: str | None, method: 
     One run directory per combination under --out, plus results.csv, results.json and figures/sweep.png.
     Running the same command again continues an interrupted sweep and retries failed combinations.
     """
+    refuse_early(systems=[system])
+
     from drlyap.systems import resolve_system
     from drlyap.workflows import sweep as sw
 

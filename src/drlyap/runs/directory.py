@@ -21,6 +21,7 @@ from __future__ import annotations
 import csv
 import json
 import os
+import shlex
 from collections.abc import Callable
 from dataclasses import dataclass
 from functools import cached_property
@@ -36,7 +37,7 @@ from drlyap.io import write_json
 from drlyap.networks import Controller, Lyapunov
 from drlyap.regions import Region
 from drlyap.runs.certificates import write_certificate
-from drlyap.runs.publish import RunDirError, atomic_dir, ensure_new
+from drlyap.runs.publish import RunDirError, atomic_dir, complete_run_dir, ensure_new
 from drlyap.runs.validate import check_config, check_samples, check_schema, load_weights
 from drlyap.systems import UncertainSystem, default_source, get_system, identity_mismatch, resolve_system
 from drlyap.training import TrainConfig, TrainResult, build_networks, run_condition
@@ -156,12 +157,7 @@ class Run:
 
 def read_run_kind(path: Path) -> dict:
     """The ``run.json`` of a complete run directory, or a clear error."""
-    path = Path(path)
-    if not path.is_dir():
-        raise RunDirError(f"run directory {path} does not exist")
-    marker = path / "run.json"
-    if not marker.is_file():
-        raise RunDirError(f"{path} is not a complete drlyap run directory (no run.json)")
+    marker = complete_run_dir(path)
     try:
         info = json.loads(marker.read_text())
     except (json.JSONDecodeError, UnicodeDecodeError) as err:
@@ -207,7 +203,7 @@ def run_system(path: str | os.PathLike, name: str, system: UncertainSystem | Non
         spec = source.get("reload")
         if spec and ":" in str(spec) and not trust:
             raise RunDirError(f"{path}: its system {name!r} comes from {spec}; loading the run would run that code. "
-                              f"Name it yourself (--system {spec}, or system= in Python) or trust the run "
+                              f"Name it yourself (--system {shlex.quote(spec)}, or system= in Python) or trust the run "
                               "(--trust-run, or trust=True)")
         try:
             system = resolve_system(spec) if spec else get_system(name)

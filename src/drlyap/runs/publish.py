@@ -5,7 +5,10 @@ published by a rename that never replaces what is there, and locked while a proc
 * :func:`atomic_dir` -- fill a temporary sibling, then rename it into place (:func:`rename_noreplace`); an
   interrupted fill leaves nothing, and temporaries of processes that died are cleaned on the next write there;
 * :class:`DirectoryLock` -- a directory owned by one process (a running sweep); :func:`held_by_another` says
-  whether one is, so that a second sweep, or a run written into it, is refused.
+  whether one is, so that a second sweep, or a run written into it, is refused;
+* :func:`complete_run_dir` -- whether a directory was published complete (its ``run.json`` is written last).
+
+Imports no numerical code, so that a command checks its paths at once.
 """
 
 from __future__ import annotations
@@ -27,6 +30,19 @@ class RunDirError(ValueError):
     """A run directory is missing, incomplete, damaged, or does not fit the request."""
 
 
+class DestinationError(RunDirError):
+    """A path to write to that cannot be used. Its message asks a Python caller to pass another path; the command
+    line words the same for its option (:meth:`for_option`)."""
+
+    def __init__(self, before: str, after: str = "") -> None:
+        self.before, self.after = before, after
+        super().__init__(f"{before}pass another path{after}")
+
+    def for_option(self, option: str) -> str:
+        """The message for a command whose ``option`` (``--out``) named the path."""
+        return f"{self.before}choose another {option}{self.after}"
+
+
 MIN_FREE_BYTES = 64 * 2**20
 """Room an output directory's file system must have before a run starts (a run directory is a few MB)."""
 
@@ -34,10 +50,23 @@ LOCK_FILE = ".drlyap.lock"
 _HELD: set[str] = set()  # lock files this process holds
 
 
+def complete_run_dir(path: str | os.PathLike) -> Path:
+    """The ``run.json`` of the run directory ``path``, the file that marks it complete (written last); a
+    :class:`RunDirError` naming ``path`` where it does not exist or is incomplete."""
+    path = Path(path)
+    if not path.is_dir():
+        raise RunDirError(f"run directory {path} does not exist")
+    marker = path / "run.json"
+    if not marker.is_file():
+        raise RunDirError(f"{path} is not a complete drlyap run directory (no run.json)")
+    return marker
+
+
 def ensure_new(out: str | os.PathLike) -> None:
-    """Refuse an output directory that already exists (checked before long work starts)."""
+    """Refuse an output directory that already exists (checked before long work starts): a
+    :class:`DestinationError`."""
     if Path(out).exists():
-        raise RunDirError(f"{out} already exists; choose another --out or remove it")
+        raise DestinationError(f"{out} already exists; ", " or remove it")
 
 
 def proof_checkpoints(out: str | os.PathLike) -> Path:
@@ -54,8 +83,7 @@ def check_writable(out: str | os.PathLike, need: int | None = None) -> None:
     out = Path(out)
     ensure_new(out)
     if held_by_another(out.parent):
-        raise RunDirError(f"{out.parent} is in use by another drlyap process (a sweep is running there); "
-                          "choose another --out")
+        raise DestinationError(f"{out.parent} is in use by another drlyap process (a sweep is running there); ")
     base = out.parent
     while not base.exists() and base != base.parent:
         base = base.parent
@@ -66,12 +94,12 @@ def check_writable(out: str | os.PathLike, need: int | None = None) -> None:
         os.close(fd)
         os.unlink(probe)
     except OSError as err:
-        raise RunDirError(f"cannot write to {base} ({err.strerror or err}); choose another --out") from None
+        raise DestinationError(f"cannot write to {base} ({err.strerror or err}); ") from None
     need = MIN_FREE_BYTES if need is None else need
     free = shutil.disk_usage(base).free
     if free < need:
-        raise RunDirError(f"{base} has {free / 2**20:.1f} MB free, less than the {need / 2**20:.0f} MB a run needs; "
-                          "free some space or choose another --out")
+        raise DestinationError(f"{base} has {free / 2**20:.1f} MB free, less than the {need / 2**20:.0f} MB a run "
+                               "needs; free some space or ")
 
 
 _RENAME_NOREPLACE = 1
@@ -153,8 +181,8 @@ def atomic_dir(out: Path, fill: Callable[[Path], None], overwrite: bool = False)
         try:
             rename_noreplace(tmp, out)
         except FileExistsError:
-            raise RunDirError(f"{out} was created by another process while this one ran; nothing was replaced "
-                              f"(this run is lost: choose another --out)") from None
+            raise DestinationError(f"{out} was created by another process while this one ran; nothing was replaced "
+                                   "(this run is lost: ", ")") from None
     except BaseException:
         shutil.rmtree(tmp, ignore_errors=True)
         raise
@@ -174,8 +202,8 @@ class DirectoryLock:
         try:
             self._lock.acquire(timeout=0)
         except Timeout:
-            raise RunDirError(f"{self.directory} is in use by another drlyap process ({self.what}); wait for it to end "
-                              "or choose another --out") from None
+            raise DestinationError(f"{self.directory} is in use by another drlyap process ({self.what}); wait for it "
+                                   "to end or ") from None
         _HELD.add(str(self.directory.resolve() / LOCK_FILE))
         return self
 

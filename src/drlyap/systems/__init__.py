@@ -8,11 +8,11 @@
   :func:`register_system`) and the record of where a run's system came from.
 """
 
+from drlyap.specs import SPEC_FORMS
 from drlyap.systems.library import cartpole, mountain_car, pendulum, quadrotor2d
 from drlyap.systems.model import Dynamics, Perturbation, SystemDefaults, UncertainSystem, XiSampler
 from drlyap.systems.registry import (
     IDENTITY_KEYS,
-    SPEC_FORMS,
     default_source,
     get_system,
     identity_mismatch,

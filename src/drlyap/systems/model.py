@@ -83,7 +83,7 @@ class UncertainSystem:
         xi_sampler: the training distribution of ``xi`` used by ``reproduce``.
         test_xi: the paper's out-of-distribution test shift.
         reference_states: start states (user coordinates, each of length n) of the paper-like figures
-            (``reproduce``'s certificate/input plot, ``compare``'s figures); empty: corner and centre of the test box.
+            (``reproduce``'s certificate/input plot, ``compare``'s figures); empty: states drawn from the test box.
         rl_timing: ``(dt, episode_time)`` of the RL environment (default ``(sim_dt, horizon)``).
         rl_reward_weights: ``(state (n,), input (m,))`` diagonal weights of the RL cost
             ``-(sum w_i z_i^2 + sum w_j (u_j - u*_j)^2)``; default: 1/half-width^2 of the boxes (inputs x 0.001).
@@ -422,13 +422,14 @@ class UncertainSystem:
                              f"{self.k} values, got shape {tuple(draw.shape)}")
         return draw.reshape(count, self.k)
 
-    def figure_starts(self) -> list[tuple[float, ...]]:
-        """Start states of the paper-like figures: ``reference_states``, else the low corner and the
-        centre of the test box (user coordinates)."""
+    def figure_starts(self, seed: int = 0, count: int = 2) -> list[tuple[float, ...]]:
+        """Start states of the paper-like figures (user coordinates): ``reference_states``, else ``count`` states
+        drawn uniformly from the test box with ``seed`` (its centre would often be x* itself, a flat line)."""
         if self.reference_states:
             return list(self.reference_states)
-        lo, hi = self.test_box
-        return [tuple(lo), tuple((a + b) / 2 for a, b in zip(lo, hi))]
+        lo, hi = (torch.tensor(side, dtype=torch.float64) for side in self.test_box)
+        draw = torch.rand(count, self.n, generator=torch.Generator().manual_seed(seed), dtype=torch.float64)
+        return [tuple(state) for state in (lo + (hi - lo) * draw).tolist()]
 
     def describe(self) -> dict:
         """A JSON-friendly summary (used by ``drlyap systems`` and saved in run directories)."""

@@ -12,6 +12,7 @@ import traceback
 from collections.abc import Callable
 from pathlib import Path
 
+from drlyap.specs import is_file_spec, split_spec, system_file, unknown_name
 from drlyap.systems.library import cartpole, mountain_car, pendulum, quadrotor2d
 from drlyap.systems.model import UncertainSystem
 
@@ -21,7 +22,7 @@ _REGISTRY: dict[str, Callable[[], UncertainSystem]] = {
     "mountain-car": mountain_car,
     "cartpole": cartpole,
     "quadrotor2d": quadrotor2d,
-}
+}  # the names of drlyap.specs.BUILT_IN
 
 
 def register_system(name: str, factory: Callable[[], UncertainSystem]) -> None:
@@ -43,8 +44,6 @@ def get_system(name: str) -> UncertainSystem:
 
 
 # --------------------------------------------------------------------------- user systems
-SPEC_FORMS = "a registered name, 'package.module:factory' or 'path/to/file.py:factory'"
-
 # Fields of describe() that fix the dynamics a run was trained on (compared when a run is reloaded).
 IDENTITY_KEYS = ("name", "n", "m", "k", "states", "inputs", "parameters", "uncertain", "state_box", "input_box",
                  "equilibrium", "equilibrium_input", "angle_dims")
@@ -52,9 +51,7 @@ IDENTITY_KEYS = ("name", "n", "m", "k", "states", "inputs", "parameters", "uncer
 
 def _import_file(path: Path):
     """Import a Python file under a module name unique to its absolute path (no clash between files)."""
-    path = path.resolve()
-    if not path.is_file():
-        raise ValueError(f"system file {path} does not exist")
+    path = system_file(str(path))
     name = "drlyap_user_" + hashlib.sha1(str(path).encode()).hexdigest()[:12]
     spec = importlib.util.spec_from_file_location(name, path)
     if spec is None or spec.loader is None:
@@ -74,10 +71,6 @@ def _import_file(path: Path):
     return module
 
 
-def _is_file_spec(target: str) -> bool:
-    return target.endswith(".py") or "/" in target or "\\" in target
-
-
 def resolve_system(spec: str) -> UncertainSystem:
     """A system from a command-line spec: a registered name (``pendulum``), ``package.module:factory``
     or ``path/to/file.py:factory``.
@@ -90,12 +83,9 @@ def resolve_system(spec: str) -> UncertainSystem:
     if ":" not in spec:
         if spec in _REGISTRY:
             return get_system(spec)
-        hint = " (add ':factory', the name of the system or of a function returning it)" if _is_file_spec(spec) else ""
-        raise ValueError(f"unknown system {spec!r}{hint}; valid: {', '.join(system_names())}, or {SPEC_FORMS}")
-    target, _, attr = spec.rpartition(":")
-    if not target or not attr.isidentifier():
-        raise ValueError(f"system spec {spec!r} must be {SPEC_FORMS}")
-    if _is_file_spec(target):
+        raise unknown_name(spec, system_names())
+    target, attr = split_spec(spec)
+    if is_file_spec(target):
         module = _import_file(Path(target))
     else:
         try:
@@ -127,7 +117,7 @@ def system_source(spec: str, system: UncertainSystem) -> dict:
     """
     spec = str(spec).strip()
     target, _, attr = spec.rpartition(":")
-    path = str(Path(target).resolve()) if target and _is_file_spec(target) else None
+    path = str(Path(target).resolve()) if target and is_file_spec(target) else None
     return {"spec": spec, "reload": f"{path}:{attr}" if path else spec, "path": path}
 
 

@@ -13,6 +13,7 @@ the last good weights and says so.
 from __future__ import annotations
 
 import copy
+import math
 import time
 from dataclasses import dataclass
 from functools import cached_property
@@ -65,6 +66,14 @@ class TrainResult:
     def loop(self) -> ClosedLoop:
         """The trained closed loop (what is proved)."""
         return ClosedLoop(self.system, self.lyapunov, self.controller)
+
+
+def growth_words(grown: int, iterations: int) -> str:
+    """How a growing set was trained: ``grown`` of its ``iterations`` with the growth term, the rest repairing the
+    condition on the set grown."""
+    if grown >= iterations:
+        return f"grew the set for all {iterations} iterations"
+    return f"grew the set for {grown} of {iterations} iterations, then repaired the condition on it"
 
 
 def warm_start_lqr(system: UncertainSystem, lyapunov: Lyapunov, controller: Controller, cfg: TrainConfig,
@@ -275,6 +284,7 @@ def fit(cfg: TrainConfig, system: UncertainSystem, progress: bool = True, init: 
         return z if extra_states is None else torch.cat([z, extra_states])
 
     growing = bool(cfg.grow_weight) and grow and level is not None  # trains every iteration: no early stop
+    grow_until = math.floor(GROW_SHARE * cfg.iters)  # the last iteration with the growth term
     faces_val = None
     faces_level = None if level is None else level * (1 + GROW_FACES_MARGIN if cfg.grow_weight else 1.0)
     if level is not None:
@@ -335,7 +345,7 @@ def fit(cfg: TrainConfig, system: UncertainSystem, progress: bool = True, init: 
             loss = condition.loss(terms, cfg.margin, cfg.margin_rate, level, cfg.outside_weight, cfg.exclude_weight)
             if level is not None:  # V above the level on the faces of X: {V <= level} inside X
                 loss = loss + torch.relu(faces_level - lyapunov(region.sample_faces(1024, gen).float().to(device))).mean()
-                if growing and iteration <= GROW_SHARE * cfg.iters:  # the set pulled out towards the faces
+                if growing and iteration <= grow_until:  # the set pulled out towards the faces
                     loss = loss + cfg.grow_weight * (torch.relu(terms.value - level) / level).mean()
             if cfg.local_rate and (iteration - 1) % LOCAL_EVERY == 0:  # V a Lyapunov function of the linearisation
                 loss = loss + torch.relu(local_rates(condition, loop) + cfg.local_rate).mean()
@@ -365,7 +375,8 @@ def fit(cfg: TrainConfig, system: UncertainSystem, progress: bool = True, init: 
     lyapunov.load_state_dict(v_state)
     controller.load_state_dict(c_state)
     if growing and check["passed"] and not status.startswith("diverged"):
-        status = f"grew the set for {iteration} iterations; kept the latest pair passing the acceptance check"
+        status = (f"{growth_words(min(iteration, grow_until), iteration)}; kept the latest pair passing the acceptance "
+                  "check")
     elapsed = time.perf_counter() - start
     metrics = {
         "status": status,

@@ -329,11 +329,13 @@ class RunRobustness(Result):
 @dataclass
 class ProofAttempt(Result):
     """What a run of any kind proves at a shift on the true model (``drlyap compare``): the decrease condition's
-    ``status`` and proved share (``"none"`` for a run with nothing to prove), the certified region of attraction
-    (``roa_certified``, ``roa_kind``, ``roa_share``), the decay asked (``decay_rate``; ``exp_rate`` for LQR's
-    scale-free ``alpha z'Pz``) and the robustness searches' numbers (``robustness``)."""
+    ``status`` and proved share (``"none"`` for a run with nothing to prove) on X_delta, or with ``level`` on
+    ``{V <= level}`` of it, the certified region of attraction (``roa_certified``, ``roa_kind``, ``roa_share``), the
+    decay asked (``decay_rate``; ``exp_rate`` for LQR's scale-free ``alpha z'Pz``) and the robustness searches'
+    numbers (``robustness``)."""
 
-    OPTIONAL: ClassVar[tuple[str, ...]] = ("exp_rate", "note", "counterexample", "time_s", "roa_kind", "decay_rate")
+    OPTIONAL: ClassVar[tuple[str, ...]] = ("exp_rate", "note", "counterexample", "time_s", "roa_kind", "decay_rate",
+                                           "level")
     status: str
     verified_fraction: float | None = None
     counterexample: list[float] | None = None
@@ -345,6 +347,7 @@ class ProofAttempt(Result):
     exp_rate: float | None = None
     robustness: dict | None = None
     note: str | None = None
+    level: float | None = None
 
 
 # --------------------------------------------------------------------------- a run's certificate and verification

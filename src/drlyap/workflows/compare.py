@@ -118,7 +118,7 @@ def certify(run: PolicyRun, xi: Tensor, time_limit: float, compute: Compute = Co
         return ProofAttempt(status=main.status, verified_fraction=main.verified_fraction,
                             counterexample=main.counterexample, time_s=main.time_s, roa_certified=roa.certified,
                             roa_kind=roa.kind, roa_share=roa.share_of_box,
-                            robustness=_robust_summary(robust.radius, robust.shift_box))
+                            robustness=_robust_summary(robust.radius, robust.shift_box), level=main.level)
     if run.kind == "lqr":
         system, design = run.system, run.info["design"]
         loop = ClosedLoop(system, QuadraticLyapunov(design.P),
@@ -208,7 +208,7 @@ def compare_runs(paths: Sequence[str | os.PathLike], xi: Sequence[float], n_init
     report = {"xi": [float(v) for v in xi], "n_init": n_init, "seed": seed, "rows": rows}
     if out is not None:
         def fill(tmp: Path) -> None:
-            figures = compare_figures(runs, shifts, tmp / "figures", horizon)
+            figures = compare_figures(runs, shifts, tmp / "figures", horizon, seed)
             report["figures"] = [str(Path(out) / "figures" / f.name) for f in figures]
             (tmp / "compare.json").write_text(json.dumps(report, indent=2) + "\n")
             (tmp / "compare.md").write_text(format_comparison(report) + "\n")
@@ -224,12 +224,13 @@ def _load(path, system, trust: bool) -> PolicyRun:
 
 
 def compare_figures(runs: Sequence[PolicyRun], shifts: Sequence[Tensor], folder: Path,
-                    horizon: float | None = None) -> list[Path]:
+                    horizon: float | None = None, seed: int = 0) -> list[Path]:
     """Like the paper's Figs. 3/4: certificate (V, z^T P z, or negated value) and input over time, one
-    figure per start state of the first run's system (:meth:`UncertainSystem.figure_starts`)."""
+    figure per start state of the first run's system (:meth:`UncertainSystem.figure_starts`: its reference states,
+    else states drawn from its test box with ``seed``)."""
     folder.mkdir(parents=True, exist_ok=True)
     paths = []
-    for i, start in enumerate(runs[0].system.figure_starts()):
+    for i, start in enumerate(runs[0].system.figure_starts(seed)):
         series = {}
         for run, shift in zip(runs, shifts):
             x0 = torch.tensor([start], dtype=torch.float64)

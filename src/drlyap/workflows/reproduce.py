@@ -17,7 +17,7 @@ import torch
 from drlyap import plotting
 from drlyap.config import Compute
 from drlyap.progress import progress as show_progress
-from drlyap.render import decrease_cell, roa_cell
+from drlyap.render import ACCEPTANCE_LEGEND, decrease_cell, roa_cell
 from drlyap.runs import Run, atomic_dir, check_writable, load_run, save_run
 from drlyap.simulation import evaluate, initial_states, score, simulate
 from drlyap.systems import UncertainSystem, resolve_system, system_source
@@ -156,7 +156,7 @@ def draw_figures(system: UncertainSystem, runs: dict[str, Run], xi: torch.Tensor
                for method, run in runs.items()}
     phase = plotting.phase_portraits(system, trajs, ok, folder / "trajectories.png",
                                      f"{system.name}, true model at {shift} (seed {seed})", levels, regions)
-    start = torch.tensor([system.figure_starts()[0]], dtype=torch.float64)
+    start = torch.tensor([system.figure_starts(seed)[0]], dtype=torch.float64)
     series, states = {}, {}
     for method, run in runs.items():
         traj = simulate(system, run.controller, start, xi, horizon=horizon)
@@ -174,9 +174,11 @@ def draw_figures(system: UncertainSystem, runs: dict[str, Run], xi: torch.Tensor
 def format_row(row: dict) -> str:
     p, m = row["paper_10"], row["more_200"]
     return (f"seed {row['seed']} {row['method']:>8}: {p['n']} test states {p['n_success']:>2}/{p['n']}, "
-            f"{m['n']} more {m['n_success']:>3}/{m['n']}, acceptance {'PASSED' if row['passed_acceptance'] else 'not passed'} "
-            f"(max violation {row['max_violation']:.3g}, violating {100 * row['violating_fraction']:.2f}%, "
-            f"Hurwitz {row['hurwitz']}, other equilibria {row['other_equilibria']}), {row['train_time_s']:.0f}s, "
+            f"{m['n']} more {m['n_success']:>3}/{m['n']}, acceptance check "
+            f"{'PASSED' if row['passed_acceptance'] else 'not passed'} (max violation {row['max_violation']:.3g}, "
+            f"violating {100 * row['violating_fraction']:.2f}% of the validation states, closed-loop Jacobian at x* "
+            f"Hurwitz at every xi sample: {row['hurwitz']}, other equilibria found: {row['other_equilibria']}), "
+            f"{row['train_time_s']:.0f}s, "
             f"certificate {row['certificate'].upper()}; at the test shift: decrease {_decrease(row)}, region of "
             f"attraction {row['roa'] or '-'}")
 
@@ -199,6 +201,7 @@ def format_table(report: dict) -> str:
                      f"{'passed' if r['passed_acceptance'] else 'not passed'} | {r['max_violation']:.3g} | "
                      f"{100 * r['violating_fraction']:.2f} | {r['hurwitz']} | {r['other_equilibria']} | "
                      f"{r['train_time_s']:.0f} | {r['certificate']} | {_decrease(r)} | {r['roa'] or '-'} |")
+    lines += ["", ACCEPTANCE_LEGEND]
     factors = report["sweep"]
     lines += ["", f"Success on the {report['results'][0]['more_200']['n']} more states at k x the test shift:", "",
               "| seed | method | " + " | ".join(f"k={k}" for k in factors) + " |",
