@@ -67,7 +67,9 @@ def test_a_violation_stops_the_workers_and_they_go_on_with_the_next_proof(pendul
     one = verify_condition(loop, strict, region, Budget(seconds=600, batch=64), **kwargs)
     two = verify_condition(loop, strict, region, Budget(seconds=600, batch=64, compute=Compute(workers=2)), **kwargs)
     assert one.status == two.status == "violated"
-    assert one.counterexample == two.counterexample and one.boxes_processed == two.boxes_processed
+    assert one.counterexample == two.counterexample
+    _same(one, two)
+    assert one.n_unverified == two.n_unverified
     _, condition, _ = pendulum_loop  # the pool is still usable: nothing of the stopped proof is left in flight
     assert verify_condition(loop, condition, region,
                             Budget(seconds=600, batch=64, compute=Compute(workers=2))).status == "verified"
@@ -256,3 +258,117 @@ def test_ray_backend_on_two_local_workers_proves_the_same_and_the_checker_accept
                             torch.load(tmp_path / "weights.pt", weights_only=True), sha256_file(tmp_path / "weights.pt"),
                             system_digest(loop.system))
     assert res.ok, res.failures
+
+
+def test_ctrl_c_while_workers_bound_keeps_the_batches_in_flight_and_the_proof_resumes(pendulum_loop, tmp_path,
+                                                                                       monkeypatch):
+    import drlyap.parallel as parallel
+
+    loop, condition, region = pendulum_loop
+    fresh = verify_condition(loop, condition, region, Budget(seconds=600, batch=32))
+    calls = {"n": 0}
+    result = parallel.Pending.result
+
+    def interrupted(self):
+        calls["n"] += 1
+        if calls["n"] == 6:  # a batch prefetched behind this one is in flight too
+            raise KeyboardInterrupt
+        return result(self)
+
+    monkeypatch.setattr(parallel.Pending, "result", interrupted)
+    compute = Compute(workers=2, checkpoint_dir=str(tmp_path), checkpoint_every=3600.0)  # saved at the interruption
+    with pytest.raises(KeyboardInterrupt):
+        verify_condition(loop, condition, region, Budget(seconds=600, batch=32, compute=compute))
+    monkeypatch.setattr(parallel.Pending, "result", result)
+    meta = _checkpoint_meta(tmp_path)
+    assert meta is not None and meta["processed"] == 5 * 32 and not meta["finished"]
+    resumed = verify_condition(loop, condition, region, Budget(seconds=600, batch=32, compute=compute))
+    assert resumed.resumed_boxes == 5 * 32
+    _same(fresh, resumed)
+
+
+# --------------------------------------------------------------------------- verify: certificates that are not proved again
+@pytest.fixture
+def linear_run(tmp_path):
+    from drlyap.runs import save_run
+    from drlyap.training import TrainConfig
+    from handmade import plain_train
+
+    system = small_pendulum()
+    cfg = TrainConfig(system="small-pendulum", method="dr", n_states=64, iters=1, check_every=1, lyapunov_hidden=[2],
+                      lyapunov_out=2, controller_hidden=[1], alpha_hat=1e-3, decay_rate=0.05, wasserstein_radius=0.01,
+                      risk_level=0.3, delta=0.1, xi_samples=[[0.02, 0.01], [-0.03, 0.0], [0.05, -0.02]], seed=0)
+    result = plain_train(cfg, system, progress=False)
+    lyap, ctrl = linear_pair(system)
+    result.lyapunov.load_state_dict(lyap.state_dict())
+    result.controller.load_state_dict(ctrl.state_dict())
+    return save_run(tmp_path / "run", result), f"{os.path.dirname(__file__)}/handmade.py:small_pendulum"
+
+
+def test_verify_rechecks_a_certificate_instead_of_proving_it_again(linear_run):
+    from click.testing import CliRunner
+
+    from drlyap.cli import main
+
+    run, spec = linear_run
+    runner = CliRunner()
+
+    def verify(*args):
+        out = runner.invoke(main, ["verify", str(run), "--system", spec, "--xi", "0.1,0.05", "--json", *args])
+        assert out.exit_code == 0, out.output
+        return json.loads(out.output)
+
+    first = verify()  # proves both and writes their certificates
+    assert first["trained"].get("source") is None and first["true_model"].get("source") is None
+    assert (run / "certificates" / "true-model.json").is_file() and not (run / "checkpoints").exists()
+    second = verify("--workers", "2")  # the checker confirms them (on two workers) and records it
+    for key in ("trained", "true_model"):
+        assert second[key]["source"] == "certificate" and second[key]["status"] == "verified"
+        assert second[key]["boxes_processed"] == first[key]["boxes_processed"] and "checked_at" not in second[key]
+    assert (run / "certificates" / "trained.check.json").is_file()
+    third = verify()  # the record of these very files
+    assert third["trained"]["source"] == "certificate" and third["trained"]["checked_at"]
+    text = runner.invoke(main, ["verify", str(run), "--system", spec])
+    assert "confirmed by the checker on" in text.output and "not proved again" in text.output
+    again = verify("--reprove")
+    assert again["trained"].get("source") is None and again["trained"]["status"] == "verified"
+    assert not (run / "certificates" / "trained.check.json").exists()  # a new certificate: its record is gone
+    header = json.loads((run / "certificates" / "trained.json").read_text())
+    header["claim"]["condition"]["wasserstein_radius"] = 0.0  # a claim that is not the condition to prove
+    (run / "certificates" / "trained.json").write_text(json.dumps(header))
+    assert verify()["trained"].get("source") is None  # proved anew, and its certificate written again
+    assert json.loads((run / "certificates" / "trained.json").read_text())["claim"]["condition"][
+        "wasserstein_radius"] == 0.01
+    checked = runner.invoke(main, ["check", str(run), "--system", spec, "--workers", "2"])
+    assert checked.exit_code == 0 and checked.output.count("CHECKED") == 2
+    close_pools()
+
+
+def test_an_interrupted_verify_resumes_its_proof_and_clears_its_checkpoints(linear_run, monkeypatch):
+    from click.testing import CliRunner
+
+    import drlyap.verification.bounding as bounding
+    from drlyap.cli import main
+
+    run, spec = linear_run
+    runner = CliRunner()
+    fresh = json.loads(runner.invoke(main, ["verify", str(run), "--system", spec, "--reprove", "--json"]).output)
+    calls = {"n": 0}
+    bound = bounding.ConditionJob.__call__
+
+    def interrupted(self, lo, hi):
+        calls["n"] += 1
+        if calls["n"] == 3:
+            raise KeyboardInterrupt
+        return bound(self, lo, hi)
+
+    monkeypatch.setattr(bounding.ConditionJob, "__call__", interrupted)
+    small = ["--time-limit", "600"]
+    out = runner.invoke(main, ["verify", str(run), "--system", spec, "--reprove", *small])
+    assert out.exit_code != 0 and list((run / "checkpoints").glob("proof-*.npz"))
+    monkeypatch.setattr(bounding.ConditionJob, "__call__", bound)
+    out = runner.invoke(main, ["verify", str(run), "--system", spec, "--reprove", "--json", *small])
+    assert out.exit_code == 0, out.output
+    resumed = json.loads(out.output)["trained"]
+    assert resumed["resumed_boxes"] > 0 and resumed["boxes_processed"] == fresh["trained"]["boxes_processed"]
+    assert resumed["status"] == "verified" and not (run / "checkpoints").exists()

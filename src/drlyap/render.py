@@ -128,8 +128,9 @@ def condition_lines(proof: ConditionProof, title: str) -> list[str]:
     """What ``drlyap verify`` prints for one condition's proof."""
     where = "X_delta" if proof.level is None else f"X_delta (condition or V > {level_text(proof.level)})"
     if proof.source == "certificate":
-        how = (f"its certificate file ({proof.boxes_processed} boxes) re-checked by the checker in {proof.time_s:.2f} s, "
-               "not proved again (--reprove proves it anew)")
+        checked = (f"confirmed by the checker on {proof.checked_at} (recorded for these very files)"
+                   if proof.checked_at else f"confirmed by the checker in {proof.time_s:.2f} s")
+        how = f"its certificate file ({proof.boxes_processed} boxes), {checked}; not proved again (--reprove proves it anew)"
     else:
         how = f"{proof.boxes_processed} boxes, {proof.time_s:.2f} s, {proof.stopped}"
         if proof.resumed_boxes:

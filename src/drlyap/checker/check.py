@@ -39,6 +39,7 @@ from torch import Tensor
 from drlyap.checker.affine import Af
 from drlyap.checker.arith import EPS, F64, Iv
 from drlyap.checker.model import Pair, Residual, centre_lower, form_upper, upper_bounds, value_lower
+from drlyap.checker.record import drop_record, fingerprint, write_record
 from drlyap.config import Compute
 from drlyap.parallel import pool_for
 from drlyap.render import claim_sentence
@@ -417,6 +418,11 @@ def check_run(run_dir: str | Path, system=None, trust: bool = False, names: list
         result = check_certificate(run_dir, name, header, arrays, system, weights, digest, system_sha, refine, compute)
         result.failures += claim_mismatch(name, header, config, metrics)
         result.ok = not result.failures
+        if result.ok:
+            write_record(run_dir, name, fingerprint(run_dir, name, header, digest, system_sha), result.proved,
+                         result.time_s)
+        else:
+            drop_record(run_dir, name)
         out.append(result)
     return out
 

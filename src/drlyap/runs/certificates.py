@@ -102,6 +102,7 @@ def write_certificate(folder: str | os.PathLike, name: str, proof: ConditionProo
                                 hashlib.sha256(data).hexdigest())
     path = target / f"{name}.json"
     _replace(path, (json.dumps(header, indent=1) + "\n").encode())
+    (target / f"{name}.check.json").unlink(missing_ok=True)  # a checker's record of the certificate this replaces
     return path
 
 

@@ -90,6 +90,7 @@ class _Search:
         self.sup_lo, self.sup_hi = -math.inf, -math.inf
         self.cex: tuple[float, Tensor] | None = None
         self.stopped, self.finished = "finished", False
+        self.flight: list[tuple[Tensor, Tensor, Tensor]] = []  # batches taken from the queue, their bounds not yet sorted
         self.key = None
         if self.compute.checkpoint_dir is not None:
             self.key = proof_key(loop, condition, region, level=level,
@@ -110,8 +111,10 @@ class _Search:
         leaves_lo = torch.cat(self.leaves_lo) if self.leaves_lo else torch.empty(0, self.n, dtype=F64)
         leaves_hi = torch.cat(self.leaves_hi) if self.leaves_hi else torch.empty(0, self.n, dtype=F64)
         cex = self.cex[1] if self.cex is not None else torch.empty(0, dtype=F64)
-        return {"queue_lo": self.lo, "queue_hi": self.hi, "queue_ids": self.ids, "leaves_lo": leaves_lo,
-                "leaves_hi": leaves_hi, "cex": cex, **self.tree.state()}
+        queue = [*self.flight, (self.lo, self.hi, self.ids)]  # the batches in flight go first again, as taken
+        return {"queue_lo": torch.cat([q[0] for q in queue]), "queue_hi": torch.cat([q[1] for q in queue]),
+                "queue_ids": torch.cat([q[2] for q in queue]), "leaves_lo": leaves_lo, "leaves_hi": leaves_hi,
+                "cex": cex, **self.tree.state()}
 
     def _meta(self) -> dict:
         return {"processed": self.processed, "verified_count": self.verified_count, "n_cex_boxes": self.n_cex_boxes,
@@ -160,22 +163,36 @@ class _Search:
             clo, chi, cids = self.lo[:batch], self.hi[:batch], self.ids[:batch]
             self.lo, self.hi, self.ids = self.lo[batch:], self.hi[batch:], self.ids[batch:]
             taken += clo.shape[0]
+            self.flight.append((clo, chi, cids))
             return clo, chi, cids
 
         job = ConditionJob(self.loop, condition, level, self.enclosure)
+        sorting = False
         try:
             for clo, chi, cids, bounds in run_batches(job, self.compute, take, lambda: self.lo.shape[0] >= batch):
+                sorting = True
+                self.flight.pop(0)
                 self.processed += clo.shape[0]
                 bar.update(clo.shape[0])
                 if self._sort(clo, chi, cids, bounds, scale):
                     break
+                sorting = False
                 if self.key is not None and time.perf_counter() - saved_at >= self.compute.checkpoint_every:
                     self.elapsed = before + time.perf_counter() - start
                     self._save()
                     saved_at = time.perf_counter()
                 bar.set_postfix(queued=int(self.lo.shape[0]))
+        except KeyboardInterrupt:
+            if not sorting:  # between batches the state is whole: keep it, so that the same proof resumes here
+                self.elapsed = before + time.perf_counter() - start
+                self._save()
+            raise
         finally:
             bar.close()
+        if self.flight:  # a batch prefetched when the search stopped at a counterexample: queued, as one process has it
+            queue = [*self.flight, (self.lo, self.hi, self.ids)]
+            self.lo, self.hi, self.ids = (torch.cat([q[i] for q in queue]) for i in range(3))
+            self.flight = []
         self.elapsed = before + time.perf_counter() - start
         if self.lo.shape[0] and self.stopped == "finished":  # a search that stopped on its own has none queued
             self.stopped = "box budget"
@@ -251,7 +268,7 @@ class _Search:
         system, n = self.loop.system, self.n
         leaves_lo, leaves_hi = list(self.leaves_lo), list(self.leaves_hi)
         unverified_vol, sup_hi = self.unverified_vol, self.sup_hi
-        if self.lo.shape[0] and self.stopped != "counterexample":
+        if self.lo.shape[0]:
             unverified_vol += float((self.hi - self.lo).prod(-1).sum())
             leaves_lo.append(self.lo)
             leaves_hi.append(self.hi)

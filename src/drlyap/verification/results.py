@@ -73,13 +73,14 @@ class ConditionProof(Result):
     proofs). ``falsifier``: the search that settled an unknown proof. ``resumed_boxes``: boxes an earlier, interrupted
     run of the same proof had bounded (kept in its checkpoint; ``boxes_processed`` and ``time_s`` count both runs'
     boxes and this run's time). ``source``: ``certificate`` where the verdict is a certificate file that the checker
-    confirmed instead of a new proof (``boxes_processed`` is then the certificate's). ``partition``: the tree of boxes a verified
+    confirmed instead of a new proof (``boxes_processed`` is then the certificate's; ``checked_at`` the date of a
+    recorded confirmation of the same files, where the checker did not run again). ``partition``: the tree of boxes a verified
     branch and bound proved it on (:class:`~drlyap.verification.partition.Partition`; not part of the JSON, written
     as a certificate file by :mod:`drlyap.runs.certificates`).
     """
 
     OPTIONAL: ClassVar[tuple[str, ...]] = ("boundary_min_lower", "boundary_min_upper", "counterexample_source",
-                                           "falsifier", "xi", "resumed_boxes", "source")
+                                           "falsifier", "xi", "resumed_boxes", "source", "checked_at")
     condition: str
     status: str
     verified_fraction: float
@@ -104,6 +105,7 @@ class ConditionProof(Result):
     xi: list[float] | None = None
     resumed_boxes: int | None = None
     source: str | None = None
+    checked_at: str | None = None
     partition: Any = field(default=None, repr=False, compare=False, metadata={"json": False})
 
     @property

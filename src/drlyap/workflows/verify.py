@@ -71,11 +71,13 @@ def confirmed_certificate(run: Run, name: str, condition, region: Region, level:
                           proof: ProofConfig) -> ConditionProof | None:
     """The verdict of the run's certificate file ``name`` (``trained`` or ``true-model``) when it states exactly this
     claim (the condition with its samples or shift, the region, the level), is about the run's own weights and
-    system, and the checker (:mod:`drlyap.checker`, its own arithmetic, where ``proof`` says) confirms it: a verified
-    :class:`ConditionProof` with ``source`` ``certificate``; None otherwise (the caller then proves it anew)."""
+    system, and the checker (:mod:`drlyap.checker`, its own arithmetic, where ``proof`` says) confirms it, now or in a
+    record of these very files (:mod:`drlyap.checker.record`): a verified :class:`ConditionProof` with ``source``
+    ``certificate``; None otherwise (the caller then proves it anew)."""
     import hashlib
 
     from drlyap.checker.check import check_certificate
+    from drlyap.checker.record import fingerprint, recorded, write_record
     from drlyap.runs.certificates import FOLDER, certificate_claim, read_certificate, system_digest
     from drlyap.runs.validate import load_weights
 
@@ -90,16 +92,24 @@ def confirmed_certificate(run: Run, name: str, condition, region: Region, level:
     if claim != certificate_claim(condition, region, level):
         return None
     data = (run.path / "weights.pt").read_bytes()
-    result = check_certificate(run.path, name, header, arrays, run.system, load_weights(run.path / "weights.pt", data),
-                               hashlib.sha256(data).hexdigest(), system_digest(run.system), compute=proof.compute)
-    if not result.ok:
-        return None
+    weights_sha, system_sha = hashlib.sha256(data).hexdigest(), system_digest(run.system)
+    prints = fingerprint(run.path, name, header, weights_sha, system_sha)
+    record = recorded(run.path, name, prints)
+    if record is not None:
+        leaves, seconds, when = int(record["leaves"]), 0.0, str(record.get("date"))
+    else:
+        result = check_certificate(run.path, name, header, arrays, run.system, load_weights(run.path / "weights.pt", data),
+                                   weights_sha, system_sha, compute=proof.compute)
+        if not result.ok:
+            return None
+        write_record(run.path, name, prints, result.proved, result.time_s)
+        leaves, seconds, when = result.proved, result.time_s, None
     counts = (header.get("proof") or {})
     return ConditionProof(condition=condition.label, status="verified", verified_fraction=1.0, delta=region.delta,
-                          boxes_processed=int(counts.get("boxes_processed") or 0), boxes_verified=result.proved,
-                          time_s=result.time_s, stopped="finished", level=level,
+                          boxes_processed=int(counts.get("boxes_processed") or 0), boxes_verified=leaves,
+                          time_s=seconds, stopped="finished", level=level,
                           boundary_min_lower=counts.get("faces_min_lower") if level is not None else None,
-                          source="certificate")
+                          source="certificate", checked_at=when)
 
 
 def verify_run(run: Run, proof: ProofConfig | None = None, *, delta: float | None = None,
