@@ -133,3 +133,18 @@ def test_the_radius_on_a_sublevel_set_is_proved_there_and_at_least_the_whole_reg
     if sub.witness is not None and sub.unproved_by == "sampled state":
         state = system.to_local(torch.tensor([sub.witness["state"]], dtype=F64))
         assert float(loop.f64.lyapunov(state)[0]) <= level
+
+
+def test_the_radius_search_starts_at_a_radius_already_proved():
+    system = small_pendulum()
+    lyap, ctrl = linear_pair(system)
+    loop, region = ClosedLoop(system, lyap, ctrl), Region.of(system, DELTA)
+    condition = DRPointwise(1e-3, 0.1, XI, 0.05)
+    plain = certified_radius(loop, condition, region, TEN, tol=TOL)
+    known = 0.5 * plain.radius
+    assert verify_condition(loop, condition.with_radius(known), region, TEN).status == "verified"
+    started = certified_radius(loop, condition, region, TEN, tol=TOL, proved=known)
+    assert started.probes[0] == {"value": known, "status": "verified", "by": "an earlier proof", "time_s": None}
+    assert all(p["value"] > 0 for p in started.probes)  # r = 0 was not proved again
+    assert started.radius >= known and started.unproved <= started.radius * (1 + TOL)
+    assert abs(started.radius - plain.radius) <= TOL * plain.radius

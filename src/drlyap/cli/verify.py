@@ -123,7 +123,7 @@ def verify(run_dir: Path, delta: float | None, xi: str | None, time_limit: float
             written = [f"  no certificate written: {run.path} cannot be written ({err.strerror or err})"]
         if max_radius:
             result.robustness = run_robustness(run, delta=delta, tol=radius_tol, budget=settings.budget(),
-                                               total_time=8 * settings.time_limit)
+                                               total_time=8 * settings.time_limit, trained=result.trained)
         clear_checkpoints(run)
     except ValueError as err:
         fail(err)

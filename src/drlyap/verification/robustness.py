@@ -97,14 +97,14 @@ def _residuals_and_lip(loop: ClosedLoop, condition, z: Tensor, batch: int = 8192
 # --------------------------------------------------------------------------- the search
 def _largest_proved(prove: Callable[[float], dict], refute: Callable[[float], dict | None], guess: float | None,
                     start: float, tol: float, cap: float, max_proofs: int, total_time: float,
-                    reguess: Callable[[dict], float | None] | None = None) -> dict:
+                    reguess: Callable[[dict], float | None] | None = None, proved: float | None = None) -> dict:
     """Largest v in ``[0, cap]`` with ``prove(v)['status'] == 'verified'``, for a property monotone in v.
 
     ``refute(v)``: a cheap witness that v fails (a real evaluation), or None. ``guess``: a sampled upper end
     (the property fails just above it), or None (then grow geometrically from ``start``). ``reguess(res)``: a
     new sampled upper end from the witness of a failed proof (the verifier's counterexample), or None; the
-    next probe is then just below it. Returns the bracket ``proved <= v* < unproved``, what decided the upper
-    end, and the probes made.
+    next probe is then just below it. ``proved``: a value already proved (the search starts there instead of
+    proving 0). Returns the bracket ``proved <= v* < unproved``, what decided the upper end, and the probes made.
     """
     clock = time.perf_counter()
     probes: list[dict] = []
@@ -132,11 +132,15 @@ def _largest_proved(prove: Callable[[float], dict], refute: Callable[[float], di
                 "stopped": stopped, "reason": reason, "proofs": proofs, "probes": probes,
                 "time_s": time.perf_counter() - clock}
 
-    first = probe(0.0)
-    if first["status"] != "verified":
-        return out(None, first, "not provable at 0",
-                   f"the condition is {first['status']} already at 0 ({first['by']})")
-    lo, hi_res = 0.0, None
+    if proved is not None and proved > 0:
+        probes.append({"value": proved, "status": "verified", "by": "an earlier proof", "time_s": None})
+        lo, hi_res = float(proved), None
+    else:
+        first = probe(0.0)
+        if first["status"] != "verified":
+            return out(None, first, "not provable at 0",
+                       f"the condition is {first['status']} already at 0 ({first['by']})")
+        lo, hi_res = 0.0, None
 
     def over_budget() -> bool:
         return proofs >= max_proofs or time.perf_counter() - clock > total_time
@@ -201,7 +205,7 @@ def _prover(loop: ClosedLoop, region: Region, budget: Budget, make, level: float
 # --------------------------------------------------------------------------- radius
 def certified_radius(loop: ClosedLoop, condition: DRPointwise, region: Region, budget: Budget = SEARCH_BUDGET, *,
                      tol: float = 0.01, total_time: float = 120.0, max_proofs: int = 40,
-                     cap: float = 1e6, level: float | None = None) -> CertifiedRadius:
+                     cap: float = 1e6, level: float | None = None, proved: float | None = None) -> CertifiedRadius:
     """The largest Wasserstein radius r for which the pointwise DR condition (at the condition's risk level
     eps, samples and decay) is proved over the region X_delta (``level``: over its sublevel set ``{V <= level}``,
     the set a region-of-attraction run is trained and proved on; sampled refutations are then taken there too).
@@ -209,7 +213,9 @@ def certified_radius(loop: ClosedLoop, condition: DRPointwise, region: Region, b
     ``condition``: a :class:`DRPointwise` (its own radius is only reported; the search sets r with
     :meth:`~DRPointwise.with_radius`). ``tol``: relative width of the final bracket ``[r*, r_unproved)``.
     ``budget``: of each proof; ``total_time``/``max_proofs``: budget of the whole search (the bracket
-    found so far is returned, with ``stopped`` saying why). ``cap``: largest radius tried.
+    found so far is returned, with ``stopped`` saying why). ``cap``: largest radius tried. ``proved``: a radius at
+    which this very condition (risk level, samples, decay, region, level) is already proved, e.g. by the run's trained
+    condition: the search starts there (its first probe, ``by`` ``an earlier proof``) instead of proving r = 0.
 
     Returns a :class:`~drlyap.verification.results.CertifiedRadius`: ``radius`` (r*, proved: the condition holds for
     every r <= r*; None when it is not provable even at r = 0, with ``reason``), ``unproved`` (the smallest radius tried
@@ -258,7 +264,7 @@ def certified_radius(loop: ClosedLoop, condition: DRPointwise, region: Region, b
 
     prove = _prover(loop, region, budget, condition.with_radius, level)
     start = condition.r if condition.r > 0 else 1e-3
-    found = _largest_proved(prove, refute, first_guess, start, tol, cap, max_proofs, total_time, reguess)
+    found = _largest_proved(prove, refute, first_guess, start, tol, cap, max_proofs, total_time, reguess, proved)
     found["time_s"] = time.perf_counter() - clock
     radius = found.pop("certified")
     sampled = best["sampled"]

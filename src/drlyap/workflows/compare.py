@@ -113,7 +113,7 @@ def certify(run: PolicyRun, xi: Tensor, time_limit: float, compute: Compute = Co
         settings = run_proof(lyap_run, replace(lyap_run.proof or ProofConfig(), time_limit=time_limit).with_compute(compute))
         result = verify_run(lyap_run, settings, xi=xi, roa=True)
         roa = result.roa
-        robust = run_robustness(lyap_run, budget=search, total_time=4 * time_limit)
+        robust = run_robustness(lyap_run, budget=search, total_time=4 * time_limit, trained=result.trained)
         main = result.main
         return ProofAttempt(status=main.status, verified_fraction=main.verified_fraction,
                             counterexample=main.counterexample, time_s=main.time_s, roa_certified=roa.certified,

@@ -230,19 +230,25 @@ def record_certificates(run: Run, ver: RunVerification) -> list[Path]:
 
 
 def run_robustness(run: Run, delta: float | None = None, tol: float = 0.01, budget: Budget = SEARCH_BUDGET,
-                   total_time: float = 120.0, scale: Tensor | None = None) -> RunRobustness:
+                   total_time: float = 120.0, scale: Tensor | None = None,
+                   trained: ConditionProof | None = None) -> RunRobustness:
     """:func:`~drlyap.verification.certified_radius` of the DR pointwise condition at the run's samples (all N, also
     for a baseline run, which trained on their mean), risk level and decay (its configured radius is only a start
     of the search), and :func:`~drlyap.verification.certified_shift_box` with the run's decay (``scale`` default
     :func:`~drlyap.verification.shift_scale` of the run's samples), over the run's X_delta (``delta`` default the
     run's; for a region-of-attraction run over its sublevel set ``{V <= roa_level}``); ``budget`` of each proof,
-    ``total_time`` seconds of each search. For a baseline run also the radius of the DR condition around the single
-    sample it trained on (``run.xi_train``, N = 1)."""
+    ``total_time`` seconds of each search. ``trained``: the run's trained condition's proof, if at hand: where it is
+    verified for a DR pointwise run on this region, the radius search starts at the run's radius (that proof is one of
+    the search's). For a baseline run also the radius of the DR condition around the single sample it trained on
+    (``run.xi_train``, N = 1)."""
     cfg, system, loop = run.config, run.system, run.loop
     region = _region(run, delta)
     level = cfg.roa_level  # a region-of-attraction run claims its conditions on {V <= level} only
-    radius = certified_radius(loop, run_condition(cfg, run.xi_samples, "pointwise"), region, budget, tol=tol,
-                              total_time=total_time, level=level)
+    condition = run_condition(cfg, run.xi_samples, "pointwise")
+    same = (cfg.method == "dr" and cfg.loss == "pointwise" and isinstance(trained, ConditionProof) and trained.verified
+            and float(trained.delta) == float(region.delta) and trained.level == level)
+    radius = certified_radius(loop, condition, region, budget, tol=tol, total_time=total_time, level=level,
+                              proved=cfg.wasserstein_radius if same else None)
     scale = shift_scale(system, run.xi_samples) if scale is None else scale
     box = certified_shift_box(loop, cfg.decay_rate, cfg.exp_rate, region, scale, budget, tol=tol,
                               total_time=total_time, level=level)
