@@ -323,6 +323,18 @@ class _RayWorker:
         return self.cache.run(token, arrays)
 
 
+def check_device(device: str) -> None:
+    """A ValueError naming ``device`` where this process cannot compute on it (``cpu`` always can)."""
+    if device == "cpu":
+        return
+    if not device.startswith("cuda") or not torch.cuda.is_available():
+        raise ValueError(f"device {device!r}: no CUDA device is available here (torch.cuda.is_available() is "
+                         f"{torch.cuda.is_available()}); use --device cpu")
+    index = torch.device(device).index
+    if index is not None and index >= torch.cuda.device_count():
+        raise ValueError(f"device {device!r}: this machine has {torch.cuda.device_count()} CUDA device(s)")
+
+
 _POOLS: dict[tuple, Pool] = {}
 
 

@@ -78,7 +78,8 @@ class Af(_Ops):
         mid = (lo + hi) / 2
         rad = _up(torch.maximum(hi - mid, mid - lo))
         k = lo.shape[-1]
-        return Af(mid, torch.diag_embed(rad), torch.zeros(*mid.shape, k, k, dtype=F64), Iv.point(torch.zeros_like(mid)))
+        return Af(mid, torch.diag_embed(rad), torch.zeros(*mid.shape, k, k, dtype=F64, device=mid.device),
+                  Iv.point(torch.zeros_like(mid)))
 
     def constant(self, x) -> Af:
         """``x`` (an :class:`Iv`, a tensor or a number) as a form of this form's ``k``: its midpoint, and the rest
@@ -89,8 +90,8 @@ class Af(_Ops):
         k = self.l.shape[-1]
         mid = (x.lo + x.hi) / 2
         mid = torch.where(torch.isfinite(mid), mid, 0.0)
-        return Af(mid, torch.zeros(*mid.shape, k, dtype=F64), torch.zeros(*mid.shape, k, k, dtype=F64),
-                  x - Iv.point(mid))
+        return Af(mid, torch.zeros(*mid.shape, k, dtype=F64, device=mid.device),
+                  torch.zeros(*mid.shape, k, k, dtype=F64, device=mid.device), x - Iv.point(mid))
 
     def promote(self, x) -> Af:
         return self.constant(x)
@@ -413,21 +414,23 @@ class Af(_Ops):
 
 
 _MAX_VERTICES_K = 10
-_CORNERS: dict[int, tuple[Tensor, Tensor, Tensor]] = {}
+_CORNERS: dict[tuple[int, str], tuple[Tensor, Tensor, Tensor]] = {}
 
 
-def _corners(k: int) -> tuple[Tensor, Tensor, Tensor]:
+def _corners(k: int, device: torch.device | str = "cpu") -> tuple[Tensor, Tensor, Tensor]:
     """The ``2^k`` corners of ``[-1, 1]^k`` as rows ``(2^k, k)``, the products ``e_i e_j`` (``i < j``) at the corners
-    ``(2^k, P)``, and the ``(k * k, P)`` matrix of zeros and ones that sums ``q_ij + q_ji`` from a flattened ``q``."""
-    if k not in _CORNERS:
-        corners = torch.cartesian_prod(*[torch.tensor([-1.0, 1.0], dtype=F64)] * k).reshape(-1, k)
-        pairs = torch.triu_indices(k, k, 1)
-        select = torch.zeros(k * k, pairs.shape[1], dtype=F64)
-        columns = torch.arange(pairs.shape[1])
+    ``(2^k, P)``, and the ``(k * k, P)`` matrix of zeros and ones that sums ``q_ij + q_ji`` from a flattened ``q``, on
+    ``device``."""
+    key = (k, str(device))
+    if key not in _CORNERS:
+        corners = torch.cartesian_prod(*[torch.tensor([-1.0, 1.0], dtype=F64, device=device)] * k).reshape(-1, k)
+        pairs = torch.triu_indices(k, k, 1, device=device)
+        select = torch.zeros(k * k, pairs.shape[1], dtype=F64, device=device)
+        columns = torch.arange(pairs.shape[1], device=device)
         select[pairs[0] * k + pairs[1], columns] = 1.0
         select[pairs[1] * k + pairs[0], columns] = 1.0
-        _CORNERS[k] = corners, corners[:, pairs[0]] * corners[:, pairs[1]], select
-    return _CORNERS[k]
+        _CORNERS[key] = corners, corners[:, pairs[0]] * corners[:, pairs[1]], select
+    return _CORNERS[key]
 
 
 def _parts(q: Tensor) -> tuple[Tensor, Tensor]:
@@ -435,7 +438,7 @@ def _parts(q: Tensor) -> tuple[Tensor, Tensor]:
     product with zeros and ones: each sum is one rounded addition, as written; a non-finite entry makes its row
     NaN, which no bound reads as finite)."""
     k = q.shape[-1]
-    return torch.diagonal(q, dim1=-2, dim2=-1), q.flatten(-2) @ _corners(k)[2]
+    return torch.diagonal(q, dim1=-2, dim2=-1), q.flatten(-2) @ _corners(k, q.device)[2]
 
 
 def _corner_max(lin: Tensor, diag: Tensor, off: Tensor, base: Tensor, mag: Tensor) -> Tensor:
@@ -443,7 +446,7 @@ def _corner_max(lin: Tensor, diag: Tensor, off: Tensor, base: Tensor, mag: Tenso
     (see :func:`quad_max`). ``base (..., 2^k)``: ``lin . e + off . (e_i e_j)`` at the corners as computed (shared by a
     form's upper and lower bounds); ``mag``: an upper bound of ``|lin|_1 + |diag|_1 + |off|_1``, for the pad."""
     k = lin.shape[-1]
-    corners = _corners(k)[0]
+    corners = _corners(k, lin.device)[0]
     concave = diag.clamp(max=0.0)
     t = torch.where(concave < 0, (lin / (-2.0 * torch.where(concave < 0, concave, -1.0))).clamp(-1.0, 1.0), 0.0)
     values = base + (2.0 * concave * t) @ corners.T
@@ -477,7 +480,7 @@ def quad_max_minus(lin: Tensor, q: Tensor, lin2: Tensor, q2: Tensor, lam: Tensor
     if k > _MAX_VERTICES_K:
         return quad_max(lin[:, :, None] - lam[..., None] * lin2[:, None, None],
                         q[:, :, None] - lam[..., None, None] * q2[:, None, None], dual)
-    corners, products, _ = _corners(k)
+    corners, products, _ = _corners(k, lin.device)
     (d1, o1), (d2, o2) = _parts(q), _parts(q2)
     scaled = lam[..., None]
     combined = lin[:, :, None] - scaled * lin2[:, None, None]
@@ -508,7 +511,7 @@ def quad_span(lin: Tensor, q: Tensor, qabs: Tensor | None = None) -> Iv:
 def _corner_inputs(lin: Tensor, q: Tensor, qabs: Tensor | None = None) -> tuple[Tensor, Tensor, Tensor, Tensor]:
     """What :func:`_corner_max` takes besides ``lin``: ``q``'s diagonal and pair sums (:func:`_parts`), the corner
     values ``lin . e + off . (e_i e_j)`` and ``|lin|_1 + |q|_1`` (``qabs``: ``|q|_1`` where known)."""
-    corners, products, _ = _corners(lin.shape[-1])
+    corners, products, _ = _corners(lin.shape[-1], lin.device)
     diag, off = _parts(q)
     mag = lin.abs().sum(-1) + (q.abs().flatten(-2).sum(-1) if qabs is None else qabs)
     return diag, off, lin @ corners.T + off @ products.T, mag
@@ -557,12 +560,12 @@ def _dual_max(lin: Tensor, q: Tensor) -> Tensor:
     lam, vec = torch.linalg.eigh(qs)
     lv = (vec.transpose(-1, -2) @ lin[..., None])[..., 0]
     scale = (lin.norm(dim=-1, keepdim=True) / (2 * math.sqrt(k))).clamp(min=TINY)
-    steps = 2.0 ** torch.arange(-14, 15, dtype=F64)
+    steps = 2.0 ** torch.arange(-14, 15, dtype=F64, device=lin.device)
     grid = lam[..., -1:] + scale * steps + 1e-10 * qs.flatten(-2).norm(dim=-1)[..., None]
     guess = grid.clamp(min=0.0) * k + 0.25 * (lv[..., None, :] ** 2 / (grid[..., None] - lam[..., None, :])).sum(-1)
     t = grid.gather(-1, guess.argmin(-1, keepdim=True))[..., 0]
     y = 0.5 * (vec @ (lv / (t[..., None] - lam))[..., None])[..., 0]
-    eye = torch.eye(k, dtype=F64)
+    eye = torch.eye(k, dtype=F64, device=lin.device)
     m = t[..., None, None] * eye - qs
     diag = torch.diagonal(m, dim1=-2, dim2=-1)
     backward = 2 * (k + 1) ** 2 * EPS * diag.abs().amax(-1) + TINY

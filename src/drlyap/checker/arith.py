@@ -367,7 +367,7 @@ class Du(_Ops):
         zero = x * 0.0
         tangents = []
         for i in range(count):
-            e = torch.zeros(x.shape, dtype=F64)
+            e = torch.zeros(x.shape, dtype=F64, device=x.lo.device if isinstance(x, Iv) else x.v.lo.device)
             e[..., axis_tangents[i]] = 1.0
             tangents.append(zero + e)
         return Du(x, tangents)

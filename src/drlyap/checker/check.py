@@ -41,7 +41,7 @@ from drlyap.checker.arith import EPS, F64, Iv
 from drlyap.checker.model import Pair, Residual, centre_lower, form_upper, upper_bounds, value_lower
 from drlyap.checker.record import drop_record, fingerprint, write_record
 from drlyap.config import Compute
-from drlyap.parallel import pool_for
+from drlyap.parallel import check_device, pool_for
 from drlyap.render import claim_sentence
 
 INTERNAL, PROVED, INSIDE_BALL, ABOVE_LEVEL = 0, 1, 2, 3
@@ -156,7 +156,7 @@ def inside_open_ball(lo: Tensor, hi: Tensor, delta: float) -> Tensor:
 
 def _widest_split(lo: Tensor, hi: Tensor, scale: Tensor) -> tuple[Tensor, Tensor]:
     dim = ((hi - lo) / scale).argmax(-1)
-    rows = torch.arange(lo.shape[0])
+    rows = torch.arange(lo.shape[0], device=lo.device)
     mid = (lo[rows, dim] + hi[rows, dim]) / 2
     hi1, lo2 = hi.clone(), lo.clone()
     hi1[rows, dim] = mid
@@ -191,10 +191,10 @@ def _holds(residual: Residual, lo: Tensor, hi: Tensor, level: float | None, batc
     where to try V alone first; ``cheap_first``: the mean-value bounds before the forms (the other order otherwise;
     each box not proved by the first is tried by the second)."""
     steps = (_by_mean_value, _by_forms) if cheap_first else (_by_forms, _by_mean_value)
-    ok, low = [torch.zeros(0, dtype=torch.bool)], [torch.zeros(0, dtype=F64)]
+    ok, low = [torch.zeros(0, dtype=torch.bool, device=lo.device)], [torch.zeros(0, dtype=F64, device=lo.device)]
     for i in range(0, lo.shape[0], batch):
         a, b = lo[i:i + batch], hi[i:i + batch]
-        good = torch.zeros(a.shape[0], dtype=torch.bool)
+        good = torch.zeros(a.shape[0], dtype=torch.bool, device=a.device)
         first = (above[i:i + batch] & (level is not None)).nonzero().squeeze(-1)
         if first.numel():  # V alone: above the level, nothing is claimed
             good[first] = residual.pair.value(Af.seed(a[first], b[first])).interval(dual=True).lo > level
@@ -219,9 +219,9 @@ def prove_boxes(residual: Residual, lo: Tensor, hi: Tensor, scale: Tensor, refin
     how many pieces in all. ``above (B,)``: boxes to try ``V > level`` on first (the certificate's word, a hint
     only: each box is proved one way or the other whatever it says); ``cheap_first``: try the mean-value bounds
     before the second-order forms (an order, not a shortcut: see :func:`_holds`)."""
-    above = torch.zeros(lo.shape[0], dtype=torch.bool) if above is None else above
+    above = torch.zeros(lo.shape[0], dtype=torch.bool, device=lo.device) if above is None else above
     order = torch.argsort(above.to(torch.int8), stable=True)  # the hinted boxes together, so that batches share a path
-    ok, centre_low = torch.empty_like(above), torch.empty(lo.shape[0], dtype=F64)
+    ok, centre_low = torch.empty_like(above), torch.empty(lo.shape[0], dtype=F64, device=lo.device)
     ok[order], centre_low[order] = _holds(residual, lo[order], hi[order], level, batch, above[order],
                                           cheap_first)
     todo = (~ok).nonzero().squeeze(-1)
@@ -241,17 +241,29 @@ def prove_boxes(residual: Residual, lo: Tensor, hi: Tensor, scale: Tensor, refin
 
 
 class LeafJob:
-    """:func:`prove_boxes` on a chunk of leaves, as a job for worker processes (:mod:`drlyap.parallel`): called on
-    ``lo, hi (B, n)`` and ``above (B,)`` it returns ``ok`` and ``centre_low`` ``(B,)`` and the counts ``refined`` and
-    ``pieces`` ``(1,)``."""
+    """:func:`prove_boxes` on a chunk of leaves, as a job for worker processes (:mod:`drlyap.parallel`) or a device:
+    called on ``lo, hi (B, n)`` and ``above (B,)`` it returns ``ok`` and ``centre_low`` ``(B,)`` and the counts
+    ``refined`` and ``pieces`` ``(1,)``, on the CPU."""
 
-    def __init__(self, residual: Residual, scale: Tensor, refine: int, level: float | None, cheap_first: bool) -> None:
+    def __init__(self, residual: Residual, scale: Tensor, refine: int, level: float | None, cheap_first: bool,
+                 device: str = "cpu") -> None:
         self.residual, self.scale, self.refine, self.level, self.cheap_first = residual, scale, refine, level, cheap_first
+        self.device = device
+
+    def on(self, device: str) -> LeafJob:
+        """The same job with the pair and the claim's constants on ``device`` (float64 there too)."""
+        if device == self.device:
+            return self
+        check_device(device)
+        return LeafJob(self.residual.to(device), self.scale.to(device), self.refine, self.level, self.cheap_first,
+                       device)
 
     def __call__(self, lo: Tensor, hi: Tensor, above: Tensor) -> dict:
-        ok, low, refined, pieces = prove_boxes(self.residual, lo, hi, self.scale, self.refine, self.level,
-                                               above=above, cheap_first=self.cheap_first)
-        return {"ok": ok, "centre_low": low, "refined": torch.tensor([refined]), "pieces": torch.tensor([pieces])}
+        device = torch.device(self.device)
+        ok, low, refined, pieces = prove_boxes(self.residual, lo.to(device), hi.to(device), self.scale, self.refine,
+                                               self.level, above=above.to(device), cheap_first=self.cheap_first)
+        return {"ok": ok.cpu(), "centre_low": low.cpu(), "refined": torch.tensor([refined]),
+                "pieces": torch.tensor([pieces])}
 
 
 def prove_leaves(job: LeafJob, lo: Tensor, hi: Tensor, above: Tensor, compute: Compute = Compute(),
@@ -260,7 +272,7 @@ def prove_leaves(job: LeafJob, lo: Tensor, hi: Tensor, above: Tensor, compute: C
     chunks of ``chunk`` leaves per worker in flight at a time; the same four results."""
     pool = pool_for(compute)
     if pool is None:
-        out = job(lo, hi, above)
+        out = job.on(compute.device)(lo, hi, above)
     else:
         size = chunk * pool.workers
         starts = list(range(0, lo.shape[0], size))

@@ -15,6 +15,7 @@ States are local coordinates ``z = x - x*`` (``(B, n)``). The formulas are the o
 
 from __future__ import annotations
 
+import copy
 import math
 from collections.abc import Callable
 
@@ -48,7 +49,15 @@ class Mlp:
         return h.linear(self.weights[-1], self.biases[-1]), hidden
 
     def at_origin(self, n: int) -> Iv:
-        return self.forward(Iv.point(torch.zeros(1, n, dtype=F64)))[0]
+        return self.forward(Iv.point(torch.zeros(1, n, dtype=F64, device=self.scale.device)))[0]
+
+    def to(self, device: torch.device | str) -> Mlp:
+        """The same network with its weights on ``device``."""
+        out = copy.copy(self)
+        out.weights = [w.to(device) for w in self.weights]
+        out.biases = [b.to(device) for b in self.biases]
+        out.scale = self.scale.to(device)
+        return out
 
 
 class Pair:
@@ -61,6 +70,14 @@ class Pair:
         self.u_star, self.low, self.high = (ctrl[k].to(F64) for k in ("u_star", "room_low", "room_high"))
         self.alpha_hat, self.n = float(alpha_hat), n
         self.phi0, self.varphi0 = self.phi.at_origin(n), self.varphi.at_origin(n)
+
+    def to(self, device: torch.device | str) -> Pair:
+        """The same pair with its weights and constants on ``device``."""
+        out = copy.copy(self)
+        out.phi, out.varphi = self.phi.to(device), self.varphi.to(device)
+        out.u_star, out.low, out.high = (t.to(device) for t in (self.u_star, self.low, self.high))
+        out.phi0, out.varphi0 = out.phi.at_origin(self.n), out.varphi.at_origin(self.n)
+        return out
 
     def value(self, z):
         """V alone (no gradient): ``||phi(z) - phi(0)||^2 + alpha_hat ||z / s||^2``."""
@@ -105,6 +122,13 @@ class Residual:
         self.p0 = torch.as_tensor(system.nominal_params, dtype=F64)
         self.uncertain = list(system.uncertain_index)
 
+    def to(self, device: torch.device | str) -> Residual:
+        """The same residual with the pair, the samples and the constants on ``device``."""
+        out = copy.copy(self)
+        out.pair = self.pair.to(device)
+        out.xi, out.x_star, out.p0 = self.xi.to(device), self.x_star.to(device), self.p0.to(device)
+        return out
+
     def _params(self, z, batch: int, xi: Tensor | None):
         p = self.p0.expand(batch, -1).clone()
         if xi is not None:
@@ -142,7 +166,7 @@ class Residual:
             base = self._params(z, batch, None)
             tangents = []
             for i in self.uncertain:
-                e = torch.zeros(batch, self.p0.shape[0], dtype=F64)
+                e = torch.zeros(batch, self.p0.shape[0], dtype=F64, device=self.p0.device)
                 e[:, i] = 1.0
                 tangents.append(lift(Iv.point(e), z.level, z if z.level > 0 else None))
             out = dynamics(x, u, Du(base, tangents))
@@ -204,7 +228,7 @@ def form_upper(residual: Residual, comps: Af, value: Af, level: float | None) ->
     bound of the quadratic parts, then, for the boxes that leaves above 0, with the dual bound too. With a level, the
     multiplier 0 alone first (most boxes of a sublevel-set proof need no other), then every one for the rest."""
     if level is not None:
-        lam = torch.zeros(*comps.shape, 1, dtype=F64)
+        lam = torch.zeros(*comps.shape, 1, dtype=F64, device=comps.c.device)
         upper = residual.combine_upper(_s_procedure(comps, value, level, lam, dual=False)[..., 0])
         rest = (upper > 0).nonzero().squeeze(-1)
         if rest.numel():
@@ -233,7 +257,7 @@ def sublevel_form_upper(comps: Af, value: Af, level: float, dual: bool = True) -
     """``min over lam`` of an upper bound of ``comps - lam (value - level)`` (``comps (B, Q)``, ``value (B,)``
     forms of the same boxes) over the boxes: ``(B, Q)``, each multiplier's quadratic part bounded by the smaller of
     the corner and (``dual``) the dual bound (:func:`~drlyap.checker.affine.quad_max`)."""
-    lam = torch.tensor(MULTIPLIERS, dtype=F64).expand(*comps.shape, -1)  # (B, Q, L)
+    lam = torch.tensor(MULTIPLIERS, dtype=F64, device=comps.c.device).expand(*comps.shape, -1)  # (B, Q, L)
     corner = _s_procedure(comps, value, level, lam, dual=False)
     if not dual:
         return corner.amin(-1)

@@ -18,11 +18,11 @@ from drlyap.cli.common import compute_options, compute_settings, fail, refuse_ea
 @click.option("--refine", type=click.IntRange(0, 12), default=3, show_default=True,
               help="Times the checker may bisect a box its own bounds do not prove (the verifier's bounds may be "
                    "tighter than the checker's).")
-@compute_options(with_device=False)
+@compute_options()
 @click.option("--json", "as_json", is_flag=True, help="Print one JSON object.")
 @run_source_options
 def check(run_dir: Path, names: tuple[str, ...], refine: int, workers: int, backend: str, address: str | None,
-          as_json: bool, system_spec: str | None, trust_run: bool) -> None:
+          device: str, as_json: bool, system_spec: str | None, trust_run: bool) -> None:
     """Re-check the certificates in RUN_DIR/certificates/ box by box with a small checker of its own (its own float64
     interval arithmetic, its own reading of V, pi and the condition), and say whether every box holds and the boxes
     cover the claimed region. Exits 1 when a certificate fails.
@@ -30,13 +30,13 @@ def check(run_dir: Path, names: tuple[str, ...], refine: int, workers: int, back
     A certificate is written by `drlyap train` and `drlyap verify` for every proof of a decrease condition that ends
     verified, on the state box minus the delta-ball or on a sublevel set {V <= c} of it.
     """
+    settings = compute_settings(workers, backend, address, device)
     refuse_early(runs=[run_dir], systems=[system_spec])
 
     from drlyap.checker import check_run
     from drlyap.config import Compute
     from drlyap.render import check_lines
 
-    settings = compute_settings(workers, backend, address)
     try:
         results = check_run(run_dir, run_system_of(system_spec), trust_run, list(names) or None, refine,
                             Compute(**settings))

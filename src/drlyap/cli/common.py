@@ -106,8 +106,9 @@ def compute_options(with_device: bool = True):
     def decorate(command):
         if with_device:
             command = click.option("--device", default="cpu", show_default=True,
-                                   help="Where the proofs bound their boxes: cpu, or cuda (float64 on the GPU, "
-                                        "with one worker).")(command)
+                                   help="Where this process bounds the boxes of the proofs (or the checker's "
+                                        "leaves): cpu, or cuda (float64 on the GPU, outward rounded there too; one "
+                                        "worker).")(command)
         command = click.option("--address", default=None,
                                help="The Ray cluster of --backend ray (ray://host:10001 or host:6379) [RAY_ADDRESS, "
                                     "else a local Ray with --workers CPUs].")(command)
@@ -129,6 +130,13 @@ def compute_settings(workers: int, backend: str, address: str | None, device: st
     problems = compute_problems(workers, backend, address, device)
     if problems:
         raise click.UsageError("; ".join(problems))
+    if device != "cpu":
+        from drlyap.parallel import check_device
+
+        try:
+            check_device(device)
+        except ValueError as err:
+            raise click.UsageError(str(err)) from None
     return {"workers": workers, "backend": backend, "address": address, "device": device, "progress": True}
 
 

@@ -72,8 +72,8 @@ def verify(run_dir: Path, delta: float | None, xi: str | None, time_limit: float
     with `drlyap import` has no trained condition: its decrease on the true model at --xi (the system's test shift by
     default) is proved.
     """
-    refuse_early(runs=[run_dir], systems=[system_spec])
     compute = compute_settings(workers, backend, address, device)
+    refuse_early(runs=[run_dir], systems=[system_spec])
 
     from drlyap.io import jsonable
     from drlyap.render import verification_lines

@@ -39,7 +39,7 @@ class Interval(Enclosure, kind="interval"):
         return (self.lo + self.hi) / 2
 
     def zeros_ext(self, k: int) -> Interval:
-        z = torch.zeros(*self.shape, k, dtype=F64)
+        z = torch.zeros(*self.shape, k, dtype=F64, device=self.lo.device)
         return Interval(z, z)
 
     @property

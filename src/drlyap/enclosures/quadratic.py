@@ -31,7 +31,8 @@ def quadratic_span(g: Tensor, q: Tensor, lower: bool = True) -> tuple[Tensor | N
     k = g.shape[-1]
     verts = vertices(k, g.device)  # (2^K, K)
     diag = torch.diagonal(q, dim1=-2, dim2=-1)
-    outer = (verts.unsqueeze(-1) * verts.unsqueeze(-2)).flatten(1) - torch.eye(k, dtype=F64).flatten()  # e_k^2 = 1
+    eye = torch.eye(k, dtype=F64, device=g.device)
+    outer = (verts.unsqueeze(-1) * verts.unsqueeze(-2)).flatten(1) - eye.flatten()  # e_k^2 = 1
     base = g @ verts.T + q.flatten(-2) @ outer.T  # (..., 2^K): the linear and off-diagonal parts at the vertices
     mag = g.abs().sum(-1) + 4.0 * q.abs().sum((-2, -1))
     pad = 4 * (k * k + k + 4) * EPS * mag + TINY

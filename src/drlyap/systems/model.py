@@ -302,7 +302,7 @@ class UncertainSystem:
         return p
 
     def _param_enclosure(self, xi: Tensor | Interval | None, like) -> Interval:
-        p = torch.tensor(self.nominal_params, dtype=torch.float64).expand(like.shape[0], -1)
+        p = torch.tensor(self.nominal_params, dtype=torch.float64, device=like.device).expand(like.shape[0], -1)
         lo, hi = p.clone(), p.clone()
         if xi is not None:
             idx = self.uncertain_index
@@ -399,8 +399,8 @@ class UncertainSystem:
         """:meth:`weighted_design` on enclosures: forward-mode derivatives in the uncertain parameters."""
         level = max(x.level, u.level if is_enclosure(u) else 0, grad_v.level)
         batch = x.shape[0]
-        p = torch.tensor(self.nominal_params, dtype=torch.float64).expand(batch, -1)
-        e = torch.zeros(batch, len(self.nominal_params), self.k, dtype=torch.float64)
+        p = torch.tensor(self.nominal_params, dtype=torch.float64, device=x.device).expand(batch, -1)
+        e = torch.zeros(batch, len(self.nominal_params), self.k, dtype=torch.float64, device=x.device)
         for j, i in enumerate(self.uncertain_index):
             e[:, i, j] = 1.0
         seeded = Dual(lift(Interval.const(p), level), lift(Interval.const(e), level))

@@ -19,7 +19,7 @@ from torch import Tensor
 
 from drlyap.config import Compute
 from drlyap.enclosures import Interval
-from drlyap.parallel import discard_pool, pool_for
+from drlyap.parallel import check_device, discard_pool, pool_for
 from drlyap.verification.bounds import (
     box_bounds,
     combine_lower,
@@ -46,6 +46,7 @@ class ConditionJob:
         """The same job with the networks and the condition's samples on ``device``."""
         if device == self.device:
             return self
+        check_device(device)
         job = copy.copy(self)
         job.loop = _loop_on(self.loop, device)
         job.condition = _condition_on(self.condition, device)

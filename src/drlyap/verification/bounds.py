@@ -103,7 +103,7 @@ def box_bounds(objective: Objective, lo: Tensor, hi: Tensor, enclosure: str = "m
                 sens = sens + (form.q.abs().sum(-1) + form.q.abs().sum(-2)).sum(1) / 2
     else:
         rad = round_up(torch.maximum(hi - centre, centre - lo), REL1)
-        eye = torch.eye(n, dtype=F64).expand(batch, n, n)
+        eye = torch.eye(n, dtype=F64, device=lo.device).expand(batch, n, n)
         over = objective(Dual(Interval(lo, hi), Interval(eye, eye)))
         if over.d is None:
             spread = torch.zeros_like(at.lo)
