@@ -370,3 +370,14 @@ def test_a_sublevel_set_certificate_is_checked_with_its_faces(proved, tmp_path):
 
     result = run_check(proved, folder=folder, header_change=too_high)
     assert not result.ok and any("faces" in f for f in result.failures)
+
+
+def test_refining_a_false_certificate_costs_at_most_about_as_many_pieces_as_it_has_boxes(proved):
+    from drlyap.checker.check import MIN_PIECES
+
+    def stricter(header):
+        header["claim"]["condition"]["decay_rate"] = 5.0  # far more decay than the pair has: most boxes fail
+
+    result = run_check(proved, header_change=stricter)
+    assert not result.ok and result.refined > 0
+    assert result.pieces <= max(MIN_PIECES, result.boxes)

@@ -211,6 +211,10 @@ def _holds(residual: Residual, lo: Tensor, hi: Tensor, level: float | None, batc
     return torch.cat(ok), torch.cat(low)
 
 
+MIN_PIECES = 4096
+"""Pieces the refinement of :func:`prove_boxes` may always bound, however few the boxes."""
+
+
 def prove_boxes(residual: Residual, lo: Tensor, hi: Tensor, scale: Tensor, refine: int, level: float | None = None,
                 batch: int = 4096, above: Tensor | None = None,
                 cheap_first: bool = False) -> tuple[Tensor, Tensor, int, int]:
@@ -218,7 +222,11 @@ def prove_boxes(residual: Residual, lo: Tensor, hi: Tensor, scale: Tensor, refin
     ``ok (B,)``, lower bounds of the residual at the centres ``(B,)``, and how many boxes needed bisection and into
     how many pieces in all. ``above (B,)``: boxes to try ``V > level`` on first (the certificate's word, a hint
     only: each box is proved one way or the other whatever it says); ``cheap_first``: try the mean-value bounds
-    before the second-order forms (an order, not a shortcut: see :func:`_holds`)."""
+    before the second-order forms (an order, not a shortcut: see :func:`_holds`).
+
+    A box the checker's bounds do not prove is bisected, ``refine`` times at most, and at most as many pieces are
+    bounded in all as there are boxes (at least :data:`MIN_PIECES`): a true certificate whose few boxes the
+    verifier's tighter bounds proved is confirmed, and a false one costs at most about twice its boxes."""
     above = torch.zeros(lo.shape[0], dtype=torch.bool, device=lo.device) if above is None else above
     order = torch.argsort(above.to(torch.int8), stable=True)  # the hinted boxes together, so that batches share a path
     ok, centre_low = torch.empty_like(above), torch.empty(lo.shape[0], dtype=F64, device=lo.device)
@@ -227,7 +235,10 @@ def prove_boxes(residual: Residual, lo: Tensor, hi: Tensor, scale: Tensor, refin
     todo = (~ok).nonzero().squeeze(-1)
     refined, pieces = int(todo.numel()), 0
     owner, plo, phi = todo, lo[todo], hi[todo]
+    budget = max(MIN_PIECES, int(lo.shape[0]))
     for _ in range(refine if todo.numel() else 0):
+        if pieces + 2 * plo.shape[0] > budget:
+            break
         plo, phi = _widest_split(plo, phi, scale)
         owner = owner.repeat(2)
         pieces += int(plo.shape[0])
@@ -323,7 +334,7 @@ def faces_above(pair: Pair, lo: Tensor, hi: Tensor, level: float, max_boxes: int
 
 
 def check_certificate(run_dir: str | Path, name: str, header: dict, arrays: dict[str, np.ndarray], system,
-                      weights: dict, weights_sha256: str, system_sha256: str, refine: int = 3,
+                      weights: dict, weights_sha256: str, system_sha256: str, refine: int = 12,
                       compute: Compute = Compute()) -> CheckResult:
     """Re-check one certificate of ``run_dir`` against the run's own weights (``weights``: the two state dicts read
     from ``weights.pt``, whose file has ``weights_sha256``) and system (``system_sha256`` its description's); the
@@ -401,7 +412,7 @@ def _fmt(v: Tensor) -> str:
 
 
 def check_run(run_dir: str | Path, system=None, trust: bool = False, names: list[str] | None = None,
-              refine: int = 3, compute: Compute = Compute()) -> list[CheckResult]:
+              refine: int = 12, compute: Compute = Compute()) -> list[CheckResult]:
     """Re-check the certificates of a run directory (``names``: which; default every one it holds). ``system`` and
     ``trust``: as for :func:`drlyap.runs.load_run` (a system from a file runs only when named or trusted);
     ``compute``: where the leaves are bounded. A run without certificates is a ValueError that says so."""

@@ -15,9 +15,10 @@ from drlyap.cli.common import compute_options, compute_settings, fail, refuse_ea
 @click.argument("run_dir", type=click.Path(path_type=Path))
 @click.option("--name", "names", multiple=True, type=click.Choice(["trained", "true-model"]),
               help="Which certificate to check (repeatable) [every one the run holds].")
-@click.option("--refine", type=click.IntRange(0, 12), default=3, show_default=True,
+@click.option("--refine", type=click.IntRange(0, 20), default=12, show_default=True,
               help="Times the checker may bisect a box its own bounds do not prove (the verifier's bounds may be "
-                   "tighter than the checker's).")
+                   "tighter than the checker's); it bounds at most as many pieces as the certificate has boxes "
+                   "(at least 4,096), so a false certificate costs at most about twice a true one.")
 @compute_options()
 @click.option("--json", "as_json", is_flag=True, help="Print one JSON object.")
 @run_source_options
