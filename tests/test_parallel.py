@@ -372,3 +372,27 @@ def test_an_interrupted_verify_resumes_its_proof_and_clears_its_checkpoints(line
     resumed = json.loads(out.output)["trained"]
     assert resumed["resumed_boxes"] > 0 and resumed["boxes_processed"] == fresh["trained"]["boxes_processed"]
     assert resumed["status"] == "verified" and not (run / "checkpoints").exists()
+
+
+def test_train_with_two_workers_gives_the_same_run_and_leaves_no_checkpoints(tmp_path):
+    from click.testing import CliRunner
+
+    from drlyap.cli import main
+
+    runner = CliRunner()
+    outs = {}
+    for workers in ("1", "2"):
+        out = tmp_path / f"w{workers}"
+        res = runner.invoke(main, ["train", "pendulum", "--iters", "30", "--quiet", "--verify-rounds", "1",
+                                   "--verify-boxes", "20000", "--workers", workers, "--out", str(out)])
+        assert res.exit_code == 0, res.output
+        assert not (tmp_path / f".w{workers}.proofs").exists()
+        outs[workers] = json.loads((out / "metrics.json").read_text())["cegis"]
+    strip = ("time_s", "total_time_s", "falsify_time_s", "train_time_s")
+
+    def rounds(c):
+        return [{k: v for k, v in r["verification"].items() if k not in strip} for r in c["rounds"]]
+
+    assert rounds(outs["1"]) == rounds(outs["2"])
+    assert (tmp_path / "w1" / "weights.pt").read_bytes() == (tmp_path / "w2" / "weights.pt").read_bytes()
+    close_pools()

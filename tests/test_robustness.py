@@ -148,3 +148,54 @@ def test_the_radius_search_starts_at_a_radius_already_proved():
     assert all(p["value"] > 0 for p in started.probes)  # r = 0 was not proved again
     assert started.radius >= known and started.unproved <= started.radius * (1 + TOL)
     assert abs(started.radius - plain.radius) <= TOL * plain.radius
+
+
+def test_a_proof_starts_from_the_partition_of_a_weaker_one_and_its_tree_is_checked(tmp_path):
+    from drlyap.checker.check import check_certificate
+    from drlyap.runs.certificates import read_certificate, sha256_file, system_digest, write_certificate
+
+    system = small_pendulum()
+    lyap, ctrl = linear_pair(system)
+    loop, region = ClosedLoop(system, lyap, ctrl), Region.of(system, DELTA)
+    condition = DRPointwise(1e-3, 0.1, XI, 0.05)
+    radius = certified_radius(loop, condition, region, TEN, tol=TOL).radius
+    weak = verify_condition(loop, condition.with_radius(0.3 * radius), region, TEN)
+    fresh = verify_condition(loop, condition.with_radius(0.9 * radius), region, TEN)
+    warm = verify_condition(loop, condition.with_radius(0.9 * radius), region, TEN, start=weak.partition)
+    assert weak.verified and fresh.verified and warm.verified
+    assert warm.boxes_processed < fresh.boxes_processed  # the weaker proof's splits are not bounded again
+    assert warm.partition.size >= weak.partition.size
+    torch.save({"lyapunov": lyap.state_dict(), "controller": ctrl.state_dict()}, tmp_path / "weights.pt")
+    write_certificate(tmp_path, "trained", warm, condition.with_radius(0.9 * radius), region, system,
+                      tmp_path / "weights.pt", lyap.alpha_hat)
+    header, arrays = read_certificate(tmp_path, "trained")
+    res = check_certificate(tmp_path, "trained", header, arrays, system, {"lyapunov": lyap.state_dict(),
+                            "controller": ctrl.state_dict()}, sha256_file(tmp_path / "weights.pt"), system_digest(system))
+    assert res.ok, res.failures
+    with pytest.raises(ValueError, match="its own grid and enclosure"):
+        verify_condition(loop, condition, region, Budget(seconds=10, enclosure="affine"), start=weak.partition)
+
+
+def test_a_proof_that_cannot_finish_within_its_budget_gives_up_early():
+    system = small_pendulum()
+    lyap, ctrl = linear_pair(system)
+    loop, region = ClosedLoop(system, lyap, ctrl), Region.of(system, DELTA)
+    condition = DRPointwise(1e-3, 0.1, XI, 0.05)
+    full = verify_condition(loop, condition, region, TEN)
+    small = Budget(seconds=10, boxes=full.boxes_processed // 2, enclosure="mean-value", batch=64)
+    out = verify_condition(loop, condition, region, small, give_up=True)
+    assert out.status == "unknown" and out.stopped == "more boxes queued than the budget has left"
+    assert out.boxes_processed < full.boxes_processed // 2
+
+
+def test_the_radius_search_from_a_proved_partition_brackets_the_same_radius():
+    system = small_pendulum()
+    lyap, ctrl = linear_pair(system)
+    loop, region = ClosedLoop(system, lyap, ctrl), Region.of(system, DELTA)
+    condition = DRPointwise(1e-3, 0.1, XI, 0.05)
+    plain = certified_radius(loop, condition, region, TEN, tol=TOL)
+    known = 0.5 * plain.radius
+    proof = verify_condition(loop, condition.with_radius(known), region, TEN)
+    warm = certified_radius(loop, condition, region, TEN, tol=TOL, proved=known, start=proof.partition)
+    assert abs(warm.radius - plain.radius) <= TOL * plain.radius
+    assert verify_condition(loop, condition.with_radius(warm.radius), region, TEN).status == "verified"

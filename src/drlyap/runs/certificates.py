@@ -25,12 +25,14 @@ import os
 from pathlib import Path
 
 import numpy as np
+import torch
 
 from drlyap.conditions import Condition
 from drlyap.io import jsonable
 from drlyap.regions import Region
 from drlyap.render import claim_sentence
 from drlyap.systems import UncertainSystem
+from drlyap.verification.partition import Partition
 from drlyap.verification.results import ConditionProof
 
 FORMAT = "drlyap-certificate"
@@ -144,3 +146,19 @@ def read_certificate(run_dir: str | os.PathLike, name: str) -> tuple[dict, dict[
     except (KeyError, ValueError, OSError) as err:
         raise ValueError(f"{arrays_path} is damaged: {err}") from None
     return header, arrays
+
+
+def certificate_partition(run_dir: str | os.PathLike, name: str) -> Partition | None:
+    """The partition of certificate ``name`` of a run (read as data, its sha256 compared with the header's), or None
+    where there is none or it cannot be read."""
+    try:
+        header, arrays = read_certificate(run_dir, name)
+        part = header["partition"]
+        return Partition(grid=[int(k) for k in part["grid"]], enclosure=str(part["enclosure"]),
+                         parent=torch.as_tensor(arrays["parent"].astype(np.int64)),
+                         side=torch.as_tensor(arrays["side"].astype(np.int8)),
+                         axis=torch.as_tensor(arrays["axis"].astype(np.int8)),
+                         verdict=torch.as_tensor(arrays["verdict"].astype(np.int8)),
+                         bound=torch.as_tensor(arrays["bound"].astype(np.float64)))
+    except (ValueError, KeyError, TypeError):
+        return None

@@ -35,13 +35,14 @@ from drlyap.regions import Region, box_grid, default_grid, inside_ball, split
 from drlyap.verification.bounding import ConditionJob, run_batches
 from drlyap.verification.bounds import box_bounds, condition_objective
 from drlyap.verification.checkpoints import load_checkpoint, proof_key, save_checkpoint
-from drlyap.verification.partition import PartitionRecorder
+from drlyap.verification.partition import PROVED, Partition, PartitionRecorder
 from drlyap.verification.results import ConditionProof, UniformMargin
 
 
 def verify_condition(loop: ClosedLoop, condition: Condition, region: Region, budget: Budget = Budget(), *,
                      level: float | None = None, grid: Sequence[int] | None = None, keep_boxes: int = 50,
-                     stop_at_counterexample: bool = False, violation_width: float = 1e-2) -> ConditionProof:
+                     stop_at_counterexample: bool = False, violation_width: float = 1e-2,
+                     start: Partition | None = None, give_up: bool = False) -> ConditionProof:
     """Prove ``residual(z) <= 0`` for the closed loop on the region X_delta by branch and bound, or find where it
     fails, within ``budget`` (boxes, seconds, minimum box width, enclosure, and where to bound them).
 
@@ -60,11 +61,17 @@ def verify_condition(loop: ClosedLoop, condition: Condition, region: Region, bud
     process takes them, so the result, and the partition a verified proof keeps, are the same for any number of
     workers; with a ``checkpoint_dir`` the search is saved there every ``checkpoint_every`` seconds and when it ends,
     and the same proof (:func:`~drlyap.verification.checkpoints.proof_key`) started again continues from it.
+
+    ``start``: the partition of a verified proof, on this region, level, grid and enclosure, of another condition of
+    the closed loop (e.g. the same condition at a smaller Wasserstein radius): its tree is kept, its leaves in the ball
+    and above the level stand (they do not depend on the condition), and its proved leaves are the starting queue,
+    bounded again for this condition (split further where they must be). ``give_up``: stop, ``unknown``, as soon as
+    more boxes are queued than the budget has left (the proof cannot finish within it).
     """
     if not condition.per_state:
         raise ValueError("use uniform_margin for the uniform condition")
     search = _Search(loop, condition, region, budget, level, list(grid or default_grid(loop.system.n)),
-                     stop_at_counterexample, violation_width)
+                     stop_at_counterexample, violation_width, start, give_up)
     if not (search.finished and (search.stopped == "counterexample" or not search.lo.shape[0])):
         search.run()  # a finished search that ran out of budget goes on where a larger budget allows
     return search.result(keep_boxes)
@@ -75,9 +82,10 @@ class _Search:
     holds."""
 
     def __init__(self, loop: ClosedLoop, condition: Condition, region: Region, budget: Budget, level: float | None,
-                 per_axis: list[int], stop_at_counterexample: bool, violation_width: float) -> None:
+                 per_axis: list[int], stop_at_counterexample: bool, violation_width: float,
+                 start: Partition | None = None, give_up: bool = False) -> None:
         self.loop, self.condition, self.region, self.budget, self.level = loop, condition, region, budget, level
-        self.stop_at_cex, self.violation_width = stop_at_counterexample, violation_width
+        self.stop_at_cex, self.violation_width, self.give_up = stop_at_counterexample, violation_width, give_up
         self.n = loop.system.n
         self.enclosure = budget.enclosure_for(self.n)
         self.compute = budget.compute
@@ -96,12 +104,21 @@ class _Search:
             self.key = proof_key(loop, condition, region, level=level,
                                  grid=per_axis, enclosure=self.enclosure, batch=int(budget.batch),
                                  min_width=float(budget.min_width), violation_width=float(violation_width),
-                                 stop_at_counterexample=bool(stop_at_counterexample))
+                                 stop_at_counterexample=bool(stop_at_counterexample), give_up=bool(give_up),
+                                 start=None if start is None else start.digest())
         saved = load_checkpoint(self.compute.checkpoint_dir, self.key) if self.key else None
+        lo, hi = box_grid(region.lo, region.hi, per_axis)
         if saved is not None:
             self._restore(*saved)
+        elif start is not None:
+            if list(start.grid) != per_axis or start.enclosure != self.enclosure:
+                raise ValueError(f"a proof can start from a partition of its own grid and enclosure only (this one: "
+                                 f"{per_axis}, {self.enclosure}; the partition's: {start.grid}, {start.enclosure})")
+            blo, bhi = start.boxes(lo, hi)
+            self.tree.restore(start.state())
+            opened = (start.verdict == PROVED).nonzero().squeeze(-1)
+            self.lo, self.hi, self.ids = blo[opened], bhi[opened], opened
         else:
-            lo, hi = box_grid(region.lo, region.hi, per_axis)
             keep = region.meets(lo, hi)
             self.tree.inside_ball(self.tree.roots[~keep])
             self.lo, self.hi, self.ids = lo[keep], hi[keep], self.tree.roots[keep]
@@ -145,7 +162,10 @@ class _Search:
         start, saved_at = time.perf_counter(), time.perf_counter()
         before = self.elapsed
         taken = self.processed
-        bar = show_progress(int(budget.boxes), "proof: boxes", self.compute.progress)
+        radius = getattr(condition, "r", None)
+        what = condition.label + (f", r = {radius:.4g}" if radius is not None else "")
+        what += f", on {{V <= {level:.6g}}}" if level is not None else ""
+        bar = show_progress(int(budget.boxes), f"proof ({what}): boxes", self.compute.progress)
         if self.resumed:
             bar.update(min(self.resumed, int(budget.boxes)))
 
@@ -159,6 +179,9 @@ class _Search:
                 return None
             if taken >= budget.boxes:
                 self.stopped = "box budget"
+                return None
+            if self.give_up and self.lo.shape[0] > budget.boxes - taken:
+                self.stopped = "more boxes queued than the budget has left"
                 return None
             clo, chi, cids = self.lo[:batch], self.hi[:batch], self.ids[:batch]
             self.lo, self.hi, self.ids = self.lo[batch:], self.hi[batch:], self.ids[batch:]

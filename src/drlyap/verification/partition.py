@@ -17,6 +17,7 @@ what makes a dropped or an extra box visible to a checker.
 
 from __future__ import annotations
 
+import hashlib
 from dataclasses import dataclass
 
 import torch
@@ -51,6 +52,51 @@ class Partition:
     def counts(self) -> dict[str, int]:
         """How many nodes of each verdict."""
         return {name: int((self.verdict == code).sum()) for code, name in VERDICTS.items()}
+
+    def digest(self) -> str:
+        """The sha256 (hex) of the tree and its verdicts (what a proof that starts from this partition depends on)."""
+        h = hashlib.sha256(str(self.grid).encode() + self.enclosure.encode())
+        for t in (self.parent, self.side, self.axis, self.verdict, self.bound):
+            h.update(t.contiguous().numpy().tobytes())
+        return h.hexdigest()
+
+    def boxes(self, cells_lo: Tensor, cells_hi: Tensor) -> tuple[Tensor, Tensor]:
+        """Every node's box ``(N, n)``, from the starting grid's cells ``(C, n)`` (``box_grid``'s) and the splits:
+        each half from its parent, generation by generation (a half splits its parent's split axis at its midpoint,
+        as :func:`~drlyap.regions.split` does)."""
+        size, n, cells = self.size, cells_lo.shape[1], cells_lo.shape[0]
+        lo = torch.full((size, n), float("nan"), dtype=torch.float64)
+        hi = torch.full((size, n), float("nan"), dtype=torch.float64)
+        lo[:cells], hi[:cells] = cells_lo, cells_hi
+        done = torch.zeros(size, dtype=torch.bool)
+        done[:cells] = True
+        parent, axis, upper = self.parent.to(torch.int64), self.axis.to(torch.int64), self.side == 1
+        while not bool(done.all()):
+            ready = (~done & done[parent.clamp(min=0)]).nonzero().squeeze(-1)
+            if not ready.numel():
+                raise ValueError("the partition's tree is not connected")
+            p, ax = parent[ready], axis[parent[ready]]
+            rows = torch.arange(ready.shape[0])
+            mid = (lo[p, ax] + hi[p, ax]) / 2
+            clo, chi = lo[p].clone(), hi[p].clone()
+            up = upper[ready]
+            clo[rows[up], ax[up]] = mid[up]
+            chi[rows[~up], ax[~up]] = mid[~up]
+            lo[ready], hi[ready] = clo, chi
+            done[ready] = True
+        return lo, hi
+
+    def state(self) -> dict[str, Tensor]:
+        """The tree as :meth:`PartitionRecorder.state` keeps one, with its proved leaves left open (for a proof that
+        starts from this partition: see :meth:`PartitionRecorder.restore`); its leaves in the ball and above the
+        level keep their verdicts and bounds."""
+        internal = self.verdict == INTERNAL
+        kept = (self.verdict == INSIDE_BALL) | (self.verdict == ABOVE_LEVEL)
+        ids = torch.arange(self.size)
+        return {"tree_parent": self.parent.to(torch.int64), "tree_side": self.side.to(torch.int8),
+                "tree_axis_ids": ids[internal], "tree_axis": self.axis[internal].to(torch.int8),
+                "tree_leaf_ids": ids[kept], "tree_leaf_code": self.verdict[kept].to(torch.int8),
+                "tree_leaf_bound": self.bound[kept].to(torch.float64)}
 
 
 class PartitionRecorder:

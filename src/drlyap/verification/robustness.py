@@ -39,6 +39,7 @@ from drlyap.enclosures import F64, Interval
 from drlyap.regions import Region
 from drlyap.systems import UncertainSystem
 from drlyap.verification.branch_and_bound import verify_condition
+from drlyap.verification.partition import Partition
 from drlyap.verification.results import CertifiedRadius, CertifiedShiftBox
 
 SEARCH_BUDGET = Budget(seconds=10.0, enclosure="mean-value")
@@ -188,15 +189,28 @@ def _largest_proved(prove: Callable[[float], dict], refute: Callable[[float], di
     return out(lo, hi_res, "tolerance")
 
 
-def _prover(loop: ClosedLoop, region: Region, budget: Budget, make, level: float | None) -> Callable[[float], dict]:
+def _prover(loop: ClosedLoop, region: Region, budget: Budget, make, level: float | None,
+            start: tuple[float, Partition] | None = None) -> Callable[[float], dict]:
+    """``prove(v)``: the proof of ``make(v)``, ended at its first counterexample or as soon as it cannot finish within
+    its budget (more boxes queued than it has left). A property monotone in v is proved at v on the partition of the
+    largest value proved so far below it (``start``: one proved already), whose proved leaves it bounds again."""
+    best = {"value": None, "partition": None} if start is None else {"value": start[0], "partition": start[1]}
+    enclosure = budget.enclosure_for(loop.n)
+
     def prove(v: float) -> dict:
+        part = best["partition"]
+        begin = part if part is not None and v > best["value"] and part.enclosure == enclosure else None
         try:
-            r = verify_condition(loop, make(v), region, budget, level=level, stop_at_counterexample=True)
+            r = verify_condition(loop, make(v), region, budget, level=level, stop_at_counterexample=True,
+                                 start=begin, give_up=True)
         except ValueError as err:  # e.g. the dynamics are undefined for some shift in the box (a zero mass)
             return {"status": "error", "error": str(err), "time_s": None}
-        res = {"status": r.status, "time_s": r.time_s, "verified_fraction": r.verified_fraction}
+        res = {"status": r.status, "time_s": r.time_s, "verified_fraction": r.verified_fraction,
+               "boxes": r.boxes_processed}
         if r.counterexample is not None:
             res["witness"] = {"state": r.counterexample, "residual": r.counterexample_value}
+        if r.verified and r.partition is not None and (best["value"] is None or v > best["value"]):
+            best["value"], best["partition"] = v, r.partition
         return res
 
     return prove
@@ -205,7 +219,8 @@ def _prover(loop: ClosedLoop, region: Region, budget: Budget, make, level: float
 # --------------------------------------------------------------------------- radius
 def certified_radius(loop: ClosedLoop, condition: DRPointwise, region: Region, budget: Budget = SEARCH_BUDGET, *,
                      tol: float = 0.01, total_time: float = 120.0, max_proofs: int = 40,
-                     cap: float = 1e6, level: float | None = None, proved: float | None = None) -> CertifiedRadius:
+                     cap: float = 1e6, level: float | None = None, proved: float | None = None,
+                     start: Partition | None = None) -> CertifiedRadius:
     """The largest Wasserstein radius r for which the pointwise DR condition (at the condition's risk level
     eps, samples and decay) is proved over the region X_delta (``level``: over its sublevel set ``{V <= level}``,
     the set a region-of-attraction run is trained and proved on; sampled refutations are then taken there too).
@@ -215,7 +230,10 @@ def certified_radius(loop: ClosedLoop, condition: DRPointwise, region: Region, b
     ``budget``: of each proof; ``total_time``/``max_proofs``: budget of the whole search (the bracket
     found so far is returned, with ``stopped`` saying why). ``cap``: largest radius tried. ``proved``: a radius at
     which this very condition (risk level, samples, decay, region, level) is already proved, e.g. by the run's trained
-    condition: the search starts there (its first probe, ``by`` ``an earlier proof``) instead of proving r = 0.
+    condition: the search starts there (its first probe, ``by`` ``an earlier proof``) instead of proving r = 0;
+    ``start``: that proof's partition, which the next proofs start from (a proof above a proved radius bounds the
+    proved leaves of the largest proved one again instead of starting from the grid). Each proof of the search ends
+    at its first counterexample, or as soon as it cannot finish within its budget (unknown).
 
     Returns a :class:`~drlyap.verification.results.CertifiedRadius`: ``radius`` (r*, proved: the condition holds for
     every r <= r*; None when it is not provable even at r = 0, with ``reason``), ``unproved`` (the smallest radius tried
@@ -262,9 +280,10 @@ def certified_radius(loop: ClosedLoop, condition: DRPointwise, region: Region, b
         take(state, r0, lips)
         return best["sampled"] if best["sampled"] < before else None
 
-    prove = _prover(loop, region, budget, condition.with_radius, level)
-    start = condition.r if condition.r > 0 else 1e-3
-    found = _largest_proved(prove, refute, first_guess, start, tol, cap, max_proofs, total_time, reguess, proved)
+    prove = _prover(loop, region, budget, condition.with_radius, level,
+                    None if proved is None or start is None else (proved, start))
+    first = condition.r if condition.r > 0 else 1e-3
+    found = _largest_proved(prove, refute, first_guess, first, tol, cap, max_proofs, total_time, reguess, proved)
     found["time_s"] = time.perf_counter() - clock
     radius = found.pop("certified")
     sampled = best["sampled"]

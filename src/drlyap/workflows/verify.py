@@ -15,7 +15,7 @@ from drlyap.conditions import TrueDecrease
 from drlyap.io import jsonable
 from drlyap.regions import Region
 from drlyap.runs import Run
-from drlyap.runs.certificates import write_certificate
+from drlyap.runs.certificates import certificate_partition, write_certificate
 from drlyap.training import run_condition
 from drlyap.verification import (
     Budget,
@@ -247,8 +247,11 @@ def run_robustness(run: Run, delta: float | None = None, tol: float = 0.01, budg
     condition = run_condition(cfg, run.xi_samples, "pointwise")
     same = (cfg.method == "dr" and cfg.loss == "pointwise" and isinstance(trained, ConditionProof) and trained.verified
             and float(trained.delta) == float(region.delta) and trained.level == level)
+    start = None
+    if same:  # the trained proof's partition: the search's proofs above the run's radius start from it
+        start = trained.partition if trained.partition is not None else certificate_partition(run.path, "trained")
     radius = certified_radius(loop, condition, region, budget, tol=tol, total_time=total_time, level=level,
-                              proved=cfg.wasserstein_radius if same else None)
+                              proved=cfg.wasserstein_radius if same else None, start=start)
     scale = shift_scale(system, run.xi_samples) if scale is None else scale
     box = certified_shift_box(loop, cfg.decay_rate, cfg.exp_rate, region, scale, budget, tol=tol,
                               total_time=total_time, level=level)
