@@ -66,8 +66,10 @@ class ConditionJob:
             out["value_lower"], out["centre_value_upper"] = lb_c[:, -1], at.hi[:, -1]
             ub_c, at_lo = ub_c[:, :-1], at_lo[:, :-1]
         upper = combine_upper(condition, ub_c)
-        if level is not None and form is not None:
-            upper = torch.minimum(upper, sublevel_upper(condition, form, level))
+        if level is not None and form is not None:  # the S-procedure where the plain bound proves nothing yet
+            need = ((upper > 0) & (out["value_lower"] <= level)).nonzero().squeeze(-1)
+            if need.numel():
+                upper[need] = torch.minimum(upper[need], sublevel_upper(condition, form[need], level))
         out["upper"] = upper
         out["centre_lower"] = combine_lower(condition, at_lo)
         return {k: v.cpu() for k, v in out.items()}

@@ -170,20 +170,24 @@ def _largest_proved(prove: Callable[[float], dict], refute: Callable[[float], di
             lo = v
         else:
             hi_res = res
+    guessed = False  # whether the last probe was placed just below a witness's value (and failed)
     while lo == 0 or hi_res["value"] / lo - 1 > tol:
         if over_budget():
             return out(lo, hi_res, "budget")
         hi = hi_res["value"]
         mid = math.sqrt(lo * hi) if lo > 0 else hi / 4
-        again = reguess(hi_res) if reguess is not None and hi_res.get("witness") and not hi_res.get("reguessed") else None
+        again = None
+        if reguess is not None and hi_res.get("witness") and not hi_res.get("reguessed") and not guessed:
+            again = reguess(hi_res)  # a guess from the witness, but never twice in a row: every other probe bisects
         hi_res["reguessed"] = True
-        if again is not None and lo < again * (1 - tol / 2) < hi:
+        guessed = again is not None and lo < again * (1 - tol / 2) < hi
+        if guessed:
             mid = again * (1 - tol / 2)
         if mid <= 1e-300:
             return out(lo, hi_res, "vanishing", "unproved at every value tried above 0")
         res = probe(mid)
         if res["status"] == "verified":
-            lo = mid
+            lo, guessed = mid, False
         else:
             hi_res = res
     return out(lo, hi_res, "tolerance")
