@@ -88,6 +88,10 @@ def test_certified_shift_box_is_proved_there_and_fails_just_above():
     worst = float(loop.exact(TrueDecrease(corners, 0.05), _dense(system)).max())
     status = verify_condition(loop, shift_box_condition(scale, beyond, 0.05), region, FIVE).status
     assert worst > 0 or status != "verified"
+    # from the tree of another condition's proof: the same bracket
+    tree = verify_condition(loop, DRPointwise(1e-3, 0.1, XI, 0.05), region, TEN).partition
+    warm = certified_shift_box(loop, 0.05, 0.0, region, scale, TEN, tol=TOL, start=tree)
+    assert warm.s == pytest.approx(s, rel=TOL) and warm.unproved <= warm.s * (1 + TOL)
     with pytest.raises(ValueError, match="scale must be 2"):
         certified_shift_box(loop, 0.05, 0.0, region, torch.tensor([0.1]), TEN)
     with pytest.raises(ValueError, match="DRPointwise"):
@@ -199,3 +203,75 @@ def test_the_radius_search_from_a_proved_partition_brackets_the_same_radius():
     warm = certified_radius(loop, condition, region, TEN, tol=TOL, proved=known, start=proof.partition)
     assert abs(warm.radius - plain.radius) <= TOL * plain.radius
     assert verify_condition(loop, condition.with_radius(warm.radius), region, TEN).status == "verified"
+
+
+def test_a_proof_keeps_the_leaves_a_stronger_proof_left_proved_and_its_tree_is_checked(tmp_path):
+    from drlyap.checker.check import check_certificate
+    from drlyap.runs.certificates import read_certificate, sha256_file, system_digest, write_certificate
+    from drlyap.verification.partition import OPEN, PROVED
+
+    system = small_pendulum()
+    lyap, ctrl = linear_pair(system)
+    loop, region = ClosedLoop(system, lyap, ctrl), Region.of(system, DELTA)
+    condition = DRPointwise(1e-3, 0.1, XI, 0.05)
+    radius = certified_radius(loop, condition, region, TEN, tol=TOL).radius
+    strong = verify_condition(loop, condition.with_radius(1.5 * radius), region, TEN, stop_at_counterexample=True,
+                              keep_partition=True)  # fails, but proves much of the region at the larger radius
+    assert strong.status == "violated" and strong.partition is not None
+    tree = strong.partition
+    assert int((tree.verdict == PROVED).sum()) > 0 and int((tree.verdict == OPEN).sum()) > 0
+    weaker = condition.with_radius(0.9 * radius)
+    fresh = verify_condition(loop, weaker, region, TEN)
+    warm = verify_condition(loop, weaker, region, TEN, start=tree, standing=tree.verdict == PROVED)
+    assert fresh.verified and warm.verified
+    assert warm.boxes_processed < fresh.boxes_processed  # what stood was not bounded again
+    torch.save({"lyapunov": lyap.state_dict(), "controller": ctrl.state_dict()}, tmp_path / "weights.pt")
+    write_certificate(tmp_path, "trained", warm, weaker, region, system, tmp_path / "weights.pt", lyap.alpha_hat)
+    header, arrays = read_certificate(tmp_path, "trained")
+    res = check_certificate(tmp_path, "trained", header, arrays, system, {"lyapunov": lyap.state_dict(),
+                            "controller": ctrl.state_dict()}, sha256_file(tmp_path / "weights.pt"), system_digest(system))
+    assert res.ok, res.failures  # every leaf that stood is proved at the smaller radius by the checker's own bounds
+    with pytest.raises(ValueError, match="standing must mark"):
+        verify_condition(loop, weaker, region, TEN, start=tree, standing=torch.ones(3, dtype=torch.bool))
+
+
+def test_a_node_inherits_the_largest_value_of_its_ancestors():
+    from drlyap.verification.partition import INTERNAL, OPEN, PROVED, Partition
+
+    # a cell split twice down one branch: 0 -> (1, 2), 2 -> (3, 4), 4 -> (5, 6)
+    parent = torch.tensor([-1, 0, 0, 2, 2, 4, 4])
+    side = torch.tensor([0, 0, 1, 0, 1, 0, 1], dtype=torch.int8)
+    axis = torch.tensor([0, -1, 1, -1, 0, -1, -1], dtype=torch.int8)
+    verdict = torch.tensor([INTERNAL, PROVED, INTERNAL, OPEN, INTERNAL, PROVED, OPEN], dtype=torch.int8)
+    tree = Partition([1, 1], parent, side, axis, verdict, torch.full((7,), float("nan"), dtype=F64), "mean-value")
+    inf = float("inf")
+    values = torch.tensor([-inf, 0.5, 0.2, -inf, -inf, 0.1, -inf], dtype=F64)
+    assert tree.inherit_max(values).tolist() == [-inf, 0.5, 0.2, 0.2, 0.2, 0.2, 0.2]
+    values[0] = 0.3
+    assert tree.inherit_max(values).tolist() == [0.3, 0.5, 0.3, 0.3, 0.3, 0.3, 0.3]
+
+
+def test_a_partition_is_pruned_back_to_the_boxes_asked_and_keeps_its_order():
+    from drlyap.verification.partition import INTERNAL, OPEN, PROVED, Partition
+
+    # two grid cells 0 and 1; 0 -> (2, 3), 3 -> (4, 5), 5 -> (6, 7), 1 -> (8, 9)
+    parent = torch.tensor([-1, -1, 0, 0, 3, 3, 5, 5, 1, 1])
+    side = torch.tensor([0, 0, 0, 1, 0, 1, 0, 1, 0, 1], dtype=torch.int8)
+    axis = torch.tensor([0, 1, -1, 1, -1, 0, -1, -1, -1, -1], dtype=torch.int8)
+    verdict = torch.tensor([INTERNAL, INTERNAL, PROVED, INTERNAL, OPEN, INTERNAL, PROVED, OPEN, PROVED, PROVED],
+                           dtype=torch.int8)
+    tree = Partition([2, 1], parent, side, axis, verdict, torch.full((10,), -1.0, dtype=F64), "mean-value")
+    assert tree.depth().tolist() == [0, 0, 1, 1, 2, 2, 3, 3, 1, 1]
+    flags = torch.zeros(10, dtype=torch.bool)
+    flags[6] = True
+    assert tree.any_below(flags).tolist() == [True, False, False, True, False, True, True, False, False, False]
+    cut = torch.zeros(10, dtype=torch.bool)
+    cut[[1, 3, 5]] = True  # 5 lies below 3: only 1 and 3 stay, as open leaves
+    pruned, old = tree.pruned(cut)
+    assert old.tolist() == [0, 1, 2, 3]
+    assert pruned.parent.tolist() == [-1, -1, 0, 0] and pruned.verdict.tolist() == [INTERNAL, OPEN, PROVED, OPEN]
+    assert pruned.axis.tolist() == [0, -1, -1, -1]
+    lo, hi = torch.tensor([[0.0, 0.0], [1.0, 0.0]], dtype=F64), torch.tensor([[1.0, 1.0], [2.0, 1.0]], dtype=F64)
+    blo, bhi = pruned.boxes(lo, hi)
+    full_lo, full_hi = tree.boxes(lo, hi)
+    assert torch.equal(blo, full_lo[old]) and torch.equal(bhi, full_hi[old])  # the same boxes, renumbered

@@ -35,14 +35,15 @@ from drlyap.regions import Region, box_grid, default_grid, inside_ball, split
 from drlyap.verification.bounding import ConditionJob, run_batches
 from drlyap.verification.bounds import box_bounds, condition_objective
 from drlyap.verification.checkpoints import load_checkpoint, proof_key, save_checkpoint
-from drlyap.verification.partition import PROVED, Partition, PartitionRecorder
+from drlyap.verification.partition import OPEN, PROVED, Partition, PartitionRecorder
 from drlyap.verification.results import ConditionProof, UniformMargin
 
 
 def verify_condition(loop: ClosedLoop, condition: Condition, region: Region, budget: Budget = Budget(), *,
                      level: float | None = None, grid: Sequence[int] | None = None, keep_boxes: int = 50,
                      stop_at_counterexample: bool = False, violation_width: float = 1e-2,
-                     start: Partition | None = None, give_up: bool = False) -> ConditionProof:
+                     start: Partition | None = None, standing: Tensor | None = None, give_up: bool = False,
+                     keep_partition: bool = False) -> ConditionProof:
     """Prove ``residual(z) <= 0`` for the closed loop on the region X_delta by branch and bound, or find where it
     fails, within ``budget`` (boxes, seconds, minimum box width, enclosure, and where to bound them).
 
@@ -62,19 +63,22 @@ def verify_condition(loop: ClosedLoop, condition: Condition, region: Region, bud
     workers; with a ``checkpoint_dir`` the search is saved there every ``checkpoint_every`` seconds and when it ends,
     and the same proof (:func:`~drlyap.verification.checkpoints.proof_key`) started again continues from it.
 
-    ``start``: the partition of a verified proof, on this region, level, grid and enclosure, of another condition of
-    the closed loop (e.g. the same condition at a smaller Wasserstein radius): its tree is kept, its leaves in the ball
-    and above the level stand (they do not depend on the condition), and its proved leaves are the starting queue,
-    bounded again for this condition (split further where they must be). ``give_up``: stop, ``unknown``, as soon as
-    more boxes are queued than the budget has left (the proof cannot finish within it).
+    ``start``: the partition of a proof, on this region, level, grid and enclosure, of another condition of the closed
+    loop (e.g. the same condition at a smaller Wasserstein radius): its tree is kept, its leaves in the ball and above
+    the level stand (they do not depend on the condition), and its proved and open leaves are the starting queue,
+    bounded again for this condition (split further where they must be), but for those marked ``standing`` (``(N,)``
+    bool over its nodes): leaves already proved for this condition (e.g. by a proof of the same condition at a larger
+    radius, which implies it), kept as proved. ``give_up``: stop, ``unknown``, as soon as more boxes are queued than
+    the budget has left (the proof cannot finish within it). ``keep_partition``: keep the partition of a proof that is
+    not verified too (its leaves not proved ``OPEN``), for a proof that starts from it.
     """
     if not condition.per_state:
         raise ValueError("use uniform_margin for the uniform condition")
     search = _Search(loop, condition, region, budget, level, list(grid or default_grid(loop.system.n)),
-                     stop_at_counterexample, violation_width, start, give_up)
+                     stop_at_counterexample, violation_width, start, give_up, standing)
     if not (search.finished and (search.stopped == "counterexample" or not search.lo.shape[0])):
         search.run()  # a finished search that ran out of budget goes on where a larger budget allows
-    return search.result(keep_boxes)
+    return search.result(keep_boxes, keep_partition)
 
 
 class _Search:
@@ -83,7 +87,7 @@ class _Search:
 
     def __init__(self, loop: ClosedLoop, condition: Condition, region: Region, budget: Budget, level: float | None,
                  per_axis: list[int], stop_at_counterexample: bool, violation_width: float,
-                 start: Partition | None = None, give_up: bool = False) -> None:
+                 start: Partition | None = None, give_up: bool = False, standing: Tensor | None = None) -> None:
         self.loop, self.condition, self.region, self.budget, self.level = loop, condition, region, budget, level
         self.stop_at_cex, self.violation_width, self.give_up = stop_at_counterexample, violation_width, give_up
         self.n = loop.system.n
@@ -105,7 +109,7 @@ class _Search:
                                  grid=per_axis, enclosure=self.enclosure, batch=int(budget.batch),
                                  min_width=float(budget.min_width), violation_width=float(violation_width),
                                  stop_at_counterexample=bool(stop_at_counterexample), give_up=bool(give_up),
-                                 start=None if start is None else start.digest())
+                                 start=None if start is None else start.digest(standing))
         saved = load_checkpoint(self.compute.checkpoint_dir, self.key) if self.key else None
         lo, hi = box_grid(region.lo, region.hi, per_axis)
         if saved is not None:
@@ -114,9 +118,15 @@ class _Search:
             if list(start.grid) != per_axis or start.enclosure != self.enclosure:
                 raise ValueError(f"a proof can start from a partition of its own grid and enclosure only (this one: "
                                  f"{per_axis}, {self.enclosure}; the partition's: {start.grid}, {start.enclosure})")
+            if standing is not None and tuple(standing.shape) != (start.size,):
+                raise ValueError(f"standing must mark each of the partition's {start.size} nodes, got shape "
+                                 f"{tuple(standing.shape)}")
             blo, bhi = start.boxes(lo, hi)
-            self.tree.restore(start.state())
-            opened = (start.verdict == PROVED).nonzero().squeeze(-1)
+            self.tree.restore(start.state(standing))
+            opened = (start.verdict == PROVED) | (start.verdict == OPEN)
+            if standing is not None:
+                opened = opened & ~standing.to(torch.bool)
+            opened = opened.nonzero().squeeze(-1)
             self.lo, self.hi, self.ids = blo[opened], bhi[opened], opened
         else:
             keep = region.meets(lo, hi)
@@ -287,7 +297,7 @@ class _Search:
             self.ids = torch.cat([self.ids, children[keep]])
         return False
 
-    def result(self, keep_boxes: int) -> ConditionProof:
+    def result(self, keep_boxes: int, keep_partition: bool = False) -> ConditionProof:
         system, n = self.loop.system, self.n
         leaves_lo, leaves_hi = list(self.leaves_lo), list(self.leaves_hi)
         unverified_vol, sup_hi = self.unverified_vol, self.sup_hi
@@ -315,7 +325,7 @@ class _Search:
             n_unverified=int(left_lo.shape[0]), unverified_boxes=boxes, n_counterexample_boxes=self.n_cex_boxes,
             sup_bounds=[self.sup_lo, sup_hi], stopped=self.stopped, level=self.level,
             resumed_boxes=self.resumed or None)
-        if status == "verified":
+        if status == "verified" or keep_partition:
             result.partition = self.tree.finish()
         if self.cex is not None:
             z = self.cex[1]

@@ -9,7 +9,8 @@ for a leaf, the verdict the proof reached on it, with the bound behind it:
 * ``PROVED``: the residual's upper bound over the box is ``bound <= 0``;
 * ``INSIDE_BALL``: the box lies in the open delta-ball (not part of X_delta);
 * ``ABOVE_LEVEL``: V's lower bound over the box is ``bound > level`` (a proof on ``{V <= level}``);
-* ``OPEN``: nothing was proved (a proof that leaves such leaves is not verified and keeps no partition).
+* ``OPEN``: nothing was proved (a proof that leaves such leaves is not verified; it keeps its partition only when
+  asked to, for a proof that starts from it).
 
 The boxes themselves are not stored: they follow from the grid and the splits (halving at the midpoint), which is
 what makes a dropped or an extra box visible to a checker.
@@ -53,11 +54,13 @@ class Partition:
         """How many nodes of each verdict."""
         return {name: int((self.verdict == code).sum()) for code, name in VERDICTS.items()}
 
-    def digest(self) -> str:
-        """The sha256 (hex) of the tree and its verdicts (what a proof that starts from this partition depends on)."""
+    def digest(self, standing: Tensor | None = None) -> str:
+        """The sha256 (hex) of the tree and its verdicts, and of the leaves ``standing`` (see :meth:`state`): what a
+        proof that starts from this partition depends on."""
         h = hashlib.sha256(str(self.grid).encode() + self.enclosure.encode())
-        for t in (self.parent, self.side, self.axis, self.verdict, self.bound):
-            h.update(t.contiguous().numpy().tobytes())
+        extra = () if standing is None else (standing.to(torch.bool),)
+        for t in (self.parent, self.side, self.axis, self.verdict, self.bound, *extra):
+            h.update(t.contiguous().cpu().numpy().tobytes())
         return h.hexdigest()
 
     def boxes(self, cells_lo: Tensor, cells_hi: Tensor) -> tuple[Tensor, Tensor]:
@@ -86,17 +89,78 @@ class Partition:
             done[ready] = True
         return lo, hi
 
-    def state(self) -> dict[str, Tensor]:
-        """The tree as :meth:`PartitionRecorder.state` keeps one, with its proved leaves left open (for a proof that
-        starts from this partition: see :meth:`PartitionRecorder.restore`); its leaves in the ball and above the
-        level keep their verdicts and bounds."""
+    def state(self, standing: Tensor | None = None) -> dict[str, Tensor]:
+        """The tree as :meth:`PartitionRecorder.state` keeps one, with its leaves left open (for a proof that starts
+        from this partition: see :meth:`PartitionRecorder.restore`) but for those in the ball and above the level,
+        which keep their verdicts and bounds, and those ``standing`` (``(N,)`` bool; None: none): leaves proved or
+        open here that are proved for the condition of the proof that starts here too, kept as proved (with the bound
+        they have here, NaN for an open one)."""
         internal = self.verdict == INTERNAL
         kept = (self.verdict == INSIDE_BALL) | (self.verdict == ABOVE_LEVEL)
+        code = self.verdict.clone()
+        if standing is not None:
+            stand = standing.to(torch.bool) & ((self.verdict == PROVED) | (self.verdict == OPEN))
+            kept = kept | stand
+            code[stand] = PROVED
         ids = torch.arange(self.size)
         return {"tree_parent": self.parent.to(torch.int64), "tree_side": self.side.to(torch.int8),
                 "tree_axis_ids": ids[internal], "tree_axis": self.axis[internal].to(torch.int8),
-                "tree_leaf_ids": ids[kept], "tree_leaf_code": self.verdict[kept].to(torch.int8),
+                "tree_leaf_ids": ids[kept], "tree_leaf_code": code[kept].to(torch.int8),
                 "tree_leaf_bound": self.bound[kept].to(torch.float64)}
+
+    def inherit_max(self, values: Tensor) -> Tensor:
+        """``values (N,)`` with each node's raised to the largest of its ancestors' (a box inside a box proved at some
+        value of a monotone property is proved at it too)."""
+        out = values.clone()
+        parent = self.parent.to(torch.int64)
+        has_parent = parent >= 0
+        child = has_parent.nonzero().squeeze(-1)
+        while child.numel():  # each round reads the values before it: a node that rose passes it on in the next
+            raised = torch.maximum(out[child], out[parent[child]])
+            rose = child[raised > out[child]]
+            out[child] = raised
+            moved = torch.zeros(self.size, dtype=torch.bool)
+            moved[rose] = True
+            child = (has_parent & moved[parent.clamp(min=0)]).nonzero().squeeze(-1)
+        return out
+
+
+    def depth(self) -> Tensor:
+        """``(N,)`` int64: each node's generation (0 for a grid cell)."""
+        parent = self.parent.to(torch.int64)
+        has_parent = parent >= 0
+        depth = torch.zeros(self.size, dtype=torch.int64)
+        while True:
+            deeper = torch.where(has_parent, depth[parent.clamp(min=0)] + 1, 0)
+            if torch.equal(deeper, depth):
+                return depth
+            depth = deeper
+
+    def any_below(self, flags: Tensor) -> Tensor:
+        """``(N,)`` bool: whether the node or a node below it is flagged (``flags (N,)`` bool)."""
+        out = flags.to(torch.int32).clone()
+        parent, depth = self.parent.to(torch.int64), self.depth()
+        for level in range(int(depth.max()) if self.size else 0, 0, -1):  # deepest first: children before parents
+            nodes = (depth == level).nonzero().squeeze(-1)
+            out.index_add_(0, parent[nodes], out[nodes])
+        return out > 0
+
+    def pruned(self, cut: Tensor) -> tuple[Partition, Tensor]:
+        """The partition with the nodes ``cut`` (``(N,)`` bool, internal nodes) made open leaves again and everything
+        below them removed (nodes renumbered in their order), and ``(M,)`` the old id of each node kept."""
+        parent = self.parent.to(torch.int64)
+        has_parent = parent >= 0
+        under = self.inherit_max(cut.to(torch.float64)) > 0  # a cut node and everything below it
+        keep = ~(has_parent & under[parent.clamp(min=0)])
+        old = keep.nonzero().squeeze(-1)
+        new_id = torch.cumsum(keep.to(torch.int64), 0) - 1
+        kept_parent = parent[old]
+        new_parent = torch.where(kept_parent >= 0, new_id[kept_parent.clamp(min=0)], -1)
+        top = cut[old].to(torch.bool)  # a cut node below another is gone: those kept are the topmost
+        axis, verdict, bound = self.axis[old].clone(), self.verdict[old].clone(), self.bound[old].clone()
+        axis[top], verdict[top], bound[top] = -1, OPEN, float("nan")
+        return Partition(list(self.grid), new_parent.to(self.parent.dtype), self.side[old].clone(), axis, verdict,
+                         bound, self.enclosure), old
 
 
 class PartitionRecorder:

@@ -39,7 +39,7 @@ from drlyap.enclosures import F64, Interval
 from drlyap.regions import Region
 from drlyap.systems import UncertainSystem
 from drlyap.verification.branch_and_bound import verify_condition
-from drlyap.verification.partition import Partition
+from drlyap.verification.partition import INTERNAL, OPEN, PROVED, Partition
 from drlyap.verification.results import CertifiedRadius, CertifiedShiftBox
 
 SEARCH_BUDGET = Budget(seconds=10.0, enclosure="mean-value")
@@ -196,25 +196,52 @@ def _largest_proved(prove: Callable[[float], dict], refute: Callable[[float], di
 def _prover(loop: ClosedLoop, region: Region, budget: Budget, make, level: float | None,
             start: tuple[float, Partition] | None = None) -> Callable[[float], dict]:
     """``prove(v)``: the proof of ``make(v)``, ended at its first counterexample or as soon as it cannot finish within
-    its budget (more boxes queued than it has left). A property monotone in v is proved at v on the partition of the
-    largest value proved so far below it (``start``: one proved already), whose proved leaves it bounds again."""
-    best = {"value": None, "partition": None} if start is None else {"value": start[0], "partition": start[1]}
+    its budget (more boxes queued than it has left), for a property monotone in v (what holds at v holds below it).
+
+    Every proof starts from the partition of the one before it (``start``: a partition proved at a value already, or
+    at ``-inf``: a tree to start from), whose nodes each carry the largest value their box is proved at (a box inside
+    one proved at v is proved at v; ``-inf``: none yet): a proof at v keeps the leaves proved at v or above, and bounds
+    the others again (split further where they must be). A proof that fails still leaves what it proved above v for
+    the proofs below it; a box it split without proving any piece at v, though the box was proved whole at a smaller
+    value, is bounded whole again.
+    """
     enclosure = budget.enclosure_for(loop.n)
+    base: dict = {"partition": None, "grade": None}
+    if start is not None and start[1].enclosure == enclosure:
+        part = start[1]
+        base["partition"] = part
+        base["grade"] = part.inherit_max(torch.where(part.verdict == PROVED, float(start[0]), -math.inf)
+                                         .to(torch.float64))
 
     def prove(v: float) -> dict:
-        part = best["partition"]
-        begin = part if part is not None and v > best["value"] and part.enclosure == enclosure else None
+        part, grade = base["partition"], base["grade"]
+        standing = None
+        if part is not None:
+            standing = grade >= v
+            leaf = (part.verdict == PROVED) | (part.verdict == OPEN)
+            # a box proved whole below v whose splits (by a proof that failed above v) left nothing standing at v is
+            # bounded whole again rather than piece by piece
+            cut = (part.verdict == INTERNAL) & torch.isfinite(grade) & ~standing & ~part.any_below(standing & leaf)
+            if bool(cut.any()):
+                part, kept = part.pruned(cut)
+                grade = grade[kept]
+                standing = grade >= v
         try:
             r = verify_condition(loop, make(v), region, budget, level=level, stop_at_counterexample=True,
-                                 start=begin, give_up=True)
+                                 start=part, standing=standing, give_up=True, keep_partition=True)
         except ValueError as err:  # e.g. the dynamics are undefined for some shift in the box (a zero mass)
             return {"status": "error", "error": str(err), "time_s": None}
         res = {"status": r.status, "time_s": r.time_s, "verified_fraction": r.verified_fraction,
                "boxes": r.boxes_processed}
         if r.counterexample is not None:
             res["witness"] = {"state": r.counterexample, "residual": r.counterexample_value}
-        if r.verified and r.partition is not None and (best["value"] is None or v > best["value"]):
-            best["value"], best["partition"] = v, r.partition
+        if r.partition is not None:  # its tree extends the one it started from: grades carry over by node
+            new = r.partition
+            values = torch.full((new.size,), -math.inf, dtype=torch.float64)
+            if part is not None:
+                values[:part.size] = grade
+            values = torch.where(new.verdict == PROVED, values.clamp(min=v), values)
+            base["partition"], base["grade"] = new, new.inherit_max(values)
         return res
 
     return prove
@@ -330,12 +357,15 @@ def shift_box_condition(scale: Tensor, s: float, decay_rate: float, exp_rate: fl
 
 def certified_shift_box(loop: ClosedLoop, decay_rate: float, exp_rate: float, region: Region, scale: Tensor,
                         budget: Budget = SEARCH_BUDGET, *, tol: float = 0.01, total_time: float = 120.0,
-                        max_proofs: int = 40, cap: float = 1e3, level: float | None = None) -> CertifiedShiftBox:
+                        max_proofs: int = 40, cap: float = 1e3, level: float | None = None,
+                        start: Partition | None = None) -> CertifiedShiftBox:
     """The largest s such that decrease on the TRUE model, ``grad V . F(x, pi(x), p0 + xi) + decay_rate ||z||
     + exp_rate V <= 0``, is proved over X_delta for every shift xi in the box ``[-s scale, s scale]``.
 
     ``scale (k,)``: the box's half-widths at s = 1, in the uncertain parameters' units (see
-    :func:`shift_scale`). Other arguments (``level`` too) as :func:`certified_radius`. Returns a
+    :func:`shift_scale`). ``start``: the partition of a proof of another condition on this region and level (e.g. the
+    run's trained condition): the search's first proof starts from its tree (bounding its leaves again) instead of
+    from the grid. Other arguments (``level`` too) as :func:`certified_radius`. Returns a
     :class:`~drlyap.verification.results.CertifiedShiftBox`: ``s`` (None when not provable
     even at xi = 0, with ``reason``), ``box`` (``{parameter: [low, high]}`` at s*, in the parameters' units),
     the bracket ``unproved`` / ``unproved_status`` / ``unproved_by`` / ``witness`` (a state and the corner
@@ -372,7 +402,7 @@ def certified_shift_box(loop: ClosedLoop, decay_rate: float, exp_rate: float, re
         return _sampled_threshold(lambda s: refute_at(state, s), cap, tol / 8)
 
     sampled = _sampled_threshold(refute, cap, tol / 8)
-    prove = _prover(loop, region, budget, make, level)
+    prove = _prover(loop, region, budget, make, level, None if start is None else (-math.inf, start))
     found = _largest_proved(prove, refute, sampled, 1.0, tol, cap, max_proofs, total_time, reguess)
     found["time_s"] = time.perf_counter() - clock
     s = found.pop("certified")

@@ -239,7 +239,8 @@ def run_robustness(run: Run, delta: float | None = None, tol: float = 0.01, budg
     run's; for a region-of-attraction run over its sublevel set ``{V <= roa_level}``); ``budget`` of each proof,
     ``total_time`` seconds of each search. ``trained``: the run's trained condition's proof, if at hand: where it is
     verified for a DR pointwise run on this region, the radius search starts at the run's radius (that proof is one of
-    the search's). For a baseline run also the radius of the DR condition around the single sample it trained on
+    the search's), and both searches start from its partition. For a baseline run also the radius of the DR condition
+    around the single sample it trained on
     (``run.xi_train``, N = 1)."""
     cfg, system, loop = run.config, run.system, run.loop
     region = _region(run, delta)
@@ -254,7 +255,7 @@ def run_robustness(run: Run, delta: float | None = None, tol: float = 0.01, budg
                               proved=cfg.wasserstein_radius if same else None, start=start)
     scale = shift_scale(system, run.xi_samples) if scale is None else scale
     box = certified_shift_box(loop, cfg.decay_rate, cfg.exp_rate, region, scale, budget, tol=tol,
-                              total_time=total_time, level=level)
+                              total_time=total_time, level=level, start=start)
     own = None
     if cfg.method == "baseline":  # also around the one sample it trained on (the mean: a ball around a point mass)
         own = certified_radius(loop, run_condition(cfg, run.xi_train, "pointwise"), region, budget, tol=tol,
