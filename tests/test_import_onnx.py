@@ -1,6 +1,7 @@
 """Bring your own pair: a controller and V read from ONNX files get the same proofs as the pair of a run directory;
 unsupported files are refused with one line; controllers without V get the quadratic V of their linearisation."""
 
+import dataclasses
 import json
 import warnings
 
@@ -11,7 +12,7 @@ from torch import nn
 
 from drlyap.cli import main
 from drlyap.conditions import TrueDecrease
-from drlyap.config import Budget
+from drlyap.config import Budget, ProofConfig
 from drlyap.enclosures import Affine, Dual, Interval
 from drlyap.graph import read_onnx
 from drlyap.regions import Region
@@ -362,3 +363,56 @@ def test_an_imported_v_has_sound_values_and_gradients(tmp_path):
     _export(Bowl(system.n, tilt=0.3), system.n, tmp_path / "tilted.onnx")
     with pytest.raises(ValueError, match="not a minimum of V"):
         import_pair(system, tmp_path / "c.onnx", tmp_path / "tilted.onnx")
+
+
+def test_an_exported_region_of_attraction_pair_imports_with_its_run_s_claim_and_certifies_the_same(tmp_path):
+    """The export of a run trained for a region of attraction carries its claim (decay, level, delta): the imported
+    pair is proved on the same {V <= level} and certifies the same region; --roa-above-level lifts the cap for both."""
+    from drlyap.workflows.verify import verify_imported, verify_run
+
+    system = get_system("pendulum")
+    cfg = TrainConfig(system="pendulum", roa_level=1.0, warm_start="lqr", decay_rate=0.0, exp_rate=0.3, n_states=256,
+                      iters=400, check_every=400, lyapunov_hidden=[8], controller_hidden=[8], seed=0).resolved(system)
+    path = save_run(tmp_path / "run", fit(cfg, system, progress=False))
+    run = load_run(path)
+    record = export_run(run)
+    assert record["claim"] == {"decay_rate": 0.0, "exp_rate": 0.3, "level": 1.0, "delta": run.config.delta}
+    folder = path / "export"
+    out = tmp_path / "imported"
+    result = CliRunner().invoke(main, ["import", "pendulum", "--controller", str(folder / "controller.onnx"),
+                                       "--lyapunov", str(folder / "lyapunov.onnx"), "--out", str(out)])
+    assert result.exit_code == 0, result.output
+    pair = load_policy_run(out).info["pair"]
+    assert (pair.level, pair.delta, pair.decay_rate, pair.exp_rate) == (1.0, run.config.delta, 0.0, 0.3)
+    xi = torch.tensor(system.test_xi, dtype=F64)
+    proof = dataclasses.replace(run.proof or ProofConfig(), time_limit=20.0)
+    mine = verify_run(run, proof, xi=xi, roa=True, reprove=True)
+    theirs = verify_imported(pair, str(out), proof, xi=xi, roa=True)
+    assert theirs.true_model.level == mine.true_model.level == 1.0
+    assert theirs.true_model.status == mine.true_model.status
+    assert theirs.true_model.boxes_processed == mine.true_model.boxes_processed
+    assert mine.true_model.verified and mine.roa.limited_by == "level asked for" and 0.99 < mine.roa.level <= 1.0
+    assert theirs.roa.level == mine.roa.level and theirs.roa.share_of_box == mine.roa.share_of_box
+    above = verify_imported(pair, str(out), proof, xi=xi, roa=True, above_level=True)
+    run_above = verify_run(run, proof, xi=xi, roa=True, above_level=True)
+    assert above.roa.level == run_above.roa.level > mine.roa.level  # this pair's decrease reaches past its level
+    assert above.roa.share_of_box == run_above.roa.share_of_box > mine.roa.share_of_box
+    print(f"run and import: level {mine.roa.level}, {mine.roa.share_of_box}; above it: {above.roa.level}, "
+          f"{above.roa.share_of_box}")
+    refused = CliRunner().invoke(main, ["verify", str(path), "--roa-above-level"])
+    assert refused.exit_code == 1 and "--roa-above-level goes with --roa" in refused.output
+
+
+def test_a_damaged_claim_in_an_export_is_refused_in_one_line():
+    from drlyap.runs.imported import claim_of
+
+    good = {"decay_rate": 0.0, "exp_rate": 0.3, "level": 1.0, "delta": 0.1}
+    assert claim_of({"claim": good}) == good
+    assert claim_of({"claim": good | {"level": None}})["level"] is None
+    for bad, words in (({"level": 0.0}, "level must be a finite number > 0"),
+                       ({"exp_rate": float("nan")}, "exp_rate must be a finite number >= 0"),
+                       ({"delta": "0.1"}, "delta must be a finite number >= 0")):
+        with pytest.raises(ValueError, match=words):
+            claim_of({"claim": good | bad})
+    with pytest.raises(ValueError, match="no 'claim' object"):
+        claim_of({})

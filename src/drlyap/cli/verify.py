@@ -35,6 +35,9 @@ from drlyap.config import ENCLOSURES, ProofConfig
               help="Seconds for --roa's search: the condition on a sublevel set, then decrease inside the ball "
                    "[3x --time-limit]; where that certifies no sublevel set of V but the closed loop's own ellipsoid "
                    "{z'Pz <= c}, as many seconds again for V's decrease outside that ellipsoid (the band proof).")
+@click.option("--roa-above-level", is_flag=True,
+              help="Let --roa's search go above the level the run was trained for (or the level of the run an imported "
+                   "pair was exported from); without it the region certified is at most that level, the run's claim.")
 @click.option("--uniform", is_flag=True,
               help="Also bound the uniform DR condition's margin at the run's radius, risk level and samples (a "
                    "stricter condition than the pointwise one the default pairs are trained on).")
@@ -55,8 +58,8 @@ from drlyap.config import ENCLOSURES, ProofConfig
 @click.option("--json", "as_json", is_flag=True, help="Print one JSON object.")
 @run_source_options
 def verify(run_dir: Path, delta: float | None, xi: str | None, time_limit: float | None, roa: bool,
-           roa_time: float | None, uniform: bool, max_radius: bool, radius_tol: float, enclosure: str | None,
-           reprove: bool, workers: int, backend: str, address: str | None, device: str, as_json: bool,
+           roa_time: float | None, roa_above_level: bool, uniform: bool, max_radius: bool, radius_tol: float,
+           enclosure: str | None, reprove: bool, workers: int, backend: str, address: str | None, device: str, as_json: bool,
            system_spec: str | None, trust_run: bool) -> None:
     """Prove the decrease condition of RUN_DIR on the whole state box minus the delta-ball, or find a counterexample.
 
@@ -93,11 +96,13 @@ def verify(run_dir: Path, delta: float | None, xi: str | None, time_limit: float
             raise ValueError(f"--time-limit must be > 0, got {time_limit}")
         if roa_time is not None and not roa_time > 0:
             raise ValueError(f"--roa-time must be > 0, got {roa_time}")
+        if roa_above_level and not roa:
+            raise ValueError("--roa-above-level goes with --roa (it lets the region-of-attraction search pass the level)")
         if not radius_tol > 0:
             raise ValueError(f"--radius-tol must be > 0, got {radius_tol}")
         if read_run_kind(run_dir).get("kind") == "imported":
             _verify_imported(run_dir, delta, xi, time_limit, roa, roa_time, enclosure, as_json, system_spec, trust_run,
-                             compute)
+                             compute, roa_above_level)
             return
         run = load_run(run_dir, run_system_of(system_spec), trust_run)
         settings = dataclasses.replace(run.proof or ProofConfig(), roa_time=roa_time, enclosure=enclosure, **compute,
@@ -106,7 +111,8 @@ def verify(run_dir: Path, delta: float | None, xi: str | None, time_limit: float
             settings = dataclasses.replace(settings, time_limit=time_limit)
         settings = run_proof(run, settings)
         shift = None if xi is None else run.system.check_xi(floats(xi, "--xi"))
-        result = verify_run(run, settings, delta=delta, xi=shift, roa=roa, uniform=uniform, reprove=reprove)
+        result = verify_run(run, settings, delta=delta, xi=shift, roa=roa, uniform=uniform, reprove=reprove,
+                            above_level=roa_above_level)
         stored = None
         if roa:
             try:
@@ -140,7 +146,7 @@ def verify(run_dir: Path, delta: float | None, xi: str | None, time_limit: float
 
 def _verify_imported(run_dir: Path, delta: float | None, xi: str | None, time_limit: float | None, roa: bool,
                      roa_time: float | None, enclosure: str | None, as_json: bool, system_spec: str | None,
-                     trust_run: bool, compute: dict) -> None:
+                     trust_run: bool, compute: dict, above_level: bool = False) -> None:
     """``drlyap verify`` on an imported pair: decrease on the true model at --xi (the system's test shift by default)
     and with --roa its region of attraction; no certificate file (the checker reads drlyap's own networks only)."""
     from drlyap.io import jsonable
@@ -156,7 +162,8 @@ def _verify_imported(run_dir: Path, delta: float | None, xi: str | None, time_li
     settings = dataclasses.replace(ProofConfig(), roa_time=roa_time, enclosure=enclosure, **compute)
     if time_limit is not None:
         settings = dataclasses.replace(settings, time_limit=time_limit)
-    result = verify_imported(run.info["pair"], str(run_dir), settings, xi=shift, delta=delta, roa=roa)
+    result = verify_imported(run.info["pair"], str(run_dir), settings, xi=shift, delta=delta, roa=roa,
+                             above_level=above_level)
     if as_json:
         click.echo(json.dumps(jsonable(result.to_dict())))
         return

@@ -15,7 +15,8 @@ Layout (written atomically; loading reads data only)::
 
     RUN_DIR/
       run.json       {"kind": "imported", "format": 2, "system": system.describe(), "system_source": ...}
-      config.json    the system, the files read (name, sha256), the certificate's kind and the decay to prove
+      config.json    the system, the files read (name, sha256), the certificate's kind, the decay to prove, and the
+                     level and delta of a drlyap export's claim
       graphs.json    the controller's and V's operations (Graph.to_json), or V's kind ("quadratic")
       tensors.pt     their constants, and P of a quadratic V (tensors only, read with weights_only=True)
       metrics.json   the checks at x* and notes on how the files were read
@@ -58,7 +59,9 @@ MINIMUM_TOL = 1e-9
 class ImportedPair:
     """A closed loop from graphs, with ``certificate`` (``onnx`` or ``quadratic``), the decay its decrease is proved
     with (``decay_rate`` gamma of ``gamma ||z||``, ``exp_rate`` alpha of ``alpha V``), the ``checks`` at x* and
-    ``notes`` on how each file was read."""
+    ``notes`` on how each file was read. ``level``, ``delta``: those of the run a drlyap export came from (its
+    decrease is proved on ``{V <= level}`` minus the delta-ball, as the run's is; None: the whole region, the
+    system's delta)."""
 
     loop: ClosedLoop
     certificate: str
@@ -66,6 +69,55 @@ class ImportedPair:
     exp_rate: float
     checks: dict = field(default_factory=dict)
     notes: dict = field(default_factory=dict)
+    level: float | None = None
+    delta: float | None = None
+
+
+def _claim_number(value, what: str, lowest: float, above: bool = False) -> float:
+    ok = isinstance(value, (int, float)) and not isinstance(value, bool) and math.isfinite(value) and (
+        value > lowest if above else value >= lowest)
+    if not ok:
+        raise ValueError(f"{what} must be a finite number {'>' if above else '>='} {lowest:g}, got {value!r}")
+    return float(value)
+
+
+def claim_of(record: dict) -> dict:
+    """The claim of a drlyap export's record (``export.json``'s ``claim``): ``decay_rate``, ``exp_rate`` (>= 0),
+    ``level`` (> 0, or None) and ``delta`` (>= 0), checked; a ValueError of one line otherwise."""
+    claim = record.get("claim")
+    if not isinstance(claim, dict):
+        raise ValueError("the record has no 'claim' object")
+    out = {name: _claim_number(claim.get(name), name, 0.0) for name in ("decay_rate", "exp_rate", "delta")}
+    out["level"] = None if claim.get("level") is None else _claim_number(claim.get("level"), "level", 0.0, above=True)
+    return out
+
+
+def exported_claim(path: str | os.PathLike, system: UncertainSystem) -> dict | None:
+    """The claim (:func:`claim_of`) that drlyap's export of a run keeps in an ONNX file's metadata (key ``drlyap``,
+    ``export.json``'s record), or None for a file without it or one exported for another system. Read as data (JSON);
+    a record that is there but damaged is refused with a ValueError of one line naming the file."""
+    import json
+
+    import onnx
+
+    try:
+        model = onnx.load(str(path), load_external_data=False)
+    except Exception:  # read_onnx has read it already: it says what is wrong with it
+        return None
+    text = next((p.value for p in model.metadata_props if p.key == "drlyap"), None)
+    if text is None:
+        return None
+    try:
+        record = json.loads(text)
+        name = record.get("system", {}).get("name")
+    except (ValueError, AttributeError):
+        raise ValueError(f"{path}: its drlyap record is not a JSON object") from None
+    if name != system.name or "claim" not in record:  # another system's, or an export from before claims
+        return None
+    try:
+        return claim_of(record)
+    except ValueError as err:
+        raise ValueError(f"{path}: its drlyap record's claim is damaged ({err})") from None
 
 
 class PinnedLyapunov(nn.Module):
@@ -162,7 +214,16 @@ def import_pair(system: UncertainSystem, controller_path: str | os.PathLike,
     lyapunov, checks = pinned_certificate(system, graph)
     checks["pi_minus_u_star"] = offset
     d = system.defaults
-    return ImportedPair(ClosedLoop(system, lyapunov, controller), "onnx", d.decay_rate, d.exp_rate, checks, all_notes)
+    claim = exported_claim(lyapunov_path, system)
+    if claim is None:
+        return ImportedPair(ClosedLoop(system, lyapunov, controller), "onnx", d.decay_rate, d.exp_rate, checks,
+                            all_notes)
+    where = "the whole region" if claim["level"] is None else f"{{V <= {claim['level']:.6g}}}"
+    all_notes["lyapunov"] = [*all_notes["lyapunov"], f"a drlyap export: its run's claim is taken (decrease with "
+                             f"gamma = {claim['decay_rate']:g}, alpha = {claim['exp_rate']:g} on {where} minus the "
+                             f"ball of radius {claim['delta']:g})"]
+    return ImportedPair(ClosedLoop(system, lyapunov, controller), "onnx", claim["decay_rate"], claim["exp_rate"],
+                        checks, all_notes, claim["level"], claim["delta"])
 
 
 def load_onnx_pair(system: UncertainSystem, controller_path: str | os.PathLike,
@@ -254,7 +315,7 @@ def save_imported_run(out: str | os.PathLike, pair: ImportedPair, files: dict[st
         graphs["lyapunov"] = {"kind": "graph", "pinned": isinstance(loop.lyapunov, PinnedLyapunov)} | graph.to_json()
         tensors["lyapunov"] = _pack(graph.tensors())
     config = {"system": system.name, "certificate": pair.certificate, "decay_rate": pair.decay_rate,
-              "exp_rate": pair.exp_rate,
+              "exp_rate": pair.exp_rate, "level": pair.level, "delta": pair.delta,
               "files": {role: {"name": Path(p).name, "sha256": _sha256(p)} for role, p in files.items()}}
 
     def fill(tmp: Path) -> None:
@@ -316,10 +377,13 @@ def load_imported_run(path: str | os.PathLike, system: UncertainSystem | None = 
             if graph.n != system.n or graph.out_shape != ():
                 raise ValueError(f"V maps {graph.n} states to {graph.out_shape}, not {system.n} to ()")
         decay, exp_rate = float(config.get("decay_rate", 0.0)), float(config.get("exp_rate", 0.0))
+        level = None if config.get("level") is None else _claim_number(config["level"], "level", 0.0, above=True)
+        delta = None if config.get("delta") is None else _claim_number(config["delta"], "delta", 0.0)
     except (KeyError, TypeError, ValueError) as err:
         raise RunDirError(f"{path}: graphs.json/tensors.pt do not describe a pair of {system.name} ({err})") from None
     loop = ClosedLoop(system, lyapunov, controller)
-    pair = ImportedPair(loop, config["certificate"], decay, exp_rate, metrics.get("checks", {}), metrics.get("notes", {}))
+    pair = ImportedPair(loop, config["certificate"], decay, exp_rate, metrics.get("checks", {}), metrics.get("notes", {}),
+                        level, delta)
 
     @torch.no_grad()
     def act(x: Tensor) -> Tensor:

@@ -89,6 +89,8 @@ def export_record(run: Run, fmt: str) -> dict:
                                          "box": [list(b) for b in system.input_box]}},
                     "lyapunov": {"V": {"shape": ["batch"], "dtype": "float64"}}},
         "certificate": run.metrics.get("certificate"),
+        "claim": {"decay_rate": run.config.decay_rate, "exp_rate": run.config.exp_rate, "level": run.config.roa_level,
+                  "delta": run.config.delta},
     })
 
 

@@ -114,7 +114,7 @@ def confirmed_certificate(run: Run, name: str, condition, region: Region, level:
 
 def verify_run(run: Run, proof: ProofConfig | None = None, *, delta: float | None = None,
                xi: Sequence[float] | Tensor | None = None, roa: bool = False, uniform: bool = False,
-               reprove: bool = False) -> RunVerification:
+               reprove: bool = False, above_level: bool = False) -> RunVerification:
     """Verify a loaded run (:func:`drlyap.runs.load_run`) on X_delta (``delta``: the run's by default).
 
     ``trained``: the run's own condition (pointwise / nominal by :func:`~drlyap.verification.prove_trained`, uniform
@@ -124,7 +124,9 @@ def verify_run(run: Run, proof: ProofConfig | None = None, *, delta: float | Non
     condition (the true model's when ``xi`` is given), for ``proof.roa_time`` seconds (None: 3x
     ``proof.time_limit``), up to the level a region-of-attraction run was trained for. A run trained for a region
     of attraction (``config.roa_level``) has its trained and true-model conditions proved on ``{V <= roa_level}``
-    with V above the level on the box's faces. ``proof``: the settings (:func:`run_proof`). A condition whose
+    with V above the level on the box's faces; ``above_level``: the region-of-attraction search goes on above that
+    level too (the claim the run was trained for stays the default). ``proof``: the settings (:func:`run_proof`). A
+    condition whose
     certificate file states the same claim and is confirmed by the checker is not proved again
     (:func:`confirmed_certificate`), unless ``reprove``.
     """
@@ -162,9 +164,10 @@ def verify_run(run: Run, proof: ProofConfig | None = None, *, delta: float | Non
         else:
             seconds = 3 * proof.time_limit if proof.roa_time is None else proof.roa_time
             region_of_attraction = certified_roa(loop, main_condition, region, budget.with_seconds(seconds),
-                                                 max_level=math.inf if level is None else float(level),
+                                                 max_level=math.inf if level is None or above_level else float(level),
                                                  band_time=proof.band_time,
-                                                 proved=trained if true_model is None else true_model)
+                                                 proved=None if above_level else  # it stands for the level only
+                                                 trained if true_model is None else true_model)
             if true_model is not None:
                 region_of_attraction.xi = true_model.xi
     return RunVerification(run_dir=str(run.path), system=system.name, method=cfg.method,
@@ -174,24 +177,30 @@ def verify_run(run: Run, proof: ProofConfig | None = None, *, delta: float | Non
 
 
 def verify_imported(pair, run_dir: str, proof: ProofConfig | None = None, *, xi: Tensor, delta: float | None = None,
-                    roa: bool = False) -> RunVerification:
+                    roa: bool = False, above_level: bool = False) -> RunVerification:
     """Verify an imported pair (:class:`drlyap.runs.imported.ImportedPair`, ``drlyap import``): plain decrease on the
-    true model at the shift ``xi (k,)`` with the pair's decay, on X_delta (``delta``: the system's default), by the
-    same proof as for a trained run's ``--xi`` (and with ``roa`` its certified region of attraction there). An
-    imported pair has no trained condition (``trained`` is None)."""
+    true model at the shift ``xi (k,)`` with the pair's decay, on X_delta (``delta``: the pair's, from the export of a
+    drlyap run, else the system's default), by the same proof as for a trained run's ``--xi``: on ``{V <= level}``
+    with V above the level on the box's faces for a pair exported from a run trained for a region of attraction (and
+    with ``roa`` its certified region of attraction there, up to that level, as for its run; ``above_level``: above it
+    too). An imported pair has no trained condition (``trained`` is None)."""
     loop = pair.loop
     system = loop.system
     proof = (proof or ProofConfig()).resolved(system)
-    region = Region.of(system, float(system.defaults.delta if delta is None else delta))
+    if delta is None:
+        delta = system.defaults.delta if pair.delta is None else pair.delta
+    region = Region.of(system, float(delta))
+    level = pair.level
     budget = proof.budget()
     condition = TrueDecrease(system.check_xi(xi)[None], decay_rate=pair.decay_rate, exp_rate=pair.exp_rate)
-    true_model = prove_trained(loop, condition, region, budget, None, falsify_starts=proof.settle_starts)
+    true_model = prove_trained(loop, condition, region, budget, level, falsify_starts=proof.settle_starts)
     true_model.xi = condition.xi[0].tolist()
     region_of_attraction = None
     if roa:
         seconds = 3 * proof.time_limit if proof.roa_time is None else proof.roa_time
         region_of_attraction = certified_roa(loop, condition, region, budget.with_seconds(seconds),
-                                             band_time=proof.band_time)
+                                             max_level=math.inf if level is None or above_level else float(level),
+                                             band_time=proof.band_time, proved=None if above_level else true_model)
         region_of_attraction.xi = true_model.xi
     return RunVerification(run_dir=str(run_dir), system=system.name, method="imported", loss=None, delta=region.delta,
                            enclosure=proof.enclosure, trained=None, true_model=true_model, roa=region_of_attraction)
