@@ -344,6 +344,30 @@ def test_verify_rechecks_a_certificate_instead_of_proving_it_again(linear_run):
     close_pools()
 
 
+def test_the_certified_radius_is_written_as_a_certificate_the_checker_confirms(linear_run):
+    from click.testing import CliRunner
+
+    from drlyap.cli import main
+
+    run, spec = linear_run
+    runner = CliRunner()
+    out = runner.invoke(main, ["verify", str(run), "--system", spec, "--max-radius", "--time-limit", "10", "--json"])
+    assert out.exit_code == 0, out.output
+    found = json.loads(out.output)["robustness"]["radius"]
+    assert found["radius"] > 0.01 and found["unproved"] <= found["radius"] * 1.01  # above the trained radius
+    metrics = json.loads((run / "metrics.json").read_text())
+    assert metrics["certificate"]["radius"]["radius"] == found["radius"]
+    header = json.loads((run / "certificates" / "radius.json").read_text())
+    assert header["claim"]["condition"]["wasserstein_radius"] == found["radius"]
+    assert header["claim"]["condition"]["name"] == "pointwise" and len(header["claim"]["condition"]["xi"]) == 3
+    checked = runner.invoke(main, ["check", str(run), "--system", spec, "--name", "radius"])
+    assert checked.exit_code == 0 and "radius: CHECKED" in checked.output, checked.output
+    metrics["certificate"]["radius"]["radius"] = found["radius"] * 1.01  # a larger radius than the file proves
+    (run / "metrics.json").write_text(json.dumps(metrics))
+    wrong = runner.invoke(main, ["check", str(run), "--system", spec, "--name", "radius"])
+    assert wrong.exit_code == 1 and "not the run's radius condition (wasserstein_radius" in wrong.output
+
+
 def test_an_interrupted_verify_resumes_its_proof_and_clears_its_checkpoints(linear_run, monkeypatch):
     from click.testing import CliRunner
 

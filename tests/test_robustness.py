@@ -249,29 +249,3 @@ def test_a_node_inherits_the_largest_value_of_its_ancestors():
     assert tree.inherit_max(values).tolist() == [-inf, 0.5, 0.2, 0.2, 0.2, 0.2, 0.2]
     values[0] = 0.3
     assert tree.inherit_max(values).tolist() == [0.3, 0.5, 0.3, 0.3, 0.3, 0.3, 0.3]
-
-
-def test_a_partition_is_pruned_back_to_the_boxes_asked_and_keeps_its_order():
-    from drlyap.verification.partition import INTERNAL, OPEN, PROVED, Partition
-
-    # two grid cells 0 and 1; 0 -> (2, 3), 3 -> (4, 5), 5 -> (6, 7), 1 -> (8, 9)
-    parent = torch.tensor([-1, -1, 0, 0, 3, 3, 5, 5, 1, 1])
-    side = torch.tensor([0, 0, 0, 1, 0, 1, 0, 1, 0, 1], dtype=torch.int8)
-    axis = torch.tensor([0, 1, -1, 1, -1, 0, -1, -1, -1, -1], dtype=torch.int8)
-    verdict = torch.tensor([INTERNAL, INTERNAL, PROVED, INTERNAL, OPEN, INTERNAL, PROVED, OPEN, PROVED, PROVED],
-                           dtype=torch.int8)
-    tree = Partition([2, 1], parent, side, axis, verdict, torch.full((10,), -1.0, dtype=F64), "mean-value")
-    assert tree.depth().tolist() == [0, 0, 1, 1, 2, 2, 3, 3, 1, 1]
-    flags = torch.zeros(10, dtype=torch.bool)
-    flags[6] = True
-    assert tree.any_below(flags).tolist() == [True, False, False, True, False, True, True, False, False, False]
-    cut = torch.zeros(10, dtype=torch.bool)
-    cut[[1, 3, 5]] = True  # 5 lies below 3: only 1 and 3 stay, as open leaves
-    pruned, old = tree.pruned(cut)
-    assert old.tolist() == [0, 1, 2, 3]
-    assert pruned.parent.tolist() == [-1, -1, 0, 0] and pruned.verdict.tolist() == [INTERNAL, OPEN, PROVED, OPEN]
-    assert pruned.axis.tolist() == [0, -1, -1, -1]
-    lo, hi = torch.tensor([[0.0, 0.0], [1.0, 0.0]], dtype=F64), torch.tensor([[1.0, 1.0], [2.0, 1.0]], dtype=F64)
-    blo, bhi = pruned.boxes(lo, hi)
-    full_lo, full_hi = tree.boxes(lo, hi)
-    assert torch.equal(blo, full_lo[old]) and torch.equal(bhi, full_hi[old])  # the same boxes, renumbered

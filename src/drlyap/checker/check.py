@@ -453,15 +453,16 @@ def check_run(run_dir: str | Path, system=None, trust: bool = False, names: list
 def claim_mismatch(name: str, header: dict, config: dict, metrics: dict) -> list[str]:
     """Where a certificate's claim is not the run's: for ``trained``, the condition the run was trained on (method
     and loss, radius, risk level, decay, samples, delta, level); for ``true-model``, the run's decay and the shift
-    its metrics report the decrease at (where they report one). A certificate that proves a weaker condition than
-    the run's is then not taken for the run's."""
+    its metrics report the decrease at (where they report one); for ``radius``, the DR pointwise condition at the
+    run's risk level, decay and samples (all of them) at the certified radius its metrics report. A certificate that
+    proves a weaker condition than the run's is then not taken for the run's."""
     try:
         claim = header["claim"]["condition"]
         region = header["claim"]["region"]
     except (KeyError, TypeError):
         return ["the header has no claim"]
     expected = {"decay_rate": float(config.get("decay_rate") or 0.0), "exp_rate": float(config.get("exp_rate") or 0.0),
-                "model": "design" if name == "trained" else "true"}
+                "model": "true" if name == "true-model" else "design"}
     problems = []
     if header.get("networks", {}).get("alpha_hat") != config.get("alpha_hat"):
         problems.append("alpha_hat")
@@ -475,6 +476,10 @@ def claim_mismatch(name: str, header: dict, config: dict, metrics: dict) -> list
         expected |= {"name": (config.get("loss") if dr else "nominal"), "xi": metrics.get("xi_train")}
         if dr:
             expected |= {"wasserstein_radius": config.get("wasserstein_radius"), "risk_level": config.get("risk_level")}
+    elif name == "radius":  # the DR pointwise condition at all the run's samples, at the radius its metrics report
+        reported = (metrics.get("certificate") or {}).get("radius") or {}
+        expected |= {"name": "pointwise", "xi": metrics.get("xi_samples"), "risk_level": config.get("risk_level"),
+                     "wasserstein_radius": reported.get("radius", "none reported in metrics.json")}
     else:
         expected |= {"name": "true"}
         reported = (metrics.get("certificate") or {}).get("true_model") or {}

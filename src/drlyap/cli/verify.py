@@ -84,6 +84,7 @@ def verify(run_dir: Path, delta: float | None, xi: str | None, time_limit: float
     from drlyap.workflows.verify import (
         clear_checkpoints,
         record_certificates,
+        record_radius,
         record_region,
         run_checkpoints,
         run_proof,
@@ -130,6 +131,12 @@ def verify(run_dir: Path, delta: float | None, xi: str | None, time_limit: float
         if max_radius:
             result.robustness = run_robustness(run, delta=delta, tol=radius_tol, budget=settings.budget(),
                                                total_time=8 * settings.time_limit, trained=result.trained)
+            try:
+                path = record_radius(run, result.robustness)
+                if path is not None:
+                    written.append(f"  certificate: {path} (re-check it with `{recheck}`)")
+            except OSError as err:
+                written.append(f"  the radius not stored: {run.path} cannot be written ({err.strerror or err})")
         clear_checkpoints(run)
     except ValueError as err:
         fail(err)

@@ -2,8 +2,10 @@
 
 A certificate is two files in ``RUN/certificates/``: ``NAME.json``, the header, and ``NAME.npz``, the partition
 the branch and bound proved the condition on (numpy arrays, read with ``allow_pickle=False``). ``NAME`` is
-``trained`` (the run's trained condition) or ``true-model`` (plain decrease on the true model at a shift, written by
-``drlyap verify RUN --xi ...``). The header (format ``drlyap-certificate``, version 1) holds:
+``trained`` (the run's trained condition), ``true-model`` (plain decrease on the true model at a shift, written by
+``drlyap verify RUN --xi ...``) or ``radius`` (the DR pointwise condition at the run's risk level, samples and decay at
+the certified Wasserstein radius r*, written by ``drlyap verify RUN --max-radius``: the condition at every smaller
+radius follows, the Wasserstein term growing with r). The header (format ``drlyap-certificate``, version 1) holds:
 
 * ``claim``: the condition (name, model, samples or shift ``xi``, decay, Wasserstein radius and risk level), the
   region (the state box in local coordinates, ``delta``) and a sentence saying what is claimed;
@@ -38,7 +40,7 @@ from drlyap.verification.results import ConditionProof
 FORMAT = "drlyap-certificate"
 VERSION = 1
 FOLDER = "certificates"
-NAMES = ("trained", "true-model")
+NAMES = ("trained", "true-model", "radius")
 ARRAYS = ("parent", "side", "axis", "verdict", "bound")
 
 
@@ -112,6 +114,13 @@ def _replace(path: Path, data: bytes) -> None:
     tmp = path.with_name(f".{path.name}.tmp")
     tmp.write_bytes(data)
     os.replace(tmp, path)
+
+
+def remove_certificate(folder: str | os.PathLike, name: str) -> None:
+    """Remove ``folder/certificates/NAME.*`` (header first, so that no header names arrays that are gone)."""
+    target = Path(folder) / FOLDER
+    for suffix in (".json", ".npz", ".check.json"):
+        (target / f"{name}{suffix}").unlink(missing_ok=True)
 
 
 def read_certificate(run_dir: str | os.PathLike, name: str) -> tuple[dict, dict[str, np.ndarray]]:

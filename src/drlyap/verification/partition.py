@@ -125,44 +125,6 @@ class Partition:
         return out
 
 
-    def depth(self) -> Tensor:
-        """``(N,)`` int64: each node's generation (0 for a grid cell)."""
-        parent = self.parent.to(torch.int64)
-        has_parent = parent >= 0
-        depth = torch.zeros(self.size, dtype=torch.int64)
-        while True:
-            deeper = torch.where(has_parent, depth[parent.clamp(min=0)] + 1, 0)
-            if torch.equal(deeper, depth):
-                return depth
-            depth = deeper
-
-    def any_below(self, flags: Tensor) -> Tensor:
-        """``(N,)`` bool: whether the node or a node below it is flagged (``flags (N,)`` bool)."""
-        out = flags.to(torch.int32).clone()
-        parent, depth = self.parent.to(torch.int64), self.depth()
-        for level in range(int(depth.max()) if self.size else 0, 0, -1):  # deepest first: children before parents
-            nodes = (depth == level).nonzero().squeeze(-1)
-            out.index_add_(0, parent[nodes], out[nodes])
-        return out > 0
-
-    def pruned(self, cut: Tensor) -> tuple[Partition, Tensor]:
-        """The partition with the nodes ``cut`` (``(N,)`` bool, internal nodes) made open leaves again and everything
-        below them removed (nodes renumbered in their order), and ``(M,)`` the old id of each node kept."""
-        parent = self.parent.to(torch.int64)
-        has_parent = parent >= 0
-        under = self.inherit_max(cut.to(torch.float64)) > 0  # a cut node and everything below it
-        keep = ~(has_parent & under[parent.clamp(min=0)])
-        old = keep.nonzero().squeeze(-1)
-        new_id = torch.cumsum(keep.to(torch.int64), 0) - 1
-        kept_parent = parent[old]
-        new_parent = torch.where(kept_parent >= 0, new_id[kept_parent.clamp(min=0)], -1)
-        top = cut[old].to(torch.bool)  # a cut node below another is gone: those kept are the topmost
-        axis, verdict, bound = self.axis[old].clone(), self.verdict[old].clone(), self.bound[old].clone()
-        axis[top], verdict[top], bound[top] = -1, OPEN, float("nan")
-        return Partition(list(self.grid), new_parent.to(self.parent.dtype), self.side[old].clone(), axis, verdict,
-                         bound, self.enclosure), old
-
-
 class PartitionRecorder:
     """Collects a branch and bound's tree as it runs (ids of the boxes in its queue, verdicts as they come)."""
 

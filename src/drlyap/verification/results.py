@@ -294,6 +294,9 @@ class CertifiedRadius(_Search):
     risk_level: float = 0.1
     n_samples: int = 0
     condition_radius: float = 0.0
+    proof: Any = field(default=None, repr=False, compare=False, metadata={"json": False})
+    """The :class:`ConditionProof`, with its partition, of the search's own proof at r* (None where r* is the radius
+    of an earlier proof, or none is proved): what a certificate of the radius writes down."""
 
 
 @dataclass

@@ -15,7 +15,7 @@ from drlyap.conditions import TrueDecrease
 from drlyap.io import jsonable
 from drlyap.regions import Region
 from drlyap.runs import Run
-from drlyap.runs.certificates import certificate_partition, write_certificate
+from drlyap.runs.certificates import certificate_partition, remove_certificate, write_certificate
 from drlyap.training import run_condition
 from drlyap.verification import (
     Budget,
@@ -218,6 +218,27 @@ def record_region(run: Run, ver: RunVerification) -> None:
         certificate["true_model"] = jsonable({k: getattr(ver.true_model, k) for k in keys})
     certificate["roa"] = jsonable({**ver.roa.to_dict(), "xi": ver.roa.xi})  # xi None: about the trained condition
     run.save_metrics()
+
+
+def record_radius(run: Run, robustness: RunRobustness) -> Path | None:
+    """Keep the certified Wasserstein radius of ``robustness`` in the run's ``metrics["certificate"]["radius"]`` and
+    write its certificate ``radius`` (the DR pointwise condition at r*, on the run's X_delta and level) where the
+    search's own proof at r* is at hand; a certificate of an earlier radius is removed. Only on the run's own delta.
+    Returns the header's path, or None."""
+    found = robustness.radius
+    if found is None or found.radius is None or float(robustness.delta) != float(run.config.delta):
+        return None
+    certificate = run.metrics["certificate"] = run.metrics.get("certificate") or {}
+    certificate["radius"] = jsonable({"radius": found.radius, "risk_level": found.risk_level,
+                                      "n_samples": found.n_samples, "delta": found.delta, "level": found.level,
+                                      "unproved": found.unproved, "unproved_status": found.unproved_status})
+    run.save_metrics()
+    if found.proof is None:  # r* is the trained radius: the trained certificate states it
+        remove_certificate(run.path, "radius")
+        return None
+    condition = run_condition(run.config, run.xi_samples, "pointwise").with_radius(found.radius)
+    return write_certificate(run.path, "radius", found.proof, condition, Region.of(run.system, float(found.delta)),
+                             run.system, run.path / "weights.pt", float(run.config.alpha_hat))
 
 
 def record_certificates(run: Run, ver: RunVerification) -> list[Path]:
