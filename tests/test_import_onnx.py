@@ -416,3 +416,36 @@ def test_a_damaged_claim_in_an_export_is_refused_in_one_line():
             claim_of({"claim": good | bad})
     with pytest.raises(ValueError, match="no 'claim' object"):
         claim_of({})
+
+
+def test_a_users_system_pair_exported_and_imported_again_certifies_the_same_region(tmp_path):
+    """The same through the command line for a system of the user's own file (trained for {V <= 1})."""
+    import os
+
+    from handmade import plain_train, small_pendulum
+
+    spec = f"{os.path.dirname(__file__)}/handmade.py:small_pendulum"
+    system = small_pendulum()
+    cfg = TrainConfig(system=system.name, roa_level=1.0, warm_start="lqr", decay_rate=0.0, exp_rate=0.3, iters=60,
+                      check_every=60, n_states=512, lyapunov_hidden=[8], controller_hidden=[8], seed=0,
+                      xi_samples=[[0.0, 0.0], [0.05, 0.01]])
+    run_dir = save_run(tmp_path / "run", plain_train(cfg, system, progress=False))
+    runner = CliRunner()
+    done = runner.invoke(main, ["export", str(run_dir), "--system", spec])
+    assert done.exit_code == 0, done.output
+    folder, out = run_dir / "export", tmp_path / "imported"
+    done = runner.invoke(main, ["import", spec, "--controller", str(folder / "controller.onnx"),
+                                "--lyapunov", str(folder / "lyapunov.onnx"), "--out", str(out)])
+    assert done.exit_code == 0 and "its run's claim is taken" in done.output, done.output
+
+    def verify(path):
+        res = runner.invoke(main, ["verify", str(path), "--system", spec, "--xi", "0.02,0.01", "--roa", "--json",
+                                   "--time-limit", "10"])
+        assert res.exit_code == 0, res.output
+        return json.loads(res.stdout)
+
+    mine, theirs = verify(run_dir), verify(out)
+    assert theirs["true_model"]["level"] == mine["true_model"]["level"] == 1.0
+    assert theirs["true_model"]["boxes_processed"] == mine["true_model"]["boxes_processed"]
+    assert theirs["roa"]["level"] == mine["roa"]["level"] and theirs["roa"]["share_of_box"] == mine["roa"]["share_of_box"]
+    print(f"run and import: {mine['true_model']['status']}, level {mine['roa']['level']}, {mine['roa']['share_of_box']}")
