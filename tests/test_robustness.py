@@ -249,3 +249,13 @@ def test_a_node_inherits_the_largest_value_of_its_ancestors():
     assert tree.inherit_max(values).tolist() == [-inf, 0.5, 0.2, 0.2, 0.2, 0.2, 0.2]
     values[0] = 0.3
     assert tree.inherit_max(values).tolist() == [0.3, 0.5, 0.3, 0.3, 0.3, 0.3, 0.3]
+
+
+def test_a_proof_names_its_radius_or_its_box_of_shifts_in_its_progress_line():
+    from drlyap.verification.branch_and_bound import proof_label
+
+    scale = torch.tensor([0.1, 0.05], dtype=F64)
+    assert proof_label(DRPointwise(0.0123456, 0.1, XI, 0.05), 0.8) == "DR pointwise, r = 0.01235, on {V <= 0.8}"
+    box = proof_label(shift_box_condition(scale, 0.5, 0.05))
+    assert box.endswith(", xi within +-(0.05, 0.025)") and box.startswith("true model")
+    assert proof_label(TrueDecrease(XI[:1], 0.05)) == TrueDecrease(XI[:1], 0.05).label

@@ -29,7 +29,7 @@ from torch import Tensor
 from drlyap.closed_loop import ClosedLoop
 from drlyap.conditions import Condition, DRUniform
 from drlyap.config import Budget
-from drlyap.enclosures import EPS, F64, round_down, round_up
+from drlyap.enclosures import EPS, F64, Interval, round_down, round_up
 from drlyap.progress import progress as show_progress
 from drlyap.regions import Region, box_grid, default_grid, inside_ball, split
 from drlyap.verification.bounding import ConditionJob, run_batches
@@ -79,6 +79,18 @@ def verify_condition(loop: ClosedLoop, condition: Condition, region: Region, bud
     if not (search.finished and (search.stopped == "counterexample" or not search.lo.shape[0])):
         search.run()  # a finished search that ran out of budget goes on where a larger budget allows
     return search.result(keep_boxes, keep_partition)
+
+
+def proof_label(condition: Condition, level: float | None = None) -> str:
+    """What a proof's progress line calls it: the condition, its Wasserstein radius or the half-widths of its box of
+    shifts (in the parameters' units), and the sublevel set it is proved on."""
+    what = condition.label
+    radius = getattr(condition, "r", None)
+    if radius is not None:
+        what += f", r = {radius:.4g}"
+    if isinstance(condition.xi, Interval):
+        what += ", xi within +-(" + ", ".join(f"{float(v):.4g}" for v in condition.xi.hi.reshape(-1)) + ")"
+    return what + (f", on {{V <= {level:.6g}}}" if level is not None else "")
 
 
 class _Search:
@@ -172,10 +184,7 @@ class _Search:
         start, saved_at = time.perf_counter(), time.perf_counter()
         before = self.elapsed
         taken = self.processed
-        radius = getattr(condition, "r", None)
-        what = condition.label + (f", r = {radius:.4g}" if radius is not None else "")
-        what += f", on {{V <= {level:.6g}}}" if level is not None else ""
-        bar = show_progress(int(budget.boxes), f"proof ({what}): boxes", self.compute.progress)
+        bar = show_progress(int(budget.boxes), f"proof ({proof_label(condition, level)}): boxes", self.compute.progress)
         if self.resumed:
             bar.update(min(self.resumed, int(budget.boxes)))
 
