@@ -20,6 +20,28 @@ DELTA, TOL = 0.2, 0.01
 TEN, FIVE = Budget(seconds=10, enclosure="mean-value"), Budget(seconds=5, enclosure="mean-value")  # per proof
 
 
+def _linear_loop():
+    """The hand-made linear pair on the small pendulum, its region and a DR pointwise condition:
+    (system, V, pi, loop, region, condition)."""
+    system = small_pendulum()
+    lyap, ctrl = linear_pair(system)
+    return system, lyap, ctrl, ClosedLoop(system, lyap, ctrl), Region.of(system, DELTA), DRPointwise(1e-3, 0.1, XI, 0.05)
+
+
+def _checker_confirms(folder, proof, condition, region, system, lyap, ctrl) -> None:
+    """Write ``proof`` as a certificate of ``condition`` and have the independent checker confirm it."""
+    from drlyap.checker.check import check_certificate
+    from drlyap.runs.certificates import read_certificate, sha256_file, system_digest, write_certificate
+
+    weights = {"lyapunov": lyap.state_dict(), "controller": ctrl.state_dict()}
+    torch.save(weights, folder / "weights.pt")
+    write_certificate(folder, "trained", proof, condition, region, system, folder / "weights.pt", lyap.alpha_hat)
+    header, arrays = read_certificate(folder, "trained")
+    res = check_certificate(folder, "trained", header, arrays, system, weights, sha256_file(folder / "weights.pt"),
+                            system_digest(system))
+    assert res.ok, res.failures
+
+
 def _dense(system, per=300):
     lo, hi = system.local_box()
     axes = [torch.linspace(float(lo[i]), float(hi[i]), per, dtype=F64) for i in range(system.n)]
@@ -122,10 +144,7 @@ def test_cli_max_radius_on_a_baseline_run(tmp_path, tiny_config):
 def test_the_radius_on_a_sublevel_set_is_proved_there_and_at_least_the_whole_regions():
     """Over ``{V <= level}`` the claim asks less than over X_delta: its r* is at least as large, it is proved on
     that set, and sampled refutations come only from states inside it."""
-    system = small_pendulum()
-    lyap, ctrl = linear_pair(system)
-    loop, region = ClosedLoop(system, lyap, ctrl), Region.of(system, DELTA)
-    condition = DRPointwise(1e-3, 0.1, XI, 0.05)
+    system, lyap, ctrl, loop, region, condition = _linear_loop()
     whole = certified_radius(loop, condition, region, TEN, tol=TOL)
     z = _dense(system)
     with torch.no_grad():
@@ -140,10 +159,7 @@ def test_the_radius_on_a_sublevel_set_is_proved_there_and_at_least_the_whole_reg
 
 
 def test_the_radius_search_starts_at_a_radius_already_proved():
-    system = small_pendulum()
-    lyap, ctrl = linear_pair(system)
-    loop, region = ClosedLoop(system, lyap, ctrl), Region.of(system, DELTA)
-    condition = DRPointwise(1e-3, 0.1, XI, 0.05)
+    system, lyap, ctrl, loop, region, condition = _linear_loop()
     plain = certified_radius(loop, condition, region, TEN, tol=TOL)
     known = 0.5 * plain.radius
     assert verify_condition(loop, condition.with_radius(known), region, TEN).status == "verified"
@@ -155,13 +171,7 @@ def test_the_radius_search_starts_at_a_radius_already_proved():
 
 
 def test_a_proof_starts_from_the_partition_of_a_weaker_one_and_its_tree_is_checked(tmp_path):
-    from drlyap.checker.check import check_certificate
-    from drlyap.runs.certificates import read_certificate, sha256_file, system_digest, write_certificate
-
-    system = small_pendulum()
-    lyap, ctrl = linear_pair(system)
-    loop, region = ClosedLoop(system, lyap, ctrl), Region.of(system, DELTA)
-    condition = DRPointwise(1e-3, 0.1, XI, 0.05)
+    system, lyap, ctrl, loop, region, condition = _linear_loop()
     radius = certified_radius(loop, condition, region, TEN, tol=TOL).radius
     weak = verify_condition(loop, condition.with_radius(0.3 * radius), region, TEN)
     fresh = verify_condition(loop, condition.with_radius(0.9 * radius), region, TEN)
@@ -169,22 +179,13 @@ def test_a_proof_starts_from_the_partition_of_a_weaker_one_and_its_tree_is_check
     assert weak.verified and fresh.verified and warm.verified
     assert warm.boxes_processed < fresh.boxes_processed  # the weaker proof's splits are not bounded again
     assert warm.partition.size >= weak.partition.size
-    torch.save({"lyapunov": lyap.state_dict(), "controller": ctrl.state_dict()}, tmp_path / "weights.pt")
-    write_certificate(tmp_path, "trained", warm, condition.with_radius(0.9 * radius), region, system,
-                      tmp_path / "weights.pt", lyap.alpha_hat)
-    header, arrays = read_certificate(tmp_path, "trained")
-    res = check_certificate(tmp_path, "trained", header, arrays, system, {"lyapunov": lyap.state_dict(),
-                            "controller": ctrl.state_dict()}, sha256_file(tmp_path / "weights.pt"), system_digest(system))
-    assert res.ok, res.failures
+    _checker_confirms(tmp_path, warm, condition.with_radius(0.9 * radius), region, system, lyap, ctrl)
     with pytest.raises(ValueError, match="its own grid and enclosure"):
         verify_condition(loop, condition, region, Budget(seconds=10, enclosure="affine"), start=weak.partition)
 
 
 def test_a_proof_that_cannot_finish_within_its_budget_gives_up_early():
-    system = small_pendulum()
-    lyap, ctrl = linear_pair(system)
-    loop, region = ClosedLoop(system, lyap, ctrl), Region.of(system, DELTA)
-    condition = DRPointwise(1e-3, 0.1, XI, 0.05)
+    system, lyap, ctrl, loop, region, condition = _linear_loop()
     full = verify_condition(loop, condition, region, TEN)
     small = Budget(seconds=10, boxes=full.boxes_processed // 2, enclosure="mean-value", batch=64)
     out = verify_condition(loop, condition, region, small, give_up=True)
@@ -193,10 +194,7 @@ def test_a_proof_that_cannot_finish_within_its_budget_gives_up_early():
 
 
 def test_the_radius_search_from_a_proved_partition_brackets_the_same_radius():
-    system = small_pendulum()
-    lyap, ctrl = linear_pair(system)
-    loop, region = ClosedLoop(system, lyap, ctrl), Region.of(system, DELTA)
-    condition = DRPointwise(1e-3, 0.1, XI, 0.05)
+    system, lyap, ctrl, loop, region, condition = _linear_loop()
     plain = certified_radius(loop, condition, region, TEN, tol=TOL)
     known = 0.5 * plain.radius
     proof = verify_condition(loop, condition.with_radius(known), region, TEN)
@@ -206,14 +204,9 @@ def test_the_radius_search_from_a_proved_partition_brackets_the_same_radius():
 
 
 def test_a_proof_keeps_the_leaves_a_stronger_proof_left_proved_and_its_tree_is_checked(tmp_path):
-    from drlyap.checker.check import check_certificate
-    from drlyap.runs.certificates import read_certificate, sha256_file, system_digest, write_certificate
     from drlyap.verification.partition import OPEN, PROVED
 
-    system = small_pendulum()
-    lyap, ctrl = linear_pair(system)
-    loop, region = ClosedLoop(system, lyap, ctrl), Region.of(system, DELTA)
-    condition = DRPointwise(1e-3, 0.1, XI, 0.05)
+    system, lyap, ctrl, loop, region, condition = _linear_loop()
     radius = certified_radius(loop, condition, region, TEN, tol=TOL).radius
     strong = verify_condition(loop, condition.with_radius(1.5 * radius), region, TEN, stop_at_counterexample=True,
                               keep_partition=True)  # fails, but proves much of the region at the larger radius
@@ -225,12 +218,8 @@ def test_a_proof_keeps_the_leaves_a_stronger_proof_left_proved_and_its_tree_is_c
     warm = verify_condition(loop, weaker, region, TEN, start=tree, standing=tree.verdict == PROVED)
     assert fresh.verified and warm.verified
     assert warm.boxes_processed < fresh.boxes_processed  # what stood was not bounded again
-    torch.save({"lyapunov": lyap.state_dict(), "controller": ctrl.state_dict()}, tmp_path / "weights.pt")
-    write_certificate(tmp_path, "trained", warm, weaker, region, system, tmp_path / "weights.pt", lyap.alpha_hat)
-    header, arrays = read_certificate(tmp_path, "trained")
-    res = check_certificate(tmp_path, "trained", header, arrays, system, {"lyapunov": lyap.state_dict(),
-                            "controller": ctrl.state_dict()}, sha256_file(tmp_path / "weights.pt"), system_digest(system))
-    assert res.ok, res.failures  # every leaf that stood is proved at the smaller radius by the checker's own bounds
+    # every leaf that stood is proved at the smaller radius by the checker's own bounds
+    _checker_confirms(tmp_path, warm, weaker, region, system, lyap, ctrl)
     with pytest.raises(ValueError, match="standing must mark"):
         verify_condition(loop, weaker, region, TEN, start=tree, standing=torch.ones(3, dtype=torch.bool))
 
