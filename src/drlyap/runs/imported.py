@@ -213,15 +213,15 @@ def import_pair(system: UncertainSystem, controller_path: str | os.PathLike,
     offset = equilibrium_offset(system, controller)
     lyapunov, checks = pinned_certificate(system, graph)
     checks["pi_minus_u_star"] = offset
-    d = system.defaults
     claim = exported_claim(lyapunov_path, system)
-    if claim is None:
-        return ImportedPair(ClosedLoop(system, lyapunov, controller), "onnx", d.decay_rate, d.exp_rate, checks,
-                            all_notes)
-    where = "the whole region" if claim["level"] is None else f"{{V <= {claim['level']:.6g}}}"
-    all_notes["lyapunov"] = [*all_notes["lyapunov"], f"a drlyap export: its run's claim is taken (decrease with "
-                             f"gamma = {claim['decay_rate']:g}, alpha = {claim['exp_rate']:g} on {where} minus the "
-                             f"ball of radius {claim['delta']:g})"]
+    if claim is None:  # the system's decay, on the whole region
+        claim = {"decay_rate": system.defaults.decay_rate, "exp_rate": system.defaults.exp_rate, "level": None,
+                 "delta": None}
+    else:
+        where = "the whole region" if claim["level"] is None else f"{{V <= {claim['level']:.6g}}}"
+        all_notes["lyapunov"].append(f"a drlyap export: its run's claim is taken (decrease with gamma = "
+                                     f"{claim['decay_rate']:g}, alpha = {claim['exp_rate']:g} on {where} minus the "
+                                     f"ball of radius {claim['delta']:g})")
     return ImportedPair(ClosedLoop(system, lyapunov, controller), "onnx", claim["decay_rate"], claim["exp_rate"],
                         checks, all_notes, claim["level"], claim["delta"])
 

@@ -257,8 +257,8 @@ def certified_radius(loop: ClosedLoop, condition: DRPointwise, region: Region, b
     found so far is returned, with ``stopped`` saying why). ``cap``: largest radius tried. ``proved``: a radius at
     which this very condition (risk level, samples, decay, region, level) is already proved, e.g. by the run's trained
     condition: the search starts there (its first probe, ``by`` ``an earlier proof``) instead of proving r = 0;
-    ``start``: that proof's partition, which the next proofs start from (a proof above a proved radius bounds the
-    proved leaves of the largest proved one again instead of starting from the grid). Each proof of the search ends
+    ``start``: that proof's partition, which the search's proofs start from instead of the grid (see :func:`_prover`:
+    what a proof proved at a radius stands for every proof at a smaller one). Each proof of the search ends
     at its first counterexample, or as soon as it cannot finish within its budget (unknown).
 
     Returns a :class:`~drlyap.verification.results.CertifiedRadius`: ``radius`` (r*, proved: the condition holds for
