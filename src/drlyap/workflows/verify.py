@@ -11,7 +11,8 @@ from pathlib import Path
 
 from torch import Tensor
 
-from drlyap.conditions import TrueDecrease
+from drlyap.closed_loop import ClosedLoop
+from drlyap.conditions import Condition, TrueDecrease
 from drlyap.io import jsonable
 from drlyap.regions import Region
 from drlyap.runs import Run
@@ -162,18 +163,25 @@ def verify_run(run: Run, proof: ProofConfig | None = None, *, delta: float | Non
             region_of_attraction = RegionOfAttraction.unavailable(
                 "no per-state residual for the uniform condition; no sublevel-set certificate")
         else:
-            seconds = 3 * proof.time_limit if proof.roa_time is None else proof.roa_time
-            region_of_attraction = certified_roa(loop, main_condition, region, budget.with_seconds(seconds),
-                                                 max_level=math.inf if level is None or above_level else float(level),
-                                                 band_time=proof.band_time,
-                                                 proved=None if above_level else  # it stands for the level only
-                                                 trained if true_model is None else true_model)
+            region_of_attraction = _region_of_attraction(loop, main_condition, region, proof, budget, level,
+                                                         trained if true_model is None else true_model, above_level)
             if true_model is not None:
                 region_of_attraction.xi = true_model.xi
     return RunVerification(run_dir=str(run.path), system=system.name, method=cfg.method,
                            loss=cfg.loss if cfg.method == "dr" else None, delta=region.delta,
                            enclosure=proof.enclosure, trained=trained, uniform=margin, true_model=true_model,
                            roa=region_of_attraction)
+
+
+def _region_of_attraction(loop: ClosedLoop, condition: Condition, region: Region, proof: ProofConfig, budget: Budget,
+                          level: float | None, proved: ConditionProof, above_level: bool) -> RegionOfAttraction:
+    """:func:`~drlyap.verification.certified_roa` of ``condition`` for ``proof.roa_time`` seconds (None: 3x
+    ``proof.time_limit``), up to ``level`` (a run's claim; None: no cap) unless ``above_level``. ``proved``: the proof
+    of ``condition`` on ``{V <= level}``, which stands for the level search up to that level only."""
+    seconds = 3 * proof.time_limit if proof.roa_time is None else proof.roa_time
+    return certified_roa(loop, condition, region, budget.with_seconds(seconds),
+                         max_level=math.inf if level is None or above_level else float(level),
+                         band_time=proof.band_time, proved=None if above_level else proved)
 
 
 def verify_imported(pair, run_dir: str, proof: ProofConfig | None = None, *, xi: Tensor, delta: float | None = None,
@@ -197,10 +205,8 @@ def verify_imported(pair, run_dir: str, proof: ProofConfig | None = None, *, xi:
     true_model.xi = condition.xi[0].tolist()
     region_of_attraction = None
     if roa:
-        seconds = 3 * proof.time_limit if proof.roa_time is None else proof.roa_time
-        region_of_attraction = certified_roa(loop, condition, region, budget.with_seconds(seconds),
-                                             max_level=math.inf if level is None or above_level else float(level),
-                                             band_time=proof.band_time, proved=None if above_level else true_model)
+        region_of_attraction = _region_of_attraction(loop, condition, region, proof, budget, level, true_model,
+                                                     above_level)
         region_of_attraction.xi = true_model.xi
     return RunVerification(run_dir=str(run_dir), system=system.name, method="imported", loss=None, delta=region.delta,
                            enclosure=proof.enclosure, trained=None, true_model=true_model, roa=region_of_attraction)
