@@ -344,7 +344,7 @@ def test_verify_rechecks_a_certificate_instead_of_proving_it_again(linear_run):
     close_pools()
 
 
-def test_the_certified_radius_is_written_as_a_certificate_the_checker_confirms(linear_run):
+def test_the_certified_radius_and_shift_box_are_written_as_certificates_the_checker_confirms(linear_run):
     from click.testing import CliRunner
 
     from drlyap.cli import main
@@ -362,10 +362,27 @@ def test_the_certified_radius_is_written_as_a_certificate_the_checker_confirms(l
     assert header["claim"]["condition"]["name"] == "pointwise" and len(header["claim"]["condition"]["xi"]) == 3
     checked = runner.invoke(main, ["check", str(run), "--system", spec, "--name", "radius"])
     assert checked.exit_code == 0 and "radius: CHECKED" in checked.output, checked.output
+    box = json.loads(out.output)["robustness"]["shift_box"]
+    assert box["s"] > 0 and metrics["certificate"]["shift_box"]["s"] == box["s"]
+    header = json.loads((run / "certificates" / "shift-box.json").read_text())
+    condition = header["claim"]["condition"]
+    assert condition["name"] == "true" and condition["xi"] is None
+    assert condition["xi_box"]["high"][0] == [hi for _, hi in box["box"].values()]
+    assert "for every shift xi in" in header["claim"]["statement"]
+    checked = runner.invoke(main, ["check", str(run), "--system", spec, "--name", "shift-box"])
+    assert checked.exit_code == 0 and "shift-box: CHECKED" in checked.output, checked.output
     metrics["certificate"]["radius"]["radius"] = found["radius"] * 1.01  # a larger radius than the file proves
+    metrics["certificate"]["shift_box"]["s"] = box["s"] * 1.01  # a larger box than the file proves
     (run / "metrics.json").write_text(json.dumps(metrics))
-    wrong = runner.invoke(main, ["check", str(run), "--system", spec, "--name", "radius"])
+    wrong = runner.invoke(main, ["check", str(run), "--system", spec])
     assert wrong.exit_code == 1 and "not the run's radius condition (wasserstein_radius" in wrong.output
+    assert "not the run's shift box condition (xi_box" in wrong.output
+    condition["xi_box"] = {k: [[30 * v for v in row] for row in rows] for k, rows in condition["xi_box"].items()}
+    metrics["certificate"]["shift_box"]["s"] = box["s"] * 30  # a claim the partition does not prove: the checker's
+    (run / "metrics.json").write_text(json.dumps(metrics))  # own bounds at the shifts refuse it
+    (run / "certificates" / "shift-box.json").write_text(json.dumps(header))
+    false = runner.invoke(main, ["check", str(run), "--system", spec, "--name", "shift-box"])
+    assert false.exit_code == 1 and "boxes are not proved by the checker's bounds" in false.output, false.output
 
 
 def test_an_interrupted_verify_resumes_its_proof_and_clears_its_checkpoints(linear_run, monkeypatch):

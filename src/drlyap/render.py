@@ -72,7 +72,11 @@ def claim_sentence(claim: dict) -> str:
         xi = c.get("xi") or []
         decay = f"gamma = {float(c.get('decay_rate') or 0):g}" + (
             f", alpha = {float(c['exp_rate']):g}" if c.get("exp_rate") else "")
-        if c.get("name") == "true":
+        if c.get("name") == "true" and c.get("xi_box"):
+            low, high = c["xi_box"]["low"], c["xi_box"]["high"]
+            shifts = "; ".join(f"[{a:.4g}, {b:.4g}]" for a, b in zip(low[0], high[0]))
+            what = f"decrease on the true model for every shift xi in {shifts} ({decay})"
+        elif c.get("name") == "true":
             what = f"decrease on the true model at xi = {xi[0] if len(xi) == 1 else xi} ({decay})"
         elif c.get("name") == "pointwise":
             what = (f"the DR pointwise condition (r = {float(c['wasserstein_radius']):g}, eps = "

@@ -454,7 +454,8 @@ def claim_mismatch(name: str, header: dict, config: dict, metrics: dict) -> list
     """Where a certificate's claim is not the run's: for ``trained``, the condition the run was trained on (method
     and loss, radius, risk level, decay, samples, delta, level); for ``true-model``, the run's decay and the shift
     its metrics report the decrease at (where they report one); for ``radius``, the DR pointwise condition at the
-    run's risk level, decay and samples (all of them) at the certified radius its metrics report. A certificate that
+    run's risk level, decay and samples (all of them) at the certified radius its metrics report; for ``shift-box``,
+    decrease on the true model with the run's decay for every shift in the box its metrics report. A certificate that
     proves a weaker condition than the run's is then not taken for the run's."""
     try:
         claim = header["claim"]["condition"]
@@ -462,7 +463,7 @@ def claim_mismatch(name: str, header: dict, config: dict, metrics: dict) -> list
     except (KeyError, TypeError):
         return ["the header has no claim"]
     expected = {"decay_rate": float(config.get("decay_rate") or 0.0), "exp_rate": float(config.get("exp_rate") or 0.0),
-                "model": "true" if name == "true-model" else "design"}
+                "model": "true" if name in ("true-model", "shift-box") else "design"}
     problems = []
     if header.get("networks", {}).get("alpha_hat") != config.get("alpha_hat"):
         problems.append("alpha_hat")
@@ -480,6 +481,12 @@ def claim_mismatch(name: str, header: dict, config: dict, metrics: dict) -> list
         reported = (metrics.get("certificate") or {}).get("radius") or {}
         expected |= {"name": "pointwise", "xi": metrics.get("xi_samples"), "risk_level": config.get("risk_level"),
                      "wasserstein_radius": reported.get("radius", "none reported in metrics.json")}
+    elif name == "shift-box":  # every shift in the box its metrics report, [-s* scale, s* scale]
+        reported = (metrics.get("certificate") or {}).get("shift_box") or {}
+        half = [float(reported["s"]) * float(w) for w in reported.get("scale") or []] if "s" in reported else None
+        expected |= {"name": "true", "xi": None,
+                     "xi_box": "none reported in metrics.json" if half is None else
+                     {"low": [[-h for h in half]], "high": [half]}}
     else:
         expected |= {"name": "true"}
         reported = (metrics.get("certificate") or {}).get("true_model") or {}

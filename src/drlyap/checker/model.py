@@ -113,7 +113,17 @@ class Residual:
         if self.name not in CONDITIONS:
             raise ValueError(f"the checker does not know the condition {self.name!r} (known: {', '.join(CONDITIONS)})")
         self.model = "true" if self.name == "true" else claim.get("model", "design")
-        self.xi = torch.as_tensor(claim["xi"], dtype=F64).reshape(len(claim["xi"]), -1)
+        box = claim.get("xi_box")
+        if box is not None:  # every shift in a box (true model only): each row a pair (low, high)
+            if self.model != "true":
+                raise ValueError("the checker takes a box of shifts on the true model only")
+            low, high = (torch.as_tensor(box[k], dtype=F64) for k in ("low", "high"))
+            if low.shape != high.shape or low.ndim != 2 or not bool((low <= high).all()):
+                raise ValueError("the claim's box of shifts is not (N, k) lows below highs")
+            self.xi = torch.stack([low, high], 1)  # (N, 2, k)
+        else:
+            self.xi = torch.as_tensor(claim["xi"], dtype=F64).reshape(len(claim["xi"]), -1)
+        self.xi_box = box is not None
         self.gamma, self.alpha = float(claim.get("decay_rate") or 0.0), float(claim.get("exp_rate") or 0.0)
         self.r = float(claim.get("wasserstein_radius") or 0.0)
         self.eps = float(claim.get("risk_level") or 1.0)
@@ -130,9 +140,12 @@ class Residual:
         return out
 
     def _params(self, z, batch: int, xi: Tensor | None):
+        """The parameters ``p0 + E xi`` (``xi (k,)``, or ``(2, k)``: every shift between its rows) at ``z``'s level."""
         p = self.p0.expand(batch, -1).clone()
         if xi is not None:
-            shifted = Iv.point(p[:, self.uncertain]) + Iv.point(xi.expand(batch, -1))
+            shift = Iv(xi[0].expand(batch, -1), xi[1].expand(batch, -1)) if self.xi_box else \
+                Iv.point(xi.expand(batch, -1))
+            shifted = Iv.point(p[:, self.uncertain]) + shift
             lo, hi = p.clone(), p.clone()
             lo[:, self.uncertain], hi[:, self.uncertain] = shifted.lo, shifted.hi
             return lift(Iv(lo, hi), z.level, z if z.level > 0 else None)

@@ -84,8 +84,8 @@ def verify(run_dir: Path, delta: float | None, xi: str | None, time_limit: float
     from drlyap.workflows.verify import (
         clear_checkpoints,
         record_certificates,
-        record_radius,
         record_region,
+        record_robustness,
         run_checkpoints,
         run_proof,
         run_robustness,
@@ -132,11 +132,11 @@ def verify(run_dir: Path, delta: float | None, xi: str | None, time_limit: float
             result.robustness = run_robustness(run, delta=delta, tol=radius_tol, budget=settings.budget(),
                                                total_time=8 * settings.time_limit, trained=result.trained)
             try:
-                path = record_radius(run, result.robustness)
-                if path is not None:
-                    written.append(f"  certificate: {path} (re-check it with `{recheck}`)")
+                written += [f"  certificate: {p} (re-check it with `{recheck}`)"
+                            for p in record_robustness(run, result.robustness)]
             except OSError as err:
-                written.append(f"  the radius not stored: {run.path} cannot be written ({err.strerror or err})")
+                written.append(f"  the radius and shift box not stored: {run.path} cannot be written "
+                               f"({err.strerror or err})")
         clear_checkpoints(run)
     except ValueError as err:
         fail(err)

@@ -3,12 +3,15 @@
 A certificate is two files in ``RUN/certificates/``: ``NAME.json``, the header, and ``NAME.npz``, the partition
 the branch and bound proved the condition on (numpy arrays, read with ``allow_pickle=False``). ``NAME`` is
 ``trained`` (the run's trained condition), ``true-model`` (plain decrease on the true model at a shift, written by
-``drlyap verify RUN --xi ...``) or ``radius`` (the DR pointwise condition at the run's risk level, samples and decay at
-the certified Wasserstein radius r*, written by ``drlyap verify RUN --max-radius``: the condition at every smaller
-radius follows, the Wasserstein term growing with r). The header (format ``drlyap-certificate``, version 1) holds:
+``drlyap verify RUN --xi ...``), ``radius`` (the DR pointwise condition at the run's risk level, samples and decay
+at the certified Wasserstein radius r*, written by ``drlyap verify RUN --max-radius``: the condition at every
+smaller radius follows, the Wasserstein term growing with r) or ``shift-box`` (decrease on the true model, with the
+run's decay, for every shift in the certified box ``[-s* scale, s* scale]``, also written by ``--max-radius``).
+The header (format ``drlyap-certificate``, version 1) holds:
 
-* ``claim``: the condition (name, model, samples or shift ``xi``, decay, Wasserstein radius and risk level), the
-  region (the state box in local coordinates, ``delta``) and a sentence saying what is claimed;
+* ``claim``: the condition (name, model, samples or shift ``xi`` or a box of shifts ``xi_box``, decay, Wasserstein
+  radius and risk level), the region (the state box in local coordinates, ``delta``) and a sentence saying what is
+  claimed;
 * ``system``: its name and the sha256 of its description (``UncertainSystem.describe()`` as canonical JSON);
 * ``networks``: the sha256 of ``weights.pt`` and V's ``alpha_hat`` (the rest of V and pi is in the weights);
 * ``partition``: the arrays file, its sha256, the starting grid, the node count, the enclosure the proof used.
@@ -30,6 +33,7 @@ import numpy as np
 import torch
 
 from drlyap.conditions import Condition
+from drlyap.enclosures import is_enclosure
 from drlyap.io import jsonable
 from drlyap.regions import Region
 from drlyap.render import claim_sentence
@@ -40,7 +44,7 @@ from drlyap.verification.results import ConditionProof
 FORMAT = "drlyap-certificate"
 VERSION = 1
 FOLDER = "certificates"
-NAMES = ("trained", "true-model", "radius")
+NAMES = ("trained", "true-model", "radius", "shift-box")
 ARRAYS = ("parent", "side", "axis", "verdict", "bound")
 
 
@@ -55,10 +59,16 @@ def system_digest(system: UncertainSystem) -> str:
 
 
 def condition_claim(condition: Condition) -> dict:
-    """The condition as a certificate states it (what the checker rebuilds its residual from)."""
+    """The condition as a certificate states it (what the checker rebuilds its residual from): the samples or shifts
+    ``xi`` ``(N, k)``, or for a box of shifts (an interval ``xi``, the shift box) ``xi`` None and ``xi_box``
+    ``{"low", "high"}`` ``(N, k)`` each."""
     xi = condition.xi
-    return jsonable(condition.describe() | {"model": condition.model, "label": condition.label,
-                                            "xi": xi.tolist() if xi is not None else None})
+    box = None
+    if is_enclosure(xi):
+        xi, box = None, {"low": xi.lo.tolist(), "high": xi.hi.tolist()}
+    claim = condition.describe() | {"model": condition.model, "label": condition.label,
+                                    "xi": xi.tolist() if xi is not None else None}
+    return jsonable(claim if box is None else claim | {"xi_box": box})
 
 
 def certificate_claim(condition: Condition, region: Region, level: float | None) -> dict:

@@ -309,6 +309,9 @@ class CertifiedShiftBox(_Search):
     box: dict | None = None
     scale: list[float] = field(default_factory=list)
     parameters: list[str] = field(default_factory=list)
+    proof: Any = field(default=None, repr=False, compare=False, metadata={"json": False})
+    """The :class:`ConditionProof`, with its partition, of the search's proof at s* (None where none is proved): what
+    a certificate of the shift box writes down."""
 
 
 @dataclass

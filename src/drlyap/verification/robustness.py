@@ -367,7 +367,8 @@ def certified_shift_box(loop: ClosedLoop, decay_rate: float, exp_rate: float, re
     even at xi = 0, with ``reason``), ``box`` (``{parameter: [low, high]}`` at s*, in the parameters' units),
     the bracket ``unproved`` / ``unproved_status`` / ``unproved_by`` / ``witness`` (a state and the corner
     shifts of the box there), ``sampled_upper`` (the smallest s at which a corner of the box violates the
-    condition at a dense state, found by bisection on samples), ``proofs``, ``probes``, ``time_s``.
+    condition at a dense state, found by bisection on samples), ``proofs``, ``probes``, ``time_s``, and ``proof``:
+    the search's own proof at s*, with its partition.
     """
     system = loop.system
     scale = torch.as_tensor(scale, dtype=F64).reshape(-1)
@@ -399,12 +400,13 @@ def certified_shift_box(loop: ClosedLoop, decay_rate: float, exp_rate: float, re
         return _sampled_threshold(lambda s: refute_at(state, s), cap, tol / 8)
 
     sampled = _sampled_threshold(refute, cap, tol / 8)
-    prove, _ = _prover(loop, region, budget, make, level, None if start is None else (-math.inf, start))
+    prove, best = _prover(loop, region, budget, make, level, None if start is None else (-math.inf, start))
     found = _largest_proved(prove, refute, sampled, 1.0, tol, cap, max_proofs, total_time, reguess)
     found["time_s"] = time.perf_counter() - clock
     s = found.pop("certified")
     box = None if s is None else {name: [-s * float(w), s * float(w)] for name, w in zip(system.uncertain, scale)}
-    return CertifiedShiftBox(s=s, box=box, **found, scale=scale.tolist(), parameters=list(system.uncertain),
+    own = best["proof"] if s is not None and best["value"] == s else None
+    return CertifiedShiftBox(s=s, box=box, **found, proof=own, scale=scale.tolist(), parameters=list(system.uncertain),
                              sampled_upper=sampled, decay_rate=float(decay_rate), exp_rate=float(exp_rate),
                              delta=region.delta, level=level)
 

@@ -9,6 +9,7 @@ import math
 from collections.abc import Sequence
 from pathlib import Path
 
+import torch
 from torch import Tensor
 
 from drlyap.closed_loop import ClosedLoop
@@ -31,6 +32,7 @@ from drlyap.verification import (
     certified_shift_box,
     lipschitz_covering,
     prove_trained,
+    shift_box_condition,
     shift_scale,
     uniform_margin,
 )
@@ -226,25 +228,43 @@ def record_region(run: Run, ver: RunVerification) -> None:
     run.save_metrics()
 
 
-def record_radius(run: Run, robustness: RunRobustness) -> Path | None:
-    """Keep the certified Wasserstein radius of ``robustness`` in the run's ``metrics["certificate"]["radius"]`` and
-    write its certificate ``radius`` (the DR pointwise condition at r*, on the run's X_delta and level) where the
-    search's own proof at r* is at hand; a certificate of an earlier radius is removed. Only on the run's own delta.
-    Returns the header's path, or None."""
-    found = robustness.radius
-    if found is None or found.radius is None or float(robustness.delta) != float(run.config.delta):
-        return None
+def record_robustness(run: Run, robustness: RunRobustness) -> list[Path]:
+    """Keep the certified Wasserstein radius and shift box of ``robustness`` in the run's ``metrics["certificate"]``
+    (``radius``, ``shift_box``) and write their certificates where the searches' own proofs are at hand: ``radius``
+    (the DR pointwise condition at r*, on the run's X_delta and level) and ``shift-box`` (decrease on the true model,
+    with the run's decay, for every shift in the box at s*); a certificate of an earlier search is removed. Only on the
+    run's own delta. Returns the headers' paths."""
+    if float(robustness.delta) != float(run.config.delta):
+        return []
     certificate = run.metrics["certificate"] = run.metrics.get("certificate") or {}
-    certificate["radius"] = jsonable({"radius": found.radius, "risk_level": found.risk_level,
-                                      "n_samples": found.n_samples, "delta": found.delta, "level": found.level,
-                                      "unproved": found.unproved, "unproved_status": found.unproved_status})
+    radius, box = robustness.radius, robustness.shift_box
+    if radius is not None and radius.radius is not None:
+        certificate["radius"] = jsonable({"radius": radius.radius, "risk_level": radius.risk_level,
+                                          "n_samples": radius.n_samples, "delta": radius.delta, "level": radius.level,
+                                          "unproved": radius.unproved, "unproved_status": radius.unproved_status})
+    if box is not None and box.s is not None:
+        certificate["shift_box"] = jsonable({"s": box.s, "box": box.box, "scale": box.scale,
+                                             "parameters": box.parameters, "delta": box.delta, "level": box.level,
+                                             "unproved": box.unproved, "unproved_status": box.unproved_status})
     run.save_metrics()
-    if found.proof is None:  # r* is the trained radius: the trained certificate states it
-        remove_certificate(run.path, "radius")
-        return None
-    condition = run_condition(run.config, run.xi_samples, "pointwise").with_radius(found.radius)
-    return write_certificate(run.path, "radius", found.proof, condition, Region.of(run.system, float(found.delta)),
-                             run.system, run.path / "weights.pt", float(run.config.alpha_hat))
+    region = Region.of(run.system, float(robustness.delta))
+    written = []
+    if radius is not None and radius.radius is not None:
+        if radius.proof is None:  # r* is the trained radius: the trained certificate states it
+            remove_certificate(run.path, "radius")
+        else:
+            condition = run_condition(run.config, run.xi_samples, "pointwise").with_radius(radius.radius)
+            written.append(write_certificate(run.path, "radius", radius.proof, condition, region, run.system,
+                                             run.path / "weights.pt", float(run.config.alpha_hat)))
+    if box is not None and box.s is not None:
+        if box.proof is None:
+            remove_certificate(run.path, "shift-box")
+        else:
+            condition = shift_box_condition(torch.as_tensor(box.scale, dtype=torch.float64), box.s,
+                                            run.config.decay_rate, run.config.exp_rate)
+            written.append(write_certificate(run.path, "shift-box", box.proof, condition, region, run.system,
+                                             run.path / "weights.pt", float(run.config.alpha_hat)))
+    return written
 
 
 def record_certificates(run: Run, ver: RunVerification) -> list[Path]:
