@@ -109,6 +109,13 @@ class Region:
     def with_delta(self, delta: float) -> Region:
         return Region(self.lo, self.hi, delta)
 
+    def ball_box(self, inner: float) -> Region:
+        """The box of the delta-ball inside the state box, ``[max(lo, -delta), min(hi, delta)]``, minus the open ball
+        of radius ``inner``."""
+        delta = self.delta
+        return Region(torch.maximum(self.lo, torch.full_like(self.lo, -delta)),
+                      torch.minimum(self.hi, torch.full_like(self.hi, delta)), inner)
+
     # ------------------------------------------------------------------ points
     def contains(self, z: Tensor) -> Tensor:
         """``(B,)``: states ``z (B, n)`` in X_delta."""

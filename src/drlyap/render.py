@@ -81,9 +81,20 @@ def claim_sentence(claim: dict) -> str:
         elif c.get("name") == "pointwise":
             what = (f"the DR pointwise condition (r = {float(c['wasserstein_radius']):g}, eps = "
                     f"{float(c['risk_level']):g}, {len(xi)} samples of xi, {decay})")
+        elif c.get("name") == "plain":
+            model = "the true model at xi = " + str(xi[0] if len(xi) == 1 else xi) if c.get("model") == "true" else \
+                f"the design model at each of {len(xi)} sample(s) of xi"
+            what = f"decrease on {model} ({decay})"
         else:
             what = f"the {c.get('label', c.get('name'))} condition ({len(xi)} sample(s) of xi, {decay})"
         level = r.get("level")
+        if claim.get("cube") is not None:  # roa-ball: V's decrease inside the delta-ball
+            half = ", ".join(f"{float(h):.3g}" for h in claim["cube"]["half"])
+            rest = "" if float(r["delta"]) >= float(r["ball_of"]) else (  # no ring: the cube covers the ball
+                f"; {what} on the rest of the ball's box outside ||x - x*|| < {float(r['delta']):g}")
+            return (f"V decreases on {{V <= {level_text(level)}}} inside the ball ||x - x*|| < {float(r['ball_of']):g}: "
+                    f"Vdot < 0 on the cube |x_i - x*_i| <= [{half}] except at x* (second order){rest}; outside "
+                    f"the ball by the certificate {claim.get('outer')!r}")
         return f"{what} holds at every state of {of_region(condition_region(level, float(r['delta'])))}"
     except (KeyError, TypeError, ValueError, IndexError):
         return "(an unreadable claim)"
@@ -406,8 +417,12 @@ def check_lines(results) -> list[str]:
         if r.ok:
             refined = f", {r.refined} of them bisected into {r.pieces} pieces" if r.refined else ""
             lines.append(f"{r.name}: CHECKED - {r.claim}")
-            lines.append(f"  {r.proved} boxes re-proved by the checker{refined}, {r.inside_ball} inside the ball; the "
-                         f"boxes cover the region ({r.time_s:.2f} s)")
+            if r.cube_bound is not None:
+                lines.append(f"  the Hessian of Vdot on the cube is negative definite by the checker's enclosure "
+                             f"(its largest eigenvalue about {r.cube_bound:.3g})")
+            if r.boxes or r.cube_bound is None:
+                lines.append(f"  {r.proved} boxes re-proved by the checker{refined}, {r.inside_ball} inside the ball; "
+                             f"the boxes cover the region ({r.time_s:.2f} s)")
         else:
             lines.append(f"{r.name}: FAILED - the certificate does not establish: {r.claim or 'its claim'}")
             lines.extend(f"  {reason}" for reason in r.failures)

@@ -567,15 +567,22 @@ def _dual_max(lin: Tensor, q: Tensor) -> Tensor:
     y = 0.5 * (vec @ (lv / (t[..., None] - lam))[..., None])[..., 0]
     eye = torch.eye(k, dtype=F64, device=lin.device)
     m = t[..., None, None] * eye - qs
-    diag = torch.diagonal(m, dim1=-2, dim2=-1)
-    backward = 2 * (k + 1) ** 2 * EPS * diag.abs().amax(-1) + TINY
-    semidefinite = torch.linalg.cholesky_ex(m - backward[..., None, None] * eye).info == 0
+    semidefinite = surely_semidefinite(m)
     my = (m @ y[..., None])[..., 0]
     mag_my = (m.abs() @ y.abs()[..., None])[..., 0]
     value = t.clamp(min=0.0) * k + (lin - 2 * my).abs().sum(-1) + (y * my).sum(-1)
     pad = 8 * (k + 2) * EPS * (lin.abs().sum(-1) + 2 * mag_my.sum(-1) + (y.abs() * mag_my).sum(-1) + t.abs() * k)
     value = _up(value + pad + 4 * k * k * sym_pad + 2 * EPS * m.abs().flatten(-2).sum(-1) + TINY)
     return torch.where(finite & semidefinite & torch.isfinite(value), value, INF)
+
+
+def surely_semidefinite(m: Tensor) -> Tensor:
+    """``(...)``: where the symmetric float matrices ``m (..., k, k)`` are surely positive semidefinite: a Cholesky
+    factorisation of ``m - p I`` succeeds, ``p`` above its backward error (``2 (k + 1)^2 eps max_i m_ii``)."""
+    k = m.shape[-1]
+    eye = torch.eye(k, dtype=F64, device=m.device)
+    backward = 2 * (k + 1) ** 2 * EPS * torch.diagonal(m, dim1=-2, dim2=-1).abs().amax(-1) + TINY
+    return torch.linalg.cholesky_ex(m - backward[..., None, None] * eye).info == 0
 
 
 def _where(mask: Tensor, a: Af, b: Af) -> Af:

@@ -463,11 +463,17 @@ class Du(_Ops):
 
     def clamp(self, low: Tensor, high: Tensor) -> Du:
         """The clamp's Clarke derivative: 1 strictly inside, 0 strictly outside, [0, 1] where the value may touch
-        a bound."""
-        _first_order(self, "clamp")
+        a bound. Differentiated twice only where every value is strictly inside (the identity) or strictly outside
+        one bound (a constant)."""
         base = _base(self.v)
         inside = (base.lo > low) & (base.hi < high)
         outside = (base.hi < low) | (base.lo > high)
+        if not isinstance(self.v, Iv):
+            if bool(inside.all()):
+                return self
+            if not bool(outside.all()):
+                raise TypeError("the checker takes clamp of first-order duals only where it may touch a bound")
+            return lift(self.v.clamp(low, high), self.level, self)
         slope = Iv(torch.where(inside, 1.0, 0.0), torch.where(outside, 0.0, 1.0))
         return self._chain(self.v.clamp(low, high), slope)
 

@@ -22,6 +22,9 @@ where V is ``> level`` on it or the residual is ``<= 0`` at its states with ``V 
 second-order forms of the residual and V: ``R - lam (V - level) <= 0`` for one of a fixed list of ``lam >= 0``);
 and ``V > level`` on the state box's faces is established by the checker's own bisection of the faces (it is not in
 the file).
+
+A ``roa-ball`` certificate (V's decrease inside the delta-ball) is checked on the ball's box: its ring of boxes as
+above, and its cube around x* by :mod:`drlyap.checker.ball` (Vdot's Hessian over the cube, negative definite).
 """
 
 from __future__ import annotations
@@ -38,6 +41,7 @@ from torch import Tensor
 
 from drlyap.checker.affine import Af
 from drlyap.checker.arith import EPS, F64, Iv
+from drlyap.checker.ball import ball_failures
 from drlyap.checker.model import Pair, Residual, centre_lower, form_upper, upper_bounds, value_lower
 from drlyap.checker.record import drop_record, fingerprint, write_record
 from drlyap.config import Compute
@@ -62,6 +66,9 @@ class CheckResult:
     pieces: int = 0
     faces_min: float | None = None
     faces_boxes: int = 0
+    cube_bound: float | None = None
+    """For V's second-order decrease near x* (``roa-ball``): ``lambda_max`` of the Hessian enclosure's centre plus its
+    spread, the largest over the samples (< 0 proves the cube)."""
     time_s: float = 0.0
 
     def to_dict(self) -> dict:
@@ -352,16 +359,27 @@ def check_certificate(run_dir: str | Path, name: str, header: dict, arrays: dict
         lo, hi = (torch.as_tensor(region[k], dtype=F64) for k in ("box_lo", "box_hi"))
         box_lo, box_hi = (torch.as_tensor(b, dtype=F64) - torch.as_tensor(system.equilibrium, dtype=F64)
                           for b in system.state_box)
+        if region.get("ball_of") is not None:  # the box of the delta-ball inside the state box (roa-ball)
+            ball = float(region["ball_of"])
+            box_lo, box_hi = torch.maximum(box_lo, torch.full_like(box_lo, -ball)), \
+                torch.minimum(box_hi, torch.full_like(box_hi, ball))
         if not (torch.equal(lo, box_lo) and torch.equal(hi, box_hi)):
-            raise CertificateError("the certificate's state box is not the system's")
+            raise CertificateError("the certificate's state box is not the system's" + (
+                "" if region.get("ball_of") is None else " inside the delta-ball's box"))
         delta, level = float(region["delta"]), region.get("level")
         level = None if level is None else float(level)
+        pair = Pair(weights, float(header["networks"]["alpha_hat"]), system.n)
+        residual = Residual(claim["condition"], pair, system)
+        if claim.get("cube") is not None:  # V's second-order decrease near x* (roa-ball)
+            failures, out.cube_bound = ball_failures(claim, pair, system, lo, hi, delta, header["partition"] is not None)
+            out.failures += failures
+            if header["partition"] is None:  # the cube covers the ball: no ring to prove
+                out.ok, out.time_s = not out.failures, time.perf_counter() - start
+                return out
         grid = [int(k) for k in header["partition"]["grid"]]
         if len(grid) != system.n or min(grid) < 1:
             raise CertificateError(f"the starting grid {grid} does not fit {system.n} states")
         check_tree(arrays, int(np.prod(grid)), system.n, level)
-        pair = Pair(weights, float(header["networks"]["alpha_hat"]), system.n)
-        residual = Residual(claim["condition"], pair, system)
     except (CertificateError, KeyError, TypeError, ValueError) as err:
         out.failures.append(str(err) if not isinstance(err, KeyError) else f"the header lacks {err}")
         out.time_s = time.perf_counter() - start
@@ -394,7 +412,9 @@ def check_certificate(run_dir: str | Path, name: str, header: dict, arrays: dict
         above = kind == ABOVE_LEVEL
         v_centre = pair.value_and_grad(Iv.point((blo[proved] + bhi[proved]) / 2))[0].lo
         false = false | (above & (bound[proved] > v_centre + 4 * EPS * v_centre.abs()))
-        holds, out.faces_min, out.faces_boxes = faces_above(pair, lo, hi, level)
+        holds = True
+        if region.get("ball_of") is None:  # inside the delta-ball the set's boundary is the outer proof's
+            holds, out.faces_min, out.faces_boxes = faces_above(pair, lo, hi, level)
         if not holds:
             out.failures.append(f"V > {level:g} is not established on the box's faces (V's lower bound there "
                                 f"{out.faces_min:.6g}, {out.faces_boxes} face boxes)")
@@ -440,6 +460,8 @@ def check_run(run_dir: str | Path, system=None, trust: bool = False, names: list
         header, arrays = read_certificate(run_dir, name)
         result = check_certificate(run_dir, name, header, arrays, system, weights, digest, system_sha, refine, compute)
         result.failures += claim_mismatch(name, header, config, metrics)
+        if name == "roa-ball":
+            result.failures += outer_missing(run_dir, header)
         result.ok = not result.failures
         if result.ok:
             write_record(run_dir, name, fingerprint(run_dir, name, header, digest, system_sha), result.proved,
@@ -448,6 +470,59 @@ def check_run(run_dir: str | Path, system=None, trust: bool = False, names: list
             drop_record(run_dir, name)
         out.append(result)
     return out
+
+
+def outer_missing(run_dir: Path, header: dict) -> list[str]:
+    """Where the certificate a ``roa-ball`` names for the decrease outside the ball (``outer``) does not cover its
+    region: missing, on another delta or a lower level (that certificate is checked on its own)."""
+    import json
+
+    region = header["claim"]["region"]
+    path = run_dir / "certificates" / f"{header['claim'].get('outer')}.json"
+    try:
+        outer = json.loads(path.read_text())["claim"]["region"]
+    except (OSError, ValueError, KeyError, TypeError):
+        return [f"the certificate it names for the decrease outside the ball ({path.name}) cannot be read"]
+    level, theirs = region.get("level"), outer.get("level")
+    if outer.get("delta") != region.get("ball_of") or level is None or theirs is None or not theirs >= level:
+        return [f"{path.name} does not prove the decrease outside the ball on {{V <= {level}}}"]
+    return []
+
+
+def _roa_claim(name: str, header: dict, config: dict, metrics: dict, expected: dict) -> tuple[dict, dict, list[str]]:
+    """The condition and region a ``roa`` or ``roa-ball`` certificate must state for the region of attraction
+    ``metrics.json`` reports (``certificate.roa``: its level and shift): ``roa`` the run's trained condition, or
+    decrease on the true model at the shift, on ``{V <= level}``; ``roa-ball`` plain decrease on the same model at
+    each of its samples inside the delta-ball (a strict decay, checked with the cube), naming as ``outer`` a
+    certificate of the same model on ``{V <= c'}``, ``c' >=`` the level. Returns (expected condition fields, expected
+    region fields, other problems)."""
+    reported = (metrics.get("certificate") or {}).get("roa") or {}
+    xi = reported.get("xi")
+    level = reported.get("level", "none reported in metrics.json") if reported.get("certified") else \
+        "no certified region reported in metrics.json"
+    dr = config.get("method") == "dr"
+    if xi is not None:
+        condition = {"name": "true", "model": "true", "xi": [list(map(float, xi))]}
+    else:
+        condition = {"name": (config.get("loss") if dr else "nominal"), "xi": metrics.get("xi_train")}
+        if dr:
+            condition |= {"wasserstein_radius": config.get("wasserstein_radius"), "risk_level": config.get("risk_level")}
+    if name == "roa":
+        return expected | condition, {"delta": config.get("delta"), "level": level}, []
+    claim = header["claim"]
+    ball = {"name": "plain", "model": "true" if xi is not None else "design", "xi": condition["xi"],
+            "exp_rate": 0.0}
+    decay = claim["condition"].get("decay_rate")
+    expected = {k: v for k, v in expected.items() if k not in ("decay_rate", "exp_rate", "model")} | ball | {
+        "decay_rate": decay if header.get("partition") is not None else 0.0}
+    problems = []
+    if claim["region"].get("ball_of") != config.get("delta"):
+        problems.append("the ball (not the run's delta)")
+    outer = claim.get("outer")
+    want = "true-model" if xi is not None else "trained"
+    if outer not in ("roa", want):
+        problems.append(f"outer (names {outer!r}, not roa or {want})")
+    return expected, {"delta": claim["region"].get("delta"), "level": level}, problems
 
 
 def claim_mismatch(name: str, header: dict, config: dict, metrics: dict) -> list[str]:
@@ -494,6 +569,9 @@ def claim_mismatch(name: str, header: dict, config: dict, metrics: dict) -> list
             expected |= {"xi": [list(map(float, reported["xi"]))]}
     stated = {"delta": delta, "level": level}
     wanted = {"delta": config.get("delta"), "level": config.get("roa_level")}
+    if name in ("roa", "roa-ball"):  # the region of attraction its metrics report, on its model
+        expected, wanted, more = _roa_claim(name, header, config, metrics, expected)
+        problems += more
     expected_region = [k for k in stated if stated[k] != wanted[k]]
     differ = [k for k, v in expected.items() if claim.get(k) != v] + expected_region + problems
     if not differ:

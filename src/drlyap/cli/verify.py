@@ -85,6 +85,7 @@ def verify(run_dir: Path, delta: float | None, xi: str | None, time_limit: float
         clear_checkpoints,
         record_certificates,
         record_region,
+        record_roa,
         record_robustness,
         run_checkpoints,
         run_proof,
@@ -125,7 +126,8 @@ def verify(run_dir: Path, delta: float | None, xi: str | None, time_limit: float
                 stored = f"  not stored: {run.path / 'metrics.json'} cannot be written ({err.strerror or err})"
         try:
             recheck = command_hint("check", run_dir, source=recorded_source(run_dir))
-            written = [f"  certificate: {p} (re-check it with `{recheck}`)" for p in record_certificates(run, result)]
+            written = [f"  certificate: {p} (re-check it with `{recheck}`)" for p in
+                       record_certificates(run, result) + record_roa(run, result, settings)]
         except OSError as err:
             written = [f"  no certificate written: {run.path} cannot be written ({err.strerror or err})"]
         if max_radius:

@@ -5,8 +5,11 @@ the branch and bound proved the condition on (numpy arrays, read with ``allow_pi
 ``trained`` (the run's trained condition), ``true-model`` (plain decrease on the true model at a shift, written by
 ``drlyap verify RUN --xi ...``), ``radius`` (the DR pointwise condition at the run's risk level, samples and decay
 at the certified Wasserstein radius r*, written by ``drlyap verify RUN --max-radius``: the condition at every
-smaller radius follows, the Wasserstein term growing with r) or ``shift-box`` (decrease on the true model, with the
-run's decay, for every shift in the certified box ``[-s* scale, s* scale]``, also written by ``--max-radius``).
+smaller radius follows, the Wasserstein term growing with r), ``shift-box`` (decrease on the true model, with the
+run's decay, for every shift in the certified box ``[-s* scale, s* scale]``, also written by ``--max-radius``);
+for a region of attraction (``verify --roa``), ``roa-ball`` (V's decrease on ``{V <= c}`` inside the delta-ball: a
+``cube`` where it is proved by second order, the ring around it by a partition, ``outer`` the certificate of the
+decrease outside the ball) and, where no other certificate states that decrease at c, ``roa``.
 The header (format ``drlyap-certificate``, version 1) holds:
 
 * ``claim``: the condition (name, model, samples or shift ``xi`` or a box of shifts ``xi_box``, decay, Wasserstein
@@ -44,7 +47,7 @@ from drlyap.verification.results import ConditionProof
 FORMAT = "drlyap-certificate"
 VERSION = 1
 FOLDER = "certificates"
-NAMES = ("trained", "true-model", "radius", "shift-box")
+NAMES = ("trained", "true-model", "radius", "shift-box", "roa", "roa-ball")
 ARRAYS = ("parent", "side", "axis", "verdict", "bound")
 
 
@@ -79,41 +82,56 @@ def certificate_claim(condition: Condition, region: Region, level: float | None)
                                 "level": level, "coordinates": "local (z = x - x*)"}})
 
 
-def certificate_header(proof: ConditionProof, condition: Condition, region: Region, system: UncertainSystem,
-                       weights_sha256: str, alpha_hat: float, arrays_file: str, arrays_sha256: str) -> dict:
-    """The JSON header of a certificate (see the module docstring)."""
-    part = proof.partition
-    claim = certificate_claim(condition, region, proof.level)
+def certificate_header(proof: ConditionProof | None, condition: Condition, region: Region, system: UncertainSystem,
+                       weights_sha256: str, alpha_hat: float, arrays_file: str | None, arrays_sha256: str | None,
+                       level: float | None = None, extra: dict | None = None) -> dict:
+    """The JSON header of a certificate (see the module docstring). ``proof`` None: a claim without a partition
+    (a ``roa-ball`` certificate whose cube covers the ball), at ``level``; ``extra``: more of the claim (``cube``,
+    ``outer``, and ``ball_of`` for its region)."""
+    extra = dict(extra or {})
+    claim = certificate_claim(condition, region, proof.level if proof is not None else level)
+    if "ball_of" in extra:
+        claim["region"]["ball_of"] = float(extra.pop("ball_of"))
+    claim |= jsonable(extra)
+    part = None if proof is None else proof.partition
     return jsonable({
         "format": FORMAT, "version": VERSION,
         "claim": {"statement": claim_sentence(claim), **claim},
         "system": {"name": system.name, "description_sha256": system_digest(system)},
         "networks": {"weights_sha256": weights_sha256, "alpha_hat": alpha_hat},
-        "partition": {"file": arrays_file, "sha256": arrays_sha256, "grid": part.grid, "nodes": part.size,
-                      "enclosure": part.enclosure, "counts": part.counts()},
-        "proof": {"boxes_processed": proof.boxes_processed, "time_s": proof.time_s,
-                  "faces_min_lower": proof.boundary_min_lower},
+        "partition": None if part is None else {
+            "file": arrays_file, "sha256": arrays_sha256, "grid": part.grid, "nodes": part.size,
+            "enclosure": part.enclosure, "counts": part.counts()},
+        "proof": None if proof is None else {"boxes_processed": proof.boxes_processed, "time_s": proof.time_s,
+                                             "faces_min_lower": proof.boundary_min_lower},
     })
 
 
-def write_certificate(folder: str | os.PathLike, name: str, proof: ConditionProof, condition: Condition,
-                      region: Region, system: UncertainSystem, weights: str | os.PathLike, alpha_hat: float) -> Path:
-    """Write ``folder/certificates/NAME.json`` and ``.npz`` for a verified proof that kept its partition; each file
-    is written to a temporary name and renamed, the header last. Returns the header's path."""
+def write_certificate(folder: str | os.PathLike, name: str, proof: ConditionProof | None, condition: Condition,
+                      region: Region, system: UncertainSystem, weights: str | os.PathLike, alpha_hat: float,
+                      level: float | None = None, extra: dict | None = None) -> Path:
+    """Write ``folder/certificates/NAME.json`` and ``.npz`` for a verified proof that kept its partition (``proof``
+    None, ``level`` and ``extra``: a ``roa-ball`` claim without one, see :func:`certificate_header`); each file is
+    written to a temporary name and renamed, the header last. Returns the header's path."""
     if name not in NAMES:
         raise ValueError(f"unknown certificate name {name!r}; valid: {', '.join(NAMES)}")
-    if proof.partition is None or not proof.verified:
+    if proof is None and name != "roa-ball":
+        raise ValueError("only a roa-ball certificate can be written without a proof")
+    if proof is not None and (proof.partition is None or not proof.verified):
         raise ValueError("only a verified proof that kept its partition can be written as a certificate")
     target = Path(folder) / FOLDER
     target.mkdir(exist_ok=True)
-    part = proof.partition
-    buffer = io.BytesIO()
-    np.savez_compressed(buffer, **{k: getattr(part, k).numpy() for k in ARRAYS})
-    data = buffer.getvalue()
-    arrays = target / f"{name}.npz"
-    _replace(arrays, data)
-    header = certificate_header(proof, condition, region, system, sha256_file(weights), alpha_hat, arrays.name,
-                                hashlib.sha256(data).hexdigest())
+    arrays, digest = target / f"{name}.npz", None
+    if proof is not None:
+        buffer = io.BytesIO()
+        np.savez_compressed(buffer, **{k: getattr(proof.partition, k).numpy() for k in ARRAYS})
+        data = buffer.getvalue()
+        _replace(arrays, data)
+        digest = hashlib.sha256(data).hexdigest()
+    else:
+        arrays.unlink(missing_ok=True)
+    header = certificate_header(proof, condition, region, system, sha256_file(weights), alpha_hat,
+                                arrays.name if proof is not None else None, digest, level, extra)
     path = target / f"{name}.json"
     _replace(path, (json.dumps(header, indent=1) + "\n").encode())
     (target / f"{name}.check.json").unlink(missing_ok=True)  # a checker's record of the certificate this replaces
@@ -149,6 +167,8 @@ def read_certificate(run_dir: str | os.PathLike, name: str) -> tuple[dict, dict[
         raise ValueError(f"{path} is not a drlyap certificate")
     if header.get("version") != VERSION:
         raise ValueError(f"{path} has certificate version {header.get('version')!r}; this drlyap reads {VERSION}")
+    if header.get("partition", False) is None and (header.get("claim") or {}).get("cube") is not None:
+        return header, {}  # V's second-order decrease on a cube that covers the ball: no boxes to read
     try:
         part = header["partition"]
         arrays_path = folder / Path(str(part["file"])).name

@@ -157,6 +157,19 @@ class UniformMargin(Result):
 
 # --------------------------------------------------------------------------- regions of attraction
 @dataclass
+class BallProof:
+    """V's decrease inside the delta-ball (:func:`~drlyap.verification.roa.local_decrease`): ``Vdot < 0`` on the
+    cube ``|z_i| <= cube_i`` minus x* (second order), and ``condition`` (plain decrease with a small decay, per
+    sample) on ``region`` (the ball's box minus the open ball of radius ``min(cube)``), proved by ``ring`` (with its
+    partition; None where the cube covers the ball)."""
+
+    cube: list[float]
+    condition: Any = None
+    region: Any = None
+    ring: ConditionProof | None = None
+
+
+@dataclass
 class RegionOfAttraction(Result):
     """The largest level ``c`` found with ``S = {V <= c}`` certified, and what is certified about it.
 
@@ -191,6 +204,9 @@ class RegionOfAttraction(Result):
     band: dict | None = None
     xi: list[float] | None = None
     error: str | None = None
+    ball: BallProof | None = field(default=None, repr=False, compare=False, metadata={"json": False})
+    """Where the set is certified by V's second-order decrease near x*: that proof, what a certificate of the region
+    inside the delta-ball writes down (None for the other routes)."""
 
     @classmethod
     def unavailable(cls, reason: str) -> RegionOfAttraction:

@@ -24,7 +24,7 @@ from drlyap.systems import UncertainSystem, resolve_system, system_source
 from drlyap.training import TrainConfig, train
 from drlyap.verification import ProofConfig
 from drlyap.workflows.plot import region_to_draw
-from drlyap.workflows.verify import record_certificates, record_region, verify_run
+from drlyap.workflows.verify import record_certificates, record_region, record_roa, verify_run
 
 METHODS = ("baseline", "dr")
 SWEEP = (1, 2, 3, 4, 5)  # evaluation shifts, as multiples of the paper's test shift
@@ -106,6 +106,7 @@ def reproduce(system: str | UncertainSystem, seeds: Sequence[int], out: Path, it
                     ver = verify_run(run, checks, xi=xi_test, roa=True)
                     record_region(run, ver)
                     record_certificates(run, ver)  # the proofs that ended verified, re-checkable by drlyap check
+                    record_roa(run, ver, checks)
                     region = ver.roa
                 run.save_metrics()
                 runs[method] = run

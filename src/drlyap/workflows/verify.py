@@ -35,6 +35,7 @@ from drlyap.verification import (
     shift_box_condition,
     shift_scale,
     uniform_margin,
+    verify_condition,
 )
 from drlyap.verification.robustness import SEARCH_BUDGET
 
@@ -282,6 +283,46 @@ def record_certificates(run: Run, ver: RunVerification) -> list[Path]:
         if isinstance(proof, ConditionProof) and proof.verified and proof.partition is not None:
             written.append(write_certificate(run.path, name, proof, condition, region, run.system,
                                              run.path / "weights.pt", float(run.config.alpha_hat)))
+    return written
+
+
+def record_roa(run: Run, ver: RunVerification, proof: ProofConfig) -> list[Path]:
+    """Write the certificates of the region of attraction ``ver`` certified by V's own proofs (on the run's own delta),
+    what ``drlyap check`` needs to confirm it: ``roa-ball``, V's decrease on ``{V <= c}`` inside the delta-ball (the
+    second-order cube and the ring's partition), naming the certificate of the decrease outside the ball: the run's
+    ``trained`` or ``true-model`` where that proof is on ``{V <= c'}`` with ``c' >= c``, else ``roa``, a proof of the
+    condition on ``{V <= c}`` made here (``proof``'s budget). Certificates of an earlier region are removed first; none
+    are written for a region the other routes certified (the closed loop's linearisation, the band proof). Returns
+    the headers' paths."""
+    roa = ver.roa
+    if roa is None or roa.error is not None or float(ver.delta) != float(run.config.delta):
+        return []
+    for name in ("roa-ball", "roa"):
+        remove_certificate(run.path, name)
+    if not roa.certified or roa.ball is None or roa.level is None:
+        return []
+    c = float(roa.level)
+    condition = run.condition if roa.xi is None else run.true_condition(roa.xi)
+    region = Region.of(run.system, float(ver.delta))
+    weights, alpha_hat = run.path / "weights.pt", float(run.config.alpha_hat)
+    written = []
+    outer_name, outer = ("trained", ver.trained) if roa.xi is None else ("true-model", ver.true_model)
+    if not (isinstance(outer, ConditionProof) and outer.verified and outer.level is not None and outer.level >= c
+            and (outer.partition is not None or outer.source == "certificate")):
+        outer_name = "roa"
+        outer = verify_condition(run.loop, condition, region, proof.budget(), level=c, keep_partition=True)
+        if not outer.verified:
+            return []
+        written.append(write_certificate(run.path, "roa", outer, condition, region, run.system, weights, alpha_hat))
+    ball = roa.ball
+    extra = {"ball_of": float(ver.delta), "cube": {"half": ball.cube}, "outer": outer_name}
+    if ball.ring is None:  # the cube covers the ball: the claim is the cube's alone
+        local = condition.per_sample()
+        written.append(write_certificate(run.path, "roa-ball", None, local, region.ball_box(region.delta), run.system, weights,
+                                         alpha_hat, level=c, extra=extra))
+    else:
+        written.append(write_certificate(run.path, "roa-ball", ball.ring, ball.condition, ball.region, run.system,
+                                         weights, alpha_hat, extra=extra))
     return written
 
 

@@ -58,7 +58,9 @@ def certified_roa(loop: ClosedLoop, condition: Condition, region: Region, budget
         outer = outer_search(loop, condition, region, budget, max_level)
     c = outer.level
     left = max(1.0, (outer.deadline - time.perf_counter()) / 2)
-    local = local_decrease(loop, condition, region, replace(budget, seconds=left), level=c if c > 0 else None)
+    keep: dict = {}
+    local = local_decrease(loop, condition, region, replace(budget, seconds=left), level=c if c > 0 else None,
+                           keep=keep)
     if not local["proved"] and local.get("equilibrium") and c > 0:
         left = max(3.0, outer.deadline - time.perf_counter())
         local = linearisation_local(loop, condition, region, c, replace(budget, seconds=left)) | {"second_order": local}
@@ -71,4 +73,7 @@ def certified_roa(loop: ClosedLoop, condition: Condition, region: Region, budget
     if quadratic is not None and quadratic.get("proved") and (band_time is None or band_time > 0):
         band = band_roa(loop, condition, region, quadratic, outer.top, outer.why,
                         replace(budget, seconds=budget.seconds if band_time is None else band_time))
-    return finish(loop, condition, region, outer, local, samples_per_axis, quadratic, band)
+    found = finish(loop, condition, region, outer, local, samples_per_axis, quadratic, band)
+    if found.certified and found.local is local and found.level == c:  # V's own proofs, the level not lowered
+        found.ball = keep.get("ball")
+    return found

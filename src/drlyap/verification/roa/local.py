@@ -29,6 +29,7 @@ from drlyap.networks import QuadraticLyapunov
 from drlyap.regions import Region
 from drlyap.verification.branch_and_bound import verify_condition
 from drlyap.verification.linearisation import jacobian_negative
+from drlyap.verification.results import BallProof
 
 
 def _hessian_negative(loop: ClosedLoop, plain: PlainDecrease, half_width: Tensor) -> tuple[bool, float, str]:
@@ -110,11 +111,13 @@ def not_equilibrium(loop: ClosedLoop, plain: PlainDecrease, region: Region) -> s
 
 
 def local_decrease(loop: ClosedLoop, condition: Condition, region: Region,
-                   budget: Budget = Budget(seconds=10.0, enclosure="mean-value"), level: float | None = None) -> dict:
+                   budget: Budget = Budget(seconds=10.0, enclosure="mean-value"), level: float | None = None,
+                   keep: dict | None = None) -> dict:
     """Prove ``Vdot < 0`` on the delta-ball minus x* (with ``level``: on its part in ``{V <= level}``) for every
     sample of ``condition``'s model (see the module docstring). Returns ``proved``, the cube half-width ``cube``
     of the second-order proof, its bound ``hessian_bound``, the ring verification's status and ``reason`` when
-    it fails."""
+    it fails. ``keep``: where a proof that holds is put, as ``keep["ball"]`` (a
+    :class:`~drlyap.verification.results.BallProof`, the ring's partition kept), for a certificate to write down."""
     start = time.perf_counter()
     time_limit, min_width = budget.seconds, budget.min_width
     method = "mean-value Jacobian" if isinstance(loop.lyapunov, QuadraticLyapunov) else "second order"
@@ -149,19 +152,22 @@ def local_decrease(loop: ClosedLoop, condition: Condition, region: Region,
     r_in = float(half.min())
     if bool((half >= delta).all()):  # the cube covers the ball
         out.update(proved=True, time_s=time.perf_counter() - start)
+        if keep is not None:
+            keep["ball"] = BallProof(cube=half.tolist())
         return out
     # the rest of the ball: strict decrease Vdot + gamma_in ||z|| <= 0 on (ball-box) minus the r_in-ball
     gamma_in = 0.25 * abs(bound) / 2 * r_in
     ring_plain = PlainDecrease(plain.xi, gamma_in, 0.0, plain.model)
-    ring = Region(torch.maximum(region.lo, torch.full_like(region.lo, -delta)),
-                  torch.minimum(region.hi, torch.full_like(region.hi, delta)), r_in)
+    ring = region.ball_box(r_in)
     left = max(0.5, time_limit - (time.perf_counter() - start))
     res = verify_condition(loop, ring_plain, ring, replace(budget, seconds=left,
                                                            min_width=resolving(min_width, r_in, region)),
-                           stop_at_counterexample=True, level=level)
+                           stop_at_counterexample=True, level=level, keep_partition=keep is not None)
     out["ring"] = {"status": res.status, "decay_rate": gamma_in, "inner_radius": r_in, "boxes": res.boxes_processed,
                    "verified_fraction": res.verified_fraction}
     out["proved"] = res.status == "verified"
+    if out["proved"] and keep is not None:
+        keep["ball"] = BallProof(cube=half.tolist(), condition=ring_plain, region=ring, ring=res)
     if not out["proved"]:
         out["reason"] = f"decrease between the cube and the delta-ball: {res.status}"
     out["time_s"] = time.perf_counter() - start

@@ -91,9 +91,8 @@ def _ball_max(lyapunov, region: Region, budget: Budget) -> float:
     delta = region.delta
     if delta <= 0:
         return 0.0
-    blo = torch.maximum(region.lo, torch.full_like(region.lo, -delta))
-    bhi = torch.minimum(region.hi, torch.full_like(region.hi, delta))
-    glo, ghi = box_grid(blo, bhi, default_grid(region.lo.shape[0]))
+    ball = region.ball_box(delta)
+    glo, ghi = box_grid(ball.lo, ball.hi, default_grid(region.lo.shape[0]))
     _, up, _ = maximize(value_objective(lyapunov), glo, ghi, region.scale, budget,
                         box_ok=lambda a, b: near_dist(a, b) < delta)
     return float(up[0])

@@ -1,0 +1,116 @@
+"""Certificates of a region of attraction: ``roa-ball`` (V's decrease inside the delta-ball: the second-order cube and
+the ring around it) and ``roa`` (the decrease outside the ball on {V <= c}), written by ``verify --roa`` and confirmed
+by ``drlyap check`` with its own arithmetic."""
+
+from __future__ import annotations
+
+import json
+import os
+
+import pytest
+import torch
+from click.testing import CliRunner
+
+from drlyap.checker.ball import hessian_negative
+from drlyap.checker.model import Pair, Residual
+from drlyap.cli import main
+from drlyap.runs import load_run
+from drlyap.runs.validate import load_weights
+from handmade import linear_run_dir, small_pendulum
+
+SPEC = f"{os.path.dirname(__file__)}/handmade.py:small_pendulum"
+XI = "0.1,0.05"
+
+
+def _verify(run, *args):
+    out = CliRunner().invoke(main, ["verify", str(run), "--system", SPEC, "--xi", XI, "--roa", "--json", *args])
+    assert out.exit_code == 0, out.output
+    return json.loads(out.output)
+
+
+def _check(run, *names):
+    return CliRunner().invoke(main, ["check", str(run), "--system", SPEC, *[a for n in names for a in ("--name", n)]])
+
+
+@pytest.mark.parametrize("delta, ring", [(0.1, False), (0.5, True)])
+def test_verify_roa_writes_the_region_s_certificates_and_the_checker_confirms_them(tmp_path, delta, ring):
+    run = linear_run_dir(tmp_path / "run", delta=delta)
+    found = _verify(run)["roa"]
+    assert found["certified"] and found["local"]["method"] == "second order"
+    folder = run / "certificates"
+    header = json.loads((folder / "roa-ball.json").read_text())
+    claim = header["claim"]
+    assert claim["region"]["level"] == found["level"] and claim["region"]["ball_of"] == delta
+    assert claim["outer"] == "roa"  # the level search's c: the decrease on {V <= c} is proved again and written
+    assert json.loads((folder / "roa.json").read_text())["claim"]["region"]["level"] == found["level"]
+    assert (header["partition"] is not None) == ring == (folder / "roa-ball.npz").exists()
+    if ring:  # the cube does not cover the ball: plain decrease with a decay > 0 between them
+        assert max(claim["cube"]["half"]) < delta and claim["condition"]["decay_rate"] > 0
+        assert claim["region"]["delta"] == min(claim["cube"]["half"])
+    checked = _check(run)
+    assert checked.exit_code == 0, checked.output
+    assert "roa-ball: CHECKED" in checked.output and "roa: CHECKED" in checked.output
+    assert "Hessian of Vdot on the cube is negative definite" in checked.output
+
+
+def test_a_region_certificate_that_claims_more_than_it_proves_fails(tmp_path):
+    run = linear_run_dir(tmp_path / "run", delta=0.5)
+    _verify(run)
+    folder = run / "certificates"
+    path = folder / "roa-ball.json"
+    original = path.read_text()
+
+    def check_with(change) -> str:
+        header = json.loads(original)
+        change(header["claim"])
+        path.write_text(json.dumps(header))
+        out = _check(run, "roa-ball")
+        assert out.exit_code == 1, out.output
+        return out.output
+
+    def inner_ball_wider(claim):  # the ring's inner ball no longer inside the cube
+        claim["region"]["delta"] = 2 * max(claim["cube"]["half"])
+
+    assert "inner ball" in check_with(inner_ball_wider)
+
+    def no_decay(claim):  # the ring's decrease not strict
+        claim["condition"]["decay_rate"] = 0.0
+
+    assert "not strict" in check_with(no_decay)
+
+    def outer_trained(claim):  # the trained condition is about X_delta, not about this model on {V <= c}
+        claim["outer"] = "trained"
+
+    assert "outer" in check_with(outer_trained)
+
+    def other_level(claim):
+        claim["region"]["level"] *= 1.5
+
+    assert "level" in check_with(other_level)
+    path.write_text(original)
+    metrics = json.loads((run / "metrics.json").read_text())
+    metrics["certificate"]["roa"]["level"] *= 1.01  # a larger region than the files prove
+    (run / "metrics.json").write_text(json.dumps(metrics))
+    out = _check(run)
+    assert out.exit_code == 1 and "roa-ball: FAILED" in out.output and "roa: FAILED" in out.output
+
+
+def test_the_checker_s_hessian_bound_holds_at_sampled_states_and_refuses_a_rising_v(tmp_path):
+    """Sound means sound: where the checker proves ``Vdot < 0`` on a cube by its Hessian enclosure, ``Vdot(z) <=
+    bound |z|^2 / 2`` at dense states (the Taylor form it rests on); a controller that destabilises is refused."""
+    run_dir = linear_run_dir(tmp_path / "run", delta=0.5)
+    run = load_run(run_dir, small_pendulum())
+    pair = Pair(load_weights(run_dir / "weights.pt"), float(run.config.alpha_hat), 2)
+    claim = {"name": "plain", "model": "true", "xi": [[0.1, 0.05]], "decay_rate": 0.0, "exp_rate": 0.0}
+    residual = Residual(claim, pair, run.system)
+    half = torch.tensor([0.3, 0.5], dtype=torch.float64)
+    proved, bound, why = hessian_negative(residual, half)
+    assert proved and bound < 0, why
+    g = torch.Generator().manual_seed(0)
+    z = (2 * torch.rand(20_000, 2, generator=g, dtype=torch.float64) - 1) * half
+    condition = run.true_condition([0.1, 0.05]).per_sample()
+    with torch.no_grad():
+        q = condition.components(condition.terms(run.loop.f64, z))[:, 0]
+    assert bool((q <= bound * z.square().sum(-1) / 2 + 1e-12).all())
+    too_big = torch.tensor([5.0, 5.0], dtype=torch.float64)  # where the pendulum's sin bends Vdot upward
+    assert not hessian_negative(residual, too_big)[0]
