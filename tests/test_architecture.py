@@ -1,5 +1,6 @@
 """The layout the architecture page describes: no import loop between drlyap's modules (lazy imports included), no
-module over 600 lines, the verifier never imports the trainer, and --help loads no numerical code."""
+module over 600 lines, the verifier never imports the trainer, checking a run loads nothing of the verifier, and
+--help loads no numerical code."""
 
 import ast
 import subprocess
@@ -83,6 +84,37 @@ def test_the_checker_shares_no_bounding_code_with_the_verifier():
         if name.startswith("drlyap.checker"):
             bad = {d for d in deps if d.startswith(shared)}
             assert not bad, (name, bad)
+
+
+def test_checking_a_run_loads_nothing_of_the_verifier_or_the_trainer(tmp_path):
+    """Transitively, at run time: ``drlyap check``'s whole path (reading the run, rebuilding its system, re-proving
+    every certificate of a region of attraction) loads no module of the verifier, its enclosures, the networks or the
+    trainer."""
+    import inspect
+
+    from click.testing import CliRunner
+
+    import handmade
+    from drlyap.cli import main
+
+    run = handmade.linear_run_dir(tmp_path / "run", delta=0.5)
+    spec = f"{Path(handmade.__file__)}:small_pendulum"
+    out = CliRunner().invoke(main, ["verify", str(run), "--system", spec, "--xi", "0.1,0.05", "--roa"])
+    assert out.exit_code == 0, out.output
+    system_file = tmp_path / "user_system.py"  # the same system, in a file that imports what a user's would
+    system_file.write_text("import torch\nfrom drlyap.config import PAPER_CONDITION\n"
+                           "from drlyap.systems import UncertainSystem\n\n" + inspect.getsource(handmade._pend) + "\n"
+                           + inspect.getsource(handmade.small_pendulum))
+    code = (f"import sys\nfrom drlyap.checker import check_run\nfrom drlyap.systems import resolve_system\n"
+            f"results = check_run({str(run)!r}, resolve_system({str(system_file) + ':small_pendulum'!r}))\n"
+            "print(sorted(r.name for r in results if r.ok))\n"
+            "print(sorted(m for m in sys.modules if m.startswith('drlyap')))")
+    done = subprocess.run([sys.executable, "-c", code], capture_output=True, text=True, check=True)
+    names, modules = (ast.literal_eval(line) for line in done.stdout.strip().splitlines()[-2:])
+    assert names == ["roa", "roa-ball", "trained", "true-model"]
+    shared = ("drlyap.enclosures", "drlyap.networks", "drlyap.conditions", "drlyap.verification", "drlyap.closed_loop",
+              "drlyap.regions", "drlyap.training", "drlyap.workflows", "drlyap.render")
+    assert not [m for m in modules if m.startswith(shared)], modules
 
 
 def test_help_loads_no_numerical_code():

@@ -114,3 +114,15 @@ def test_the_checker_s_hessian_bound_holds_at_sampled_states_and_refuses_a_risin
     assert bool((q <= bound * z.square().sum(-1) / 2 + 1e-12).all())
     too_big = torch.tensor([5.0, 5.0], dtype=torch.float64)  # where the pendulum's sin bends Vdot upward
     assert not hessian_negative(residual, too_big)[0]
+
+
+def test_every_claim_of_one_verify_on_a_user_system_has_a_certificate_the_checker_confirms(tmp_path):
+    run = linear_run_dir(tmp_path / "run", delta=0.5)
+    found = _verify(run, "--max-radius")
+    assert found["roa"]["certified"] and found["robustness"]["radius"]["radius"] > 0.01
+    assert found["robustness"]["shift_box"]["s"] > 0
+    names = {p.stem for p in (run / "certificates").glob("*.json") if not p.stem.endswith(".check")}
+    assert names == {"trained", "true-model", "roa", "roa-ball", "radius", "shift-box"}
+    checked = _check(run)
+    assert checked.exit_code == 0, checked.output
+    assert sorted(line.split(":")[0] for line in checked.output.splitlines() if ": CHECKED" in line) == sorted(names)

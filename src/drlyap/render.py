@@ -9,8 +9,8 @@ their wording from here; none of them decides again from the numbers what was pr
 from __future__ import annotations
 
 import math
-from decimal import ROUND_CEILING, ROUND_FLOOR, Decimal
 
+from drlyap.claims import level_text, of_region
 from drlyap.io import proved_percent
 from drlyap.verification.results import (
     Certificate,
@@ -34,72 +34,7 @@ def _num(value, digits: int = 4) -> str:
     return "unbounded" if value is None or not math.isfinite(value) else f"{value:.{digits}g}"
 
 
-def level_text(level: float, digits: int = 6, up: bool = False) -> str:
-    """A level of V (or of z'Pz) in at most ``digits`` significant digits that never claims more than was proved:
-    rounded down for a set ``{V <= c}`` proved (a smaller set is proved too, and ``V > c`` on the faces then holds
-    as well), so 0.9999999999999991 prints as 0.999999, not 1; rounded up with ``up`` for a set that others are
-    proved to end up in. A number that reads back as the stored one prints as it is (1.0 as 1)."""
-    text = f"{level:.{digits}g}"
-    if not math.isfinite(level) or (float(text) >= level if up else float(text) <= level):
-        return text
-    exact = Decimal(level)
-    step = Decimal(1).scaleb(exact.adjusted() - digits + 1)
-    return f"{float(exact.quantize(step, rounding=ROUND_CEILING if up else ROUND_FLOOR)):.{digits}g}"
-
-
 # --------------------------------------------------------------------------- a run's trained condition
-def condition_region(level: float | None, delta: float) -> str:
-    """The region a trained condition is proved on: X_delta, or with a level its sublevel set."""
-    region = f"state box minus the open ball ||x - x*|| < {delta:g}"
-    if level is not None:
-        c = level_text(level)
-        region = f"{{V <= {c}}} minus the open ball ||x - x*|| < {delta:g}, with V > {c} on the box's faces"
-    return region
-
-
-def of_region(region: str) -> str:
-    """``region`` (:func:`condition_region`'s words) after "every state of": with "the" before the state box, not
-    before a set ``{V <= c}`` or X_delta."""
-    return region if region.startswith("{") or region == "X_delta" else f"the {region}"
-
-
-def claim_sentence(claim: dict) -> str:
-    """A certificate file's claim (``claim`` of its header: ``condition`` and ``region`` as written by
-    :mod:`drlyap.runs.certificates`) in words, from its fields: what the file states and what ``drlyap check``
-    re-proves."""
-    try:
-        c, r = claim["condition"], claim["region"]
-        xi = c.get("xi") or []
-        decay = f"gamma = {float(c.get('decay_rate') or 0):g}" + (
-            f", alpha = {float(c['exp_rate']):g}" if c.get("exp_rate") else "")
-        if c.get("name") == "true" and c.get("xi_box"):
-            low, high = c["xi_box"]["low"], c["xi_box"]["high"]
-            shifts = "; ".join(f"[{a:.4g}, {b:.4g}]" for a, b in zip(low[0], high[0]))
-            what = f"decrease on the true model for every shift xi in {shifts} ({decay})"
-        elif c.get("name") == "true":
-            what = f"decrease on the true model at xi = {xi[0] if len(xi) == 1 else xi} ({decay})"
-        elif c.get("name") == "pointwise":
-            what = (f"the DR pointwise condition (r = {float(c['wasserstein_radius']):g}, eps = "
-                    f"{float(c['risk_level']):g}, {len(xi)} samples of xi, {decay})")
-        elif c.get("name") == "plain":
-            model = "the true model at xi = " + str(xi[0] if len(xi) == 1 else xi) if c.get("model") == "true" else \
-                f"the design model at each of {len(xi)} sample(s) of xi"
-            what = f"decrease on {model} ({decay})"
-        else:
-            what = f"the {c.get('label', c.get('name'))} condition ({len(xi)} sample(s) of xi, {decay})"
-        level = r.get("level")
-        if claim.get("cube") is not None:  # roa-ball: V's decrease inside the delta-ball
-            half = ", ".join(f"{float(h):.3g}" for h in claim["cube"]["half"])
-            rest = "" if float(r["delta"]) >= float(r["ball_of"]) else (  # no ring: the cube covers the ball
-                f"; {what} on the rest of the ball's box outside ||x - x*|| < {float(r['delta']):g}")
-            return (f"V decreases on {{V <= {level_text(level)}}} inside the ball ||x - x*|| < {float(r['ball_of']):g}: "
-                    f"Vdot < 0 on the cube |x_i - x*_i| <= [{half}] except at x* (second order){rest}; outside "
-                    f"the ball by the certificate {claim.get('outer')!r}")
-        return f"{what} holds at every state of {of_region(condition_region(level, float(r['delta'])))}"
-    except (KeyError, TypeError, ValueError, IndexError):
-        return "(an unreadable claim)"
-
-
 def certificate_line(cert: Certificate, verify_command: str = "drlyap verify RUN") -> str:
     """The one line that says what was proved about a run's trained condition; ``verify_command``: the command that
     proves it, named when nothing was checked."""

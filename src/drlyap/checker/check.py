@@ -44,9 +44,9 @@ from drlyap.checker.arith import EPS, F64, Iv
 from drlyap.checker.ball import ball_failures
 from drlyap.checker.model import Pair, Residual, centre_lower, form_upper, upper_bounds, value_lower
 from drlyap.checker.record import drop_record, fingerprint, write_record
+from drlyap.claims import claim_sentence
 from drlyap.config import Compute
 from drlyap.parallel import check_device, pool_for
-from drlyap.render import claim_sentence
 
 INTERNAL, PROVED, INSIDE_BALL, ABOVE_LEVEL = 0, 1, 2, 3
 
@@ -437,7 +437,7 @@ def check_run(run_dir: str | Path, system=None, trust: bool = False, names: list
     ``trust``: as for :func:`drlyap.runs.load_run` (a system from a file runs only when named or trusted);
     ``compute``: where the leaves are bounded. A run without certificates is a ValueError that says so."""
     from drlyap.runs.certificates import FOLDER, NAMES, read_certificate, system_digest
-    from drlyap.runs.directory import read_run_json, run_system
+    from drlyap.runs.reading import read_run_json, run_system
     from drlyap.runs.validate import RunDirError, load_weights
 
     run_dir = Path(run_dir)

@@ -31,18 +31,20 @@ import io
 import json
 import os
 from pathlib import Path
+from typing import TYPE_CHECKING
 
 import numpy as np
 import torch
 
-from drlyap.conditions import Condition
-from drlyap.enclosures import is_enclosure
+from drlyap.claims import claim_sentence
 from drlyap.io import jsonable
-from drlyap.regions import Region
-from drlyap.render import claim_sentence
-from drlyap.systems import UncertainSystem
-from drlyap.verification.partition import Partition
-from drlyap.verification.results import ConditionProof
+
+if TYPE_CHECKING:  # the writing side's types; reading a certificate (the checker) loads nothing of the verifier
+    from drlyap.conditions import Condition
+    from drlyap.regions import Region
+    from drlyap.systems import UncertainSystem
+    from drlyap.verification.partition import Partition
+    from drlyap.verification.results import ConditionProof
 
 FORMAT = "drlyap-certificate"
 VERSION = 1
@@ -65,6 +67,8 @@ def condition_claim(condition: Condition) -> dict:
     """The condition as a certificate states it (what the checker rebuilds its residual from): the samples or shifts
     ``xi`` ``(N, k)``, or for a box of shifts (an interval ``xi``, the shift box) ``xi`` None and ``xi_box``
     ``{"low", "high"}`` ``(N, k)`` each."""
+    from drlyap.enclosures import is_enclosure
+
     xi = condition.xi
     box = None
     if is_enclosure(xi):
@@ -190,6 +194,8 @@ def read_certificate(run_dir: str | os.PathLike, name: str) -> tuple[dict, dict[
 def certificate_partition(run_dir: str | os.PathLike, name: str) -> Partition | None:
     """The partition of certificate ``name`` of a run (read as data, its sha256 compared with the header's), or None
     where there is none or it cannot be read."""
+    from drlyap.verification.partition import Partition
+
     try:
         header, arrays = read_certificate(run_dir, name)
         part = header["partition"]

@@ -20,12 +20,15 @@ from __future__ import annotations
 import math
 from collections.abc import Callable, Sequence
 from dataclasses import dataclass, field
+from typing import TYPE_CHECKING
 
 import torch
 from torch import Tensor
 
 from drlyap.config import SystemDefaults
-from drlyap.enclosures import Dual, Interval, is_enclosure, lift
+
+if TYPE_CHECKING:  # the enclosures load where a system is bounded, not where it is only described or run
+    from drlyap.enclosures import Interval
 
 Dynamics = Callable[[Tensor, Tensor, Tensor], Tensor]
 """``F(x (B, n), u (B, m), p (B, P)) -> xdot (B, n)``, batched, written with torch ops."""
@@ -293,7 +296,7 @@ class UncertainSystem:
         On enclosures (``like`` an :class:`~drlyap.enclosures.Interval` or ``Dual``) the result is an exact
         enclosure of ``p0 + E xi`` of the same level; ``xi`` may then also be an interval box ``(k,)``.
         """
-        if is_enclosure(like):
+        if _enclosed(like):
             return self._param_enclosure(xi, like)
         p = self._tensor(self.nominal_params, like).expand(like.shape[0], -1).clone()
         if xi is not None:
@@ -302,6 +305,8 @@ class UncertainSystem:
         return p
 
     def _param_enclosure(self, xi: Tensor | Interval | None, like) -> Interval:
+        from drlyap.enclosures import Interval, lift
+
         p = torch.tensor(self.nominal_params, dtype=torch.float64, device=like.device).expand(like.shape[0], -1)
         lo, hi = p.clone(), p.clone()
         if xi is not None:
@@ -384,7 +389,7 @@ class UncertainSystem:
         if self.perturbation is not None:
             f, w = self.true_dynamics(x, u), self.perturbation(x, u)
             return (grad_v * f).sum(-1), (grad_v.unsqueeze(-1) * w).sum(-2)
-        if is_enclosure(x):
+        if _enclosed(x):
             return self._weighted_design_forward(x, u, grad_v)
         graph = torch.is_grad_enabled()
         p = self.params(None, x).requires_grad_(True)
@@ -397,6 +402,8 @@ class UncertainSystem:
 
     def _weighted_design_forward(self, x, u, grad_v):
         """:meth:`weighted_design` on enclosures: forward-mode derivatives in the uncertain parameters."""
+        from drlyap.enclosures import Dual, Interval, is_enclosure, lift
+
         level = max(x.level, u.level if is_enclosure(u) else 0, grad_v.level)
         batch = x.shape[0]
         p = torch.tensor(self.nominal_params, dtype=torch.float64, device=x.device).expand(batch, -1)
@@ -445,3 +452,13 @@ class UncertainSystem:
             "description": self.description,
             "state_units": list(self.state_units), "input_units": list(self.input_units), "time_unit": self.time_unit,
         }
+
+
+def _enclosed(x) -> bool:
+    """Whether ``x`` is one of :mod:`drlyap.enclosures`' enclosures (a tensor never is; the module loads only for
+    what may be one)."""
+    if isinstance(x, Tensor):
+        return False
+    from drlyap.enclosures import is_enclosure
+
+    return is_enclosure(x)

@@ -40,13 +40,14 @@ import warnings
 import torch
 from torch import Tensor
 
+from drlyap.claims import condition_region
 from drlyap.closed_loop import ClosedLoop
 from drlyap.conditions import Condition
 from drlyap.config import ProofConfig
 from drlyap.io import jsonable
 from drlyap.networks import Controller, Lyapunov
 from drlyap.regions import Region
-from drlyap.render import condition_region, unverified_warning
+from drlyap.render import unverified_warning
 from drlyap.systems import UncertainSystem, get_system
 from drlyap.training.config import TrainConfig
 from drlyap.training.trainer import TrainResult, fit
