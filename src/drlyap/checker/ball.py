@@ -27,19 +27,7 @@ def not_equilibrium(residual: Residual) -> str:
     """Why x* is not an equilibrium of some sample's model by the checker's enclosures (``F(x*, pi(x*))``, or on the
     design model ``f + W xi``, does not hold 0 in some coordinate), or ""."""
     zero = Iv.point(torch.zeros(1, residual.pair.n, dtype=F64, device=residual.x_star.device))
-    dynamics = residual.system.dynamics
-    x, u = zero + residual.x_star, residual.pair.controller(zero)
-    for j, xi in enumerate(residual.xi):
-        if residual.model == "true":
-            f = dynamics(x, u, residual._params(zero, 1, xi))
-        else:
-            tangents = []
-            for i in residual.uncertain:
-                e = torch.zeros(1, residual.p0.shape[0], dtype=F64, device=residual.p0.device)
-                e[:, i] = 1.0
-                tangents.append(Iv.point(e))
-            out = dynamics(x, u, Du(residual._params(zero, 1, None), tangents))
-            f = out.v + sum((out.d[i] * float(xi[i]) for i in range(len(residual.uncertain))), start=out.v * 0.0)
+    for j, f in enumerate(residual.fields(zero)):
         if not bool(((f.lo <= 0) & (f.hi >= 0)).all()):
             return f"x* is not an equilibrium of sample {j}'s model (F(x*) encloses [{f.lo.tolist()}, {f.hi.tolist()}])"
     return ""

@@ -166,24 +166,12 @@ class Residual:
         interval norm of its vector's ranges (second-order forms ``z`` only), instead of its own second-order form:
         narrower where the sum of squares reaches near 0, but without the dependence on the box's coordinates that
         the rest of the residual may cancel against."""
-        batch = z.shape[0]
         value, grad = self.pair.value_and_grad(z)
-        x, u = z + self.x_star, self.pair.controller(z)
-        dynamics: Callable = self.system.dynamics
         if self.model == "true":
-            vdots = [(grad * dynamics(x, u, self._params(z, batch, xi))).sum(-1) for xi in self.xi]
+            vdots = [(grad * f).sum(-1) for f in self.fields(z)]
             lip = None
         else:
-            if getattr(self.system, "perturbation", None) is not None:
-                raise ValueError("the checker does not take systems with a hand-written perturbation matrix W")
-            base = self._params(z, batch, None)
-            tangents = []
-            for i in self.uncertain:
-                e = torch.zeros(batch, self.p0.shape[0], dtype=F64, device=self.p0.device)
-                e[:, i] = 1.0
-                tangents.append(lift(Iv.point(e), z.level, z if z.level > 0 else None))
-            out = dynamics(x, u, Du(base, tangents))
-            s = (grad * out).sum(-1)
+            s = (grad * self._design(z)).sum(-1)
             vdots = [s.v + sum((s.d[i] * float(xi[i]) for i in range(len(self.uncertain))), start=s.v * 0.0)
                      for xi in self.xi]
             lip = None
@@ -197,6 +185,31 @@ class Residual:
             decay = decay + value * self.alpha
         extra = decay if lip is None else decay + lip * (self.r / self.eps)
         return torch.stack([v + extra for v in vdots], -1), value
+
+    def fields(self, z) -> list:
+        """The closed loop's right-hand side ``F_j(z) (B, n)`` of each sample's model (the true model at the shift,
+        or the design model ``f + W xi_j``)."""
+        if self.model == "true":
+            x, u = z + self.x_star, self.pair.controller(z)
+            return [self.system.dynamics(x, u, self._params(z, z.shape[0], xi)) for xi in self.xi]
+        out = self._design(z)
+        return [out.v + sum((out.d[i] * float(xi[i]) for i in range(len(self.uncertain))), start=out.v * 0.0)
+                for xi in self.xi]
+
+    def _design(self, z):
+        """The design model at nominal parameters with tangents in the uncertain ones: ``.v`` is ``f (B, n)``, ``.d[i]``
+        the column ``dF/dp_i`` of W."""
+        if getattr(self.system, "perturbation", None) is not None:
+            raise ValueError("the checker does not take systems with a hand-written perturbation matrix W")
+        batch = z.shape[0]
+        x, u = z + self.x_star, self.pair.controller(z)
+        tangents = []
+        for i in self.uncertain:
+            e = torch.zeros(batch, self.p0.shape[0], dtype=F64, device=self.p0.device)
+            e[:, i] = 1.0
+            tangents.append(lift(Iv.point(e), z.level, z if z.level > 0 else None))
+        dynamics: Callable = self.system.dynamics
+        return dynamics(x, u, Du(self._params(z, batch, None), tangents))
 
     def combine_upper(self, upper: Tensor) -> Tensor:
         """An upper bound ``(B,)`` of the residual from upper bounds ``(B, Q)`` of its components."""
