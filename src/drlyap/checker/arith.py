@@ -361,13 +361,13 @@ class Du(_Ops):
         return self.v.shape
 
     @staticmethod
-    def seed(x: Iv | Du, count: int, axis_tangents: list[int]) -> Du:
-        """``x (B, n)`` as the free variable of ``count`` tangents: tangent ``i`` is 1 in column
-        ``axis_tangents[i]`` (the others 0)."""
+    def seed(x, count: int, axis_tangents: list[int]) -> Du:
+        """``x (B, n)`` (an interval, a dual or a second-order form) as the free variable of ``count`` tangents:
+        tangent ``i`` is 1 in column ``axis_tangents[i]`` (the others 0)."""
         zero = x * 0.0
         tangents = []
         for i in range(count):
-            e = torch.zeros(x.shape, dtype=F64, device=x.lo.device if isinstance(x, Iv) else x.v.lo.device)
+            e = torch.zeros(x.shape, dtype=F64, device=x.c.device if hasattr(x, "c") else _base(x).lo.device)
             e[..., axis_tangents[i]] = 1.0
             tangents.append(zero + e)
         return Du(x, tangents)

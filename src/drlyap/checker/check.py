@@ -29,7 +29,7 @@ above, and its cube around x* by :mod:`drlyap.checker.ball` (Vdot's Hessian over
 
 from __future__ import annotations
 
-import hashlib
+import json
 import math
 import time
 from dataclasses import dataclass, field
@@ -42,6 +42,7 @@ from torch import Tensor
 from drlyap.checker.affine import Af
 from drlyap.checker.arith import EPS, F64, Iv
 from drlyap.checker.ball import ball_failures
+from drlyap.checker.graphs import GraphPair
 from drlyap.checker.model import Pair, Residual, centre_lower, form_upper, upper_bounds, value_lower
 from drlyap.checker.record import drop_record, fingerprint, write_record
 from drlyap.claims import claim_sentence
@@ -368,7 +369,8 @@ def check_certificate(run_dir: str | Path, name: str, header: dict, arrays: dict
                 "" if region.get("ball_of") is None else " inside the delta-ball's box"))
         delta, level = float(region["delta"]), region.get("level")
         level = None if level is None else float(level)
-        pair = Pair(weights, float(header["networks"]["alpha_hat"]), system.n)
+        pair = GraphPair(weights["graphs"], weights["tensors"], system.n) if "graphs" in weights else \
+            Pair(weights, float(header["networks"]["alpha_hat"]), system.n)
         residual = Residual(claim["condition"], pair, system)
         if claim.get("cube") is not None:  # V's second-order decrease near x* (roa-ball)
             failures, out.cube_bound = ball_failures(claim, pair, system, lo, hi, delta, header["partition"] is not None)
@@ -436,25 +438,34 @@ def check_run(run_dir: str | Path, system=None, trust: bool = False, names: list
     """Re-check the certificates of a run directory (``names``: which; default every one it holds). ``system`` and
     ``trust``: as for :func:`drlyap.runs.load_run` (a system from a file runs only when named or trusted);
     ``compute``: where the leaves are bounded. A run without certificates is a ValueError that says so."""
-    from drlyap.runs.certificates import FOLDER, NAMES, read_certificate, system_digest
-    from drlyap.runs.reading import read_run_json, run_system
+    from drlyap.runs.certificates import FOLDER, NAMES, networks_digest, read_certificate, system_digest
+    from drlyap.runs.reading import read_run_json, read_run_kind, run_system
     from drlyap.runs.validate import RunDirError, load_weights
 
     run_dir = Path(run_dir)
-    info, config, metrics = read_run_json(run_dir, "lyapunov", "run.json", "config.json", "metrics.json")
+    imported = read_run_kind(run_dir).get("kind") == "imported"
+    info, config, metrics = read_run_json(run_dir, "imported" if imported else "lyapunov", "run.json", "config.json",
+                                          "metrics.json")
     system = run_system(run_dir, str(config.get("system")), system, info, trust)
     present = [k for k in NAMES if (run_dir / FOLDER / f"{k}.json").is_file()]
     names = present if names is None else names
     if not names:
         raise ValueError(f"{run_dir} holds no certificate ({run_dir / FOLDER} is empty or missing): a verified "
                          "`drlyap train` or `drlyap verify` writes one")
-    weights_path = run_dir / "weights.pt"
+    files = [run_dir / "graphs.json", run_dir / "tensors.pt"] if imported else [run_dir / "weights.pt"]
     try:
-        data = weights_path.read_bytes()  # read once: the bytes hashed are the bytes checked
-    except FileNotFoundError:
-        raise RunDirError(f"{weights_path} is missing") from None
-    weights = load_weights(weights_path, data)
-    digest, system_sha = hashlib.sha256(data).hexdigest(), system_digest(system)
+        contents = [f.read_bytes() for f in files]  # read once: the bytes hashed are the bytes checked
+    except FileNotFoundError as err:
+        raise RunDirError(f"{err.filename} is missing") from None
+    if imported:  # the graphs as data (JSON) and their constants (tensors only)
+        try:
+            graphs = json.loads(contents[0])
+        except (UnicodeDecodeError, json.JSONDecodeError) as err:
+            raise RunDirError(f"{files[0]} is damaged: {err}") from None
+        weights = {"graphs": graphs, "tensors": load_weights(files[1], contents[1])}
+    else:
+        weights = load_weights(files[0], contents[0])
+    digest, system_sha = networks_digest(contents), system_digest(system)
     out = []
     for name in names:
         header, arrays = read_certificate(run_dir, name)
@@ -569,6 +580,8 @@ def claim_mismatch(name: str, header: dict, config: dict, metrics: dict) -> list
             expected |= {"xi": [list(map(float, reported["xi"]))]}
     stated = {"delta": delta, "level": level}
     wanted = {"delta": config.get("delta"), "level": config.get("roa_level")}
+    if "certificate" in config:  # an imported pair: its claim's decay, level and delta (None: the system's delta)
+        wanted = {"delta": delta if config.get("delta") is None else config["delta"], "level": config.get("level")}
     if name in ("roa", "roa-ball"):  # the region of attraction its metrics report, on its model
         expected, wanted, more = _roa_claim(name, header, config, metrics, expected)
         problems += more

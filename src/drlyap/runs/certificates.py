@@ -57,6 +57,14 @@ def sha256_file(path: str | os.PathLike) -> str:
     return hashlib.sha256(Path(path).read_bytes()).hexdigest()
 
 
+def networks_digest(contents: list[bytes]) -> str:
+    """What a certificate names its networks by: the sha256 of ``weights.pt``'s bytes (one file), or for an imported
+    pair (``graphs.json`` and ``tensors.pt``) the sha256 of their sha256s (hex) in that order."""
+    if len(contents) == 1:
+        return hashlib.sha256(contents[0]).hexdigest()
+    return hashlib.sha256("".join(hashlib.sha256(c).hexdigest() for c in contents).encode()).hexdigest()
+
+
 def system_digest(system: UncertainSystem) -> str:
     """sha256 of the system's description as canonical JSON (what a certificate names its system by)."""
     text = json.dumps(jsonable(system.describe()), sort_keys=True, separators=(",", ":"))
@@ -87,7 +95,7 @@ def certificate_claim(condition: Condition, region: Region, level: float | None)
 
 
 def certificate_header(proof: ConditionProof | None, condition: Condition, region: Region, system: UncertainSystem,
-                       weights_sha256: str, alpha_hat: float, arrays_file: str | None, arrays_sha256: str | None,
+                       weights_sha256: str, alpha_hat: float | None, arrays_file: str | None, arrays_sha256: str | None,
                        level: float | None = None, extra: dict | None = None) -> dict:
     """The JSON header of a certificate (see the module docstring). ``proof`` None: a claim without a partition
     (a ``roa-ball`` certificate whose cube covers the ball), at ``level``; ``extra``: more of the claim (``cube``,
@@ -112,11 +120,13 @@ def certificate_header(proof: ConditionProof | None, condition: Condition, regio
 
 
 def write_certificate(folder: str | os.PathLike, name: str, proof: ConditionProof | None, condition: Condition,
-                      region: Region, system: UncertainSystem, weights: str | os.PathLike, alpha_hat: float,
-                      level: float | None = None, extra: dict | None = None) -> Path:
+                      region: Region, system: UncertainSystem, weights: str | os.PathLike | list,
+                      alpha_hat: float | None, level: float | None = None, extra: dict | None = None) -> Path:
     """Write ``folder/certificates/NAME.json`` and ``.npz`` for a verified proof that kept its partition (``proof``
     None, ``level`` and ``extra``: a ``roa-ball`` claim without one, see :func:`certificate_header`); each file is
-    written to a temporary name and renamed, the header last. Returns the header's path."""
+    written to a temporary name and renamed, the header last. ``weights``: the networks' file (``weights.pt``), or
+    an imported pair's ``[graphs.json, tensors.pt]`` (:func:`networks_digest`; ``alpha_hat`` None). Returns the
+    header's path."""
     if name not in NAMES:
         raise ValueError(f"unknown certificate name {name!r}; valid: {', '.join(NAMES)}")
     if proof is None and name != "roa-ball":
@@ -134,7 +144,9 @@ def write_certificate(folder: str | os.PathLike, name: str, proof: ConditionProo
         digest = hashlib.sha256(data).hexdigest()
     else:
         arrays.unlink(missing_ok=True)
-    header = certificate_header(proof, condition, region, system, sha256_file(weights), alpha_hat,
+    files = weights if isinstance(weights, list) else [weights]
+    header = certificate_header(proof, condition, region, system,
+                                networks_digest([Path(f).read_bytes() for f in files]), alpha_hat,
                                 arrays.name if proof is not None else None, digest, level, extra)
     path = target / f"{name}.json"
     _replace(path, (json.dumps(header, indent=1) + "\n").encode())

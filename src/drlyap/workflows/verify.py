@@ -326,6 +326,21 @@ def record_roa(run: Run, ver: RunVerification, proof: ProofConfig) -> list[Path]
     return written
 
 
+def record_imported_certificate(run_dir: str | Path, pair, ver: RunVerification) -> list[Path]:
+    """Write the certificate ``true-model`` of an imported pair's verified decrease at a shift
+    (:func:`verify_imported`) into its run directory, naming the pair by ``graphs.json`` and ``tensors.pt`` (the
+    checker reads those as data); an earlier one is removed first. Returns the header's path, or nothing."""
+    run_dir = Path(run_dir)
+    remove_certificate(run_dir, "true-model")
+    proof = ver.true_model
+    if not (isinstance(proof, ConditionProof) and proof.verified and proof.partition is not None):
+        return []
+    system = pair.loop.system
+    condition = TrueDecrease(system.check_xi(proof.xi)[None], decay_rate=pair.decay_rate, exp_rate=pair.exp_rate)
+    return [write_certificate(run_dir, "true-model", proof, condition, Region.of(system, float(ver.delta)), system,
+                              [run_dir / "graphs.json", run_dir / "tensors.pt"], None)]
+
+
 def run_robustness(run: Run, delta: float | None = None, tol: float = 0.01, budget: Budget = SEARCH_BUDGET,
                    total_time: float = 120.0, scale: Tensor | None = None,
                    trained: ConditionProof | None = None) -> RunRobustness:

@@ -1,0 +1,159 @@
+"""The checker's reading of an imported pair (``drlyap import``): the controller and V as the run directory holds
+them, ``graphs.json`` (each a list of operations, read as data) and ``tensors.pt`` (their constants), evaluated with
+the checker's own arithmetic (:mod:`drlyap.checker.arith`, :mod:`drlyap.checker.affine`), not with the library's
+graph interpreter.
+
+Each operation is one of the few the import writes (``linear add sub mul div neg square pow tanh exp identity clamp
+sum select squeeze unsqueeze``); a node none of whose inputs depends on the state (``V(0)`` of a V whose minimum is
+not 0, a constant offset) is evaluated on its first input lifted to the state's kind, so it is an outward-rounded
+enclosure of its real value. V's gradient is forward mode: the checker's dual numbers seeded on the state, one tangent
+per state, over intervals, duals or second-order forms alike. V is the graph, less its value at x* where the import
+pinned it (``pinned``), or ``z^T P z`` for the quadratic V of a controller imported alone.
+"""
+
+from __future__ import annotations
+
+import copy
+import math
+from collections.abc import Mapping
+
+import torch
+from torch import Tensor
+
+from drlyap.checker.arith import F64, Du, Iv, lift
+
+OPS = {"linear", "add", "sub", "mul", "div", "neg", "square", "pow", "tanh", "exp", "identity", "clamp", "sum",
+       "select", "squeeze", "unsqueeze"}
+CONSTANT_ARGS = {"linear": 1, "clamp": 1}
+"""Operations whose inputs from this index on are constant tensors (weights, bias, clamp bounds)."""
+
+
+def _kind_of(z, t: Tensor):
+    """The constant ``t`` as a value of ``z``'s kind (an interval, a dual of ``z``'s level, or a form)."""
+    if hasattr(z, "constant") and not isinstance(z, (Iv, Du)):
+        return z.constant(Iv.point(t.to(F64)))
+    return lift(Iv.point(t.to(F64)), getattr(z, "level", 0), z if getattr(z, "level", 0) > 0 else None)
+
+
+def _apply(op: str, args: list, attrs: Mapping):
+    x = args[0]
+    if op == "linear":
+        return x.linear(args[1], args[2] if len(args) > 2 else None)
+    if op in ("add", "sub", "mul", "div"):
+        y = args[1]
+        return x + y if op == "add" else x - y if op == "sub" else x * y if op == "mul" else x / y
+    if op == "neg":
+        return -x
+    if op == "square":
+        return x.square()
+    if op == "pow":
+        k = int(attrs["n"])
+        if k < 1:
+            raise ValueError(f"pow with exponent {k} is not read")
+        out = x
+        for _ in range(k - 1):
+            out = out * x
+        return out
+    if op == "tanh":
+        return x.tanh()
+    if op == "exp":
+        return x.exp()
+    if op == "identity":
+        return x
+    if op == "clamp":
+        return x.clamp(args[1], args[2])
+    if op == "sum":
+        s = x.sum(-1)
+        return s.unsqueeze(-1) if attrs.get("keepdim") else s
+    if op == "select":
+        return x[:, int(attrs["index"])]
+    if op == "squeeze":
+        return x[:, 0]
+    if op == "unsqueeze":
+        return x.unsqueeze(-1)
+    raise ValueError(f"the checker does not read the operation {op!r}")
+
+
+class GraphNet:
+    """A graph of ``graphs.json`` (``input`` ``z``, ``output``, ``constants``, ``nodes``) with its constants."""
+
+    def __init__(self, spec: Mapping, tensors: Mapping[str, Tensor]) -> None:
+        if spec.get("input") != "z":
+            raise ValueError("a graph's input must be 'z'")
+        self.output = str(spec["output"])
+        self.nodes = [(str(d["op"]), [str(i) for i in d["inputs"]], str(d["output"]), dict(d.get("attrs") or {}))
+                      for d in spec["nodes"]]
+        unknown = sorted({op for op, *_ in self.nodes} - OPS)
+        if unknown:
+            raise ValueError(f"the checker does not read the operations {unknown}")
+        self.constants = {name: _unpacked(tensors, name) for name in spec["constants"]}
+
+    def __call__(self, z):
+        env: dict = {"z": z}
+        for op, inputs, output, attrs in self.nodes:
+            args = [env[name] if name in env else self.constants[name] for name in inputs]
+            fixed = CONSTANT_ARGS.get(op, len(args))
+            if isinstance(args[0], Tensor):  # no input depends on z: its first one as a constant of z's kind
+                args[0] = _kind_of(z, args[0])
+            for i in range(1, fixed):
+                if isinstance(args[i], Tensor):
+                    args[i] = args[i].to(F64)
+            env[output] = _apply(op, args, attrs)
+        return env[self.output]
+
+    def to(self, device: torch.device | str) -> GraphNet:
+        out = copy.copy(self)
+        out.constants = {k: v.to(device) for k, v in self.constants.items()}
+        return out
+
+
+def _unpacked(tensors: Mapping[str, Tensor], name: str) -> Tensor:
+    """A constant, with the infinite bounds of a one-sided clamp restored from its ``#inf`` sign."""
+    t = tensors[name].to(F64)
+    sign = tensors.get(f"{name}#inf")
+    return t if sign is None else torch.where(sign != 0, sign.to(F64) * math.inf, t)
+
+
+class GraphPair:
+    """V and pi of an imported run, from ``graphs.json`` and ``tensors.pt`` (the interface of
+    :class:`~drlyap.checker.model.Pair`)."""
+
+    def __init__(self, graphs: Mapping, tensors: Mapping, n: int) -> None:
+        self.n = n
+        self.controller_net = GraphNet(graphs["controller"], tensors["controller"])
+        spec = graphs["lyapunov"]
+        self.p = None
+        if spec.get("kind") == "quadratic":
+            self.p = tensors["lyapunov"]["P"].to(F64)
+            self.v_net, self.pinned = None, False
+        else:
+            self.v_net, self.pinned = GraphNet(spec, tensors["lyapunov"]), bool(spec.get("pinned"))
+        self._v0 = self._origin() if self.pinned else None
+
+    def _origin(self) -> Iv:
+        device = self.v_net.constants[next(iter(self.v_net.constants))].device if self.v_net.constants else "cpu"
+        return self.v_net(Iv.point(torch.zeros(1, self.n, dtype=F64, device=device)))
+
+    def to(self, device: torch.device | str) -> GraphPair:
+        out = copy.copy(self)
+        out.controller_net = self.controller_net.to(device)
+        if self.v_net is not None:
+            out.v_net = self.v_net.to(device)
+            out._v0 = out._origin() if self.pinned else None
+        if self.p is not None:
+            out.p = self.p.to(device)
+        return out
+
+    def value(self, z):
+        if self.p is not None:
+            return (z.linear(self.p) * z).sum(-1)
+        v = self.v_net(z)
+        return v - self._v0 if self.pinned else v
+
+    def value_and_grad(self, z) -> tuple[object, object]:
+        seeded = Du.seed(z, self.n, list(range(self.n)))
+        out = self.value(seeded)
+        return out.v, torch.stack(out.d, -1)
+
+    def controller(self, z):
+        return self.controller_net(z)
