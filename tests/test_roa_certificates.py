@@ -88,6 +88,10 @@ def test_a_region_certificate_that_claims_more_than_it_proves_fails(tmp_path):
 
     assert "level" in check_with(other_level)
     path.write_text(original)
+    outer = json.loads((folder / "roa.json").read_text())
+    outer["claim"]["condition"]["xi"] = [[0.2, 0.05]]  # the decrease outside the ball at another shift
+    (folder / "roa.json").write_text(json.dumps(outer))
+    assert "another shift" in _check(run, "roa-ball").output
     metrics = json.loads((run / "metrics.json").read_text())
     metrics["certificate"]["roa"]["level"] *= 1.01  # a larger region than the files prove
     (run / "metrics.json").write_text(json.dumps(metrics))

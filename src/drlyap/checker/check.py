@@ -491,12 +491,15 @@ def outer_missing(run_dir: Path, header: dict) -> list[str]:
     region = header["claim"]["region"]
     path = run_dir / "certificates" / f"{header['claim'].get('outer')}.json"
     try:
-        outer = json.loads(path.read_text())["claim"]["region"]
+        claim = json.loads(path.read_text())["claim"]
+        outer, samples = claim["region"], claim["condition"]["xi"]
     except (OSError, ValueError, KeyError, TypeError):
         return [f"the certificate it names for the decrease outside the ball ({path.name}) cannot be read"]
     level, theirs = region.get("level"), outer.get("level")
     if outer.get("delta") != region.get("ball_of") or level is None or theirs is None or not theirs >= level:
         return [f"{path.name} does not prove the decrease outside the ball on {{V <= {level}}}"]
+    if samples != header["claim"]["condition"].get("xi"):
+        return [f"{path.name} is about other samples or another shift than the decrease inside the ball"]
     return []
 
 

@@ -318,8 +318,8 @@ def record_roa(run: Run, ver: RunVerification, proof: ProofConfig) -> list[Path]
     extra = {"ball_of": float(ver.delta), "cube": {"half": ball.cube}, "outer": outer_name}
     if ball.ring is None:  # the cube covers the ball: the claim is the cube's alone
         local = condition.per_sample()
-        written.append(write_certificate(run.path, "roa-ball", None, local, region.ball_box(region.delta), run.system, weights,
-                                         alpha_hat, level=c, extra=extra))
+        written.append(write_certificate(run.path, "roa-ball", None, local, region.ball_box(region.delta),
+                                         run.system, weights, alpha_hat, level=c, extra=extra))
     else:
         written.append(write_certificate(run.path, "roa-ball", ball.ring, ball.condition, ball.region, run.system,
                                          weights, alpha_hat, extra=extra))
