@@ -1,5 +1,6 @@
-"""Certificates of an imported pair: ``drlyap verify`` writes the decrease it proves at a shift, naming the pair by its
-``graphs.json`` and ``tensors.pt``, and ``drlyap check`` re-proves it reading those as data with its own arithmetic."""
+"""Certificates of an imported pair: ``drlyap verify`` writes the decrease it proves at a shift and its region of
+attraction, naming the pair by its ``graphs.json`` and ``tensors.pt``, and ``drlyap check`` re-proves them reading those
+as data with its own arithmetic."""
 
 import json
 import os
@@ -31,13 +32,14 @@ def test_verify_writes_an_imported_pair_s_certificate_and_the_checker_confirms_i
     made = runner.invoke(main, ["import", spec, "--controller", str(tmp_path / "export" / "controller.onnx"),
                                 "--lyapunov", str(tmp_path / "export" / "lyapunov.onnx"), "--out", str(out)])
     assert made.exit_code == 0, made.output
-    proved = runner.invoke(main, ["verify", str(out), "--system", spec, "--xi", "0.1,0.05"])
-    assert proved.exit_code == 0 and "VERIFIED" in proved.output, proved.output
-    assert f"certificate: {out / 'certificates' / 'true-model.json'}" in proved.output
+    proved = runner.invoke(main, ["verify", str(out), "--system", spec, "--xi", "0.1,0.05", "--roa"])
+    assert proved.exit_code == 0 and "VERIFIED" in proved.output and "CERTIFIED" in proved.output, proved.output
+    for name in ("true-model", "roa", "roa-ball"):
+        assert f"certificate: {out / 'certificates' / name}.json" in proved.output
     header = json.loads((out / "certificates" / "true-model.json").read_text())
     assert header["claim"]["condition"]["xi"] == [[0.1, 0.05]] and header["networks"]["alpha_hat"] is None
     checked = runner.invoke(main, ["check", str(out), "--system", spec])
-    assert checked.exit_code == 0 and "true-model: CHECKED" in checked.output, checked.output
+    assert checked.exit_code == 0 and checked.output.count(": CHECKED") == 3, checked.output
     tensors = torch.load(out / "tensors.pt", weights_only=True)
     name = next(iter(tensors["controller"]))
     tensors["controller"][name] = tensors["controller"][name] * (1 + 1e-6)  # another controller

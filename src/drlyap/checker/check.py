@@ -503,13 +503,14 @@ def outer_missing(run_dir: Path, header: dict) -> list[str]:
     return []
 
 
-def _roa_claim(name: str, header: dict, config: dict, metrics: dict, expected: dict) -> tuple[dict, dict, list[str]]:
+def _roa_claim(name: str, header: dict, config: dict, metrics: dict, expected: dict,
+               delta) -> tuple[dict, dict, list[str]]:
     """The condition and region a ``roa`` or ``roa-ball`` certificate must state for the region of attraction
     ``metrics.json`` reports (``certificate.roa``: its level and shift): ``roa`` the run's trained condition, or
     decrease on the true model at the shift, on ``{V <= level}``; ``roa-ball`` plain decrease on the same model at
     each of its samples inside the delta-ball (a strict decay, checked with the cube), naming as ``outer`` a
-    certificate of the same model on ``{V <= c'}``, ``c' >=`` the level. Returns (expected condition fields, expected
-    region fields, other problems)."""
+    certificate of the same model on ``{V <= c'}``, ``c' >=`` the level. ``delta``: the run's. Returns (expected
+    condition fields, expected region fields, other problems)."""
     reported = (metrics.get("certificate") or {}).get("roa") or {}
     xi = reported.get("xi")
     level = reported.get("level", "none reported in metrics.json") if reported.get("certified") else \
@@ -522,7 +523,7 @@ def _roa_claim(name: str, header: dict, config: dict, metrics: dict, expected: d
         if dr:
             condition |= {"wasserstein_radius": config.get("wasserstein_radius"), "risk_level": config.get("risk_level")}
     if name == "roa":
-        return expected | condition, {"delta": config.get("delta"), "level": level}, []
+        return expected | condition, {"delta": delta, "level": level}, []
     claim = header["claim"]
     ball = {"name": "plain", "model": "true" if xi is not None else "design", "xi": condition["xi"],
             "exp_rate": 0.0}
@@ -530,7 +531,7 @@ def _roa_claim(name: str, header: dict, config: dict, metrics: dict, expected: d
     expected = {k: v for k, v in expected.items() if k not in ("decay_rate", "exp_rate", "model")} | ball | {
         "decay_rate": decay if header.get("partition") is not None else 0.0}
     problems = []
-    if claim["region"].get("ball_of") != config.get("delta"):
+    if claim["region"].get("ball_of") != delta:
         problems.append("the ball (not the run's delta)")
     outer = claim.get("outer")
     want = "true-model" if xi is not None else "trained"
@@ -586,7 +587,7 @@ def claim_mismatch(name: str, header: dict, config: dict, metrics: dict) -> list
     if "certificate" in config:  # an imported pair: its claim's decay, level and delta (None: the system's delta)
         wanted = {"delta": delta if config.get("delta") is None else config["delta"], "level": config.get("level")}
     if name in ("roa", "roa-ball"):  # the region of attraction its metrics report, on its model
-        expected, wanted, more = _roa_claim(name, header, config, metrics, expected)
+        expected, wanted, more = _roa_claim(name, header, config, metrics, expected, wanted["delta"])
         problems += more
     expected_region = [k for k in stated if stated[k] != wanted[k]]
     differ = [k for k, v in expected.items() if claim.get(k) != v] + expected_region + problems

@@ -73,7 +73,7 @@ def verify(run_dir: Path, delta: float | None, xi: str | None, time_limit: float
     claim is re-checked by the checker instead of proved again (--reprove: prove it anyway). A long proof keeps its
     progress in RUN_DIR/checkpoints/: the same command, run again after an interruption, resumes it. A pair brought
     with `drlyap import` has no trained condition: its decrease on the true model at --xi (the system's test shift by
-    default) is proved, and written as its certificate where verified.
+    default) is proved, and with --roa its region of attraction; what is verified is written as certificates.
     """
     compute = compute_settings(workers, backend, address, device)
     refuse_early(runs=[run_dir], systems=[system_spec])
@@ -157,11 +157,11 @@ def _verify_imported(run_dir: Path, delta: float | None, xi: str | None, time_li
                      roa_time: float | None, enclosure: str | None, as_json: bool, system_spec: str | None,
                      trust_run: bool, compute: dict, above_level: bool = False) -> None:
     """``drlyap verify`` on an imported pair: decrease on the true model at --xi (the system's test shift by default)
-    and with --roa its region of attraction; the decrease, where verified, is written as its certificate."""
+    and with --roa its region of attraction; what is verified is written as certificates."""
     from drlyap.io import jsonable
     from drlyap.render import verification_lines
     from drlyap.runs import load_imported_run
-    from drlyap.workflows.verify import record_imported_certificate, verify_imported
+    from drlyap.workflows.verify import record_imported_certificates, verify_imported
 
     run = load_imported_run(run_dir, run_system_of(system_spec), trust_run)
     system = run.system
@@ -176,7 +176,7 @@ def _verify_imported(run_dir: Path, delta: float | None, xi: str | None, time_li
     try:
         recheck = command_hint("check", run_dir, source=recorded_source(run_dir))
         written = [f"  certificate: {p} (re-check it with `{recheck}`)"
-                   for p in record_imported_certificate(run_dir, run.info["pair"], result)]
+                   for p in record_imported_certificates(run_dir, run.info["pair"], result, settings.resolved(system))]
     except OSError as err:
         written = [f"  no certificate written: {run_dir} cannot be written ({err.strerror or err})"]
     if as_json:

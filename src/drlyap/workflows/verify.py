@@ -288,57 +288,86 @@ def record_certificates(run: Run, ver: RunVerification) -> list[Path]:
 
 def record_roa(run: Run, ver: RunVerification, proof: ProofConfig) -> list[Path]:
     """Write the certificates of the region of attraction ``ver`` certified by V's own proofs (on the run's own delta),
-    what ``drlyap check`` needs to confirm it: ``roa-ball``, V's decrease on ``{V <= c}`` inside the delta-ball (the
-    second-order cube and the ring's partition), naming the certificate of the decrease outside the ball: the run's
-    ``trained`` or ``true-model`` where that proof is on ``{V <= c'}`` with ``c' >= c``, else ``roa``, a proof of the
-    condition on ``{V <= c}`` made here (``proof``'s budget). Certificates of an earlier region are removed first; none
-    are written for a region the other routes certified (the closed loop's linearisation, the band proof). Returns
-    the headers' paths."""
+    what ``drlyap check`` needs to confirm it (:func:`region_certificates`): ``roa-ball``, naming the run's ``trained``
+    or ``true-model`` for the decrease outside the ball where that proof is on ``{V <= c'}`` with ``c' >= c``, else
+    ``roa``. Returns the headers' paths."""
     roa = ver.roa
     if roa is None or roa.error is not None or float(ver.delta) != float(run.config.delta):
         return []
+    condition = run.condition if roa.xi is None else run.true_condition(roa.xi)
+    outer = ("trained", ver.trained) if roa.xi is None else ("true-model", ver.true_model)
+    return region_certificates(run.path, run.loop, condition, Region.of(run.system, float(ver.delta)), roa, outer,
+                               proof, run.path / "weights.pt", float(run.config.alpha_hat))
+
+
+def region_certificates(folder: Path, loop: ClosedLoop, condition: Condition, region: Region,
+                        roa: RegionOfAttraction, outer: tuple[str, ConditionProof | None], proof: ProofConfig,
+                        weights, alpha_hat: float | None) -> list[Path]:
+    """Write into ``folder`` the certificates of a region of attraction ``roa`` of ``condition`` certified by V's own
+    proofs: ``roa-ball``, V's decrease on ``{V <= c}`` inside the delta-ball (the second-order cube and the ring's
+    partition), naming the certificate of the decrease outside the ball: ``outer`` (its name and proof) where that
+    proof is on ``{V <= c'}`` with ``c' >= c``, else ``roa``, a proof of the condition on ``{V <= c}`` made here
+    (``proof``'s budget). Certificates of an earlier region are removed first; none are written for a region the
+    other routes certified (the closed loop's linearisation, the band proof). ``weights``, ``alpha_hat``: as
+    :func:`~drlyap.runs.certificates.write_certificate` takes them. Returns the headers' paths."""
     for name in ("roa-ball", "roa"):
-        remove_certificate(run.path, name)
+        remove_certificate(folder, name)
     if not roa.certified or roa.ball is None or roa.level is None:
         return []
     c = float(roa.level)
-    condition = run.condition if roa.xi is None else run.true_condition(roa.xi)
-    region = Region.of(run.system, float(ver.delta))
-    weights, alpha_hat = run.path / "weights.pt", float(run.config.alpha_hat)
     written = []
-    outer_name, outer = ("trained", ver.trained) if roa.xi is None else ("true-model", ver.true_model)
-    if not (isinstance(outer, ConditionProof) and outer.verified and outer.level is not None and outer.level >= c
-            and (outer.partition is not None or outer.source == "certificate")):
+    outer_name, found = outer
+    if not (isinstance(found, ConditionProof) and found.verified and found.level is not None and found.level >= c
+            and (found.partition is not None or found.source == "certificate")):
         outer_name = "roa"
-        outer = verify_condition(run.loop, condition, region, proof.budget(), level=c, keep_partition=True)
-        if not outer.verified:
+        found = verify_condition(loop, condition, region, proof.budget(), level=c, keep_partition=True)
+        if not found.verified:
             return []
-        written.append(write_certificate(run.path, "roa", outer, condition, region, run.system, weights, alpha_hat))
+        written.append(write_certificate(folder, "roa", found, condition, region, loop.system, weights, alpha_hat))
     ball = roa.ball
-    extra = {"ball_of": float(ver.delta), "cube": {"half": ball.cube}, "outer": outer_name}
+    extra = {"ball_of": float(region.delta), "cube": {"half": ball.cube}, "outer": outer_name}
     if ball.ring is None:  # the cube covers the ball: the claim is the cube's alone
-        local = condition.per_sample()
-        written.append(write_certificate(run.path, "roa-ball", None, local, region.ball_box(region.delta),
-                                         run.system, weights, alpha_hat, level=c, extra=extra))
+        written.append(write_certificate(folder, "roa-ball", None, condition.per_sample(),
+                                         region.ball_box(region.delta), loop.system, weights, alpha_hat, level=c,
+                                         extra=extra))
     else:
-        written.append(write_certificate(run.path, "roa-ball", ball.ring, ball.condition, ball.region, run.system,
+        written.append(write_certificate(folder, "roa-ball", ball.ring, ball.condition, ball.region, loop.system,
                                          weights, alpha_hat, extra=extra))
     return written
 
 
-def record_imported_certificate(run_dir: str | Path, pair, ver: RunVerification) -> list[Path]:
-    """Write the certificate ``true-model`` of an imported pair's verified decrease at a shift
-    (:func:`verify_imported`) into its run directory, naming the pair by ``graphs.json`` and ``tensors.pt`` (the
-    checker reads those as data); an earlier one is removed first. Returns the header's path, or nothing."""
+def record_imported_certificates(run_dir: str | Path, pair, ver: RunVerification, proof: ProofConfig) -> list[Path]:
+    """Write the certificates of what :func:`verify_imported` proved about an imported pair, naming the pair by its
+    ``graphs.json`` and ``tensors.pt`` (the checker reads those as data): ``true-model`` for its verified decrease at
+    the shift, and with a region of attraction certified by V's own proofs its ``roa-ball`` (and ``roa``:
+    :func:`region_certificates`), whose level and shift are kept in the run's ``metrics.json`` (``certificate.roa``)
+    for the checker to compare. Earlier ones are removed first. Returns the headers' paths."""
+    import json
+    import os
+
+    from drlyap.io import write_json
+
     run_dir = Path(run_dir)
     remove_certificate(run_dir, "true-model")
-    proof = ver.true_model
-    if not (isinstance(proof, ConditionProof) and proof.verified and proof.partition is not None):
-        return []
     system = pair.loop.system
-    condition = TrueDecrease(system.check_xi(proof.xi)[None], decay_rate=pair.decay_rate, exp_rate=pair.exp_rate)
-    return [write_certificate(run_dir, "true-model", proof, condition, Region.of(system, float(ver.delta)), system,
-                              [run_dir / "graphs.json", run_dir / "tensors.pt"], None)]
+    found = ver.true_model
+    xi = system.check_xi(found.xi)[None]
+    condition = TrueDecrease(xi, decay_rate=pair.decay_rate, exp_rate=pair.exp_rate)
+    region = Region.of(system, float(ver.delta))
+    files = [run_dir / "graphs.json", run_dir / "tensors.pt"]
+    written = []
+    if isinstance(found, ConditionProof) and found.verified and found.partition is not None:
+        written.append(write_certificate(run_dir, "true-model", found, condition, region, system, files, None))
+    else:
+        found = None
+    if ver.roa is not None and ver.roa.error is None:
+        metrics = json.loads((run_dir / "metrics.json").read_text())
+        metrics["certificate"] = {"roa": jsonable({**ver.roa.to_dict(), "xi": ver.roa.xi})}
+        write_json(run_dir / ".metrics.json.tmp", metrics)
+        os.replace(run_dir / ".metrics.json.tmp", run_dir / "metrics.json")
+        written += region_certificates(run_dir, pair.loop, condition, region, ver.roa, ("true-model", found), proof,
+                                       files, None)
+    return written
 
 
 def run_robustness(run: Run, delta: float | None = None, tol: float = 0.01, budget: Budget = SEARCH_BUDGET,
