@@ -130,3 +130,13 @@ def test_every_claim_of_one_verify_on_a_user_system_has_a_certificate_the_checke
     checked = _check(run)
     assert checked.exit_code == 0, checked.output
     assert sorted(line.split(":")[0] for line in checked.output.splitlines() if ": CHECKED" in line) == sorted(names)
+
+
+def test_a_certified_region_without_a_certificate_file_says_so():
+    from drlyap.render import unwritten_region_line
+    from drlyap.verification import RegionOfAttraction
+
+    band = RegionOfAttraction(level=0.04, kind="region of attraction", certified=True, local={"method": "band"})
+    assert "(band) is not written yet" in unwritten_region_line(band, [])
+    assert unwritten_region_line(band, ["RUN/certificates/roa-ball.json"]) is None
+    assert unwritten_region_line(RegionOfAttraction(level=0.0), []) is None  # nothing certified, nothing to say

@@ -9,6 +9,7 @@ their wording from here; none of them decides again from the numbers what was pr
 from __future__ import annotations
 
 import math
+from pathlib import Path
 
 from drlyap.claims import level_text, of_region
 from drlyap.io import proved_percent
@@ -147,6 +148,15 @@ def roa_line(r: RegionOfAttraction, true_model: bool) -> str:
     elif quad:
         line += f"\n  the closed loop's own quadratic certificate: none ({quad['reason']})"
     return line
+
+
+def unwritten_region_line(roa: RegionOfAttraction | None, written: list) -> str | None:
+    """Where a certified region of attraction has no certificate among the files ``written`` (its route is the
+    linearisation or the band proof, whose proofs are not written yet): the line that says so, else None."""
+    if roa is None or not roa.certified or any(Path(p).name == "roa-ball.json" for p in written):
+        return None
+    return (f"  no certificate file for the region of attraction: its route ({roa.method}) is not written yet, only "
+            "V's own second-order route is (drlyap check cannot re-check this region)")
 
 
 def verification_lines(ver: RunVerification, system: str, method: str) -> list[str]:

@@ -79,7 +79,7 @@ def verify(run_dir: Path, delta: float | None, xi: str | None, time_limit: float
     refuse_early(runs=[run_dir], systems=[system_spec])
 
     from drlyap.io import jsonable
-    from drlyap.render import verification_lines
+    from drlyap.render import unwritten_region_line, verification_lines
     from drlyap.runs import load_run, read_run_kind
     from drlyap.workflows.verify import (
         clear_checkpoints,
@@ -126,8 +126,9 @@ def verify(run_dir: Path, delta: float | None, xi: str | None, time_limit: float
                 stored = f"  not stored: {run.path / 'metrics.json'} cannot be written ({err.strerror or err})"
         try:
             recheck = command_hint("check", run_dir, source=recorded_source(run_dir))
-            written = [f"  certificate: {p} (re-check it with `{recheck}`)" for p in
-                       record_certificates(run, result) + record_roa(run, result, settings)]
+            paths = record_certificates(run, result) + record_roa(run, result, settings)
+            written = [f"  certificate: {p} (re-check it with `{recheck}`)" for p in paths]
+            written += [line for line in [unwritten_region_line(result.roa, paths)] if line]
         except OSError as err:
             written = [f"  no certificate written: {run.path} cannot be written ({err.strerror or err})"]
         if max_radius:
@@ -159,7 +160,7 @@ def _verify_imported(run_dir: Path, delta: float | None, xi: str | None, time_li
     """``drlyap verify`` on an imported pair: decrease on the true model at --xi (the system's test shift by default)
     and with --roa its region of attraction; what is verified is written as certificates."""
     from drlyap.io import jsonable
-    from drlyap.render import verification_lines
+    from drlyap.render import unwritten_region_line, verification_lines
     from drlyap.runs import load_imported_run
     from drlyap.workflows.verify import record_imported_certificates, verify_imported
 
@@ -175,8 +176,9 @@ def _verify_imported(run_dir: Path, delta: float | None, xi: str | None, time_li
                              above_level=above_level)
     try:
         recheck = command_hint("check", run_dir, source=recorded_source(run_dir))
-        written = [f"  certificate: {p} (re-check it with `{recheck}`)"
-                   for p in record_imported_certificates(run_dir, run.info["pair"], result, settings.resolved(system))]
+        paths = record_imported_certificates(run_dir, run.info["pair"], result, settings.resolved(system))
+        written = [f"  certificate: {p} (re-check it with `{recheck}`)" for p in paths]
+        written += [line for line in [unwritten_region_line(result.roa, paths)] if line]
     except OSError as err:
         written = [f"  no certificate written: {run_dir} cannot be written ({err.strerror or err})"]
     if as_json:
