@@ -75,7 +75,11 @@ def test_a_violation_stops_the_workers_and_they_go_on_with_the_next_proof(pendul
                             Budget(seconds=600, batch=64, compute=Compute(workers=2))).status == "verified"
 
 
-def test_the_checker_accepts_a_certificate_proved_by_workers_and_checks_with_workers(pendulum_loop, tmp_path):
+def test_the_checker_accepts_a_certificate_proved_by_workers_and_checks_with_workers(pendulum_loop, tmp_path,
+                                                                                   monkeypatch):
+    import drlyap.checker.check as check
+
+    monkeypatch.setattr(check, "LEAF_CHUNK", 256)  # several chunks, each with its own bisection budget
     loop, condition, region = pendulum_loop
     proof = verify_condition(loop, condition, region, Budget(seconds=600, batch=64, compute=Compute(workers=2)))
     torch.save({"lyapunov": loop.lyapunov.state_dict(), "controller": loop.controller.state_dict()},
@@ -84,11 +88,14 @@ def test_the_checker_accepts_a_certificate_proved_by_workers_and_checks_with_wor
                       loop.lyapunov.alpha_hat)
     header, arrays = read_certificate(tmp_path, "trained")
     weights = torch.load(tmp_path / "weights.pt", weights_only=True)
+    results = []
     for compute in (Compute(), Compute(workers=2)):
         res = check_certificate(tmp_path, "trained", header, arrays, loop.system, weights,
                                 sha256_file(tmp_path / "weights.pt"), system_digest(loop.system), compute=compute)
         assert res.ok, res.failures
         assert res.proved == int((torch.as_tensor(arrays["verdict"]) == 1).sum())
+        results.append((res.proved, res.refined, res.pieces))
+    assert results[0] == results[1]  # the same chunks, the same bisections, wherever they are bounded
 
 
 def test_a_worker_failure_is_an_error_that_names_it(pendulum_loop):

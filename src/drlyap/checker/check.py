@@ -48,6 +48,7 @@ from drlyap.checker.record import drop_record, fingerprint, write_record
 from drlyap.claims import claim_sentence
 from drlyap.config import Compute
 from drlyap.parallel import check_device, pool_for
+from drlyap.progress import progress as show_progress
 
 INTERNAL, PROVED, INSIDE_BALL, ABOVE_LEVEL = 0, 1, 2, 3
 
@@ -285,25 +286,39 @@ class LeafJob:
                 "pieces": torch.tensor([pieces])}
 
 
+LEAF_CHUNK = 16_384
+"""Leaves bounded per job (each its own piece budget for bisection, :func:`prove_boxes`): the same chunks here and on
+any number of workers, so the verdict never depends on where they are bounded."""
+
+
 def prove_leaves(job: LeafJob, lo: Tensor, hi: Tensor, above: Tensor, compute: Compute = Compute(),
-                 chunk: int = 8192) -> tuple[Tensor, Tensor, int, int]:
-    """:func:`prove_boxes` of ``job`` on every leaf, here or (``compute`` with workers) on worker processes, a few
-    chunks of ``chunk`` leaves per worker in flight at a time; the same four results."""
+                 desc: str = "check: leaves") -> tuple[Tensor, Tensor, int, int]:
+    """:func:`prove_boxes` of ``job`` on every leaf in chunks of :data:`LEAF_CHUNK`, here or (``compute`` with workers)
+    on worker processes, two chunks per worker in flight; the same four results. Progress on stderr as ``desc``
+    where ``compute.progress``."""
     pool = pool_for(compute)
-    if pool is None:
-        out = job.on(compute.device)(lo, hi, above)
-    else:
-        size = chunk * pool.workers
-        starts = list(range(0, lo.shape[0], size))
-        parts, flight = [], []
-        for i in starts:
-            flight.append(pool.submit(job, lo[i:i + size], hi[i:i + size], above[i:i + size]))
-            if len(flight) > 1:
-                parts.append(flight.pop(0).result())
-        parts += [p.result() for p in flight]
-        if not parts:
-            return torch.zeros(0, dtype=torch.bool), torch.zeros(0, dtype=F64), 0, 0
-        out = {k: torch.cat([p[k] for p in parts]) for k in parts[0]}
+    starts = list(range(0, lo.shape[0], LEAF_CHUNK))
+    bar = show_progress(int(lo.shape[0]), desc, compute.progress)
+    parts, flight = [], []
+    local = job.on(compute.device) if pool is None else None
+    for i in starts:
+        part = (lo[i:i + LEAF_CHUNK], hi[i:i + LEAF_CHUNK], above[i:i + LEAF_CHUNK])
+        if pool is None:
+            parts.append(local(*part))
+            bar.update(int(part[0].shape[0]))
+            continue
+        flight.append((pool.submit(job, *part), int(part[0].shape[0])))
+        if len(flight) > 2 * pool.workers:
+            future, count = flight.pop(0)
+            parts.append(future.result())
+            bar.update(count)
+    for future, count in flight:
+        parts.append(future.result())
+        bar.update(count)
+    bar.close()
+    if not parts:
+        return torch.zeros(0, dtype=torch.bool), torch.zeros(0, dtype=F64), 0, 0
+    out = {k: torch.cat([p[k] for p in parts]) for k in parts[0]}
     return out["ok"], out["centre_low"], int(out["refined"].sum()), int(out["pieces"].sum())
 
 
@@ -399,7 +414,7 @@ def check_certificate(run_dir: str | Path, name: str, header: dict, arrays: dict
     cheap_first = header["partition"].get("enclosure") in ("interval", "mean-value")  # an order, as for ``above``
     job = LeafJob(residual, hi - lo, refine, level, cheap_first)
     ok, centre_low, out.refined, out.pieces = prove_leaves(job, blo[proved], bhi[proved], verdict[proved] == ABOVE_LEVEL,
-                                                           compute)
+                                                           compute, f"check ({name}): leaves")
     out.proved = int(ok.sum())
     if not bool(ok.all()):
         first = proved[~ok][0]
