@@ -1,0 +1,124 @@
+"""Whether a certificate's claim is the run's (``drlyap check``'s first question, beside the boxes): the condition,
+region and level each certificate must state for what ``config.json`` and ``metrics.json`` say the run was trained
+for and was shown to satisfy, so that a file proving a weaker or another claim is not taken for the run's, and that
+a region's certificate inside the ball names one outside it about the same claim. Read as JSON: nothing is bounded
+here."""
+
+from __future__ import annotations
+
+import json
+import math
+from pathlib import Path
+
+
+def outer_missing(run_dir: Path, header: dict) -> list[str]:
+    """Where the certificate a ``roa-ball`` names for the decrease outside the ball (``outer``) does not cover its
+    region: missing, on another delta or a lower level (that certificate is checked on its own)."""
+
+    region = header["claim"]["region"]
+    path = run_dir / "certificates" / f"{header['claim'].get('outer')}.json"
+    try:
+        claim = json.loads(path.read_text())["claim"]
+        outer, samples = claim["region"], claim["condition"]["xi"]
+    except (OSError, ValueError, KeyError, TypeError):
+        return [f"the certificate it names for the decrease outside the ball ({path.name}) cannot be read"]
+    level, theirs = region.get("level"), outer.get("level")
+    if outer.get("delta") != region.get("ball_of") or level is None or theirs is None or not theirs >= level:
+        return [f"{path.name} does not prove the decrease outside the ball on {{V <= {level}}}"]
+    if samples != header["claim"]["condition"].get("xi"):
+        return [f"{path.name} is about other samples or another shift than the decrease inside the ball"]
+    return []
+
+
+def _roa_claim(name: str, header: dict, config: dict, metrics: dict, expected: dict,
+               delta) -> tuple[dict, dict, list[str]]:
+    """The condition and region a ``roa`` or ``roa-ball`` certificate must state for the region of attraction
+    ``metrics.json`` reports (``certificate.roa``: its level and shift): ``roa`` the run's trained condition, or
+    decrease on the true model at the shift, on ``{V <= level}``; ``roa-ball`` plain decrease on the same model at
+    each of its samples inside the delta-ball (a strict decay, checked with the cube), naming as ``outer`` a
+    certificate of the same model on ``{V <= c'}``, ``c' >=`` the level. ``delta``: the run's. Returns (expected
+    condition fields, expected region fields, other problems)."""
+    reported = (metrics.get("certificate") or {}).get("roa") or {}
+    xi = reported.get("xi")
+    level = reported.get("level", "none reported in metrics.json") if reported.get("certified") else \
+        "no certified region reported in metrics.json"
+    dr = config.get("method") == "dr"
+    if xi is not None:
+        condition = {"name": "true", "model": "true", "xi": [list(map(float, xi))]}
+    else:
+        condition = {"name": (config.get("loss") if dr else "nominal"), "xi": metrics.get("xi_train")}
+        if dr:
+            condition |= {"wasserstein_radius": config.get("wasserstein_radius"), "risk_level": config.get("risk_level")}
+    if name == "roa":
+        return expected | condition, {"delta": delta, "level": level}, []
+    claim = header["claim"]
+    ball = {"name": "plain", "model": "true" if xi is not None else "design", "xi": condition["xi"],
+            "exp_rate": 0.0}
+    decay = claim["condition"].get("decay_rate")
+    expected = {k: v for k, v in expected.items() if k not in ("decay_rate", "exp_rate", "model")} | ball | {
+        "decay_rate": decay if header.get("partition") is not None else 0.0}
+    problems = []
+    if claim["region"].get("ball_of") != delta:
+        problems.append("the ball (not the run's delta)")
+    outer = claim.get("outer")
+    want = "true-model" if xi is not None else "trained"
+    if outer not in ("roa", want):
+        problems.append(f"outer (names {outer!r}, not roa or {want})")
+    return expected, {"delta": claim["region"].get("delta"), "level": level}, problems
+
+
+def claim_mismatch(name: str, header: dict, config: dict, metrics: dict) -> list[str]:
+    """Where a certificate's claim is not the run's: for ``trained``, the condition the run was trained on (method
+    and loss, radius, risk level, decay, samples, delta, level); for ``true-model``, the run's decay and the shift
+    its metrics report the decrease at (where they report one); for ``radius``, the DR pointwise condition at the
+    run's risk level, decay and samples (all of them) at the certified radius its metrics report; for ``shift-box``,
+    decrease on the true model with the run's decay for every shift in the box its metrics report. A certificate that
+    proves a weaker condition than the run's is then not taken for the run's."""
+    try:
+        claim = header["claim"]["condition"]
+        region = header["claim"]["region"]
+    except (KeyError, TypeError):
+        return ["the header has no claim"]
+    expected = {"decay_rate": float(config.get("decay_rate") or 0.0), "exp_rate": float(config.get("exp_rate") or 0.0),
+                "model": "true" if name in ("true-model", "shift-box") else "design"}
+    problems = []
+    if header.get("networks", {}).get("alpha_hat") != config.get("alpha_hat"):
+        problems.append("alpha_hat")
+    delta, level = region.get("delta"), region.get("level")
+    if not (isinstance(delta, (int, float)) and math.isfinite(delta) and delta >= 0):
+        problems.append("delta (not a finite number >= 0)")
+    if level is not None and not (isinstance(level, (int, float)) and math.isfinite(level)):
+        problems.append("level (not finite)")
+    if name == "trained":
+        dr = config.get("method") == "dr"
+        expected |= {"name": (config.get("loss") if dr else "nominal"), "xi": metrics.get("xi_train")}
+        if dr:
+            expected |= {"wasserstein_radius": config.get("wasserstein_radius"), "risk_level": config.get("risk_level")}
+    elif name == "radius":  # the DR pointwise condition at all the run's samples, at the radius its metrics report
+        reported = (metrics.get("certificate") or {}).get("radius") or {}
+        expected |= {"name": "pointwise", "xi": metrics.get("xi_samples"), "risk_level": config.get("risk_level"),
+                     "wasserstein_radius": reported.get("radius", "none reported in metrics.json")}
+    elif name == "shift-box":  # every shift in the box its metrics report, [-s* scale, s* scale]
+        reported = (metrics.get("certificate") or {}).get("shift_box") or {}
+        half = [float(reported["s"]) * float(w) for w in reported.get("scale") or []] if "s" in reported else None
+        expected |= {"name": "true", "xi": None,
+                     "xi_box": "none reported in metrics.json" if half is None else
+                     {"low": [[-h for h in half]], "high": [half]}}
+    else:
+        expected |= {"name": "true"}
+        reported = (metrics.get("certificate") or {}).get("true_model") or {}
+        if reported.get("xi") is not None:  # the shift the run reports its decrease and region at
+            expected |= {"xi": [list(map(float, reported["xi"]))]}
+    stated = {"delta": delta, "level": level}
+    wanted = {"delta": config.get("delta"), "level": config.get("roa_level")}
+    if "certificate" in config:  # an imported pair: its claim's decay, level and delta (None: the system's delta)
+        wanted = {"delta": delta if config.get("delta") is None else config["delta"], "level": config.get("level")}
+    if name in ("roa", "roa-ball"):  # the region of attraction its metrics report, on its model
+        expected, wanted, more = _roa_claim(name, header, config, metrics, expected, wanted["delta"])
+        problems += more
+    expected_region = [k for k in stated if stated[k] != wanted[k]]
+    differ = [k for k, v in expected.items() if claim.get(k) != v] + expected_region + problems
+    if not differ:
+        return []
+    return [f"the certificate's claim is not the run's {name.replace('-', ' ')} condition ({', '.join(differ)} "
+            "differ from config.json / metrics.json)"]
