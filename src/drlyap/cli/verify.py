@@ -128,9 +128,9 @@ def verify(run_dir: Path, delta: float | None, xi: str | None, time_limit: float
             recheck = command_hint("check", run_dir, source=recorded_source(run_dir))
             paths = record_certificates(run, result) + record_roa(run, result, settings)
             written = [f"  certificate: {p} (re-check it with `{recheck}`)" for p in paths]
-            written += [line for line in [unwritten_region_line(result.roa, paths)] if line]
+            unwritten = unwritten_region_line(result.roa, paths)
         except OSError as err:
-            written = [f"  no certificate written: {run.path} cannot be written ({err.strerror or err})"]
+            written, unwritten = [f"  no certificate written: {run.path} cannot be written ({err.strerror or err})"], None
         if max_radius:
             result.robustness = run_robustness(run, delta=delta, tol=radius_tol, budget=settings.budget(),
                                                total_time=8 * settings.time_limit, trained=result.trained)
@@ -140,6 +140,7 @@ def verify(run_dir: Path, delta: float | None, xi: str | None, time_limit: float
             except OSError as err:
                 written.append(f"  the radius and shift box not stored: {run.path} cannot be written "
                                f"({err.strerror or err})")
+        written += [unwritten] if unwritten else []
         clear_checkpoints(run)
     except ValueError as err:
         fail(err)
