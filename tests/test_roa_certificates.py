@@ -92,6 +92,9 @@ def test_a_region_certificate_that_claims_more_than_it_proves_fails(tmp_path):
     outer["claim"]["condition"]["xi"] = [[0.2, 0.05]]  # the decrease outside the ball at another shift
     (folder / "roa.json").write_text(json.dumps(outer))
     assert "another shift" in _check(run, "roa-ball").output
+    outer["claim"]["condition"] |= {"xi": [[0.1, 0.05]], "decay_rate": 0.0}  # Vdot <= 0 only: rest points possible
+    (folder / "roa.json").write_text(json.dumps(outer))
+    assert "not strict" in _check(run, "roa-ball").output
     metrics = json.loads((run / "metrics.json").read_text())
     metrics["certificate"]["roa"]["level"] *= 1.01  # a larger region than the files prove
     (run / "metrics.json").write_text(json.dumps(metrics))

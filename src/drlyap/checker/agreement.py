@@ -13,12 +13,14 @@ from pathlib import Path
 
 def outer_missing(run_dir: Path, header: dict) -> list[str]:
     """Where the certificate a ``roa-ball`` names for the decrease outside the ball (``outer``) does not cover its
-    region: missing, on another delta or a lower level (that certificate is checked on its own)."""
+    region: missing, on another delta or a lower level, about other samples, or a decrease that is not strict (that
+    certificate's boxes are checked on their own)."""
 
     region = header["claim"]["region"]
     path = run_dir / "certificates" / f"{header['claim'].get('outer')}.json"
     try:
-        claim = json.loads(path.read_text())["claim"]
+        outer_header = json.loads(path.read_text())
+        claim = outer_header["claim"]
         outer, samples = claim["region"], claim["condition"]["xi"]
     except (OSError, ValueError, KeyError, TypeError):
         return [f"the certificate it names for the decrease outside the ball ({path.name}) cannot be read"]
@@ -27,7 +29,19 @@ def outer_missing(run_dir: Path, header: dict) -> list[str]:
         return [f"{path.name} does not prove the decrease outside the ball on {{V <= {level}}}"]
     if samples != header["claim"]["condition"].get("xi"):
         return [f"{path.name} is about other samples or another shift than the decrease inside the ball"]
+    if not _strict(claim["condition"], outer_header.get("networks") or {}):
+        return [f"{path.name}'s decrease is not strict (no decay gamma ||z||, and no alpha V with V > 0 away from x* "
+                "by its form): V's decrease outside the ball does not rule out rest points there"]
     return []
+
+
+def _strict(condition: dict, networks: dict) -> bool:
+    """Whether a decrease condition makes ``Vdot < 0`` away from x*: a decay ``gamma ||z||`` with ``gamma > 0``, or
+    ``alpha V`` with ``alpha > 0`` and V positive away from x* by its form (drlyap's V with ``alpha_hat > 0``; an
+    imported V's positivity is not the checker's)."""
+    gamma, alpha = float(condition.get("decay_rate") or 0.0), float(condition.get("exp_rate") or 0.0)
+    alpha_hat = networks.get("alpha_hat")
+    return gamma > 0 or (alpha > 0 and isinstance(alpha_hat, (int, float)) and alpha_hat > 0)
 
 
 def _roa_claim(name: str, header: dict, config: dict, metrics: dict, expected: dict,
