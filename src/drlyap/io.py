@@ -5,6 +5,7 @@ from __future__ import annotations
 import dataclasses
 import json
 import math
+import os
 from pathlib import Path
 
 
@@ -23,6 +24,14 @@ def write_json(path: Path, data: dict) -> None:
     """Write ``data`` as indented strict JSON (NaN and inf become null)."""
     data = jsonable(data)
     path.write_text(json.dumps(data, indent=2, sort_keys=False) + "\n")
+
+
+def write_json_atomic(path: Path, data: dict) -> None:
+    """:func:`write_json` to a temporary sibling, then renamed over ``path``: a reader sees the old file or the new
+    one, never half of one."""
+    tmp = path.with_name(f".{path.name}.tmp")
+    write_json(tmp, data)
+    os.replace(tmp, path)
 
 
 def proved_percent(fraction: float, verified: bool, decimals: int = 2) -> str:

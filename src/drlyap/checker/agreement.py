@@ -44,6 +44,15 @@ def _strict(condition: dict, networks: dict) -> bool:
     return gamma > 0 or (alpha > 0 and isinstance(alpha_hat, (int, float)) and alpha_hat > 0)
 
 
+def _trained_condition(config: dict, metrics: dict) -> dict:
+    """The fields of the condition a run was trained on, as its certificates state them: the DR loss with its radius
+    and risk level, or the nominal condition, at the training samples."""
+    if config.get("method") != "dr":
+        return {"name": "nominal", "xi": metrics.get("xi_train")}
+    return {"name": config.get("loss"), "xi": metrics.get("xi_train"),
+            "wasserstein_radius": config.get("wasserstein_radius"), "risk_level": config.get("risk_level")}
+
+
 def _roa_claim(name: str, header: dict, config: dict, metrics: dict, expected: dict,
                delta) -> tuple[dict, dict, list[str]]:
     """The condition and region a ``roa`` or ``roa-ball`` certificate must state for the region of attraction
@@ -56,13 +65,8 @@ def _roa_claim(name: str, header: dict, config: dict, metrics: dict, expected: d
     xi = reported.get("xi")
     level = reported.get("level", "none reported in metrics.json") if reported.get("certified") else \
         "no certified region reported in metrics.json"
-    dr = config.get("method") == "dr"
-    if xi is not None:
-        condition = {"name": "true", "model": "true", "xi": [list(map(float, xi))]}
-    else:
-        condition = {"name": (config.get("loss") if dr else "nominal"), "xi": metrics.get("xi_train")}
-        if dr:
-            condition |= {"wasserstein_radius": config.get("wasserstein_radius"), "risk_level": config.get("risk_level")}
+    condition = {"name": "true", "model": "true", "xi": [list(map(float, xi))]} if xi is not None else \
+        _trained_condition(config, metrics)
     if name == "roa":
         return expected | condition, {"delta": delta, "level": level}, []
     claim = header["claim"]
@@ -104,10 +108,7 @@ def claim_mismatch(name: str, header: dict, config: dict, metrics: dict) -> list
     if level is not None and not (isinstance(level, (int, float)) and math.isfinite(level)):
         problems.append("level (not finite)")
     if name == "trained":
-        dr = config.get("method") == "dr"
-        expected |= {"name": (config.get("loss") if dr else "nominal"), "xi": metrics.get("xi_train")}
-        if dr:
-            expected |= {"wasserstein_radius": config.get("wasserstein_radius"), "risk_level": config.get("risk_level")}
+        expected |= _trained_condition(config, metrics)
     elif name == "radius":  # the DR pointwise condition at all the run's samples, at the radius its metrics report
         reported = (metrics.get("certificate") or {}).get("radius") or {}
         expected |= {"name": "pointwise", "xi": metrics.get("xi_samples"), "risk_level": config.get("risk_level"),

@@ -14,25 +14,24 @@ pinned it (``pinned``), or ``z^T P z`` for the quadratic V of a controller impor
 from __future__ import annotations
 
 import copy
-import math
 from collections.abc import Mapping
 
 import torch
 from torch import Tensor
 
+from drlyap.checker.affine import Af
 from drlyap.checker.arith import F64, Du, Iv, lift
+from drlyap.runs.validate import restore_infinite
 
 OPS = {"linear", "add", "sub", "mul", "div", "neg", "square", "pow", "tanh", "exp", "identity", "clamp", "sum",
        "select", "squeeze", "unsqueeze"}
-CONSTANT_ARGS = {"linear": 1, "clamp": 1}
-"""Operations whose inputs from this index on are constant tensors (weights, bias, clamp bounds)."""
 
 
 def _kind_of(z, t: Tensor):
     """The constant ``t`` as a value of ``z``'s kind (an interval, a dual of ``z``'s level, or a form)."""
-    if hasattr(z, "constant") and not isinstance(z, (Iv, Du)):
-        return z.constant(Iv.point(t.to(F64)))
-    return lift(Iv.point(t.to(F64)), getattr(z, "level", 0), z if getattr(z, "level", 0) > 0 else None)
+    if isinstance(z, Af):
+        return z.constant(Iv.point(t))
+    return lift(Iv.point(t), z.level, z if z.level > 0 else None)
 
 
 def _apply(op: str, args: list, attrs: Mapping):
@@ -47,13 +46,7 @@ def _apply(op: str, args: list, attrs: Mapping):
     if op == "square":
         return x.square()
     if op == "pow":
-        k = int(attrs["n"])
-        if k < 1:
-            raise ValueError(f"pow with exponent {k} is not read")
-        out = x
-        for _ in range(k - 1):
-            out = out * x
-        return out
+        return x ** int(attrs["n"])
     if op == "tanh":
         return x.tanh()
     if op == "exp":
@@ -86,18 +79,15 @@ class GraphNet:
         unknown = sorted({op for op, *_ in self.nodes} - OPS)
         if unknown:
             raise ValueError(f"the checker does not read the operations {unknown}")
-        self.constants = {name: _unpacked(tensors, name) for name in spec["constants"]}
+        restored = restore_infinite(dict(tensors))
+        self.constants = {name: restored[name].to(F64) for name in spec["constants"]}
 
     def __call__(self, z):
         env: dict = {"z": z}
         for op, inputs, output, attrs in self.nodes:
             args = [env[name] if name in env else self.constants[name] for name in inputs]
-            fixed = CONSTANT_ARGS.get(op, len(args))
             if isinstance(args[0], Tensor):  # no input depends on z: its first one as a constant of z's kind
                 args[0] = _kind_of(z, args[0])
-            for i in range(1, fixed):
-                if isinstance(args[i], Tensor):
-                    args[i] = args[i].to(F64)
             env[output] = _apply(op, args, attrs)
         return env[self.output]
 
@@ -105,13 +95,6 @@ class GraphNet:
         out = copy.copy(self)
         out.constants = {k: v.to(device) for k, v in self.constants.items()}
         return out
-
-
-def _unpacked(tensors: Mapping[str, Tensor], name: str) -> Tensor:
-    """A constant, with the infinite bounds of a one-sided clamp restored from its ``#inf`` sign."""
-    t = tensors[name].to(F64)
-    sign = tensors.get(f"{name}#inf")
-    return t if sign is None else torch.where(sign != 0, sign.to(F64) * math.inf, t)
 
 
 class GraphPair:

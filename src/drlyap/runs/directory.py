@@ -31,7 +31,7 @@ from torch import Tensor
 from drlyap.closed_loop import ClosedLoop
 from drlyap.conditions import Condition
 from drlyap.config import ProofConfig, legacy_proof
-from drlyap.io import write_json
+from drlyap.io import write_json, write_json_atomic
 from drlyap.networks import Controller, Lyapunov
 from drlyap.regions import Region
 from drlyap.runs.certificates import write_certificate
@@ -149,9 +149,7 @@ class Run:
 
     def save_metrics(self) -> None:
         """Rewrite ``metrics.json`` (atomically, via a temporary file)."""
-        tmp = self.path / ".metrics.json.tmp"
-        write_json(tmp, self.metrics)
-        os.replace(tmp, self.path / "metrics.json")
+        write_json_atomic(self.path / "metrics.json", self.metrics)
 
 
 def load_run(path: str | os.PathLike, system: UncertainSystem | None = None, trust: bool = False) -> Run:

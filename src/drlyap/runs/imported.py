@@ -43,7 +43,7 @@ from drlyap.networks import QuadraticLyapunov, origin_like
 from drlyap.runs.directory import RunDirError, atomic_dir, read_run_json, run_record, run_system
 from drlyap.runs.policies import PolicyRun
 from drlyap.runs.publish import check_writable
-from drlyap.runs.validate import load_weights
+from drlyap.runs.validate import load_weights, restore_infinite
 from drlyap.systems import UncertainSystem, resolve_system, system_source
 from drlyap.verification.linearisation import is_hurwitz, lyapunov_matrix
 
@@ -291,15 +291,6 @@ def _pack(tensors: dict[str, Tensor]) -> dict[str, Tensor]:
     return out
 
 
-def _unpack(tensors: dict[str, Tensor]) -> dict[str, Tensor]:
-    out = {k: v for k, v in tensors.items() if not k.endswith("#inf")}
-    for name, sign in tensors.items():
-        if name.endswith("#inf") and name[:-4] in out:
-            base = out[name[:-4]]
-            out[name[:-4]] = torch.where(sign != 0, sign.to(base.dtype) * math.inf, base)
-    return out
-
-
 def save_imported_run(out: str | os.PathLike, pair: ImportedPair, files: dict[str, Path],
                       source: dict | None = None) -> Path:
     """Write an imported pair as a run directory of kind ``imported`` (atomically); ``files``: role -> the ONNX file
@@ -359,7 +350,7 @@ def load_imported_run(path: str | os.PathLike, system: UncertainSystem | None = 
     system = run_system(path, config["system"], system, info, trust)
     tensors = load_weights(path / "tensors.pt")
     try:
-        controller = Graph.from_json(graphs["controller"], _unpack(tensors["controller"]), f"{path}: controller")
+        controller = Graph.from_json(graphs["controller"], restore_infinite(tensors["controller"]), f"{path}: controller")
         spec = graphs["lyapunov"]
         if spec.get("kind") == "quadratic":
             p = tensors["lyapunov"]["P"].to(F64)
@@ -367,7 +358,7 @@ def load_imported_run(path: str | os.PathLike, system: UncertainSystem | None = 
                 raise ValueError(f"P has shape {tuple(p.shape)}, not ({system.n}, {system.n})")
             lyapunov: nn.Module = QuadraticLyapunov(p)
         else:
-            graph = Graph.from_json(spec, _unpack(tensors["lyapunov"]), f"{path}: lyapunov")
+            graph = Graph.from_json(spec, restore_infinite(tensors["lyapunov"]), f"{path}: lyapunov")
             lyapunov = PinnedLyapunov(graph) if spec.get("pinned") else graph
         if controller.n != system.n or controller.out_shape != (system.m,):
             raise ValueError(f"the controller maps {controller.n} states to {controller.out_shape}, not "

@@ -107,3 +107,15 @@ def load_weights(path: Path, data: bytes | None = None) -> dict:
             if value.is_floating_point() and not bool(torch.isfinite(value).all()):
                 raise RunDirError(f"{path} holds NaN or inf in {group}.{key}: the run's networks are not usable")
     return weights
+
+
+def restore_infinite(tensors: dict[str, torch.Tensor]) -> dict[str, torch.Tensor]:
+    """The constants of an imported pair's ``tensors.pt`` with the infinite bounds of one-sided clamps restored: a
+    weights file holds finite numbers only, so each ``NAME#inf`` int8 sign (+1, -1, 0) marks where ``NAME`` is
+    +-inf."""
+    out = {k: v for k, v in tensors.items() if not k.endswith("#inf")}
+    for name, sign in tensors.items():
+        if name.endswith("#inf") and name[:-4] in out:
+            base = out[name[:-4]]
+            out[name[:-4]] = torch.where(sign != 0, sign.to(base.dtype) * math.inf, base)
+    return out

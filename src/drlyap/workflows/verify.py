@@ -343,9 +343,8 @@ def record_imported_certificates(run_dir: str | Path, pair, ver: RunVerification
     :func:`region_certificates`), whose level and shift are kept in the run's ``metrics.json`` (``certificate.roa``)
     for the checker to compare. Earlier ones are removed first. Returns the headers' paths."""
     import json
-    import os
 
-    from drlyap.io import write_json
+    from drlyap.io import write_json_atomic
 
     run_dir = Path(run_dir)
     remove_certificate(run_dir, "true-model")
@@ -363,8 +362,7 @@ def record_imported_certificates(run_dir: str | Path, pair, ver: RunVerification
     if ver.roa is not None and ver.roa.error is None:
         metrics = json.loads((run_dir / "metrics.json").read_text())
         metrics["certificate"] = {"roa": jsonable({**ver.roa.to_dict(), "xi": ver.roa.xi})}
-        write_json(run_dir / ".metrics.json.tmp", metrics)
-        os.replace(run_dir / ".metrics.json.tmp", run_dir / "metrics.json")
+        write_json_atomic(run_dir / "metrics.json", metrics)
         written += region_certificates(run_dir, pair.loop, condition, region, ver.roa, ("true-model", found), proof,
                                        files, None)
     return written
