@@ -341,6 +341,28 @@ def test_verify_rechecks_a_certificate_instead_of_proving_it_again(linear_run):
     close_pools()
 
 
+def test_train_rechecks_the_certificate_it_saved_so_that_verify_takes_it_as_it_stands(linear_run):
+    from click.testing import CliRunner
+
+    from drlyap.cli import main
+    from drlyap.cli.train import _check_saved
+    from drlyap.systems import resolve_system
+
+    run, spec = linear_run
+    runner = CliRunner()
+    assert _check_saved(run, resolve_system(spec), {"workers": 1}, None) is None  # no certificate yet: nothing to check
+    first = runner.invoke(main, ["verify", str(run), "--system", spec, "--json"])  # proves it, writes its certificate
+    assert json.loads(first.output)["trained"].get("source") is None
+    assert not (run / "certificates" / "trained.check.json").exists()
+    results = _check_saved(run, resolve_system(spec), {"workers": 1}, None)  # what train does once the run is saved
+    assert [r.name for r in results] == ["trained"] and results[0].ok and results[0].proved > 0
+    assert (run / "certificates" / "trained.check.json").is_file()
+    again = json.loads(runner.invoke(main, ["verify", str(run), "--system", spec, "--json"]).output)
+    assert again["trained"]["source"] == "certificate" and again["trained"]["checked_at"]
+    usage = runner.invoke(main, ["train", "--help"])
+    assert "--check / --no-check" in usage.output
+
+
 def test_the_certified_radius_and_shift_box_are_written_as_certificates_the_checker_confirms(linear_run):
     from click.testing import CliRunner
 

@@ -80,6 +80,10 @@ def _check_numbers(**given: float | None) -> None:
 @click.option("--verify/--no-verify", default=True, show_default=True,
               help="Prove the trained condition after training, retraining on counterexamples (CEGIS) until it is "
                    "proved or the rounds/budget run out. --no-verify: training and the acceptance check only.")
+@click.option("--check/--no-check", "check", default=True, show_default=True,
+              help="Re-check the proved condition's certificate with the independent checker (its own arithmetic, as "
+                   "`drlyap check`) once the run is saved, and record it (certificates/trained.check.json): `drlyap "
+                   "verify` then takes the certificate without proving or checking it again.")
 @click.option("--verify-rounds", type=int, default=default(ProofConfig, "rounds"), show_default=True,
               help="Retraining rounds at most.")
 @click.option("--verify-boxes", type=int, default=None,
@@ -98,9 +102,9 @@ def _check_numbers(**given: float | None) -> None:
 @click.option("--json", "as_json", is_flag=True, help="Print one JSON object (run_dir, system, metrics) on stdout.")
 def train(system: str, method: str, loss: str, radius: float | None, eps: float | None, gamma: float | None,
           exp_rate: float | None, xi_samples: str | None, iters: int, seed: int, device: str, warm_start: Path | None,
-          out: Path, quiet: bool, verify: bool, verify_rounds: int, verify_boxes: int | None, verify_time: float | None,
-          verify_budget: float | None, local_rate: float | None, workers: int, backend: str, address: str | None,
-          as_json: bool) -> None:
+          out: Path, quiet: bool, verify: bool, check: bool, verify_rounds: int, verify_boxes: int | None,
+          verify_time: float | None, verify_budget: float | None, local_rate: float | None, workers: int, backend: str,
+          address: str | None, as_json: bool) -> None:
     """Train a controller and Lyapunov certificate for SYSTEM, prove the trained condition, save a run directory.
 
     SYSTEM is a registered name, package.module:factory or path/to/file.py:factory (see `drlyap systems`).
@@ -164,9 +168,11 @@ def train(system: str, method: str, loss: str, radius: float | None, eps: float 
             click.echo(f"drlyap: interrupted; nothing was saved ({out} is written only when training and its proofs "
                        "end)", err=True)
         sys.exit(130)
+    checked = _check_saved(out, sys_, compute, source) if check else None
     m = result.metrics
     if as_json:
-        click.echo(json.dumps({"run_dir": str(out), "system": sys_.name, "method": method, "metrics": m}))
+        click.echo(json.dumps({"run_dir": str(out), "system": sys_.name, "method": method, "metrics": m,
+                               "check": None if checked is None else [r.to_dict() for r in checked]}))
         return
     c = m.get("cegis")
     iterations, seconds = (c["total_iterations"], c["total_time_s"]) if c else (m["iterations"], m["train_time_s"])
@@ -190,3 +196,26 @@ def train(system: str, method: str, loss: str, radius: float | None, eps: float 
     click.echo(f"  saved {out}")
     click.echo(certificate_line(Certificate.from_dict(m["certificate"]),
                                 command_hint("verify", out, source=source)))
+    if checked is not None:
+        from drlyap.render import check_lines
+
+        for line in check_lines(checked):
+            click.echo(f"  {line}")
+
+
+def _check_saved(out: Path, system, compute: dict, source: dict | None) -> list | None:
+    """The checker's results on the saved run's trained certificate (None where the proof wrote none); the run stays
+    saved whatever happens here."""
+    if not (out / "certificates" / "trained.json").is_file():
+        return None
+    from drlyap.checker import check_run
+    from drlyap.config import Compute
+
+    try:
+        return check_run(out, system, names=["trained"], compute=Compute(**compute))
+    except KeyboardInterrupt:
+        click.echo(f"drlyap: interrupted while checking; {out} is saved, its certificate not yet re-checked "
+                   f"({command_hint('check', out, source=source)} does it)", err=True)
+        sys.exit(130)
+    except ValueError as err:
+        fail(f"{out} is saved, but its certificate could not be re-checked: {err}")
