@@ -117,6 +117,23 @@ def test_checking_a_run_loads_nothing_of_the_verifier_or_the_trainer(tmp_path):
     assert not [m for m in modules if m.startswith(shared)], modules
 
 
+def test_loading_and_verifying_a_run_loads_nothing_of_the_trainer(tmp_path):
+    """Transitively, at run time: a run directory is read, its networks rebuilt and its condition proved again without
+    any module of ``drlyap.training`` (a run is data; what its config builds lives in :mod:`drlyap.assembly`)."""
+    import handmade
+
+    run = handmade.linear_run_dir(tmp_path / "run", delta=0.5)
+    spec = f"{Path(handmade.__file__)}:small_pendulum"
+    code = ("import sys\nfrom drlyap.runs import load_run\nfrom drlyap.systems import resolve_system\n"
+            "from drlyap.workflows.verify import verify_run\n"
+            f"ver = verify_run(load_run({str(run)!r}, resolve_system({spec!r})))\nprint(ver.trained.status)\n"
+            "print(sorted(m for m in sys.modules if m.startswith('drlyap')))")
+    done = subprocess.run([sys.executable, "-c", code], capture_output=True, text=True, check=True)
+    status, modules = done.stdout.strip().splitlines()[-2:]
+    assert status == "verified"
+    assert not [m for m in ast.literal_eval(modules) if m.startswith("drlyap.training")], modules
+
+
 def test_help_loads_no_numerical_code():
     code = "import sys; from drlyap.cli import main; print('torch' in sys.modules)"
     out = subprocess.run([sys.executable, "-c", code], capture_output=True, text=True, check=True)

@@ -24,13 +24,15 @@ from collections.abc import Callable
 from dataclasses import dataclass
 from functools import cached_property
 from pathlib import Path
+from typing import TYPE_CHECKING
 
 import torch
 from torch import Tensor
 
+from drlyap.assembly import build_networks, run_condition
 from drlyap.closed_loop import ClosedLoop
 from drlyap.conditions import Condition
-from drlyap.config import ProofConfig, legacy_proof
+from drlyap.config import ProofConfig, TrainConfig, legacy_proof
 from drlyap.io import write_json, write_json_atomic
 from drlyap.networks import Controller, Lyapunov
 from drlyap.regions import Region
@@ -39,8 +41,10 @@ from drlyap.runs.publish import RunDirError, atomic_dir, ensure_new
 from drlyap.runs.reading import read_run_json, read_run_kind, run_system
 from drlyap.runs.validate import check_config, check_samples, check_schema, load_weights
 from drlyap.systems import UncertainSystem, default_source
-from drlyap.training import TrainConfig, TrainResult, build_networks, run_condition
 from drlyap.verification import Certificate
+
+if TYPE_CHECKING:
+    from drlyap.training import TrainResult
 
 FORMAT_VERSION = 2
 """2: proof settings in metrics.json (``proof``); runs of format 1 load too."""

@@ -43,13 +43,12 @@ from torch import Tensor
 from drlyap.claims import condition_region
 from drlyap.closed_loop import ClosedLoop
 from drlyap.conditions import Condition
-from drlyap.config import ProofConfig
+from drlyap.config import ProofConfig, TrainConfig
 from drlyap.io import jsonable
 from drlyap.networks import Controller, Lyapunov
 from drlyap.regions import Region
 from drlyap.render import unverified_warning
 from drlyap.systems import UncertainSystem, get_system
-from drlyap.training.config import TrainConfig
 from drlyap.training.trainer import TrainResult, fit
 from drlyap.verification import Certificate, ConditionProof, UniformMargin, prove_trained, uniform_margin
 from drlyap.verification.falsifier import box_centres, falsifier_starts, falsify, settle_unknown

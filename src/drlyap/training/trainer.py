@@ -21,16 +21,7 @@ from functools import cached_property
 import torch
 from torch import Tensor
 
-from drlyap.closed_loop import ClosedLoop
-from drlyap.conditions import Condition, local_rates
-from drlyap.lqr import lqr_design
-from drlyap.networks import Controller, Lyapunov
-from drlyap.progress import progress as show_progress
-from drlyap.regions import Region
-from drlyap.systems import UncertainSystem
-from drlyap.training.acceptance import acceptance_check
-from drlyap.training.config import (
-    TrainConfig,
+from drlyap.assembly import (
     build_networks,
     draw_xi_samples,
     resolve_device,
@@ -38,6 +29,15 @@ from drlyap.training.config import (
     training_level,
     training_region,
 )
+from drlyap.closed_loop import ClosedLoop
+from drlyap.conditions import Condition, local_rates
+from drlyap.config import TrainConfig
+from drlyap.lqr import lqr_design
+from drlyap.networks import Controller, Lyapunov
+from drlyap.progress import progress as show_progress
+from drlyap.regions import Region
+from drlyap.systems import UncertainSystem
+from drlyap.training.acceptance import acceptance_check
 from drlyap.verification.falsifier import ascent_step
 from drlyap.verification.results import ConditionProof
 
@@ -83,7 +83,7 @@ def warm_start_lqr(system: UncertainSystem, lyapunov: Lyapunov, controller: Cont
 
     ``P``, ``K``: the LQR design for ``cfg.lqr_weights`` (``[Q diagonal, R diagonal]``; None: Bryson's rule) on the
     nominal linearisation; ``s`` puts the quadratic's minimum over the faces of the box at 1.2 times the training
-    level (:func:`~drlyap.training.config.training_level`; 1.2 without a level). States: half uniform in X_delta,
+    level (:func:`~drlyap.assembly.training_level`; 1.2 without a level). States: half uniform in X_delta,
     half spread over the distance from x*. Returns the design's gain, the scale and the final relative errors.
     """
     q, r = cfg.lqr_weights if cfg.lqr_weights is not None else (None, None)

@@ -27,13 +27,14 @@ from collections.abc import Callable, Sequence
 import torch
 from torch import Tensor
 
+from drlyap.assembly import run_condition
 from drlyap.closed_loop import ClosedLoop
 from drlyap.conditions import wasserstein_radius_guarantee
+from drlyap.config import TrainConfig
 from drlyap.io import jsonable
 from drlyap.regions import Region
 from drlyap.runs import Run
 from drlyap.systems import UncertainSystem
-from drlyap.training import TrainConfig, run_condition
 from drlyap.verification import Budget, verify_condition
 
 F64 = torch.float64

@@ -12,13 +12,13 @@ from pathlib import Path
 import torch
 from torch import Tensor
 
+from drlyap.assembly import run_condition
 from drlyap.closed_loop import ClosedLoop
 from drlyap.conditions import Condition, TrueDecrease
 from drlyap.io import jsonable
 from drlyap.regions import Region
 from drlyap.runs import Run
 from drlyap.runs.certificates import certificate_partition, remove_certificate, write_certificate
-from drlyap.training import run_condition
 from drlyap.verification import (
     Budget,
     ConditionProof,

@@ -1,6 +1,7 @@
 """What a training configuration (:class:`~drlyap.config.TrainConfig`, resolved) builds: the networks, the training
 region, the device, the xi samples, and -- the one place they are built from a config -- a run's decrease conditions
-(:func:`run_condition`)."""
+(:func:`run_condition`). Training builds a pair from these, and a run directory rebuilds the same objects when it is
+loaded (without loading any of the training code)."""
 
 from __future__ import annotations
 
