@@ -62,6 +62,33 @@ def unverified_warning(cert: Certificate, system: str, method: str, retrainable:
             f"({cert.status}{detail}){'; raise verify_rounds' if retrainable else ''}")
 
 
+def training_lines(system: str, method: str, metrics: dict) -> list[str]:
+    """What ``drlyap train`` prints about a training (``metrics``: the run's ``metrics.json``): iterations and seconds,
+    the acceptance check, V's local rate near x* where it was asked, and the retraining rounds."""
+    c = metrics.get("cegis")
+    iterations, seconds = (c["total_iterations"], c["total_time_s"]) if c else (metrics["iterations"],
+                                                                                metrics["train_time_s"])
+    if c and c["retraining_rounds"]:
+        kept = "the first training" if c["returned_round"] == 0 else f"retraining round {c['returned_round']}"
+        lines = [f"{system} {method}: {iterations} iterations in all ({seconds:.1f} s, {c['retraining_rounds']} "
+                 f"retraining round(s)); the pair kept is from {kept} (in that run: {metrics['status']})"]
+    else:
+        lines = [f"{system} {method}: {metrics['status']} ({iterations} iterations, {seconds:.1f} s in all)"]
+    acc = metrics["acceptance"]
+    lines.append(f"  acceptance check: {'PASSED' if metrics['passed'] else 'NOT PASSED'}; the trained condition's max "
+                 f"violation {acc['max_violation']:.3g} on {100 * acc['violating_fraction']:.2f}% of "
+                 f"{acc['validation_states']} validation states; closed-loop Jacobian at x* Hurwitz at every xi "
+                 f"sample: {acc['jacobian']['hurwitz']}; other closed-loop equilibria found: "
+                 f"{len(acc['other_equilibria'])}")
+    if acc.get("local_rate_max") is not None:
+        rate = acc["local_rate_max"]
+        lines.append(f"  V near x*: Vdot <= {rate:+.3g} V to second order at the worst training sample "
+                     f"({'V decreases' if rate < 0 else 'V does NOT decrease along every direction'})")
+    if c:
+        lines.append(f"  proof: {c['retraining_rounds']} retraining round(s) (kept round {c['returned_round']})")
+    return lines
+
+
 def proof_round_line(entry: dict) -> str:
     """One line per proof round of counterexample-guided training (``entry``: a round of ``metrics["cegis"]``)."""
     v = ConditionProof.from_dict(entry["verification"])

@@ -174,33 +174,15 @@ def train(system: str, method: str, loss: str, radius: float | None, eps: float 
         click.echo(json.dumps({"run_dir": str(out), "system": sys_.name, "method": method, "metrics": m,
                                "check": None if checked is None else [r.to_dict() for r in checked]}))
         return
-    c = m.get("cegis")
-    iterations, seconds = (c["total_iterations"], c["total_time_s"]) if c else (m["iterations"], m["train_time_s"])
-    if c and c["retraining_rounds"]:
-        kept = "the first training" if c["returned_round"] == 0 else f"retraining round {c['returned_round']}"
-        click.echo(f"{sys_.name} {method}: {iterations} iterations in all ({seconds:.1f} s, {c['retraining_rounds']} "
-                   f"retraining round(s)); the pair kept is from {kept} (in that run: {m['status']})")
-    else:
-        click.echo(f"{sys_.name} {method}: {m['status']} ({iterations} iterations, {seconds:.1f} s in all)")
-    acc = m["acceptance"]
-    click.echo(f"  acceptance check: {'PASSED' if m['passed'] else 'NOT PASSED'}; the trained condition's max "
-               f"violation {acc['max_violation']:.3g} on {100 * acc['violating_fraction']:.2f}% of "
-               f"{acc['validation_states']} validation states; closed-loop Jacobian at x* Hurwitz at every xi sample: "
-               f"{acc['jacobian']['hurwitz']}; other closed-loop equilibria found: {len(acc['other_equilibria'])}")
-    if acc.get("local_rate_max") is not None:
-        rate = acc["local_rate_max"]
-        click.echo(f"  V near x*: Vdot <= {rate:+.3g} V to second order at the worst training sample "
-                   f"({'V decreases' if rate < 0 else 'V does NOT decrease along every direction'})")
-    if c:
-        click.echo(f"  proof: {c['retraining_rounds']} retraining round(s) (kept round {c['returned_round']})")
+    from drlyap.render import check_lines, training_lines
+
+    for line in training_lines(sys_.name, method, m):
+        click.echo(line)
     click.echo(f"  saved {out}")
     click.echo(certificate_line(Certificate.from_dict(m["certificate"]),
                                 command_hint("verify", out, source=source)))
-    if checked is not None:
-        from drlyap.render import check_lines
-
-        for line in check_lines(checked):
-            click.echo(f"  {line}")
+    for line in check_lines(checked or []):
+        click.echo(f"  {line}")
 
 
 def _check_saved(out: Path, system, compute: dict, source: dict | None) -> list | None:

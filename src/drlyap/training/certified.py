@@ -49,7 +49,7 @@ from drlyap.networks import Controller, Lyapunov
 from drlyap.regions import Region
 from drlyap.render import unverified_warning
 from drlyap.systems import UncertainSystem, get_system
-from drlyap.training.trainer import TrainResult, fit
+from drlyap.training.trainer import TrainResult, fit, stability_score
 from drlyap.verification import Certificate, ConditionProof, UniformMargin, prove_trained, uniform_margin
 from drlyap.verification.falsifier import box_centres, falsifier_starts, falsify, settle_unknown
 
@@ -164,8 +164,7 @@ def train_cegis(cfg: TrainConfig, system: UncertainSystem, proof: ProofConfig, p
         # a proof first; among unproved pairs, one that passes the acceptance check (Hurwitz at x*, no other
         # equilibrium) before a larger proved share: retraining on counterexamples of an infeasible condition
         # can trade stability for area (measured on pendulum-u9: 0/200 stabilised instead of 170/200)
-        score = (entry["verified"], bool(result.metrics["passed"]), bool(acc["jacobian"]["hurwitz"]),
-                 not acc["other_equilibria"], ver.verified_fraction, -(ver.counterexample_value or 0.0))
+        score = (entry["verified"], *stability_score(acc), ver.verified_fraction, -(ver.counterexample_value or 0.0))
         if best is None or score > best[0]:
             best = (score, result, r, list(history), ver)
         out_of_time = time_budget is not None and time.perf_counter() - start > time_budget
@@ -179,14 +178,7 @@ def train_cegis(cfg: TrainConfig, system: UncertainSystem, proof: ProofConfig, p
         found = collect_counterexamples(result.loop, condition, region, ver, gen, n_random=n_random,
                                         max_boxes=proof.keep_boxes, steps=proof.falsifier_steps,
                                         neighbours=proof.neighbours, level=base_cfg.roa_level, near=near)
-        # newest last, the counterexamples at the very end: the cap keeps the tail
-        new = torch.cat([found["box_centres"], found["neighbours"], found["counterexamples"]])
-        extra = _dedupe(torch.cat([extra, new]), region.scale)[-int(proof.max_extra):]
-        entry.update({"counterexamples_added": int(found["counterexamples"].shape[0]),
-                      "neighbours_added": int(found["neighbours"].shape[0]),
-                      "box_centres_added": int(found["box_centres"].shape[0]),
-                      "falsifier_max_residual": found["max_residual"], "falsify_time_s": found["falsify_time_s"],
-                      "extra_states": int(extra.shape[0]), "counterexamples": found["counterexamples"]})
+        extra = _add_states(extra, found, region, int(proof.max_extra), entry)
         record.append(entry)
         if log is not None:
             log(entry)
@@ -196,9 +188,7 @@ def train_cegis(cfg: TrainConfig, system: UncertainSystem, proof: ProofConfig, p
         result = fit(round_cfg, system, progress=progress, init=(result.lyapunov, result.controller),
                      extra_states=extra.repeat(int(proof.replicate), 1), grow=False)
         train_time = time.perf_counter() - tic
-        offset_t = history[-1]["time_s"] if history else 0.0
-        history += [{"iteration": h["iteration"] + total_iters, "loss": h["loss"], "time_s": h["time_s"] + offset_t}
-                    for h in result.history]
+        history += _continued(result.history, total_iters, history[-1]["time_s"] if history else 0.0)
         total_iters += result.metrics["iterations"]
     _, chosen, chosen_round, chosen_history, chosen_proof = best
     metrics = dict(chosen.metrics)
@@ -217,6 +207,26 @@ def train_cegis(cfg: TrainConfig, system: UncertainSystem, proof: ProofConfig, p
     out = dataclasses.replace(chosen, config=base_cfg, metrics=metrics, history=chosen_history,
                               trained_proof=chosen_proof if chosen_proof.verified else None)
     return out, record
+
+
+def _add_states(extra: Tensor, found: dict, region: Region, cap: int, entry: dict) -> Tensor:
+    """The retraining states ``extra (E, n)`` with what a round's falsifier ``found`` (box centres, neighbours,
+    counterexamples: newest last, the counterexamples at the very end, so that the ``cap`` keeps the tail), without
+    near-duplicates; the counts go into the round's ``entry``."""
+    new = torch.cat([found["box_centres"], found["neighbours"], found["counterexamples"]])
+    extra = _dedupe(torch.cat([extra, new]), region.scale)[-cap:]
+    entry.update({"counterexamples_added": int(found["counterexamples"].shape[0]),
+                  "neighbours_added": int(found["neighbours"].shape[0]),
+                  "box_centres_added": int(found["box_centres"].shape[0]),
+                  "falsifier_max_residual": found["max_residual"], "falsify_time_s": found["falsify_time_s"],
+                  "extra_states": int(extra.shape[0]), "counterexamples": found["counterexamples"]})
+    return extra
+
+
+def _continued(history: list[dict], iterations: int, seconds: float) -> list[dict]:
+    """A retraining round's ``history`` with its iterations and seconds counted on from the rounds before it."""
+    return [{"iteration": h["iteration"] + iterations, "loss": h["loss"], "time_s": h["time_s"] + seconds}
+            for h in history]
 
 
 def certificate(proof: ConditionProof | UniformMargin, delta: float, rounds: int | None = None) -> Certificate:

@@ -224,22 +224,84 @@ def fit(cfg: TrainConfig, system: UncertainSystem, progress: bool = True, init: 
     out the growth term (``grow_weight``; the faces keep its margin): the retraining rounds repair what a proof
     found instead of pulling the set further out.
     """
-    if system.name != cfg.system:
-        raise ValueError(f"TrainConfig(system={cfg.system!r}) names another system than the one passed "
-                         f"({system.name!r}); set TrainConfig(system={system.name!r})")
-    if cfg.missing():
-        raise ValueError(f"the training config leaves {cfg.missing()} open: resolve it first "
-                         "(TrainConfig.resolved(system))")
+    _check_fit(cfg, system)
     device = resolve_device(cfg.device)
     torch.manual_seed(cfg.seed)
     gen = torch.Generator().manual_seed(cfg.seed)
-
     xi_all = draw_xi_samples(system, cfg)
     xi_train = xi_all.mean(0, keepdim=True) if cfg.method == "baseline" else xi_all
     condition = run_condition(cfg, xi_train)
     region = Region.of(system, cfg.delta)
     grid = region.grid()
     system.check_finite(xi_all, system.to_user(grid))
+    lyapunov, controller = _networks(system, cfg, init, device)
+    loop = ClosedLoop(system, lyapunov, controller)  # the live networks: no float64 copy is taken of this loop
+    states = TrainingStates(cfg, system, region, lyapunov, gen, device, _extra(extra_states, system, device))
+    warm = None
+    if cfg.warm_start == "lqr" and not init:
+        warm = warm_start_lqr(system, lyapunov, controller, cfg, region, gen, n_states=min(4096, int(cfg.n_states)))
+    growing = bool(cfg.grow_weight) and grow and states.level is not None  # trains every iteration: no early stop
+    grow_until = math.floor(GROW_SHARE * cfg.iters)  # the last iteration with the growth term
+    keeper = PairKeeper(loop, condition, xi_all.to(device), region, grid.float().to(device), states, bool(cfg.local_rate),
+                        growing)
+    states.start()
+    opt = torch.optim.Adam(list(lyapunov.parameters()) + list(controller.parameters()), lr=cfg.lr, fused=True)
+    history: list[dict] = []
+    last_good = _snapshot(lyapunov, controller)
+    status = "iteration cap reached without passing the acceptance check"
+    start = time.perf_counter()
+    bar = show_progress(cfg.iters, f"{cfg.system} {cfg.method}", progress)
+    iteration = 0
+    try:
+        for iteration in range(1, cfg.iters + 1):
+            loss = _loss(cfg, loop, condition, states, iteration, growing and iteration <= grow_until)
+            if not torch.isfinite(loss):
+                _restore(lyapunov, controller, last_good)
+                status = f"diverged: loss became {float(loss.detach())} at iteration {iteration}; kept the last good weights"
+                break
+            if iteration % 50 == 1:
+                last_good = _snapshot(lyapunov, controller)
+            opt.zero_grad(set_to_none=True)
+            loss.backward()
+            opt.step()
+            if iteration % 10 == 0 or iteration == 1:
+                history.append({"iteration": iteration, "loss": float(loss.detach()), "time_s": time.perf_counter() - start})
+                bar.set_postfix(loss=f"{float(loss.detach()):.2e}")
+            bar.update(1)
+            if (iteration % cfg.check_every == 0 or iteration == cfg.iters) and keeper.check(iteration)["passed"] \
+                    and not growing:
+                status = f"passed the acceptance check at iteration {iteration}"
+                break
+    finally:
+        bar.close()
+    check = keeper.restore(iteration)
+    if growing and check["passed"] and not status.startswith("diverged"):
+        status = (f"{growth_words(min(iteration, grow_until), iteration)}; kept the latest pair passing the acceptance "
+                  "check")
+    elapsed = time.perf_counter() - start
+    metrics = {"status": status, "passed": bool(check["passed"]), "iterations": iteration,
+               "best_iteration": check["iteration"], "train_time_s": elapsed, "check_time_s": keeper.seconds,
+               "ms_per_iteration": 1000 * (elapsed - keeper.seconds) / max(iteration, 1),
+               "final_loss": history[-1]["loss"] if history else None, "acceptance": check, "checks": keeper.checks,
+               "condition": condition.describe(), "xi_samples": xi_all.tolist(), "xi_train": xi_train.tolist(),
+               "warm_start": warm}
+    return TrainResult(cfg, system, lyapunov.cpu(), controller.cpu(), xi_all, condition, history, metrics)
+
+
+def _check_fit(cfg: TrainConfig, system: UncertainSystem) -> None:
+    """A ValueError where ``cfg`` is not a resolved config of ``system``."""
+    if system.name != cfg.system:
+        raise ValueError(f"TrainConfig(system={cfg.system!r}) names another system than the one passed "
+                         f"({system.name!r}); set TrainConfig(system={system.name!r})")
+    if cfg.missing():
+        raise ValueError(f"the training config leaves {cfg.missing()} open: resolve it first "
+                         "(TrainConfig.resolved(system))")
+
+
+def _networks(system: UncertainSystem, cfg: TrainConfig, init: tuple[Lyapunov, Controller] | None,
+              device: torch.device) -> tuple[Lyapunov, Controller]:
+    """Fresh networks for ``cfg`` (drawn from torch's global generator, seeded by the caller), or copies of ``init``
+    where it fits the config and is finite; on ``device``."""
     lyapunov, controller = build_networks(system, cfg)
     if init:
         if (init[0].phi.sizes != lyapunov.phi.sizes or init[0].alpha_hat != lyapunov.alpha_hat
@@ -254,144 +316,152 @@ def fit(cfg: TrainConfig, system: UncertainSystem, progress: bool = True, init: 
             if bad:
                 raise ValueError(f"warm-start network {name} holds NaN or inf in {', '.join(bad)}: it cannot be "
                                  "trained from")
-    lyapunov.to(device)
-    controller.to(device)
-    loop = ClosedLoop(system, lyapunov, controller)  # the live networks: no float64 copy is taken of this loop
-    if extra_states is not None:
-        extra_states = torch.as_tensor(extra_states, dtype=torch.float64)
-        if extra_states.ndim != 2 or extra_states.shape[1] != system.n or not torch.isfinite(extra_states).all():
-            raise ValueError(f"extra_states must be a finite (E, {system.n}) tensor of local states")
-        extra_states = extra_states.float().to(device)
+    return lyapunov.to(device), controller.to(device)
 
-    sampling = region if cfg.train_box is None else Region.of(training_region(system, cfg.train_box), cfg.delta)
 
-    n_near = int(round(float(cfg.near_share) * int(cfg.n_states)))
-    n_adv = int(round(float(cfg.adversarial_share) * int(cfg.n_states)))
-    level = training_level(cfg)  # the claimed level, or above it by the level margin
-    warm = None
-    if cfg.warm_start == "lqr" and not init:
-        warm = warm_start_lqr(system, lyapunov, controller, cfg, region, gen, n_states=min(4096, int(cfg.n_states)))
+def _extra(extra_states: Tensor | None, system: UncertainSystem, device: torch.device) -> Tensor | None:
+    """``extra_states (E, n)`` checked, float32 on ``device`` (None stays None)."""
+    if extra_states is None:
+        return None
+    extra_states = torch.as_tensor(extra_states, dtype=torch.float64)
+    if extra_states.ndim != 2 or extra_states.shape[1] != system.n or not torch.isfinite(extra_states).all():
+        raise ValueError(f"extra_states must be a finite (E, {system.n}) tensor of local states")
+    return extra_states.float().to(device)
 
-    def batch() -> Tensor:
-        n_uniform = int(cfg.n_states) - n_near - n_adv
-        z = sampling.sample(n_uniform, gen)
-        if level is not None:  # up to half of the uniform share from inside (or just outside) the sublevel set
-            inside = inside_states(lyapunov, sampling, 1.25 * level, n_uniform // 2, device, gen, tries=1)
+
+def _snapshot(lyapunov: Lyapunov, controller: Controller) -> tuple[dict, dict]:
+    return copy.deepcopy(lyapunov.state_dict()), copy.deepcopy(controller.state_dict())
+
+
+def _restore(lyapunov: Lyapunov, controller: Controller, states: tuple[dict, dict]) -> None:
+    lyapunov.load_state_dict(states[0])
+    controller.load_state_dict(states[1])
+
+
+def _loss(cfg: TrainConfig, loop: ClosedLoop, condition: Condition, states: TrainingStates, iteration: int,
+          grow_now: bool) -> Tensor:
+    """The loss of one iteration: the condition's on this iteration's states, with a level V above it on the box's
+    faces (and, while ``grow_now``, the growth term), and every ``LOCAL_EVERY`` iterations the local rate's term."""
+    terms = condition.terms(loop, states.next(iteration, loop, condition))
+    level = states.level
+    loss = condition.loss(terms, cfg.margin, cfg.margin_rate, level, cfg.outside_weight, cfg.exclude_weight)
+    if level is not None:  # V above the level on the faces of X: {V <= level} inside X
+        loss = loss + states.faces_term(loop.lyapunov)
+        if grow_now:  # the set pulled out towards the faces
+            loss = loss + cfg.grow_weight * (torch.relu(terms.value - level) / level).mean()
+    if cfg.local_rate and (iteration - 1) % LOCAL_EVERY == 0:  # V a Lyapunov function of the linearisation
+        loss = loss + torch.relu(local_rates(condition, loop) + cfg.local_rate).mean()
+    return loss
+
+
+class TrainingStates:
+    """The states a fit trains on, drawn from ``gen`` (in this order: a batch, then the adversarial states, at the start;
+    then each iteration a new batch where ``cfg.resample``, a share of the adversarial states redrawn and all of them
+    moved one ascent step, and the faces' states of a level's term): uniform in X_delta (``cfg.train_box``: in that
+    box), a share near x*, with a level up to half of the uniform share inside ``{V <= 1.25 level}``, adversarial
+    states, and the ``extra`` states (E, n) in every batch. Float32 on ``device``."""
+
+    def __init__(self, cfg: TrainConfig, system: UncertainSystem, region: Region, lyapunov: Lyapunov,
+                 gen: torch.Generator, device: torch.device, extra: Tensor | None) -> None:
+        self.cfg, self.region, self.lyapunov, self.gen, self.device, self.extra = cfg, region, lyapunov, gen, device, extra
+        self.sampling = region if cfg.train_box is None else Region.of(training_region(system, cfg.train_box), cfg.delta)
+        self.n_near = int(round(float(cfg.near_share) * int(cfg.n_states)))
+        self.n_adv = int(round(float(cfg.adversarial_share) * int(cfg.n_states)))
+        self.refresh = max(1, int(ADVERSARIAL_REFRESH * self.n_adv))
+        self.level = training_level(cfg)  # the claimed level, or above it by the level margin
+        self.faces_level = None if self.level is None else self.level * (1 + GROW_FACES_MARGIN if cfg.grow_weight else 1.0)
+        self.faces = None  # fixed states on the box's faces for the acceptance check (own generator)
+        if self.level is not None:
+            self.faces = region.sample_faces(20000, torch.Generator().manual_seed(12345)).float().to(device)
+        self.batch: Tensor | None = None
+        self.adversaries: Tensor | None = None
+
+    def start(self) -> None:
+        """The first batch and the adversarial states."""
+        self.batch = self.draw()
+        if self.n_adv:
+            self.adversaries = adversarial_starts(self.lyapunov, self.sampling, self.level, self.n_adv,
+                                                  self.gen).float().to(self.device)
+
+    def draw(self) -> Tensor:
+        """A new batch ``(B, n)``: uniform (with a level, up to half of it inside the set), near x*, and the extra ones."""
+        n_uniform = int(self.cfg.n_states) - self.n_near - self.n_adv
+        z = self.sampling.sample(n_uniform, self.gen)
+        if self.level is not None:  # up to half of the uniform share from inside (or just outside) the sublevel set
+            inside = inside_states(self.lyapunov, self.sampling, 1.25 * self.level, n_uniform // 2, self.device,
+                                   self.gen, tries=1)
             z = torch.cat([inside.double().cpu(), z[: n_uniform - inside.shape[0]]])
-        if n_near:
-            z = torch.cat([z, sampling.sample_near(n_near, gen)])
-        z = z.float().to(device)
-        return z if extra_states is None else torch.cat([z, extra_states])
+        if self.n_near:
+            z = torch.cat([z, self.sampling.sample_near(self.n_near, self.gen)])
+        z = z.float().to(self.device)
+        return z if self.extra is None else torch.cat([z, self.extra])
 
-    growing = bool(cfg.grow_weight) and grow and level is not None  # trains every iteration: no early stop
-    grow_until = math.floor(GROW_SHARE * cfg.iters)  # the last iteration with the growth term
-    faces_val = None
-    faces_level = None if level is None else level * (1 + GROW_FACES_MARGIN if cfg.grow_weight else 1.0)
-    if level is not None:
-        faces_val = region.sample_faces(20000, torch.Generator().manual_seed(12345)).float().to(device)
+    def next(self, iteration: int, loop: ClosedLoop, condition: Condition) -> Tensor:
+        """The states of ``iteration`` (from 1): the batch (new where ``cfg.resample``) and the adversarial states,
+        a share of them redrawn and all moved one ascent step on the residual."""
+        if self.cfg.resample and iteration > 1:
+            self.batch = self.draw()
+        if self.adversaries is None:
+            return self.batch
+        row = (iteration * self.refresh) % self.n_adv
+        fresh = adversarial_starts(self.lyapunov, self.sampling, self.level, self.refresh, self.gen)
+        self.adversaries[row:row + self.refresh] = fresh[: self.n_adv - row].float().to(self.device)
+        self.adversaries = ascend(loop, condition, self.adversaries, self.sampling, self.level)
+        return torch.cat([self.batch, self.adversaries])
 
-    z_train = batch()
-    z_val = grid.float().to(device)
-    adversaries = adversarial_starts(lyapunov, sampling, level, n_adv, gen).float().to(device) if n_adv else None
-    refresh = max(1, int(ADVERSARIAL_REFRESH * n_adv))
+    def faces_term(self, lyapunov: Lyapunov) -> Tensor:
+        """The mean shortfall of V below the faces' level at 1,024 new states of the box's faces."""
+        faces = self.region.sample_faces(1024, self.gen).float().to(self.device)
+        return torch.relu(self.faces_level - lyapunov(faces)).mean()
 
-    params = list(lyapunov.parameters()) + list(controller.parameters())
-    opt = torch.optim.Adam(params, lr=cfg.lr, fused=True)
-    history: list[dict] = []
-    checks: list[dict] = []
-    best: tuple | None = None
-    last_good = (copy.deepcopy(lyapunov.state_dict()), copy.deepcopy(controller.state_dict()))
-    status = "iteration cap reached without passing the acceptance check"
-    start = time.perf_counter()
 
-    check_time = 0.0
+def stability_score(check: dict) -> tuple[bool, bool, bool]:
+    """How an acceptance check ranks a pair before anything else: passed, Hurwitz at x*, no other equilibrium."""
+    return bool(check["passed"]), bool(check["jacobian"]["hurwitz"]), not check["other_equilibria"]
 
-    def run_check(iteration: int) -> dict:
-        nonlocal best, check_time
+
+class PairKeeper:
+    """A fit's acceptance checks (:func:`~drlyap.training.acceptance.acceptance_check` on the fixed ``validation``
+    states, with a level also 20,000 states inside the set) and the best pair so far: a passing one first, then by
+    :func:`stability_score`, the violating share and the largest violation; while the set grows, the latest pair
+    that passes."""
+
+    def __init__(self, loop: ClosedLoop, condition: Condition, xi: Tensor, region: Region, validation: Tensor,
+                 states: TrainingStates, local: bool, growing: bool) -> None:
+        self.loop, self.condition, self.xi, self.region, self.validation = loop, condition, xi, region, validation
+        self.states, self.local, self.growing = states, local, growing
+        self.checks: list[dict] = []
+        self.best: tuple | None = None
+        self.seconds = 0.0
+
+    def check(self, iteration: int) -> dict:
+        """Check the pair as it is now; keep it where it ranks above the best so far. Returns the check."""
         tic = time.perf_counter()
-        validation = z_val
+        level, lyapunov = self.states.level, self.loop.lyapunov
+        validation = self.validation
         if level is not None:  # the set is a few % of the box: add 20,000 states drawn inside it (fixed seed)
-            inside = inside_states(lyapunov, region, level, 20000, device, torch.Generator().manual_seed(12345))
-            validation = torch.cat([z_val, inside])
-        check = acceptance_check(loop, condition, xi_all.to(device), region, validation=validation, level=level,
-                                 faces=faces_val, local=bool(cfg.local_rate))
+            inside = inside_states(lyapunov, self.region, level, 20000, self.states.device,
+                                   torch.Generator().manual_seed(12345))
+            validation = torch.cat([validation, inside])
+        check = acceptance_check(self.loop, self.condition, self.xi, self.region, validation=validation, level=level,
+                                 faces=self.states.faces, local=self.local)
         check["iteration"] = iteration
-        checks.append({k: check[k] for k in ("iteration", "passed", "max_violation", "violating_fraction")}
-                      | {"hurwitz": check["jacobian"]["hurwitz"], "n_other_equilibria": len(check["other_equilibria"]),
-                         "local_rate_max": check["local_rate_max"]})
-        score = (check["passed"], check["jacobian"]["hurwitz"], not check["other_equilibria"],
-                 -check["violating_fraction"], -check["max_violation"])
-        if growing and check["passed"]:  # a growing set: the latest pair that passes holds the largest set
-            score = (True, check["jacobian"]["hurwitz"], not check["other_equilibria"], iteration)
-        if best is None or score > best[0]:
-            best = (score, copy.deepcopy(lyapunov.state_dict()), copy.deepcopy(controller.state_dict()), check)
-        check_time += time.perf_counter() - tic
+        self.checks.append({k: check[k] for k in ("iteration", "passed", "max_violation", "violating_fraction")}
+                           | {"hurwitz": check["jacobian"]["hurwitz"],
+                              "n_other_equilibria": len(check["other_equilibria"]),
+                              "local_rate_max": check["local_rate_max"]})
+        score = (*stability_score(check), -check["violating_fraction"], -check["max_violation"])
+        if self.growing and check["passed"]:  # a growing set: the latest pair that passes holds the largest set
+            score = (*stability_score(check), iteration)
+        if self.best is None or score > self.best[0]:
+            self.best = (score, *_snapshot(lyapunov, self.loop.controller), check)
+        self.seconds += time.perf_counter() - tic
         return check
 
-    bar = show_progress(cfg.iters, f"{cfg.system} {cfg.method}", progress)
-    iteration = 0
-    try:
-        for iteration in range(1, cfg.iters + 1):
-            if cfg.resample and iteration > 1:
-                z_train = batch()
-            z = z_train
-            if adversaries is not None:
-                row = (iteration * refresh) % n_adv
-                adversaries[row:row + refresh] = adversarial_starts(lyapunov, sampling, level, refresh, gen)[
-                    : n_adv - row].float().to(device)
-                adversaries = ascend(loop, condition, adversaries, sampling, level)
-                z = torch.cat([z_train, adversaries])
-            terms = condition.terms(loop, z)
-            loss = condition.loss(terms, cfg.margin, cfg.margin_rate, level, cfg.outside_weight, cfg.exclude_weight)
-            if level is not None:  # V above the level on the faces of X: {V <= level} inside X
-                loss = loss + torch.relu(faces_level - lyapunov(region.sample_faces(1024, gen).float().to(device))).mean()
-                if growing and iteration <= grow_until:  # the set pulled out towards the faces
-                    loss = loss + cfg.grow_weight * (torch.relu(terms.value - level) / level).mean()
-            if cfg.local_rate and (iteration - 1) % LOCAL_EVERY == 0:  # V a Lyapunov function of the linearisation
-                loss = loss + torch.relu(local_rates(condition, loop) + cfg.local_rate).mean()
-            if not torch.isfinite(loss):
-                lyapunov.load_state_dict(last_good[0])
-                controller.load_state_dict(last_good[1])
-                status = f"diverged: loss became {float(loss.detach())} at iteration {iteration}; kept the last good weights"
-                break
-            if iteration % 50 == 1:
-                last_good = (copy.deepcopy(lyapunov.state_dict()), copy.deepcopy(controller.state_dict()))
-            opt.zero_grad(set_to_none=True)
-            loss.backward()
-            opt.step()
-            if iteration % 10 == 0 or iteration == 1:
-                history.append({"iteration": iteration, "loss": float(loss.detach()), "time_s": time.perf_counter() - start})
-                bar.set_postfix(loss=f"{float(loss.detach()):.2e}")
-            bar.update(1)
-            if iteration % cfg.check_every == 0 or iteration == cfg.iters:
-                if run_check(iteration)["passed"] and not growing:
-                    status = f"passed the acceptance check at iteration {iteration}"
-                    break
-    finally:
-        bar.close()
-    if best is None or (checks and checks[-1]["iteration"] != iteration):
-        run_check(iteration)
-    _, v_state, c_state, check = best
-    lyapunov.load_state_dict(v_state)
-    controller.load_state_dict(c_state)
-    if growing and check["passed"] and not status.startswith("diverged"):
-        status = (f"{growth_words(min(iteration, grow_until), iteration)}; kept the latest pair passing the acceptance "
-                  "check")
-    elapsed = time.perf_counter() - start
-    metrics = {
-        "status": status,
-        "passed": bool(check["passed"]),
-        "iterations": iteration,
-        "best_iteration": check["iteration"],
-        "train_time_s": elapsed,
-        "check_time_s": check_time,
-        "ms_per_iteration": 1000 * (elapsed - check_time) / max(iteration, 1),
-        "final_loss": history[-1]["loss"] if history else None,
-        "acceptance": check,
-        "checks": checks,
-        "condition": condition.describe(),
-        "xi_samples": xi_all.tolist(),
-        "xi_train": xi_train.tolist(),
-        "warm_start": warm,
-    }
-    return TrainResult(cfg, system, lyapunov.cpu(), controller.cpu(), xi_all, condition, history, metrics)
+    def restore(self, iteration: int) -> dict:
+        """Load the best pair into the networks (checking the last one first where it was not); its check."""
+        if self.best is None or (self.checks and self.checks[-1]["iteration"] != iteration):
+            self.check(iteration)
+        _, v_state, c_state, check = self.best
+        _restore(self.loop.lyapunov, self.loop.controller, (v_state, c_state))
+        return check

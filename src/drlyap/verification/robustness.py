@@ -132,13 +132,8 @@ def _largest_proved(prove: Callable[[float], dict], refute: Callable[[float], di
         return res
 
     def out(lo, hi_res, stopped, reason=None) -> dict:
-        hi = None if hi_res is None else hi_res["value"]
-        return {"certified": lo, "unproved": hi, "unproved_status": None if hi_res is None else hi_res["status"],
-                "unproved_by": None if hi_res is None else hi_res["by"],
-                "witness": None if hi_res is None else hi_res.get("witness"),
-                "relative_gap": (hi / lo - 1) if (lo and hi is not None) else None,
-                "stopped": stopped, "reason": reason, "proofs": proofs, "probes": probes,
-                "time_s": time.perf_counter() - clock}
+        return _bracket(lo, hi_res, stopped, reason) | {"proofs": proofs, "probes": probes,
+                                                        "time_s": time.perf_counter() - clock}
 
     if proved is not None and proved > 0:
         probes.append({"value": proved, "status": "verified", "by": "an earlier proof", "time_s": None})
@@ -204,6 +199,15 @@ def _largest_proved(prove: Callable[[float], dict], refute: Callable[[float], di
             hi_res = res
             hi_res["topped"] = top  # where the top failed, the search bisects below it
     return out(lo, hi_res, "tolerance")
+
+
+def _bracket(lo: float | None, hi_res: dict | None, stopped: str, reason: str | None) -> dict:
+    """A search's outcome: the proved value ``lo``, the probe ``hi_res`` above it that failed, and why it stopped."""
+    hi = None if hi_res is None else hi_res["value"]
+    return {"certified": lo, "unproved": hi, "unproved_status": None if hi_res is None else hi_res["status"],
+            "unproved_by": None if hi_res is None else hi_res["by"],
+            "witness": None if hi_res is None else hi_res.get("witness"),
+            "relative_gap": (hi / lo - 1) if (lo and hi is not None) else None, "stopped": stopped, "reason": reason}
 
 
 def _prover(loop: ClosedLoop, region: Region, budget: Budget, make, level: float | None,
