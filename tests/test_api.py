@@ -88,3 +88,25 @@ def test_xi_samples_may_be_a_tensor_or_an_array(tmp_path, tiny_config):
         assert result.config.xi_samples == samples.tolist()
     drlyap.save_run(tmp_path / "run", result)  # the config is plain JSON
     assert drlyap.load_run(tmp_path / "run").xi_samples.tolist() == samples.tolist()
+
+
+def test_the_words_of_settings_and_results_are_string_enums_that_read_and_write_as_strings():
+    import json
+
+    from drlyap.config import Budget, ProofConfig, TrainConfig
+    from drlyap.kinds import Enclosure, Loss, Method, Status, choice
+    from drlyap.systems import get_system
+
+    system = get_system("pendulum")
+    cfg = TrainConfig(system="pendulum", method="baseline", loss="pointwise").resolved(system)
+    assert cfg.method is Method.BASELINE and cfg.loss is Loss.POINTWISE and cfg.method == "baseline"
+    assert json.loads(json.dumps(cfg.to_dict()))["method"] == "baseline"
+    assert TrainConfig.from_dict(json.loads(json.dumps(cfg.to_dict()))).resolved(system) == cfg
+    assert Budget(enclosure="affine").enclosure is Enclosure.AFFINE
+    assert ProofConfig().resolved(system).enclosure is Enclosure.MEAN_VALUE  # 2 states
+    assert ProofConfig().resolved(get_system("cartpole")).enclosure is Enclosure.AFFINE
+    assert Status("verified") == "verified" and f"{Status.UNKNOWN}" == "unknown"
+    with pytest.raises(ValueError, match="unknown enclosure 'boxes'; valid: mean-value, affine"):
+        choice(Enclosure, "boxes", "enclosure")
+    with pytest.raises(ValueError, match="method 'nominal'"):
+        TrainConfig(system="pendulum", method="nominal").resolved(system)

@@ -134,6 +134,17 @@ def test_loading_and_verifying_a_run_loads_nothing_of_the_trainer(tmp_path):
     assert not [m for m in ast.literal_eval(modules) if m.startswith("drlyap.training")], modules
 
 
+def test_every_public_name_of_the_api_is_its_own_object():
+    """One public name per function or class: no alias of another name of the API."""
+    import drlyap
+
+    seen: dict[int, str] = {}
+    for name in drlyap.__all__:
+        obj = getattr(drlyap, name)
+        assert id(obj) not in seen, f"drlyap.{name} is drlyap.{seen.get(id(obj))}"
+        seen[id(obj)] = name
+
+
 def test_help_loads_no_numerical_code():
     code = "import sys; from drlyap.cli import main; print('torch' in sys.modules)"
     out = subprocess.run([sys.executable, "-c", code], capture_output=True, text=True, check=True)

@@ -10,7 +10,7 @@ from drlyap.lqr import lqr_design
 from drlyap.regions import Region
 from drlyap.systems import cartpole, quadrotor2d
 from drlyap.training import TrainConfig
-from drlyap.training.config import build_networks
+from drlyap.assembly import build_networks
 from drlyap.training.trainer import ascend, radial_states, warm_start_lqr
 from handmade import plain_train, small_pendulum
 

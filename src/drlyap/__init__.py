@@ -38,7 +38,7 @@ _API = {
     "Run": "drlyap.runs", "RunDirError": "drlyap.runs", "load_run": "drlyap.runs", "save_run": "drlyap.runs",
     "check_writable": "drlyap.runs",
     "evaluate": "drlyap.simulation", "simulate": "drlyap.simulation",
-    "verify_run": "drlyap.workflows.verify", "load_policy_run": "drlyap.workflows.policies",
+    "load_policy_run": "drlyap.workflows.policies",
 }
 _ALIASES = {"verify": ("drlyap.workflows.verify", "verify_run")}
 

@@ -12,6 +12,7 @@ from torch import Tensor
 
 from drlyap.conditions import Condition, DRPointwise, DRUniform, TrueDecrease, make_condition
 from drlyap.config import TrainConfig
+from drlyap.kinds import Loss, Model
 from drlyap.networks import Controller, Lyapunov
 from drlyap.systems import UncertainSystem
 
@@ -76,10 +77,10 @@ def run_condition(cfg: TrainConfig, xi_samples: Tensor, form: str = "trained") -
     if form == "trained":
         return make_condition(cfg.method, cfg.loss, cfg.wasserstein_radius, cfg.risk_level, xi_samples,
                               cfg.decay_rate, cfg.exp_rate)
-    if form == "true":
+    if form == Model.TRUE:
         return TrueDecrease(xi_samples, cfg.decay_rate, cfg.exp_rate)
-    if form == "pointwise":
+    if form == Loss.POINTWISE:
         return DRPointwise(cfg.wasserstein_radius, cfg.risk_level, xi_samples, cfg.decay_rate, cfg.exp_rate)
-    if form == "uniform":
+    if form == Loss.UNIFORM:
         return DRUniform(cfg.wasserstein_radius, cfg.risk_level, xi_samples, cfg.decay_rate, cfg.exp_rate)
     raise ValueError(f"unknown condition form {form!r}; valid: trained, true, pointwise, uniform")

@@ -25,6 +25,7 @@ from collections.abc import Callable
 import torch
 from torch import Tensor, nn
 
+from drlyap.kinds import Model
 from drlyap.systems import UncertainSystem
 
 F64 = torch.float64
@@ -83,9 +84,9 @@ class ClosedLoop:
         """``zdot (B, n)`` at local states ``z (B, n)``: the true model ``F(x, pi(z), p0 + E xi)`` (``xi`` ``(k,)``
         or ``(B, k)``; None: nominal), or with ``model="design"`` the design model ``f + W xi``."""
         x, u = self.system.to_user(z), self.controller(z)
-        if model == "true":
+        if model == Model.TRUE:
             return self.system.true_dynamics(x, u, xi)
-        if model != "design":
+        if model != Model.DESIGN:
             raise ValueError(f"unknown model {model!r}; valid: design, true")
         f, w = self.system.design_model(x, u)
         if xi is None:

@@ -37,6 +37,7 @@ import torch.nn.functional as F  # noqa: N812
 from torch import Tensor
 
 from drlyap.enclosures import is_enclosure, norm
+from drlyap.kinds import Loss, Method, Model
 
 
 @dataclass
@@ -60,7 +61,7 @@ def euclidean_norm(x: Tensor) -> Tensor:
 
 
 def decrease_terms(loop, z: Tensor, xi_samples: Tensor, decay_rate: float, exp_rate: float = 0.0,
-                   model: str = "design", with_lip: bool = True) -> DecreaseTerms:
+                   model: Model = Model.DESIGN, with_lip: bool = True) -> DecreaseTerms:
     """Evaluate :class:`DecreaseTerms` of a closed loop (:class:`~drlyap.closed_loop.ClosedLoop`) at local states
     ``z (B, n)`` for ``xi_samples (N, k)``.
 
@@ -72,11 +73,11 @@ def decrease_terms(loop, z: Tensor, xi_samples: Tensor, decay_rate: float, exp_r
     value, grad_v = loop.lyapunov.value_and_grad(z)
     x = system.to_user(z)
     u = loop.controller(z)
-    if model == "design":
+    if model == Model.DESIGN:
         gf, gw = system.weighted_design(x, u, grad_v)
         vdot = gf.unsqueeze(-1) + F.linear(gw, xi_samples)
         lip = euclidean_norm(gw) if with_lip else None
-    elif model == "true":
+    elif model == Model.TRUE:
         vdot = torch.stack([(grad_v * system.true_dynamics(x, u, xi)).sum(-1) for xi in xi_samples], -1)
         lip = None
     else:
@@ -148,7 +149,7 @@ class Condition:
 
     name = "condition"
     label = "condition"
-    model = "design"
+    model = Model.DESIGN
     per_state = True
     uses_lip = False  # whether the components need ||W^T grad V|| (the DR conditions)
 
@@ -268,12 +269,12 @@ class PlainDecrease(Condition):
     name = "plain"
 
     def __init__(self, xi_samples: Tensor | None = None, decay_rate: float = 0.0, exp_rate: float = 0.0,
-                 model: str = "design") -> None:
+                 model: Model = Model.DESIGN) -> None:
         super().__init__(xi_samples, decay_rate, exp_rate)
-        if model not in ("design", "true"):
+        if model not in tuple(Model):
             raise ValueError(f"unknown model {model!r}; valid: design, true")
         self.model = model
-        self.label = "true model at xi" if model == "true" else "design model at the samples"
+        self.label = "true model at xi" if model == Model.TRUE else "design model at the samples"
 
     def _xi_box_on_points(self, z: Tensor) -> Tensor:
         """On plain states, an interval box of xi ``(N, k)`` is evaluated at its ``N 2^k`` corners ``(N 2^k, k)``:
@@ -388,13 +389,13 @@ def make_condition(method: str, loss: str, wasserstein_radius: float, risk_level
 
     ``xi_samples``: the samples the condition uses (for the baseline: their mean, shape ``(1, k)``).
     """
-    if method == "baseline":
+    if method == Method.BASELINE:
         return Nominal(xi_samples, decay_rate, exp_rate)
-    if method != "dr":
+    if method != Method.DR:
         raise ValueError(f"unknown method {method!r}; valid: baseline, dr")
-    if loss == "pointwise":
+    if loss == Loss.POINTWISE:
         return DRPointwise(wasserstein_radius, risk_level, xi_samples, decay_rate, exp_rate)
-    if loss == "uniform":
+    if loss == Loss.UNIFORM:
         return DRUniform(wasserstein_radius, risk_level, xi_samples, decay_rate, exp_rate)
     raise ValueError(f"unknown DR loss {loss!r}; valid: pointwise, uniform")
 

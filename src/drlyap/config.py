@@ -2,8 +2,9 @@
 typed objects: a system's defaults (:class:`SystemDefaults`), the training configuration (:class:`TrainConfig`),
 the proof settings (:class:`ProofConfig`) and one proof's work (:class:`Budget`).
 
-This module imports neither torch nor the rest of drlyap, so the command line reads its defaults from these
-classes without loading the numerical code. Every default of these settings lives here.
+This module imports neither torch nor the rest of drlyap but its leaf helpers (:mod:`drlyap.io`, the words of
+:mod:`drlyap.kinds`), so the command line reads its defaults from these classes without loading the numerical code.
+Every default of these settings lives here.
 """
 
 from __future__ import annotations
@@ -15,6 +16,7 @@ from collections.abc import Mapping
 from dataclasses import dataclass, fields
 
 from drlyap.io import from_fields
+from drlyap.kinds import Enclosure, Loss, Method, choice
 
 
 @dataclass(frozen=True)
@@ -154,8 +156,8 @@ class TrainConfig:
     """
 
     system: str = "pendulum"
-    method: str = "dr"  # "baseline" (nominal condition at the sample mean) or "dr"
-    loss: str = "pointwise"  # DR loss: "pointwise" or "uniform"
+    method: Method = Method.DR  # baseline (nominal condition at the sample mean) or dr
+    loss: Loss = Loss.POINTWISE  # DR loss: pointwise or uniform
     wasserstein_radius: float | None = None  # r
     risk_level: float | None = None  # eps
     decay_rate: float | None = None  # gamma in Vdot + gamma ||x - x*|| <= 0
@@ -251,6 +253,7 @@ class TrainConfig:
         if cfg.xi_samples is not None and hasattr(cfg.xi_samples, "tolist"):  # a tensor or an array
             cfg.xi_samples = cfg.xi_samples.tolist()
         cfg.validate(system)
+        cfg.method, cfg.loss = Method(cfg.method), Loss(cfg.loss)
         return cfg
 
     def missing(self) -> list[str]:
@@ -262,10 +265,10 @@ class TrainConfig:
         problems = self.type_problems()
         if problems:
             raise ValueError("invalid training config: " + "; ".join(problems))
-        if self.method not in ("baseline", "dr"):
-            problems.append(f"method {self.method!r} (valid: baseline, dr)")
-        if self.loss not in ("pointwise", "uniform"):
-            problems.append(f"loss {self.loss!r} (valid: pointwise, uniform)")
+        if self.method not in tuple(Method):
+            problems.append(f"method {self.method!r} (valid: {', '.join(Method)})")
+        if self.loss not in tuple(Loss):
+            problems.append(f"loss {self.loss!r} (valid: {', '.join(Loss)})")
         for name in ("wasserstein_radius", "decay_rate", "exp_rate", "margin", "alpha_hat", "margin_rate", "outside_weight",
                      "exclude_weight", "grow_weight", "local_rate", "level_margin"):
             value = getattr(self, name)
@@ -281,7 +284,7 @@ class TrainConfig:
         for name in ("near_share", "adversarial_share"):
             if not (math.isfinite(getattr(self, name)) and 0 <= getattr(self, name) <= 1):
                 problems.append(f"{name} = {getattr(self, name)} (must be in [0, 1])")
-        if self.adversarial_share and self.method == "dr" and self.loss == "uniform":
+        if self.adversarial_share and self.method == Method.DR and self.loss == Loss.UNIFORM:
             problems.append("adversarial_share needs a per-state condition (the uniform DR loss has none to ascend)")
         if self.near_share + self.adversarial_share > 1:
             problems.append(f"near_share + adversarial_share = {self.near_share + self.adversarial_share} (must be <= 1)")
@@ -327,22 +330,20 @@ class TrainConfig:
         return from_fields(cls, {k: v for k, v in data.items() if k not in LEGACY_PROOF_KEYS}, "config")
 
 
-ENCLOSURES = ("mean-value", "affine")
+ENCLOSURES = tuple(e.value for e in Enclosure)
 """The enclosures the verifier can bound boxes with (the first is the default below 4 states)."""
 
 
-def default_enclosure(n: int) -> str:
+def default_enclosure(n: int) -> Enclosure:
     """The enclosure for an ``n``-state system: ``affine`` from 4 states on (11-25x tighter there,
     ``benchmarks/enclosure_bench.py``), else ``mean-value`` (about 3x cheaper per box; in 2 states boxes are
     few and the pendulum's proofs take about a second either way)."""
-    return "affine" if n >= 4 else "mean-value"
+    return Enclosure.AFFINE if n >= 4 else Enclosure.MEAN_VALUE
 
 
-def check_enclosure(enclosure: str) -> str:
-    """``enclosure`` if it is one of :data:`ENCLOSURES`, else a ValueError naming the valid ones."""
-    if enclosure not in ENCLOSURES:
-        raise ValueError(f"unknown enclosure {enclosure!r}; valid: {', '.join(ENCLOSURES)}")
-    return enclosure
+def check_enclosure(enclosure: str) -> Enclosure:
+    """``enclosure`` as an :class:`~drlyap.kinds.Enclosure`, else a ValueError naming the valid ones."""
+    return choice(Enclosure, enclosure, "enclosure")
 
 
 BACKENDS = ("local", "ray")
@@ -408,7 +409,7 @@ class Budget:
     boxes: int = 2_000_000
     min_width: float = 1e-4
     batch: int = 4096
-    enclosure: str | None = None
+    enclosure: Enclosure | None = None
     compute: Compute = Compute()
 
     def __post_init__(self) -> None:
@@ -416,11 +417,11 @@ class Budget:
         if not (math.isfinite(self.seconds) and int(self.boxes) >= 1 and self.min_width > 0 and int(self.batch) >= 1):
             raise ValueError(f"a proof budget needs finite seconds, boxes >= 1, min_width > 0 and batch >= 1, got {self}")
         if self.enclosure is not None:
-            check_enclosure(self.enclosure)
+            object.__setattr__(self, "enclosure", check_enclosure(self.enclosure))
         if not isinstance(self.compute, Compute):
             raise ValueError(f"a proof budget's compute must be a Compute, got {type(self.compute).__name__}")
 
-    def enclosure_for(self, n: int) -> str:
+    def enclosure_for(self, n: int) -> Enclosure:
         """The enclosure to bound boxes of an ``n``-state system with."""
         return self.enclosure or default_enclosure(n)
 
@@ -471,7 +472,7 @@ class ProofConfig:
     max_boxes: int | None = None
     round_time: float | None = None
     min_width: float = 1e-4
-    enclosure: str | None = None
+    enclosure: Enclosure | None = None
     iters_per_round: int | None = None
     max_extra: int = 2000
     replicate: int = 2
@@ -528,7 +529,7 @@ class ProofConfig:
         return dataclasses.replace(self, time_limit=float(self.time_limit or d.verify_time),
                                    max_boxes=int(self.max_boxes or d.verify_boxes),
                                    round_time=float(self.round_time or self.time_limit or d.round_time),
-                                   enclosure=self.enclosure or default_enclosure(system.n),
+                                   enclosure=Enclosure(self.enclosure or default_enclosure(system.n)),
                                    stop_at_counterexample=bool(d.stop_at_counterexample
                                                                if self.stop_at_counterexample is None
                                                                else self.stop_at_counterexample))

@@ -13,6 +13,7 @@ from pathlib import Path
 
 from drlyap.claims import level_text, of_region
 from drlyap.io import proved_percent
+from drlyap.kinds import Status
 from drlyap.verification.results import (
     Certificate,
     ConditionProof,
@@ -27,7 +28,7 @@ from drlyap.verification.results import (
 
 def proved_share(result: ConditionProof, decimals: int = 4) -> str:
     """The share of X_delta a proof covered, never rounded up to 100% unless it is verified."""
-    return proved_percent(result.verified_fraction, result.status == "verified", decimals)
+    return proved_percent(result.verified_fraction, result.status == Status.VERIFIED, decimals)
 
 
 def _num(value, digits: int = 4) -> str:
@@ -43,7 +44,7 @@ def certificate_line(cert: Certificate, verify_command: str = "drlyap verify RUN
     if status == "not checked":
         return f"certificate: NOT CHECKED ({cert.condition} condition; run `{verify_command}`)"
     where = cert.region or "X_delta"
-    if status == "verified":
+    if status == Status.VERIFIED:
         return (f"certificate: VERIFIED - the {cert.condition} condition holds at every state of {of_region(where)} "
                 f"(proof {cert.time_s:.2f} s, {cert.boxes} boxes)")
     share = cert.verified_fraction
@@ -125,7 +126,7 @@ def condition_lines(proof: ConditionProof, title: str) -> list[str]:
         by = " (the falsifier's, after the proof ran out of time)" if proof.counterexample_source else ""
         lines.append(f"  counterexample x = {[round(v, 6) for v in proof.counterexample]}{by} with residual "
                      f"{proof.counterexample_value:.4g} > 0 (float32 networks: {proof.counterexample_value_float32:.4g})")
-    elif proof.status != "verified":
+    elif proof.status != Status.VERIFIED:
         lines.append(f"  {proof.n_unverified} boxes left unverified")
     return lines
 
@@ -329,7 +330,7 @@ def attempt_cells(attempt: ProofAttempt | None) -> tuple[str, str, str]:
     if attempt.verified_fraction is None:
         return attempt.status, "none", _robust_cell(attempt)
     where = "X_delta" if attempt.level is None else f"{{V <= {level_text(attempt.level)}}}"
-    if attempt.status == "verified":
+    if attempt.status == Status.VERIFIED:
         proof = f"verified on {where}"
     else:
         share = proved_percent(attempt.verified_fraction, False)

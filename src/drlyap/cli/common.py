@@ -4,6 +4,7 @@ settings dataclasses. Imports neither torch nor the numerical code, so ``--help`
 from __future__ import annotations
 
 import dataclasses
+import enum
 import json
 import math
 import os
@@ -31,10 +32,11 @@ def setup_threads() -> None:
 
 
 def default(cls, name: str):
-    """The default of dataclass ``cls``'s field ``name`` (the one place that default lives)."""
+    """The default of dataclass ``cls``'s field ``name`` (the one place that default lives); a word of
+    :mod:`drlyap.kinds` as its plain string, as the command line takes it."""
     for f in dataclasses.fields(cls):
         if f.name == name:
-            return f.default
+            return f.default.value if isinstance(f.default, enum.Enum) else f.default
     raise KeyError(f"{cls.__name__} has no field {name!r}")
 
 

@@ -12,6 +12,7 @@ from pathlib import Path
 
 from torch import Tensor
 
+from drlyap.kinds import Method
 from drlyap.runs.directory import load_run
 from drlyap.systems import UncertainSystem
 
@@ -50,7 +51,7 @@ def load_lyapunov_policy_run(path: Path, system: UncertainSystem | None = None, 
     cegis = run.metrics.get("cegis") or {}  # counterexample-guided runs: count every round
     iters = int(cegis.get("total_iterations") or run.metrics.get("iterations") or 0)
     samples = int(cfg.n_states) * (iters if cfg.resample else 1)
-    label = f"lyapunov-{cfg.method}" + (f"-{cfg.loss}" if cfg.method == "dr" else "")
+    label = f"lyapunov-{cfg.method}" + (f"-{cfg.loss}" if cfg.method == Method.DR else "")
     return PolicyRun(path, "lyapunov", run.system, run.controller, run.lyapunov, samples,
                      cegis.get("total_time_s", run.metrics.get("train_time_s")), label, cfg.to_dict(), run.metrics,
                      {"run": run, "distinct_states": int(cfg.n_states), "iterations": iters})

@@ -45,6 +45,7 @@ from drlyap.closed_loop import ClosedLoop
 from drlyap.conditions import Condition
 from drlyap.config import ProofConfig, TrainConfig
 from drlyap.io import jsonable
+from drlyap.kinds import Loss, Method
 from drlyap.networks import Controller, Lyapunov
 from drlyap.regions import Region
 from drlyap.render import unverified_warning
@@ -131,7 +132,7 @@ def train_cegis(cfg: TrainConfig, system: UncertainSystem, proof: ProofConfig, p
     """
     if not proof.is_resolved:
         raise ValueError("resolve the proof settings for the system first (ProofConfig.resolved(system))")
-    if cfg.method == "dr" and cfg.loss != "pointwise":
+    if cfg.method == Method.DR and cfg.loss != Loss.POINTWISE:
         raise ValueError("CEGIS needs a per-state condition (method dr with loss pointwise, or baseline); "
                          "the uniform DR condition has no per-state residual to falsify")
     rounds, time_budget = int(proof.rounds), proof.total_time
@@ -266,7 +267,7 @@ def train(config: TrainConfig, system: UncertainSystem | None = None, proof: Pro
         result.metrics["certificate"] = Certificate(status="not checked", condition=result.condition.label).to_dict()
         return result
     proof = proof.resolved(system)
-    uniform = cfg.method == "dr" and cfg.loss == "uniform"
+    uniform = cfg.method == Method.DR and cfg.loss == Loss.UNIFORM
     if uniform:
         result = fit(cfg, system, progress=progress, init=init)
         delta = float(result.config.delta)

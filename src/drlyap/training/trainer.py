@@ -32,6 +32,7 @@ from drlyap.assembly import (
 from drlyap.closed_loop import ClosedLoop
 from drlyap.conditions import Condition, local_rates
 from drlyap.config import TrainConfig
+from drlyap.kinds import Method
 from drlyap.lqr import lqr_design
 from drlyap.networks import Controller, Lyapunov
 from drlyap.progress import progress as show_progress
@@ -229,7 +230,7 @@ def fit(cfg: TrainConfig, system: UncertainSystem, progress: bool = True, init: 
     torch.manual_seed(cfg.seed)
     gen = torch.Generator().manual_seed(cfg.seed)
     xi_all = draw_xi_samples(system, cfg)
-    xi_train = xi_all.mean(0, keepdim=True) if cfg.method == "baseline" else xi_all
+    xi_train = xi_all.mean(0, keepdim=True) if cfg.method == Method.BASELINE else xi_all
     condition = run_condition(cfg, xi_train)
     region = Region.of(system, cfg.delta)
     grid = region.grid()

@@ -40,6 +40,7 @@ from drlyap.enclosures import (
     round_down,
     round_up,
 )
+from drlyap.kinds import Enclosure
 
 Objective = Callable[[object], object]
 """``objective(z)``: ``z`` an enclosure of local states ``(B, n)`` -> an enclosure ``(B, Q)``."""
@@ -77,7 +78,7 @@ def condition_and_value_objective(loop, condition: Condition) -> Objective:
     return objective
 
 
-def box_bounds(objective: Objective, lo: Tensor, hi: Tensor, enclosure: str = "mean-value",
+def box_bounds(objective: Objective, lo: Tensor, hi: Tensor, enclosure: Enclosure = Enclosure.MEAN_VALUE,
                sensitivity: bool = False, keep_form: bool = False) -> tuple:
     """Lower and upper bounds ``(B, Q)`` of ``objective`` over the boxes ``[lo, hi] (B, n)``.
 
@@ -93,7 +94,7 @@ def box_bounds(objective: Objective, lo: Tensor, hi: Tensor, enclosure: str = "m
     batch, n = lo.shape
     centre = (lo + hi) / 2
     at = objective(Interval(centre, centre))
-    if check_enclosure(enclosure) == "affine":
+    if check_enclosure(enclosure) == Enclosure.AFFINE:
         form = objective(Affine.box(lo, hi))
         over = form.tight_interval()
         upper, lower = over.hi, over.lo
@@ -120,7 +121,7 @@ def box_bounds(objective: Objective, lo: Tensor, hi: Tensor, enclosure: str = "m
     if sensitivity:
         out += (torch.nan_to_num(sens, nan=torch.inf, posinf=torch.inf),)
     if keep_form:
-        out += (form if enclosure == "affine" else None,)
+        out += (form if enclosure == Enclosure.AFFINE else None,)
     return out
 
 

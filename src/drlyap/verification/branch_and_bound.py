@@ -30,6 +30,7 @@ from drlyap.closed_loop import ClosedLoop
 from drlyap.conditions import Condition, DRUniform
 from drlyap.config import Budget
 from drlyap.enclosures import EPS, F64, Interval, round_down, round_up
+from drlyap.kinds import Status
 from drlyap.progress import progress as show_progress
 from drlyap.regions import Region, box_grid, default_grid, inside_ball, split
 from drlyap.verification.bounding import ConditionJob, run_batches
@@ -318,13 +319,13 @@ class _Search:
         left_lo = torch.cat(leaves_lo) if leaves_lo else torch.empty(0, n, dtype=F64)
         left_hi = torch.cat(leaves_hi) if leaves_hi else torch.empty(0, n, dtype=F64)
         if self.cex is not None:
-            status = "violated"
+            status = Status.VIOLATED
         elif left_lo.shape[0] == 0:
-            status = "verified"
+            status = Status.VERIFIED
         else:
-            status = "unknown"
+            status = Status.UNKNOWN
         fraction = max(0.0, min(1.0, 1.0 - unverified_vol / self.volume)) if self.volume > 0 else 1.0
-        if status == "verified":
+        if status == Status.VERIFIED:
             fraction = 1.0
         boxes = [{"lo": system.to_user(a[None])[0].tolist(), "hi": system.to_user(b[None])[0].tolist()}
                  for a, b in zip(left_lo[:keep_boxes], left_hi[:keep_boxes])]
@@ -334,7 +335,7 @@ class _Search:
             n_unverified=int(left_lo.shape[0]), unverified_boxes=boxes, n_counterexample_boxes=self.n_cex_boxes,
             sup_bounds=[self.sup_lo, sup_hi], stopped=self.stopped, level=self.level,
             resumed_boxes=self.resumed or None)
-        if status == "verified" or keep_partition:
+        if status == Status.VERIFIED or keep_partition:
             result.partition = self.tree.finish()
         if self.cex is not None:
             z = self.cex[1]
@@ -425,7 +426,7 @@ def uniform_margin(loop: ClosedLoop, condition: DRUniform, region: Region, budge
     coef = condition.r / condition.eps
     m_up = float(round_up(condition.margin(upper), 64 * EPS, upper.abs().amax() * (1 + coef)))
     m_lo = float(round_down(condition.margin(lower), 64 * EPS, lower.abs().amax() * (1 + coef)))
-    status = "verified" if m_up <= 0 else ("violated" if m_lo > 0 else "unknown")
+    status = Status.VERIFIED if m_up <= 0 else (Status.VIOLATED if m_lo > 0 else Status.UNKNOWN)
     return UniformMargin(condition="DR uniform", status=status, margin_upper=m_up, margin_lower=m_lo,
                          lipschitz_sup=[float(lower[0]), float(upper[0])],
                          h_sup=[[float(a), float(b)] for a, b in zip(lower[1:], upper[1:])],

@@ -25,6 +25,7 @@ from drlyap.closed_loop import ClosedLoop
 from drlyap.conditions import Condition
 from drlyap.config import DEFAULT_SETTLE_STARTS
 from drlyap.enclosures import Interval
+from drlyap.kinds import Status
 from drlyap.regions import Region
 from drlyap.systems import UncertainSystem
 from drlyap.verification.bounds import combine_lower, condition_and_value_objective, condition_objective
@@ -128,7 +129,7 @@ def settle_unknown(result: ConditionProof, loop: ClosedLoop, condition: Conditio
     records the search (starts, seconds, largest residual, confirmed states). Returns ``result`` (updated in
     place); other statuses, non-per-state conditions and ``starts <= 0`` leave it as it was.
     """
-    if result.status != "unknown" or not condition.per_state or starts <= 0:
+    if result.status != Status.UNKNOWN or not condition.per_state or starts <= 0:
         return result
     system = loop.system
     tic = time.perf_counter()
@@ -141,7 +142,7 @@ def settle_unknown(result: ConditionProof, loop: ClosedLoop, condition: Conditio
     result.falsifier = record
     if record["confirmed"]:
         best = found[int(lower.argmax())]
-        result.status, result.counterexample_source = "violated", "falsifier"
+        result.status, result.counterexample_source = Status.VIOLATED, "falsifier"
         result.counterexample_local, result.counterexample = best.tolist(), system.to_user(best[None])[0].tolist()
         result.counterexample_value = float(loop.exact(condition, best[None])[0])
         result.counterexample_value_float32 = float(loop.exact(condition, best[None], torch.float32)[0])

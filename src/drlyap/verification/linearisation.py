@@ -33,6 +33,7 @@ from torch import Tensor
 from drlyap.closed_loop import ClosedLoop
 from drlyap.conditions import PlainDecrease
 from drlyap.enclosures import F64, REL1, Affine, Dual, Interval, round_down, round_up
+from drlyap.kinds import Model
 
 
 def closed_loop_jacobians(loop: ClosedLoop, plain: PlainDecrease) -> list[Tensor]:
@@ -62,7 +63,7 @@ def jacobian_enclosures(loop: ClosedLoop, plain: PlainDecrease, half: Tensor | N
         return d.tight_interval() if isinstance(d, Affine) else d
 
     out = []
-    if plain.model == "true":
+    if plain.model == Model.TRUE:
         z = point(1, eye[None])
         x, u = system.to_user(z), controller(z)
         for xi in plain.xi:

@@ -25,7 +25,9 @@ import math
 from dataclasses import dataclass, field
 from typing import Any, ClassVar
 
-STATUSES = ("verified", "violated", "unknown")
+from drlyap.kinds import Status
+
+STATUSES = (Status.VERIFIED, Status.VIOLATED, Status.UNKNOWN)
 
 
 def _known(cls, data: dict) -> dict:
@@ -110,7 +112,7 @@ class ConditionProof(Result):
 
     @property
     def verified(self) -> bool:
-        return self.status == "verified"
+        return self.status == Status.VERIFIED
 
     SUMMARY: ClassVar[tuple[str, ...]] = ("condition", "status", "verified_fraction", "delta", "boxes_processed", "time_s",
                                           "stopped", "counterexample", "counterexample_value", "counterexample_source",
@@ -147,7 +149,7 @@ class UniformMargin(Result):
 
     @property
     def verified(self) -> bool:
-        return self.status == "verified"
+        return self.status == Status.VERIFIED
 
     @property
     def verified_fraction(self) -> None:
@@ -400,7 +402,7 @@ class Certificate(Result):
 
     @property
     def verified(self) -> bool:
-        return self.status == "verified"
+        return self.status == Status.VERIFIED
 
     def to_dict(self) -> dict:
         if self.status == "not checked":

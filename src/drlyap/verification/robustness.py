@@ -37,13 +37,14 @@ from drlyap.closed_loop import ClosedLoop
 from drlyap.conditions import DRPointwise, TrueDecrease
 from drlyap.config import Budget
 from drlyap.enclosures import F64, Interval
+from drlyap.kinds import Enclosure, Status
 from drlyap.regions import Region
 from drlyap.systems import UncertainSystem
 from drlyap.verification.branch_and_bound import verify_condition
 from drlyap.verification.partition import PROVED, Partition
 from drlyap.verification.results import CertifiedRadius, CertifiedShiftBox
 
-SEARCH_BUDGET = Budget(seconds=10.0, enclosure="mean-value")
+SEARCH_BUDGET = Budget(seconds=10.0, enclosure=Enclosure.MEAN_VALUE)
 """The default budget of each proof of a search."""
 
 NEAR = 16
@@ -136,11 +137,11 @@ def _largest_proved(prove: Callable[[float], dict], refute: Callable[[float], di
                                                         "time_s": time.perf_counter() - clock}
 
     if proved is not None and proved > 0:
-        probes.append({"value": proved, "status": "verified", "by": "an earlier proof", "time_s": None})
+        probes.append({"value": proved, "status": Status.VERIFIED, "by": "an earlier proof", "time_s": None})
         lo, hi_res = float(proved), None
     else:
         first = probe(0.0)
-        if first["status"] != "verified":
+        if first["status"] != Status.VERIFIED:
             return out(None, first, "not provable at 0",
                        f"the condition is {first['status']} already at 0 ({first['by']})")
         lo, hi_res = 0.0, None
@@ -153,7 +154,7 @@ def _largest_proved(prove: Callable[[float], dict], refute: Callable[[float], di
             if v <= lo:
                 continue
             res = probe(v)
-            if res["status"] == "verified":
+            if res["status"] == Status.VERIFIED:
                 lo = v
             else:
                 hi_res = res
@@ -168,7 +169,7 @@ def _largest_proved(prove: Callable[[float], dict], refute: Callable[[float], di
         if over_budget():
             return out(lo, None, "budget", "time or proof budget ran out while growing")
         res = probe(v)
-        if res["status"] == "verified":
+        if res["status"] == Status.VERIFIED:
             lo = v
         else:
             hi_res = res
@@ -192,7 +193,7 @@ def _largest_proved(prove: Callable[[float], dict], refute: Callable[[float], di
         if mid <= 1e-300:
             return out(lo, hi_res, "vanishing", "unproved at every value tried above 0")
         res = probe(mid)
-        rose = res["status"] == "verified"
+        rose = res["status"] == Status.VERIFIED
         if rose:
             lo, guessed = mid, False
         else:
@@ -309,13 +310,13 @@ def certified_radius(loop: ClosedLoop, condition: DRPointwise, region: Region, b
         if r == 0.0:
             if bool((res0 > 0).any()):
                 i = int(res0.argmax())
-                return {"status": "violated", "witness": _witness(system, z[i], float(res0[i]))}
+                return {"status": Status.VIOLATED, "witness": _witness(system, z[i], float(res0[i]))}
             return None
         at = best["at"]
         if at is None or r <= best["sampled"]:
             return None
         value = float(_residuals(loop, condition.with_radius(r), at[None])[0])
-        return {"status": "violated", "witness": _witness(system, at, value)} if value > 0 else None
+        return {"status": Status.VIOLATED, "witness": _witness(system, at, value)} if value > 0 else None
 
     def reguess(res: dict) -> float | None:  # the ratio at the verifier's counterexample
         state = system.to_local(torch.tensor([res["witness"]["state"]], dtype=F64))
@@ -406,7 +407,7 @@ def certified_shift_box(loop: ClosedLoop, decay_rate: float, exp_rate: float, re
         if not bad.any():
             return None
         i = int(torch.where(bad, torch.nan_to_num(res, nan=math.inf), -math.inf).argmax())
-        return {"status": "violated", "witness": _witness(system, z[i], float(res[i]))}
+        return {"status": Status.VIOLATED, "witness": _witness(system, z[i], float(res[i]))}
 
     def refute(s: float) -> dict | None:
         return refute_at(states["z"], s)

@@ -15,6 +15,7 @@ from drlyap.closed_loop import ClosedLoop
 from drlyap.conditions import Condition
 from drlyap.config import DEFAULT_SETTLE_STARTS, Budget
 from drlyap.enclosures import F64, round_down
+from drlyap.kinds import Status
 from drlyap.networks import QuadraticLyapunov
 from drlyap.regions import Region, box_grid, default_grid
 from drlyap.verification.bounds import value_objective
@@ -81,9 +82,9 @@ def verify_sublevel(loop: ClosedLoop, condition: Condition, region: Region, leve
                            **kwargs)
     out.boundary_min_lower, out.boundary_min_upper, out.time_s = low, high, time.perf_counter() - start
     if high <= level:
-        out.status, out.stopped = "violated", f"V = {high:.6g} <= {level:g} at a point of the box's boundary"
-    elif low <= level and out.status == "verified":
-        out.status, out.stopped = "unknown", f"V > {level:g} on the box's boundary not proved (bound {low:.6g})"
+        out.status, out.stopped = Status.VIOLATED, f"V = {high:.6g} <= {level:g} at a point of the box's boundary"
+    elif low <= level and out.status == Status.VERIFIED:
+        out.status, out.stopped = Status.UNKNOWN, f"V > {level:g} on the box's boundary not proved (bound {low:.6g})"
     return out
 
 

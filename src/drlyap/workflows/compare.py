@@ -23,6 +23,7 @@ from drlyap.closed_loop import ClosedLoop
 from drlyap.conditions import TrueDecrease
 from drlyap.config import Compute, ProofConfig
 from drlyap.io import jsonable
+from drlyap.kinds import Enclosure
 from drlyap.networks import LinearController, QuadraticLyapunov
 from drlyap.progress import progress as show_progress
 from drlyap.regions import Region
@@ -107,7 +108,7 @@ def certify(run: PolicyRun, xi: Tensor, time_limit: float, compute: Compute = Co
     decrease on the true model with the row's decay (:mod:`drlyap.verification.robustness`; each proof
     ``time_limit`` seconds, each search at most 4x that). ``compute``: where the proofs bound their boxes.
     """
-    search = Budget(seconds=time_limit, enclosure="mean-value", compute=compute)
+    search = Budget(seconds=time_limit, enclosure=Enclosure.MEAN_VALUE, compute=compute)
     if run.kind == "lyapunov":
         lyap_run = run.info["run"]
         settings = run_proof(lyap_run, replace(lyap_run.proof or ProofConfig(), time_limit=time_limit).with_compute(compute))

@@ -32,6 +32,7 @@ from drlyap.closed_loop import ClosedLoop
 from drlyap.conditions import wasserstein_radius_guarantee
 from drlyap.config import TrainConfig
 from drlyap.io import jsonable
+from drlyap.kinds import Enclosure, Loss, Method, Status
 from drlyap.regions import Region
 from drlyap.runs import Run
 from drlyap.systems import UncertainSystem
@@ -178,9 +179,9 @@ def guarantee(run: Run, dist: str, n: int, method: str = "sampling", seed: int =
         region = Region.of(system, delta)
         for d in distinct:
             res = verify_condition(run.loop, run_condition(cfg, d[None], "true"), region,
-                                   Budget(seconds=time_limit, enclosure="mean-value"), stop_at_counterexample=True)
-            flags.append(res.status == "verified")
-            unknown += res.status == "unknown"
+                                   Budget(seconds=time_limit, enclosure=Enclosure.MEAN_VALUE), stop_at_counterexample=True)
+            flags.append(res.status == Status.VERIFIED)
+            unknown += res.status == Status.UNKNOWN
             sups.append(res.sup_bounds[0] if res.sup_bounds else math.nan)
         sup = torch.tensor(sups, dtype=F64)
         holds_distinct = torch.tensor(flags, dtype=torch.bool)
@@ -191,8 +192,8 @@ def guarantee(run: Run, dist: str, n: int, method: str = "sampling", seed: int =
     bound = (1 - eps) * (1 - eps_bar)
     per_draw = sup[inverse]
     finite = per_draw[torch.isfinite(per_draw)]
-    uniform = cfg.method == "dr" and cfg.loss == "uniform"
-    why = "baseline" if cfg.method == "baseline" else "pointwise DR (a per-state condition)"
+    uniform = cfg.method == Method.DR and cfg.loss == Loss.UNIFORM
+    why = "baseline" if cfg.method == Method.BASELINE else "pointwise DR (a per-state condition)"
     out = {
         "run_dir": str(getattr(run, "path", "")), "system": system.name, "method": cfg.method,
         "distribution": dist, "distribution_parsed": description, "n": n, "n_distinct": int(distinct.shape[0]),

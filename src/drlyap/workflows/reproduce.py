@@ -16,6 +16,7 @@ import torch
 
 from drlyap import plotting
 from drlyap.config import Compute
+from drlyap.kinds import Method
 from drlyap.progress import progress as show_progress
 from drlyap.render import ACCEPTANCE_LEGEND, decrease_cell, roa_cell
 from drlyap.runs import Run, atomic_dir, check_writable, load_run, save_run
@@ -26,7 +27,7 @@ from drlyap.verification import ProofConfig
 from drlyap.workflows.plot import region_to_draw
 from drlyap.workflows.verify import record_certificates, record_region, record_roa, verify_run
 
-METHODS = ("baseline", "dr")
+METHODS = (Method.BASELINE, Method.DR)
 SWEEP = (1, 2, 3, 4, 5)  # evaluation shifts, as multiples of the paper's test shift
 
 

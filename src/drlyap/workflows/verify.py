@@ -16,6 +16,7 @@ from drlyap.assembly import run_condition
 from drlyap.closed_loop import ClosedLoop
 from drlyap.conditions import Condition, TrueDecrease
 from drlyap.io import jsonable
+from drlyap.kinds import Enclosure, Loss, Method, Status
 from drlyap.regions import Region
 from drlyap.runs import Run
 from drlyap.runs.certificates import certificate_partition, remove_certificate, write_certificate
@@ -109,7 +110,7 @@ def confirmed_certificate(run: Run, name: str, condition, region: Region, level:
         write_record(run.path, name, prints, result.proved, result.time_s)
         leaves, seconds, when = result.proved, result.time_s, None
     counts = (header.get("proof") or {})
-    return ConditionProof(condition=condition.label, status="verified", verified_fraction=1.0, delta=region.delta,
+    return ConditionProof(condition=condition.label, status=Status.VERIFIED, verified_fraction=1.0, delta=region.delta,
                           boxes_processed=int(counts.get("boxes_processed") or 0), boxes_verified=leaves,
                           time_s=seconds, stopped="finished", level=level,
                           boundary_min_lower=counts.get("faces_min_lower") if level is not None else None,
@@ -140,7 +141,7 @@ def verify_run(run: Run, proof: ProofConfig | None = None, *, delta: float | Non
     level = cfg.roa_level
     budget = proof.budget()
     trained_condition = run.condition
-    if trained_condition.name == "uniform":
+    if trained_condition.name == Loss.UNIFORM:
         trained = uniform_margin(loop, trained_condition, region, budget)
         margin = trained
     else:
@@ -150,7 +151,7 @@ def verify_run(run: Run, proof: ProofConfig | None = None, *, delta: float | Non
             trained = prove_trained(loop, trained_condition, region, budget, level, falsify_starts=proof.settle_starts)
         margin = None
         if uniform:
-            margin = uniform_margin(loop, run_condition(cfg, run.xi_samples, "uniform"), region,
+            margin = uniform_margin(loop, run_condition(cfg, run.xi_samples, Loss.UNIFORM), region,
                                      proof.budget(proof.uniform_time))
     true_model, main_condition = None, trained_condition
     if xi is not None:
@@ -171,7 +172,7 @@ def verify_run(run: Run, proof: ProofConfig | None = None, *, delta: float | Non
             if true_model is not None:
                 region_of_attraction.xi = true_model.xi
     return RunVerification(run_dir=str(run.path), system=system.name, method=cfg.method,
-                           loss=cfg.loss if cfg.method == "dr" else None, delta=region.delta,
+                           loss=cfg.loss if cfg.method == Method.DR else None, delta=region.delta,
                            enclosure=proof.enclosure, trained=trained, uniform=margin, true_model=true_model,
                            roa=region_of_attraction)
 
@@ -254,7 +255,7 @@ def record_robustness(run: Run, robustness: RunRobustness) -> list[Path]:
         if radius.proof is None:  # r* is the trained radius: the trained certificate states it
             remove_certificate(run.path, "radius")
         else:
-            condition = run_condition(run.config, run.xi_samples, "pointwise").with_radius(radius.radius)
+            condition = run_condition(run.config, run.xi_samples, Loss.POINTWISE).with_radius(radius.radius)
             written.append(write_certificate(run.path, "radius", radius.proof, condition, region, run.system,
                                              run.path / "weights.pt", float(run.config.alpha_hat)))
     if box is not None and box.s is not None:
@@ -384,8 +385,8 @@ def run_robustness(run: Run, delta: float | None = None, tol: float = 0.01, budg
     cfg, system, loop = run.config, run.system, run.loop
     region = _region(run, delta)
     level = cfg.roa_level  # a region-of-attraction run claims its conditions on {V <= level} only
-    condition = run_condition(cfg, run.xi_samples, "pointwise")
-    same = (cfg.method == "dr" and cfg.loss == "pointwise" and isinstance(trained, ConditionProof) and trained.verified
+    condition = run_condition(cfg, run.xi_samples, Loss.POINTWISE)
+    same = (cfg.method == Method.DR and cfg.loss == Loss.POINTWISE and isinstance(trained, ConditionProof) and trained.verified
             and float(trained.delta) == float(region.delta) and trained.level == level)
     start = None
     if same:  # the trained proof's partition: the search's proofs above the run's radius start from it
@@ -396,10 +397,10 @@ def run_robustness(run: Run, delta: float | None = None, tol: float = 0.01, budg
     box = certified_shift_box(loop, cfg.decay_rate, cfg.exp_rate, region, scale, budget, tol=tol,
                               total_time=total_time, level=level, start=start)
     own = None
-    if cfg.method == "baseline":  # also around the one sample it trained on (the mean: a ball around a point mass)
-        own = certified_radius(loop, run_condition(cfg, run.xi_train, "pointwise"), region, budget, tol=tol,
+    if cfg.method == Method.BASELINE:  # also around the one sample it trained on (the mean: a ball around a point mass)
+        own = certified_radius(loop, run_condition(cfg, run.xi_train, Loss.POINTWISE), region, budget, tol=tol,
                                total_time=total_time, level=level)
-    return RunRobustness(method=cfg.method, trained_radius=cfg.wasserstein_radius if cfg.method == "dr" else None,
+    return RunRobustness(method=cfg.method, trained_radius=cfg.wasserstein_radius if cfg.method == Method.DR else None,
                          delta=region.delta, radius=radius, shift_box=box, radius_training_sample=own)
 
 
@@ -409,6 +410,6 @@ def run_covering(run: Run, spacing: float | None = None, xi: Sequence[float] | T
     or with ``xi`` of plain decrease on the true model there, on the run's X_delta; with ``compare_seconds`` the
     branch and bound (mean-value form) on the same condition beside it."""
     condition = run.condition if xi is None else run.true_condition(xi)
-    compare = Budget(seconds=compare_seconds, enclosure="mean-value") if compare_seconds > 0 else None
+    compare = Budget(seconds=compare_seconds, enclosure=Enclosure.MEAN_VALUE) if compare_seconds > 0 else None
     return lipschitz_covering(run.loop, condition, _region(run, None), spacing=spacing, n_samples=n_samples,
                               compare=compare)

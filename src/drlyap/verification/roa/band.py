@@ -27,6 +27,7 @@ from drlyap.closed_loop import ClosedLoop
 from drlyap.conditions import Condition, PlainDecrease
 from drlyap.config import Budget
 from drlyap.enclosures import F64
+from drlyap.kinds import Enclosure
 from drlyap.regions import Region, box_grid, default_grid
 from drlyap.verification.roa.levels import below, level_search
 
@@ -86,7 +87,7 @@ def band_roa(loop: ClosedLoop, condition: Condition, region: Region, quadratic: 
             loop, strict, lo, hi, region.scale, target,
             limited_by if target >= top else "next level not reached", start + time_limit, meets=everywhere,
             in_region=lambda centre, v: everywhere(centre, centre), min_width=fine, batch=budget.batch,
-            enclosure="affine", ellipsoid=(p, c_q))
+            enclosure=Enclosure.AFFINE, ellipsoid=(p, c_q))
         boxes += count
         targets.append({"level": target, "reached": level >= target, "boxes": count,
                         "time_s": time.perf_counter() - start})

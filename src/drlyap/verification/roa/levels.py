@@ -13,6 +13,7 @@ from torch import Tensor
 from drlyap.closed_loop import ClosedLoop
 from drlyap.conditions import Condition
 from drlyap.enclosures import F64, REL1, Interval, round_down, round_up, vertices
+from drlyap.kinds import Enclosure
 from drlyap.networks import QuadraticLyapunov
 from drlyap.regions import split
 from drlyap.verification.bounds import (
@@ -32,7 +33,7 @@ def below(level: float) -> float:
 
 def level_search(loop: ClosedLoop, condition: Condition, lo: Tensor, hi: Tensor, scale: Tensor, level: float,
                  limited_by: str, deadline: float, *, meets, in_region, floor: float = -math.inf,
-                 min_width: float = 1e-4, batch: int = 4096, enclosure: str = "mean-value",
+                 min_width: float = 1e-4, batch: int = 4096, enclosure: Enclosure = Enclosure.MEAN_VALUE,
                  ellipsoid: tuple[Tensor, float] | None = None) -> tuple[float, str, Tensor | None, int]:
     """The largest level (at most ``level``) such that ``condition`` holds on every state of the boxes
     ``[lo, hi]`` (and of their parts where ``meets(lo, hi)``, a ``(B,)`` mask) with ``floor <= V <= level``
@@ -54,7 +55,7 @@ def level_search(loop: ClosedLoop, condition: Condition, lo: Tensor, hi: Tensor,
     if ellipsoid is None:
         objective = base
     else:
-        if enclosure != "affine":
+        if enclosure != Enclosure.AFFINE:
             raise ValueError("the search outside an ellipsoid needs the affine enclosure")
         w = QuadraticLyapunov(ellipsoid[0])
         c_q = float(ellipsoid[1])

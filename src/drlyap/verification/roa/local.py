@@ -25,6 +25,7 @@ from drlyap.closed_loop import ClosedLoop
 from drlyap.conditions import Condition, PlainDecrease, local_rates
 from drlyap.config import Budget
 from drlyap.enclosures import F64, Dual, Interval
+from drlyap.kinds import Enclosure, Model, Status
 from drlyap.networks import QuadraticLyapunov
 from drlyap.regions import Region
 from drlyap.verification.branch_and_bound import verify_condition
@@ -99,7 +100,7 @@ def not_equilibrium(loop: ClosedLoop, plain: PlainDecrease, region: Region) -> s
     unit = Interval(torch.eye(system.n, dtype=F64), torch.eye(system.n, dtype=F64))
     scale = float(region.scale.abs().max())
     for xi in plain.xi:
-        if plain.model == "true":
+        if plain.model == Model.TRUE:
             f = system.true_dynamics(x_star, u_star, xi)
         else:  # e_i . (f + W xi) for each unit covector e_i: the design model's field at x*
             gf, gw = system.weighted_design(x_star, u_star, unit)
@@ -111,7 +112,7 @@ def not_equilibrium(loop: ClosedLoop, plain: PlainDecrease, region: Region) -> s
 
 
 def local_decrease(loop: ClosedLoop, condition: Condition, region: Region,
-                   budget: Budget = Budget(seconds=10.0, enclosure="mean-value"), level: float | None = None,
+                   budget: Budget = Budget(seconds=10.0, enclosure=Enclosure.MEAN_VALUE), level: float | None = None,
                    keep: dict | None = None) -> dict:
     """Prove ``Vdot < 0`` on the delta-ball minus x* (with ``level``: on its part in ``{V <= level}``) for every
     sample of ``condition``'s model (see the module docstring). Returns ``proved``, the cube half-width ``cube``
@@ -165,7 +166,7 @@ def local_decrease(loop: ClosedLoop, condition: Condition, region: Region,
                            stop_at_counterexample=True, level=level, keep_partition=keep is not None)
     out["ring"] = {"status": res.status, "decay_rate": gamma_in, "inner_radius": r_in, "boxes": res.boxes_processed,
                    "verified_fraction": res.verified_fraction}
-    out["proved"] = res.status == "verified"
+    out["proved"] = res.status == Status.VERIFIED
     if out["proved"] and keep is not None:
         keep["ball"] = BallProof(cube=half.tolist(), condition=ring_plain, region=ring, ring=res)
     if not out["proved"]:

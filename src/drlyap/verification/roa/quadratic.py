@@ -44,6 +44,7 @@ from drlyap.closed_loop import ClosedLoop
 from drlyap.conditions import Condition, PlainDecrease
 from drlyap.config import Budget
 from drlyap.enclosures import F64, REL1, round_down, round_up
+from drlyap.kinds import Enclosure
 from drlyap.networks import QuadraticLyapunov
 from drlyap.regions import Region, box_grid, default_grid, near_dist
 from drlyap.verification.bounds import box_bounds, value_objective
@@ -63,7 +64,7 @@ from drlyap.verification.roa.sublevel import sublevel_roa
 
 
 def quadratic_roa(loop: ClosedLoop, condition: Condition, region: Region,
-                  budget: Budget = Budget(seconds=10.0, enclosure="affine")) -> dict:
+                  budget: Budget = Budget(seconds=10.0, enclosure=Enclosure.AFFINE)) -> dict:
     """A certified region of attraction ``{z^T P z <= c_q}`` of the closed loop of every sample's model of
     ``condition`` (the controller's, whatever V is), from its linearisation (module docstring, steps a and b).
 
@@ -236,7 +237,7 @@ def _quadratic_level(loop: ClosedLoop, plain: PlainDecrease, region: Region, p: 
 
 
 def linearisation_local(loop: ClosedLoop, condition: Condition, region: Region, level: float,
-                        budget: Budget = Budget(seconds=10.0, enclosure="mean-value")) -> dict:
+                        budget: Budget = Budget(seconds=10.0, enclosure=Enclosure.MEAN_VALUE)) -> dict:
     """The local proof from the closed-loop linearisation, for when V's own second-order proof fails (module
     docstring, "The linearisation proof"). ``level``: the level ``c`` up to which ``condition`` is proved on
     ``{V <= c}`` outside the delta-ball. Returns ``proved``, ``level`` (the largest ``c' <= c`` for which the

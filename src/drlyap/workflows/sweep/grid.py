@@ -8,9 +8,10 @@ from dataclasses import dataclass, field
 
 from drlyap.config import ProofConfig, TrainConfig
 from drlyap.io import from_fields
+from drlyap.kinds import Method
 from drlyap.systems import UncertainSystem, resolve_system
 
-METHODS = ("baseline", "dr")
+METHODS = (Method.BASELINE, Method.DR)
 SPEC_FILE = "sweep.json"  # the grid, in the sweep directory
 RESULT_FILE = "result.json"  # a finished combination's row, in its run directory
 STAGING = ".staging"  # combinations being written
@@ -88,7 +89,7 @@ class Combination:
     @property
     def name(self) -> str:
         """Directory name, e.g. ``dr-r0.01-eps0.1-seed3`` or ``baseline-seed3``."""
-        if self.method == "baseline":
+        if self.method == Method.BASELINE:
             return f"baseline-seed{self.seed}"
         return f"{self.method}-r{self.radius:g}-eps{self.eps:g}-seed{self.seed}"
 
@@ -126,7 +127,7 @@ class SweepSpec:
         combos = []
         for method in self.methods:
             for seed in self.seeds:
-                if method == "baseline":
+                if method == Method.BASELINE:
                     combos.append(Combination(method, seed, None, None))
                     continue
                 combos += [Combination(method, seed, r, e) for e in self.eps for r in self.radii]
