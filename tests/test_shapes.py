@@ -4,13 +4,13 @@ linear controller) set exactly to an LQR pair; states drawn inside a sublevel se
 import pytest
 import torch
 
+from drlyap.assembly import build_networks
 from drlyap.closed_loop import ClosedLoop
 from drlyap.conditions import DRPointwise
 from drlyap.lqr import lqr_design
 from drlyap.regions import Region
 from drlyap.systems import cartpole, quadrotor2d
 from drlyap.training import TrainConfig
-from drlyap.assembly import build_networks
 from drlyap.training.trainer import ascend, radial_states, warm_start_lqr
 from handmade import plain_train, small_pendulum
 
