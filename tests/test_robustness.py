@@ -1,6 +1,7 @@
 """Certified robustness (drlyap.verification.robustness): the largest proved Wasserstein radius and shift box."""
 
 import json
+import math
 
 import pytest
 import torch
@@ -248,3 +249,31 @@ def test_a_proof_names_its_radius_or_its_box_of_shifts_in_its_progress_line():
     box = proof_label(shift_box_condition(scale, 0.5, 0.05))
     assert box.endswith(", xi within +-(0.05, 0.025)") and box.startswith("true model")
     assert proof_label(TrueDecrease(XI[:1], 0.05)) == TrueDecrease(XI[:1], 0.05).label
+
+
+def test_a_narrow_bracket_is_closed_by_one_proof_just_below_its_unproved_end(monkeypatch):
+    """Where a budget's edge sits just below the value a proof gave up at (the quadrotor's searches), the search
+    bisects while the bracket is wide and then proves ``unproved / (1 + tol)``, which ends it; where that proof fails
+    it bisects below it, and its bracket is always within the tolerance and proved at its lower end."""
+    from drlyap.verification.robustness import _largest_proved
+
+    def search(edge: float, proved: float | None, guess: float):
+        tried = []
+
+        def prove(v: float) -> dict:
+            tried.append(v)
+            return {"status": "verified" if v <= edge else "unknown", "time_s": 1.0}
+
+        found = _largest_proved(prove, lambda v: None, guess, 1.0, 0.01, 1e6, 40, 1e9, None, proved)
+        return found, tried
+
+    found, tried = search(0.0884, 0.05, 0.2355)
+    assert found["certified"] <= 0.0884 < found["unproved"] and found["relative_gap"] <= 0.01
+    assert found["proofs"] == 6 and tried[-1] == pytest.approx(found["unproved"] / 1.00999)
+    with monkeypatch.context() as patch:  # bisection alone
+        patch.setattr("drlyap.verification.robustness.NEAR", 0)
+        assert search(0.0884, 0.05, 0.2355)[0]["proofs"] == 9
+    found, tried = search(0.0805, 0.05, 0.2355)  # the probe below the end fails: bisection below it
+    assert found["certified"] <= 0.0805 < found["unproved"] and found["relative_gap"] <= 0.01
+    found, tried = search(0.03, 0.05, 0.2355)  # nothing above the proved start: no probe near the end at all
+    assert found["certified"] == 0.05 and all(not math.isclose(v, w * 1.00999) for v, w in zip(tried, tried[1:]))
