@@ -178,3 +178,27 @@ def test_the_local_term_makes_v_decay_near_x_star_and_the_acceptance_check_asks_
     assert local["checks"][-1]["local_rate_max"] == pytest.approx(local["acceptance"]["local_rate_max"])
     if local["acceptance"]["local_rate_max"] >= 0:
         assert not local["passed"]
+
+
+def test_the_acceptance_check_is_a_typed_record_that_reads_back_as_it_was_written(tmp_path, tiny_config):
+    """Training keeps its acceptance check as ``metrics["acceptance"]`` and everything else reads it through
+    :class:`~drlyap.records.AcceptanceCheck`: the same keys, read back equal, and a run written before the local rates
+    were kept still reads (without them)."""
+    import json
+
+    from drlyap.records import AcceptanceCheck
+    from drlyap.runs import load_run, save_run
+    from handmade import plain_train
+
+    result = plain_train(tiny_config())
+    check = result.acceptance
+    assert isinstance(check, AcceptanceCheck) and check.iteration == result.metrics["best_iteration"]
+    assert check.to_dict() == result.metrics["acceptance"]
+    assert check.stability() == (check.passed, bool(check.jacobian["hurwitz"]), not check.other_equilibria)
+    assert result.metrics["checks"][-1].keys() == check.summary().keys()
+    run = load_run(save_run(tmp_path / "run", result), result.system)
+    assert run.acceptance == AcceptanceCheck.from_dict(json.loads((tmp_path / "run" / "metrics.json").read_text())[
+        "acceptance"])
+    old = {k: v for k, v in result.metrics["acceptance"].items() if k not in ("local_rates", "local_rate_max")}
+    older = AcceptanceCheck.from_dict(old | {"written_by": "an older drlyap"})
+    assert older.local_rates == [] and older.local_rate_max is None and older.to_dict()["written_by"] == "an older drlyap"

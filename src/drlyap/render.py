@@ -14,6 +14,7 @@ from pathlib import Path
 from drlyap.claims import level_text, of_region
 from drlyap.io import proved_percent
 from drlyap.kinds import Status
+from drlyap.records import AcceptanceCheck
 from drlyap.verification.results import (
     Certificate,
     ConditionProof,
@@ -75,14 +76,13 @@ def training_lines(system: str, method: str, metrics: dict) -> list[str]:
                  f"retraining round(s)); the pair kept is from {kept} (in that run: {metrics['status']})"]
     else:
         lines = [f"{system} {method}: {metrics['status']} ({iterations} iterations, {seconds:.1f} s in all)"]
-    acc = metrics["acceptance"]
+    acc = AcceptanceCheck.from_dict(metrics["acceptance"])
     lines.append(f"  acceptance check: {'PASSED' if metrics['passed'] else 'NOT PASSED'}; the trained condition's max "
-                 f"violation {acc['max_violation']:.3g} on {100 * acc['violating_fraction']:.2f}% of "
-                 f"{acc['validation_states']} validation states; closed-loop Jacobian at x* Hurwitz at every xi "
-                 f"sample: {acc['jacobian']['hurwitz']}; other closed-loop equilibria found: "
-                 f"{len(acc['other_equilibria'])}")
-    if acc.get("local_rate_max") is not None:
-        rate = acc["local_rate_max"]
+                 f"violation {acc.max_violation:.3g} on {100 * acc.violating_fraction:.2f}% of "
+                 f"{acc.validation_states} validation states; closed-loop Jacobian at x* Hurwitz at every xi "
+                 f"sample: {acc.hurwitz}; other closed-loop equilibria found: {len(acc.other_equilibria)}")
+    if acc.local_rate_max is not None:
+        rate = acc.local_rate_max
         lines.append(f"  V near x*: Vdot <= {rate:+.3g} V to second order at the worst training sample "
                      f"({'V decreases' if rate < 0 else 'V does NOT decrease along every direction'})")
     if c:

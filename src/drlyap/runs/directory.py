@@ -35,6 +35,7 @@ from drlyap.conditions import Condition
 from drlyap.config import ProofConfig, TrainConfig, legacy_proof
 from drlyap.io import write_json, write_json_atomic
 from drlyap.networks import Controller, Lyapunov
+from drlyap.records import AcceptanceCheck
 from drlyap.regions import Region
 from drlyap.runs.certificates import write_certificate
 from drlyap.runs.publish import RunDirError, atomic_dir, ensure_new
@@ -118,6 +119,12 @@ class Run:
     def true_condition(self, xi) -> Condition:
         """Plain decrease on the true model at the shift ``xi (k,)``, with the run's decay terms."""
         return run_condition(self.config, self.system.check_xi(xi)[None], "true")
+
+    @property
+    def acceptance(self) -> AcceptanceCheck | None:
+        """The acceptance check of the run's pair (``metrics["acceptance"]``), or None where the run has none."""
+        data = self.metrics.get("acceptance")
+        return AcceptanceCheck.from_dict(data) if isinstance(data, dict) else None
 
     @property
     def certificate(self) -> Certificate | None:

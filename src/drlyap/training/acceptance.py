@@ -22,6 +22,7 @@ from torch import Tensor
 
 from drlyap.closed_loop import ClosedLoop
 from drlyap.conditions import Condition, DecreaseTerms, local_rates
+from drlyap.records import AcceptanceCheck
 from drlyap.regions import Region
 
 
@@ -113,7 +114,7 @@ def find_equilibria(loop: ClosedLoop, xi_samples: Tensor, delta: float, starts_p
 
 def acceptance_check(loop: ClosedLoop, condition: Condition, xi_samples: Tensor, region: Region,
                      validation: Tensor | None = None, level: float | None = None, faces: Tensor | None = None,
-                     local: bool = False) -> dict:
+                     local: bool = False) -> AcceptanceCheck:
     """Run all three checks; ``passed`` is True only if all of them pass.
 
     ``xi_samples (N, k)``: every sample; the Jacobian and equilibrium checks run at each of them and at
@@ -143,15 +144,9 @@ def acceptance_check(loop: ClosedLoop, condition: Condition, xi_samples: Tensor,
         passed = passed and all(r < 0 for r in rates)  # NaN fails
     if level is not None:
         passed = passed and boundary_min > level
-    return {
-        "passed": bool(passed and not math.isnan(max_violation)),
-        "validation_states": int(z.shape[0]),
-        "max_violation": max_violation,
-        "violating_fraction": float((residual > 0).double().sum()) / max(1, int(z.shape[0])),
-        "jacobian": jac,
-        "other_equilibria": equilibria,
-        "level": level,
-        "boundary_min": boundary_min,
-        "local_rates": rates,
-        "local_rate_max": math.nan if any(math.isnan(r) for r in rates) else max(rates),
-    }
+    return AcceptanceCheck(passed=bool(passed and not math.isnan(max_violation)), validation_states=int(z.shape[0]),
+                           max_violation=max_violation,
+                           violating_fraction=float((residual > 0).double().sum()) / max(1, int(z.shape[0])),
+                           jacobian=jac, other_equilibria=equilibria, level=level, boundary_min=boundary_min,
+                           local_rates=rates,
+                           local_rate_max=math.nan if any(math.isnan(r) for r in rates) else max(rates))

@@ -50,7 +50,7 @@ from drlyap.networks import Controller, Lyapunov
 from drlyap.regions import Region
 from drlyap.render import unverified_warning
 from drlyap.systems import UncertainSystem, get_system
-from drlyap.training.trainer import TrainResult, fit, stability_score
+from drlyap.training.trainer import TrainResult, fit
 from drlyap.verification import Certificate, ConditionProof, UniformMargin, prove_trained, uniform_margin
 from drlyap.verification.falsifier import box_centres, falsifier_starts, falsify, settle_unknown
 
@@ -161,11 +161,11 @@ def train_cegis(cfg: TrainConfig, system: UncertainSystem, proof: ProofConfig, p
                        "status": ver.status, "verified_fraction": ver.verified_fraction,
                        "verify_time_s": time.perf_counter() - tic, "train_time_s": train_time,
                        "train_iterations": result.metrics["iterations"], "acceptance_passed": result.metrics["passed"]}
-        acc = result.metrics["acceptance"]
         # a proof first; among unproved pairs, one that passes the acceptance check (Hurwitz at x*, no other
         # equilibrium) before a larger proved share: retraining on counterexamples of an infeasible condition
         # can trade stability for area (measured on pendulum-u9: 0/200 stabilised instead of 170/200)
-        score = (entry["verified"], *stability_score(acc), ver.verified_fraction, -(ver.counterexample_value or 0.0))
+        score = (entry["verified"], *result.acceptance.stability(), ver.verified_fraction,
+                 -(ver.counterexample_value or 0.0))
         if best is None or score > best[0]:
             best = (score, result, r, list(history), ver)
         out_of_time = time_budget is not None and time.perf_counter() - start > time_budget

@@ -36,6 +36,7 @@ from drlyap.kinds import Method
 from drlyap.lqr import lqr_design
 from drlyap.networks import Controller, Lyapunov
 from drlyap.progress import progress as show_progress
+from drlyap.records import AcceptanceCheck
 from drlyap.regions import Region
 from drlyap.systems import UncertainSystem
 from drlyap.training.acceptance import acceptance_check
@@ -67,6 +68,11 @@ class TrainResult:
     def loop(self) -> ClosedLoop:
         """The trained closed loop (what is proved)."""
         return ClosedLoop(self.system, self.lyapunov, self.controller)
+
+    @property
+    def acceptance(self) -> AcceptanceCheck:
+        """The acceptance check of the pair kept (``metrics["acceptance"]``)."""
+        return AcceptanceCheck.from_dict(self.metrics["acceptance"])
 
 
 def growth_words(grown: int, iterations: int) -> str:
@@ -269,21 +275,22 @@ def fit(cfg: TrainConfig, system: UncertainSystem, progress: bool = True, init: 
                 history.append({"iteration": iteration, "loss": float(loss.detach()), "time_s": time.perf_counter() - start})
                 bar.set_postfix(loss=f"{float(loss.detach()):.2e}")
             bar.update(1)
-            if (iteration % cfg.check_every == 0 or iteration == cfg.iters) and keeper.check(iteration)["passed"] \
+            if (iteration % cfg.check_every == 0 or iteration == cfg.iters) and keeper.check(iteration).passed \
                     and not growing:
                 status = f"passed the acceptance check at iteration {iteration}"
                 break
     finally:
         bar.close()
     check = keeper.restore(iteration)
-    if growing and check["passed"] and not status.startswith("diverged"):
+    if growing and check.passed and not status.startswith("diverged"):
         status = (f"{growth_words(min(iteration, grow_until), iteration)}; kept the latest pair passing the acceptance "
                   "check")
     elapsed = time.perf_counter() - start
-    metrics = {"status": status, "passed": bool(check["passed"]), "iterations": iteration,
-               "best_iteration": check["iteration"], "train_time_s": elapsed, "check_time_s": keeper.seconds,
+    metrics = {"status": status, "passed": check.passed, "iterations": iteration,
+               "best_iteration": check.iteration, "train_time_s": elapsed, "check_time_s": keeper.seconds,
                "ms_per_iteration": 1000 * (elapsed - keeper.seconds) / max(iteration, 1),
-               "final_loss": history[-1]["loss"] if history else None, "acceptance": check, "checks": keeper.checks,
+               "final_loss": history[-1]["loss"] if history else None, "acceptance": check.to_dict(),
+               "checks": keeper.checks,
                "condition": condition.describe(), "xi_samples": xi_all.tolist(), "xi_train": xi_train.tolist(),
                "warm_start": warm}
     return TrainResult(cfg, system, lyapunov.cpu(), controller.cpu(), xi_all, condition, history, metrics)
@@ -416,16 +423,11 @@ class TrainingStates:
         return torch.relu(self.faces_level - lyapunov(faces)).mean()
 
 
-def stability_score(check: dict) -> tuple[bool, bool, bool]:
-    """How an acceptance check ranks a pair before anything else: passed, Hurwitz at x*, no other equilibrium."""
-    return bool(check["passed"]), bool(check["jacobian"]["hurwitz"]), not check["other_equilibria"]
-
-
 class PairKeeper:
     """A fit's acceptance checks (:func:`~drlyap.training.acceptance.acceptance_check` on the fixed ``validation``
     states, with a level also 20,000 states inside the set) and the best pair so far: a passing one first, then by
-    :func:`stability_score`, the violating share and the largest violation; while the set grows, the latest pair
-    that passes."""
+    :meth:`~drlyap.records.AcceptanceCheck.stability`, the violating share and the largest violation; while the set
+    grows, the latest pair that passes."""
 
     def __init__(self, loop: ClosedLoop, condition: Condition, xi: Tensor, region: Region, validation: Tensor,
                  states: TrainingStates, local: bool, growing: bool) -> None:
@@ -435,7 +437,7 @@ class PairKeeper:
         self.best: tuple | None = None
         self.seconds = 0.0
 
-    def check(self, iteration: int) -> dict:
+    def check(self, iteration: int) -> AcceptanceCheck:
         """Check the pair as it is now; keep it where it ranks above the best so far. Returns the check."""
         tic = time.perf_counter()
         level, lyapunov = self.states.level, self.loop.lyapunov
@@ -446,20 +448,17 @@ class PairKeeper:
             validation = torch.cat([validation, inside])
         check = acceptance_check(self.loop, self.condition, self.xi, self.region, validation=validation, level=level,
                                  faces=self.states.faces, local=self.local)
-        check["iteration"] = iteration
-        self.checks.append({k: check[k] for k in ("iteration", "passed", "max_violation", "violating_fraction")}
-                           | {"hurwitz": check["jacobian"]["hurwitz"],
-                              "n_other_equilibria": len(check["other_equilibria"]),
-                              "local_rate_max": check["local_rate_max"]})
-        score = (*stability_score(check), -check["violating_fraction"], -check["max_violation"])
-        if self.growing and check["passed"]:  # a growing set: the latest pair that passes holds the largest set
-            score = (*stability_score(check), iteration)
+        check.iteration = iteration
+        self.checks.append(check.summary())
+        score = (*check.stability(), -check.violating_fraction, -check.max_violation)
+        if self.growing and check.passed:  # a growing set: the latest pair that passes holds the largest set
+            score = (*check.stability(), iteration)
         if self.best is None or score > self.best[0]:
             self.best = (score, *_snapshot(lyapunov, self.loop.controller), check)
         self.seconds += time.perf_counter() - tic
         return check
 
-    def restore(self, iteration: int) -> dict:
+    def restore(self, iteration: int) -> AcceptanceCheck:
         """Load the best pair into the networks (checking the last one first where it was not); its check."""
         if self.best is None or (self.checks and self.checks[-1]["iteration"] != iteration):
             self.check(iteration)

@@ -115,12 +115,11 @@ def reproduce(system: str | UncertainSystem, seeds: Sequence[int], out: Path, it
                 for k in sweep:
                     swept[k] = evaluate_run(run, k * xi_test, x_more, horizon)["n_success"]
                     bar.update(1)
+                acc = result.acceptance
                 row = {"seed": seed, "method": method, "passed_acceptance": result.metrics["passed"],
-                       "acceptance_status": result.metrics["status"],
-                       "max_violation": result.metrics["acceptance"]["max_violation"],
-                       "violating_fraction": result.metrics["acceptance"]["violating_fraction"],
-                       "hurwitz": result.metrics["acceptance"]["jacobian"]["hurwitz"],
-                       "other_equilibria": len(result.metrics["acceptance"]["other_equilibria"]),
+                       "acceptance_status": result.metrics["status"], "max_violation": acc.max_violation,
+                       "violating_fraction": acc.violating_fraction, "hurwitz": acc.hurwitz,
+                       "other_equilibria": len(acc.other_equilibria),
                        "iterations": result.metrics["iterations"],
                        "train_time_s": result.metrics.get("cegis", {}).get("total_time_s", result.metrics["train_time_s"]),
                        "certificate": result.metrics["certificate"]["status"],

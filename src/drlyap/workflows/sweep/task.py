@@ -91,7 +91,7 @@ def run_combination(spec_dict: dict, combo_dict: dict, out: str, threads: int = 
         m = result.metrics
         row.update({"passed_acceptance": bool(m["passed"]), "iterations": int(m["iterations"]),
                     "train_time_s": float(m.get("cegis", {}).get("total_time_s", m["train_time_s"])),
-                    "violating_fraction": float(m["acceptance"]["violating_fraction"])})
+                    "violating_fraction": float(result.acceptance.violating_fraction)})
         ver = verify_run(run, ProofConfig(time_limit=spec.verify_time_limit), xi=xi_test, roa=True)
         row.update(verification_row(ver))
         _, x0 = test_initial_states(system, combo.seed, n_more=spec.n_init)

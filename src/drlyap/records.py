@@ -1,0 +1,75 @@
+"""Typed records of what a training found, as ``metrics.json`` keeps them: training writes them with ``to_dict``,
+and whatever reads a run (the trainer's proof rounds, the reproduction, sweeps, the printed lines) reads them with
+``from_dict`` instead of by key. Imports nothing of drlyap, nor torch.
+"""
+
+from __future__ import annotations
+
+from dataclasses import dataclass, field
+
+
+@dataclass
+class AcceptanceCheck:
+    """The acceptance check of a pair (:func:`drlyap.training.acceptance.acceptance_check`).
+
+    ``passed``: every check below held. ``validation_states``: states of the first check; ``max_violation`` and
+    ``violating_fraction``: the trained condition's largest residual there and the share of them where it is > 0
+    (with a ``level``: asked only where ``V <= level``, and ``boundary_min``, V's least value on the box's faces, must
+    exceed it). ``jacobian``: the true closed-loop Jacobian at x* for each xi sample and their mean
+    (``max_real_eigenvalue``, ``hurwitz``, ``labels``). ``other_equilibria``: closed-loop equilibria found in X_delta
+    other than x* (each with its local and user state, which xi, the residual norm). ``local_rates``: V's second-order
+    decay rate at x* on each of the condition's samples, ``local_rate_max`` the largest (NaN where one is; None in runs
+written before the rates were kept).
+    ``iteration``: the training iteration it was made at (None outside training).
+    """
+
+    passed: bool
+    validation_states: int
+    max_violation: float
+    violating_fraction: float
+    jacobian: dict
+    other_equilibria: list[dict]
+    level: float | None
+    boundary_min: float | None
+    local_rates: list[float]
+    local_rate_max: float | None
+    iteration: int | None = None
+    extra: dict = field(default_factory=dict)  # keys a later format added, kept as they were read
+
+    @property
+    def hurwitz(self) -> bool:
+        """Whether the closed-loop Jacobian at x* is Hurwitz at every xi sample and their mean."""
+        return bool(self.jacobian["hurwitz"])
+
+    def stability(self) -> tuple[bool, bool, bool]:
+        """How the check ranks a pair before anything else: passed, Hurwitz at x*, no other equilibrium."""
+        return bool(self.passed), self.hurwitz, not self.other_equilibria
+
+    def summary(self) -> dict:
+        """The line a training's ``checks`` list keeps for it."""
+        return {"iteration": self.iteration, "passed": self.passed, "max_violation": self.max_violation,
+                "violating_fraction": self.violating_fraction, "hurwitz": self.hurwitz,
+                "n_other_equilibria": len(self.other_equilibria), "local_rate_max": self.local_rate_max}
+
+    def to_dict(self) -> dict:
+        """As ``metrics.json`` keeps it (``iteration`` only where there is one)."""
+        out = {"passed": self.passed, "validation_states": self.validation_states, "max_violation": self.max_violation,
+               "violating_fraction": self.violating_fraction, "jacobian": self.jacobian,
+               "other_equilibria": self.other_equilibria, "level": self.level, "boundary_min": self.boundary_min,
+               "local_rates": self.local_rates, "local_rate_max": self.local_rate_max}
+        if self.iteration is not None:
+            out["iteration"] = self.iteration
+        return out | self.extra
+
+    @classmethod
+    def from_dict(cls, data: dict) -> AcceptanceCheck:
+        """From ``metrics.json``'s ``acceptance`` (runs written before the local rates were kept read without them)."""
+        known = {"passed", "validation_states", "max_violation", "violating_fraction", "jacobian", "other_equilibria",
+                 "level", "boundary_min", "local_rates", "local_rate_max", "iteration"}
+        return cls(passed=bool(data["passed"]), validation_states=int(data["validation_states"]),
+                   max_violation=float(data["max_violation"]), violating_fraction=float(data["violating_fraction"]),
+                   jacobian=dict(data["jacobian"]), other_equilibria=list(data["other_equilibria"]),
+                   level=data.get("level"), boundary_min=data.get("boundary_min"),
+                   local_rates=list(data.get("local_rates") or []), local_rate_max=data.get("local_rate_max"),
+                   iteration=data.get("iteration"),
+                   extra={k: v for k, v in data.items() if k not in known})
