@@ -108,9 +108,10 @@ def train(system: str, method: str, loss: str, radius: float | None, eps: float 
     """Train a controller and Lyapunov certificate for SYSTEM, prove the trained condition, save a run directory.
 
     SYSTEM is a registered name, package.module:factory or path/to/file.py:factory (see `drlyap systems`).
-    The last line says whether the condition is VERIFIED (proved at every state of the region it trained for: the
-    box minus the delta-ball, or a sublevel set {V <= c} of it), VIOLATED (a counterexample) or UNKNOWN (budget ran
-    out). OUT is written only when training and its proofs end: interrupted (Ctrl-C, exit status 130), nothing is
+    The certificate line says whether the condition is VERIFIED (proved at every state of the region it trained for:
+    the box minus the delta-ball, or a sublevel set {V <= c} of it), VIOLATED (a counterexample) or UNKNOWN (budget ran
+    out); after a proof, the lines below it whether the independent checker confirmed its certificate (--no-check: not
+    run). OUT is written only when training and its proofs end: interrupted (Ctrl-C, exit status 130), nothing is
     saved but a long proof's progress, kept beside OUT (a hidden folder .OUT.proofs): the same command, run again,
     trains the same pair and resumes that proof.
     """
