@@ -10,11 +10,10 @@ amount to every sample, and the CVaR is translation-equivariant), so it is non-d
 r covers every smaller radius, and the condition holds for exactly ``r <= r_true = eps inf_z (-rho(z, 0) /
 lip(z))``. A dense set of states gives the sampled ratio ``r_s >= r_true`` (a real state violates the
 condition for every r > r_s); the search proves r = 0, then guesses just below r_s, and bisects
-(geometrically, or just below the unproved end once the bracket is narrow: :data:`NEAR`) on proofs until the bracket
-``[proved, unproved)`` is within a relative tolerance. The
-direct route -- a branch and bound on the ratio itself -- would need a sound lower bound of
-``-rho / lip`` on boxes where lip may vanish; the bisection reuses the verifier unchanged and, started
-from the sampled ratio, usually needs two or three proofs.
+(geometrically, or just below the unproved end once the bracket is narrow: :data:`NEAR`) on proofs until the
+bracket ``[proved, unproved)`` is within a relative tolerance. The direct route -- a branch and bound on the ratio
+itself -- would need a sound lower bound of ``-rho / lip`` on boxes where lip may vanish; the bisection reuses the
+verifier unchanged and, started from the sampled ratio, usually needs two or three proofs.
 
 **Shift box** (:func:`certified_shift_box`). The largest s such that plain decrease on the TRUE model,
 ``grad V . F(x, pi(x), p0 + xi) + decay <= 0``, is proved for every xi in the box ``[-s scale, s scale]`` at
@@ -51,7 +50,7 @@ NEAR = 16
 """Within this many tolerances of the proved end, after a proof that held, a search probes the lowest value whose proof
 would end it (``unproved / (1 + tol)``) before it bisects again: the edge of what a proof's budget reaches sits just
 below a value it gave up at (on the quadrotor the radius search's last five bisections and the shift box's last four
-were all proved, 240 and 150 s each). Where that probe fails, the search bisects below it."""
+were all proved, 230-255 s and 135-154 s each). Where that probe fails, the search bisects below it."""
 
 
 # --------------------------------------------------------------------------- dense states
