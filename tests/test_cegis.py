@@ -7,6 +7,7 @@ import torch
 from click.testing import CliRunner
 
 from drlyap.config import Budget, ProofConfig
+from drlyap.records import ProofRound
 from drlyap.regions import Region
 from drlyap.systems import get_system
 from drlyap.training.certified import collect_counterexamples, train_cegis
@@ -51,13 +52,15 @@ def test_tiny_cegis_run_records_rounds_and_saves_metrics(tmp_path, tiny_config):
     proof = ProofConfig(rounds=2, time_limit=1.5, iters_per_round=10, falsifier_starts=64, falsifier_steps=5,
                         max_extra=300).resolved(system)
     result, rounds = train_cegis(cfg, system, proof, progress=False)
-    assert 1 <= len(rounds) <= 3 and [r["round"] for r in rounds] == list(range(len(rounds)))
+    assert 1 <= len(rounds) <= 3 and [r.round for r in rounds] == list(range(len(rounds)))
+    assert result.metrics["cegis"]["rounds"] == [r.to_dict() for r in rounds]
+    assert [ProofRound.from_dict(r.to_dict()).to_dict() for r in rounds] == [r.to_dict() for r in rounds]
     first = rounds[0]
-    if not first["verified"]:  # a 20-iteration pair is never verified in practice
-        assert first["counterexamples_added"] > 0 and first["extra_states"] <= 300
+    if not first.verified:  # a 20-iteration pair is never verified in practice
+        assert first.added["counterexamples_added"] > 0 and first.added["extra_states"] <= 300
         # the counterexamples violate the condition of the pair they were found for (training is deterministic)
         again = plain_train(cfg, progress=False)
-        res = again.loop.exact(again.condition, first["counterexamples"])
+        res = again.loop.exact(again.condition, first.counterexamples)
         assert bool((res > 0).all())
     cegis = result.metrics["cegis"]
     assert len(cegis["rounds"]) == len(rounds) and cegis["final"]["status"] in ("verified", "violated", "unknown")
@@ -114,7 +117,7 @@ def test_proof_rounds_can_end_at_their_first_violation(tiny_config):
         proof = ProofConfig(rounds=0, time_limit=30.0, max_boxes=20_000, stop_at_counterexample=stop).resolved(system)
         assert proof.stop_at_counterexample is stop
         _, rounds = train_cegis(cfg, system, proof, progress=False)
-        runs[stop] = rounds[0]["verification"]
+        runs[stop] = rounds[0].verification
     assert runs[False]["status"] == runs[True]["status"] == "violated"  # a 10-iteration pair
     assert runs[True]["stopped"] == "counterexample" and runs[False]["stopped"] != "counterexample"
     assert runs[True]["boxes_processed"] < runs[False]["boxes_processed"]

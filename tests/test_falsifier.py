@@ -106,7 +106,7 @@ def test_cegis_settles_the_returned_pairs_verdict(tiny_config, monkeypatch):
     result, rounds = cegis.train_cegis(tiny_config(iters=10, check_every=10).resolved(system), system,
                                        ProofConfig(rounds=0, time_limit=0.2).resolved(system), progress=False)
     final = result.metrics["cegis"]["final"]
-    assert rounds[0]["status"] == "unknown" and rounds[0]["verification"]["status"] == "unknown"  # the round's own
+    assert rounds[0].status == "unknown" and rounds[0].verification["status"] == "unknown"  # the round's own
     assert final["status"] == "violated" and final["counterexample_source"] == "falsifier"
     system = result.system
     z = system.to_local(torch.tensor([final["counterexample"]], dtype=torch.float64))

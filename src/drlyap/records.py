@@ -73,3 +73,49 @@ written before the rates were kept).
                    local_rates=list(data.get("local_rates") or []), local_rate_max=data.get("local_rate_max"),
                    iteration=data.get("iteration"),
                    extra={k: v for k, v in data.items() if k not in known})
+
+
+@dataclass
+class ProofRound:
+    """One proof round of counterexample-guided training (:func:`drlyap.training.train_cegis`).
+
+    ``round``: 0 for the first training's pair, then one per retraining. ``verification``: the round's proof as
+    ``ConditionProof.summary()`` writes it, with its ``verified``, ``status`` and ``verified_fraction``;
+    ``verify_time_s``, ``train_time_s`` (of the training before it) and ``train_iterations``; ``acceptance_passed``:
+    that training's acceptance check. ``stopped``: why no retraining followed where that was the time budget. For a
+    round followed by retraining, ``added``: how many states its falsifier added (``counterexamples_added``,
+    ``neighbours_added``, ``box_centres_added``), its largest residual and seconds, and the retraining states in all
+    (``extra_states``); ``counterexamples``: the violating local states found, ``(C, n)`` float64 (not in
+    ``metrics.json``).
+    """
+
+    round: int
+    verification: dict
+    verified: bool
+    status: str
+    verified_fraction: float
+    verify_time_s: float
+    train_time_s: float
+    train_iterations: int
+    acceptance_passed: bool
+    stopped: str | None = None
+    added: dict | None = None
+    counterexamples: object = None
+
+    def to_dict(self) -> dict:
+        """As ``metrics["cegis"]["rounds"]`` keeps it (without the counterexamples themselves)."""
+        out = {"round": self.round, "verification": self.verification, "verified": self.verified,
+               "status": self.status, "verified_fraction": self.verified_fraction,
+               "verify_time_s": self.verify_time_s, "train_time_s": self.train_time_s,
+               "train_iterations": self.train_iterations, "acceptance_passed": self.acceptance_passed}
+        if self.stopped is not None:
+            out["stopped"] = self.stopped
+        return out | (self.added or {})
+
+    @classmethod
+    def from_dict(cls, data: dict) -> ProofRound:
+        """From a round of ``metrics["cegis"]["rounds"]``."""
+        base = ("round", "verification", "verified", "status", "verified_fraction", "verify_time_s", "train_time_s",
+                "train_iterations", "acceptance_passed")
+        added = {k: v for k, v in data.items() if k not in (*base, "stopped")}
+        return cls(**{k: data[k] for k in base}, stopped=data.get("stopped"), added=added or None)

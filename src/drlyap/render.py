@@ -14,7 +14,7 @@ from pathlib import Path
 from drlyap.claims import level_text, of_region
 from drlyap.io import proved_percent
 from drlyap.kinds import Status
-from drlyap.records import AcceptanceCheck
+from drlyap.records import AcceptanceCheck, ProofRound
 from drlyap.verification.results import (
     Certificate,
     ConditionProof,
@@ -90,15 +90,15 @@ def training_lines(system: str, method: str, metrics: dict) -> list[str]:
     return lines
 
 
-def proof_round_line(entry: dict) -> str:
-    """One line per proof round of counterexample-guided training (``entry``: a round of ``metrics["cegis"]``)."""
-    v = ConditionProof.from_dict(entry["verification"])
+def proof_round_line(entry: ProofRound) -> str:
+    """One line per proof round of counterexample-guided training."""
+    v = ConditionProof.from_dict(entry.verification)
     capped = ", stopped by its time cap: the pair may differ on a faster machine" if v.stopped == "time limit" else ""
-    line = (f"  proof round {entry['round']}: {v.status.upper()}, {proved_share(v)} of X_delta proved "
+    line = (f"  proof round {entry.round}: {v.status.upper()}, {proved_share(v)} of X_delta proved "
             f"({v.boxes_processed:,} boxes, {v.time_s:.2f} s{capped})")
-    if "counterexamples_added" in entry:
-        line += (f"; retraining with {entry['counterexamples_added']} counterexamples (+{entry['neighbours_added']} "
-                 f"neighbours, {entry['box_centres_added']} box centres)")
+    if entry.added:
+        line += (f"; retraining with {entry.added['counterexamples_added']} counterexamples "
+                 f"(+{entry.added['neighbours_added']} neighbours, {entry.added['box_centres_added']} box centres)")
     return line
 
 

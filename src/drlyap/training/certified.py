@@ -47,6 +47,7 @@ from drlyap.config import ProofConfig, TrainConfig
 from drlyap.io import jsonable
 from drlyap.kinds import Loss, Method
 from drlyap.networks import Controller, Lyapunov
+from drlyap.records import ProofRound
 from drlyap.regions import Region
 from drlyap.render import unverified_warning
 from drlyap.systems import UncertainSystem, get_system
@@ -115,20 +116,18 @@ def collect_counterexamples(loop: ClosedLoop, condition: Condition, region: Regi
 
 
 def train_cegis(cfg: TrainConfig, system: UncertainSystem, proof: ProofConfig, progress: bool = True,
-                init: tuple[Lyapunov, Controller] | None = None, log=None) -> tuple[TrainResult, list[dict]]:
+                init: tuple[Lyapunov, Controller] | None = None, log=None) -> tuple[TrainResult, list[ProofRound]]:
     """Train with counterexample-guided rounds (see the module docstring), for a resolved ``cfg`` and resolved
     ``proof`` settings (:meth:`TrainConfig.resolved`, :meth:`ProofConfig.resolved`).
 
     Returns the best :class:`TrainResult` (its ``config`` is the first run's config, its ``history`` the training of
-    every round up to it, iterations counted on, its ``metrics["cegis"]`` the record) and the list of rounds. Each
-    round dict has ``round``, ``verification`` (:meth:`ConditionProof.summary`), ``verified``,
-    ``verified_fraction``, times, counts of states added and, when states were added, ``counterexamples`` (a
-    float64 ``(C, n)`` tensor of the violating local states found; not in the metrics). ``log(round_dict)`` is
-    called after each verification. No new retraining round starts once ``proof.total_time`` seconds (from the
-    start) are spent. ``proof.falsifier_starts``: the falsifier's random starts per round; None: 512 uniform in
-    X_delta, or, where training draws states near x* (``near_share > 0``: cart-pole, quadrotor), 2,048, half of
-    them spread over the distance from x* (in 6 states uniform starts miss the violations near x*:
-    docs/tuning.md).
+    every round up to it, iterations counted on, its ``metrics["cegis"]`` the record) and the rounds, each a
+    :class:`~drlyap.records.ProofRound` (its proof, times, the states added and, when states were added, the
+    ``counterexamples`` found, which the metrics do not keep). ``log(round)`` is called after each verification. No
+    new retraining round starts once ``proof.total_time`` seconds (from the start) are spent.
+    ``proof.falsifier_starts``: the falsifier's random starts per round; None: 512 uniform in X_delta, or, where
+    training draws states near x* (``near_share > 0``: cart-pole, quadrotor), 2,048, half of them spread over the
+    distance from x* (in 6 states uniform starts miss the violations near x*: docs/tuning.md).
     """
     if not proof.is_resolved:
         raise ValueError("resolve the proof settings for the system first (ProofConfig.resolved(system))")
@@ -157,21 +156,21 @@ def train_cegis(cfg: TrainConfig, system: UncertainSystem, proof: ProofConfig, p
         ver = prove_trained(result.loop, condition, region, budget, base_cfg.roa_level, keep_boxes=proof.keep_boxes,
                             falsify_starts=0,  # its own falsifier below
                             stop_at_counterexample=bool(proof.stop_at_counterexample))
-        entry: dict = {"round": r, "verification": ver.summary(), "verified": ver.verified,
-                       "status": ver.status, "verified_fraction": ver.verified_fraction,
-                       "verify_time_s": time.perf_counter() - tic, "train_time_s": train_time,
-                       "train_iterations": result.metrics["iterations"], "acceptance_passed": result.metrics["passed"]}
+        entry = ProofRound(round=r, verification=ver.summary(), verified=ver.verified, status=ver.status,
+                           verified_fraction=ver.verified_fraction, verify_time_s=time.perf_counter() - tic,
+                           train_time_s=train_time, train_iterations=result.metrics["iterations"],
+                           acceptance_passed=result.metrics["passed"])
         # a proof first; among unproved pairs, one that passes the acceptance check (Hurwitz at x*, no other
         # equilibrium) before a larger proved share: retraining on counterexamples of an infeasible condition
         # can trade stability for area (measured on pendulum-u9: 0/200 stabilised instead of 170/200)
-        score = (entry["verified"], *result.acceptance.stability(), ver.verified_fraction,
+        score = (entry.verified, *result.acceptance.stability(), ver.verified_fraction,
                  -(ver.counterexample_value or 0.0))
         if best is None or score > best[0]:
             best = (score, result, r, list(history), ver)
         out_of_time = time_budget is not None and time.perf_counter() - start > time_budget
-        if entry["verified"] or r == rounds or out_of_time:
-            if out_of_time and not entry["verified"] and r < rounds:
-                entry["stopped"] = "time budget"
+        if entry.verified or r == rounds or out_of_time:
+            if out_of_time and not entry.verified and r < rounds:
+                entry.stopped = "time budget"
             record.append(entry)
             if log is not None:
                 log(entry)
@@ -195,12 +194,12 @@ def train_cegis(cfg: TrainConfig, system: UncertainSystem, proof: ProofConfig, p
     metrics = dict(chosen.metrics)
     final = record[chosen_round] if chosen_round < len(record) else record[-1]
     # the returned pair's verdict: an unknown proof becomes violated where the falsifier finds a certain violation
-    verdict = settle_unknown(ConditionProof.from_dict(final["verification"]), chosen.loop, condition, region,
+    verdict = settle_unknown(ConditionProof.from_dict(final.verification), chosen.loop, condition, region,
                              base_cfg.roa_level, starts=proof.settle_starts, seed=base_cfg.seed)
     metrics["cegis"] = jsonable({
-        "rounds": [{k: v for k, v in e.items() if k != "counterexamples"} for e in record],
+        "rounds": [e.to_dict() for e in record],
         "final": verdict.to_dict(),
-        "verified": final["verified"], "returned_round": chosen_round,
+        "verified": final.verified, "returned_round": chosen_round,
         "retraining_rounds": len(record) - 1, "max_rounds": rounds, "iters_per_round": iters_round,
         "total_iterations": total_iters, "extra_states": int(extra.shape[0]), "replicate": int(proof.replicate),
         "verify_time_limit_s": budget.seconds, "verify_boxes": budget.boxes, "total_time_s": time.perf_counter() - start,
@@ -210,17 +209,18 @@ def train_cegis(cfg: TrainConfig, system: UncertainSystem, proof: ProofConfig, p
     return out, record
 
 
-def _add_states(extra: Tensor, found: dict, region: Region, cap: int, entry: dict) -> Tensor:
+def _add_states(extra: Tensor, found: dict, region: Region, cap: int, entry: ProofRound) -> Tensor:
     """The retraining states ``extra (E, n)`` with what a round's falsifier ``found`` (box centres, neighbours,
     counterexamples: newest last, the counterexamples at the very end, so that the ``cap`` keeps the tail), without
-    near-duplicates; the counts go into the round's ``entry``."""
+    near-duplicates; the counts and the counterexamples go into the round's ``entry``."""
     new = torch.cat([found["box_centres"], found["neighbours"], found["counterexamples"]])
     extra = _dedupe(torch.cat([extra, new]), region.scale)[-cap:]
-    entry.update({"counterexamples_added": int(found["counterexamples"].shape[0]),
-                  "neighbours_added": int(found["neighbours"].shape[0]),
-                  "box_centres_added": int(found["box_centres"].shape[0]),
-                  "falsifier_max_residual": found["max_residual"], "falsify_time_s": found["falsify_time_s"],
-                  "extra_states": int(extra.shape[0]), "counterexamples": found["counterexamples"]})
+    entry.added = {"counterexamples_added": int(found["counterexamples"].shape[0]),
+                   "neighbours_added": int(found["neighbours"].shape[0]),
+                   "box_centres_added": int(found["box_centres"].shape[0]),
+                   "falsifier_max_residual": found["max_residual"], "falsify_time_s": found["falsify_time_s"],
+                   "extra_states": int(extra.shape[0])}
+    entry.counterexamples = found["counterexamples"]
     return extra
 
 
