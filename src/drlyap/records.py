@@ -19,9 +19,8 @@ class AcceptanceCheck:
     (``max_real_eigenvalue``, ``hurwitz``, ``labels``). ``other_equilibria``: closed-loop equilibria found in X_delta
     other than x* (each with its local and user state, which xi, the residual norm). ``local_rates``: V's second-order
     decay rate at x* on each of the condition's samples, ``local_rate_max`` the largest (NaN where one is; None in runs
-written before the rates were kept).
-    ``iteration``: the training iteration it was made at (None outside training).
-    """
+    written before the rates were kept). ``iteration``: the training iteration it was made at (None outside
+    training)."""
 
     passed: bool
     validation_states: int

@@ -77,7 +77,7 @@ def training_lines(system: str, method: str, metrics: dict) -> list[str]:
     else:
         lines = [f"{system} {method}: {metrics['status']} ({iterations} iterations, {seconds:.1f} s in all)"]
     acc = AcceptanceCheck.from_dict(metrics["acceptance"])
-    lines.append(f"  acceptance check: {'PASSED' if metrics['passed'] else 'NOT PASSED'}; the trained condition's max "
+    lines.append(f"  acceptance check: {'PASSED' if acc.passed else 'NOT PASSED'}; the trained condition's max "
                  f"violation {acc.max_violation:.3g} on {100 * acc.violating_fraction:.2f}% of "
                  f"{acc.validation_states} validation states; closed-loop Jacobian at x* Hurwitz at every xi "
                  f"sample: {acc.hurwitz}; other closed-loop equilibria found: {len(acc.other_equilibria)}")
