@@ -446,7 +446,7 @@ class ProofConfig:
 
     Proofs: at most ``max_boxes`` boxes each (None: the system's ``defaults.verify_boxes``), ``min_width``,
     ``enclosure`` (None: affine from 4 states on); the checks of ``verify`` stop after ``time_limit`` seconds too
-    (None: ``defaults.verify_time``: 30, 120 for the cart-pole, 3600 for the quadrotor), the proofs of the training rounds
+    (None: ``defaults.verify_time``: 30, 900 for the cart-pole, 3600 for the quadrotor), the proofs of the training rounds
     after ``round_time`` (None: ``time_limit`` when given, else ``defaults.round_time``, an outer cap: the rounds
     are budgeted by boxes, so that the same command gives the same pair on a busy machine).
     Rounds: at most ``rounds`` retraining rounds, all within ``total_time`` seconds (None: no limit, the default: a

@@ -88,9 +88,9 @@ def _check_numbers(**given: float | None) -> None:
               help="Retraining rounds at most.")
 @click.option("--verify-boxes", type=int, default=None,
               help="Boxes per proof round: the work budget that makes the same command give the same pair on any "
-                   "machine [the system's: 200,000; 350,000 for cartpole, 6,000,000 for quadrotor2d].")
+                   "machine [the system's: 200,000; 1,500,000 for cartpole, 6,000,000 for quadrotor2d].")
 @click.option("--verify-time", type=float, default=None,
-              help="Outer cap in seconds of each proof round, reported when hit [the system's: 300; 900 for cartpole, "
+              help="Outer cap in seconds of each proof round, reported when hit [the system's: 300; 1800 for cartpole, "
                    "3600 for quadrotor2d].")
 @click.option("--verify-budget", type=float, default=None,
               help="Total seconds for the retraining rounds [no limit; a limit makes the pair depend on the machine's "

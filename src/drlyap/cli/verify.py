@@ -28,7 +28,7 @@ from drlyap.config import ENCLOSURES, ProofConfig
 @click.option("--delta", type=float, default=None, help="Radius of the excluded ball around x* [the run's delta].")
 @click.option("--xi", default=None, help="Also verify plain decrease on the true model at this shift (comma-separated).")
 @click.option("--time-limit", type=float, default=None,
-              help="Seconds per branch and bound, besides its box budget [the system's: 30; 120 for cartpole, "
+              help="Seconds per branch and bound, besides its box budget [the system's: 30; 900 for cartpole, "
                    "3600 for quadrotor2d].")
 @click.option("--roa/--no-roa", default=False, show_default=True, help="Certify a sublevel set of V as region of attraction.")
 @click.option("--roa-time", type=float, default=None,

@@ -44,8 +44,8 @@ def seed_values(text: str) -> list[int]:
 @click.option("--verify-rounds", type=int, default=default(ProofConfig, "rounds"), show_default=True,
               help="Retraining rounds at most.")
 @click.option("--verify-time", type=float, default=None,
-              help="Seconds per proof at the test shift [the system's: 30; 120 for cartpole, 3600 for quadrotor2d], "
-                   "also the cap of each proof round in training [the system's cap: 300 s; 900 s, 3600 s; the "
+              help="Seconds per proof at the test shift [the system's: 30; 900 for cartpole, 3600 for quadrotor2d], "
+                   "also the cap of each proof round in training [the system's cap: 300 s; 1800 s, 3600 s; the "
                    "rounds are budgeted by boxes].")
 @click.option("--horizon", type=float, default=None, help="Simulated time of the evaluations [system default].")
 @compute_options(with_device=False)
@@ -169,7 +169,7 @@ def compare(run_dirs: tuple[Path, ...], xi: str, n_init: int, seed: int, horizon
 @click.option("--shifts", default="1,2,3,4,5", show_default=True, help="Evaluate at these multiples of the test shift.")
 @click.option("--n-init", type=int, default=200, show_default=True, help="Evaluation initial states per seed.")
 @click.option("--verify-time-limit", type=float, default=None,
-              help="Seconds per branch and bound [the system's: 30 s per check, 120 for cartpole, 3600 for quadrotor2d; the "
+              help="Seconds per branch and bound [the system's: 30 s per check, 900 for cartpole, 3600 for quadrotor2d; the "
                    "proof rounds are budgeted by boxes, with this as their cap].")
 @click.option("--json", "as_json", is_flag=True, help="Print one JSON object (progress goes to stderr).")
 def sweep(system: str, seeds: str, radius: str | None, eps: str | None, method: str, out: Path | None, backend: str,
