@@ -73,6 +73,16 @@ def test_tiny_cegis_run_records_rounds_and_saves_metrics(tmp_path, tiny_config):
     assert saved["cegis"]["rounds"][0]["round"] == 0 and "counterexamples" not in saved["cegis"]["rounds"][0]
     run = load_run(tmp_path / "run")
     assert torch.allclose(run.xi_samples, result.xi_samples)
+    # the training's record, typed: the same from the result and from the run directory, rounds included
+    record = run.record
+    assert record == result.record and record.proved_in_rounds
+    assert [r.to_dict() for r in record.rounds] == [r.to_dict() for r in rounds]  # kept without counterexamples
+    assert (record.total_iterations, record.returned_round) == (cegis["total_iterations"], cegis["returned_round"])
+    assert record.iterations == saved["iterations"] and record.final_proof == saved["cegis"]["final"]
+    run.keep("sweep", {"success": 1.0})
+    run.keep("roa", {"level": 1.0}, certificate=True)
+    again = json.loads((tmp_path / "run" / "metrics.json").read_text())
+    assert again["sweep"] == {"success": 1.0} and again["certificate"]["roa"] == {"level": 1.0}
 
 
 def test_cegis_rejects_bad_arguments_before_training(tiny_config):

@@ -202,3 +202,8 @@ def test_the_acceptance_check_is_a_typed_record_that_reads_back_as_it_was_writte
     old = {k: v for k, v in result.metrics["acceptance"].items() if k not in ("local_rates", "local_rate_max")}
     older = AcceptanceCheck.from_dict(old | {"written_by": "an older drlyap"})
     assert older.local_rates == [] and older.local_rate_max is None and older.to_dict()["written_by"] == "an older drlyap"
+    # a training without proof rounds: its record counts its own iterations and seconds
+    record = run.record
+    assert not record.proved_in_rounds and record.rounds == () and record.acceptance == check
+    assert (record.total_iterations, record.total_time_s) == (record.iterations, record.train_time_s)
+    assert record.iterations == result.metrics["iterations"] and record.status == result.metrics["status"]

@@ -5,7 +5,7 @@ Python API::
     import drlyap
     drlyap.check_writable("runs/pendulum-dr")                       # a taken path is refused now, not after training
     result = drlyap.train(drlyap.TrainConfig(system="pendulum"))   # trains, then proves the condition
-    result.metrics["certificate"]["status"]                          # 'verified', 'violated' or 'unknown'
+    result.record.certificate_status                                  # 'verified', 'violated' or 'unknown'
     path = drlyap.save_run("runs/pendulum-dr", result)
     run = drlyap.load_run(path)
     u = run.controller(x)      # x: (B, n) tensor in user coordinates -> (B, m)

@@ -118,3 +118,53 @@ class ProofRound:
                 "train_iterations", "acceptance_passed")
         added = {k: v for k, v in data.items() if k not in (*base, "stopped")}
         return cls(**{k: data[k] for k in base}, stopped=data.get("stopped"), added=added or None)
+
+
+@dataclass(frozen=True)
+class TrainingRecord:
+    """What a training recorded about the pair it returned (``metrics.json``'s training keys), read once.
+
+    ``status``, ``passed``, ``iterations``, ``train_time_s``: the training run that gave the pair (``fit``'s words,
+    whether its acceptance check passed, its iterations and seconds). ``acceptance``: that check. With proof rounds
+    (``drlyap train``'s default): ``rounds`` (every proof round), ``returned_round``, ``retraining_rounds``,
+    ``final_proof`` (the returned pair's verdict as ``ConditionProof.to_dict`` writes it); ``total_iterations`` and
+    ``total_time_s`` count every round (the training run's own where there were no rounds).
+    ``certificate_status``: the verdict on the trained condition (``verified``, ``violated``, ``unknown``,
+    ``not checked``; None where the run has none)."""
+
+    status: str
+    passed: bool
+    iterations: int
+    train_time_s: float
+    acceptance: AcceptanceCheck
+    total_iterations: int
+    total_time_s: float
+    rounds: tuple[ProofRound, ...] = ()
+    returned_round: int | None = None
+    retraining_rounds: int | None = None
+    final_proof: dict | None = None
+    certificate_status: str | None = None
+
+    @property
+    def proved_in_rounds(self) -> bool:
+        """Whether the training had proof rounds (counterexample-guided training)."""
+        return self.retraining_rounds is not None
+
+    @staticmethod
+    def readable(metrics: dict) -> bool:
+        """Whether ``metrics`` holds a training's record (an RL baseline's run, for one, does not)."""
+        return all(k in metrics for k in ("status", "passed", "iterations", "train_time_s", "acceptance"))
+
+    @classmethod
+    def from_metrics(cls, metrics: dict) -> TrainingRecord:
+        """From a run's ``metrics.json`` (or ``TrainResult.metrics``)."""
+        cegis = metrics.get("cegis") or {}
+        certificate = metrics.get("certificate") or {}
+        iterations, seconds = int(metrics["iterations"]), float(metrics["train_time_s"])
+        return cls(status=metrics["status"], passed=bool(metrics["passed"]), iterations=iterations,
+                   train_time_s=seconds, acceptance=AcceptanceCheck.from_dict(metrics["acceptance"]),
+                   total_iterations=int(cegis.get("total_iterations", iterations)),
+                   total_time_s=float(cegis.get("total_time_s", seconds)),
+                   rounds=tuple(ProofRound.from_dict(r) for r in cegis.get("rounds", ())),
+                   returned_round=cegis.get("returned_round"), retraining_rounds=cegis.get("retraining_rounds"),
+                   final_proof=cegis.get("final"), certificate_status=certificate.get("status"))

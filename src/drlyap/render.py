@@ -14,7 +14,7 @@ from pathlib import Path
 from drlyap.claims import level_text, of_region
 from drlyap.io import proved_percent
 from drlyap.kinds import Status
-from drlyap.records import AcceptanceCheck, ProofRound
+from drlyap.records import ProofRound, TrainingRecord
 from drlyap.verification.results import (
     Certificate,
     ConditionProof,
@@ -64,19 +64,17 @@ def unverified_warning(cert: Certificate, system: str, method: str, retrainable:
             f"({cert.status}{detail}){'; raise verify_rounds' if retrainable else ''}")
 
 
-def training_lines(system: str, method: str, metrics: dict) -> list[str]:
-    """What ``drlyap train`` prints about a training (``metrics``: the run's ``metrics.json``): iterations and seconds,
-    the acceptance check, V's local rate near x* where it was asked, and the retraining rounds."""
-    c = metrics.get("cegis")
-    iterations, seconds = (c["total_iterations"], c["total_time_s"]) if c else (metrics["iterations"],
-                                                                                metrics["train_time_s"])
-    if c and c["retraining_rounds"]:
-        kept = "the first training" if c["returned_round"] == 0 else f"retraining round {c['returned_round']}"
-        lines = [f"{system} {method}: {iterations} iterations in all ({seconds:.1f} s, {c['retraining_rounds']} "
-                 f"retraining round(s)); the pair kept is from {kept} (in that run: {metrics['status']})"]
+def training_lines(system: str, method: str, record: TrainingRecord) -> list[str]:
+    """What ``drlyap train`` prints about a training (``record``: what it recorded): iterations and seconds, the
+    acceptance check, V's local rate near x* where it was asked, and the retraining rounds."""
+    iterations, seconds = record.total_iterations, record.total_time_s
+    if record.retraining_rounds:
+        kept = "the first training" if record.returned_round == 0 else f"retraining round {record.returned_round}"
+        lines = [f"{system} {method}: {iterations} iterations in all ({seconds:.1f} s, {record.retraining_rounds} "
+                 f"retraining round(s)); the pair kept is from {kept} (in that run: {record.status})"]
     else:
-        lines = [f"{system} {method}: {metrics['status']} ({iterations} iterations, {seconds:.1f} s in all)"]
-    acc = AcceptanceCheck.from_dict(metrics["acceptance"])
+        lines = [f"{system} {method}: {record.status} ({iterations} iterations, {seconds:.1f} s in all)"]
+    acc = record.acceptance
     lines.append(f"  acceptance check: {'PASSED' if acc.passed else 'NOT PASSED'}; the trained condition's max "
                  f"violation {acc.max_violation:.3g} on {100 * acc.violating_fraction:.2f}% of "
                  f"{acc.validation_states} validation states; closed-loop Jacobian at x* Hurwitz at every xi "
@@ -85,8 +83,8 @@ def training_lines(system: str, method: str, metrics: dict) -> list[str]:
         rate = acc.local_rate_max
         lines.append(f"  V near x*: Vdot <= {rate:+.3g} V to second order at the worst training sample "
                      f"({'V decreases' if rate < 0 else 'V does NOT decrease along every direction'})")
-    if c:
-        lines.append(f"  proof: {c['retraining_rounds']} retraining round(s) (kept round {c['returned_round']})")
+    if record.proved_in_rounds:
+        lines.append(f"  proof: {record.retraining_rounds} retraining round(s) (kept round {record.returned_round})")
     return lines
 
 

@@ -177,7 +177,7 @@ def train(system: str, method: str, loss: str, radius: float | None, eps: float 
         return
     from drlyap.render import check_lines, training_lines
 
-    for line in training_lines(sys_.name, method, m):
+    for line in training_lines(sys_.name, method, result.record):
         click.echo(line)
     click.echo(f"  saved {out}")
     click.echo(certificate_line(Certificate.from_dict(m["certificate"]),

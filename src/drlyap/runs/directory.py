@@ -35,7 +35,7 @@ from drlyap.conditions import Condition
 from drlyap.config import ProofConfig, TrainConfig, legacy_proof
 from drlyap.io import write_json, write_json_atomic
 from drlyap.networks import Controller, Lyapunov
-from drlyap.records import AcceptanceCheck
+from drlyap.records import AcceptanceCheck, TrainingRecord
 from drlyap.regions import Region
 from drlyap.runs.certificates import write_certificate
 from drlyap.runs.publish import RunDirError, atomic_dir, ensure_new
@@ -127,6 +127,12 @@ class Run:
         return AcceptanceCheck.from_dict(data) if isinstance(data, dict) else None
 
     @property
+    def record(self) -> TrainingRecord | None:
+        """What the run's training recorded (:class:`~drlyap.records.TrainingRecord`), or None where the run was not
+        trained by drlyap's trainer (e.g. an RL baseline)."""
+        return TrainingRecord.from_metrics(self.metrics) if TrainingRecord.readable(self.metrics) else None
+
+    @property
     def certificate(self) -> Certificate | None:
         """What was proved about the run's trained condition (``metrics["certificate"]``), or None."""
         cert = self.metrics.get("certificate")
@@ -161,6 +167,15 @@ class Run:
     def save_metrics(self) -> None:
         """Rewrite ``metrics.json`` (atomically, via a temporary file)."""
         write_json_atomic(self.path / "metrics.json", self.metrics)
+
+    def keep(self, key: str, value: dict, *, certificate: bool = False) -> None:
+        """Keep ``value`` (JSON data) under ``key`` of the run's ``metrics.json`` (with ``certificate``: under its
+        ``certificate`` entry, beside the verdict on the trained condition) and rewrite the file."""
+        target = self.metrics
+        if certificate:
+            target = self.metrics["certificate"] = self.metrics.get("certificate") or {}
+        target[key] = value
+        self.save_metrics()
 
 
 def load_run(path: str | os.PathLike, system: UncertainSystem | None = None, trust: bool = False) -> Run:

@@ -148,7 +148,7 @@ def train_cegis(cfg: TrainConfig, system: UncertainSystem, proof: ProofConfig, p
     extra = torch.empty(0, system.n, dtype=F64)
     record: list[dict] = []
     best: tuple | None = None
-    total_iters = result.metrics["iterations"]
+    total_iters = result.record.iterations
     history = list(result.history)  # all rounds' training, iterations and seconds counted from the first run
     train_time = time.perf_counter() - start
     for r in range(rounds + 1):
@@ -158,8 +158,8 @@ def train_cegis(cfg: TrainConfig, system: UncertainSystem, proof: ProofConfig, p
                             stop_at_counterexample=bool(proof.stop_at_counterexample))
         entry = ProofRound(round=r, verification=ver.summary(), verified=ver.verified, status=ver.status,
                            verified_fraction=ver.verified_fraction, verify_time_s=time.perf_counter() - tic,
-                           train_time_s=train_time, train_iterations=result.metrics["iterations"],
-                           acceptance_passed=result.metrics["passed"])
+                           train_time_s=train_time, train_iterations=result.record.iterations,
+                           acceptance_passed=result.record.passed)
         # a proof first; among unproved pairs, one that passes the acceptance check (Hurwitz at x*, no other
         # equilibrium) before a larger proved share: retraining on counterexamples of an infeasible condition
         # can trade stability for area (measured on pendulum-u9: 0/200 stabilised instead of 170/200)
@@ -189,7 +189,7 @@ def train_cegis(cfg: TrainConfig, system: UncertainSystem, proof: ProofConfig, p
                      extra_states=extra.repeat(int(proof.replicate), 1), grow=False)
         train_time = time.perf_counter() - tic
         history += _continued(result.history, total_iters, history[-1]["time_s"] if history else 0.0)
-        total_iters += result.metrics["iterations"]
+        total_iters += result.record.iterations
     _, chosen, chosen_round, chosen_history, chosen_proof = best
     metrics = dict(chosen.metrics)
     final = record[chosen_round] if chosen_round < len(record) else record[-1]
@@ -275,8 +275,9 @@ def train(config: TrainConfig, system: UncertainSystem | None = None, proof: Pro
         cert = certificate(margin, delta)
     else:
         result, _ = train_cegis(cfg, system, proof, progress=progress, init=init, log=log)
-        final = ConditionProof.from_dict(result.metrics["cegis"]["final"])
-        cert = certificate(final, float(result.config.delta), rounds=result.metrics["cegis"]["retraining_rounds"])
+        record = result.record
+        cert = certificate(ConditionProof.from_dict(record.final_proof), float(result.config.delta),
+                           rounds=record.retraining_rounds)
     result.metrics["certificate"] = jsonable(cert.to_dict())
     result.metrics["proof"] = proof.to_dict()
     if warn and not cert.verified:

@@ -36,7 +36,7 @@ from drlyap.kinds import Method
 from drlyap.lqr import lqr_design
 from drlyap.networks import Controller, Lyapunov
 from drlyap.progress import progress as show_progress
-from drlyap.records import AcceptanceCheck
+from drlyap.records import AcceptanceCheck, TrainingRecord
 from drlyap.regions import Region
 from drlyap.systems import UncertainSystem
 from drlyap.training.acceptance import acceptance_check
@@ -70,9 +70,14 @@ class TrainResult:
         return ClosedLoop(self.system, self.lyapunov, self.controller)
 
     @property
+    def record(self) -> TrainingRecord:
+        """What the training recorded (the summary ``metrics.json`` is written from), typed."""
+        return TrainingRecord.from_metrics(self.metrics)
+
+    @property
     def acceptance(self) -> AcceptanceCheck:
-        """The acceptance check of the pair kept (``metrics["acceptance"]``)."""
-        return AcceptanceCheck.from_dict(self.metrics["acceptance"])
+        """The acceptance check of the pair kept."""
+        return self.record.acceptance
 
 
 def growth_words(grown: int, iterations: int) -> str:

@@ -20,7 +20,7 @@ from drlyap.kinds import Method
 from drlyap.progress import progress as show_progress
 from drlyap.render import ACCEPTANCE_LEGEND, decrease_cell, roa_cell
 from drlyap.runs import Run, atomic_dir, check_writable, load_run, save_run
-from drlyap.simulation import evaluate, initial_states, score, simulate
+from drlyap.simulation import evaluate, initial_states, score, simulate, success_mask
 from drlyap.systems import UncertainSystem, resolve_system, system_source
 from drlyap.training import TrainConfig, train
 from drlyap.verification import ProofConfig
@@ -99,8 +99,8 @@ def reproduce(system: str | UncertainSystem, seeds: Sequence[int], out: Path, it
                 paper_trajs[method] = paper_traj
                 more = evaluate_run(run, xi_test, x_more, horizon)
                 bar.update(2)
-                run.metrics["evaluations"] = {"paper_10": paper, "more_200": more}
-                region = None
+                run.keep("evaluations", {"paper_10": paper, "more_200": more})
+                region = ver = None
                 if verify:  # what the pair proves on the true model at the test shift (the figures draw its region)
                     checks = (run.proof if verify_time is None else replace(run.proof, time_limit=verify_time)
                               ).with_compute(compute)
@@ -109,22 +109,21 @@ def reproduce(system: str | UncertainSystem, seeds: Sequence[int], out: Path, it
                     record_certificates(run, ver)  # the proofs that ended verified, re-checkable by drlyap check
                     record_roa(run, ver, checks)
                     region = ver.roa
-                run.save_metrics()
                 runs[method] = run
                 swept = {}
                 for k in sweep:
                     swept[k] = evaluate_run(run, k * xi_test, x_more, horizon)["n_success"]
                     bar.update(1)
-                acc = result.acceptance
-                row = {"seed": seed, "method": method, "passed_acceptance": result.metrics["passed"],
-                       "acceptance_status": result.metrics["status"], "max_violation": acc.max_violation,
+                record, acc = result.record, result.acceptance
+                true_model = None if ver is None else ver.true_model
+                row = {"seed": seed, "method": method, "passed_acceptance": record.passed,
+                       "acceptance_status": record.status, "max_violation": acc.max_violation,
                        "violating_fraction": acc.violating_fraction, "hurwitz": acc.hurwitz,
                        "other_equilibria": len(acc.other_equilibria),
-                       "iterations": result.metrics["iterations"],
-                       "train_time_s": result.metrics.get("cegis", {}).get("total_time_s", result.metrics["train_time_s"]),
-                       "certificate": result.metrics["certificate"]["status"],
-                       "true_model": run.metrics["certificate"].get("true_model", {}).get("status"),
-                       "true_model_fraction": run.metrics["certificate"].get("true_model", {}).get("verified_fraction"),
+                       "iterations": record.iterations, "train_time_s": record.total_time_s,
+                       "certificate": record.certificate_status,
+                       "true_model": None if true_model is None else true_model.status,
+                       "true_model_fraction": None if true_model is None else true_model.verified_fraction,
                        "roa": roa_cell(region),
                        "paper_10": summary_row(paper), "more_200": summary_row(more), "sweep_200": swept,
                        "run_dir": str(Path(out) / f"seed{seed}" / method)}
@@ -150,7 +149,7 @@ def draw_figures(system: UncertainSystem, runs: dict[str, Run], xi: torch.Tensor
     folder.mkdir(parents=True, exist_ok=True)
     ok, levels = {}, {}
     for method, run in runs.items():
-        ok[method] = run.metrics["evaluations"]["paper_10"]["success"]
+        ok[method] = success_mask(system, trajs[method].x)[0].tolist()  # as the evaluation's score marks them
         levels[method] = plotting.lyapunov_grid(system, run.lyapunov)
     shift = ", ".join(f"{n}{v:+g}" for n, v in zip(system.uncertain, xi.tolist()))
     regions = {method: region_to_draw(run, run.certificate.region_of_attraction() if run.certificate else None)

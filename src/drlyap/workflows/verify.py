@@ -222,12 +222,10 @@ def record_region(run: Run, ver: RunVerification) -> None:
     ``metrics.json`` (atomically). Nothing is kept of a verification without a region."""
     if ver.roa is None:
         return
-    certificate = run.metrics.setdefault("certificate", {})
     if ver.true_model is not None:
         keys = ("status", "xi", "verified_fraction", "time_s", "counterexample", "counterexample_source")
-        certificate["true_model"] = jsonable({k: getattr(ver.true_model, k) for k in keys})
-    certificate["roa"] = jsonable({**ver.roa.to_dict(), "xi": ver.roa.xi})  # xi None: about the trained condition
-    run.save_metrics()
+        run.keep("true_model", jsonable({k: getattr(ver.true_model, k) for k in keys}), certificate=True)
+    run.keep("roa", jsonable({**ver.roa.to_dict(), "xi": ver.roa.xi}), certificate=True)  # xi None: the trained one
 
 
 def record_robustness(run: Run, robustness: RunRobustness) -> list[Path]:
@@ -238,17 +236,16 @@ def record_robustness(run: Run, robustness: RunRobustness) -> list[Path]:
     run's own delta. Returns the headers' paths."""
     if float(robustness.delta) != float(run.config.delta):
         return []
-    certificate = run.metrics["certificate"] = run.metrics.get("certificate") or {}
     radius, box = robustness.radius, robustness.shift_box
     if radius is not None and radius.radius is not None:
-        certificate["radius"] = jsonable({"radius": radius.radius, "risk_level": radius.risk_level,
-                                          "n_samples": radius.n_samples, "delta": radius.delta, "level": radius.level,
-                                          "unproved": radius.unproved, "unproved_status": radius.unproved_status})
+        run.keep("radius", jsonable({"radius": radius.radius, "risk_level": radius.risk_level,
+                                     "n_samples": radius.n_samples, "delta": radius.delta, "level": radius.level,
+                                     "unproved": radius.unproved, "unproved_status": radius.unproved_status}),
+                 certificate=True)
     if box is not None and box.s is not None:
-        certificate["shift_box"] = jsonable({"s": box.s, "box": box.box, "scale": box.scale,
-                                             "parameters": box.parameters, "delta": box.delta, "level": box.level,
-                                             "unproved": box.unproved, "unproved_status": box.unproved_status})
-    run.save_metrics()
+        run.keep("shift_box", jsonable({"s": box.s, "box": box.box, "scale": box.scale, "parameters": box.parameters,
+                                        "delta": box.delta, "level": box.level, "unproved": box.unproved,
+                                        "unproved_status": box.unproved_status}), certificate=True)
     region = Region.of(run.system, float(robustness.delta))
     written = []
     if radius is not None and radius.radius is not None:

@@ -104,8 +104,7 @@ def run_combination(spec_dict: dict, combo_dict: dict, out: str, threads: int = 
         row["error"] = None
         row["task_time_s"] = time.perf_counter() - tic
         row["run_dir"] = combo.name
-        run.metrics["sweep"] = {k: row[k] for k in ("trained_condition", "test_decrease", "roa_share", "success")}
-        run.save_metrics()
+        run.keep("sweep", {k: row[k] for k in ("trained_condition", "test_decrease", "roa_share", "success")})
         row["weights_sha256"] = file_sha256(staging / "weights.pt")
         row["spec_sha256"] = spec_sha256(spec_dict)
         write_json(staging / RESULT_FILE, row)
