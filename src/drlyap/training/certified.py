@@ -146,7 +146,7 @@ def train_cegis(cfg: TrainConfig, system: UncertainSystem, proof: ProofConfig, p
     budget = proof.round_budget()
     gen = torch.Generator().manual_seed(base_cfg.seed + 7919)
     extra = torch.empty(0, system.n, dtype=F64)
-    record: list[dict] = []
+    done: list[ProofRound] = []
     best: tuple | None = None
     total_iters = result.record.iterations
     history = list(result.history)  # all rounds' training, iterations and seconds counted from the first run
@@ -171,7 +171,7 @@ def train_cegis(cfg: TrainConfig, system: UncertainSystem, proof: ProofConfig, p
         if entry.verified or r == rounds or out_of_time:
             if out_of_time and not entry.verified and r < rounds:
                 entry.stopped = "time budget"
-            record.append(entry)
+            done.append(entry)
             if log is not None:
                 log(entry)
             break
@@ -179,7 +179,7 @@ def train_cegis(cfg: TrainConfig, system: UncertainSystem, proof: ProofConfig, p
                                         max_boxes=proof.keep_boxes, steps=proof.falsifier_steps,
                                         neighbours=proof.neighbours, level=base_cfg.roa_level, near=near)
         extra = _add_states(extra, found, region, int(proof.max_extra), entry)
-        record.append(entry)
+        done.append(entry)
         if log is not None:
             log(entry)
         round_cfg = dataclasses.replace(base_cfg, iters=iters_round, seed=base_cfg.seed + 1000 * (r + 1),
@@ -192,21 +192,21 @@ def train_cegis(cfg: TrainConfig, system: UncertainSystem, proof: ProofConfig, p
         total_iters += result.record.iterations
     _, chosen, chosen_round, chosen_history, chosen_proof = best
     metrics = dict(chosen.metrics)
-    final = record[chosen_round] if chosen_round < len(record) else record[-1]
+    final = done[chosen_round] if chosen_round < len(done) else done[-1]
     # the returned pair's verdict: an unknown proof becomes violated where the falsifier finds a certain violation
     verdict = settle_unknown(ConditionProof.from_dict(final.verification), chosen.loop, condition, region,
                              base_cfg.roa_level, starts=proof.settle_starts, seed=base_cfg.seed)
     metrics["cegis"] = jsonable({
-        "rounds": [e.to_dict() for e in record],
+        "rounds": [e.to_dict() for e in done],
         "final": verdict.to_dict(),
         "verified": final.verified, "returned_round": chosen_round,
-        "retraining_rounds": len(record) - 1, "max_rounds": rounds, "iters_per_round": iters_round,
+        "retraining_rounds": len(done) - 1, "max_rounds": rounds, "iters_per_round": iters_round,
         "total_iterations": total_iters, "extra_states": int(extra.shape[0]), "replicate": int(proof.replicate),
         "verify_time_limit_s": budget.seconds, "verify_boxes": budget.boxes, "total_time_s": time.perf_counter() - start,
     })
     out = dataclasses.replace(chosen, config=base_cfg, metrics=metrics, history=chosen_history,
                               trained_proof=chosen_proof if chosen_proof.verified else None)
-    return out, record
+    return out, done
 
 
 def _add_states(extra: Tensor, found: dict, region: Region, cap: int, entry: ProofRound) -> Tensor:
