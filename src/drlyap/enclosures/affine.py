@@ -406,15 +406,15 @@ class Affine(Enclosure, kind="affine"):
 
     @staticmethod
     def _pick(second: Affine, first: Callable[[], Affine], wide: Tensor) -> Affine:
-        """``second`` (a second-order form of a function), or where its remainder is at least as wide as the
-        first-order form's part above first order, ``first()``: computed only when some input is ``wide``
-        (elsewhere the third-order remainder is the smaller; early in a branch and bound, on wide boxes, the
-        secant's error is)."""
+        """``second`` (a second-order form of a function), or where an input is ``wide`` and the second-order
+        remainder is at least as wide as the first-order form's part above first order, ``first()`` (elsewhere the
+        third-order remainder is the smaller). Each entry's choice is its own, so that a box's bound does not
+        depend on the boxes bounded beside it (nor on the number of workers)."""
         if not bool(wide.any()):
             return second
         lin1 = first()
         h1 = lin1._higher()
-        return Affine._where((second.r.hi - second.r.lo) < (h1.hi - h1.lo), second, lin1)
+        return Affine._where(~wide | ((second.r.hi - second.r.lo) < (h1.hi - h1.lo)), second, lin1)
 
     def _convex_fn(self, f: Callable, df: Callable, root: Callable, fallback: Interval, convex: bool = True,
                    f_point: Callable | None = None) -> Affine:
