@@ -79,8 +79,8 @@ def test_tiny_cegis_run_records_rounds_and_saves_metrics(tmp_path, tiny_config):
     assert [r.to_dict() for r in record.rounds] == [r.to_dict() for r in rounds]  # kept without counterexamples
     assert (record.total_iterations, record.returned_round) == (cegis["total_iterations"], cegis["returned_round"])
     assert record.iterations == saved["iterations"] and record.final_proof == saved["cegis"]["final"]
-    run.keep("sweep", {"success": 1.0})
-    run.keep("roa", {"level": 1.0}, certificate=True)
+    run.keep({"sweep": {"success": 1.0}})
+    run.keep({"roa": {"level": 1.0}}, certificate=True)
     again = json.loads((tmp_path / "run" / "metrics.json").read_text())
     assert again["sweep"] == {"success": 1.0} and again["certificate"]["roa"] == {"level": 1.0}
 

@@ -168,13 +168,16 @@ class Run:
         """Rewrite ``metrics.json`` (atomically, via a temporary file)."""
         write_json_atomic(self.path / "metrics.json", self.metrics)
 
-    def keep(self, key: str, value: dict, *, certificate: bool = False) -> None:
-        """Keep ``value`` (JSON data) under ``key`` of the run's ``metrics.json`` (with ``certificate``: under its
-        ``certificate`` entry, beside the verdict on the trained condition) and rewrite the file."""
+    def keep(self, entries: dict, *, certificate: bool = False) -> None:
+        """Keep ``entries`` (names to JSON data) in the run's ``metrics.json`` (with ``certificate``: in its
+        ``certificate`` entry, beside the verdict on the trained condition) and rewrite the file once; nothing is
+        written where there is nothing to keep."""
+        if not entries:
+            return
         target = self.metrics
         if certificate:
             target = self.metrics["certificate"] = self.metrics.get("certificate") or {}
-        target[key] = value
+        target.update(entries)
         self.save_metrics()
 
 

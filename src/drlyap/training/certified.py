@@ -156,14 +156,15 @@ def train_cegis(cfg: TrainConfig, system: UncertainSystem, proof: ProofConfig, p
         ver = prove_trained(result.loop, condition, region, budget, base_cfg.roa_level, keep_boxes=proof.keep_boxes,
                             falsify_starts=0,  # its own falsifier below
                             stop_at_counterexample=bool(proof.stop_at_counterexample))
+        trained = result.record
         entry = ProofRound(round=r, verification=ver.summary(), verified=ver.verified, status=ver.status,
                            verified_fraction=ver.verified_fraction, verify_time_s=time.perf_counter() - tic,
-                           train_time_s=train_time, train_iterations=result.record.iterations,
-                           acceptance_passed=result.record.passed)
+                           train_time_s=train_time, train_iterations=trained.iterations,
+                           acceptance_passed=trained.passed)
         # a proof first; among unproved pairs, one that passes the acceptance check (Hurwitz at x*, no other
         # equilibrium) before a larger proved share: retraining on counterexamples of an infeasible condition
         # can trade stability for area (measured on pendulum-u9: 0/200 stabilised instead of 170/200)
-        score = (entry.verified, *result.acceptance.stability(), ver.verified_fraction,
+        score = (entry.verified, *trained.acceptance.stability(), ver.verified_fraction,
                  -(ver.counterexample_value or 0.0))
         if best is None or score > best[0]:
             best = (score, result, r, list(history), ver)

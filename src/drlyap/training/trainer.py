@@ -76,8 +76,8 @@ class TrainResult:
 
     @property
     def acceptance(self) -> AcceptanceCheck:
-        """The acceptance check of the pair kept."""
-        return self.record.acceptance
+        """The acceptance check of the pair kept (:attr:`record`'s, without reading the rest of the record)."""
+        return AcceptanceCheck.from_dict(self.metrics["acceptance"])
 
 
 def growth_words(grown: int, iterations: int) -> str:

@@ -20,7 +20,7 @@ from drlyap.kinds import Method
 from drlyap.progress import progress as show_progress
 from drlyap.render import ACCEPTANCE_LEGEND, decrease_cell, roa_cell
 from drlyap.runs import Run, atomic_dir, check_writable, load_run, save_run
-from drlyap.simulation import evaluate, initial_states, score, simulate, success_mask
+from drlyap.simulation import evaluate, initial_states, score, simulate
 from drlyap.systems import UncertainSystem, resolve_system, system_source
 from drlyap.training import TrainConfig, train
 from drlyap.verification import ProofConfig
@@ -86,7 +86,7 @@ def reproduce(system: str | UncertainSystem, seeds: Sequence[int], out: Path, it
         for seed in seeds:
             x_paper, x_more = test_initial_states(system, seed, n_more=n_more)
             runs: dict[str, Run] = {}
-            paper_trajs = {}
+            paper_trajs, paper_ok = {}, {}
             for method in METHODS:
                 cfg = TrainConfig(system=system_name, method=method, seed=seed, device=device)
                 if iters is not None:
@@ -96,10 +96,10 @@ def reproduce(system: str | UncertainSystem, seeds: Sequence[int], out: Path, it
                 run = load_run(run_dir, system)
                 paper_traj = simulate(system, run.controller, x_paper, xi_test, horizon=horizon)  # drawn below too
                 paper = score(system, paper_traj, xi_test, run.lyapunov, horizon=horizon)
-                paper_trajs[method] = paper_traj
+                paper_trajs[method], paper_ok[method] = paper_traj, paper["success"]
                 more = evaluate_run(run, xi_test, x_more, horizon)
                 bar.update(2)
-                run.keep("evaluations", {"paper_10": paper, "more_200": more})
+                run.keep({"evaluations": {"paper_10": paper, "more_200": more}})
                 region = ver = None
                 if verify:  # what the pair proves on the true model at the test shift (the figures draw its region)
                     checks = (run.proof if verify_time is None else replace(run.proof, time_limit=verify_time)
@@ -129,7 +129,7 @@ def reproduce(system: str | UncertainSystem, seeds: Sequence[int], out: Path, it
                        "run_dir": str(Path(out) / f"seed{seed}" / method)}
                 report["results"].append(row)
                 log(format_row(row))
-            figures = draw_figures(system, runs, xi_test, paper_trajs, tmp / f"seed{seed}" / "figures", seed, horizon)
+            figures = draw_figures(system, runs, xi_test, paper_trajs, paper_ok, tmp / f"seed{seed}" / "figures", seed, horizon)
             report.setdefault("figures", {})[str(seed)] = [str(Path(out) / f"seed{seed}" / "figures" / f.name)
                                                           for f in figures]
         bar.close()
@@ -142,15 +142,13 @@ def reproduce(system: str | UncertainSystem, seeds: Sequence[int], out: Path, it
     return report
 
 
-def draw_figures(system: UncertainSystem, runs: dict[str, Run], xi: torch.Tensor, trajs: dict, folder: Path,
-                 seed: int, horizon: float | None = None) -> list[Path]:
-    """Figs. 2/5 (phase portraits of both controllers from their simulated ``trajs``), 3a/3b (V(t), u(t) from the
-    reference state) and the states over time from the same state (``states.png``)."""
+def draw_figures(system: UncertainSystem, runs: dict[str, Run], xi: torch.Tensor, trajs: dict, ok: dict,
+                 folder: Path, seed: int, horizon: float | None = None) -> list[Path]:
+    """Figs. 2/5 (phase portraits of both controllers from their simulated ``trajs``, ``ok``: which of them the
+    evaluation scored a success), 3a/3b (V(t), u(t) from the reference state) and the states over time from the same
+    state (``states.png``)."""
     folder.mkdir(parents=True, exist_ok=True)
-    ok, levels = {}, {}
-    for method, run in runs.items():
-        ok[method] = success_mask(system, trajs[method].x)[0].tolist()  # as the evaluation's score marks them
-        levels[method] = plotting.lyapunov_grid(system, run.lyapunov)
+    levels = {method: plotting.lyapunov_grid(system, run.lyapunov) for method, run in runs.items()}
     shift = ", ".join(f"{n}{v:+g}" for n, v in zip(system.uncertain, xi.tolist()))
     regions = {method: region_to_draw(run, run.certificate.region_of_attraction() if run.certificate else None)
                for method, run in runs.items()}

@@ -222,10 +222,11 @@ def record_region(run: Run, ver: RunVerification) -> None:
     ``metrics.json`` (atomically). Nothing is kept of a verification without a region."""
     if ver.roa is None:
         return
+    kept = {"roa": jsonable({**ver.roa.to_dict(), "xi": ver.roa.xi})}  # xi None: about the trained condition
     if ver.true_model is not None:
         keys = ("status", "xi", "verified_fraction", "time_s", "counterexample", "counterexample_source")
-        run.keep("true_model", jsonable({k: getattr(ver.true_model, k) for k in keys}), certificate=True)
-    run.keep("roa", jsonable({**ver.roa.to_dict(), "xi": ver.roa.xi}), certificate=True)  # xi None: the trained one
+        kept["true_model"] = jsonable({k: getattr(ver.true_model, k) for k in keys})
+    run.keep(kept, certificate=True)
 
 
 def record_robustness(run: Run, robustness: RunRobustness) -> list[Path]:
@@ -237,15 +238,16 @@ def record_robustness(run: Run, robustness: RunRobustness) -> list[Path]:
     if float(robustness.delta) != float(run.config.delta):
         return []
     radius, box = robustness.radius, robustness.shift_box
+    kept = {}
     if radius is not None and radius.radius is not None:
-        run.keep("radius", jsonable({"radius": radius.radius, "risk_level": radius.risk_level,
-                                     "n_samples": radius.n_samples, "delta": radius.delta, "level": radius.level,
-                                     "unproved": radius.unproved, "unproved_status": radius.unproved_status}),
-                 certificate=True)
+        kept["radius"] = jsonable({"radius": radius.radius, "risk_level": radius.risk_level,
+                                   "n_samples": radius.n_samples, "delta": radius.delta, "level": radius.level,
+                                   "unproved": radius.unproved, "unproved_status": radius.unproved_status})
     if box is not None and box.s is not None:
-        run.keep("shift_box", jsonable({"s": box.s, "box": box.box, "scale": box.scale, "parameters": box.parameters,
-                                        "delta": box.delta, "level": box.level, "unproved": box.unproved,
-                                        "unproved_status": box.unproved_status}), certificate=True)
+        kept["shift_box"] = jsonable({"s": box.s, "box": box.box, "scale": box.scale, "parameters": box.parameters,
+                                      "delta": box.delta, "level": box.level, "unproved": box.unproved,
+                                      "unproved_status": box.unproved_status})
+    run.keep(kept, certificate=True)
     region = Region.of(run.system, float(robustness.delta))
     written = []
     if radius is not None and radius.radius is not None:

@@ -88,10 +88,10 @@ def run_combination(spec_dict: dict, combo_dict: dict, out: str, threads: int = 
         save_run(staging, result, source=system_source(spec.system, system))
         run = load_run(staging, system)
         xi_test = torch.tensor(system.test_xi, dtype=torch.float64)
-        m = result.metrics
-        row.update({"passed_acceptance": bool(m["passed"]), "iterations": int(m["iterations"]),
-                    "train_time_s": float(m.get("cegis", {}).get("total_time_s", m["train_time_s"])),
-                    "violating_fraction": float(result.acceptance.violating_fraction)})
+        record = result.record
+        row.update({"passed_acceptance": record.passed, "iterations": record.iterations,
+                    "train_time_s": record.total_time_s,
+                    "violating_fraction": float(record.acceptance.violating_fraction)})
         ver = verify_run(run, ProofConfig(time_limit=spec.verify_time_limit), xi=xi_test, roa=True)
         row.update(verification_row(ver))
         _, x0 = test_initial_states(system, combo.seed, n_more=spec.n_init)
@@ -104,7 +104,7 @@ def run_combination(spec_dict: dict, combo_dict: dict, out: str, threads: int = 
         row["error"] = None
         row["task_time_s"] = time.perf_counter() - tic
         row["run_dir"] = combo.name
-        run.keep("sweep", {k: row[k] for k in ("trained_condition", "test_decrease", "roa_share", "success")})
+        run.keep({"sweep": {k: row[k] for k in ("trained_condition", "test_decrease", "roa_share", "success")}})
         row["weights_sha256"] = file_sha256(staging / "weights.pt")
         row["spec_sha256"] = spec_sha256(spec_dict)
         write_json(staging / RESULT_FILE, row)
