@@ -39,13 +39,19 @@ class DeviceLess(TorchFunctionMode):
 
     def __torch_function__(self, func, types, args=(), kwargs=None):
         kwargs = kwargs or {}
-        if func in FACTORIES and "device" not in kwargs:
-            frames = [f for f in traceback.extract_stack()[:-1] if "/src/drlyap/" in f.filename]
+        # a factory without a device, or numbers made a tensor without one (a constant beside a GPU's values)
+        made = (func in FACTORIES and "device" not in kwargs) or \
+            (func is torch.as_tensor and not isinstance(args[0], torch.Tensor) and kwargs.get("device") is None)
+        if made:
+            frames = [f for f in traceback.extract_stack()[:-1] if "/src/drlyap/" in f.filename
+                      and f.name not in HELPERS]
             if frames and not any(a in frames[-1].line for a in self.allowed):
                 self.sites.add(f"{frames[-1].filename.split('src/')[-1]}:{frames[-1].lineno}: {frames[-1].line}")
         return func(*args, **kwargs)
 
 
+# the helpers that make a constant where they are told to: the site reported is their caller
+HELPERS = {"_t", "as_f64", "point", "const", "lift", "lift_pair", "join"}
 # tables made once and moved to the device they are asked for, and the CPU results a job hands back
 ALLOWED = (".to(device)", "torch.tensor([refined])", "torch.tensor([pieces])")
 
@@ -140,3 +146,20 @@ def test_proofs_and_checks_on_the_gpu_agree_with_the_cpu(certificate):
                             torch.load(folder / "weights.pt", weights_only=True), sha256_file(folder / "weights.pt"),
                             system_digest(certificate["system"]), compute=Compute(device="cuda"))
     assert res.ok, res.failures
+
+
+def test_no_module_holds_a_tensor_made_at_import():
+    """A tensor made when a module is imported lives on the CPU whatever device a proof runs on (a GPU's bounding
+    then meets it in ``nextafter`` or a product and fails)."""
+    import importlib
+    import pkgutil
+
+    import drlyap
+
+    held = []
+    for info in pkgutil.walk_packages(drlyap.__path__, "drlyap."):
+        module = importlib.import_module(info.name)
+        for key, value in vars(module).items():
+            values = value if isinstance(value, (tuple, list)) else (value,)  # caches keyed by device are fine
+            held += [f"{info.name}.{key}" for v in values if isinstance(v, torch.Tensor)]
+    assert not held, held

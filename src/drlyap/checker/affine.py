@@ -360,7 +360,7 @@ class Af(_Ops):
         low = torch.minimum((ra - Iv.point(a) * sp).lo, (rb - Iv.point(b) * sp).lo)
         t = torch.where(s > 0, (0.25 / torch.where(s > 0, s * s, 1.0)).clamp(min=TINY), b.clamp(min=TINY))
         rt = Iv.point(t).sqrt()
-        slope_gap = (Iv.point(0.5) / rt - sp).abs().hi
+        slope_gap = (Iv.point(0.5, rt.device) / rt - sp).abs().hi
         high = (rt - Iv.point(t) * sp).hi + _up(slope_gap * b * (1 + 4 * EPS))
         high = torch.maximum(high, torch.maximum((ra - Iv.point(a) * sp).hi, (rb - Iv.point(b) * sp).hi))
         point = ~wide

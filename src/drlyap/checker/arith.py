@@ -15,6 +15,7 @@ kinks (``clamp``, ``abs``, the norm at 0), for which the mean-value theorem stil
 
 from __future__ import annotations
 
+import functools
 import math
 
 import torch
@@ -26,18 +27,20 @@ TINY = 1e-300
 INF = math.inf
 
 
-_TO_NEG = torch.tensor(-INF, dtype=F64)
-_TO_POS = torch.tensor(INF, dtype=F64)
+@functools.cache
+def _infinity(sign: float, device: torch.device) -> Tensor:
+    """``sign * inf`` on ``device`` (``nextafter`` takes its direction from the device of its input)."""
+    return torch.tensor(sign * INF, dtype=F64, device=device)
 
 
 def _down(x: Tensor) -> Tensor:
     """One float64 step down; NaN becomes ``-inf``."""
-    return torch.nextafter(x, _TO_NEG).nan_to_num(nan=-INF, posinf=INF, neginf=-INF)
+    return torch.nextafter(x, _infinity(-1.0, x.device)).nan_to_num(nan=-INF, posinf=INF, neginf=-INF)
 
 
 def _up(x: Tensor) -> Tensor:
     """One float64 step up; NaN becomes ``inf``."""
-    return torch.nextafter(x, _TO_POS).nan_to_num(nan=INF, posinf=INF, neginf=-INF)
+    return torch.nextafter(x, _infinity(1.0, x.device)).nan_to_num(nan=INF, posinf=INF, neginf=-INF)
 
 
 def _pad_down(x: Tensor, rel: float, mag: Tensor) -> Tensor:
@@ -48,8 +51,8 @@ def _pad_up(x: Tensor, rel: float, mag: Tensor) -> Tensor:
     return _up(x + rel * mag + TINY)
 
 
-def _t(x) -> Tensor:
-    return torch.as_tensor(x, dtype=F64)
+def _t(x, device: torch.device | None = None) -> Tensor:
+    return torch.as_tensor(x, dtype=F64, device=device)
 
 
 def level(x) -> int:
@@ -57,13 +60,15 @@ def level(x) -> int:
     return x.level if isinstance(x, _Ops) else -1
 
 
-def lift(x, lv: int, like=None):
-    """``x`` as a constant of level ``lv`` (``like``: a dual of that level, whose number of tangents is used)."""
+def lift(x, lv: int, like=None, device: torch.device | None = None):
+    """``x`` as a constant of level ``lv`` (``like``: a dual of that level, whose number of tangents is used), on
+    ``like``'s device or ``device`` (None: a tensor's own, a number's the CPU's)."""
     if level(x) == lv:
         return x
+    device = like.device if like is not None else device
     if lv == 0:
-        return Iv.point(x)
-    inner = lift(x, lv - 1, None if like is None else like.v)
+        return Iv.point(x, device)
+    inner = lift(x, lv - 1, None if like is None else like.v, device)
     zero = inner * 0.0
     return Du(inner, [zero] * (len(like.d) if like is not None else 0))
 
@@ -75,11 +80,11 @@ def _binary(a, b, op: str):
     if la >= lb:
         if la > lb and la > 0:  # b is a constant for a's tangents
             return getattr(a, op + "_const")(b)
-        a, b = a, lift(b, la, a if la > 0 else None)
+        a, b = a, lift(b, la, a if la > 0 else None, a.device)
     else:
         if lb > 0:
             return getattr(b, "r" + op + "_const")(a)
-        a = lift(a, lb)
+        a = lift(a, lb, None, b.device)
     if getattr(b, "affine", False) and not getattr(a, "affine", False):  # an interval with an affine form
         if op in ("add", "mul"):
             return getattr(b, op)(a)
@@ -145,8 +150,12 @@ class _Ops:
         return F64
 
     @property
-    def device(self):
-        return torch.device("cpu")
+    def device(self) -> torch.device:
+        """Where the value's bounds live (a user's dynamics may make its tensors there)."""
+        x = self
+        while isinstance(x, Du):
+            x = x.v
+        return x.lo.device if isinstance(x, Iv) else x.c.device
 
     def dim(self) -> int:
         return self.ndim
@@ -191,7 +200,8 @@ def join(items: list, dim: int, new_axis: bool):
     """``torch.stack`` (``new_axis``) or ``torch.cat`` of checker values, tensors and numbers along ``dim``."""
     lv = max(level(x) for x in items)
     like = next((x for x in items if level(x) == lv), None) if lv > 0 else None
-    items = [lift(x if level(x) >= 0 else _t(x), lv, like) for x in items]
+    device = next((x.device for x in items if isinstance(x, (_Ops, Tensor))), None)
+    items = [lift(x if level(x) >= 0 else _t(x, device), lv, like, device) for x in items]
     affine = next((x for x in items if getattr(x, "affine", False)), None)
     if lv == 0 and affine is not None:
         return type(affine).join([affine.promote(x) for x in items], dim, new_axis)
@@ -212,8 +222,9 @@ class Iv(_Ops):
         self.lo, self.hi = _t(lo), _t(hi)
 
     @staticmethod
-    def point(x) -> Iv:
-        x = _t(x)
+    def point(x, device: torch.device | None = None) -> Iv:
+        """The exact interval ``[x, x]`` (on ``device``: None, a tensor's own, a number's the CPU's)."""
+        x = _t(x, device)
         return Iv(x, x)
 
     @property

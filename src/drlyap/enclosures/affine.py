@@ -70,8 +70,9 @@ class Affine(Enclosure, kind="affine"):
         return Affine(c, torch.diag_embed(rad))
 
     @staticmethod
-    def const(x) -> Affine:
-        """A constant (no linear part) enclosing ``x``: a tensor, a number or an :class:`Interval`."""
+    def const(x, device: torch.device | None = None) -> Affine:
+        """A constant (no linear part) enclosing ``x``: a tensor, a number or an :class:`Interval` (a number on
+        ``device``)."""
         if isinstance(x, Affine):
             return x
         if isinstance(x, Interval):
@@ -79,7 +80,7 @@ class Affine(Enclosure, kind="affine"):
                 return Affine(x.lo)
             c = x.mid
             return Affine(c, None, Interval(round_down(x.lo - c, REL1), round_up(x.hi - c, REL1)))
-        return Affine(as_f64(x))
+        return Affine(as_f64(x, device))
 
     @property
     def shape(self) -> torch.Size:

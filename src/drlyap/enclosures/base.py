@@ -169,28 +169,40 @@ def level_of(x) -> int:
     return x.level if isinstance(x, Enclosure) else -1
 
 
-def lift(x, level: int):
-    """``x`` (a tensor, number or enclosure of a level up to ``level``) as a constant of the given level."""
+def lift(x, level: int, device: torch.device | None = None):
+    """``x`` (a tensor, number or enclosure of a level up to ``level``) as a constant of the given level, on
+    ``device`` (None: a tensor's own, a number's the CPU's)."""
     lv = level_of(x)
     if lv == level:
         return x
     if lv > level:
         raise ValueError("cannot lower an enclosure")
     if level == 0:
-        return Enclosure.kinds["interval"].const(x)
-    return Enclosure.kinds["dual"](lift(x, level - 1), None)
+        return Enclosure.kinds["interval"].const(x, device)
+    return Enclosure.kinds["dual"](lift(x, level - 1, device), None)
+
+
+def device_of(*items) -> torch.device | None:
+    """Where the first enclosure among ``items`` lives (else the first tensor's; None for numbers alone): the device
+    a constant that meets them is made on."""
+    for kind in (Enclosure, Tensor):
+        for x in items:
+            if isinstance(x, kind):
+                return x.device
+    return None
 
 
 def constant_like(x, value) -> object:
-    """``value`` (a tensor or number) as a constant of the same kind as ``x``: itself for a tensor ``x``,
-    an exact enclosure of the same level otherwise."""
-    return lift(value, level_of(x)) if isinstance(x, Enclosure) else value
+    """``value`` (a tensor or number) as a constant of the same kind as ``x``, on its device: itself for a tensor
+    ``x``, an exact enclosure of the same level otherwise."""
+    return lift(value, level_of(x), x.device) if isinstance(x, Enclosure) else value
 
 
 def lift_pair(a, b):
-    """``a`` and ``b`` lifted to their common kind (an interval that meets an affine form becomes one)."""
-    level = max(level_of(a), level_of(b), 0)
-    a, b = lift(a, level), lift(b, level)
+    """``a`` and ``b`` lifted to their common kind (an interval that meets an affine form becomes one), a constant
+    on the other's device."""
+    level, device = max(level_of(a), level_of(b), 0), device_of(a, b)
+    a, b = lift(a, level, device), lift(b, level, device)
     if level == 0:
         affine = Enclosure.kinds["affine"]
         if isinstance(a, affine) != isinstance(b, affine):
@@ -207,8 +219,8 @@ def normdim(dim: int, ndim: int) -> int:
 
 def join(seq: Sequence, dim: int, fn: Callable):
     """``fn`` (``torch.stack`` or ``torch.cat``) of enclosures and tensors, lifted to their common kind."""
-    level = max(max(level_of(s) for s in seq), 0)
-    items = [lift(s, level) for s in seq]
+    level, device = max(max(level_of(s) for s in seq), 0), device_of(*seq)
+    items = [lift(s, level, device) for s in seq]
     if level == 0:
         affine = Enclosure.kinds["affine"]
         if any(isinstance(s, affine) for s in items):

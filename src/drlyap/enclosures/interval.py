@@ -24,10 +24,11 @@ class Interval(Enclosure, kind="interval"):
         self.hi = lo if hi is None else hi
 
     @staticmethod
-    def const(x) -> Interval:
+    def const(x, device: torch.device | None = None) -> Interval:
+        """The exact interval ``[x, x]`` of a tensor or number (on ``device``: None, a tensor's own, else the CPU)."""
         if isinstance(x, Interval):
             return x
-        t = as_f64(x)
+        t = as_f64(x, device)
         return Interval(t, t)
 
     @property

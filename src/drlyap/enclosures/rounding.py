@@ -12,9 +12,9 @@ REL1 = 4 * EPS  # relative pad of one correctly rounded operation (generous)
 RELT = 16 * EPS  # relative pad of a library transcendental (sin, cos, tanh, exp, sqrt: a few ulps at most)
 
 
-def as_f64(x) -> Tensor:
-    """``x`` (a tensor, number or sequence) as a float64 tensor."""
-    return torch.as_tensor(x, dtype=F64)
+def as_f64(x, device: torch.device | str | None = None) -> Tensor:
+    """``x`` (a tensor, number or sequence) as a float64 tensor, on ``device`` (None: a tensor's own, else the CPU)."""
+    return torch.as_tensor(x, dtype=F64, device=device)
 
 
 def round_down(x: Tensor, rel: float, mag: Tensor | None = None) -> Tensor:
