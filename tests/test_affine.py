@@ -90,6 +90,12 @@ OPS = {
     "stack unbind": lambda z: torch.stack([z[:, 1], z[:, 0] * z[:, 1], z.unbind(-1)[0]], dim=-1),
     "cat index": lambda z: torch.cat([z[..., :1], z[:, 1:] * 2.0], dim=-1)[:, [1, 0]],
     "norm": lambda z: torch.linalg.vector_norm(z, dim=-1),
+    # forms with a quadratic part (one-signed where it comes from a square) entering products and functions
+    "mul of squares": lambda z: torch.square(z[:, 0] - z[:, 1]) * (torch.tanh(z[:, 0] + z[:, 1]) + z[:, 0] * z[:, 1]),
+    "tanh of square": lambda z: torch.tanh(z[:, 0] * z[:, 0] - z[:, 1]),
+    "sin of product": lambda z: torch.sin(z[:, 0] * z[:, 1] + 0.5),
+    "exp of square": lambda z: torch.exp(-torch.square(z[:, 0] + 0.3 * z[:, 1])),
+    "reciprocal of square": lambda z: 1.0 / (torch.square(z[:, 0]) + z[:, 1] * 0.1 + 2.0),
 }
 
 
@@ -471,3 +477,29 @@ def test_a_box_is_bounded_the_same_whatever_is_bounded_beside_it():
     pts = narrow_lo + (narrow_hi - narrow_lo) * torch.rand(2000, 4, generator=g, dtype=torch.float64)
     values = net(pts)
     assert bool((values >= alone.lo[0]).all() and (values <= alone.hi[0]).all())
+
+
+def test_a_products_one_signed_higher_part_is_centred_first():
+    """``x = L^2`` (its quadratic part ranges over [0, a]) times a linear ``y``: written about the centre of that
+    range, the product's remainder is ``[-a/2, a/2] * dev(y)`` instead of ``[0, a] * dev(y)``: half as wide."""
+    lo, hi = _boxes(30, 2, 0.2, seed=3)
+    centre = (lo + hi) / 2
+    lo, hi = lo - centre, hi - centre  # L = z0 - z1 is centred at 0: x has no linear part
+    z = Affine.box(lo, hi)
+    x, y = torch.square(z[:, 0] - z[:, 1]), z[:, 0] + 2.0 * z[:, 1]
+    a = x._quad().hi - x._quad().lo
+    out = x * y
+    assert _inside(out, _flat(lambda t: torch.square(t[:, 0] - t[:, 1]) * (t[:, 0] + 2.0 * t[:, 1]),
+                              _samples(lo, hi)))
+    assert bool(((out.r.hi - out.r.lo) <= 1.05 * a * y._lin()).all())
+
+
+def test_a_form_with_an_unbounded_remainder_gives_no_finite_range():
+    """Centring the factors of a product must not turn an unbounded remainder into a finite range."""
+    lo, hi = _boxes(4, 2, 0.2, seed=5)
+    z = Affine.box(lo, hi)
+    inf = torch.full((4,), float("inf"), dtype=F64)
+    x = Affine(z.c[:, 0], z.g[:, 0], Interval(-inf, inf))
+    for out in (x * z[:, 1], z[:, 1] * x, x * x, torch.exp(x) * z[:, 1]):
+        iv = out.to_interval()
+        assert not bool((torch.isfinite(iv.lo) & torch.isfinite(iv.hi)).any())

@@ -5,10 +5,11 @@ intervals on small boxes (what they are for)."""
 import pytest
 import torch
 
-from drlyap.checker.affine import Af, _quick_span, _quick_spans, quad_max, quad_max_minus, quad_span
+from drlyap.checker.affine import Af
 from drlyap.checker.arith import Iv
 from drlyap.checker.check import _by_forms
 from drlyap.checker.model import Pair, Residual, affine_upper, form_upper, sublevel_form_upper
+from drlyap.checker.quadratic import _quick_span, _quick_spans, quad_max, quad_max_minus, quad_span
 from drlyap.conditions import DRPointwise
 from drlyap.runs.certificates import condition_claim
 from handmade import linear_pair, small_pendulum
@@ -205,3 +206,19 @@ def test_the_flat_norm_bounds_the_residual_at_samples_and_helps_where_the_norm_n
     by_form = (form_upper(residual, *plain, level) <= 0) | (plain[1].interval(dual=True).lo > level)
     by_flat = form_upper(residual, *flat, level) <= 0
     assert torch.equal(_by_forms(residual, lo, hi, level), by_form | by_flat)
+
+
+def test_a_products_one_signed_higher_part_is_centred_first():
+    """``x = L^2`` (a one-signed quadratic part over [0, a], no linear part) times a linear ``y``: written about the
+    middle of that range, the product's remainder is about ``a dev(y)`` wide instead of ``2 a dev(y)``."""
+    lo, hi = boxes(30, 2, 0.2, seed=3)
+    centre = (lo + hi) / 2
+    lo, hi = lo - centre, hi - centre
+    z = Af.seed(lo, hi)
+    x, y = (z[:, 0] - z[:, 1]).square(), z[:, 0] + z[:, 1] * 2.0
+    a = x.interval().hi - x.interval().lo
+    out = x * y
+    pts = points(lo, hi)
+    values = ((pts[..., 0] - pts[..., 1]) ** 2 * (pts[..., 0] + 2 * pts[..., 1]))
+    assert bool((values >= out.lo).all() and (values <= out.hi).all())
+    assert bool(((out.r.hi - out.r.lo) <= 1.05 * a * y._lmag()).all())

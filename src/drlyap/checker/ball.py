@@ -18,9 +18,9 @@ import math
 import torch
 from torch import Tensor
 
-from drlyap.checker.affine import surely_semidefinite
 from drlyap.checker.arith import EPS, F64, TINY, Du, Iv, _up
 from drlyap.checker.model import Residual
+from drlyap.checker.quadratic import surely_semidefinite
 
 
 def not_equilibrium(residual: Residual) -> str:

@@ -22,8 +22,9 @@ from collections.abc import Callable
 import torch
 from torch import Tensor
 
-from drlyap.checker.affine import Af, quad_max_minus
+from drlyap.checker.affine import Af
 from drlyap.checker.arith import EPS, F64, TINY, Du, Iv, lift
+from drlyap.checker.quadratic import quad_max_minus
 
 CONDITIONS = ("nominal", "pointwise", "plain", "true")
 

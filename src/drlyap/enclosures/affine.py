@@ -3,19 +3,19 @@ Taylor models), outward rounded."""
 
 from __future__ import annotations
 
-from collections.abc import Callable, Sequence
+from collections.abc import Callable
 
 import torch
 from torch import Tensor
 
+from drlyap.enclosures.affine_functions import AffineFunctions
 from drlyap.enclosures.base import Enclosure, fix_index, normdim
 from drlyap.enclosures.interval import Interval
 from drlyap.enclosures.quadratic import max_lin_quad, quadratic_span, sym_outer
 from drlyap.enclosures.rounding import EPS, F64, REL1, TINY, as_f64, round_down, round_up, sum_up
-from drlyap.enclosures.univariate import convex_error, drecip, dsqrt, dtanh, secant
 
 
-class Affine(Enclosure, kind="affine"):
+class Affine(AffineFunctions, Enclosure, kind="affine"):
     """A batch of affine forms (first-order Taylor models) over the noise symbols of a batch of boxes, with an
     optional exact quadratic part::
 
@@ -140,6 +140,16 @@ class Affine(Enclosure, kind="affine"):
             pad = 8 * (k * k + 4) * EPS * (self.g.abs().sum(-1) + total) + TINY
             self._dv = Interval(round_down(lo - pad + self.r.lo, REL1), round_up(hi + pad + self.r.hi, REL1))
         return self._dv
+
+    def _about_middle(self, within: Interval | None = None) -> tuple[Tensor, Interval]:
+        """``c' = c + mid(H)``, ``H`` the quadratic part plus the remainder (``c`` where H's range is not finite;
+        moved into ``within`` where given), and an enclosure of ``c - c'``: the form written about the middle of its
+        part above first order."""
+        m = self._higher().mid
+        cp = self.c + torch.where(torch.isfinite(m), m, 0.0)
+        if within is not None:
+            cp = torch.minimum(torch.maximum(cp, within.lo), within.hi)
+        return cp, Interval.const(self.c) - Interval.const(cp)
 
     def to_interval(self) -> Interval:
         """The interval enclosure ``(B, ...)`` of the forms."""
@@ -337,15 +347,21 @@ class Affine(Enclosure, kind="affine"):
     def _mul(self, o: Affine) -> Affine:
         if self.g is None and o.g is None and self.q is None and o.q is None:
             return Affine.const(self.to_interval() * o.to_interval())
-        # with x = cx + Lx + Qx + rx (linear, quadratic, remainder):
-        # x y = cx cy + (cx Ly + cy Lx) + (cx Qy + cy Qx + Lx Ly) + cx ry + cy rx + Lx (Qy + ry) + (Qx + rx)(y - cy)
-        t1 = None if self.g is None else o.c.unsqueeze(-1) * self.g
-        t2 = None if o.g is None else self.c.unsqueeze(-1) * o.g
+        # x = cx + Lx + Hx (linear part; quadratic part plus remainder), written about cx' = cx + mid(Hx) so that its
+        # part above first order, Hx' = Hx + (cx - cx'), ranges over an interval centred at 0 (a quadratic part is
+        # often one-signed: a square's is), and the same for y; then
+        # x y = cx' cy' + (cx' Ly + cy' Lx) + (cx' Qy + cy' Qx + Lx Ly) + cx' (ry + cy - cy') + cy' (rx + cx - cx')
+        #       + Lx Hy' + Hx' (y - cy'),
+        # the last two (third order and above) bounded by intervals, which the centring narrows
+        (cxp, sx), (cyp, sy) = self._about_middle(), o._about_middle()
+        hx, hy = self._higher(), o._higher()
+        t1 = None if self.g is None else cyp.unsqueeze(-1) * self.g
+        t2 = None if o.g is None else cxp.unsqueeze(-1) * o.g
         g, pad = Affine._gsum(t1, t2)
         if g is not None:
             pad = pad + REL1 * sum_up(g.abs())  # the products' own rounding
-        parts = [o.c[..., None, None] * self.q if self.q is not None else None,
-                 self.c[..., None, None] * o.q if o.q is not None else None,
+        parts = [cyp[..., None, None] * self.q if self.q is not None else None,
+                 cxp[..., None, None] * o.q if o.q is not None else None,
                  sym_outer(self.g, o.g) if self.g is not None and o.g is not None else None]
         q = None
         for part in parts:
@@ -353,81 +369,14 @@ class Affine(Enclosure, kind="affine"):
                 q = part if q is None else q + part
         if q is not None:
             pad = pad + Affine._qpad(q, 4 * REL1)  # each entry: up to three products and two sums
-        cx, cy = Interval.const(self.c), Interval.const(o.c)
+        cx, cy = Interval.const(cxp), Interval.const(cyp)
         lx = self._lin()
-        const = (cx * cy + cx * o.r + cy * self.r + Interval(-lx, lx) * o._higher()
-                 + self._higher() * o._dev())
+        const = (cx * cy + cx * (o.r + sy) + cy * (self.r + sx) + Interval(-lx, lx) * (hy + sy)
+                 + (hx + sx) * (o._dev() + sy))
         return Affine._centred(const, g, pad, q)
-
-    def reciprocal(self) -> Affine:
-        iv = self.to_interval()
-        if not bool(((iv.lo > 0) | (iv.hi < 0)).all()):
-            raise ValueError("affine division by a form whose range contains 0")
-        fallback = iv.reciprocal()
-        if self.g is None:
-            return Affine.const(fallback)
-
-        def first() -> Affine:
-            # on the positive range [a, b] of |x|, 1/y is convex; 1/x = s (1/y) with y = s x, s = sign: so
-            # 1/x = lam x + s e(y) with the slope lam and error e of 1/y
-            neg = iv.hi < 0
-            a, b = torch.where(neg, -iv.hi, iv.lo), torch.where(neg, -iv.lo, iv.hi)
-            lam = -1.0 / (a * b)  # the secant of 1/y over [a, b]
-            err = convex_error(Interval.reciprocal, drecip, a, b, lam, torch.clamp(torch.sqrt(a * b), a, b))
-            return self._scale_shift(lam, Interval(torch.where(neg, -err.hi, err.lo), torch.where(neg, -err.lo, err.hi)))
-
-        rc = Interval.const(self.c).reciprocal()
-        rc2 = rc.square()
-        second = self._second_order(rc, -rc2, rc2 * rc, fallback.square().square() * -6.0)
-        near = torch.minimum(iv.lo.abs(), iv.hi.abs())
-        return Affine._pick(second, first, (iv.hi - iv.lo) > near * 0.5)._guard(fallback)
 
     def _div(self, o: Affine) -> Affine:
         return self._mul(o.reciprocal())
-
-    def _second_order(self, f0: Interval, s1: Interval, s2: Interval, d3: Interval) -> Affine:
-        """The second-order Taylor form about the centre ``c``, with ``d = x - c``::
-
-            f(x) = f(c) + f'(c) d + f''(c) d^2 / 2 + f'''(xi) d^3 / 6
-
-        ``d = L + H`` (linear part; quadratic part plus remainder): ``f'(c) (L + Q)`` and ``f''(c) L^2 / 2`` are
-        kept (linear and quadratic parts), everything else is bounded by intervals. ``f0, s1, s2``: enclosures
-        of ``f(c), f'(c), f''(c) / 2``; ``d3``: of ``f'''`` over the range (all outward rounded)."""
-        a1, a2 = s1.mid, s2.mid
-        dev, higher, lin = self._dev(), self._higher(), self._lin()
-        a1_, a2_ = Interval.const(a1), Interval.const(a2)
-        rest_sq = Interval(-lin, lin) * higher * 2.0 + higher.square()  # d^2 - L^2
-        const = (f0 + (s1 - a1_) * dev + a1_ * self.r + (s2 - a2_) * dev.square() + a2_ * rest_sq
-                 + d3 * dev.pow_int(3) * (1.0 / 6.0))
-        g = a1.unsqueeze(-1) * self.g
-        q = (a2.unsqueeze(-1) * self.g).unsqueeze(-1) * self.g.unsqueeze(-2)
-        if self.q is not None:
-            q = q + a1[..., None, None] * self.q
-        return Affine._centred(const, g, REL1 * sum_up(g.abs()) + Affine._qpad(q, 4 * REL1), q)
-
-    @staticmethod
-    def _pick(second: Affine, first: Callable[[], Affine], wide: Tensor) -> Affine:
-        """``second`` (a second-order form of a function), or where an input is ``wide`` and the second-order
-        remainder is at least as wide as the first-order form's part above first order, ``first()`` (elsewhere the
-        third-order remainder is the smaller). Each entry's choice is its own, so that a box's bound does not
-        depend on the boxes bounded beside it (nor on the number of workers)."""
-        if not bool(wide.any()):
-            return second
-        lin1 = first()
-        h1 = lin1._higher()
-        return Affine._where(~wide | ((second.r.hi - second.r.lo) < (h1.hi - h1.lo)), second, lin1)
-
-    def _convex_fn(self, f: Callable, df: Callable, root: Callable, fallback: Interval, convex: bool = True,
-                   f_point: Callable | None = None) -> Affine:
-        """``f`` convex (or concave) on the range: secant slope, error bound by :func:`convex_error`."""
-        iv = self.to_interval()
-        if self.g is None:
-            return Affine.const(fallback)
-        a, b = iv.lo, iv.hi
-        fp = f_point if f_point is not None else (lambda t: f(Interval.const(t)).mid)
-        lam = secant(fp, lambda t: df(Interval.const(t)).mid, a, b)
-        err = convex_error(f, df, a, b, lam, torch.clamp(root(lam), a, b), convex)
-        return self._scale_shift(lam, err)._guard(fallback)
 
     def square(self) -> Affine:
         """``x * x`` (its quadratic part exact), or the secant form where that is narrower."""
@@ -435,104 +384,6 @@ class Affine(Enclosure, kind="affine"):
         if self.g is None:
             return Affine.const(fallback)
         return self._mul(self)._guard(fallback)
-
-    def exp(self) -> Affine:
-        iv = self.to_interval()
-        fallback = iv.exp()
-        if self.g is None:
-            return Affine.const(fallback)
-        ec = Interval.const(self.c).exp()
-        second = self._second_order(ec, ec, ec * 0.5, fallback)
-        return Affine._pick(second, lambda: self._convex_fn(Interval.exp, Interval.exp, torch.log, fallback,
-                                                            f_point=torch.exp), (iv.hi - iv.lo) > 1.0)._guard(fallback)
-
-    def sqrt(self) -> Affine:
-        """Square root of ``max(x, 0)`` (as :meth:`Interval.sqrt`: the argument is taken to be non-negative)."""
-        iv = self.to_interval()
-        fallback = iv.sqrt()
-        if self.g is None:
-            return Affine.const(fallback)
-        a, b = torch.clamp(iv.lo, min=0.0), torch.clamp(iv.hi, min=0.0)
-        wide = b > a
-        lam = torch.where(wide, (torch.sqrt(b) - torch.sqrt(a)) / torch.where(wide, b - a, 1.0), 0.0)
-        xt = torch.clamp(torch.where(lam > 0, 0.25 / (lam * lam), b), a, b)
-        err = convex_error(Interval.sqrt, dsqrt, a, b, lam, xt, convex=False)
-        zero = b <= 0  # the range is {0}
-        err = Interval(torch.where(zero, 0.0, err.lo), torch.where(zero, 0.0, err.hi))
-        return self._scale_shift(lam, err)._guard(fallback)
-
-    def tanh(self) -> Affine:
-        iv = self.to_interval()
-        fallback = iv.tanh()
-        if self.g is None:
-            return Affine.const(fallback)
-
-        def first() -> Affine:
-            a, b = iv.lo, iv.hi
-            lam = torch.clamp(secant(torch.tanh, lambda t: 1.0 - torch.tanh(t) ** 2, a, b), 0.0, 1.0)
-            root = torch.atanh(torch.sqrt(torch.clamp(1.0 - lam, 0.0, 1.0)))  # tanh'(+-root) = lam
-            zero = torch.zeros_like(a)
-            q1 = torch.maximum(torch.minimum(b, zero), a)  # tanh is convex on [a, q1] (x <= 0, or the point a)
-            p2 = torch.minimum(torch.maximum(a, zero), b)  # and concave on [p2, b]
-            e1 = convex_error(Interval.tanh, dtanh, a, q1, lam, torch.clamp(-root, a, q1), convex=True)
-            e2 = convex_error(Interval.tanh, dtanh, p2, b, lam, torch.clamp(root, p2, b), convex=False)
-            return self._scale_shift(lam, e1.hull(e2))
-
-        t = Interval.const(self.c).tanh()  # tanh' = 1 - t^2, tanh'' / 2 = -t (1 - t^2), tanh''' = -2 (1 - t^2)(1 - 3 t^2)
-        s1, t2 = 1.0 - t.square(), fallback.square()
-        second = self._second_order(t, s1, -(t * s1), (1.0 - t2) * (1.0 - t2 * 3.0) * -2.0)
-        return Affine._pick(second, first, (iv.hi - iv.lo) > 1.0)._guard(fallback)
-
-    def _taylor2(self, f: Callable, df: Callable, d2f: Callable, d3f: Callable, fallback: Interval) -> Affine:
-        """The second-order form (:meth:`_second_order`, ``d3f`` the third derivative); where the range is wide,
-        or where narrower, the midpoint slope with a second-order Lagrange remainder:
-        ``f(x) = f(m) + f'(m)(x - m) + f''(xi)(x - m)^2 / 2`` with ``f''`` enclosed over the range."""
-        iv = self.to_interval()
-        if self.g is None:
-            return Affine.const(fallback)
-
-        def first() -> Affine:
-            m = iv.mid
-            mm = Interval.const(m)
-            slope = df(mm)
-            lam = slope.mid
-            dev = iv - mm
-            err = f(mm) + (slope - Interval.const(lam)) * dev + d2f(iv) * dev.square() * 0.5  # f(x) - lam (x - m)
-            return self._scale_shift(lam, err - Interval.const(lam) * mm)
-
-        cc = Interval.const(self.c)
-        second = self._second_order(f(cc), df(cc), d2f(cc) * 0.5, d3f(iv))
-        return Affine._pick(second, first, (iv.hi - iv.lo) > 1.0)._guard(fallback)
-
-    def sin(self) -> Affine:
-        return self._taylor2(Interval.sin, Interval.cos, lambda x: -x.sin(), lambda x: -x.cos(),
-                             self.to_interval().sin())
-
-    def cos(self) -> Affine:
-        return self._taylor2(Interval.cos, lambda x: -x.sin(), lambda x: -x.cos(), Interval.sin,
-                             self.to_interval().cos())
-
-    def _piecewise_linear(self, f: Callable, breaks: Sequence[Tensor], fallback: Interval) -> Affine:
-        """``f`` continuous and piecewise linear with kinks at ``breaks`` (exact in float64): the error of
-        the secant is piecewise linear too, so its range is its hull at the ends and the kinks in range."""
-        iv = self.to_interval()
-        if self.g is None:
-            return Affine.const(fallback)
-        a, b = iv.lo, iv.hi
-        lam = secant(f, lambda t: torch.zeros_like(t), a, b)
-        lam_ = Interval.const(lam)
-        err = None
-        for t in [a, b, *(torch.clamp(br.expand(a.shape), a, b) for br in breaks)]:
-            e = Interval.const(f(t)) - lam_ * Interval.const(t)
-            err = e if err is None else err.hull(e)
-        return self._scale_shift(lam, err)._guard(fallback)
-
-    def abs(self) -> Affine:
-        iv = self.to_interval()
-        out = self._piecewise_linear(torch.abs, [torch.zeros_like(iv.lo)], iv.abs())
-        if self.g is None:
-            return out
-        return Affine._where(iv.lo >= 0, self, Affine._where(iv.hi <= 0, -self, out))
 
     def pow_int(self, n: int) -> Affine:
         if n == 0:
@@ -582,18 +433,6 @@ class Affine(Enclosure, kind="affine"):
         g = torch.matmul(weight, self.g)  # (out, in) @ (..., in, K)
         pad = rel * round_up(sum_up(self.g.abs()) @ w_abs, rel)
         return Affine._centred(const, g, pad + qpad, q)
-
-    def clamp(self, low: Tensor, high: Tensor) -> Affine:
-        iv = self.to_interval()
-        low, high = as_f64(low).to(iv.lo.device), as_f64(high).to(iv.lo.device)
-        out = self._piecewise_linear(lambda t: torch.clamp(t, low, high), [low, high], iv.clamp(low, high))
-        if self.g is None:
-            return out
-        return Affine._where((iv.lo >= low) & (iv.hi <= high), self, out)  # inactive: the identity, exactly
-
-    def clamp_slope(self, low: Tensor, high: Tensor) -> Interval:
-        """Enclosure of the (Clarke) derivative of ``clamp(., low, high)`` over the range (see :class:`Interval`)."""
-        return self.to_interval().clamp_slope(low, high)
 
     def norm(self, dim: int = -1) -> Affine:
         """Euclidean norm along ``dim``."""
