@@ -113,6 +113,28 @@ def test_the_checkers_bounding_makes_every_tensor_on_its_inputs_device(certifica
     assert bool(out["ok"].all()) and not mode.sites, sorted(mode.sites)
 
 
+@pytest.mark.parametrize("name", ["cartpole", "quadrotor2d"])
+def test_the_checkers_second_order_forms_make_every_tensor_on_their_inputs_device(name):
+    """The checker's own forms (4 and 6 states) on a DR condition over a sublevel set, boxes bisected too."""
+    from drlyap.runs.certificates import condition_claim
+
+    system = get_system(name)
+    cfg = TrainConfig(system=name, lyapunov_hidden=[6], controller_hidden=[6]).resolved(system)
+    lyap, ctrl = build_networks(system, cfg)
+    condition = DRPointwise(0.01, 0.1, torch.zeros(3, system.k, dtype=F64), decay_rate=0.1)
+    residual = Residual(condition_claim(condition), Pair({"lyapunov": lyap.state_dict(),
+                                                           "controller": ctrl.state_dict()}, lyap.alpha_hat, system.n),
+                        system)
+    lo, hi = system.local_box()
+    centre = lo + (hi - lo) * torch.rand(8, system.n, generator=torch.Generator().manual_seed(0), dtype=F64)
+    half = (hi - lo) * 0.01
+    job = LeafJob(residual, hi - lo, 2, 1.0, False)
+    mode = DeviceLess(ALLOWED)
+    with mode:
+        job(centre - half, centre + half, torch.zeros(8, dtype=torch.bool))
+    assert not mode.sites, sorted(mode.sites)
+
+
 def test_a_device_that_is_not_there_is_refused_in_one_line(tmp_path):
     from drlyap.cli import main
 
@@ -163,3 +185,23 @@ def test_no_module_holds_a_tensor_made_at_import():
             values = value if isinstance(value, (tuple, list)) else (value,)  # caches keyed by device are fine
             held += [f"{info.name}.{key}" for v in values if isinstance(v, torch.Tensor)]
     assert not held, held
+
+
+@pytest.mark.skipif(not CUDA, reason="needs a CUDA device")
+@pytest.mark.parametrize("name", ["pendulum", "mountain-car", "cartpole", "quadrotor2d"])
+def test_every_systems_bounds_on_the_gpu_match_the_cpus_and_hold_at_samples(name):
+    system = get_system(name)
+    cfg = TrainConfig(system=name, lyapunov_hidden=[6], controller_hidden=[6]).resolved(system)
+    loop = ClosedLoop(system, *build_networks(system, cfg)).f64
+    lo, hi = system.local_box()
+    g = torch.Generator().manual_seed(0)
+    centre = lo + (hi - lo) * torch.rand(64, system.n, generator=g, dtype=F64)
+    blo, bhi = centre - (hi - lo) * 0.01, centre + (hi - lo) * 0.01
+    condition = DRPointwise(0.01, 0.1, torch.zeros(3, system.k, dtype=F64), decay_rate=0.1)
+    for enclosure in ("affine", "mean-value"):
+        cpu = ConditionJob(loop, condition, None, enclosure)(blo, bhi)
+        gpu = ConditionJob(loop, condition, None, enclosure).on("cuda")(blo, bhi)
+        assert torch.allclose(cpu["upper"], gpu["upper"], rtol=1e-9, atol=1e-9), name
+        z = blo + (bhi - blo) * torch.rand(256, *blo.shape, generator=g, dtype=F64)
+        values = loop.exact(condition, z.reshape(-1, system.n)).reshape(256, -1)
+        assert bool((values <= gpu["upper"][None] + 1e-12).all()), name
