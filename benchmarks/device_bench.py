@@ -21,7 +21,6 @@ from __future__ import annotations
 import argparse
 import hashlib
 import sys
-import time
 
 import numpy as np
 import torch
@@ -42,22 +41,6 @@ def _leaf_digest(proof, region) -> str | None:
     return hashlib.sha256(rows.tobytes()).hexdigest()
 
 
-def _prove(run, boxes: int, device: str, batch: int):
-    from drlyap.config import Budget, Compute
-    from drlyap.regions import Region
-    from drlyap.verification import verify_condition
-
-    budget = Budget(seconds=1e9, boxes=boxes, enclosure=run.proof.enclosure if run.proof else None, batch=batch,
-                    compute=Compute(device=device, progress=False))
-    region = Region.of(run.system, float(run.config.delta))
-    if device.startswith("cuda"):
-        torch.cuda.synchronize()
-    tic = time.perf_counter()
-    proof = verify_condition(run.loop, run.condition, region, budget, level=run.config.roa_level,
-                             keep_partition=True)
-    return proof, time.perf_counter() - tic, region
-
-
 def _available(device: str) -> str | None:
     from drlyap.parallel import check_device
 
@@ -69,6 +52,10 @@ def _available(device: str) -> str | None:
 
 
 def proof_rows(paths: list[str], devices: list[str], batches: list[int], boxes: int | None) -> None:
+    from parallel_bench import _prove
+
+    from drlyap.config import Compute
+    from drlyap.regions import Region
     from drlyap.runs import load_run
     from drlyap.workflows.verify import run_proof
 
@@ -85,8 +72,8 @@ def proof_rows(paths: list[str], devices: list[str], batches: list[int], boxes: 
                 print(f"{str(path)[-24:]:<24} {device}: {why}")
                 continue
             for batch in batches:
-                proof, wall, region = _prove(run, budget, device, batch)
-                digest = _leaf_digest(proof, region)
+                proof, wall = _prove(run, budget, Compute(device=device), batch, keep_partition=True)
+                digest = _leaf_digest(proof, Region.of(run.system, float(run.config.delta)))
                 first = first or digest
                 print(f"{str(path)[-24:]:<24} {device:<7} {batch:>7,} {proof.status:<8} {proof.boxes_processed:>10,} "
                       f"{wall:>8.1f} {proof.boxes_processed / wall:>9,.0f} {str(digest == first):>12}", flush=True)

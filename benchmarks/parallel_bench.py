@@ -27,15 +27,23 @@ import time
 import torch
 
 
-def _prove(run, boxes: int, compute):
+def _prove(run, boxes: int, compute, batch: int | None = None, keep_partition: bool = False):
+    """The run's trained condition proved from scratch with ``boxes`` at most (``batch``: boxes bounded at a time,
+    None: the default): ``(proof, wall seconds)``, the device synchronised before the clock starts."""
+    import dataclasses
+
     from drlyap.config import Budget
     from drlyap.regions import Region
     from drlyap.verification import verify_condition
 
     budget = Budget(seconds=1e9, boxes=boxes, enclosure=run.proof.enclosure if run.proof else None, compute=compute)
+    budget = budget if batch is None else dataclasses.replace(budget, batch=batch)
     region = Region.of(run.system, float(run.config.delta))
+    if compute.device.startswith("cuda"):
+        torch.cuda.synchronize()
     tic = time.perf_counter()
-    proof = verify_condition(run.loop, run.condition, region, budget, level=run.config.roa_level)
+    proof = verify_condition(run.loop, run.condition, region, budget, level=run.config.roa_level,
+                             keep_partition=keep_partition)
     return proof, time.perf_counter() - tic
 
 

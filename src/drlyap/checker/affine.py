@@ -213,24 +213,28 @@ class Af(_Ops):
             return self._scale(_t(o))
         if isinstance(o, Iv) and bool(torch.equal(o.lo, o.hi)):
             return self._scale(o.lo)
-        x = self._centred()
-        return x._product(x if o is self else self.constant(o)._centred())
+        y = self if o is self else self.constant(o)
+        q2, lq2 = _quick_spans(y.l, y.q, y._qmag())  # the parts' ranges by the cheap bound: a hot path
+        q1 = q2 if y is self else _quick_spans(self.l, self.q, self._qmag(), with_lin=False)[0]
+        x = self._centred(q1)
+        return x._product(x if y is self else y._centred(q2), q1, q2, lq2)
 
-    def _centred(self) -> Af:
-        """The same values with the midpoint of the part above first order (``e^T q e + r``) moved into ``c``."""
-        higher = _quick_spans(self.l, self.q, self._qmag(), with_lin=False)[0] + self.r
+    def _centred(self, q_span: Iv) -> Af:
+        """The same values with the midpoint of the part above first order (``e^T q e + r``; ``q_span``: the range of
+        ``e^T q e``) moved into ``c``."""
+        higher = q_span + self.r
         mid = (higher.lo + higher.hi) / 2
         c = self.c + torch.where(torch.isfinite(mid), mid, 0.0)
         return Af(c, self.l, self.q, self.r + (Iv.point(self.c) - Iv.point(c)), self._qabs)
 
-    def _product(self, o: Af) -> Af:
+    def _product(self, o: Af, q1: Iv, q2: Iv, lq2: Iv) -> Af:
+        """``self * o`` (see :meth:`mul`), given the ranges of ``e^T q e`` of both and of ``o``'s ``l . e + e^T q e``
+        (which centring leaves as they are)."""
         c1, c2 = self.c, o.c
         c = c1 * c2
         lin = c1[..., None] * o.l + c2[..., None] * self.l
         q = self.l[..., :, None] * o.l[..., None, :] + c1[..., None, None] * o.q + c2[..., None, None] * self.q
         a1 = self._lmag()
-        q2, lq2 = _quick_spans(o.l, o.q, o._qmag())  # the parts' ranges by the cheap bound: a hot path
-        q1 = q2 if o is self else _quick_spans(self.l, self.q, self._qmag(), with_lin=False)[0]
         rest = (Iv.point(c1) * o.r + Iv.point(c2) * self.r + Iv(-a1, a1) * (q2 + o.r) + (q1 + self.r) * (lq2 + o.r))
         mag, qabs = self._mags(c, lin, q)
         return Af(c, lin, q, self._padded(rest, 4 * EPS * mag), qabs)

@@ -70,9 +70,8 @@ class Affine(AffineFunctions, Enclosure, kind="affine"):
         return Affine(c, torch.diag_embed(rad))
 
     @staticmethod
-    def const(x, device: torch.device | None = None) -> Affine:
-        """A constant (no linear part) enclosing ``x``: a tensor, a number or an :class:`Interval` (a number on
-        ``device``)."""
+    def const(x) -> Affine:
+        """A constant (no linear part) enclosing ``x``: a tensor, a number or an :class:`Interval`."""
         if isinstance(x, Affine):
             return x
         if isinstance(x, Interval):
@@ -80,7 +79,7 @@ class Affine(AffineFunctions, Enclosure, kind="affine"):
                 return Affine(x.lo)
             c = x.mid
             return Affine(c, None, Interval(round_down(x.lo - c, REL1), round_up(x.hi - c, REL1)))
-        return Affine(as_f64(x, device))
+        return Affine(as_f64(x))
 
     @property
     def shape(self) -> torch.Size:
@@ -141,11 +140,11 @@ class Affine(AffineFunctions, Enclosure, kind="affine"):
             self._dv = Interval(round_down(lo - pad + self.r.lo, REL1), round_up(hi + pad + self.r.hi, REL1))
         return self._dv
 
-    def _about_middle(self, within: Interval | None = None) -> tuple[Tensor, Interval]:
-        """``c' = c + mid(H)``, ``H`` the quadratic part plus the remainder (``c`` where H's range is not finite;
-        moved into ``within`` where given), and an enclosure of ``c - c'``: the form written about the middle of its
-        part above first order."""
-        m = self._higher().mid
+    def _about_middle(self, higher: Interval, within: Interval | None = None) -> tuple[Tensor, Interval]:
+        """``c' = c + mid(H)``, ``H`` the quadratic part plus the remainder (``higher``: its range, :meth:`_higher`;
+        ``c`` where that is not finite; moved into ``within`` where given), and an enclosure of ``c - c'``: the form
+        written about the middle of its part above first order."""
+        m = higher.mid
         cp = self.c + torch.where(torch.isfinite(m), m, 0.0)
         if within is not None:
             cp = torch.minimum(torch.maximum(cp, within.lo), within.hi)
@@ -353,8 +352,8 @@ class Affine(AffineFunctions, Enclosure, kind="affine"):
         # x y = cx' cy' + (cx' Ly + cy' Lx) + (cx' Qy + cy' Qx + Lx Ly) + cx' (ry + cy - cy') + cy' (rx + cx - cx')
         #       + Lx Hy' + Hx' (y - cy'),
         # the last two (third order and above) bounded by intervals, which the centring narrows
-        (cxp, sx), (cyp, sy) = self._about_middle(), o._about_middle()
         hx, hy = self._higher(), o._higher()
+        (cxp, sx), (cyp, sy) = self._about_middle(hx), o._about_middle(hy)
         t1 = None if self.g is None else cyp.unsqueeze(-1) * self.g
         t2 = None if o.g is None else cxp.unsqueeze(-1) * o.g
         g, pad = Affine._gsum(t1, t2)

@@ -58,7 +58,7 @@ class AffineFunctions:
         (linear and quadratic parts), everything else is bounded by intervals. ``at(t)``: enclosures of ``f(t),
         f'(t), f''(t) / 2`` at the points ``t``; ``d3``: of ``f'''`` over the range (all outward rounded)."""
         higher, lin = self._higher(), self._lin()
-        cp, shift = self._about_middle(self.to_interval())  # where d3 holds
+        cp, shift = self._about_middle(higher, self.to_interval())  # where d3 holds
         f0, s1, s2 = at(Interval.const(cp))
         a1, a2 = s1.mid, s2.mid
         dev, higher = self._dev() + shift, higher + shift
