@@ -25,14 +25,14 @@ from drlyap.conditions import make_condition
 from drlyap.regions import Region
 from drlyap.simulation import initial_states, simulate
 from drlyap.systems import get_system
-from drlyap.training import TrainConfig, build_networks, draw_xi_samples, train
+from drlyap.training import TrainConfig, TrainSections, train
 
 
 def ms_per_iteration(system_name: str, blocks: int = 5, per_block: int = 40) -> float:
     system = get_system(system_name)
     cfg = TrainConfig(system=system_name).resolved(system)
-    lyapunov, controller = build_networks(system, cfg)
-    xi = draw_xi_samples(system, cfg)
+    lyapunov, controller = TrainSections.of(cfg).networks.build(system)
+    xi = TrainSections.of(cfg).sampling.xi(system, cfg.seed)
     z = Region.of(system, cfg.delta).sample(cfg.n_states, torch.Generator().manual_seed(0)).float()
     cond = make_condition("dr", "pointwise", cfg.wasserstein_radius, cfg.risk_level, xi, cfg.decay_rate)
     opt = torch.optim.Adam([*lyapunov.parameters(), *controller.parameters()], lr=cfg.lr, fused=True)
@@ -68,7 +68,7 @@ def time_to_proof(system_name: str) -> tuple[float, int, str]:
 
 def sim_steps_per_second(system_name: str, count: int = 1000) -> float:
     system = get_system(system_name)
-    _, controller = build_networks(system, TrainConfig(system=system_name).resolved(system))
+    _, controller = TrainSections.of(TrainConfig(system=system_name).resolved(system)).networks.build(system)
     x0 = initial_states(system, count, torch.Generator().manual_seed(0))
 
     def policy(x):

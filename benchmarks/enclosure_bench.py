@@ -67,7 +67,7 @@ def main(argv: list[str] | None = None) -> int:
     from drlyap.conditions import make_condition
     from drlyap.enclosures import Interval
     from drlyap.systems import get_system
-    from drlyap.training import TrainConfig, build_networks
+    from drlyap.training import TrainConfig, TrainSections
     from drlyap.verification.bounds import box_bounds, condition_objective, value_objective
 
     f64 = torch.float64
@@ -86,7 +86,7 @@ def main(argv: list[str] | None = None) -> int:
             cfg = TrainConfig(system=name, seed=args.seed, lyapunov_hidden=[32, 32],
                               controller_hidden=[32, 32]).resolved(system)
         torch.manual_seed(args.seed)
-        lyap, ctrl = build_networks(system, cfg)
+        lyap, ctrl = TrainSections.of(cfg).networks.build(system)
         lyap64, ctrl64 = copy.deepcopy(lyap).double(), copy.deepcopy(ctrl).double()
         loop64 = ClosedLoop(system, lyap64, ctrl64)
         xi = system.sample_xi(int(cfg.n_xi), torch.Generator().manual_seed(10_000 + args.seed))

@@ -18,7 +18,7 @@ from drlyap.enclosures.quadratic import quadratic_span
 from drlyap.networks import Controller, Lyapunov, TanhMLP
 from drlyap.regions import Region
 from drlyap.systems import get_system
-from drlyap.training import TrainConfig, build_networks
+from drlyap.training import TrainConfig, TrainSections
 from drlyap.verification import maximize, verify_condition
 from drlyap.verification.bounds import condition_objective
 from handmade import linear_pair, small_pendulum
@@ -351,7 +351,7 @@ def test_dynamics_on_random_small_boxes_enclose_sampled_values(name):
 def test_decrease_condition_objective_on_affine_boxes(name):
     system = get_system(name)
     torch.manual_seed(1)
-    lyap, ctrl = build_networks(system, TrainConfig(system=name).resolved(system))
+    lyap, ctrl = TrainSections.of(TrainConfig(system=name).resolved(system)).networks.build(system)
     xi = system.sample_xi(3, torch.Generator().manual_seed(0))
     slo, shi = system.local_box()
     lo, hi = _boxes(16, system.n, 0.03 * (shi - slo), seed=2)
@@ -426,7 +426,7 @@ def test_branch_and_bound_with_affine_forms_leaves_every_violation_unverified():
 def test_maximize_with_affine_forms_bounds_sampled_values_at_4_states():
     system = get_system("cartpole")
     torch.manual_seed(5)
-    lyap, ctrl = build_networks(system, TrainConfig(system="cartpole").resolved(system))
+    lyap, ctrl = TrainSections.of(TrainConfig(system="cartpole").resolved(system)).networks.build(system)
     spec = Nominal(torch.zeros(1, system.k, dtype=F64), 0.1)
     lo, hi = system.local_box()
     lo, hi = lo * 0.3, hi * 0.3

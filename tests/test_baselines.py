@@ -18,7 +18,7 @@ from drlyap.regions import Region
 from drlyap.runs import RunDirError, save_lqr_run, save_run, train_lqr
 from drlyap.simulation import evaluate, initial_states
 from drlyap.systems import get_system
-from drlyap.training import TrainConfig, TrainResult, build_networks
+from drlyap.training import TrainConfig, TrainResult, TrainSections
 from drlyap.workflows.compare import compare_runs, monotonicity, score_run
 from drlyap.workflows.policies import load_policy_run
 
@@ -115,7 +115,7 @@ def _fake_lyapunov_run(path):
     system = get_system("pendulum")
     cfg = TrainConfig(system="pendulum", iters=7).resolved(system)
     torch.manual_seed(0)
-    lyap, ctrl = build_networks(system, cfg)
+    lyap, ctrl = TrainSections.of(cfg).networks.build(system)
     result = TrainResult(cfg, system, lyap, ctrl, torch.zeros(5, 2, dtype=torch.float64), None, [],
                          {"iterations": 7, "train_time_s": 1.5, "xi_samples": [[0.0, 0.0]], "xi_train": [[0.0, 0.0]]})
     return save_run(path, result)

@@ -99,11 +99,11 @@ def test_wasserstein_radius_guarantee_cases():
 
 
 def _random_pair(system, seed):
-    from drlyap.training import TrainConfig, build_networks
+    from drlyap.training import TrainConfig, TrainSections
 
     torch.manual_seed(seed)
     cfg = TrainConfig(system=system.name, lyapunov_hidden=[8], lyapunov_out=4, controller_hidden=[8], init_gain=1.0)
-    lyap, ctrl = build_networks(system, cfg.resolved(system))
+    lyap, ctrl = TrainSections.of(cfg.resolved(system)).networks.build(system)
     return lyap.double(), ctrl.double()
 
 

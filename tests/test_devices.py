@@ -19,7 +19,7 @@ from drlyap.enclosures import Interval
 from drlyap.regions import Region
 from drlyap.runs.certificates import read_certificate, sha256_file, system_digest, write_certificate
 from drlyap.systems import get_system
-from drlyap.training import TrainConfig, build_networks
+from drlyap.training import TrainConfig, TrainSections
 from drlyap.verification import verify_condition
 from drlyap.verification.bounding import ConditionJob
 from handmade import linear_pair, small_pendulum
@@ -62,7 +62,7 @@ def test_a_proofs_bounding_makes_every_tensor_on_its_inputs_device(name):
     mode = DeviceLess(ALLOWED)
     for hidden in ([6], []):
         cfg = TrainConfig(system=name, lyapunov_hidden=hidden, controller_hidden=hidden).resolved(system)
-        loop = ClosedLoop(system, *build_networks(system, cfg)).f64
+        loop = ClosedLoop(system, *TrainSections.of(cfg).networks.build(system)).f64
         lo, hi = system.local_box()
         centre = lo + (hi - lo) * torch.rand(16, system.n, generator=torch.Generator().manual_seed(0), dtype=F64)
         half = (hi - lo) * 0.01
@@ -120,7 +120,7 @@ def test_the_checkers_second_order_forms_make_every_tensor_on_their_inputs_devic
 
     system = get_system(name)
     cfg = TrainConfig(system=name, lyapunov_hidden=[6], controller_hidden=[6]).resolved(system)
-    lyap, ctrl = build_networks(system, cfg)
+    lyap, ctrl = TrainSections.of(cfg).networks.build(system)
     condition = DRPointwise(0.01, 0.1, torch.zeros(3, system.k, dtype=F64), decay_rate=0.1)
     residual = Residual(condition_claim(condition), Pair({"lyapunov": lyap.state_dict(),
                                                            "controller": ctrl.state_dict()}, lyap.alpha_hat, system.n),
@@ -192,7 +192,7 @@ def test_no_module_holds_a_tensor_made_at_import():
 def test_every_systems_bounds_on_the_gpu_match_the_cpus_and_hold_at_samples(name):
     system = get_system(name)
     cfg = TrainConfig(system=name, lyapunov_hidden=[6], controller_hidden=[6]).resolved(system)
-    loop = ClosedLoop(system, *build_networks(system, cfg)).f64
+    loop = ClosedLoop(system, *TrainSections.of(cfg).networks.build(system)).f64
     lo, hi = system.local_box()
     g = torch.Generator().manual_seed(0)
     centre = lo + (hi - lo) * torch.rand(64, system.n, generator=g, dtype=F64)

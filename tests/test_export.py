@@ -9,7 +9,7 @@ from click.testing import CliRunner
 from drlyap.cli import main
 from drlyap.runs import load_run, save_run
 from drlyap.systems import get_system
-from drlyap.training import TrainConfig, TrainResult, build_networks
+from drlyap.training import TrainConfig, TrainResult, TrainSections
 
 ort = pytest.importorskip("onnxruntime")
 
@@ -20,7 +20,7 @@ def untrained_run(path, name):
     system = get_system(name)
     cfg = TrainConfig(system=name, iters=1).resolved(system)
     torch.manual_seed(0)
-    lyap, ctrl = build_networks(system, cfg)
+    lyap, ctrl = TrainSections.of(cfg).networks.build(system)
     zeros = [[0.0] * system.k]
     result = TrainResult(cfg, system, lyap, ctrl, torch.zeros(1, system.k, dtype=torch.float64), None, [],
                          {"iterations": 1, "train_time_s": 0.1, "xi_samples": zeros, "xi_train": zeros})

@@ -24,7 +24,7 @@ def hand_run(sign=1.0, loss="pointwise") -> Run:
     system = small_pendulum()
     lyap, ctrl = linear_pair(system, sign)
     cfg = TrainConfig(system=system.name, method="dr", loss=loss, wasserstein_radius=1e-3, risk_level=0.1,
-                      decay_rate=0.05, delta=0.2, lyapunov_hidden=[2], lyapunov_out=2, controller_hidden=[1])
+                      decay_rate=0.05, delta=0.2, lyapunov_hidden=[2], lyapunov_out=2, controller_hidden=[1]).resolved(system)
     metrics = {"xi_samples": XI.tolist(), "xi_train": XI.tolist()}
     return Run(Path("hand-made"), system, cfg, metrics, lyap, ctrl)
 

@@ -9,7 +9,7 @@ from drlyap.enclosures import Interval
 from drlyap.lqr import lqr_design
 from drlyap.simulation import evaluate, initial_states
 from drlyap.systems import get_system, resolve_system, system_names
-from drlyap.training import TrainConfig, build_networks
+from drlyap.training import TrainConfig, TrainSections
 
 torch.set_num_threads(1)
 
@@ -73,7 +73,7 @@ def test_quadrotor_hover_input_and_asymmetric_input_box():
     hover = 0.486 * 9.81 / 2
     assert system.equilibrium_input == pytest.approx((hover, hover), rel=1e-15)
     assert system.input_box == ((0.0, 0.0), (5.96, 5.96))
-    lyapunov, controller = build_networks(system, TrainConfig(system="quadrotor2d").resolved(system))
+    lyapunov, controller = TrainSections.of(TrainConfig(system="quadrotor2d").resolved(system)).networks.build(system)
     zero = torch.zeros(1, 6, dtype=torch.float32)
     assert torch.allclose(controller(zero).double(), torch.tensor([[hover, hover]], dtype=F64), atol=1e-6)
     z = torch.randn(100, 6) * 5

@@ -4,14 +4,14 @@ linear controller) set exactly to an LQR pair; states drawn inside a sublevel se
 import pytest
 import torch
 
-from drlyap.assembly import build_networks
 from drlyap.closed_loop import ClosedLoop
 from drlyap.conditions import DRPointwise
 from drlyap.lqr import lqr_design
 from drlyap.regions import Region
 from drlyap.systems import cartpole, quadrotor2d
-from drlyap.training import TrainConfig
-from drlyap.training.trainer import ascend, radial_states, warm_start_lqr
+from drlyap.training import TrainConfig, TrainSections
+from drlyap.training.states import ascend, radial_states
+from drlyap.training.warm_start import warm_start_lqr
 from handmade import plain_train, small_pendulum
 
 F64 = torch.float64
@@ -20,9 +20,11 @@ F64 = torch.float64
 def linear_loop(system, **overrides):
     """A closed loop of networks without hidden layers, warm-started from the system's LQR (exactly)."""
     cfg = TrainConfig(system=system.name, lyapunov_hidden=[], controller_hidden=[], **overrides).resolved(system)
-    lyapunov, controller = build_networks(system, cfg)
+    plan = TrainSections.of(cfg)
+    lyapunov, controller = plan.networks.build(system)
     region = Region.of(system, cfg.delta)
-    warm = warm_start_lqr(system, lyapunov, controller, cfg, region, torch.Generator().manual_seed(0))
+    warm = warm_start_lqr(system, lyapunov, controller, plan.networks, plan.goal.level, cfg.lr, region,
+                          torch.Generator().manual_seed(0))
     return cfg, ClosedLoop(system, lyapunov, controller), region, warm
 
 
@@ -101,7 +103,8 @@ def test_training_with_adversarial_states_runs_and_they_are_validated():
 
 def test_retraining_rounds_do_not_grow_the_set():
     """``fit(grow=False)`` (the proof rounds) drops the growth term but keeps V above 1.05 level on the faces."""
-    from drlyap.training.trainer import GROW_FACES_MARGIN, fit
+    from drlyap.sections import GROW_FACES_MARGIN
+    from drlyap.training.trainer import fit
 
     system = small_pendulum(((-0.6, -1.2), (0.6, 1.2)))
     cfg = TrainConfig(system=system.name, roa_level=1.0, warm_start="lqr", decay_rate=0.0, exp_rate=0.3, iters=60,

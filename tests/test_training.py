@@ -7,8 +7,9 @@ import torch
 from drlyap.closed_loop import ClosedLoop
 from drlyap.regions import Region
 from drlyap.runs import RunDirError, load_run, save_run
+from drlyap.sections import training_region
 from drlyap.systems import cartpole, mountain_car, pendulum
-from drlyap.training import TrainConfig, build_networks, training_region
+from drlyap.training import TrainConfig, TrainSections
 from drlyap.training.acceptance import find_equilibria, jacobian_check
 from handmade import plain_train
 
@@ -122,7 +123,7 @@ def test_bad_config_is_rejected_before_training(tiny_config, field, value, messa
 def test_acceptance_checks_flag_a_bad_controller():
     """A zero controller: x* is unstable (not Hurwitz) and the hanging state is another equilibrium."""
     p = pendulum()
-    _, controller = build_networks(p, TrainConfig(lyapunov_hidden=[4], controller_hidden=[4]).resolved(p))
+    _, controller = TrainSections.of(TrainConfig(lyapunov_hidden=[4], controller_hidden=[4]).resolved(p)).networks.build(p)
     with torch.no_grad():
         for param in controller.parameters():
             param.zero_()
@@ -135,7 +136,7 @@ def test_acceptance_checks_flag_a_bad_controller():
 
 def test_a_pd_like_controller_passes_the_jacobian_and_equilibrium_checks():
     p = pendulum()
-    _, controller = build_networks(p, TrainConfig(lyapunov_hidden=[4], controller_hidden=[2]).resolved(p))
+    _, controller = TrainSections.of(TrainConfig(lyapunov_hidden=[4], controller_hidden=[2]).resolved(p)).networks.build(p)
     with torch.no_grad():  # varphi(z) ~ -K z through a nearly linear tanh layer
         first, last = controller.varphi.layers
         first.weight.copy_(torch.tensor([[0.01 * math.pi, 0.0], [0.0, 0.01 * 8.0]]))

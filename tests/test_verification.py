@@ -18,7 +18,7 @@ from drlyap.enclosures import Dual, Interval
 from drlyap.networks import TanhMLP
 from drlyap.regions import Region
 from drlyap.systems import UncertainSystem
-from drlyap.training import TrainConfig, build_networks
+from drlyap.training import TrainConfig, TrainSections
 from drlyap.verification import (
     box_bounds,
     certified_roa,
@@ -118,7 +118,7 @@ def _random_pair(system, gain=10.0, seed=0):
     torch.manual_seed(seed)
     cfg = TrainConfig(system=system.name, lyapunov_hidden=[16], lyapunov_out=4, controller_hidden=[16],
                       init_gain=gain).resolved(system)
-    return build_networks(system, cfg)
+    return TrainSections.of(cfg).networks.build(system)
 
 
 @pytest.mark.parametrize("make", [systems.pendulum, systems.mountain_car])

@@ -111,6 +111,25 @@ class Lyapunov(nn.Module):
         grad = self.phi.vjp(hidden, d * 2.0) + zs / self.phi.input_scale * (2.0 * self.alpha_hat)
         return value, grad
 
+    def set_quadratic(self, p: Tensor) -> bool:
+        """Without hidden layers, set V to ``z^T p z`` (``p (n, n)`` float64) as closely as its form allows, in place,
+        and return True; with hidden layers change nothing and return False. V is ``||A z/s||^2 + alpha_hat
+        ||z/s||^2``: ``A^T A`` is ``s p s - alpha_hat I`` with negative eigenvalues clipped to 0 (V then lies above
+        ``z^T p z`` there), its leading ``out`` directions when the output has fewer rows than states."""
+        if len(self.phi.layers) != 1:
+            return False
+        layer, s = self.phi.layers[0], self.phi.input_scale.to(p)
+        m = s[:, None] * p * s[None, :] - self.alpha_hat * torch.eye(p.shape[0], dtype=p.dtype)
+        eig, vec = torch.linalg.eigh((m + m.T) / 2)
+        rows = (eig.clamp_min(0).sqrt()[:, None] * vec.T).flip(0)  # largest first
+        weight = torch.zeros(layer.weight.shape, dtype=p.dtype)
+        count = min(weight.shape[0], rows.shape[0])
+        weight[:count] = rows[:count]
+        with torch.no_grad():
+            layer.weight.copy_(weight)
+            layer.bias.zero_()
+        return True
+
 
 def saturate(v: Tensor, low: Tensor, high: Tensor) -> Tensor:
     """``clamp(v, low, high)`` for ``v (B, m)`` with a straight-through (identity) gradient.
@@ -137,6 +156,17 @@ class Controller(nn.Module):
         self.register_buffer("u_star", us)
         self.register_buffer("room_low", lo - us)
         self.register_buffer("room_high", hi - us)
+
+    def set_linear(self, k: Tensor) -> bool:
+        """Without hidden layers, set ``varphi(z) - varphi(0)`` to ``-k z`` (``k (m, n)`` float64) exactly, in place,
+        and return True; with hidden layers change nothing and return False."""
+        if len(self.varphi.layers) != 1:
+            return False
+        layer = self.varphi.layers[0]
+        with torch.no_grad():
+            layer.weight.copy_(-k * self.varphi.input_scale.to(k)[None, :])
+            layer.bias.zero_()
+        return True
 
     def raw(self, z: Tensor) -> Tensor:
         """The unsaturated offset ``varphi(z) - varphi(0)``, ``(B, m)``."""

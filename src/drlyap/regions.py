@@ -189,6 +189,27 @@ class Region:
             z = torch.where(inside, torch.minimum(torch.maximum(pushed, self.lo), self.hi), z)
         return z
 
+    def distinct(self, z: Tensor, resolution: float = 1e-6) -> Tensor:
+        """The states of ``z (B, n)`` without near-duplicates: states that agree to ``resolution`` of the box's width
+        in every coordinate count once (the first one is kept, in the order of ``z``)."""
+        if z.shape[0] == 0:
+            return z
+        keys = torch.round(z / (self.scale * resolution)).to(torch.int64)
+        _, idx = torch.unique(keys, dim=0, return_inverse=True)
+        first = torch.full((int(idx.max()) + 1,), z.shape[0], dtype=torch.int64)
+        first = first.scatter_reduce(0, idx, torch.arange(z.shape[0]), reduce="amin")
+        return z[first.sort().values]
+
+    def ascent_step(self, z: Tensor, grad: Tensor, rate: float) -> Tensor:
+        """One step of projected ascent from states ``z (B, n)`` with gradients ``grad (B, n)``: ``rate`` of the box's
+        width along the width-scaled, normalised gradient, then projected onto X_delta (:meth:`project`). Computed in
+        the region's float64 (the result is float64 on its device)."""
+        z, grad = z.to(self.lo), grad.to(self.lo)
+        width = self.scale
+        direction = grad * width
+        direction = direction / direction.norm(dim=-1, keepdim=True).clamp_min(1e-300)
+        return self.project(z + rate * direction * width)
+
     # ------------------------------------------------------------------ boxes
     def boxes(self, per_axis: Sequence[int] | None = None) -> tuple[Tensor, Tensor]:
         """A grid of boxes ``(lo, hi)``, each ``(C, n)``, covering X_delta (boxes inside the ball dropped)."""

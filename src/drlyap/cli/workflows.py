@@ -196,7 +196,7 @@ def sweep(system: str, seeds: str, radius: str | None, eps: str | None, method: 
                             verify_time_limit=verify_time_limit)
         spec.validate()
         if backend == "local":
-            from drlyap.assembly import resolve_device
+            from drlyap.sections import resolve_device
 
             resolve_device(device)
         out = out or Path("runs") / f"sweep-{sys_.name}"

@@ -29,7 +29,6 @@ from typing import TYPE_CHECKING
 import torch
 from torch import Tensor
 
-from drlyap.assembly import build_networks, run_condition
 from drlyap.closed_loop import ClosedLoop
 from drlyap.conditions import Condition
 from drlyap.config import ProofConfig, TrainConfig, legacy_proof
@@ -41,6 +40,7 @@ from drlyap.runs.certificates import write_certificate
 from drlyap.runs.publish import RunDirError, atomic_dir, ensure_new
 from drlyap.runs.reading import read_run_json, read_run_kind, run_system
 from drlyap.runs.validate import check_config, check_samples, check_schema, load_weights
+from drlyap.sections import TrainSections
 from drlyap.systems import UncertainSystem, default_source
 from drlyap.verification import Certificate
 
@@ -107,18 +107,23 @@ class Run:
     proof: ProofConfig | None = None
 
     @cached_property
+    def sections(self) -> TrainSections:
+        """The run's config in sections (:class:`~drlyap.sections.TrainSections`)."""
+        return TrainSections.of(self.config)
+
+    @cached_property
     def loop(self) -> ClosedLoop:
         """The run's closed loop (system, V, pi), what every proof of it is about."""
         return ClosedLoop(self.system, self.lyapunov_net, self.controller_net)
 
     @property
     def condition(self) -> Condition:
-        """The condition the run was trained on (:func:`~drlyap.training.run_condition`)."""
-        return run_condition(self.config, self.xi_train)
+        """The condition the run was trained on (:meth:`~drlyap.sections.ConditionSection.build`)."""
+        return self.sections.condition.build(self.xi_train)
 
     def true_condition(self, xi) -> Condition:
         """Plain decrease on the true model at the shift ``xi (k,)``, with the run's decay terms."""
-        return run_condition(self.config, self.system.check_xi(xi)[None], "true")
+        return self.sections.condition.build(self.system.check_xi(xi)[None], "true")
 
     @property
     def acceptance(self) -> AcceptanceCheck | None:
@@ -202,7 +207,7 @@ def load_run(path: str | os.PathLike, system: UncertainSystem | None = None, tru
         raise RunDirError(f"{path / 'config.json'}: {err}") from None
     check_samples(path / "metrics.json", metrics, system.k)
     weights = load_weights(path / "weights.pt")
-    lyapunov, controller = build_networks(system, config)
+    lyapunov, controller = TrainSections.of(config).networks.build(system)
     try:
         lyapunov.load_state_dict(weights["lyapunov"])
         controller.load_state_dict(weights["controller"])

@@ -15,15 +15,19 @@ other equilibrium is found.
 
 from __future__ import annotations
 
+import copy
 import math
+import time
 
 import torch
 from torch import Tensor
 
 from drlyap.closed_loop import ClosedLoop
 from drlyap.conditions import Condition, DecreaseTerms, local_rates
+from drlyap.networks import Controller, Lyapunov
 from drlyap.records import AcceptanceCheck
 from drlyap.regions import Region
+from drlyap.training.states import TrainingStates, inside_states
 
 
 def condition_residual(loop: ClosedLoop, condition: Condition, z: Tensor, chunk: int = 20000) -> Tensor:
@@ -150,3 +154,58 @@ def acceptance_check(loop: ClosedLoop, condition: Condition, xi_samples: Tensor,
                            jacobian=jac, other_equilibria=equilibria, level=level, boundary_min=boundary_min,
                            local_rates=rates,
                            local_rate_max=math.nan if any(math.isnan(r) for r in rates) else max(rates))
+
+
+class PairKeeper:
+    """A fit's acceptance checks (:func:`acceptance_check` on the fixed ``validation``
+    states, with a level also 20,000 states inside the set) and the best pair so far: a passing one first, then by
+    :meth:`~drlyap.records.AcceptanceCheck.stability`, the violating share and the largest violation; while the set
+    grows, the latest pair that passes."""
+
+    def __init__(self, loop: ClosedLoop, condition: Condition, xi: Tensor, region: Region, validation: Tensor,
+                 states: TrainingStates, local: bool, growing: bool) -> None:
+        self.loop, self.condition, self.xi, self.region, self.validation = loop, condition, xi, region, validation
+        self.states, self.local, self.growing = states, local, growing
+        self.checks: list[dict] = []
+        self.best: tuple | None = None
+        self.seconds = 0.0
+
+    def check(self, iteration: int) -> AcceptanceCheck:
+        """Check the pair as it is now; keep it where it ranks above the best so far. Returns the check."""
+        tic = time.perf_counter()
+        level, lyapunov = self.states.level, self.loop.lyapunov
+        validation = self.validation
+        if level is not None:  # the set is a few % of the box: add 20,000 states drawn inside it (fixed seed)
+            inside = inside_states(lyapunov, self.region, level, 20000, self.states.device,
+                                   torch.Generator().manual_seed(12345))
+            validation = torch.cat([validation, inside])
+        check = acceptance_check(self.loop, self.condition, self.xi, self.region, validation=validation, level=level,
+                                 faces=self.states.faces, local=self.local)
+        check.iteration = iteration
+        self.checks.append(check.summary())
+        score = (*check.stability(), -check.violating_fraction, -check.max_violation)
+        if self.growing and check.passed:  # a growing set: the latest pair that passes holds the largest set
+            score = (*check.stability(), iteration)
+        if self.best is None or score > self.best[0]:
+            self.best = (score, *snapshot(lyapunov, self.loop.controller), check)
+        self.seconds += time.perf_counter() - tic
+        return check
+
+    def restore(self, iteration: int) -> AcceptanceCheck:
+        """Load the best pair into the networks (checking the last one first where it was not); its check."""
+        if self.best is None or (self.checks and self.checks[-1]["iteration"] != iteration):
+            self.check(iteration)
+        _, v_state, c_state, check = self.best
+        restore(self.loop.lyapunov, self.loop.controller, (v_state, c_state))
+        return check
+
+
+def snapshot(lyapunov: Lyapunov, controller: Controller) -> tuple[dict, dict]:
+    """Copies of both networks' weights."""
+    return copy.deepcopy(lyapunov.state_dict()), copy.deepcopy(controller.state_dict())
+
+
+def restore(lyapunov: Lyapunov, controller: Controller, states: tuple[dict, dict]) -> None:
+    """Load the weights of a :func:`snapshot` into the networks (in place)."""
+    lyapunov.load_state_dict(states[0])
+    controller.load_state_dict(states[1])

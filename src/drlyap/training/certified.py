@@ -52,20 +52,10 @@ from drlyap.regions import Region
 from drlyap.render import unverified_warning
 from drlyap.systems import UncertainSystem, get_system
 from drlyap.training.trainer import TrainResult, fit
-from drlyap.verification import Certificate, ConditionProof, UniformMargin, prove_trained, uniform_margin
+from drlyap.verification import Budget, Certificate, ConditionProof, UniformMargin, prove_trained, uniform_margin
 from drlyap.verification.falsifier import box_centres, falsifier_starts, falsify, settle_unknown
 
 F64 = torch.float64
-
-
-def _dedupe(z: Tensor, scale: Tensor, resolution: float = 1e-6) -> Tensor:
-    if z.shape[0] == 0:
-        return z
-    keys = torch.round(z / (scale * resolution)).to(torch.int64)
-    _, idx = torch.unique(keys, dim=0, return_inverse=True)
-    first = torch.full((int(idx.max()) + 1,), z.shape[0], dtype=torch.int64)
-    first = first.scatter_reduce(0, idx, torch.arange(z.shape[0]), reduce="amin")
-    return z[first.sort().values]
 
 
 def collect_counterexamples(loop: ClosedLoop, condition: Condition, region: Region, verification: ConditionProof,
@@ -104,7 +94,7 @@ def collect_counterexamples(loop: ClosedLoop, condition: Condition, region: Regi
     if level is not None:
         v = loop.f64.value(pool)
         res = torch.where(v <= level, res, -torch.inf)
-    cex = _dedupe(pool[res > 0], scale)
+    cex = region.distinct(pool[res > 0])
     near = torch.empty(0, system.n, dtype=F64)
     if neighbours and cex.shape[0]:
         noise = 0.01 * scale * torch.randn(cex.shape[0] * neighbours, system.n, generator=generator, dtype=F64)
@@ -134,16 +124,23 @@ def train_cegis(cfg: TrainConfig, system: UncertainSystem, proof: ProofConfig, p
     if cfg.method == Method.DR and cfg.loss != Loss.POINTWISE:
         raise ValueError("CEGIS needs a per-state condition (method dr with loss pointwise, or baseline); "
                          "the uniform DR condition has no per-state residual to falsify")
-    rounds, time_budget = int(proof.rounds), proof.total_time
     start = time.perf_counter()
-    result = fit(cfg, system, progress=progress, init=init)
+    return _proof_rounds(fit(cfg, system, progress=progress, init=init), proof, proof.round_budget(), start, progress,
+                         log)
+
+
+def _proof_rounds(result: TrainResult, proof: ProofConfig, budget: Budget, start: float, progress: bool,
+                  log) -> tuple[TrainResult, list[ProofRound]]:
+    """:func:`train_cegis` from its first fit ``result`` on, each proof with the ``budget`` (``start``: when that fit
+    started, by ``time.perf_counter``)."""
+    system = result.system
+    rounds, time_budget = int(proof.rounds), proof.total_time
     base_cfg = result.config
     condition = result.condition
     iters_round = int(proof.iters_per_round if proof.iters_per_round is not None else max(1, base_cfg.iters // 2))
     region = Region.of(system, float(base_cfg.delta))
     near = bool(base_cfg.near_share)
     n_random = proof.falsifier_starts if proof.falsifier_starts is not None else (2048 if near else 512)
-    budget = proof.round_budget()
     gen = torch.Generator().manual_seed(base_cfg.seed + 7919)
     extra = torch.empty(0, system.n, dtype=F64)
     done: list[ProofRound] = []
@@ -215,7 +212,7 @@ def _add_states(extra: Tensor, found: dict, region: Region, cap: int, entry: Pro
     counterexamples: newest last, the counterexamples at the very end, so that the ``cap`` keeps the tail), without
     near-duplicates; the counts and the counterexamples go into the round's ``entry``."""
     new = torch.cat([found["box_centres"], found["neighbours"], found["counterexamples"]])
-    extra = _dedupe(torch.cat([extra, new]), region.scale)[-cap:]
+    extra = region.distinct(torch.cat([extra, new]))[-cap:]
     entry.added = {"counterexamples_added": int(found["counterexamples"].shape[0]),
                    "neighbours_added": int(found["neighbours"].shape[0]),
                    "box_centres_added": int(found["box_centres"].shape[0]),
@@ -263,24 +260,23 @@ def train(config: TrainConfig, system: UncertainSystem | None = None, proof: Pro
     """
     system = system or get_system(config.system)
     cfg = config.resolved(system)
+    proof = None if proof is None else proof.resolved(system)
+    settings, budget = (None, None) if proof is None else (proof.to_dict(), proof.round_budget())
+    per_state = not (cfg.method == Method.DR and cfg.loss == Loss.UNIFORM)
+    start = time.perf_counter()
+    result = fit(cfg, system, progress=progress, init=init)
     if proof is None:
-        result = fit(cfg, system, progress=progress, init=init)
         result.metrics["certificate"] = Certificate(status="not checked", condition=result.condition.label).to_dict()
         return result
-    proof = proof.resolved(system)
-    uniform = cfg.method == Method.DR and cfg.loss == Loss.UNIFORM
-    if uniform:
-        result = fit(cfg, system, progress=progress, init=init)
-        delta = float(result.config.delta)
-        margin = uniform_margin(result.loop, result.condition, Region.of(system, delta), proof.round_budget())
-        cert = certificate(margin, delta)
+    rounds = None
+    if per_state:
+        result, _ = _proof_rounds(result, proof, budget, start, progress, log)
+        verdict, rounds = ConditionProof.from_dict(result.record.final_proof), result.record.retraining_rounds
     else:
-        result, _ = train_cegis(cfg, system, proof, progress=progress, init=init, log=log)
-        record = result.record
-        cert = certificate(ConditionProof.from_dict(record.final_proof), float(result.config.delta),
-                           rounds=record.retraining_rounds)
+        verdict = uniform_margin(result.loop, result.condition, Region.of(system, float(cfg.delta)), budget)
+    cert = certificate(verdict, float(cfg.delta), rounds=rounds)
     result.metrics["certificate"] = jsonable(cert.to_dict())
-    result.metrics["proof"] = proof.to_dict()
+    result.metrics["proof"] = settings
     if warn and not cert.verified:
-        warnings.warn(unverified_warning(cert, cfg.system, cfg.method, not uniform), stacklevel=2)
+        warnings.warn(unverified_warning(cert, cfg.system, cfg.method, per_state), stacklevel=2)
     return result

@@ -1,7 +1,8 @@
 """Searching for counterexamples: where branch and bound runs out of time, a violating state may still be found.
 
-* :func:`falsify` -- projected gradient ascent (:func:`ascent_step`) on a per-state condition's residual from many starts, batched
-  (CEGIS uses it for new training states, :func:`settle_unknown` for verdicts).
+* :func:`falsify` -- projected gradient ascent (:meth:`~drlyap.regions.Region.ascent_step`) on a per-state
+  condition's residual from many starts, batched (CEGIS uses it for new training states, :func:`settle_unknown` for
+  verdicts).
 * :func:`falsifier_starts` -- half of the starts uniform in X_delta, half spread evenly over the distance from
   x* (:meth:`~drlyap.regions.Region.sample_near`): in 6 states a uniform draw almost never lands near x*, where
   violations of a V that rises along some direction live (measured on the quadrotor: 3 of 3 seeds found one with
@@ -58,22 +59,11 @@ def falsify(loop: ClosedLoop, condition: Condition, region: Region, starts: Tens
     best_z, best_r = z.clone(), evaluate(z, False)[0]
     for k in range(steps):
         _, g = evaluate(z, True)
-        z = ascent_step(region, z, g, step_size * (1 - k / max(steps, 1)) + 1e-3 * step_size)
+        z = region.ascent_step(z, g, step_size * (1 - k / max(steps, 1)) + 1e-3 * step_size)
         r, _ = evaluate(z, False)
         better = r > best_r
         best_z[better], best_r[better] = z[better], r[better]
     return best_z, best_r
-
-
-def ascent_step(region: Region, z: Tensor, grad: Tensor, rate: float) -> Tensor:
-    """One step of projected ascent from states ``z (B, n)`` with gradients ``grad (B, n)``: ``rate`` of the box's
-    width along the width-scaled, normalised gradient, then projected onto X_delta. Computed in the region's float64
-    (the result is float64 on its device)."""
-    z, grad = z.to(region.lo), grad.to(region.lo)
-    width = region.scale
-    direction = grad * width
-    direction = direction / direction.norm(dim=-1, keepdim=True).clamp_min(1e-300)
-    return region.project(z + rate * direction * width)
 
 
 def falsifier_starts(region: Region, count: int, generator: torch.Generator) -> Tensor:

@@ -27,14 +27,13 @@ from collections.abc import Callable, Sequence
 import torch
 from torch import Tensor
 
-from drlyap.assembly import run_condition
 from drlyap.closed_loop import ClosedLoop
 from drlyap.conditions import wasserstein_radius_guarantee
-from drlyap.config import TrainConfig
 from drlyap.io import jsonable
 from drlyap.kinds import Enclosure, Loss, Method, Status
 from drlyap.regions import Region
 from drlyap.runs import Run
+from drlyap.sections import ConditionSection
 from drlyap.systems import UncertainSystem
 from drlyap.verification import Budget, verify_condition
 
@@ -122,15 +121,16 @@ def wilson(successes: int, n: int, confidence: float = 0.95) -> tuple[float, flo
 
 
 # =========================================================================== the probability
-def true_model_sup(loop: ClosedLoop, cfg: TrainConfig, xi: Tensor, z: Tensor, draws_per_chunk: int = 128) -> Tensor:
+def true_model_sup(loop: ClosedLoop, section: ConditionSection, xi: Tensor, z: Tensor,
+                   draws_per_chunk: int = 128) -> Tensor:
     """``max_z Vdot(z, xi_d) + decay(z)`` on the true model for each draw ``xi (D, k)`` over states ``z (S, n)``
-    (float64 networks, the decay terms of the run's config ``cfg``): the components of plain decrease on the true
+    (float64 networks, the decay terms of the run's condition ``section``): the components of plain decrease on the true
     model, maximised over the states. Returns ``(D,)``."""
     f64 = loop.f64
     out = []
     with torch.no_grad():
         for i in range(0, xi.shape[0], draws_per_chunk):
-            condition = run_condition(cfg, xi[i:i + draws_per_chunk].to(F64), "true")
+            condition = section.build(xi[i:i + draws_per_chunk].to(F64), "true")
             out.append(condition.components(condition.terms(f64, z.to(F64))).amax(0))
     return torch.cat(out)
 
@@ -171,14 +171,14 @@ def guarantee(run: Run, dist: str, n: int, method: str = "sampling", seed: int =
     unknown = 0
     if method == "sampling":
         z = Region.of(system, delta).grid()
-        sup = true_model_sup(run.loop, cfg, distinct, z)
+        sup = true_model_sup(run.loop, run.sections.condition, distinct, z)
         holds_distinct = sup <= 0
         states = int(z.shape[0])
     else:
         sups, flags = [], []
         region = Region.of(system, delta)
         for d in distinct:
-            res = verify_condition(run.loop, run_condition(cfg, d[None], "true"), region,
+            res = verify_condition(run.loop, run.true_condition(d), region,
                                    Budget(seconds=time_limit, enclosure=Enclosure.MEAN_VALUE), stop_at_counterexample=True)
             flags.append(res.status == Status.VERIFIED)
             unknown += res.status == Status.UNKNOWN

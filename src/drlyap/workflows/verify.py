@@ -12,7 +12,6 @@ from pathlib import Path
 import torch
 from torch import Tensor
 
-from drlyap.assembly import run_condition
 from drlyap.closed_loop import ClosedLoop
 from drlyap.conditions import Condition, TrueDecrease
 from drlyap.io import jsonable
@@ -151,7 +150,7 @@ def verify_run(run: Run, proof: ProofConfig | None = None, *, delta: float | Non
             trained = prove_trained(loop, trained_condition, region, budget, level, falsify_starts=proof.settle_starts)
         margin = None
         if uniform:
-            margin = uniform_margin(loop, run_condition(cfg, run.xi_samples, Loss.UNIFORM), region,
+            margin = uniform_margin(loop, run.sections.condition.build(run.xi_samples, Loss.UNIFORM), region,
                                      proof.budget(proof.uniform_time))
     true_model, main_condition = None, trained_condition
     if xi is not None:
@@ -254,7 +253,7 @@ def record_robustness(run: Run, robustness: RunRobustness) -> list[Path]:
         if radius.proof is None:  # r* is the trained radius: the trained certificate states it
             remove_certificate(run.path, "radius")
         else:
-            condition = run_condition(run.config, run.xi_samples, Loss.POINTWISE).with_radius(radius.radius)
+            condition = run.sections.condition.build(run.xi_samples, Loss.POINTWISE).with_radius(radius.radius)
             written.append(write_certificate(run.path, "radius", radius.proof, condition, region, run.system,
                                              run.path / "weights.pt", float(run.config.alpha_hat)))
     if box is not None and box.s is not None:
@@ -384,7 +383,7 @@ def run_robustness(run: Run, delta: float | None = None, tol: float = 0.01, budg
     cfg, system, loop = run.config, run.system, run.loop
     region = _region(run, delta)
     level = cfg.roa_level  # a region-of-attraction run claims its conditions on {V <= level} only
-    condition = run_condition(cfg, run.xi_samples, Loss.POINTWISE)
+    condition = run.sections.condition.build(run.xi_samples, Loss.POINTWISE)
     same = (cfg.method == Method.DR and cfg.loss == Loss.POINTWISE and isinstance(trained, ConditionProof) and trained.verified
             and float(trained.delta) == float(region.delta) and trained.level == level)
     start = None
@@ -397,7 +396,7 @@ def run_robustness(run: Run, delta: float | None = None, tol: float = 0.01, budg
                               total_time=total_time, level=level, start=start)
     own = None
     if cfg.method == Method.BASELINE:  # also around the one sample it trained on (the mean: a ball around a point mass)
-        own = certified_radius(loop, run_condition(cfg, run.xi_train, Loss.POINTWISE), region, budget, tol=tol,
+        own = certified_radius(loop, run.sections.condition.build(run.xi_train, Loss.POINTWISE), region, budget, tol=tol,
                                total_time=total_time, level=level)
     return RunRobustness(method=cfg.method, trained_radius=cfg.wasserstein_radius if cfg.method == Method.DR else None,
                          delta=region.delta, radius=radius, shift_box=box, radius_training_sample=own)

@@ -1,0 +1,147 @@
+"""The states a fit trains on (:class:`TrainingStates`): uniform batches in X_delta, a share near x*, with a
+region-of-attraction level states inside the set, and adversarial states moved by projected ascent on the residual
+(:func:`ascend`); what the acceptance check adds inside a small set (:func:`inside_states`)."""
+
+from __future__ import annotations
+
+import torch
+from torch import Tensor
+
+from drlyap.closed_loop import ClosedLoop
+from drlyap.conditions import Condition
+from drlyap.networks import Lyapunov
+from drlyap.regions import Region
+from drlyap.sections import RegionGoal, SamplingSection
+from drlyap.systems import UncertainSystem
+
+ADVERSARIAL_STEP = 0.01  # one ascent step of the adversarial states, as a share of the box's width per coordinate
+ADVERSARIAL_REFRESH = 0.02  # share of the adversarial states redrawn every iteration
+
+
+def radial_states(lyapunov: Lyapunov, region: Region, level: float, count: int, generator: torch.Generator) -> Tensor:
+    """Up to ``count`` states ``(C, n)`` (float64) of X_delta with ``V <= level``, drawn without rejection: a direction
+    uniform on the sphere in box-scaled coordinates, moved out to the set's boundary along its ray (by
+    ``sqrt(level / V)``, exact where V is quadratic) and then back in by a uniform share ``U^(1/n)``. In 6 states a
+    sublevel set of 1e-3 of the box holds about 4 of 4,096 uniform draws; these states spread over all of it (uniform
+    draws in the box, moved in the same way, would crowd the box's diagonals)."""
+    direction = torch.randn(count, region.n, generator=generator, dtype=region.lo.dtype)
+    z = direction / direction.norm(dim=-1, keepdim=True).clamp_min(1e-30) * region.hi.maximum(-region.lo)
+    z = z * (_to_boundary(lyapunov, z, level) * torch.rand(count, generator=generator, dtype=z.dtype)
+             ** (1.0 / region.n))[:, None]
+    with torch.no_grad():
+        keep = region.contains(z) & (lyapunov(z.to(next(lyapunov.parameters()))).double().cpu() <= level)
+    return z[keep]
+
+
+def _to_boundary(lyapunov: Lyapunov, z: Tensor, level: float) -> Tensor:
+    """``(B,)`` float64: the factor ``sqrt(level / V(z))`` that moves each state of ``z (B, n)`` (float64, CPU) along
+    its ray from x* onto ``{V = level}`` (exactly where V is quadratic)."""
+    with torch.no_grad():
+        value = lyapunov(z.to(next(lyapunov.parameters()))).double().cpu()
+    return torch.sqrt(level / value.clamp_min(1e-30))
+
+
+def adversarial_starts(lyapunov: Lyapunov, region: Region, level: float | None, count: int,
+                       generator: torch.Generator) -> Tensor:
+    """``(count, n)`` float64 starts of adversarial states: :func:`radial_states` in ``{V <= level}``, topped up with
+    uniform states of X_delta (all uniform without a level)."""
+    if level is None:
+        return region.sample(count, generator)
+    z = radial_states(lyapunov, region, level, 2 * count, generator)[:count]
+    return torch.cat([z, region.sample(count - z.shape[0], generator)]) if z.shape[0] < count else z
+
+
+def ascend(loop: ClosedLoop, condition: Condition, z: Tensor, region: Region, level: float | None) -> Tensor:
+    """One step of projected ascent on the residual from states ``z (B, n)`` (float32 or the networks' dtype):
+    ``ADVERSARIAL_STEP`` of the box's width along the width-scaled, normalised gradient, then back into X_delta and,
+    with a level, onto ``{V <= level}`` by moving towards x* (exact for a quadratic V). No gradient reaches the
+    weights."""
+    with torch.enable_grad():
+        x = z.detach().requires_grad_(True)
+        grad = torch.autograd.grad(condition.residual(condition.terms(loop, x)).sum(), x)[0]
+    moved = region.ascent_step(z.detach(), grad, ADVERSARIAL_STEP)
+    if level is not None:
+        moved = region.project(moved * _to_boundary(loop.lyapunov, moved, level).clamp(max=1.0)[:, None])
+    return moved.to(z)
+
+
+def inside_states(lyapunov: Lyapunov, region: Region, level: float, count: int, device: torch.device,
+                  generator: torch.Generator, tries: int = 20) -> Tensor:
+    """Up to ``count`` states ``(C, n)`` of X_delta with ``V <= level``: uniform draws kept by rejection, at most
+    ``tries`` rounds of ``4 count`` draws; float32 on ``device``."""
+    kept = []
+    found = 0
+    with torch.no_grad():
+        for _ in range(tries):
+            z = region.sample(4 * count, generator).float().to(device)
+            z = z[lyapunov(z) <= level]
+            kept.append(z)
+            found += z.shape[0]
+            if found >= count:
+                break
+    return torch.cat(kept)[:count]
+
+
+class TrainingStates:
+    """The states a fit trains on, drawn from ``gen`` (in this order: a batch, then the adversarial states, at the start;
+    then each iteration a new batch where ``sampling.resample``, a share of the adversarial states redrawn and all of
+    them moved one ascent step, and the faces' states of a level's term): uniform in X_delta (the section's training
+    box minus the ball, where it has one), a share near x*, with the goal's level up to half of the uniform share inside
+    ``{V <= 1.25 level}``, adversarial states, and the ``extra`` states (E, n) in every batch. Float32 on
+    ``device``; ``region`` is X_delta, whose faces bound the set."""
+
+    def __init__(self, sampling: SamplingSection, goal: RegionGoal, system: UncertainSystem, region: Region,
+                 lyapunov: Lyapunov, gen: torch.Generator, device: torch.device, extra: Tensor | None) -> None:
+        self.sampling, self.system, self.region, self.lyapunov = sampling, system, region, lyapunov
+        self.gen, self.device, self.extra = gen, device, extra
+        self.n_states, self.resample = int(sampling.n_states), bool(sampling.resample)
+        self.n_near, self.n_adv = sampling.counts()
+        self.refresh = max(1, int(ADVERSARIAL_REFRESH * self.n_adv))
+        self.level = goal.level  # the claimed level, or above it by the level margin
+        self.faces_level = goal.faces_level
+        self.drawn_in = region
+        self.faces = None  # fixed states on the box's faces for the acceptance check (own generator)
+        self.batch: Tensor | None = None
+        self.adversaries: Tensor | None = None
+
+    def start(self) -> None:
+        """The region states are drawn in, the faces' states of the acceptance check, the first batch and the
+        adversarial states."""
+        self.drawn_in = self.sampling.sampling_region(self.system)
+        if self.level is not None:
+            self.faces = self.region.sample_faces(20000, torch.Generator().manual_seed(12345)).float().to(self.device)
+        self.batch = self.draw()
+        if self.n_adv:
+            self.adversaries = adversarial_starts(self.lyapunov, self.drawn_in, self.level, self.n_adv,
+                                                  self.gen).float().to(self.device)
+
+    def draw(self) -> Tensor:
+        """A new batch ``(B, n)``: uniform (with a level, up to half of it inside the set), near x*, and the extra ones."""
+        n_uniform = self.n_states - self.n_near - self.n_adv
+        z = self.drawn_in.sample(n_uniform, self.gen)
+        if self.level is not None:  # up to half of the uniform share from inside (or just outside) the sublevel set
+            inside = inside_states(self.lyapunov, self.drawn_in, 1.25 * self.level, n_uniform // 2, self.device,
+                                   self.gen, tries=1)
+            z = torch.cat([inside.double().cpu(), z[: n_uniform - inside.shape[0]]])
+        if self.n_near:
+            z = torch.cat([z, self.drawn_in.sample_near(self.n_near, self.gen)])
+        z = z.float().to(self.device)
+        return z if self.extra is None else torch.cat([z, self.extra])
+
+    def next(self, iteration: int, loop: ClosedLoop, condition: Condition) -> Tensor:
+        """The states of ``iteration`` (from 1): the batch (new where the section resamples) and the adversarial states,
+        a share of them redrawn and all moved one ascent step on the residual."""
+        if self.resample and iteration > 1:
+            self.batch = self.draw()
+        if self.adversaries is None:
+            return self.batch
+        row = (iteration * self.refresh) % self.n_adv
+        fresh = adversarial_starts(self.lyapunov, self.drawn_in, self.level, self.refresh, self.gen)
+        self.adversaries[row:row + self.refresh] = fresh[: self.n_adv - row].float().to(self.device)
+        self.adversaries = ascend(loop, condition, self.adversaries, self.drawn_in, self.level)
+        return torch.cat([self.batch, self.adversaries])
+
+    def faces_term(self, lyapunov: Lyapunov) -> Tensor:
+        """The mean shortfall of V below the faces' level at 1,024 new states of the box's faces."""
+        faces = self.region.sample_faces(1024, self.gen).float().to(self.device)
+        return torch.relu(self.faces_level - lyapunov(faces)).mean()
