@@ -3,6 +3,7 @@
 from __future__ import annotations
 
 import json
+from pathlib import Path
 
 import pytest
 import torch
@@ -26,9 +27,14 @@ TINY = {
 
 @pytest.fixture(scope="module")
 def runs(tmp_path_factory):
+    import tempfile
+
     root = tmp_path_factory.mktemp("rl")
+    before = {p.name for p in Path(tempfile.gettempdir()).glob("SB3-*")}
     for algo in ("ppo", "sac"):
         train_rl("pendulum", algo, 200, 0, root / algo, TINY[algo])
+    left = {p.name for p in Path(tempfile.gettempdir()).glob("SB3-*")} - before
+    assert not left, f"training an agent left {sorted(left)} in the temp dir"
     return root
 
 

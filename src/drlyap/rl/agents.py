@@ -79,6 +79,7 @@ def train_rl(system: str | UncertainSystem, algo: str, steps: int | None, seed: 
     Returns the metrics written to ``metrics.json``.
     """
     cls = _algo_class(algo)  # first: a clear error without stable-baselines3
+    from stable_baselines3.common.logger import Logger
     from stable_baselines3.common.monitor import Monitor
 
     from drlyap.rl.envs import UncertainSystemEnv
@@ -101,6 +102,7 @@ def train_rl(system: str | UncertainSystem, algo: str, steps: int | None, seed: 
         model = cls("MlpPolicy", env, seed=seed, device="cpu", verbose=0, **hyper)
     except TypeError as err:
         raise ValueError(f"invalid {algo} hyperparameters {hyper}: {err}") from err
+    model.set_logger(Logger(folder=None, output_formats=[]))  # its default makes an empty folder in the temp dir
     tic = time.perf_counter()
     model.learn(total_timesteps=steps)
     wall = time.perf_counter() - tic
