@@ -7,6 +7,9 @@ from __future__ import annotations
 import math
 from decimal import ROUND_CEILING, ROUND_FLOOR, Decimal
 
+CERTIFICATES = ("trained", "true-model", "radius", "shift-box", "uniform", "roa", "roa-ball")
+"""The names of a run's certificate files (:mod:`drlyap.runs.certificates` says what each claims)."""
+
 
 def level_text(level: float, digits: int = 6, up: bool = False) -> str:
     """A level of V (or of z'Pz) in at most ``digits`` significant digits that never claims more than was proved:
@@ -54,6 +57,11 @@ def claim_sentence(claim: dict) -> str:
         elif c.get("name") == "pointwise":
             what = (f"the DR pointwise condition (r = {float(c['wasserstein_radius']):g}, eps = "
                     f"{float(c['risk_level']):g}, {len(xi)} samples of xi, {decay})")
+        elif c.get("name") == "uniform":
+            return (f"the DR uniform condition (r = {float(c['wasserstein_radius']):g}, eps = "
+                    f"{float(c['risk_level']):g}, {len(xi)} samples of xi, {decay}) holds over "
+                    f"{of_region(condition_region(r.get('level'), float(r['delta'])))} as one inequality: (r/eps) sup "
+                    "||W^T grad V|| + CVaR_eps over the samples of sup (Vdot + decay) <= 0")
         elif c.get("name") == "plain":
             model = "the true model at xi = " + str(xi[0] if len(xi) == 1 else xi) if c.get("model") == "true" else \
                 f"the design model at each of {len(xi)} sample(s) of xi"

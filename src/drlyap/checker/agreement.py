@@ -89,7 +89,9 @@ def claim_mismatch(name: str, header: dict, config: dict, metrics: dict) -> list
     """Where a certificate's claim is not the run's: for ``trained``, the condition the run was trained on (method
     and loss, radius, risk level, decay, samples, delta, level); for ``true-model``, the run's decay and the shift
     its metrics report the decrease at (where they report one); for ``radius``, the DR pointwise condition at the
-    run's risk level, decay and samples (all of them) at the certified radius its metrics report; for ``shift-box``,
+    run's risk level, decay and samples (all of them) at the certified radius its metrics report; for ``uniform``,
+    the DR uniform condition at the run's radius, risk level, decay and samples (all of them), on X_delta (a uniform
+    claim has no level, a run trained on it neither); for ``shift-box``,
     decrease on the true model with the run's decay for every shift in the box its metrics report. A certificate that
     proves a weaker condition than the run's is then not taken for the run's."""
     try:
@@ -113,6 +115,9 @@ def claim_mismatch(name: str, header: dict, config: dict, metrics: dict) -> list
         reported = (metrics.get("certificate") or {}).get("radius") or {}
         expected |= {"name": "pointwise", "xi": metrics.get("xi_samples"), "risk_level": config.get("risk_level"),
                      "wasserstein_radius": reported.get("radius", "none reported in metrics.json")}
+    elif name == "uniform":  # the DR uniform condition at all the run's samples and its radius
+        expected |= {"name": "uniform", "xi": metrics.get("xi_samples"), "risk_level": config.get("risk_level"),
+                     "wasserstein_radius": config.get("wasserstein_radius")}
     elif name == "shift-box":  # every shift in the box its metrics report, [-s* scale, s* scale]
         reported = (metrics.get("certificate") or {}).get("shift_box") or {}
         half = [float(reported["s"]) * float(w) for w in reported.get("scale") or []] if "s" in reported else None
@@ -126,6 +131,8 @@ def claim_mismatch(name: str, header: dict, config: dict, metrics: dict) -> list
             expected |= {"xi": [list(map(float, reported["xi"]))]}
     stated = {"delta": delta, "level": level}
     wanted = {"delta": config.get("delta"), "level": config.get("roa_level")}
+    if expected.get("name") == "uniform":  # one inequality over X_delta: no sublevel set
+        wanted["level"] = None
     if "certificate" in config:  # an imported pair: its claim's decay, level and delta (None: the system's delta)
         wanted = {"delta": delta if config.get("delta") is None else config["delta"], "level": config.get("level")}
     if name in ("roa", "roa-ball"):  # the region of attraction its metrics report, on its model

@@ -25,6 +25,9 @@ the file).
 
 A ``roa-ball`` certificate (V's decrease inside the delta-ball) is checked on the ball's box: its ring of boxes as
 above, and its cube around x* by :mod:`drlyap.checker.ball` (Vdot's Hessian over the cube, negative definite).
+
+A DR uniform claim is one inequality over all the leaves together (:mod:`drlyap.checker.uniform`): each component's
+supremum is bounded over every leaf, and the margin made of those bounds must be ``<= 0``.
 """
 
 from __future__ import annotations
@@ -46,6 +49,7 @@ from drlyap.checker.ball import ball_failures
 from drlyap.checker.graphs import GraphPair
 from drlyap.checker.model import Pair, Residual, centre_lower, form_upper, upper_bounds, value_lower
 from drlyap.checker.record import drop_record, fingerprint, write_record
+from drlyap.checker.uniform import uniform_margin_bound
 from drlyap.claims import claim_sentence
 from drlyap.config import Compute
 from drlyap.parallel import check_device, pool_for
@@ -412,6 +416,10 @@ def check_certificate(run_dir: str | Path, name: str, header: dict, arrays: dict
     if not bool(inside.all()):
         out.failures.append(f"{int((~inside).sum())} boxes said to lie in the open ball ||z|| < {delta:g} do not")
     proved = ((verdict == PROVED) | (verdict == ABOVE_LEVEL)).nonzero().squeeze(-1)
+    if residual.name == "uniform":
+        _check_uniform(out, residual, blo[proved], bhi[proved], bound[proved], hi - lo, refine)
+        out.ok, out.time_s = not out.failures, time.perf_counter() - start
+        return out
     cheap_first = header["partition"].get("enclosure") in ("interval", "mean-value")  # an order, as for ``above``
     job = LeafJob(residual, hi - lo, refine, level, cheap_first)
     ok, centre_low, out.refined, out.pieces = prove_leaves(job, blo[proved], bhi[proved], verdict[proved] == ABOVE_LEVEL,
@@ -443,6 +451,23 @@ def check_certificate(run_dir: str | Path, name: str, header: dict, arrays: dict
     out.ok = not out.failures
     out.time_s = time.perf_counter() - start
     return out
+
+
+def _check_uniform(out: CheckResult, residual: Residual, lo: Tensor, hi: Tensor, bound: Tensor, scale: Tensor,
+                   refine: int) -> None:
+    """The DR uniform claim on the leaves ``[lo, hi] (B, n)`` (recorded bounds ``bound (B,)``: each leaf's own
+    margin, which may not lie below the margin at its centre): the margin's bound from every leaf's components
+    (:func:`~drlyap.checker.uniform.uniform_margin_bound`) must be ``<= 0``; its outcome goes into ``out``."""
+    margin, suprema, out.refined, out.pieces = uniform_margin_bound(residual, lo, hi, scale, refine,
+                                                                    max(MIN_PIECES, int(lo.shape[0])))
+    out.proved = int(lo.shape[0]) if margin <= 0 else 0
+    if margin > 0:
+        out.failures.append(f"the checker's bound of the uniform margin over the {lo.shape[0]} leaves is {margin:.6g} "
+                            f"> 0 (suprema of ||W^T grad V||, Vdot_j + decay: {_fmt(suprema)})")
+    centre_low = centre_lower(residual, lo, hi)
+    false = bound < centre_low - 4 * EPS * centre_low.abs()
+    if bool(false.any()):
+        out.failures.append(f"{int(false.sum())} recorded bounds lie below the margin at their box's centre")
 
 
 def _fmt(v: Tensor) -> str:

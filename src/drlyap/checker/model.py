@@ -10,7 +10,11 @@ States are local coordinates ``z = x - x*`` (``(B, n)``). The formulas are the o
 * ``Vdot_j = grad V . (f + W xi_j)`` on the design model (``W = dF/dp`` at the nominal parameters, in the uncertain
   ones) or ``grad V . F(x, u, p0 + E xi_j)`` on the true model; ``decay = gamma ||z|| + alpha V``;
 * components ``Vdot_j + decay`` (+ ``(r / eps) ||W^T grad V||`` for the DR pointwise condition), combined by the
-  maximum or the sample CVaR (both non-decreasing in every component).
+  maximum or the sample CVaR (both non-decreasing in every component);
+* for the DR uniform condition, components ``(||W^T grad V||, Vdot_j + decay)``, combined by
+  ``(r / eps) L + CVaR_j h_j`` (non-decreasing too): at a state that is the uniform condition's margin with the
+  suprema taken there alone, and over a set of boxes its margin from the suprema of the components over all of
+  them (:mod:`drlyap.checker.uniform`).
 """
 
 from __future__ import annotations
@@ -26,7 +30,7 @@ from drlyap.checker.affine import Af
 from drlyap.checker.arith import EPS, F64, TINY, Du, Iv, lift
 from drlyap.checker.quadratic import quad_max_minus
 
-CONDITIONS = ("nominal", "pointwise", "plain", "true")
+CONDITIONS = ("nominal", "pointwise", "uniform", "plain", "true")
 
 
 class Mlp:
@@ -159,8 +163,9 @@ class Residual:
 
     @property
     def has_norm(self) -> bool:
-        """Whether the components hold the DR condition's norm ``(r / eps) ||W^T grad V||``."""
-        return self.model != "true" and self.name == "pointwise" and self.r > 0
+        """Whether the components hold the DR condition's norm ``||W^T grad V||`` (scaled by ``r / eps`` in the
+        pointwise condition's)."""
+        return self.model != "true" and (self.name == "uniform" or (self.name == "pointwise" and self.r > 0))
 
     def terms(self, z, flat_norm: bool = False) -> tuple[object, object]:
         """The components ``(B, Q)`` and V ``(B,)`` at ``z``. ``flat_norm``: the DR norm as the constant form of the
@@ -176,7 +181,7 @@ class Residual:
             vdots = [s.v + sum((s.d[i] * float(xi[i]) for i in range(len(self.uncertain))), start=s.v * 0.0)
                      for xi in self.xi]
             lip = None
-            if self.name == "pointwise":
+            if self.name in ("pointwise", "uniform"):
                 vector = torch.stack(s.d, -1)
                 lip = vector.constant(vector.interval(dual=True).norm()) if flat_norm else vector.norm()
         decay = value * 0.0
@@ -184,6 +189,8 @@ class Residual:
             decay = decay + z.norm() * self.gamma
         if self.alpha:
             decay = decay + value * self.alpha
+        if self.name == "uniform":
+            return torch.stack([lip, *[v + decay for v in vdots]], -1), value
         extra = decay if lip is None else decay + lip * (self.r / self.eps)
         return torch.stack([v + extra for v in vdots], -1), value
 
@@ -214,10 +221,17 @@ class Residual:
 
     def combine_upper(self, upper: Tensor) -> Tensor:
         """An upper bound ``(B,)`` of the residual from upper bounds ``(B, Q)`` of its components."""
+        if self.name == "uniform":
+            lip = Iv.point(upper[..., 0]) * (Iv.point(self.r) / Iv.point(self.eps))
+            return (lip + Iv.point(self._cvar_upper(upper[..., 1:]))).hi
         if self.name == "nominal" or upper.shape[-1] == 1:
             return upper[..., 0]
         if self.name in ("plain", "true"):
             return upper.amax(-1)
+        return self._cvar_upper(upper)
+
+    def _cvar_upper(self, upper: Tensor) -> Tensor:
+        """An upper bound ``(B,)`` of the sample CVaR at ``eps`` of values with upper bounds ``upper (B, N)``."""
         count = upper.shape[-1]
         j = max(1, math.ceil(self.eps * count - 1e-12))
         if j == 1:
@@ -307,8 +321,14 @@ def _s_procedure(comps: Af, value: Af, level: float, lam: Tensor, dual: bool) ->
 
 
 def upper_bounds(residual: Residual, lo: Tensor, hi: Tensor) -> Tensor:
-    """Upper bounds ``(B,)`` of the residual over the boxes ``[lo, hi] (B, n)``: the tighter of the interval bound
-    and the mean-value form ``f(c) + sum_i |df/dz_i over the box| r_i``."""
+    """Upper bounds ``(B,)`` of the residual over the boxes ``[lo, hi] (B, n)``: of its components'
+    :func:`component_upper`, combined."""
+    return residual.combine_upper(component_upper(residual, lo, hi))
+
+
+def component_upper(residual: Residual, lo: Tensor, hi: Tensor) -> Tensor:
+    """Upper bounds ``(B, Q)`` of the residual's components over the boxes ``[lo, hi] (B, n)``: the tighter of the
+    interval bound and the mean-value form ``f(c) + sum_i |df/dz_i over the box| r_i`` (``inf`` where NaN)."""
     n = lo.shape[1]
     centre, rad = radius(lo, hi)
     at_centre = residual.components(Iv.point(centre))
@@ -318,8 +338,7 @@ def upper_bounds(residual: Residual, lo: Tensor, hi: Tensor) -> Tensor:
         spread = spread + Iv.point(t.mag()) * Iv.point(rad[:, i:i + 1])
     mean_value = (Iv.point(at_centre.hi) + spread).hi
     upper = torch.minimum(form.v.hi, mean_value)
-    upper = torch.where(torch.isnan(upper), math.inf, upper)
-    return residual.combine_upper(upper)
+    return torch.where(torch.isnan(upper), math.inf, upper)
 
 
 def centre_lower(residual: Residual, lo: Tensor, hi: Tensor) -> Tensor:
@@ -331,17 +350,22 @@ def _combine_lower(residual: Residual, lower: Tensor) -> Tensor:
     """A lower bound of the residual from lower bounds of its components (the combination is monotone): the
     negated upper bound of the negated components is not the same formula, so the maximum/CVaR is computed and
     lowered by its rounding pad."""
-    if residual.name == "nominal" or lower.shape[-1] == 1:
-        out = lower[..., 0]
+    values = lower[..., 1:] if residual.name == "uniform" else lower
+    if residual.name == "nominal" or values.shape[-1] == 1:
+        out = values[..., 0]
     elif residual.name in ("plain", "true"):
-        out = lower.amax(-1)
+        out = values.amax(-1)
     else:
-        count = lower.shape[-1]
+        count = values.shape[-1]
         j = max(1, math.ceil(residual.eps * count - 1e-12))
-        top = torch.topk(lower, j, dim=-1).values
+        top = torch.topk(values, j, dim=-1).values
         hj = top[..., -1]
         out = (top[..., :-1] - hj[..., None]).sum(-1) / (count * residual.eps) + hj if j > 1 else top[..., 0]
-    pad = 64 * EPS * lower.abs().amax(-1) + 1e-300
+    scale = 1.0
+    if residual.name == "uniform":
+        out = out + lower[..., 0] * (residual.r / residual.eps)
+        scale = 1.0 + residual.r / residual.eps
+    pad = 64 * EPS * lower.abs().amax(-1) * scale + 1e-300
     return torch.where(torch.isnan(out), -math.inf, out - pad)
 
 

@@ -8,13 +8,14 @@ from pathlib import Path
 
 import click
 
+from drlyap.claims import CERTIFICATES
 from drlyap.cli.common import compute_options, compute_settings, fail, refuse_early, run_source_options, run_system_of
 
 
 @click.command()
 @click.argument("run_dir", type=click.Path(path_type=Path))
 @click.option("--name", "names", multiple=True,
-              type=click.Choice(["trained", "true-model", "radius", "shift-box", "roa", "roa-ball"]),
+              type=click.Choice(CERTIFICATES),
               help="Which certificate to check (repeatable) [every one the run holds].")
 @click.option("--refine", type=click.IntRange(0, 20), default=12, show_default=True,
               help="Times the checker may bisect a box its own bounds do not prove (the verifier's bounds may be "
@@ -32,7 +33,9 @@ def check(run_dir: Path, names: tuple[str, ...], refine: int, workers: int, back
     A certificate is written by `drlyap train` and `drlyap verify` for every proof of a decrease condition that ends
     verified, on the state box minus the delta-ball or on a sublevel set {V <= c} of it: `trained`, `true-model`
     (verify --xi), `radius` and `shift-box` (verify --max-radius: the DR condition at the certified Wasserstein
-    radius, and decrease on the true model for every shift in the certified box), and for a region of attraction
+    radius, and decrease on the true model for every shift in the certified box), `uniform` (verify --uniform: the
+    DR uniform condition's margin, one inequality over the region; a run trained on it has it as `trained`), and
+    for a region of attraction
     certified by V's own proofs (verify --roa) `roa-ball`, V's decrease inside the delta-ball (Vdot's Hessian on a
     cube around x*, and the ring around it), with `roa` where the decrease outside the ball on {V <= c} is not
     already another certificate's.

@@ -40,7 +40,8 @@ from drlyap.config import ENCLOSURES, ProofConfig
                    "pair was exported from); without it the region certified is at most that level, the run's claim.")
 @click.option("--uniform", is_flag=True,
               help="Also bound the uniform DR condition's margin at the run's radius, risk level and samples (a "
-                   "stricter condition than the pointwise one the default pairs are trained on).")
+                   "stricter condition than the pointwise one the default pairs are trained on); a margin proved "
+                   "<= 0 is written as certificates/uniform.*.")
 @click.option("--max-radius", is_flag=True,
               help="Also find the largest Wasserstein radius for which the DR pointwise condition (the run's eps, "
                    "samples, gamma) is proved, and the largest box of shifts for which decrease on the true model "

@@ -6,7 +6,9 @@ the branch and bound proved the condition on (numpy arrays, read with ``allow_pi
 ``drlyap verify RUN --xi ...``), ``radius`` (the DR pointwise condition at the run's risk level, samples and decay
 at the certified Wasserstein radius r*, written by ``drlyap verify RUN --max-radius``: the condition at every
 smaller radius follows, the Wasserstein term growing with r), ``shift-box`` (decrease on the true model, with the
-run's decay, for every shift in the certified box ``[-s* scale, s* scale]``, also written by ``--max-radius``);
+run's decay, for every shift in the certified box ``[-s* scale, s* scale]``, also written by ``--max-radius``),
+``uniform`` (the DR uniform condition at the run's radius, risk level, samples and decay, one inequality over X_delta,
+written by ``drlyap verify RUN --uniform``; a run trained on it writes it as ``trained``);
 for a region of attraction (``verify --roa``), ``roa-ball`` (V's decrease on ``{V <= c}`` inside the delta-ball: a
 ``cube`` where it is proved by second order, the ring around it by a partition, ``outer`` the certificate of the
 decrease outside the ball) and, where no other certificate states that decrease at c, ``roa``.
@@ -36,7 +38,7 @@ from typing import TYPE_CHECKING
 import numpy as np
 import torch
 
-from drlyap.claims import claim_sentence
+from drlyap.claims import CERTIFICATES, claim_sentence
 from drlyap.io import jsonable
 
 if TYPE_CHECKING:  # the writing side's types; reading a certificate (the checker) loads nothing of the verifier
@@ -44,12 +46,12 @@ if TYPE_CHECKING:  # the writing side's types; reading a certificate (the checke
     from drlyap.regions import Region
     from drlyap.systems import UncertainSystem
     from drlyap.verification.partition import Partition
-    from drlyap.verification.results import ConditionProof
+    from drlyap.verification.results import ConditionProof, UniformMargin
 
 FORMAT = "drlyap-certificate"
 VERSION = 1
 FOLDER = "certificates"
-NAMES = ("trained", "true-model", "radius", "shift-box", "roa", "roa-ball")
+NAMES = CERTIFICATES
 ARRAYS = ("parent", "side", "axis", "verdict", "bound")
 
 
@@ -94,9 +96,10 @@ def certificate_claim(condition: Condition, region: Region, level: float | None)
                                 "level": level, "coordinates": "local (z = x - x*)"}})
 
 
-def certificate_header(proof: ConditionProof | None, condition: Condition, region: Region, system: UncertainSystem,
-                       weights_sha256: str, alpha_hat: float | None, arrays_file: str | None, arrays_sha256: str | None,
-                       level: float | None = None, extra: dict | None = None) -> dict:
+def certificate_header(proof: ConditionProof | UniformMargin | None, condition: Condition, region: Region,
+                       system: UncertainSystem, weights_sha256: str, alpha_hat: float | None,
+                       arrays_file: str | None, arrays_sha256: str | None, level: float | None = None,
+                       extra: dict | None = None) -> dict:
     """The JSON header of a certificate (see the module docstring). ``proof`` None: a claim without a partition
     (a ``roa-ball`` certificate whose cube covers the ball), at ``level``; ``extra``: more of the claim (``cube``,
     ``outer``, and ``ball_of`` for its region)."""
@@ -115,11 +118,13 @@ def certificate_header(proof: ConditionProof | None, condition: Condition, regio
             "file": arrays_file, "sha256": arrays_sha256, "grid": part.grid, "nodes": part.size,
             "enclosure": part.enclosure, "counts": part.counts()},
         "proof": None if proof is None else {"boxes_processed": proof.boxes_processed, "time_s": proof.time_s,
-                                             "faces_min_lower": proof.boundary_min_lower},
+                                             "faces_min_lower": proof.boundary_min_lower}
+        | ({"margin_upper": proof.margin_upper} if getattr(proof, "margin_upper", None) is not None else {}),
     })
 
 
-def write_certificate(folder: str | os.PathLike, name: str, proof: ConditionProof | None, condition: Condition,
+def write_certificate(folder: str | os.PathLike, name: str, proof: ConditionProof | UniformMargin | None,
+                      condition: Condition,
                       region: Region, system: UncertainSystem, weights: str | os.PathLike | list,
                       alpha_hat: float | None, level: float | None = None, extra: dict | None = None) -> Path:
     """Write ``folder/certificates/NAME.json`` and ``.npz`` for a verified proof that kept its partition (``proof``

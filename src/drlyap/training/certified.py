@@ -273,7 +273,9 @@ def train(config: TrainConfig, system: UncertainSystem | None = None, proof: Pro
         result, _ = _proof_rounds(result, proof, budget, start, progress, log)
         verdict, rounds = ConditionProof.from_dict(result.record.final_proof), result.record.retraining_rounds
     else:
-        verdict = uniform_margin(result.loop, result.condition, Region.of(system, float(cfg.delta)), budget)
+        verdict = uniform_margin(result.loop, result.condition, Region.of(system, float(cfg.delta)), budget,
+                                 keep_partition=True)
+        result.trained_proof = verdict if verdict.verified else None
     cert = certificate(verdict, float(cfg.delta), rounds=rounds)
     result.metrics["certificate"] = jsonable(cert.to_dict())
     result.metrics["proof"] = settings

@@ -35,7 +35,7 @@ from drlyap.systems import UncertainSystem
 from drlyap.training.acceptance import PairKeeper, restore, snapshot
 from drlyap.training.states import TrainingStates
 from drlyap.training.warm_start import warm_start_lqr
-from drlyap.verification.results import ConditionProof
+from drlyap.verification.results import ConditionProof, UniformMargin
 
 LOCAL_EVERY = 4  # iterations between evaluations of the local term (second derivatives at x*: ~2x an iteration)
 GROW_SHARE = 2 / 3  # growing sets: the growth term acts on this share of the iterations, the rest repairs
@@ -53,7 +53,7 @@ class TrainResult:
     condition: Condition
     history: list[dict]
     metrics: dict
-    trained_proof: ConditionProof | None = None  # the verified proof of the trained condition, with its partition
+    trained_proof: ConditionProof | UniformMargin | None = None  # the trained condition's verified proof, with its partition
 
     @cached_property
     def loop(self) -> ClosedLoop:

@@ -349,14 +349,17 @@ class _Search:
 # =========================================================================== suprema
 def maximize(objective: Callable, lo: Tensor, hi: Tensor, scale: Tensor, budget: Budget, *,
              centre_ok: Callable | None = None, box_ok: Callable | None = None, rel_tol: float = 1e-3,
-             abs_tol: float = 1e-9) -> tuple[Tensor, Tensor, dict]:
+             abs_tol: float = 1e-9, tree: PartitionRecorder | None = None,
+             leaf_bound: Callable | None = None) -> tuple[Tensor, Tensor, dict]:
     """Bounds ``lower <= sup <= upper`` (each ``(Q,)``) of every component of ``objective`` over a union of boxes
     ``[lo, hi] (B, n)`` (``scale (n,)``: the widths that box sides are measured against).
 
     The upper bound is sound over the boxes (kept by ``box_ok``); the lower bound comes from box centres
     accepted by ``centre_ok`` (points of the set). Boxes that may still raise some component's supremum
     by more than the tolerance are split, widest side first, until the budget's time or boxes or minimum size.
-    ``budget.enclosure``: as for :func:`verify_condition` (None: by the boxes' dimension).
+    ``budget.enclosure``: as for :func:`verify_condition` (None: by the boxes' dimension). ``tree``: records the
+    boxes (``lo, hi`` are then its grid's cells, in order): those ``box_ok`` drops as inside the ball, the splits, and
+    every other leaf as proved with ``leaf_bound(upper (L, Q)) -> (L,)`` of its components' upper bounds.
     """
     enclosure = budget.enclosure_for(lo.shape[-1])
     time_limit, max_boxes, min_width, batch = budget.seconds, budget.boxes, budget.min_width, budget.batch
@@ -365,15 +368,18 @@ def maximize(objective: Callable, lo: Tensor, hi: Tensor, scale: Tensor, budget:
     best: Tensor | None = None
     processed = 0
     stopped = "finished"
+    ids = tree.roots if tree is not None else torch.zeros(lo.shape[0], dtype=torch.int64)
     if box_ok is not None:
         keep = box_ok(lo, hi)
-        lo, hi = lo[keep], hi[keep]
+        if tree is not None:
+            tree.inside_ball(ids[~keep])
+        lo, hi, ids = lo[keep], hi[keep], ids[keep]
     known: Tensor | None = None  # (B, Q): an upper bound on each queued box (its parent's), once one is split
     while lo.shape[0]:
         if time.perf_counter() - start > time_limit or processed >= max_boxes:
             stopped = "time limit" if processed < max_boxes else "box budget"
             break
-        clo, chi, lo, hi = lo[:batch], hi[:batch], lo[batch:], hi[batch:]
+        clo, chi, cids, lo, hi, ids = lo[:batch], hi[:batch], ids[:batch], lo[batch:], hi[batch:], ids[batch:]
         if known is not None:
             known = known[clo.shape[0]:]
         _, ub, at = box_bounds(objective, clo, chi, enclosure)
@@ -390,22 +396,33 @@ def maximize(objective: Callable, lo: Tensor, hi: Tensor, scale: Tensor, budget:
         if done.any():
             cand = ub[done].amax(0)
             closed = cand if closed is None else torch.maximum(closed, cand)
+            if tree is not None:
+                tree.proved(cids[done], leaf_bound(ub[done]))
         if refine.any():
             nlo, nhi = split(clo[refine], chi[refine], scale)
             inherited = ub[refine].repeat(2, 1)  # split() returns the lower halves, then the upper halves
+            nids = tree.split(cids[refine], chi[refine], nhi) if tree is not None else nlo.new_zeros(nlo.shape[0],
+                                                                                                    dtype=torch.int64)
             if box_ok is not None:
                 keep = box_ok(nlo, nhi)
-                nlo, nhi, inherited = nlo[keep], nhi[keep], inherited[keep]
+                if tree is not None:
+                    tree.inside_ball(nids[~keep])
+                nlo, nhi, inherited, nids = nlo[keep], nhi[keep], inherited[keep], nids[keep]
             if known is None:
                 known = torch.full((lo.shape[0], ub.shape[1]), torch.inf, dtype=ub.dtype, device=ub.device)
             lo, hi, known = torch.cat([lo, nlo]), torch.cat([hi, nhi]), torch.cat([known, inherited])
+            ids = torch.cat([ids, nids])
     if lo.shape[0]:
         if lo.shape[0] <= 4 * batch:
-            rest = box_bounds(objective, lo, hi, enclosure)[1].amax(0)
+            leftover = box_bounds(objective, lo, hi, enclosure)[1]
         elif known is not None:  # too many to bound again in time: their parents' bounds hold for them
-            rest = known.amax(0)
+            leftover = known
         else:
-            rest = torch.full_like(closed if closed is not None else best, torch.inf)
+            leftover = None
+        rest = leftover.amax(0) if leftover is not None else \
+            torch.full_like(closed if closed is not None else best, torch.inf)
+        if tree is not None and leftover is not None:
+            tree.proved(ids, leaf_bound(leftover))
         closed = rest if closed is None else torch.maximum(closed, rest)
     if closed is None:
         raise ValueError("the set to maximise over is empty")
@@ -415,21 +432,31 @@ def maximize(objective: Callable, lo: Tensor, hi: Tensor, scale: Tensor, budget:
 
 
 def uniform_margin(loop: ClosedLoop, condition: DRUniform, region: Region, budget: Budget = Budget(seconds=3.0), *,
-                   rel_tol: float = 1e-3) -> UniformMargin:
+                   rel_tol: float = 1e-3, keep_partition: bool = False) -> UniformMargin:
     """Bounds of the uniform DR condition's left side over X_delta (``eq: dr_clf_constraint_relaxed``), see
-    :class:`~drlyap.verification.results.UniformMargin`."""
-    delta = region.delta
-    lo, hi = region.boxes()
+    :class:`~drlyap.verification.results.UniformMargin`. ``keep_partition``: a verified margin keeps the boxes it was
+    bounded on (:class:`~drlyap.verification.partition.Partition`, each leaf's bound the margin of its own
+    components' upper bounds: at most the whole margin), for a certificate that :mod:`drlyap.checker` re-checks."""
+    delta, coef = region.delta, condition.r / condition.eps
+    grid = default_grid(region.n)
+    lo, hi = box_grid(region.lo, region.hi, grid)
+    enclosure = budget.enclosure_for(region.n)
+    tree = PartitionRecorder(grid, lo.shape[0], enclosure) if keep_partition else None
+
+    def margin_up(suprema: Tensor) -> Tensor:
+        return round_up(condition.margin(suprema), 64 * EPS, suprema.abs().amax(-1) * (1 + coef))
+
     lower, upper, info = maximize(
         condition_objective(loop, condition), lo, hi, region.scale, budget,
-        centre_ok=region.in_region, box_ok=lambda a, b: ~inside_ball(a, b, delta), rel_tol=rel_tol)
-    coef = condition.r / condition.eps
-    m_up = float(round_up(condition.margin(upper), 64 * EPS, upper.abs().amax() * (1 + coef)))
+        centre_ok=region.in_region, box_ok=lambda a, b: ~inside_ball(a, b, delta), rel_tol=rel_tol, tree=tree,
+        leaf_bound=margin_up)
+    m_up = float(margin_up(upper))
     m_lo = float(round_down(condition.margin(lower), 64 * EPS, lower.abs().amax() * (1 + coef)))
     status = Status.VERIFIED if m_up <= 0 else (Status.VIOLATED if m_lo > 0 else Status.UNKNOWN)
     return UniformMargin(condition="DR uniform", status=status, margin_upper=m_up, margin_lower=m_lo,
                          lipschitz_sup=[float(lower[0]), float(upper[0])],
                          h_sup=[[float(a), float(b)] for a, b in zip(lower[1:], upper[1:])],
-                         lipschitz_term=[coef * float(lower[0]), coef * float(upper[0])], delta=float(delta), **info)
+                         lipschitz_term=[coef * float(lower[0]), coef * float(upper[0])], delta=float(delta), **info,
+                         partition=tree.finish() if tree is not None and status == Status.VERIFIED else None)
 
 

@@ -133,7 +133,9 @@ class UniformMargin(Result):
         margin = (r/eps) sup_z ||W^T grad V(z)|| + CVaR_eps_j sup_z (Vdot_j(z) + decay(z))
 
     ``margin_upper`` is sound (``verified`` when it is <= 0); ``margin_lower`` is attained at evaluated states
-    (``violated`` when it is > 0); ``lipschitz_sup``, ``h_sup`` and ``lipschitz_term`` the pieces' brackets."""
+    (``violated`` when it is > 0); ``lipschitz_sup``, ``h_sup`` and ``lipschitz_term`` the pieces' brackets.
+    ``partition``: the boxes a verified margin was bounded on (not part of the JSON; written as a certificate).
+    It is a claim on all of X_delta: no level, no faces."""
 
     condition: str
     status: str
@@ -146,6 +148,9 @@ class UniformMargin(Result):
     boxes_processed: int = 0
     time_s: float = 0.0
     stopped: str = ""
+    partition: Any = field(default=None, repr=False, compare=False, metadata={"json": False})
+    level: ClassVar[None] = None
+    boundary_min_lower: ClassVar[None] = None
 
     @property
     def verified(self) -> bool:

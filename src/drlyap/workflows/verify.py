@@ -141,7 +141,7 @@ def verify_run(run: Run, proof: ProofConfig | None = None, *, delta: float | Non
     budget = proof.budget()
     trained_condition = run.condition
     if trained_condition.name == Loss.UNIFORM:
-        trained = uniform_margin(loop, trained_condition, region, budget)
+        trained = uniform_margin(loop, trained_condition, region, budget, keep_partition=True)
         margin = trained
     else:
         trained = None if reprove or float(region.delta) != float(cfg.delta) else \
@@ -151,7 +151,7 @@ def verify_run(run: Run, proof: ProofConfig | None = None, *, delta: float | Non
         margin = None
         if uniform:
             margin = uniform_margin(loop, run.sections.condition.build(run.xi_samples, Loss.UNIFORM), region,
-                                     proof.budget(proof.uniform_time))
+                                    proof.budget(proof.uniform_time), keep_partition=True)
     true_model, main_condition = None, trained_condition
     if xi is not None:
         main_condition = run.true_condition(xi)
@@ -269,17 +269,20 @@ def record_robustness(run: Run, robustness: RunRobustness) -> list[Path]:
 
 def record_certificates(run: Run, ver: RunVerification) -> list[Path]:
     """Write a certificate file (:mod:`drlyap.runs.certificates`) into the run directory for each proof of ``ver``
-    that is verified on X_delta and kept its partition: ``trained`` and, with a shift, ``true-model``. Only on the
-    run's own delta (the claim ``drlyap check`` compares with the run). Returns the headers' paths (an OSError where
-    the directory cannot be written)."""
+    that is verified on X_delta and kept its partition: ``trained``, with a shift ``true-model``, and the DR uniform
+    margin at the run's radius as ``uniform`` (a run trained on the uniform condition has it as ``trained``). Only on
+    the run's own delta (the claim ``drlyap check`` compares with the run). Returns the headers' paths (an OSError
+    where the directory cannot be written)."""
     if float(ver.delta) != float(run.config.delta):  # a certificate states the run's own X_delta (check compares)
         return []
     region = Region.of(run.system, float(ver.delta))
     written = []
+    uniform = None if ver.uniform is None or ver.uniform is ver.trained else ver.uniform
     for name, proof, condition in (("trained", ver.trained, run.condition),
                                    ("true-model", ver.true_model,
-                                    None if ver.true_model is None else run.true_condition(ver.true_model.xi))):
-        if isinstance(proof, ConditionProof) and proof.verified and proof.partition is not None:
+                                    None if ver.true_model is None else run.true_condition(ver.true_model.xi)),
+                                   ("uniform", uniform, run.sections.condition.build(run.xi_samples, Loss.UNIFORM))):
+        if proof is not None and proof.verified and proof.partition is not None:
             written.append(write_certificate(run.path, name, proof, condition, region, run.system,
                                              run.path / "weights.pt", float(run.config.alpha_hat)))
     return written

@@ -1,0 +1,162 @@
+"""The DR uniform condition's certificate: the verifier keeps the boxes its margin was bounded on, the checker
+bounds every component's supremum over them with its own arithmetic, and a claim that does not hold is refused."""
+
+import json
+from pathlib import Path
+
+import numpy as np
+import pytest
+import torch
+
+from drlyap.checker.arith import Iv
+from drlyap.checker.check import check_certificate
+from drlyap.checker.model import Pair, Residual
+from drlyap.closed_loop import ClosedLoop
+from drlyap.conditions import DRUniform
+from drlyap.regions import Region
+from drlyap.runs.certificates import condition_claim, read_certificate, sha256_file, system_digest, write_certificate
+from drlyap.verification import Budget, uniform_margin
+from handmade import linear_pair, small_pendulum
+
+F64 = torch.float64
+XI = torch.tensor([[0.0, 0.0], [0.05, 0.01], [-0.03, 0.02]], dtype=F64)
+
+
+@pytest.fixture(scope="module")
+def margin(tmp_path_factory):
+    """A verified uniform margin of the hand-made linear pair, written as a certificate."""
+    system = small_pendulum()
+    lyap, ctrl = linear_pair(system)
+    loop = ClosedLoop(system, lyap, ctrl)
+    condition = DRUniform(1e-4, 0.1, XI, decay_rate=0.05)
+    region = Region.of(system, 0.2)
+    found = uniform_margin(loop, condition, region, Budget(seconds=1e9, boxes=200_000), keep_partition=True)
+    assert found.verified and found.partition is not None
+    folder = tmp_path_factory.mktemp("uniform")
+    weights = {"lyapunov": lyap.state_dict(), "controller": ctrl.state_dict()}
+    torch.save(weights, folder / "weights.pt")
+    write_certificate(folder, "uniform", found, condition, region, system, folder / "weights.pt", lyap.alpha_hat)
+    return {"system": system, "folder": folder, "weights": weights, "margin": found, "loop": loop,
+            "condition": condition, "region": region}
+
+
+def check(m, header_change=None, arrays_change=None):
+    header, arrays = read_certificate(m["folder"], "uniform")
+    if header_change is not None:
+        header_change(header)
+    if arrays_change is not None:
+        arrays = {k: v.copy() for k, v in arrays.items()}
+        arrays_change(arrays)
+    return check_certificate(m["folder"], "uniform", header, arrays, m["system"], m["weights"],
+                             sha256_file(m["folder"] / "weights.pt"), system_digest(m["system"]))
+
+
+def test_an_unverified_margin_keeps_no_boxes(margin):
+    strong = DRUniform(0.05, 0.1, XI, decay_rate=0.05)
+    found = uniform_margin(margin["loop"], strong, margin["region"], Budget(seconds=1e9, boxes=50_000),
+                           keep_partition=True)
+    assert found.status == "violated" and found.partition is None
+
+
+def test_the_checker_confirms_the_margin_on_every_leaf(margin):
+    result = check(margin)
+    assert result.ok, result.failures
+    counts = margin["margin"].partition.counts()
+    assert result.proved == counts["proved"] and result.inside_ball == counts["inside ball"]
+    assert "DR uniform condition (r = 0.0001, eps = 0.1, 3 samples of xi" in result.claim
+    assert "as one inequality" in result.claim
+
+
+def test_the_checkers_components_enclose_the_conditions(margin):
+    loop, condition = margin["loop"], margin["condition"]
+    residual = Residual(condition_claim(condition), Pair(margin["weights"], loop.lyapunov.alpha_hat, 2),
+                        margin["system"])
+    z = margin["region"].sample(300, torch.Generator().manual_seed(0))
+    mine = residual.components(Iv.point(z))
+    theirs = condition.components(condition.terms(loop.f64, z)).detach()
+    assert bool((mine.lo <= theirs + 1e-12).all() and (theirs <= mine.hi + 1e-12).all())
+
+
+def test_the_margins_bounds_hold_at_dense_samples(margin):
+    """The verifier's margin bound lies above the margin of the components' maxima over 20,000 states."""
+    loop, condition = margin["loop"], margin["condition"]
+    z = margin["region"].sample(20_000, torch.Generator().manual_seed(1))
+    sampled = float(condition.margin(condition.components(condition.terms(loop.f64, z)).detach().amax(0)))
+    found = margin["margin"]
+    assert found.margin_lower <= found.margin_upper and sampled <= found.margin_upper
+    assert sampled >= found.margin_upper - 1e-3
+
+
+def test_a_larger_radius_than_proved_is_refused(margin):
+    def stronger(header):
+        header["claim"]["condition"]["wasserstein_radius"] = 0.05
+
+    result = check(margin, header_change=stronger)
+    assert not result.ok and "bound of the uniform margin" in result.failures[0]
+
+
+def test_a_lowered_bound_and_a_leaf_moved_into_the_ball_are_refused(margin):
+    def lower_one(arrays):
+        arrays["bound"][int(np.flatnonzero(arrays["verdict"] == 1)[0])] = -1e6
+
+    def into_ball(arrays):
+        arrays["verdict"][int(np.flatnonzero(arrays["verdict"] == 1)[-1])] = 2
+
+    result = check(margin, arrays_change=lower_one)
+    assert not result.ok and "recorded bounds lie below" in result.failures[-1]
+    result = check(margin, arrays_change=into_ball)
+    assert not result.ok and "do not" in result.failures[0]
+
+
+def test_verify_uniform_writes_a_certificate_that_check_confirms(tmp_path):
+    from click.testing import CliRunner
+
+    from drlyap.cli import main
+    from drlyap.runs import save_run
+    from drlyap.training import TrainConfig
+    from handmade import plain_train
+
+    system = small_pendulum()
+    cfg = TrainConfig(system="small-pendulum", method="dr", n_states=64, iters=1, check_every=1, lyapunov_hidden=[2],
+                      lyapunov_out=2, controller_hidden=[1], alpha_hat=1e-3, decay_rate=0.05, wasserstein_radius=1e-4,
+                      risk_level=0.1, delta=0.2, xi_samples=XI.tolist(), seed=0)
+    result = plain_train(cfg, system, progress=False)
+    lyap, ctrl = linear_pair(system)
+    result.lyapunov.load_state_dict(lyap.state_dict())
+    result.controller.load_state_dict(ctrl.state_dict())
+    run = save_run(tmp_path / "run", result)
+    spec = f"{Path(__file__).parent / 'handmade.py'}:small_pendulum"
+    runner = CliRunner()
+    out = runner.invoke(main, ["verify", str(run), "--system", spec, "--uniform"])
+    assert out.exit_code == 0, out.output
+    assert "certificates/uniform.json" in out.output
+    out = runner.invoke(main, ["check", str(run), "--system", spec, "--name", "uniform"])
+    assert out.exit_code == 0 and "CHECKED" in out.output, out.output
+    header = json.loads((run / "certificates" / "uniform.json").read_text())
+    header["claim"]["condition"]["xi"] = header["claim"]["condition"]["xi"][:1]  # fewer samples than the run's
+    (run / "certificates" / "uniform.json").write_text(json.dumps(header))
+    out = runner.invoke(main, ["check", str(run), "--system", spec, "--name", "uniform"])
+    assert out.exit_code == 1 and "not the run's uniform condition (xi" in out.output
+
+
+def test_a_run_trained_on_the_uniform_condition_keeps_its_margin_as_the_trained_certificate(tmp_path):
+    from drlyap.checker import check_run
+    from drlyap.runs import save_run
+    from drlyap.training import TrainConfig
+    from handmade import plain_train
+
+    system = small_pendulum()
+    cfg = TrainConfig(system="small-pendulum", method="dr", loss="uniform", n_states=64, iters=1, check_every=1,
+                      lyapunov_hidden=[2], lyapunov_out=2, controller_hidden=[1], alpha_hat=1e-3, decay_rate=0.05,
+                      wasserstein_radius=1e-4, risk_level=0.1, delta=0.2, xi_samples=XI.tolist(), seed=0)
+    result = plain_train(cfg, system, progress=False)
+    lyap, ctrl = linear_pair(system)
+    result.lyapunov.load_state_dict(lyap.state_dict())
+    result.controller.load_state_dict(ctrl.state_dict())
+    result.trained_proof = uniform_margin(ClosedLoop(system, result.lyapunov, result.controller), result.condition,
+                                          Region.of(system, 0.2), Budget(seconds=1e9, boxes=200_000),
+                                          keep_partition=True)
+    run = save_run(tmp_path / "run", result)
+    assert (run / "certificates" / "trained.json").is_file()
+    [checked] = check_run(run, system, names=["trained"])
+    assert checked.ok, checked.failures
