@@ -160,3 +160,12 @@ def test_a_run_trained_on_the_uniform_condition_keeps_its_margin_as_the_trained_
     assert (run / "certificates" / "trained.json").is_file()
     [checked] = check_run(run, system, names=["trained"])
     assert checked.ok, checked.failures
+    from click.testing import CliRunner
+
+    from drlyap.cli import main
+
+    spec = f"{Path(__file__).parent / 'handmade.py'}:small_pendulum"
+    out = CliRunner().invoke(main, ["verify", str(run), "--system", spec])
+    assert out.exit_code == 0, out.output
+    assert "trained condition (DR uniform): VERIFIED; margin in [" in out.output
+    assert "certificates/trained.json" in out.output

@@ -190,6 +190,8 @@ def verification_lines(ver: RunVerification, system: str, method: str) -> list[s
     lines = [f"{system} ({method}), delta = {ver.delta:g}"]
     if isinstance(ver.trained, ConditionProof):
         lines += condition_lines(ver.trained, f"  trained condition ({ver.trained.condition})")
+    elif isinstance(ver.trained, UniformMargin):  # the run's own condition is the uniform one
+        lines.append("  trained condition (DR uniform): " + margin_line(ver.trained).removeprefix("uniform DR condition: "))
     if ver.uniform is not None and ver.uniform is not ver.trained:
         lines.append("  " + margin_line(ver.uniform))
     if ver.true_model is not None:
