@@ -1,4 +1,4 @@
-"""The closed loop: a system, its controller pi and its certificate V, the object every proof, check and simulation
+"""The closed loop: a system, its controller pi and its Lyapunov function V, the object every proof, check and simulation
 is about.
 
 A :class:`ClosedLoop` carries the three together, with
@@ -42,7 +42,7 @@ def jacobian(fn: Callable[[Tensor], Tensor], x: Tensor) -> tuple[Tensor, Tensor]
 
 
 class ClosedLoop:
-    """``(system, lyapunov, controller)``: the closed loop ``zdot = F(x* + z, pi(z))`` with its certificate V.
+    """``(system, lyapunov, controller)``: the closed loop ``zdot = F(x* + z, pi(z))`` with its Lyapunov function V.
 
     ``lyapunov``: V with ``value_and_grad`` (:class:`~drlyap.networks.Lyapunov` or a quadratic one);
     ``controller``: pi on local states (:class:`~drlyap.networks.Controller`, a linear one, ...).
@@ -60,8 +60,8 @@ class ClosedLoop:
         """State dimension."""
         return self.system.n
 
-    def with_certificate(self, lyapunov: nn.Module) -> ClosedLoop:
-        """The same system and controller with another certificate (e.g. a quadratic ``z^T P z``)."""
+    def with_lyapunov(self, lyapunov: nn.Module) -> ClosedLoop:
+        """The same system and controller with another Lyapunov function (e.g. a quadratic ``z^T P z``)."""
         return ClosedLoop(self.system, lyapunov, self.controller)
 
     # ------------------------------------------------------------------ copies

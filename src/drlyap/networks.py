@@ -1,4 +1,4 @@
-"""The certificate V and the controller pi, pinned at the equilibrium by construction.
+"""The Lyapunov function V and the controller pi, pinned at the equilibrium by construction.
 
 Both act on local coordinates ``z = x - x*`` (angles wrapped, see :mod:`drlyap.systems`)::
 

@@ -362,7 +362,7 @@ def decrease_map(system: UncertainSystem, grid: tuple[Tensor, Tensor, Tensor], r
         ax.set_xlabel(state_label(system, i))
         ax.set_ylabel(state_label(system, j))
         _note_slice(ax, system)
-    a.set_title("certificate V")
+    a.set_title("Lyapunov function V")
     where = "outside the delta-ball" if delta else ""
     top = float(finite.max()) if finite.numel() else float("nan")
     verdict = (f"decrease fails (> 0, outlined) on {100 * share:.2f}% of the grid {where}" if share > 0

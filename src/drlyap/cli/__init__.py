@@ -26,7 +26,7 @@ from drlyap.cli.common import setup_threads
 def main() -> None:
     """Distributionally robust neural controllers with Lyapunov certificates.
 
-    Train a controller pi and certificate V on an uncertain system from a few samples of its
+    Train a controller pi and Lyapunov function V on an uncertain system from a few samples of its
     parameters, then evaluate the closed loop on the true, shifted system.
     """
     setup_threads()

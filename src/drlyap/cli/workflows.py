@@ -112,13 +112,13 @@ def compare(run_dirs: tuple[Path, ...], xi: str, n_init: int, seed: int, horizon
 
     Per run: success rate; samples used in training (Lyapunov: model evaluations at training states,
     n_states x iterations with the default resampling; RL: environment steps; LQR: 0); training wall
-    time; and how often the certificate (V, z'Pz for LQR, the negated critic value for RL) increases
-    along successful trajectories (a step counts when it rises by more than 1e-4 of that trajectory's
+    time; and how often the Lyapunov function or its stand-in (V, z'Pz for LQR, the negated critic value for
+    RL) increases along successful trajectories (a step counts when it rises by more than 1e-4 of that trajectory's
     range; lower is better, 0 means monotone); and what each run proves on the true model at --xi,
     by the sound verifier over the whole region: the decrease condition (learned pairs with their
     own gamma, LQR's z'Pz with a scale-free decay alpha z'Pz; an RL policy's deterministic actor, or an imported
     controller without V, with the z'Pz of its linearisation, where x* is its equilibrium) and the certified region
-    of attraction (a sublevel set of the certificate from which every trajectory converges to x*).
+    of attraction (a sublevel set of that function from which every trajectory converges to x*).
     """
     refuse_early(runs=run_dirs, systems=[system_spec])
 

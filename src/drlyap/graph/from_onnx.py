@@ -165,7 +165,7 @@ class _Reader:
         if shape == (2, 1):
             return self.b.emit("squeeze", [out])
         if shape != (2,):
-            raise self.fail(f"a certificate V must output (batch,) or (batch, 1), got (batch, "
+            raise self.fail(f"a Lyapunov function V must output (batch,) or (batch, 1), got (batch, "
                             f"{', '.join(map(str, shape[1:]))})")
         return out
 

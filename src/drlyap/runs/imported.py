@@ -1,4 +1,4 @@
-"""Bring your own pair (``drlyap import``): a controller, and optionally a certificate V, from ONNX files for a
+"""Bring your own pair (``drlyap import``): a controller, and optionally a Lyapunov function V, from ONNX files for a
 system, held as graphs (:mod:`drlyap.graph`: data, run by an interpreter that also runs on enclosures), so that it
 gets the same proofs as a drlyap pair; and the closed loop of any controller that comes without a certificate
 (an imported one, an RL actor: :func:`rl_actor_graph`) with the quadratic V of its linearisation.

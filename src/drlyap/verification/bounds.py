@@ -60,7 +60,7 @@ def condition_objective(loop, condition: Condition) -> Objective:
 
 
 def value_objective(lyapunov) -> Objective:
-    """``z -> V(z)`` as ``(B, 1)`` for a certificate V (a network or a quadratic form)."""
+    """``z -> V(z)`` as ``(B, 1)`` for a Lyapunov function V (a network or a quadratic form)."""
     return lambda z: lyapunov(z).unsqueeze(-1)
 
 

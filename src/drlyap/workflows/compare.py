@@ -226,7 +226,7 @@ def _load(path, system, trust: bool) -> PolicyRun:
 
 def compare_figures(runs: Sequence[PolicyRun], shifts: Sequence[Tensor], folder: Path,
                     horizon: float | None = None, seed: int = 0) -> list[Path]:
-    """Like the paper's Figs. 3/4: certificate (V, z^T P z, or negated value) and input over time, one
+    """Like the paper's Figs. 3/4: Lyapunov function (V, z^T P z, or negated value) and input over time, one
     figure per start state of the first run's system (:meth:`UncertainSystem.figure_starts`: its reference states,
     else states drawn from its test box with ``seed``)."""
     folder.mkdir(parents=True, exist_ok=True)

@@ -110,7 +110,7 @@ def quadratic_roa(loop: ClosedLoop, condition: Condition, region: Region,
     # proved, and a P fitted to the widest cube it can be proved on; each W's region then searched beyond it
     cube_deadline = start + 0.5 * time_limit
     candidates = []
-    half, bound, reason = proved_cube(loop.with_certificate(QuadraticLyapunov(p_mean)), plain, half_box,
+    half, bound, reason = proved_cube(loop.with_lyapunov(QuadraticLyapunov(p_mean)), plain, half_box,
                                       1e-9 * float(half_box.max()), s)
     if half is not None:
         candidates.append(("Lyapunov equation", p_mean, half, bound))
@@ -220,7 +220,7 @@ def _quadratic_level(loop: ClosedLoop, plain: PlainDecrease, region: Region, p: 
     w = QuadraticLyapunov(p)
     r_in = float(proved_on.min())
     ring = PlainDecrease(plain.xi, 0.25 * abs(bound) / 2 * r_in, 0.0, plain.model)
-    w_roa = sublevel_roa(loop.with_certificate(w), ring, Region(region.lo, region.hi, r_in),
+    w_roa = sublevel_roa(loop.with_lyapunov(w), ring, Region(region.lo, region.hi, r_in),
                          replace(budget, seconds=max(1.0, time_limit - (time.perf_counter() - start)),
                                  min_width=resolving(budget.min_width, r_in, region)), samples_per_axis=50)
     c_q = c_box
