@@ -125,8 +125,8 @@ def test_loading_and_verifying_a_run_loads_nothing_of_the_trainer(tmp_path):
     run = handmade.linear_run_dir(tmp_path / "run", delta=0.5)
     spec = f"{Path(handmade.__file__)}:small_pendulum"
     code = ("import sys\nfrom drlyap.runs import load_run\nfrom drlyap.systems import resolve_system\n"
-            "from drlyap.workflows.verify import verify_run\n"
-            f"ver = verify_run(load_run({str(run)!r}, resolve_system({spec!r})))\nprint(ver.trained.status)\n"
+            "from drlyap.workflows.verify import verify\n"
+            f"ver = verify(load_run({str(run)!r}, resolve_system({spec!r})))\nprint(ver.trained.status)\n"
             "print(sorted(m for m in sys.modules if m.startswith('drlyap')))")
     done = subprocess.run([sys.executable, "-c", code], capture_output=True, text=True, check=True)
     status, modules = done.stdout.strip().splitlines()[-2:]

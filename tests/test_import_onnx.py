@@ -368,7 +368,7 @@ def test_an_imported_v_has_sound_values_and_gradients(tmp_path):
 def test_an_exported_region_of_attraction_pair_imports_with_its_run_s_claim_and_certifies_the_same(tmp_path):
     """The export of a run trained for a region of attraction carries its claim (decay, level, delta): the imported
     pair is proved on the same {V <= level} and certifies the same region; --roa-above-level lifts the cap for both."""
-    from drlyap.workflows.verify import verify_imported, verify_run
+    from drlyap.workflows.verify import verify, verify_imported
 
     system = get_system("pendulum")
     cfg = TrainConfig(system="pendulum", roa_level=1.0, warm_start="lqr", decay_rate=0.0, exp_rate=0.3, n_states=256,
@@ -386,7 +386,7 @@ def test_an_exported_region_of_attraction_pair_imports_with_its_run_s_claim_and_
     assert (pair.level, pair.delta, pair.decay_rate, pair.exp_rate) == (1.0, run.config.delta, 0.0, 0.3)
     xi = torch.tensor(system.test_xi, dtype=F64)
     proof = dataclasses.replace(run.proof or ProofConfig(), time_limit=20.0)
-    mine = verify_run(run, proof, xi=xi, roa=True, reprove=True)
+    mine = verify(run, proof, xi=xi, roa=True, reprove=True)
     theirs = verify_imported(pair, str(out), proof, xi=xi, roa=True)
     assert theirs.true_model.level == mine.true_model.level == 1.0
     assert theirs.true_model.status == mine.true_model.status
@@ -394,7 +394,7 @@ def test_an_exported_region_of_attraction_pair_imports_with_its_run_s_claim_and_
     assert mine.true_model.verified and mine.roa.limited_by == "level asked for" and 0.99 < mine.roa.level <= 1.0
     assert theirs.roa.level == mine.roa.level and theirs.roa.share_of_box == mine.roa.share_of_box
     above = verify_imported(pair, str(out), proof, xi=xi, roa=True, above_level=True)
-    run_above = verify_run(run, proof, xi=xi, roa=True, above_level=True)
+    run_above = verify(run, proof, xi=xi, roa=True, above_level=True)
     assert above.roa.level == run_above.roa.level > mine.roa.level  # this pair's decrease reaches past its level
     assert above.roa.share_of_box == run_above.roa.share_of_box > mine.roa.share_of_box
     print(f"run and import: level {mine.roa.level}, {mine.roa.share_of_box}; above it: {above.roa.level}, "

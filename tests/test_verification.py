@@ -343,15 +343,15 @@ def test_cli_verify_on_a_run_directory(tmp_path, tiny_config):
         assert "violated" not in (both["trained"]["status"], data["trained"]["status"])
 
 
-def test_verify_run_on_a_uniform_run_reports_the_margin(tmp_path, tiny_config):
+def test_verify_on_a_uniform_run_reports_the_margin(tmp_path, tiny_config):
     from drlyap.io import jsonable
     from drlyap.runs import load_run, save_run
     from drlyap.verification import ProofConfig, UniformMargin
-    from drlyap.workflows.verify import verify_run
+    from drlyap.workflows.verify import verify
 
     result = plain_train(tiny_config(iters=5, check_every=5, loss="uniform"), progress=False)
     save_run(tmp_path / "uni", result)
-    out = verify_run(load_run(tmp_path / "uni"), ProofConfig(time_limit=2, uniform_time=1), roa=True)
+    out = verify(load_run(tmp_path / "uni"), ProofConfig(time_limit=2, uniform_time=1), roa=True)
     assert out.trained == out.uniform and isinstance(out.trained, UniformMargin)
     assert out.trained.margin_lower <= out.trained.margin_upper
     assert out.roa.error is not None and out.status in ("verified", "violated", "unknown")

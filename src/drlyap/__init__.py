@@ -38,11 +38,10 @@ _API = {
     "Run": "drlyap.runs", "RunDirError": "drlyap.runs", "load_run": "drlyap.runs", "save_run": "drlyap.runs",
     "check_writable": "drlyap.runs",
     "evaluate": "drlyap.simulation", "simulate": "drlyap.simulation",
-    "load_policy_run": "drlyap.workflows.policies",
+    "load_policy_run": "drlyap.workflows.policies", "verify": "drlyap.workflows.verify",
 }
-_ALIASES = {"verify": ("drlyap.workflows.verify", "verify_run")}
 
-__all__ = sorted([*_API, *_ALIASES, "set_threads"])
+__all__ = sorted([*_API, "set_threads"])
 
 _threads_set = False
 
@@ -64,9 +63,7 @@ def set_threads(count: int | None = None) -> int:
 
 
 def __getattr__(name: str):
-    if name in _ALIASES:
-        module, attr = _ALIASES[name]
-    elif name in _API:
+    if name in _API:
         module, attr = _API[name], name
     else:
         raise AttributeError(f"module 'drlyap' has no attribute {name!r}")

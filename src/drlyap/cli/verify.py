@@ -91,7 +91,9 @@ def verify(run_dir: Path, delta: float | None, xi: str | None, time_limit: float
         run_checkpoints,
         run_proof,
         run_robustness,
-        verify_run,
+    )
+    from drlyap.workflows.verify import (
+        verify as prove_run,
     )
 
     try:
@@ -114,7 +116,7 @@ def verify(run_dir: Path, delta: float | None, xi: str | None, time_limit: float
             settings = dataclasses.replace(settings, time_limit=time_limit)
         settings = run_proof(run, settings)
         shift = None if xi is None else run.system.check_xi(floats(xi, "--xi"))
-        result = verify_run(run, settings, delta=delta, xi=shift, roa=roa, uniform=uniform, reprove=reprove,
+        result = prove_run(run, settings, delta=delta, xi=shift, roa=roa, uniform=uniform, reprove=reprove,
                             above_level=roa_above_level)
         stored = None
         if roa:

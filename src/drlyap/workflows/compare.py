@@ -43,7 +43,7 @@ from drlyap.verification import (
     verify_condition,
 )
 from drlyap.workflows.policies import load_policy_run
-from drlyap.workflows.verify import run_proof, run_robustness, verify_run
+from drlyap.workflows.verify import run_proof, run_robustness, verify
 
 
 def monotonicity(system: UncertainSystem, x: Tensor, values: Tensor, success: Tensor, rel_tol: float = 1e-4) -> dict:
@@ -94,7 +94,7 @@ def certify(run: PolicyRun, xi: Tensor, time_limit: float, compute: Compute = Co
     the decrease condition and the largest certified sublevel set (region of attraction).
 
     Lyapunov pairs: ``Vdot + gamma||z|| (+ alpha V) <= 0`` with the run's own gamma and delta
-    (:func:`drlyap.workflows.verify.verify_run`). LQR: ``d/dt z'Pz + alpha z'Pz <= 0``, a decay that does not
+    (:func:`drlyap.workflows.verify.verify`). LQR: ``d/dt z'Pz + alpha z'Pz <= 0``, a decay that does not
     depend on the scale of P, with alpha half the rate ``lambda_min(Q + K'RK) / lambda_max(P)`` that the
     linearisation guarantees, and the system's default delta (:func:`certify_loop`). Imported pairs
     (``drlyap import``): their V from ONNX with the system's default gamma and alpha, or the quadratic V of the
@@ -112,7 +112,7 @@ def certify(run: PolicyRun, xi: Tensor, time_limit: float, compute: Compute = Co
     if run.kind == "lyapunov":
         lyap_run = run.info["run"]
         settings = run_proof(lyap_run, replace(lyap_run.proof or ProofConfig(), time_limit=time_limit).with_compute(compute))
-        result = verify_run(lyap_run, settings, xi=xi, roa=True)
+        result = verify(lyap_run, settings, xi=xi, roa=True)
         roa = result.roa
         robust = run_robustness(lyap_run, budget=search, total_time=4 * time_limit, trained=result.trained)
         main = result.main

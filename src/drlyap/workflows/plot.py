@@ -20,7 +20,7 @@ from drlyap.render import region_label
 from drlyap.runs import Run, load_run
 from drlyap.simulation import Trajectories, initial_states, simulate, success_mask
 from drlyap.verification import RegionOfAttraction
-from drlyap.workflows.verify import run_proof, verify_run
+from drlyap.workflows.verify import run_proof, verify
 
 
 def region_to_draw(run: Run, roa: RegionOfAttraction | None) -> dict | None:
@@ -51,7 +51,7 @@ def plot_run(run_dir: str | os.PathLike, xi: Sequence[float] | None = None, n_in
 
     ``xi``: the shift of the true model (default: the system's test shift, or the nominal model); ``horizon``:
     simulated time (default: the system's). ``system``, ``trust``: as :func:`drlyap.runs.load_run`.
-    ``roa``: True computes the certified sublevel set now (:func:`drlyap.verification.verify_run` at ``xi``),
+    ``roa``: True computes the certified sublevel set now (:func:`drlyap.verification.verify` at ``xi``),
     False draws none, None uses ``metrics["certificate"]["roa"]`` when the run has one.
     Returns ``{"run_dir", "xi", "n", "n_success", "region", "figures": [paths]}``.
     """
@@ -68,7 +68,7 @@ def plot_run(run_dir: str | os.PathLike, xi: Sequence[float] | None = None, n_in
 
     if roa:
         proof = replace(run_proof(run), time_limit=time_limit, roa_time=time_limit)
-        found = verify_run(run, proof, xi=shift, roa=True).roa
+        found = verify(run, proof, xi=shift, roa=True).roa
         missing = found.error or "the verifier certified no sublevel set of V (level <= 0)"
         if found.error is not None:
             found = None

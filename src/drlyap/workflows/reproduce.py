@@ -25,7 +25,8 @@ from drlyap.systems import UncertainSystem, resolve_system, system_source
 from drlyap.training import TrainConfig, train
 from drlyap.verification import ProofConfig
 from drlyap.workflows.plot import region_to_draw
-from drlyap.workflows.verify import record_certificates, record_region, record_roa, verify_run
+from drlyap.workflows.verify import record_certificates, record_region, record_roa
+from drlyap.workflows.verify import verify as prove_run
 
 METHODS = (Method.BASELINE, Method.DR)
 SWEEP = (1, 2, 3, 4, 5)  # evaluation shifts, as multiples of the paper's test shift
@@ -57,7 +58,7 @@ def reproduce(system: str | UncertainSystem, seeds: Sequence[int], out: Path, it
     per-seed, per-method results and the paths of the figures. Both pairs are trained as :func:`drlyap.train` does:
     with ``verify``, counterexample-guided rounds (at most ``verify_rounds``) until the verifier proves their trained
     condition; then each pair's decrease on the true model at the test shift and its certified region of attraction
-    there are proved (:func:`drlyap.workflows.verify.verify_run`, ``verify_time`` seconds per check, three times that
+    there are proved (:func:`drlyap.workflows.verify.verify`, ``verify_time`` seconds per check, three times that
     for the region; None: the run's seconds per proof, 30 or the system's) and stored in its
     ``metrics["certificate"]``. ``verify_time`` also caps the seconds of each proof of the training rounds (None:
     the system's cap; they are budgeted by boxes).
@@ -104,7 +105,7 @@ def reproduce(system: str | UncertainSystem, seeds: Sequence[int], out: Path, it
                 if verify:  # what the pair proves on the true model at the test shift (the figures draw its region)
                     checks = (run.proof if verify_time is None else replace(run.proof, time_limit=verify_time)
                               ).with_compute(compute)
-                    ver = verify_run(run, checks, xi=xi_test, roa=True)
+                    ver = prove_run(run, checks, xi=xi_test, roa=True)
                     record_region(run, ver)
                     record_certificates(run, ver)  # the proofs that ended verified, re-checkable by drlyap check
                     record_roa(run, ver, checks)

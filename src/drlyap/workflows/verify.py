@@ -1,5 +1,5 @@
 """Proving what a run directory holds: its trained condition, the uniform DR margin, the decrease on the true model
-at a shift, its certified region of attraction (:func:`verify_run`), its robustness (:func:`run_robustness`) and
+at a shift, its certified region of attraction (:func:`verify`), its robustness (:func:`run_robustness`) and
 the Lipschitz covering check (:func:`run_covering`). The proofs themselves are :mod:`drlyap.verification`'s; this
 module picks the run's conditions, region and proof settings."""
 
@@ -116,7 +116,7 @@ def confirmed_certificate(run: Run, name: str, condition, region: Region, level:
                           source="certificate", checked_at=when)
 
 
-def verify_run(run: Run, proof: ProofConfig | None = None, *, delta: float | None = None,
+def verify(run: Run, proof: ProofConfig | None = None, *, delta: float | None = None,
                xi: Sequence[float] | Tensor | None = None, roa: bool = False, uniform: bool = False,
                reprove: bool = False, above_level: bool = False) -> RunVerification:
     """Verify a loaded run (:func:`drlyap.runs.load_run`) on X_delta (``delta``: the run's by default).

@@ -3,7 +3,7 @@
 1. trains the pair as ``drlyap train`` does (:func:`drlyap.train`: counterexample-guided rounds until the trained
    condition is proved, at most ``verify_rounds``; ``verify=False`` skips them);
 2. saves it as a run directory (:func:`drlyap.runs.save_run`) in a staging folder;
-3. verifies it (:func:`drlyap.workflows.verify.verify_run` at the system's test shift with ``roa=True``): the
+3. verifies it (:func:`drlyap.workflows.verify.verify` at the system's test shift with ``roa=True``): the
    trained condition over X_delta, the plain decrease on the true model at the test shift, and the certified region
    of attraction there;
 4. evaluates it on the true model at k x the test shift (:func:`drlyap.workflows.reproduce.evaluate_run`) from the
@@ -34,7 +34,7 @@ from drlyap.training import train
 from drlyap.verification import ProofConfig, RunVerification
 from drlyap.workflows.reproduce import evaluate_run, test_initial_states
 from drlyap.workflows.sweep.grid import RESULT_FILE, STAGING, Combination, SweepSpec
-from drlyap.workflows.verify import verify_run
+from drlyap.workflows.verify import verify
 
 
 def verification_row(ver: RunVerification) -> dict:
@@ -92,7 +92,7 @@ def run_combination(spec_dict: dict, combo_dict: dict, out: str, threads: int = 
         row.update({"passed_acceptance": record.passed, "iterations": record.iterations,
                     "train_time_s": record.total_time_s,
                     "violating_fraction": float(record.acceptance.violating_fraction)})
-        ver = verify_run(run, ProofConfig(time_limit=spec.verify_time_limit), xi=xi_test, roa=True)
+        ver = verify(run, ProofConfig(time_limit=spec.verify_time_limit), xi=xi_test, roa=True)
         row.update(verification_row(ver))
         _, x0 = test_initial_states(system, combo.seed, n_more=spec.n_init)
         success = {}
