@@ -313,19 +313,9 @@ def test_verify_writes_and_check_re_checks_a_run(tmp_path):
     from click.testing import CliRunner
 
     from drlyap.cli import main
-    from drlyap.runs import save_run
-    from drlyap.training import TrainConfig
-    from handmade import plain_train
+    from handmade import linear_run_dir
 
-    system = small_pendulum()
-    cfg = TrainConfig(system="small-pendulum", method="dr", n_states=64, iters=1, check_every=1, lyapunov_hidden=[2],
-                      lyapunov_out=2, controller_hidden=[1], alpha_hat=1e-3, decay_rate=0.05, wasserstein_radius=0.01,
-                      risk_level=0.3, delta=0.1, xi_samples=[[0.02, 0.01], [-0.03, 0.0], [0.05, -0.02]], seed=0)
-    result = plain_train(cfg, system, progress=False)
-    lyap, ctrl = linear_pair(system)
-    result.lyapunov.load_state_dict(lyap.state_dict())
-    result.controller.load_state_dict(ctrl.state_dict())
-    run = save_run(tmp_path / "run", result)
+    run = linear_run_dir(tmp_path / "run")
     spec = f"{Path(__file__).parent / 'handmade.py'}:small_pendulum"
     runner = CliRunner()
     out = runner.invoke(main, ["verify", str(run), "--system", spec, "--xi", "0.1,0.05"])

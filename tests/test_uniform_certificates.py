@@ -16,7 +16,7 @@ from drlyap.conditions import DRUniform
 from drlyap.regions import Region
 from drlyap.runs.certificates import condition_claim, read_certificate, sha256_file, system_digest, write_certificate
 from drlyap.verification import Budget, uniform_margin
-from handmade import linear_pair, small_pendulum
+from handmade import linear_pair, linear_run_dir, small_pendulum
 
 F64 = torch.float64
 XI = torch.tensor([[0.0, 0.0], [0.05, 0.01], [-0.03, 0.02]], dtype=F64)
@@ -112,19 +112,8 @@ def test_verify_uniform_writes_a_certificate_that_check_confirms(tmp_path):
     from click.testing import CliRunner
 
     from drlyap.cli import main
-    from drlyap.runs import save_run
-    from drlyap.training import TrainConfig
-    from handmade import plain_train
 
-    system = small_pendulum()
-    cfg = TrainConfig(system="small-pendulum", method="dr", n_states=64, iters=1, check_every=1, lyapunov_hidden=[2],
-                      lyapunov_out=2, controller_hidden=[1], alpha_hat=1e-3, decay_rate=0.05, wasserstein_radius=1e-4,
-                      risk_level=0.1, delta=0.2, xi_samples=XI.tolist(), seed=0)
-    result = plain_train(cfg, system, progress=False)
-    lyap, ctrl = linear_pair(system)
-    result.lyapunov.load_state_dict(lyap.state_dict())
-    result.controller.load_state_dict(ctrl.state_dict())
-    run = save_run(tmp_path / "run", result)
+    run = linear_run_dir(tmp_path / "run", delta=0.2, wasserstein_radius=1e-4, risk_level=0.1, xi_samples=XI.tolist())
     spec = f"{Path(__file__).parent / 'handmade.py'}:small_pendulum"
     runner = CliRunner()
     out = runner.invoke(main, ["verify", str(run), "--system", spec, "--uniform"])
@@ -140,30 +129,22 @@ def test_verify_uniform_writes_a_certificate_that_check_confirms(tmp_path):
 
 
 def test_a_run_trained_on_the_uniform_condition_keeps_its_margin_as_the_trained_certificate(tmp_path):
+    from click.testing import CliRunner
+
     from drlyap.checker import check_run
-    from drlyap.runs import save_run
-    from drlyap.training import TrainConfig
-    from handmade import plain_train
+    from drlyap.cli import main
 
     system = small_pendulum()
-    cfg = TrainConfig(system="small-pendulum", method="dr", loss="uniform", n_states=64, iters=1, check_every=1,
-                      lyapunov_hidden=[2], lyapunov_out=2, controller_hidden=[1], alpha_hat=1e-3, decay_rate=0.05,
-                      wasserstein_radius=1e-4, risk_level=0.1, delta=0.2, xi_samples=XI.tolist(), seed=0)
-    result = plain_train(cfg, system, progress=False)
-    lyap, ctrl = linear_pair(system)
-    result.lyapunov.load_state_dict(lyap.state_dict())
-    result.controller.load_state_dict(ctrl.state_dict())
-    result.trained_proof = uniform_margin(ClosedLoop(system, result.lyapunov, result.controller), result.condition,
-                                          Region.of(system, 0.2), Budget(seconds=1e9, boxes=200_000),
-                                          keep_partition=True)
-    run = save_run(tmp_path / "run", result)
+
+    def prove(result):
+        return uniform_margin(ClosedLoop(system, result.lyapunov, result.controller), result.condition,
+                              Region.of(system, 0.2), Budget(seconds=1e9, boxes=200_000), keep_partition=True)
+
+    run = linear_run_dir(tmp_path / "run", delta=0.2, prove=prove, loss="uniform", wasserstein_radius=1e-4,
+                         risk_level=0.1, xi_samples=XI.tolist())
     assert (run / "certificates" / "trained.json").is_file()
     [checked] = check_run(run, system, names=["trained"])
     assert checked.ok, checked.failures
-    from click.testing import CliRunner
-
-    from drlyap.cli import main
-
     spec = f"{Path(__file__).parent / 'handmade.py'}:small_pendulum"
     out = CliRunner().invoke(main, ["verify", str(run), "--system", spec])
     assert out.exit_code == 0, out.output
