@@ -193,9 +193,13 @@ def _by_forms(residual: Residual, lo: Tensor, hi: Tensor, level: float | None) -
 
 
 def _by_mean_value(residual: Residual, lo: Tensor, hi: Tensor, level: float | None) -> Tensor:
-    """``(B,)``: boxes proved by the interval and mean-value bounds."""
+    """``(B,)``: boxes proved by the interval and mean-value bounds (with a level, V's lower bound is asked only of
+    the boxes the residual's bound leaves)."""
     good = upper_bounds(residual, lo, hi) <= 0
-    return good | (value_lower(residual.pair, lo, hi) > level) if level is not None else good
+    rest = (~good).nonzero().squeeze(-1)
+    if level is not None and rest.numel():
+        good[rest] = value_lower(residual.pair, lo[rest], hi[rest]) > level
+    return good
 
 
 def _holds(residual: Residual, lo: Tensor, hi: Tensor, level: float | None, batch: int,
