@@ -10,7 +10,8 @@ repairing what it broke, and keeps the latest pair that passes. A diverging loss
 the last good weights and says so.
 
 :func:`fit` reads the config through its sections (:class:`~drlyap.sections.TrainSections`); the states it trains on
-are :mod:`drlyap.training.states`', the LQR warm start is :mod:`drlyap.training.warm_start`'s.
+are drawn by :mod:`drlyap.training.states`, the LQR warm start is in :mod:`drlyap.training.warm_start`, and the
+acceptance checks and the pair kept are :mod:`drlyap.training.acceptance`'s.
 """
 
 from __future__ import annotations
