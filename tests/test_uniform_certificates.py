@@ -150,3 +150,37 @@ def test_a_run_trained_on_the_uniform_condition_keeps_its_margin_as_the_trained_
     assert out.exit_code == 0, out.output
     assert "trained condition (DR uniform): VERIFIED; margin in [" in out.output
     assert "certificates/trained.json" in out.output
+
+
+def test_the_margin_says_where_its_suprema_lie(margin):
+    """``attained_at``: the states at which each component's lower bound was found; the components there are those
+    lower bounds."""
+    loop, condition, found = margin["loop"], margin["condition"], margin["margin"]
+    at = torch.tensor(found.attained_at, dtype=F64)
+    assert at.shape == (1 + XI.shape[0], 2) and bool(margin["region"].in_region(at).all())
+    values = condition.components(condition.terms(loop.f64, at)).detach().diagonal()
+    lower = torch.tensor([found.lipschitz_sup[0]] + [h[0] for h in found.h_sup], dtype=F64)
+    assert torch.allclose(values, lower, rtol=1e-9, atol=1e-12)
+
+
+def test_training_on_the_uniform_condition_has_proof_rounds_on_its_suprema(tiny_config):
+    """A uniform run's rounds bound its margin and retrain on the states where the suprema lie; the returned pair's
+    verdict is its round's margin, and every round's line reads."""
+    import drlyap
+    from drlyap.config import ProofConfig
+    from drlyap.records import TrainingRecord
+    from drlyap.render import proof_round_line
+
+    lines = []
+    result = drlyap.train(tiny_config(loss="uniform", iters=10, check_every=10),
+                          proof=ProofConfig(rounds=1, time_limit=2.0, iters_per_round=5), progress=False, warn=False,
+                          log=lambda entry: lines.append(proof_round_line(entry)))
+    record = TrainingRecord.from_metrics(result.metrics)
+    first = record.rounds[0]
+    assert first.verification["condition"] == "DR uniform" and first.verified_fraction is None
+    assert lines[0].startswith("  proof round 0: ") and "margin in [" in lines[0]
+    assert not first.verified and len(record.rounds) == 2  # ten iterations do not prove it: one retraining round
+    assert first.added["peaks_added"] == 1 + len(result.metrics["xi_train"])
+    assert "states where its suprema lie" in lines[0]
+    assert record.final_proof["condition"] == "DR uniform"
+    assert result.metrics["certificate"]["status"] == record.final_proof["status"]

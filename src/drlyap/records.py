@@ -79,7 +79,8 @@ class ProofRound:
     """One proof round of counterexample-guided training (:func:`drlyap.training.train_cegis`).
 
     ``round``: 0 for the first training's pair, then one per retraining. ``verification``: the round's proof as
-    ``ConditionProof.summary()`` writes it, with its ``verified``, ``status`` and ``verified_fraction``;
+    ``ConditionProof.summary()`` writes it (for the DR uniform condition its margin, ``UniformMargin.to_dict()``),
+    with its ``verified``, ``status`` and ``verified_fraction`` (None for the uniform margin);
     ``verify_time_s``, ``train_time_s`` (of the training before it) and ``train_iterations``; ``acceptance_passed``:
     that training's acceptance check. ``stopped``: why no retraining followed where that was the time budget. For a
     round followed by retraining, ``added``: how many states its falsifier added (``counterexamples_added``,
@@ -92,7 +93,7 @@ class ProofRound:
     verification: dict
     verified: bool
     status: str
-    verified_fraction: float
+    verified_fraction: float | None
     verify_time_s: float
     train_time_s: float
     train_iterations: int

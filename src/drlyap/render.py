@@ -89,7 +89,15 @@ def training_lines(system: str, method: str, record: TrainingRecord) -> list[str
 
 
 def proof_round_line(entry: ProofRound) -> str:
-    """One line per proof round of counterexample-guided training."""
+    """One line per proof round of counterexample-guided training (or of the DR uniform margin's rounds)."""
+    if entry.verified_fraction is None:  # the DR uniform condition's margin
+        m = UniformMargin.from_dict(entry.verification)
+        line = (f"  proof round {entry.round}: {m.status.upper()}, margin in [{_num(m.margin_lower)}, "
+                f"{_num(m.margin_upper)}] ({m.boxes_processed:,} boxes, {m.time_s:.2f} s)")
+        if entry.added:
+            line += (f"; retraining with the {entry.added['peaks_added']} states where its suprema lie "
+                     f"(+{entry.added['neighbours_added']} neighbours)")
+        return line
     v = ConditionProof.from_dict(entry.verification)
     capped = ", stopped by its time cap: the pair may differ on a faster machine" if v.stopped == "time limit" else ""
     line = (f"  proof round {entry.round}: {v.status.upper()}, {proved_share(v)} of X_delta proved "

@@ -27,13 +27,19 @@ All of these settings are a :class:`~drlyap.verification.ProofConfig`. The pair 
 the largest verified fraction), so a round that makes things worse does not lose a better earlier pair.
 ``metrics["cegis"]`` records every round (the branch and bound's verdicts) and, as ``final``, the returned pair's
 proof, an ``unknown`` one settled by the falsifier (:func:`~drlyap.verification.falsifier.settle_unknown`:
-``violated`` where a violation is certain). Only per-state conditions are retrained on (DR pointwise and the
-baseline's nominal condition); the uniform DR condition is bounded once.
+``violated`` where a violation is certain).
+
+The DR uniform condition has no per-state residual to falsify; :func:`train` gives it proof rounds of the same
+shape: each round bounds its margin over X_delta (:func:`~drlyap.verification.uniform_margin`), and a round that
+does not prove it adds the states where the margin's suprema were found (``UniformMargin.attained_at``: the
+largest ``||W^T grad V||`` and each sample's largest ``Vdot + decay``) with ``neighbours`` jittered copies each;
+the best pair is the one with the smallest margin after a proof and the acceptance check.
 """
 
 from __future__ import annotations
 
 import dataclasses
+import math
 import time
 import warnings
 
@@ -129,18 +135,95 @@ def train_cegis(cfg: TrainConfig, system: UncertainSystem, proof: ProofConfig, p
                          log)
 
 
+class _Counterexamples:
+    """Proof rounds of a per-state condition: the branch and bound on the trained condition, and for retraining the
+    falsifier's counterexamples, their neighbours and the unproved boxes' centres (:func:`collect_counterexamples`);
+    the returned pair's verdict settled by the falsifier where the proof is ``unknown``."""
+
+    def __init__(self, result: TrainResult, proof: ProofConfig, budget: Budget, region: Region) -> None:
+        cfg = result.config
+        self.condition, self.proof, self.budget, self.region, self.level = (result.condition, proof, budget, region,
+                                                                            cfg.roa_level)
+        self.near = bool(cfg.near_share)
+        self.n_random = proof.falsifier_starts if proof.falsifier_starts is not None else (2048 if self.near else 512)
+        self.seed = cfg.seed
+
+    def prove(self, loop: ClosedLoop) -> ConditionProof:
+        return prove_trained(loop, self.condition, self.region, self.budget, self.level,
+                             keep_boxes=self.proof.keep_boxes, falsify_starts=0,  # its own falsifier below
+                             stop_at_counterexample=bool(self.proof.stop_at_counterexample))
+
+    def summary(self, verdict: ConditionProof) -> dict:
+        return verdict.summary()
+
+    def rank(self, verdict: ConditionProof) -> tuple:
+        """After a proof and the acceptance check: a larger proved share, then a smaller counterexample."""
+        return verdict.verified_fraction, -(verdict.counterexample_value or 0.0)
+
+    def states(self, loop: ClosedLoop, verdict: ConditionProof, gen: torch.Generator, entry: ProofRound) -> Tensor:
+        """New retraining states (box centres, neighbours, counterexamples: the counterexamples last); their counts
+        go into ``entry``."""
+        proof = self.proof
+        found = collect_counterexamples(loop, self.condition, self.region, verdict, gen, n_random=self.n_random,
+                                        max_boxes=proof.keep_boxes, steps=proof.falsifier_steps,
+                                        neighbours=proof.neighbours, level=self.level, near=self.near)
+        entry.added = {"counterexamples_added": int(found["counterexamples"].shape[0]),
+                       "neighbours_added": int(found["neighbours"].shape[0]),
+                       "box_centres_added": int(found["box_centres"].shape[0]),
+                       "falsifier_max_residual": found["max_residual"], "falsify_time_s": found["falsify_time_s"]}
+        entry.counterexamples = found["counterexamples"]
+        return torch.cat([found["box_centres"], found["neighbours"], found["counterexamples"]])
+
+    def settle(self, entry: ProofRound, loop: ClosedLoop, verdict: ConditionProof) -> ConditionProof:
+        """The returned pair's verdict: an unknown proof becomes violated where the falsifier finds a certain
+        violation."""
+        return settle_unknown(ConditionProof.from_dict(entry.verification), loop, self.condition, self.region,
+                              self.level, starts=self.proof.settle_starts, seed=self.seed)
+
+
+class _MarginPeaks:
+    """Proof rounds of the DR uniform condition: its margin over X_delta (:func:`~drlyap.verification.uniform_margin`,
+    keeping its boxes), and for retraining the states where each component's supremum was found
+    (``UniformMargin.attained_at``) with ``neighbours`` jittered copies each: the margin is made of those suprema."""
+
+    def __init__(self, result: TrainResult, proof: ProofConfig, budget: Budget, region: Region) -> None:
+        self.condition, self.proof, self.budget, self.region = result.condition, proof, budget, region
+
+    def prove(self, loop: ClosedLoop) -> UniformMargin:
+        return uniform_margin(loop, self.condition, self.region, self.budget, keep_partition=True)
+
+    def summary(self, verdict: UniformMargin) -> dict:
+        return verdict.to_dict()
+
+    def rank(self, verdict: UniformMargin) -> tuple:
+        """After a proof and the acceptance check: a smaller margin."""
+        return (-(verdict.margin_upper if verdict.margin_upper is not None else math.inf),)
+
+    def states(self, loop: ClosedLoop, verdict: UniformMargin, gen: torch.Generator, entry: ProofRound) -> Tensor:
+        """The states where the components' suprema were found, and ``neighbours`` jittered copies of each."""
+        peaks = torch.as_tensor(verdict.attained_at or [], dtype=F64).reshape(-1, self.region.n)
+        copies = int(self.proof.neighbours)
+        noise = 0.01 * self.region.scale * torch.randn(peaks.shape[0] * copies, self.region.n, generator=gen,
+                                                        dtype=F64)
+        near = self.region.project(peaks.repeat(copies, 1) + noise)
+        entry.added = {"peaks_added": int(peaks.shape[0]), "neighbours_added": int(near.shape[0])}
+        return torch.cat([near, peaks])
+
+    def settle(self, entry: ProofRound, loop: ClosedLoop, verdict: UniformMargin) -> UniformMargin:
+        return verdict
+
+
 def _proof_rounds(result: TrainResult, proof: ProofConfig, budget: Budget, start: float, progress: bool,
                   log) -> tuple[TrainResult, list[ProofRound]]:
     """:func:`train_cegis` from its first fit ``result`` on, each proof with the ``budget`` (``start``: when that fit
-    started, by ``time.perf_counter``)."""
+    started, by ``time.perf_counter``): per-state conditions by :class:`_Counterexamples`, the DR uniform condition
+    by :class:`_MarginPeaks`."""
     system = result.system
     rounds, time_budget = int(proof.rounds), proof.total_time
     base_cfg = result.config
-    condition = result.condition
     iters_round = int(proof.iters_per_round if proof.iters_per_round is not None else max(1, base_cfg.iters // 2))
     region = Region.of(system, float(base_cfg.delta))
-    near = bool(base_cfg.near_share)
-    n_random = proof.falsifier_starts if proof.falsifier_starts is not None else (2048 if near else 512)
+    kind = (_Counterexamples if result.condition.per_state else _MarginPeaks)(result, proof, budget, region)
     gen = torch.Generator().manual_seed(base_cfg.seed + 7919)
     extra = torch.empty(0, system.n, dtype=F64)
     done: list[ProofRound] = []
@@ -150,19 +233,16 @@ def _proof_rounds(result: TrainResult, proof: ProofConfig, budget: Budget, start
     train_time = time.perf_counter() - start
     for r in range(rounds + 1):
         tic = time.perf_counter()
-        ver = prove_trained(result.loop, condition, region, budget, base_cfg.roa_level, keep_boxes=proof.keep_boxes,
-                            falsify_starts=0,  # its own falsifier below
-                            stop_at_counterexample=bool(proof.stop_at_counterexample))
+        ver = kind.prove(result.loop)
         trained = result.record
-        entry = ProofRound(round=r, verification=ver.summary(), verified=ver.verified, status=ver.status,
+        entry = ProofRound(round=r, verification=kind.summary(ver), verified=ver.verified, status=ver.status,
                            verified_fraction=ver.verified_fraction, verify_time_s=time.perf_counter() - tic,
                            train_time_s=train_time, train_iterations=trained.iterations,
                            acceptance_passed=trained.passed)
         # a proof first; among unproved pairs, one that passes the acceptance check (Hurwitz at x*, no other
         # equilibrium) before a larger proved share: retraining on counterexamples of an infeasible condition
         # can trade stability for area (measured on pendulum-u9: 0/200 stabilised instead of 170/200)
-        score = (entry.verified, *trained.acceptance.stability(), ver.verified_fraction,
-                 -(ver.counterexample_value or 0.0))
+        score = (entry.verified, *trained.acceptance.stability(), *kind.rank(ver))
         if best is None or score > best[0]:
             best = (score, result, r, list(history), ver)
         out_of_time = time_budget is not None and time.perf_counter() - start > time_budget
@@ -173,10 +253,9 @@ def _proof_rounds(result: TrainResult, proof: ProofConfig, budget: Budget, start
             if log is not None:
                 log(entry)
             break
-        found = collect_counterexamples(result.loop, condition, region, ver, gen, n_random=n_random,
-                                        max_boxes=proof.keep_boxes, steps=proof.falsifier_steps,
-                                        neighbours=proof.neighbours, level=base_cfg.roa_level, near=near)
-        extra = _add_states(extra, found, region, int(proof.max_extra), entry)
+        new = kind.states(result.loop, ver, gen, entry)
+        extra = region.distinct(torch.cat([extra, new]))[-int(proof.max_extra):]  # the newest kept
+        entry.added["extra_states"] = int(extra.shape[0])
         done.append(entry)
         if log is not None:
             log(entry)
@@ -191,9 +270,7 @@ def _proof_rounds(result: TrainResult, proof: ProofConfig, budget: Budget, start
     _, chosen, chosen_round, chosen_history, chosen_proof = best
     metrics = dict(chosen.metrics)
     final = done[chosen_round] if chosen_round < len(done) else done[-1]
-    # the returned pair's verdict: an unknown proof becomes violated where the falsifier finds a certain violation
-    verdict = settle_unknown(ConditionProof.from_dict(final.verification), chosen.loop, condition, region,
-                             base_cfg.roa_level, starts=proof.settle_starts, seed=base_cfg.seed)
+    verdict = kind.settle(final, chosen.loop, chosen_proof)
     metrics["cegis"] = jsonable({
         "rounds": [e.to_dict() for e in done],
         "final": verdict.to_dict(),
@@ -205,21 +282,6 @@ def _proof_rounds(result: TrainResult, proof: ProofConfig, budget: Budget, start
     out = dataclasses.replace(chosen, config=base_cfg, metrics=metrics, history=chosen_history,
                               trained_proof=chosen_proof if chosen_proof.verified else None)
     return out, done
-
-
-def _add_states(extra: Tensor, found: dict, region: Region, cap: int, entry: ProofRound) -> Tensor:
-    """The retraining states ``extra (E, n)`` with what a round's falsifier ``found`` (box centres, neighbours,
-    counterexamples: newest last, the counterexamples at the very end, so that the ``cap`` keeps the tail), without
-    near-duplicates; the counts and the counterexamples go into the round's ``entry``."""
-    new = torch.cat([found["box_centres"], found["neighbours"], found["counterexamples"]])
-    extra = region.distinct(torch.cat([extra, new]))[-cap:]
-    entry.added = {"counterexamples_added": int(found["counterexamples"].shape[0]),
-                   "neighbours_added": int(found["neighbours"].shape[0]),
-                   "box_centres_added": int(found["box_centres"].shape[0]),
-                   "falsifier_max_residual": found["max_residual"], "falsify_time_s": found["falsify_time_s"],
-                   "extra_states": int(extra.shape[0])}
-    entry.counterexamples = found["counterexamples"]
-    return extra
 
 
 def _continued(history: list[dict], iterations: int, seconds: float) -> list[dict]:
@@ -252,9 +314,9 @@ def train(config: TrainConfig, system: UncertainSystem | None = None, proof: Pro
 
     ``system``: the system object (default: the registered one ``config.system`` names). ``config`` and ``proof``
     are resolved for it here, once. ``proof``: the proof settings (:class:`~drlyap.verification.ProofConfig`);
-    None trains without proving. Per-state conditions (baseline, DR pointwise) run :func:`train_cegis`; the uniform
-    DR condition is bounded once (:func:`~drlyap.verification.uniform_margin`, no per-state residual to retrain
-    on). ``metrics["certificate"]`` records the verdict (:class:`~drlyap.verification.Certificate`); with ``warn``
+    None trains without proving. Per-state conditions (baseline, DR pointwise) run the rounds of
+    :func:`train_cegis`; the uniform DR condition runs rounds on its margin's suprema (module docstring).
+    ``metrics["certificate"]`` records the verdict (:class:`~drlyap.verification.Certificate`); with ``warn``
     a run that is not verified raises a :class:`UserWarning` saying so. ``init``: networks to start from (copied);
     ``log(round)``: called after each proof round.
     """
@@ -268,17 +330,12 @@ def train(config: TrainConfig, system: UncertainSystem | None = None, proof: Pro
     if proof is None:
         result.metrics["certificate"] = Certificate(status="not checked", condition=result.condition.label).to_dict()
         return result
-    rounds = None
-    if per_state:
-        result, _ = _proof_rounds(result, proof, budget, start, progress, log)
-        verdict, rounds = ConditionProof.from_dict(result.record.final_proof), result.record.retraining_rounds
-    else:
-        verdict = uniform_margin(result.loop, result.condition, Region.of(system, float(cfg.delta)), budget,
-                                 keep_partition=True)
-        result.trained_proof = verdict if verdict.verified else None
-    cert = certificate(verdict, float(cfg.delta), rounds=rounds)
+    result, _ = _proof_rounds(result, proof, budget, start, progress, log)
+    record = result.record
+    verdict = (ConditionProof if per_state else UniformMargin).from_dict(record.final_proof)
+    cert = certificate(verdict, float(cfg.delta), rounds=record.retraining_rounds)
     result.metrics["certificate"] = jsonable(cert.to_dict())
     result.metrics["proof"] = settings
     if warn and not cert.verified:
-        warnings.warn(unverified_warning(cert, cfg.system, cfg.method, per_state), stacklevel=2)
+        warnings.warn(unverified_warning(cert, cfg.system, cfg.method, True), stacklevel=2)
     return result

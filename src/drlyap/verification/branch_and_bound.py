@@ -360,12 +360,15 @@ def maximize(objective: Callable, lo: Tensor, hi: Tensor, scale: Tensor, budget:
     ``budget.enclosure``: as for :func:`verify_condition` (None: by the boxes' dimension). ``tree``: records the
     boxes (``lo, hi`` are then its grid's cells, in order): those ``box_ok`` drops as inside the ball, the splits, and
     every other leaf as proved with ``leaf_bound(upper (L, Q)) -> (L,)`` of its components' upper bounds.
+    The third result also holds ``attained_at`` ``(Q, n)``: the centre at which each component's lower bound was
+    found (None where no centre was accepted).
     """
     enclosure = budget.enclosure_for(lo.shape[-1])
     time_limit, max_boxes, min_width, batch = budget.seconds, budget.boxes, budget.min_width, budget.batch
     start = time.perf_counter()
     closed: Tensor | None = None
     best: Tensor | None = None
+    best_at: Tensor | None = None
     processed = 0
     stopped = "finished"
     ids = tree.roots if tree is not None else torch.zeros(lo.shape[0], dtype=torch.int64)
@@ -387,7 +390,10 @@ def maximize(objective: Callable, lo: Tensor, hi: Tensor, scale: Tensor, budget:
         centre = (clo + chi) / 2
         good = centre_ok(centre) if centre_ok is not None else torch.ones(clo.shape[0], dtype=torch.bool)
         if good.any():
-            cand = at.lo[good].amax(0)
+            cand, where = at.lo[good].max(0)
+            found = centre[good][where]  # (Q, n): where each component's new value was attained
+            better = torch.ones_like(cand, dtype=torch.bool) if best is None else cand > best
+            best_at = found if best_at is None else torch.where(better[:, None], found, best_at)
             best = cand if best is None else torch.maximum(best, cand)
         ref = best if best is not None else torch.full_like(ub[0], -torch.inf)
         tol = torch.clamp(rel_tol * ref.abs(), min=abs_tol)
@@ -428,7 +434,8 @@ def maximize(objective: Callable, lo: Tensor, hi: Tensor, scale: Tensor, budget:
         raise ValueError("the set to maximise over is empty")
     if best is None:
         best = torch.full_like(closed, -torch.inf)
-    return best, closed, {"boxes_processed": processed, "time_s": time.perf_counter() - start, "stopped": stopped}
+    return best, closed, {"boxes_processed": processed, "time_s": time.perf_counter() - start, "stopped": stopped,
+                          "attained_at": best_at}
 
 
 def uniform_margin(loop: ClosedLoop, condition: DRUniform, region: Region, budget: Budget = Budget(seconds=3.0), *,
@@ -450,6 +457,7 @@ def uniform_margin(loop: ClosedLoop, condition: DRUniform, region: Region, budge
         condition_objective(loop, condition), lo, hi, region.scale, budget,
         centre_ok=region.in_region, box_ok=lambda a, b: ~inside_ball(a, b, delta), rel_tol=rel_tol, tree=tree,
         leaf_bound=margin_up)
+    attained = info.pop("attained_at")
     m_up = float(margin_up(upper))
     m_lo = float(round_down(condition.margin(lower), 64 * EPS, lower.abs().amax() * (1 + coef)))
     status = Status.VERIFIED if m_up <= 0 else (Status.VIOLATED if m_lo > 0 else Status.UNKNOWN)
@@ -457,6 +465,7 @@ def uniform_margin(loop: ClosedLoop, condition: DRUniform, region: Region, budge
                          lipschitz_sup=[float(lower[0]), float(upper[0])],
                          h_sup=[[float(a), float(b)] for a, b in zip(lower[1:], upper[1:])],
                          lipschitz_term=[coef * float(lower[0]), coef * float(upper[0])], delta=float(delta), **info,
-                         partition=tree.finish() if tree is not None and status == Status.VERIFIED else None)
+                         partition=tree.finish() if tree is not None and status == Status.VERIFIED else None,
+                         attained_at=None if attained is None else attained.tolist())
 
 

@@ -134,8 +134,11 @@ class UniformMargin(Result):
 
     ``margin_upper`` is sound (``verified`` when it is <= 0); ``margin_lower`` is attained at evaluated states
     (``violated`` when it is > 0); ``lipschitz_sup``, ``h_sup`` and ``lipschitz_term`` the pieces' brackets.
-    ``partition``: the boxes a verified margin was bounded on (not part of the JSON; written as a certificate).
-    It is a claim on all of X_delta: no level, no faces."""
+    ``attained_at``: the local states ``(1 + N, n)`` at which each component's lower bound was found (where the
+    suprema lie, up to the search's tolerance). ``partition``: the boxes a verified margin was bounded on (not part
+    of the JSON; written as a certificate). It is a claim on all of X_delta: no level, no faces."""
+
+    OPTIONAL: ClassVar[tuple[str, ...]] = ("attained_at",)
 
     condition: str
     status: str
@@ -148,6 +151,7 @@ class UniformMargin(Result):
     boxes_processed: int = 0
     time_s: float = 0.0
     stopped: str = ""
+    attained_at: list | None = None
     partition: Any = field(default=None, repr=False, compare=False, metadata={"json": False})
     level: ClassVar[None] = None
     boundary_min_lower: ClassVar[None] = None
