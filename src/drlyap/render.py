@@ -46,8 +46,9 @@ def certificate_line(cert: Certificate, verify_command: str = "drlyap verify RUN
         return f"certificate: NOT CHECKED ({cert.condition} condition; run `{verify_command}`)"
     where = cert.region or "X_delta"
     if status == Status.VERIFIED:
-        return (f"certificate: VERIFIED - the {cert.condition} condition holds at every state of {of_region(where)} "
-                f"(proof {cert.time_s:.2f} s, {cert.boxes} boxes)")
+        holds = (f"holds over {of_region(where)} (one inequality: its suprema over the region)"
+                 if cert.margin_upper is not None else f"holds at every state of {of_region(where)}")
+        return f"certificate: VERIFIED - the {cert.condition} condition {holds} (proof {cert.time_s:.2f} s, {cert.boxes} boxes)"
     share = cert.verified_fraction
     proved = "" if share is None else f"; {100 * share:.4f}% of it proved"
     cex = cert.counterexample
