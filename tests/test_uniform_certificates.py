@@ -184,3 +184,23 @@ def test_training_on_the_uniform_condition_has_proof_rounds_on_its_suprema(tiny_
     assert "states where its suprema lie" in lines[0]
     assert record.final_proof["condition"] == "DR uniform"
     assert result.metrics["certificate"]["status"] == record.final_proof["status"]
+
+
+def test_a_uniform_run_certifies_a_region_on_the_decrease_at_each_sample_it_implies(tmp_path):
+    """With eps N <= 1 the uniform condition implies plain decrease at every sample: `verify --roa` certifies a
+    sublevel set of V on it, writes its certificates, and `check` confirms them as the run's."""
+    from click.testing import CliRunner
+
+    from drlyap.cli import main
+
+    run = linear_run_dir(tmp_path / "run", delta=0.2, loss="uniform", wasserstein_radius=1e-4, risk_level=0.1,
+                         xi_samples=XI.tolist())
+    spec = f"{Path(__file__).parent / 'handmade.py'}:small_pendulum"
+    runner = CliRunner()
+    out = runner.invoke(main, ["verify", str(run), "--system", spec, "--roa"])
+    assert out.exit_code == 0, out.output
+    assert "region of attraction: CERTIFIED {V <=" in out.output and "design model at each training sample" in out.output
+    assert "certificates/roa-ball.json" in out.output and "certificates/roa.json" in out.output
+    out = runner.invoke(main, ["check", str(run), "--system", spec])
+    assert out.exit_code == 0, out.output
+    assert out.output.count("CHECKED") == 3  # trained (the margin), roa, roa-ball

@@ -327,6 +327,13 @@ class _DR(Condition):
     def describe(self) -> dict:
         return super().describe() | {"wasserstein_radius": self.r, "risk_level": self.eps}
 
+    def per_sample(self, decay_rate: float = 0.0, exp_rate: float = 0.0) -> PlainDecrease | None:
+        """Plain decrease at every sample: implied where the CVaR is the maximum over the samples (``eps N <= 1``;
+        the uniform condition's margin then bounds every sample's ``sup (Vdot + decay)`` by ``-(r/eps) L <= 0``)."""
+        if self.xi is None or self.eps * self.xi.shape[0] > 1:  # the CVaR is then not the max over samples
+            return None
+        return PlainDecrease(self.xi, decay_rate, exp_rate, self.model)
+
 
 class DRPointwise(_DR):
     """Pointwise DR condition (``eq: point_ccp`` / ``eq: point_dr_lf_loss``) at every state x::
@@ -345,10 +352,6 @@ class DRPointwise(_DR):
     def combine(self, components: Tensor) -> Tensor:
         return cvar_bound(components, self.eps)
 
-    def per_sample(self, decay_rate: float = 0.0, exp_rate: float = 0.0) -> PlainDecrease | None:
-        if self.xi is None or self.eps * self.xi.shape[0] > 1:  # the CVaR is then not the max over samples
-            return None
-        return PlainDecrease(self.xi, decay_rate, exp_rate, self.model)
 
 
 class DRUniform(_DR):

@@ -56,8 +56,9 @@ def _trained_condition(config: dict, metrics: dict) -> dict:
 def _roa_claim(name: str, header: dict, config: dict, metrics: dict, expected: dict,
                delta) -> tuple[dict, dict, list[str]]:
     """The condition and region a ``roa`` or ``roa-ball`` certificate must state for the region of attraction
-    ``metrics.json`` reports (``certificate.roa``: its level and shift): ``roa`` the run's trained condition, or
-    decrease on the true model at the shift, on ``{V <= level}``; ``roa-ball`` plain decrease on the same model at
+    ``metrics.json`` reports (``certificate.roa``: its level and shift): ``roa`` the run's trained condition (for
+    the DR uniform condition the decrease at each sample it implies), or decrease on the true model at the shift, on
+    ``{V <= level}``; ``roa-ball`` plain decrease on the same model at
     each of its samples inside the delta-ball (a strict decay, checked with the cube), naming as ``outer`` a
     certificate of the same model on ``{V <= c'}``, ``c' >=`` the level. ``delta``: the run's. Returns (expected
     condition fields, expected region fields, other problems)."""
@@ -67,6 +68,8 @@ def _roa_claim(name: str, header: dict, config: dict, metrics: dict, expected: d
         "no certified region reported in metrics.json"
     condition = {"name": "true", "model": "true", "xi": [list(map(float, xi))]} if xi is not None else \
         _trained_condition(config, metrics)
+    if condition["name"] == "uniform":  # one inequality: its region rests on the decrease at each sample it implies
+        condition = {"name": "plain", "xi": condition["xi"]}
     if name == "roa":
         return expected | condition, {"delta": delta, "level": level}, []
     claim = header["claim"]

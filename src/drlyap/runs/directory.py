@@ -121,6 +121,14 @@ class Run:
         """The condition the run was trained on (:meth:`~drlyap.sections.ConditionSection.build`)."""
         return self.sections.condition.build(self.xi_train)
 
+    def region_condition(self, xi=None) -> Condition | None:
+        """The per-state condition a region of attraction of the run rests on: its trained condition, or with a shift
+        ``xi (k,)`` decrease on the true model there; for the DR uniform condition (one inequality, no per-state
+        residual) the decrease at every sample it implies (:meth:`~drlyap.conditions.Condition.per_sample`, None
+        where it implies none)."""
+        condition = self.condition if xi is None else self.true_condition(xi)
+        return condition if condition.per_state else condition.per_sample(condition.decay_rate, condition.exp_rate)
+
     def true_condition(self, xi) -> Condition:
         """Plain decrease on the true model at the shift ``xi (k,)``, with the run's decay terms."""
         return self.sections.condition.build(self.system.check_xi(xi)[None], "true")

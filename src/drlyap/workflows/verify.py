@@ -162,12 +162,16 @@ def verify(run: Run, proof: ProofConfig | None = None, *, delta: float | None = 
         true_model.xi = main_condition.xi[0].tolist()
     region_of_attraction = None
     if roa:
-        if not main_condition.per_state:
+        roa_condition = main_condition if main_condition.per_state else run.region_condition()
+        outer = trained if true_model is None else true_model
+        if roa_condition is None:
             region_of_attraction = RegionOfAttraction.unavailable(
-                "no per-state residual for the uniform condition; no sublevel-set certificate")
+                "the uniform DR condition with eps N > 1 implies no decrease at each sample (its CVaR is not their "
+                "maximum); no sublevel-set certificate")
         else:
-            region_of_attraction = _region_of_attraction(loop, main_condition, region, proof, budget, level,
-                                                         trained if true_model is None else true_model, above_level)
+            region_of_attraction = _region_of_attraction(loop, roa_condition, region, proof, budget, level,
+                                                         outer if isinstance(outer, ConditionProof) else None,
+                                                         above_level)
             if true_model is not None:
                 region_of_attraction.xi = true_model.xi
     return RunVerification(run_dir=str(run.path), system=system.name, method=cfg.method,
@@ -177,7 +181,7 @@ def verify(run: Run, proof: ProofConfig | None = None, *, delta: float | None = 
 
 
 def _region_of_attraction(loop: ClosedLoop, condition: Condition, region: Region, proof: ProofConfig, budget: Budget,
-                          level: float | None, proved: ConditionProof, above_level: bool) -> RegionOfAttraction:
+                          level: float | None, proved: ConditionProof | None, above_level: bool) -> RegionOfAttraction:
     """:func:`~drlyap.verification.certified_roa` of ``condition`` for ``proof.roa_time`` seconds (None: 3x
     ``proof.time_limit``), up to ``level`` (a run's claim; None: no cap) unless ``above_level``. ``proved``: the proof
     of ``condition`` on ``{V <= level}``, which stands for the level search up to that level only."""
@@ -296,7 +300,7 @@ def record_roa(run: Run, ver: RunVerification, proof: ProofConfig) -> list[Path]
     roa = ver.roa
     if roa is None or roa.error is not None or float(ver.delta) != float(run.config.delta):
         return []
-    condition = run.condition if roa.xi is None else run.true_condition(roa.xi)
+    condition = run.region_condition(roa.xi)
     outer = ("trained", ver.trained) if roa.xi is None else ("true-model", ver.true_model)
     return region_certificates(run.path, run.loop, condition, Region.of(run.system, float(ver.delta)), roa, outer,
                                proof, run.path / "weights.pt", float(run.config.alpha_hat))
