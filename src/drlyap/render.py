@@ -91,22 +91,22 @@ def training_lines(system: str, method: str, record: TrainingRecord) -> list[str
 
 def proof_round_line(entry: ProofRound) -> str:
     """One line per proof round of counterexample-guided training (or of the DR uniform margin's rounds)."""
+    added = entry.added or {}
     if entry.verified_fraction is None:  # the DR uniform condition's margin
-        m = UniformMargin.from_dict(entry.verification)
-        line = (f"  proof round {entry.round}: {m.status.upper()}, margin in [{_num(m.margin_lower)}, "
-                f"{_num(m.margin_upper)}] ({m.boxes_processed:,} boxes, {m.time_s:.2f} s)")
-        if entry.added:
-            line += (f"; retraining with the {entry.added['peaks_added']} states where its suprema lie "
-                     f"(+{entry.added['neighbours_added']} neighbours)")
-        return line
-    v = ConditionProof.from_dict(entry.verification)
-    capped = ", stopped by its time cap: the pair may differ on a faster machine" if v.stopped == "time limit" else ""
-    line = (f"  proof round {entry.round}: {v.status.upper()}, {proved_share(v)} of X_delta proved "
-            f"({v.boxes_processed:,} boxes, {v.time_s:.2f} s{capped})")
-    if entry.added:
-        line += (f"; retraining with {entry.added['counterexamples_added']} counterexamples "
-                 f"(+{entry.added['neighbours_added']} neighbours, {entry.added['box_centres_added']} box centres)")
-    return line
+        proof = UniformMargin.from_dict(entry.verification)
+        what, capped = f"margin in [{_num(proof.margin_lower)}, {_num(proof.margin_upper)}]", ""
+        retrain = (f"the {added.get('peaks_added')} states where its suprema lie "
+                   f"(+{added.get('neighbours_added')} neighbours)")
+    else:
+        proof = ConditionProof.from_dict(entry.verification)
+        what = f"{proved_share(proof)} of X_delta proved"
+        capped = ", stopped by its time cap: the pair may differ on a faster machine" if proof.stopped == "time limit" \
+            else ""
+        retrain = (f"{added.get('counterexamples_added')} counterexamples (+{added.get('neighbours_added')} "
+                   f"neighbours, {added.get('box_centres_added')} box centres)")
+    line = (f"  proof round {entry.round}: {proof.status.upper()}, {what} ({proof.boxes_processed:,} boxes, "
+            f"{proof.time_s:.2f} s{capped})")
+    return line + (f"; retraining with {retrain}" if entry.added else "")
 
 
 # --------------------------------------------------------------------------- verify
