@@ -77,7 +77,7 @@ class ConditionSection:
 
     @property
     def uniform(self) -> bool:
-        """The uniform DR condition: bounded once over the whole region, no per-state residual."""
+        """Whether it is the DR uniform condition: one inequality over the whole region, no per-state residual."""
         return self.method == Method.DR and self.loss == Loss.UNIFORM
 
 

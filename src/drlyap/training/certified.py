@@ -51,11 +51,11 @@ from drlyap.closed_loop import ClosedLoop
 from drlyap.conditions import Condition
 from drlyap.config import ProofConfig, TrainConfig
 from drlyap.io import jsonable
-from drlyap.kinds import Loss, Method
 from drlyap.networks import Controller, Lyapunov
 from drlyap.records import ProofRound
 from drlyap.regions import Region
 from drlyap.render import unverified_warning
+from drlyap.sections import TrainSections
 from drlyap.systems import UncertainSystem, get_system
 from drlyap.training.trainer import TrainResult, fit
 from drlyap.verification import Budget, Certificate, ConditionProof, UniformMargin, prove_trained, uniform_margin
@@ -127,7 +127,7 @@ def train_cegis(cfg: TrainConfig, system: UncertainSystem, proof: ProofConfig, p
     """
     if not proof.is_resolved:
         raise ValueError("resolve the proof settings for the system first (ProofConfig.resolved(system))")
-    if cfg.method == Method.DR and cfg.loss != Loss.POINTWISE:
+    if TrainSections.of(cfg).condition.uniform:
         raise ValueError("CEGIS needs a per-state condition (method dr with loss pointwise, or baseline); "
                          "the uniform DR condition has no per-state residual to falsify")
     start = time.perf_counter()
@@ -324,7 +324,7 @@ def train(config: TrainConfig, system: UncertainSystem | None = None, proof: Pro
     cfg = config.resolved(system)
     proof = None if proof is None else proof.resolved(system)
     settings, budget = (None, None) if proof is None else (proof.to_dict(), proof.round_budget())
-    per_state = not (cfg.method == Method.DR and cfg.loss == Loss.UNIFORM)
+    per_state = not TrainSections.of(cfg).condition.uniform
     start = time.perf_counter()
     result = fit(cfg, system, progress=progress, init=init)
     if proof is None:

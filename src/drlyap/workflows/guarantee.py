@@ -30,7 +30,7 @@ from torch import Tensor
 from drlyap.closed_loop import ClosedLoop
 from drlyap.conditions import wasserstein_radius_guarantee
 from drlyap.io import jsonable
-from drlyap.kinds import Enclosure, Loss, Method, Status
+from drlyap.kinds import Enclosure, Method, Status
 from drlyap.regions import Region
 from drlyap.runs import Run
 from drlyap.sections import ConditionSection
@@ -192,7 +192,7 @@ def guarantee(run: Run, dist: str, n: int, method: str = "sampling", seed: int =
     bound = (1 - eps) * (1 - eps_bar)
     per_draw = sup[inverse]
     finite = per_draw[torch.isfinite(per_draw)]
-    uniform = cfg.method == Method.DR and cfg.loss == Loss.UNIFORM
+    uniform = run.sections.condition.uniform
     why = "baseline" if cfg.method == Method.BASELINE else "pointwise DR (a per-state condition)"
     out = {
         "run_dir": str(getattr(run, "path", "")), "system": system.name, "method": cfg.method,
