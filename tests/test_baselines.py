@@ -79,7 +79,7 @@ def test_lqr_stabilises_pendulum_small_deviations_true_model():
     for xi in (None, torch.tensor([0.1, 0.05], dtype=torch.float64)):
         result = evaluate(system, d.controller, x0, xi, lyapunov=d.certificate, horizon=6.0)
         assert result["n_success"] == 16
-        # near x* the quadratic certificate decreases along the true closed loop
+        # near x* the quadratic Lyapunov function decreases along the true closed loop
         assert result["worst_v_increase"] <= 1e-12
 
 

@@ -176,12 +176,12 @@ def roa_line(r: RegionOfAttraction, true_model: bool) -> str:
                 f"{r.limited_by}; inside the ball: {r.local.get('reason') or 'proved'})")
     quad = r.quadratic
     if r.ellipsoid_certified:
-        line += (f"\n  the closed loop's own quadratic certificate: CERTIFIED region of attraction {{z'Pz <= "
+        line += (f"\n  the closed loop's own quadratic Lyapunov function: CERTIFIED region of attraction {{z'Pz <= "
                  f"{level_text(quad['q_level'], 4)}}} ({quad['share_of_box']:.3g} of the box, |x_i - x*_i| up to "
                  f"{[float(f'{e:.3g}') for e in quad['extent']]}; P chosen from the closed-loop linearisation, --json: "
                  f"roa.quadratic.P): every trajectory of {model} that starts there converges to x*")
     elif quad:
-        line += f"\n  the closed loop's own quadratic certificate: none ({quad['reason']})"
+        line += f"\n  the closed loop's own quadratic Lyapunov function: none ({quad['reason']})"
     return line
 
 

@@ -189,7 +189,7 @@ def quadratic_loop(system: UncertainSystem, controller: nn.Module, what: str = "
     shown = [f"{v.real:.4g}{v.imag:+.4g}j" for v in eigenvalues]
     if not hurwitz:
         raise ValueError(f"the closed loop's linearisation at x* is not Hurwitz (eigenvalues {', '.join(shown)}): "
-                         "no quadratic certificate")
+                         "no quadratic Lyapunov function")
     s = _half_widths(system)
     p = lyapunov_matrix(a, s)
     rate = 1.0 / float(torch.linalg.eigvalsh(s[:, None] * p * s[None, :]).max())

@@ -64,7 +64,7 @@ def certified_roa(loop: ClosedLoop, condition: Condition, region: Region, budget
     if not local["proved"] and local.get("equilibrium") and c > 0:
         left = max(3.0, outer.deadline - time.perf_counter())
         local = linearisation_local(loop, condition, region, c, replace(budget, seconds=left)) | {"second_order": local}
-    quadratic = None  # the closed loop's own certificate, reported where V's sublevel sets are not certified
+    quadratic = None  # the closed loop's own quadratic Lyapunov function, reported where V's sublevel sets are not certified
     if not (c > 0 and local["proved"]):
         quadratic = local.get("quadratic") or quadratic_roa(
             loop, condition, region, replace(budget, seconds=max(3.0, outer.deadline - time.perf_counter())))

@@ -1,4 +1,4 @@
-"""The closed loop's own quadratic certificate, and V's sublevel sets from it where V's Hessian test fails.
+"""The closed loop's own quadratic Lyapunov function, and V's sublevel sets from it where V's Hessian test fails.
 
 The linearisation proof (:func:`linearisation_local`), tried when V's own second-order proof
 (:mod:`~drlyap.verification.roa.local`) fails (the networks are trained outside the delta-ball only, so V's local
