@@ -78,8 +78,9 @@ def _check_numbers(**given: float | None) -> None:
 @click.option("--out", type=click.Path(path_type=Path), required=True, help="Run directory to create.")
 @click.option("--quiet", is_flag=True, help="No progress bar.")
 @click.option("--verify/--no-verify", default=True, show_default=True,
-              help="Prove the trained condition after training, retraining on counterexamples (CEGIS) until it is "
-                   "proved or the rounds/budget run out. --no-verify: training and the acceptance check only.")
+              help="Prove the trained condition after training, retraining on counterexamples (CEGIS; for the uniform "
+                   "loss, on the states where its margin's suprema lie) until it is proved or the rounds/budget run "
+                   "out. --no-verify: training and the acceptance check only.")
 @click.option("--check/--no-check", "check", default=True, show_default=True,
               help="Re-check the proved condition's certificate with the independent checker (its own arithmetic, as "
                    "`drlyap check`) once the run is saved, and record it (certificates/trained.check.json): `drlyap "
