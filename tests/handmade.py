@@ -100,3 +100,20 @@ def linear_run_dir(path, delta: float = 0.1, prove=None, **overrides):
     if prove is not None:
         result.trained_proof = prove(result)
     return save_run(path, result)
+
+
+def recheck(folder, name, system, weights, header_change=None, arrays_change=None):
+    """``check_certificate`` of the certificate ``name`` in ``folder`` (its run's ``system`` and ``weights``), after
+    ``header_change(header)`` and ``arrays_change(arrays)`` (on copies; it may return new arrays) where given: a
+    tampered certificate, checked as ``drlyap check`` would."""
+    from drlyap.checker.check import check_certificate
+    from drlyap.runs.certificates import read_certificate, sha256_file, system_digest
+
+    header, arrays = read_certificate(folder, name)
+    if header_change is not None:
+        header_change(header)
+    if arrays_change is not None:
+        arrays = {k: v.copy() for k, v in arrays.items()}
+        arrays = arrays_change(arrays) or arrays
+    return check_certificate(folder, name, header, arrays, system, weights, sha256_file(folder / "weights.pt"),
+                             system_digest(system))

@@ -18,7 +18,7 @@ from drlyap.config import Budget
 from drlyap.regions import Region
 from drlyap.runs.certificates import condition_claim, read_certificate, sha256_file, system_digest, write_certificate
 from drlyap.verification import verify_condition
-from handmade import linear_pair, small_pendulum
+from handmade import linear_pair, recheck, small_pendulum
 
 F64 = torch.float64
 
@@ -177,16 +177,8 @@ def proved(tmp_path_factory):
 
 
 def run_check(proved, folder=None, weights=None, header_change=None, arrays_change=None):
-    folder = folder or proved["folder"]
-    header, arrays = read_certificate(folder, "trained")
-    if header_change is not None:
-        header_change(header)
-    if arrays_change is not None:
-        arrays = {k: v.copy() for k, v in arrays.items()}
-        arrays = arrays_change(arrays) or arrays
-    system = proved["system"]
-    return check_certificate(folder, "trained", header, arrays, system, weights or proved["weights"],
-                             sha256_file(folder / "weights.pt"), system_digest(system))
+    return recheck(folder or proved["folder"], "trained", proved["system"], weights or proved["weights"],
+                   header_change, arrays_change)
 
 
 def test_the_checker_re_proves_the_verifiers_certificate(proved):

@@ -7,7 +7,6 @@ import torch
 from drlyap.closed_loop import ClosedLoop
 from drlyap.regions import Region
 from drlyap.runs import RunDirError, load_run, save_run
-from drlyap.sections import training_region
 from drlyap.systems import cartpole, mountain_car, pendulum
 from drlyap.training import TrainConfig, TrainSections
 from drlyap.training.acceptance import find_equilibria, jacobian_check
@@ -151,12 +150,13 @@ def test_a_pd_like_controller_passes_the_jacobian_and_equilibrium_checks():
 
 def test_training_states_can_be_drawn_from_a_box_wider_than_x():
     car = mountain_car()
-    region = training_region(car, [[-3.2, -0.4], [3.2, 0.4]])
+    region = car.with_state_box([[-3.2, -0.4], [3.2, 0.4]])
     z = Region.of(region, 0.1).sample(4000, torch.Generator().manual_seed(0))
     x = car.to_user(z)
     assert (x[:, 0] >= -3.2).all() and (x[:, 0] <= 3.2).all() and (x[:, 0].abs() > 2.0).any()
     assert region.state_box[0] == (-3.2, -0.4) and car.state_box[0] == (-2.0, -0.4)  # X itself is untouched
-    assert training_region(car, None) is car
+    sampling = TrainSections.of(TrainConfig(system="mountain-car").resolved(car)).sampling  # no training box: X
+    assert sampling.sampling_region(car).hi.tolist() == sampling.region(car).hi.tolist()
 
 
 def test_a_train_box_without_the_equilibrium_is_rejected(tiny_config):

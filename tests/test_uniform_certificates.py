@@ -9,14 +9,13 @@ import pytest
 import torch
 
 from drlyap.checker.arith import Iv
-from drlyap.checker.check import check_certificate
 from drlyap.checker.model import Pair, Residual
 from drlyap.closed_loop import ClosedLoop
 from drlyap.conditions import DRUniform
 from drlyap.regions import Region
-from drlyap.runs.certificates import condition_claim, read_certificate, sha256_file, system_digest, write_certificate
+from drlyap.runs.certificates import condition_claim, write_certificate
 from drlyap.verification import Budget, uniform_margin
-from handmade import linear_pair, linear_run_dir, small_pendulum
+from handmade import linear_pair, linear_run_dir, recheck, small_pendulum
 
 F64 = torch.float64
 XI = torch.tensor([[0.0, 0.0], [0.05, 0.01], [-0.03, 0.02]], dtype=F64)
@@ -41,14 +40,7 @@ def margin(tmp_path_factory):
 
 
 def check(m, header_change=None, arrays_change=None):
-    header, arrays = read_certificate(m["folder"], "uniform")
-    if header_change is not None:
-        header_change(header)
-    if arrays_change is not None:
-        arrays = {k: v.copy() for k, v in arrays.items()}
-        arrays_change(arrays)
-    return check_certificate(m["folder"], "uniform", header, arrays, m["system"], m["weights"],
-                             sha256_file(m["folder"] / "weights.pt"), system_digest(m["system"]))
+    return recheck(m["folder"], "uniform", m["system"], m["weights"], header_change, arrays_change)
 
 
 def test_an_unverified_margin_keeps_no_boxes(margin):

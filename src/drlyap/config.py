@@ -304,7 +304,7 @@ class TrainConfig:
             problems.append(f"delta = {self.delta} (must be >= 0)")
         if self.train_box is not None:
             try:
-                dataclasses.replace(system, state_box=tuple(tuple(float(v) for v in side) for side in self.train_box))
+                system.with_state_box(self.train_box)
             except (TypeError, ValueError) as err:
                 problems.append(f"train_box: {err}")
         if self.xi_samples is not None:

@@ -57,12 +57,13 @@ def certificate_line(cert: Certificate, verify_command: str = "drlyap verify RUN
     return f"certificate: NOT VERIFIED ({status}) - the {cert.condition} condition on {of_region(where)}{proved}{extra}"
 
 
-def unverified_warning(cert: Certificate, system: str, method: str, retrainable: bool) -> str:
-    """The warning of a training run whose trained condition is not verified."""
+def unverified_warning(cert: Certificate, system: str, method: str) -> str:
+    """The warning of a training run whose trained condition is not verified (every condition has proof rounds:
+    more of them may prove it)."""
     share = cert.verified_fraction
     detail = "" if share is None else f"; {100 * share:.4f}% of X_delta proved"
     return (f"drlyap: the trained {cert.condition} condition of this {system} {method} run is NOT verified "
-            f"({cert.status}{detail}){'; raise verify_rounds' if retrainable else ''}")
+            f"({cert.status}{detail}); raise verify_rounds")
 
 
 def training_lines(system: str, method: str, record: TrainingRecord) -> list[str]:

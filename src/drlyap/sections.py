@@ -135,7 +135,7 @@ class SamplingSection:
         """The region training states are drawn in: X_delta, or ``train_box`` minus the same ball."""
         if self.train_box is None:
             return self.region(system)
-        return Region.of(training_region(system, self.train_box), float(self.delta))
+        return Region.of(system.with_state_box(self.train_box), float(self.delta))
 
     def counts(self) -> tuple[int, int]:
         """How many states of a batch are drawn near x* and how many are adversarial."""
@@ -216,15 +216,6 @@ class TrainSections:
 
 SECTIONS = (ConditionSection, NetworkSection, SamplingSection, RegionGoal, Schedule)
 """The section types, in the order of :class:`TrainSections`."""
-
-
-def training_region(system: UncertainSystem, train_box: list[list[float]] | None) -> UncertainSystem:
-    """``system`` with its state box replaced by ``train_box`` (user coordinates) for drawing training
-    states; ``system`` itself when ``train_box`` is None. Raises ValueError for a malformed box or
-    one that does not hold x* strictly inside."""
-    if train_box is None:
-        return system
-    return dataclasses.replace(system, state_box=tuple(tuple(float(v) for v in side) for side in train_box))
 
 
 def resolve_device(name: str) -> torch.device:

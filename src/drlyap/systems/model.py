@@ -19,7 +19,7 @@ from __future__ import annotations
 
 import math
 from collections.abc import Callable, Sequence
-from dataclasses import dataclass, field
+from dataclasses import dataclass, field, replace
 from typing import TYPE_CHECKING
 
 import torch
@@ -270,6 +270,12 @@ class UncertainSystem:
         return [self.param_names.index(u) for u in self.uncertain]
 
     # ----------------------------------------------------------------- coordinates
+    def with_state_box(self, box) -> UncertainSystem:
+        """The same system on another state box ``(low, high)`` in user coordinates (a training box), checked as a
+        system's own box is: a ValueError (or TypeError) for a malformed box or one that does not hold x* strictly
+        inside. The system itself is untouched."""
+        return replace(self, state_box=tuple(tuple(float(v) for v in side) for side in box))
+
     def local_box(self) -> tuple[Tensor, Tensor]:
         """The region X in local coordinates, ``(low (n,), high (n,))`` in float64."""
         lo, hi = (torch.tensor(b, dtype=torch.float64) for b in self.state_box)

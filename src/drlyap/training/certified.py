@@ -60,6 +60,7 @@ from drlyap.systems import UncertainSystem, get_system
 from drlyap.training.trainer import TrainResult, fit
 from drlyap.verification import Budget, Certificate, ConditionProof, UniformMargin, prove_trained, uniform_margin
 from drlyap.verification.falsifier import box_centres, falsifier_starts, falsify, settle_unknown
+from drlyap.verification.results import proof_from_dict
 
 F64 = torch.float64
 
@@ -324,7 +325,6 @@ def train(config: TrainConfig, system: UncertainSystem | None = None, proof: Pro
     cfg = config.resolved(system)
     proof = None if proof is None else proof.resolved(system)
     settings, budget = (None, None) if proof is None else (proof.to_dict(), proof.round_budget())
-    per_state = not TrainSections.of(cfg).condition.uniform
     start = time.perf_counter()
     result = fit(cfg, system, progress=progress, init=init)
     if proof is None:
@@ -332,10 +332,9 @@ def train(config: TrainConfig, system: UncertainSystem | None = None, proof: Pro
         return result
     result, _ = _proof_rounds(result, proof, budget, start, progress, log)
     record = result.record
-    verdict = (ConditionProof if per_state else UniformMargin).from_dict(record.final_proof)
-    cert = certificate(verdict, float(cfg.delta), rounds=record.retraining_rounds)
+    cert = certificate(proof_from_dict(record.final_proof), float(cfg.delta), rounds=record.retraining_rounds)
     result.metrics["certificate"] = jsonable(cert.to_dict())
     result.metrics["proof"] = settings
     if warn and not cert.verified:
-        warnings.warn(unverified_warning(cert, cfg.system, cfg.method, True), stacklevel=2)
+        warnings.warn(unverified_warning(cert, cfg.system, cfg.method), stacklevel=2)
     return result

@@ -469,14 +469,18 @@ class RunVerification(Result):
 
     @classmethod
     def from_dict(cls, data: dict) -> RunVerification:
-        def proof(d):
-            if d is None:
-                return None
-            return UniformMargin.from_dict(d) if "margin_upper" in d else ConditionProof.from_dict(d)
-
+        proof = proof_from_dict
         roa = data.get("roa")
         rob = data.get("robustness")
         return cls(data["run_dir"], data["system"], data["method"], data.get("loss"), data["delta"], data["enclosure"],
                    proof(data["trained"]), proof(data.get("uniform")), proof(data.get("true_model")),
                    None if roa is None else RegionOfAttraction.from_dict(roa),
                    None if rob is None else RunRobustness.from_dict(rob))
+
+
+def proof_from_dict(data: dict | None) -> ConditionProof | UniformMargin | None:
+    """A condition's proof as its ``to_dict`` wrote it: the uniform DR condition's margin where it holds one, else a
+    :class:`ConditionProof`; None stays None."""
+    if data is None:
+        return None
+    return UniformMargin.from_dict(data) if "margin_upper" in data else ConditionProof.from_dict(data)
