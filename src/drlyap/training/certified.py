@@ -60,7 +60,6 @@ from drlyap.systems import UncertainSystem, get_system
 from drlyap.training.trainer import TrainResult, fit
 from drlyap.verification import Budget, Certificate, ConditionProof, UniformMargin, prove_trained, uniform_margin
 from drlyap.verification.falsifier import box_centres, falsifier_starts, falsify, settle_unknown
-from drlyap.verification.results import proof_from_dict
 
 F64 = torch.float64
 
@@ -131,9 +130,8 @@ def train_cegis(cfg: TrainConfig, system: UncertainSystem, proof: ProofConfig, p
     if TrainSections.of(cfg).condition.uniform:
         raise ValueError("CEGIS needs a per-state condition (method dr with loss pointwise, or baseline); "
                          "the uniform DR condition has no per-state residual to falsify")
-    start = time.perf_counter()
-    return _proof_rounds(fit(cfg, system, progress=progress, init=init), proof, proof.round_budget(), start, progress,
-                         log)
+    result, rounds, _ = _proof_rounds(cfg, system, proof, proof.round_budget(), progress, init, log)
+    return result, rounds
 
 
 class _Counterexamples:
@@ -214,25 +212,35 @@ class _MarginPeaks:
         return verdict
 
 
-def _proof_rounds(result: TrainResult, proof: ProofConfig, budget: Budget, start: float, progress: bool,
-                  log) -> tuple[TrainResult, list[ProofRound]]:
-    """:func:`train_cegis` from its first fit ``result`` on, each proof with the ``budget`` (``start``: when that fit
-    started, by ``time.perf_counter``): per-state conditions by :class:`_Counterexamples`, the DR uniform condition
-    by :class:`_MarginPeaks`."""
-    system = result.system
+def _proof_rounds(cfg: TrainConfig, system: UncertainSystem, proof: ProofConfig, budget: Budget, progress: bool,
+                  init: tuple[Lyapunov, Controller] | None,
+                  log) -> tuple[TrainResult, list[ProofRound], Certificate]:
+    """Rounds of :func:`~drlyap.training.trainer.fit` and a proof with the ``budget``, for the resolved ``cfg`` and
+    ``proof``: round 0 is the first run (from ``init``), every later one continues from the pair
+    before it on the states the proof left (per-state conditions by :class:`_Counterexamples`, the DR uniform
+    condition by :class:`_MarginPeaks`). Returns the best pair, the rounds and the certificate of its trained condition
+    (also its ``metrics["certificate"]``)."""
+    start = time.perf_counter()
     rounds, time_budget = int(proof.rounds), proof.total_time
-    base_cfg = result.config
-    iters_round = int(proof.iters_per_round if proof.iters_per_round is not None else max(1, base_cfg.iters // 2))
-    region = Region.of(system, float(base_cfg.delta))
-    kind = (_Counterexamples if result.condition.per_state else _MarginPeaks)(result, proof, budget, region)
-    gen = torch.Generator().manual_seed(base_cfg.seed + 7919)
+    iters_round = int(proof.iters_per_round if proof.iters_per_round is not None else max(1, cfg.iters // 2))
+    region = Region.of(system, float(cfg.delta))
+    gen = torch.Generator().manual_seed(cfg.seed + 7919)
     extra = torch.empty(0, system.n, dtype=F64)
     done: list[ProofRound] = []
     best: tuple | None = None
-    total_iters = result.record.iterations
-    history = list(result.history)  # all rounds' training, iterations and seconds counted from the first run
-    train_time = time.perf_counter() - start
+    history: list[dict] = []  # all rounds' training, iterations and seconds counted from the first run
+    total_iters = 0
+    round_cfg, kind, result = cfg, None, None
     for r in range(rounds + 1):
+        tic = time.perf_counter()
+        warm = init if result is None else (result.lyapunov, result.controller)
+        result = fit(round_cfg, system, progress=progress, init=warm,
+                     extra_states=extra.repeat(int(proof.replicate), 1) if r else None, grow=not r)
+        train_time = time.perf_counter() - (tic if r else start)
+        history += _continued(result.history, total_iters, history[-1]["time_s"] if history else 0.0)
+        total_iters += result.record.iterations
+        if kind is None:
+            kind = (_Counterexamples if result.condition.per_state else _MarginPeaks)(result, proof, budget, region)
         tic = time.perf_counter()
         ver = kind.prove(result.loop)
         trained = result.record
@@ -260,18 +268,13 @@ def _proof_rounds(result: TrainResult, proof: ProofConfig, budget: Budget, start
         done.append(entry)
         if log is not None:
             log(entry)
-        round_cfg = dataclasses.replace(base_cfg, iters=iters_round, seed=base_cfg.seed + 1000 * (r + 1),
+        round_cfg = dataclasses.replace(cfg, iters=iters_round, seed=cfg.seed + 1000 * (r + 1),
                                         xi_samples=result.xi_samples.tolist())
-        tic = time.perf_counter()
-        result = fit(round_cfg, system, progress=progress, init=(result.lyapunov, result.controller),
-                     extra_states=extra.repeat(int(proof.replicate), 1), grow=False)
-        train_time = time.perf_counter() - tic
-        history += _continued(result.history, total_iters, history[-1]["time_s"] if history else 0.0)
-        total_iters += result.record.iterations
     _, chosen, chosen_round, chosen_history, chosen_proof = best
     metrics = dict(chosen.metrics)
     final = done[chosen_round] if chosen_round < len(done) else done[-1]
     verdict = kind.settle(final, chosen.loop, chosen_proof)
+    cert = certificate(verdict, float(cfg.delta), rounds=len(done) - 1)
     metrics["cegis"] = jsonable({
         "rounds": [e.to_dict() for e in done],
         "final": verdict.to_dict(),
@@ -280,9 +283,10 @@ def _proof_rounds(result: TrainResult, proof: ProofConfig, budget: Budget, start
         "total_iterations": total_iters, "extra_states": int(extra.shape[0]), "replicate": int(proof.replicate),
         "verify_time_limit_s": budget.seconds, "verify_boxes": budget.boxes, "total_time_s": time.perf_counter() - start,
     })
-    out = dataclasses.replace(chosen, config=base_cfg, metrics=metrics, history=chosen_history,
+    metrics["certificate"] = jsonable(cert.to_dict())
+    out = dataclasses.replace(chosen, config=cfg, metrics=metrics, history=chosen_history,
                               trained_proof=chosen_proof if chosen_proof.verified else None)
-    return out, done
+    return out, done, cert
 
 
 def _continued(history: list[dict], iterations: int, seconds: float) -> list[dict]:
@@ -325,15 +329,11 @@ def train(config: TrainConfig, system: UncertainSystem | None = None, proof: Pro
     cfg = config.resolved(system)
     proof = None if proof is None else proof.resolved(system)
     settings, budget = (None, None) if proof is None else (proof.to_dict(), proof.round_budget())
-    start = time.perf_counter()
-    result = fit(cfg, system, progress=progress, init=init)
     if proof is None:
+        result = fit(cfg, system, progress=progress, init=init)
         result.metrics["certificate"] = Certificate(status="not checked", condition=result.condition.label).to_dict()
         return result
-    result, _ = _proof_rounds(result, proof, budget, start, progress, log)
-    record = result.record
-    cert = certificate(proof_from_dict(record.final_proof), float(cfg.delta), rounds=record.retraining_rounds)
-    result.metrics["certificate"] = jsonable(cert.to_dict())
+    result, _, cert = _proof_rounds(cfg, system, proof, budget, progress, init, log)
     result.metrics["proof"] = settings
     if warn and not cert.verified:
         warnings.warn(unverified_warning(cert, cfg.system, cfg.method), stacklevel=2)
