@@ -24,8 +24,9 @@ def small_pendulum(box=((-0.6, -1.2), (0.6, 1.2))) -> UncertainSystem:
         input_box=((-15.0,), (15.0,)), equilibrium=(0.0, 0.0), angle_dims=(0,), defaults=PAPER_CONDITION)
 
 
-def linear_pair(system, sign=1.0, eps=1e-2):
-    """V ~ z^T P z (Lyapunov matrix of the LQR-like closed loop) and pi ~ -K z, realised with tanh networks."""
+def linear_pair(system, sign=1.0, eps=1e-2, p=None):
+    """V ~ z^T P z (Lyapunov matrix of the LQR-like closed loop, or the ``p`` given) and pi ~ -K z, realised with
+    tanh networks."""
     g, b = 9.81, 0.13
     k = torch.tensor([[g + 4.0, 4.0 - b]], dtype=F64)  # closed-loop poles at -2, -2 (nominal model)
     a_cl = torch.tensor([[0.0, 1.0], [g, -b]], dtype=F64) - torch.tensor([[0.0], [1.0]], dtype=F64) @ k
@@ -33,7 +34,8 @@ def linear_pair(system, sign=1.0, eps=1e-2):
     eye = torch.eye(2, dtype=F64)
     at = a_cl.T.contiguous()
     lhs = torch.kron(eye, at) + torch.kron(at, eye)
-    p = torch.linalg.solve(lhs, -eye.reshape(-1)).reshape(2, 2)
+    if p is None:
+        p = torch.linalg.solve(lhs, -eye.reshape(-1)).reshape(2, 2)
     p = (p + p.T) / 2
     lo, hi = system.local_box()
     s = ((hi - lo) / 2).float()
@@ -81,11 +83,11 @@ def plain_train(cfg, system=None, **kwargs):
     return train(cfg, system, None, **kwargs)
 
 
-def linear_run_dir(path, delta: float = 0.1, prove=None, **overrides):
+def linear_run_dir(path, delta: float = 0.1, prove=None, lyapunov_matrix=None, **overrides):
     """A saved DR run of :func:`small_pendulum` (three samples, radius 0.01, risk level 0.3, decay 0.05, ``delta``;
     ``overrides``: other config fields) whose pair is :func:`linear_pair`'s (trained for one iteration, then
-    replaced): its conditions prove in well under a second. ``prove(result)``: the trained condition's proof to
-    keep as its certificate (None: none)."""
+    replaced; ``lyapunov_matrix``: V's P, as ``linear_pair`` takes it): its conditions prove in well under a second.
+    ``prove(result)``: the trained condition's proof to keep as its certificate (None: none)."""
     from drlyap.runs import save_run
     from drlyap.training import TrainConfig
 
@@ -94,7 +96,7 @@ def linear_run_dir(path, delta: float = 0.1, prove=None, **overrides):
                   lyapunov_out=2, controller_hidden=[1], alpha_hat=1e-3, decay_rate=0.05, wasserstein_radius=0.01,
                   risk_level=0.3, delta=delta, xi_samples=[[0.02, 0.01], [-0.03, 0.0], [0.05, -0.02]], seed=0)
     result = plain_train(TrainConfig(**(fields | overrides)), system, progress=False)
-    lyap, ctrl = linear_pair(system)
+    lyap, ctrl = linear_pair(system, p=lyapunov_matrix)
     result.lyapunov.load_state_dict(lyap.state_dict())
     result.controller.load_state_dict(ctrl.state_dict())
     if prove is not None:

@@ -7,7 +7,7 @@ from __future__ import annotations
 import math
 from decimal import ROUND_CEILING, ROUND_FLOOR, Decimal
 
-CERTIFICATES = ("trained", "true-model", "radius", "shift-box", "uniform", "roa", "roa-ball")
+CERTIFICATES = ("trained", "true-model", "radius", "shift-box", "uniform", "roa", "roa-ball", "ellipsoid")
 """The names of a run's certificate files (:mod:`drlyap.runs.certificates` says what each claims)."""
 
 
@@ -69,6 +69,12 @@ def claim_sentence(claim: dict) -> str:
         else:
             what = f"the {c.get('label', c.get('name'))} condition ({len(xi)} sample(s) of xi, {decay})"
         level = r.get("level")
+        if claim.get("ellipsoid") is not None:  # the closed loop's own quadratic region
+            half = ", ".join(f"{float(h):.3g}" for h in claim["ellipsoid"]["box"])
+            ring = "" if not claim["ellipsoid"].get("ring") else (
+                f"; outside ||x - x*|| < {float(r['delta']):g}, {what.replace('decrease', 'decrease of W', 1)} on it")
+            return (f"{{z'Pz <= {level_text(level)}}} (W = z'Pz, P in the file) is a region of attraction: W decreases on "
+                    f"it except at x*, on the box |x_i - x*_i| <= [{half}] by the Jacobian's enclosure{ring}")
         if claim.get("cube") is not None:  # roa-ball: V's decrease inside the delta-ball
             half = ", ".join(f"{float(h):.3g}" for h in claim["cube"]["half"])
             rest = "" if float(r["delta"]) >= float(r["ball_of"]) else (  # no ring: the cube covers the ball

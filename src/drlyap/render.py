@@ -191,8 +191,10 @@ def unwritten_region_line(roa: RegionOfAttraction | None, written: list) -> str 
     linearisation or the band proof, whose proofs are not written yet): the line that says so, else None."""
     if roa is None or not roa.certified or any(Path(p).name == "roa-ball.json" for p in written):
         return None
+    ellipsoid = any(Path(p).name == "ellipsoid.json" for p in written)
     return (f"  no certificate file for the region of attraction: its route ({roa.method}) is not written yet, only "
-            "V's own second-order route is (drlyap check cannot re-check this region)")
+            "V's own second-order route is (drlyap check cannot re-check this region" +
+            ("; the closed loop's ellipsoid it rests on is written as ellipsoid)" if ellipsoid else ")"))
 
 
 def verification_lines(ver: RunVerification, system: str, method: str) -> list[str]:
@@ -400,7 +402,10 @@ def check_lines(results) -> list[str]:
         if r.ok:
             refined = f", {r.refined} of them bisected into {r.pieces} pieces" if r.refined else ""
             lines.append(f"{r.name}: CHECKED - {r.claim}")
-            if r.cube_bound is not None:
+            if r.cube_bound is not None and r.name == "ellipsoid":
+                lines.append(f"  Wdot's bound P C + C'P + P D1 P + D2 over the Jacobian's enclosure on the box is negative "
+                             f"definite by the checker's arithmetic (its largest eigenvalue about {r.cube_bound:.3g})")
+            elif r.cube_bound is not None:
                 lines.append(f"  the Hessian of Vdot on the cube is negative definite by the checker's enclosure "
                              f"(its largest eigenvalue about {r.cube_bound:.3g})")
             if r.boxes or r.cube_bound is None:

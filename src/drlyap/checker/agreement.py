@@ -88,6 +88,25 @@ def _roa_claim(name: str, header: dict, config: dict, metrics: dict, expected: d
     return expected, {"delta": claim["region"].get("delta"), "level": level}, problems
 
 
+def _ellipsoid_mismatch(header: dict, config: dict, metrics: dict) -> list[str]:
+    """What of an ``ellipsoid`` certificate's claim differs from the closed loop's quadratic region ``metrics.json``
+    reports (``certificate.roa.quadratic``: its ``P`` and level), on the region's model and samples (plain decrease,
+    as for ``roa-ball``)."""
+    reported = (metrics.get("certificate") or {}).get("roa") or {}
+    quadratic = reported.get("quadratic") or {}
+    claim = header["claim"]
+    xi = reported.get("xi")
+    samples = [list(map(float, xi))] if xi is not None else _trained_condition(config, metrics)["xi"]
+    expected = {"name": "plain", "model": "true" if xi is not None else "design", "xi": samples, "exp_rate": 0.0}
+    differ = [k for k, v in expected.items() if claim["condition"].get(k) != v]
+    ellipsoid = claim.get("ellipsoid") or {}
+    if not quadratic.get("proved"):
+        differ.append("ellipsoid (no certified one reported in metrics.json)")
+    else:
+        differ += [k for k, mine in (("P", "P"), ("level", "q_level")) if ellipsoid.get(k) != quadratic.get(mine)]
+    return differ
+
+
 def claim_mismatch(name: str, header: dict, config: dict, metrics: dict) -> list[str]:
     """Where a certificate's claim is not the run's: for ``trained``, the condition the run was trained on (method
     and loss, radius, risk level, decay, samples, delta, level); for ``true-model``, the run's decay and the shift
@@ -138,6 +157,11 @@ def claim_mismatch(name: str, header: dict, config: dict, metrics: dict) -> list
         wanted["level"] = None
     if "certificate" in config:  # an imported pair: its claim's decay, level and delta (None: the system's delta)
         wanted = {"delta": delta if config.get("delta") is None else config["delta"], "level": config.get("level")}
+    if name == "ellipsoid":  # the closed loop's own quadratic region its metrics report
+        more = _ellipsoid_mismatch(header, config, metrics)
+        return [] if not (problems or more) else [
+            f"the certificate's claim is not the run's closed-loop ellipsoid ({', '.join(problems + more)} differ "
+            "from config.json / metrics.json)"]
     if name in ("roa", "roa-ball"):  # the region of attraction its metrics report, on its model
         expected, wanted, more = _roa_claim(name, header, config, metrics, expected, wanted["delta"])
         problems += more

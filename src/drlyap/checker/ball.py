@@ -47,10 +47,25 @@ def hessian_negative(residual: Residual, half: Tensor) -> tuple[bool, float, str
     count = comps.shape[-1]
     lo = torch.stack([torch.stack([comps.d[j].d[i].lo[0] for i in range(n)], -1) for j in range(n)], -2)  # (Q, n, n)
     hi = torch.stack([torch.stack([comps.d[j].d[i].hi[0] for i in range(n)], -1) for j in range(n)], -2)
-    lo = torch.minimum(lo, lo.transpose(-1, -2))  # H_ij and H_ji both lie in [lo_s, hi_s]: so does the symmetric part
-    hi = torch.maximum(hi, hi.transpose(-1, -2))
     if not bool(torch.isfinite(lo).all() and torch.isfinite(hi).all()):
         return False, math.inf, "the Hessian's enclosure is not finite on the cube"
+    negative, worst = surely_negative_definite(lo, hi)
+    if not count:
+        worst = -math.inf
+    if bool(negative.all()):
+        return True, worst, ""
+    return False, worst, f"the Hessian of Vdot is not proved negative definite on the cube (lambda_max + spread " \
+                         f"about {worst:.3g})"
+
+
+def surely_negative_definite(lo: Tensor, hi: Tensor) -> tuple[Tensor, float]:
+    """``(Q,)``: where every symmetric matrix whose entries lie in the finite interval matrices ``[lo, hi] (Q, n, n)``
+    is negative definite (``C + t I``, ``C`` the centre of the symmetrised enclosure and ``t`` an upper bound of the
+    Frobenius norm of its radius, by a Cholesky factorisation with its backward error); and the largest
+    ``lambda_max(C) + t`` (about: float eigenvalues), a measure of how far from proved."""
+    n = lo.shape[-1]
+    lo = torch.minimum(lo, lo.transpose(-1, -2))  # H_ij and H_ji both lie in [lo_s, hi_s]: so does the symmetric part
+    hi = torch.maximum(hi, hi.transpose(-1, -2))
     centre = (lo + hi) / 2
     radius = _up(torch.maximum(_up(hi - centre), _up(centre - lo)))
     frobenius = radius.square().sum((-1, -2)).sqrt()
@@ -59,12 +74,8 @@ def hessian_negative(residual: Residual, half: Tensor) -> tuple[bool, float, str
     m = -centre - t[:, None, None] * eye
     # m's diagonal is rounded once: move it down by that error before asking for semidefiniteness
     m = m - (2 * EPS * torch.diagonal(m, dim1=-2, dim2=-1).abs().amax(-1) + TINY)[:, None, None] * eye
-    negative = surely_semidefinite(m)
-    worst = float((torch.linalg.eigvalsh(centre).amax(-1) + t).amax()) if count else -math.inf
-    if bool(negative.all()):
-        return True, worst, ""
-    return False, worst, f"the Hessian of Vdot is not proved negative definite on the cube (lambda_max + spread " \
-                         f"about {worst:.3g})"
+    worst = float((torch.linalg.eigvalsh(centre).amax(-1) + t).amax()) if lo.shape[0] else -math.inf
+    return surely_semidefinite(m), worst
 
 
 def ball_failures(claim: dict, pair, system, lo: Tensor, hi: Tensor, ring_delta: float,

@@ -46,6 +46,7 @@ from drlyap.checker.affine import Af
 from drlyap.checker.agreement import claim_mismatch, outer_missing
 from drlyap.checker.arith import EPS, F64, Iv
 from drlyap.checker.ball import ball_failures
+from drlyap.checker.ellipsoid import QuadraticPair, ellipsoid_failures
 from drlyap.checker.graphs import GraphPair
 from drlyap.checker.model import Pair, Residual, centre_lower, form_upper, upper_bounds, value_lower
 from drlyap.checker.record import drop_record, fingerprint, write_record
@@ -75,7 +76,8 @@ class CheckResult:
     faces_boxes: int = 0
     cube_bound: float | None = None
     """For V's second-order decrease near x* (``roa-ball``): ``lambda_max`` of the Hessian enclosure's centre plus its
-    spread, the largest over the samples (< 0 proves the cube)."""
+    spread, the largest over the samples (< 0 proves the cube); for an ``ellipsoid``, the same of its Jacobian test's
+    scaled matrices."""
     time_s: float = 0.0
 
     def to_dict(self) -> dict:
@@ -395,11 +397,15 @@ def check_certificate(run_dir: str | Path, name: str, header: dict, arrays: dict
         level = None if level is None else float(level)
         pair = GraphPair(weights["graphs"], weights["tensors"], system.n) if "graphs" in weights else \
             Pair(weights, float(header["networks"]["alpha_hat"]), system.n)
+        if claim.get("ellipsoid") is not None:  # the closed loop's own W = z'Pz: its claims are about W, not V
+            pair = QuadraticPair(pair, torch.as_tensor(claim["ellipsoid"]["P"], dtype=F64))
         residual = Residual(claim["condition"], pair, system)
-        if claim.get("cube") is not None:  # V's second-order decrease near x* (roa-ball)
-            failures, out.cube_bound = ball_failures(claim, pair, system, lo, hi, delta, header["partition"] is not None)
+        if claim.get("cube") is not None or claim.get("ellipsoid") is not None:  # a decrease near x* (roa-ball, ellipsoid)
+            ring = header["partition"] is not None
+            failures, out.cube_bound = ball_failures(claim, pair, system, lo, hi, delta, ring) \
+                if claim.get("cube") is not None else ellipsoid_failures(claim, residual, lo, hi, delta, ring)
             out.failures += failures
-            if header["partition"] is None:  # the cube covers the ball: no ring to prove
+            if not ring:  # the cube covers the ball, or the ellipsoid lies in its box: no ring to prove
                 out.ok, out.time_s = not out.failures, time.perf_counter() - start
                 return out
         grid = [int(k) for k in header["partition"]["grid"]]
@@ -446,7 +452,8 @@ def check_certificate(run_dir: str | Path, name: str, header: dict, arrays: dict
         if region.get("ball_of") is None:  # inside the delta-ball the set's boundary is the outer proof's
             holds, out.faces_min, out.faces_boxes = faces_above(pair, lo, hi, level)
         if not holds:
-            out.failures.append(f"V > {level:g} is not established on the box's faces (V's lower bound there "
+            what = "W" if claim.get("ellipsoid") is not None else "V"
+            out.failures.append(f"{what} > {level:g} is not established on the box's faces ({what}'s lower bound there "
                                 f"{out.faces_min:.6g}, {out.faces_boxes} face boxes)")
     if bool(false.any()):
         first = proved[false][0]

@@ -38,7 +38,8 @@ def check(run_dir: Path, names: tuple[str, ...], refine: int, workers: int, back
     for a region of attraction
     certified by V's own proofs (verify --roa) `roa-ball`, V's decrease inside the delta-ball (Vdot's Hessian on a
     cube around x*, and the ring around it), with `roa` where the decrease outside the ball on {V <= c} is not
-    already another certificate's.
+    already another certificate's; where verify --roa reports the closed loop's own quadratic region {z'Pz <= c},
+    `ellipsoid` (W = z'Pz decreasing by the Jacobian's enclosure on a box, and by boxes beyond it).
     """
     settings = compute_settings(workers, backend, address, device)
     refuse_early(runs=[run_dir], systems=[system_spec])

@@ -11,7 +11,10 @@ run's decay, for every shift in the certified box ``[-s* scale, s* scale]``, als
 written by ``drlyap verify RUN --uniform``; a run trained on it writes it as ``trained``);
 for a region of attraction (``verify --roa``), ``roa-ball`` (V's decrease on ``{V <= c}`` inside the delta-ball: a
 ``cube`` where it is proved by second order, the ring around it by a partition, ``outer`` the certificate of the
-decrease outside the ball) and, where no other certificate states that decrease at c, ``roa``.
+decrease outside the ball) and, where no other certificate states that decrease at c, ``roa``; where no sublevel set of
+V is certified but the closed loop's own quadratic region ``{z'Pz <= c_q}`` is, ``ellipsoid`` (``P``, ``c_q``, the
+box where W's decrease is proved by the Jacobian's enclosure and that proof's weights; a partition where W's
+decrease is proved by boxes on the rest of the set).
 The header (format ``drlyap-certificate``, version 1) holds:
 
 * ``claim``: the condition (name, model, samples or shift ``xi`` or a box of shifts ``xi_box``, decay, Wasserstein
@@ -134,8 +137,8 @@ def write_certificate(folder: str | os.PathLike, name: str, proof: ConditionProo
     header's path."""
     if name not in NAMES:
         raise ValueError(f"unknown certificate name {name!r}; valid: {', '.join(NAMES)}")
-    if proof is None and name != "roa-ball":
-        raise ValueError("only a roa-ball certificate can be written without a proof")
+    if proof is None and name not in ("roa-ball", "ellipsoid"):
+        raise ValueError("only a roa-ball or ellipsoid certificate can be written without a proof")
     if proof is not None and (proof.partition is None or not proof.verified):
         raise ValueError("only a verified proof that kept its partition can be written as a certificate")
     target = Path(folder) / FOLDER
@@ -188,8 +191,9 @@ def read_certificate(run_dir: str | os.PathLike, name: str) -> tuple[dict, dict[
         raise ValueError(f"{path} is not a drlyap certificate")
     if header.get("version") != VERSION:
         raise ValueError(f"{path} has certificate version {header.get('version')!r}; this drlyap reads {VERSION}")
-    if header.get("partition", False) is None and (header.get("claim") or {}).get("cube") is not None:
-        return header, {}  # V's second-order decrease on a cube that covers the ball: no boxes to read
+    claim = header.get("claim") or {}
+    if header.get("partition", False) is None and (claim.get("cube") is not None or claim.get("ellipsoid") is not None):
+        return header, {}  # a decrease near x* that covers its whole claim: no boxes to read
     try:
         part = header["partition"]
         arrays_path = folder / Path(str(part["file"])).name

@@ -243,14 +243,37 @@ def jacobian_negative(loop: ClosedLoop, plain: PlainDecrease, p: Tensor, half: T
     ``scaled``: that cube's :func:`scaled_jacobians` when the caller has them.
 
     Returns (proved, the bound ``lambda`` with ``Wdot <= lambda ||z||^2 / 2`` on the cube, reason)."""
+    ok, bound, reason, _ = _jacobian_proof(loop, plain, p, half, half_widths, log_t, scaled)
+    return ok, bound, reason
+
+
+def decrease_weights(loop: ClosedLoop, plain: PlainDecrease, p: Tensor, half: Tensor,
+                     half_widths: Tensor) -> Tensor | None:
+    """The weights ``tau (J, n, n) > 0`` with which :func:`jacobian_negative` proves ``W = z^T P z`` decreasing on the
+    cube ``|z_i| <= half_i``, in local (unscaled) coordinates: ``P A + A^T P <= P C + C^T P + P D1 P + D2`` with
+    ``D1 = diag(sum_j R_ij tau_ij)``, ``D2 = diag(sum_i R_ij / tau_ij)`` for ``|A - C| <= R`` (what a certificate of
+    the closed loop's ellipsoid states, for the checker to redo the test); None where it is not proved."""
+    ok, _, _, found = _jacobian_proof(loop, plain, p, half, half_widths, None, None)
+    if not ok:
+        return None
+    log_t, unit = found
+    s = half_widths.to(F64)
+    return (log_t + s.log()[:, None] + s.log()[None, :] - math.log(unit)).exp()
+
+
+def _jacobian_proof(loop: ClosedLoop, plain: PlainDecrease, p: Tensor, half: Tensor, half_widths: Tensor,
+                    log_t: Tensor | None,
+                    scaled: tuple[Tensor, Tensor] | None) -> tuple[bool, float, str, tuple[Tensor, float] | None]:
+    """:func:`jacobian_negative`, also returning the weights ``log_t`` (scaled coordinates) and the scale ``unit`` of
+    ``P`` the proof used."""
     s = half_widths.to(F64)
     centre, radius = scaled or scaled_jacobians(jacobian_enclosures(loop, plain, half), s)
     if not bool(torch.isfinite(centre).all() and torch.isfinite(radius).all()):
-        return False, math.nan, "non-finite Jacobian enclosure"
+        return False, math.nan, "non-finite Jacobian enclosure", None
     p_s = p.to(F64) * s[:, None] * s[None, :]
     unit = float(torch.linalg.eigvalsh(p_s).min())  # P / unit has lambda_min 1, as robust_lyapunov_matrix's
     if not unit > 0:
-        return False, math.nan, "P is not positive definite"
+        return False, math.nan, "P is not positive definite", None
     p_n = p_s / unit
 
     def proved_rate(log_t: Tensor) -> float:
@@ -269,5 +292,5 @@ def jacobian_negative(loop: ClosedLoop, plain: PlainDecrease, p: Tensor, half: T
         _, log_t, _ = robust_lyapunov_matrix(centre, radius, p_n, log_t, steps=300, fit_p=False, stop_below=stop)
         worst = proved_rate(log_t)
     if not worst < 0:  # NaN included
-        return False, math.nan, "P A + A^T P not provably negative definite over the Jacobian enclosure"
-    return True, 2 * unit * worst / float(s.max()) ** 2, ""
+        return False, math.nan, "P A + A^T P not provably negative definite over the Jacobian enclosure", None
+    return True, 2 * unit * worst / float(s.max()) ** 2, "", (log_t, unit)

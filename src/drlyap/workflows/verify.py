@@ -37,6 +37,7 @@ from drlyap.verification import (
     uniform_margin,
     verify_condition,
 )
+from drlyap.verification.roa import ellipsoid_proof
 from drlyap.verification.robustness import SEARCH_BUDGET
 
 CHECKPOINTS = "checkpoints"
@@ -315,13 +316,20 @@ def region_certificates(folder: Path, loop: ClosedLoop, condition: Condition, re
     proof is on ``{V <= c'}`` with ``c' >= c``, else ``roa``, a proof of the condition on ``{V <= c}`` made here
     (``proof``'s budget). Certificates of an earlier region are removed first; none are written for a region the
     other routes certified (the closed loop's linearisation, the band proof). ``weights``, ``alpha_hat``: as
-    :func:`~drlyap.runs.certificates.write_certificate` takes them. Returns the headers' paths."""
-    for name in ("roa-ball", "roa"):
+    :func:`~drlyap.runs.certificates.write_certificate` takes them. Where the closed loop's own quadratic region is
+    certified (``roa.quadratic``), also ``ellipsoid``: its proofs made again with their weights and partition. Returns
+    the headers' paths."""
+    for name in ("roa-ball", "roa", "ellipsoid"):
         remove_certificate(folder, name)
-    if not roa.certified or roa.ball is None or roa.level is None:
-        return []
-    c = float(roa.level)
     written = []
+    if roa.ellipsoid_certified:
+        found = ellipsoid_proof(loop, condition, region, roa.quadratic, proof.budget())
+        if found is not None:
+            written.append(write_certificate(folder, "ellipsoid", found.ring, found.condition, found.region,
+                                             loop.system, weights, alpha_hat, level=found.level, extra=found.claim()))
+    if not roa.certified or roa.ball is None or roa.level is None:
+        return written
+    c = float(roa.level)
     outer_name, found = outer
     if not (isinstance(found, ConditionProof) and found.verified and found.level is not None and found.level >= c
             and (found.partition is not None or found.source == "certificate")):

@@ -7,8 +7,8 @@ ellipsoid), :mod:`~drlyap.verification.roa.band` (V's decrease outside that elli
 from drlyap.verification.roa.band import band_roa
 from drlyap.verification.roa.certify import certified_roa
 from drlyap.verification.roa.local import local_decrease
-from drlyap.verification.roa.quadratic import linearisation_local, quadratic_roa
+from drlyap.verification.roa.quadratic import ellipsoid_proof, linearisation_local, quadratic_roa
 from drlyap.verification.roa.sublevel import share_of_box, sublevel_roa
 
-__all__ = ["band_roa", "certified_roa", "linearisation_local", "local_decrease", "quadratic_roa", "share_of_box",
-           "sublevel_roa"]
+__all__ = ["band_roa", "certified_roa", "ellipsoid_proof", "linearisation_local", "local_decrease", "quadratic_roa",
+           "share_of_box", "sublevel_roa"]

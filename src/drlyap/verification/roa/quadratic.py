@@ -35,7 +35,7 @@ from __future__ import annotations
 
 import math
 import time
-from dataclasses import replace
+from dataclasses import dataclass, replace
 
 import torch
 from torch import Tensor
@@ -48,16 +48,18 @@ from drlyap.kinds import Enclosure
 from drlyap.networks import QuadraticLyapunov
 from drlyap.regions import Region, box_grid, default_grid, near_dist
 from drlyap.verification.bounds import box_bounds, value_objective
-from drlyap.verification.branch_and_bound import maximize
+from drlyap.verification.branch_and_bound import maximize, verify_condition
 from drlyap.verification.linearisation import (
     closed_loop_jacobians,
     common_lyapunov_matrix,
+    decrease_weights,
     is_hurwitz,
     jacobian_enclosures,
     jacobian_negative,
     robust_lyapunov_matrix,
     scaled_jacobians,
 )
+from drlyap.verification.results import ConditionProof
 from drlyap.verification.roa.levels import below, level_search
 from drlyap.verification.roa.local import not_equilibrium, proved_cube, resolving
 from drlyap.verification.roa.sublevel import sublevel_roa
@@ -233,7 +235,7 @@ def _quadratic_level(loop: ClosedLoop, plain: PlainDecrease, region: Region, p: 
             "cube": half.tolist(), "cube_fraction": float((half / torch.minimum(-region.lo, region.hi)).max()),
             "hessian_bound": bound, "cube_level": c_cube, "box_level": c_box, "box": proved_on.tolist(),
             "q_roa": {k: getattr(w_roa, k) for k in ("level", "kind", "limited_by", "boxes_processed", "time_s")} | {
-                "decay_rate": ring.decay_rate, "inner_radius": r_in}}
+                "decay_rate": ring.decay_rate, "inner_radius": r_in, "enclosure": budget.enclosure}}
 
 
 def linearisation_local(loop: ClosedLoop, condition: Condition, region: Region, level: float,
@@ -320,3 +322,53 @@ def linearisation_local(loop: ClosedLoop, condition: Condition, region: Region, 
         return out
     out.update(proved=True, level=c_2)
     return out
+
+
+@dataclass
+class EllipsoidProof:
+    """What an ``ellipsoid`` certificate writes down (:func:`ellipsoid_proof`): ``W = z^T P z`` decreasing on the box
+    ``|z_i| <= box_i`` by the Jacobian's enclosure with the weights ``tau (J, n, n)``, and, where the ellipsoid
+    ``{W <= level}`` reaches beyond that box, ``ring``: W's strict decrease (``condition``) on it outside the ball of
+    ``region`` (the state box, ``delta`` the box's smallest half-width), with W above the level on the box's faces."""
+
+    p: Tensor
+    level: float
+    box: Tensor
+    tau: Tensor
+    condition: PlainDecrease
+    region: Region
+    ring: ConditionProof | None
+
+    def claim(self) -> dict:
+        """The claim's ``ellipsoid`` entry."""
+        return {"ellipsoid": {"P": self.p.tolist(), "level": self.level, "box": self.box.tolist(),
+                              "tau": self.tau.tolist(), "ring": self.ring is not None}}
+
+
+def ellipsoid_proof(loop: ClosedLoop, condition: Condition, region: Region, quadratic: dict,
+                    budget: Budget) -> EllipsoidProof | None:
+    """The proofs behind :func:`quadratic_roa`'s certified ``{z^T P z <= q_level}`` (``quadratic``, its result) as a
+    certificate states them: the Jacobian test's weights on the box it proved (:func:`decrease_weights`), and beyond
+    that box W's decrease proved again on ``{W <= q_level}`` outside the inner ball with its partition kept (``budget``,
+    with the enclosure and minimum width of the search that found the level). None where either is not proved
+    again."""
+    plain = condition.per_sample()
+    if plain is None or not quadratic.get("proved"):
+        return None
+    p, level, box = (torch.as_tensor(quadratic[k], dtype=F64) for k in ("P", "q_level", "box"))
+    tau = decrease_weights(loop, plain, p, box, region.scale / 2)
+    if tau is None:
+        return None
+    level = float(level)
+    r_in = float(box.min())
+    ring_region = Region(region.lo, region.hi, r_in)
+    if level <= float(quadratic["box_level"]):
+        return EllipsoidProof(p, level, box, tau, PlainDecrease(plain.xi, 0.0, 0.0, plain.model), ring_region, None)
+    ring_condition = PlainDecrease(plain.xi, float(quadratic["q_roa"]["decay_rate"]), 0.0, plain.model)
+    ring = verify_condition(loop.with_lyapunov(QuadraticLyapunov(p)), ring_condition, ring_region,
+                            replace(budget, min_width=resolving(budget.min_width, r_in, region),
+                                    enclosure=quadratic["q_roa"].get("enclosure") or budget.enclosure),
+                            level=level, keep_partition=True)
+    if not ring.verified:
+        return None
+    return EllipsoidProof(p, level, box, tau, ring_condition, ring_region, ring)
