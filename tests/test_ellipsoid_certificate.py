@@ -59,6 +59,7 @@ def test_verify_writes_the_closed_loops_ellipsoid_and_check_confirms_it(wrong_ru
     (lambda e, r: e.update(tau=[[[1e-7 * t for t in row] for row in m] for m in e["tau"]]), "not proved negative"),
     (lambda e, r: e.update(P=[[v / 2 for v in row] for row in e["P"]]), "established on the box's faces"),
     (lambda e, r: e.update(box=[3 * h for h in e["box"]]), "does not lie in the state box"),
+    (lambda e, r: e.update(P=[e["P"][0], [e["P"][1][0], -e["P"][1][1]]]), "not positive semidefinite"),
     (lambda e, r: r.update(delta=2 * max(e["box"])), "inner ball"),
     (lambda e, r: e.update(level=2 * e["level"]), "level is not the ellipsoid's"),
 ])

@@ -12,10 +12,11 @@ encloses ``dF_j/dz`` with its own dual numbers (the controller's clamp by its Cl
 interval arithmetic, scales it by the box's half-widths (a congruence) and asks every symmetric matrix of the
 enclosure to be negative definite (:func:`~drlyap.checker.ball.surely_negative_definite`).
 
-``L`` is then a region of attraction where W decreases on all of it: either ``L`` lies in the box (``P >= (c /
-h_i^2) e_i e_i^T`` for each i, by a Cholesky factorisation: then ``z_i^2 <= c / (c / h_i^2)``), or the certificate's
-partition proves a strict decrease of W on ``L`` outside the ball of radius ``delta <= min_i h_i`` (with ``W > c`` on
-the state box's faces, checked as for V's sets) and the box covers that ball.
+``L`` (convex: ``P`` positive semidefinite) is then a region of attraction where W decreases on all of it: either
+``L`` lies in the box (``P >= (c / h_i^2) e_i e_i^T`` for each i, by a Cholesky factorisation: then
+``z_i^2 <= c / (c / h_i^2)``), or the certificate's partition proves a strict decrease of W on ``L`` outside the ball
+of radius ``delta <= min_i h_i`` (with ``W > c`` on the state box's faces, checked as for V's sets: ``L`` convex and
+off the faces lies in the state box) and the box covers that ball.
 """
 
 from __future__ import annotations
@@ -134,6 +135,8 @@ def ellipsoid_failures(claim: dict, residual: Residual, lo: Tensor, hi: Tensor, 
     except (KeyError, TypeError, ValueError) as err:
         return [str(err) if isinstance(err, ValueError) else f"the claim's ellipsoid lacks {err}"], None
     failures = []
+    if not bool(surely_semidefinite(p)):  # then {W <= c} is convex: away from the faces, it lies in the box
+        failures.append("the ellipsoid's P is not positive semidefinite")
     if not bool((h <= torch.minimum(-lo, hi)).all()):
         failures.append("the ellipsoid's box does not lie in the state box")
     if ring:
