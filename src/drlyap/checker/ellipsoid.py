@@ -146,7 +146,7 @@ def ellipsoid_failures(claim: dict, residual: Residual, lo: Tensor, hi: Tensor, 
             failures.append("the ring's decrease is not strict (its decay rate is not > 0)")
     elif not inside_box(p, c, h):
         failures.append(f"{{z'Pz <= {c:g}}} is not proved to lie in the ellipsoid's box")
-    if abs(float(claim["region"].get("level") or 0.0) - c) > 0:
+    if float(claim["region"].get("level") or 0.0) != c:
         failures.append("the region's level is not the ellipsoid's")
     why, bound = not_equilibrium(residual), None
     if not why:
