@@ -39,8 +39,10 @@ from drlyap.enclosures import (
     quadratic_max,
     round_down,
     round_up,
+    vertices,
 )
 from drlyap.kinds import Enclosure
+from drlyap.networks import QuadraticLyapunov
 
 Objective = Callable[[object], object]
 """``objective(z)``: ``z`` an enclosure of local states ``(B, n)`` -> an enclosure ``(B, Q)``."""
@@ -195,3 +197,15 @@ def sublevel_upper(condition: Condition, form: Affine, level: float) -> Tensor:
     value = round_up(value, 8 * (k * k + k + 8) * EPS, mag)
     value = torch.where(torch.isnan(value), torch.inf, value)
     return torch.minimum(best, combine_upper(condition, value))
+
+
+def vertex_max(p: Tensor, lo: Tensor, hi: Tensor) -> Tensor:
+    """``max z^T P z`` over each box ``[lo, hi] (B, n)`` (at a vertex: the form is convex), rounded up."""
+    n = lo.shape[-1]
+    p = p.to(lo)
+    if n > 8:  # 2^n vertices per box: beyond that, the interval bound
+        return QuadraticLyapunov(p)(Interval(lo, hi)).hi
+    corners = torch.where(vertices(n, lo.device)[None] > 0, hi[:, None, :], lo[:, None, :])  # (B, 2^n, n)
+    values = (corners @ p * corners).sum(-1)
+    mag = (corners.abs() @ p.abs() * corners.abs()).sum(-1)
+    return round_up(values, 4 * (n + 2) * REL1, mag).amax(-1)

@@ -34,9 +34,9 @@ from drlyap.kinds import Status
 from drlyap.progress import progress as show_progress
 from drlyap.regions import Region, box_grid, default_grid, inside_ball, split
 from drlyap.verification.bounding import ConditionJob, run_batches
-from drlyap.verification.bounds import box_bounds, condition_objective
+from drlyap.verification.bounds import box_bounds, condition_objective, vertex_max
 from drlyap.verification.checkpoints import load_checkpoint, proof_key, save_checkpoint
-from drlyap.verification.partition import OPEN, PROVED, Partition, PartitionRecorder
+from drlyap.verification.partition import INSIDE_CORE, OPEN, PROVED, Partition, PartitionRecorder
 from drlyap.verification.results import ConditionProof, UniformMargin
 
 
@@ -44,7 +44,7 @@ def verify_condition(loop: ClosedLoop, condition: Condition, region: Region, bud
                      level: float | None = None, grid: Sequence[int] | None = None, keep_boxes: int = 50,
                      stop_at_counterexample: bool = False, violation_width: float = 1e-2,
                      start: Partition | None = None, standing: Tensor | None = None, give_up: bool = False,
-                     keep_partition: bool = False) -> ConditionProof:
+                     keep_partition: bool = False, core: tuple[Tensor, float] | None = None) -> ConditionProof:
     """Prove ``residual(z) <= 0`` for the closed loop on the region X_delta by branch and bound, or find where it
     fails, within ``budget`` (boxes, seconds, minimum box width, enclosure, and where to bound them).
 
@@ -72,11 +72,18 @@ def verify_condition(loop: ClosedLoop, condition: Condition, region: Region, bud
     radius, which implies it), kept as proved. ``give_up``: stop, ``unknown``, as soon as more boxes are queued than
     the budget has left (the proof cannot finish within it). ``keep_partition``: keep the partition of a proof that is
     not verified too (its leaves not proved ``OPEN``), for a proof that starts from it.
+
+    ``core``: ``(P (n, n), c)``, an ellipsoid ``{z^T P z <= c}`` around x* whose own proof carries the trajectories
+    that reach it (a certified region of attraction): boxes inside it (every vertex, rounded up: the form is convex)
+    need nothing more (``INSIDE_CORE`` in the partition), and a violation inside it is none of the claim's. Not with
+    ``start``.
     """
     if not condition.per_state:
         raise ValueError("use uniform_margin for the uniform condition")
+    if core is not None and start is not None:
+        raise ValueError("a proof with a core does not start from another proof's partition")
     search = _Search(loop, condition, region, budget, level, list(grid or default_grid(loop.system.n)),
-                     stop_at_counterexample, violation_width, start, give_up, standing)
+                     stop_at_counterexample, violation_width, start, give_up, standing, core)
     if not (search.finished and (search.stopped == "counterexample" or not search.lo.shape[0])):
         search.run()  # a finished search that ran out of budget goes on where a larger budget allows
     return search.result(keep_boxes, keep_partition)
@@ -100,8 +107,10 @@ class _Search:
 
     def __init__(self, loop: ClosedLoop, condition: Condition, region: Region, budget: Budget, level: float | None,
                  per_axis: list[int], stop_at_counterexample: bool, violation_width: float,
-                 start: Partition | None = None, give_up: bool = False, standing: Tensor | None = None) -> None:
+                 start: Partition | None = None, give_up: bool = False, standing: Tensor | None = None,
+                 core: tuple[Tensor, float] | None = None) -> None:
         self.loop, self.condition, self.region, self.budget, self.level = loop, condition, region, budget, level
+        self.core = None if core is None else (torch.as_tensor(core[0], dtype=F64), float(core[1]))
         self.stop_at_cex, self.violation_width, self.give_up = stop_at_counterexample, violation_width, give_up
         self.n = loop.system.n
         self.enclosure = budget.enclosure_for(self.n)
@@ -122,7 +131,8 @@ class _Search:
                                  grid=per_axis, enclosure=self.enclosure, batch=int(budget.batch),
                                  min_width=float(budget.min_width), violation_width=float(violation_width),
                                  stop_at_counterexample=bool(stop_at_counterexample), give_up=bool(give_up),
-                                 start=None if start is None else start.digest(standing))
+                                 start=None if start is None else start.digest(standing),
+                                 core=None if core is None else [self.core[0].tolist(), self.core[1]])
         saved = load_checkpoint(self.compute.checkpoint_dir, self.key) if self.key else None
         lo, hi = box_grid(region.lo, region.hi, per_axis)
         if saved is not None:
@@ -136,7 +146,7 @@ class _Search:
                                  f"{tuple(standing.shape)}")
             blo, bhi = start.boxes(lo, hi)
             self.tree.restore(start.state(standing))
-            opened = (start.verdict == PROVED) | (start.verdict == OPEN)
+            opened = (start.verdict == PROVED) | (start.verdict == OPEN) | (start.verdict == INSIDE_CORE)
             if standing is not None:
                 opened = opened & ~standing.to(torch.bool)
             opened = opened.nonzero().squeeze(-1)
@@ -144,7 +154,16 @@ class _Search:
         else:
             keep = region.meets(lo, hi)
             self.tree.inside_ball(self.tree.roots[~keep])
-            self.lo, self.hi, self.ids = lo[keep], hi[keep], self.tree.roots[keep]
+            self.lo, self.hi, self.ids = self._outside_core(lo[keep], hi[keep], self.tree.roots[keep])
+
+    def _outside_core(self, lo: Tensor, hi: Tensor, ids: Tensor) -> tuple[Tensor, Tensor, Tensor]:
+        """The boxes not inside the core (those inside are recorded as such)."""
+        if self.core is None or not lo.shape[0]:
+            return lo, hi, ids
+        top = vertex_max(self.core[0], lo, hi)
+        inside = top <= self.core[1]
+        self.tree.inside_core(ids[inside], top[inside])
+        return lo[~inside], hi[~inside], ids[~inside]
 
     # ------------------------------------------------------------------ checkpoints
     def _arrays(self) -> dict[str, Tensor]:
@@ -263,6 +282,8 @@ class _Search:
         if (ok & ~outside).any():
             self.sup_hi = max(self.sup_hi, float(ub[ok & ~outside].max()))
         bad = ~ok & in_region & (centre_lb > 0)
+        if self.core is not None:  # a violation inside the core is not one of the claim's
+            bad = bad & (((centre @ self.core[0]) * centre).sum(-1) > self.core[1])
         if bad.any():
             values = self.loop.exact(condition, centre[bad])
             confirmed = values > 0
@@ -303,8 +324,8 @@ class _Search:
             children = tree.split(cids[divide], chi[divide], nhi)
             keep = region.meets(nlo, nhi)
             tree.inside_ball(children[~keep])
-            self.lo, self.hi = torch.cat([self.lo, nlo[keep]]), torch.cat([self.hi, nhi[keep]])
-            self.ids = torch.cat([self.ids, children[keep]])
+            nlo, nhi, nids = self._outside_core(nlo[keep], nhi[keep], children[keep])
+            self.lo, self.hi, self.ids = torch.cat([self.lo, nlo]), torch.cat([self.hi, nhi]), torch.cat([self.ids, nids])
         return False
 
     def result(self, keep_boxes: int, keep_partition: bool = False) -> ConditionProof:

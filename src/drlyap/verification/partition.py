@@ -10,7 +10,10 @@ for a leaf, the verdict the proof reached on it, with the bound behind it:
 * ``INSIDE_BALL``: the box lies in the open delta-ball (not part of X_delta);
 * ``ABOVE_LEVEL``: V's lower bound over the box is ``bound > level`` (a proof on ``{V <= level}``);
 * ``OPEN``: nothing was proved (a proof that leaves such leaves is not verified; it keeps its partition only when
-  asked to, for a proof that starts from it).
+  asked to, for a proof that starts from it);
+* ``INSIDE_CORE``: every vertex of the box has ``z^T P z <= c``, so the box lies in a proof's core, the ellipsoid
+  ``{z^T P z <= c}`` (convex) around x* whose own certificate carries the trajectories that reach it (``bound``: the
+  largest vertex value, rounded up).
 
 The boxes themselves are not stored: they follow from the grid and the splits (halving at the midpoint), which is
 what makes a dropped or an extra box visible to a checker.
@@ -24,9 +27,9 @@ from dataclasses import dataclass
 import torch
 from torch import Tensor
 
-INTERNAL, PROVED, INSIDE_BALL, ABOVE_LEVEL, OPEN = 0, 1, 2, 3, 4
+INTERNAL, PROVED, INSIDE_BALL, ABOVE_LEVEL, OPEN, INSIDE_CORE = 0, 1, 2, 3, 4, 5
 VERDICTS = {INTERNAL: "internal", PROVED: "proved", INSIDE_BALL: "inside ball", ABOVE_LEVEL: "above level",
-            OPEN: "open"}
+            OPEN: "open", INSIDE_CORE: "inside core"}
 
 
 @dataclass
@@ -92,7 +95,8 @@ class Partition:
     def state(self, standing: Tensor | None = None) -> dict[str, Tensor]:
         """The tree as :meth:`PartitionRecorder.state` keeps one, with its leaves left open (for a proof that starts
         from this partition: see :meth:`PartitionRecorder.restore`) but for those in the ball and above the level,
-        which keep their verdicts and bounds, and those ``standing`` (``(N,)`` bool; None: none): leaves proved or
+        which keep their verdicts and bounds (leaves inside a core are left open: a proof that starts here need not
+        have that core), and those ``standing`` (``(N,)`` bool; None: none): leaves proved or
         open here that are proved for the condition of the proof that starts here too, kept as proved (with the bound
         they have here, NaN for an open one)."""
         internal = self.verdict == INTERNAL
@@ -143,6 +147,9 @@ class PartitionRecorder:
     def proved(self, ids: Tensor, bound: Tensor) -> None:
         self._leaf.append((ids, PROVED, bound))
 
+    def inside_core(self, ids: Tensor, bound: Tensor) -> None:
+        self._leaf.append((ids, INSIDE_CORE, bound))
+
     def above_level(self, ids: Tensor, bound: Tensor) -> None:
         self._leaf.append((ids, ABOVE_LEVEL, bound))
 
@@ -181,7 +188,7 @@ class PartitionRecorder:
         self._axis = [(state["tree_axis_ids"].to(torch.int64), state["tree_axis"].to(torch.int8))]
         ids, codes, bound = state["tree_leaf_ids"].to(torch.int64), state["tree_leaf_code"], state["tree_leaf_bound"]
         self._leaf = []
-        for code in (PROVED, INSIDE_BALL, ABOVE_LEVEL):
+        for code in (PROVED, INSIDE_BALL, ABOVE_LEVEL, INSIDE_CORE):
             mine = codes == code
             if bool(mine.any()):
                 self._leaf.append((ids[mine], code, None if code == INSIDE_BALL else bound[mine]))

@@ -12,7 +12,7 @@ from torch import Tensor
 
 from drlyap.closed_loop import ClosedLoop
 from drlyap.conditions import Condition
-from drlyap.enclosures import F64, REL1, Interval, round_down, round_up, vertices
+from drlyap.enclosures import F64, REL1, round_down
 from drlyap.kinds import Enclosure
 from drlyap.networks import QuadraticLyapunov
 from drlyap.regions import split
@@ -23,6 +23,7 @@ from drlyap.verification.bounds import (
     condition_and_value_objective,
     sublevel_upper,
     value_objective,
+    vertex_max,
 )
 
 
@@ -131,18 +132,6 @@ def level_search(loop: ClosedLoop, condition: Condition, lo: Tensor, hi: Tensor,
         if above.any():
             lo, hi, known = lo[~above], hi[~above], known[~above]
     return level, limited_by, cex, processed
-
-
-def vertex_max(p: Tensor, lo: Tensor, hi: Tensor) -> Tensor:
-    """``max z^T P z`` over each box ``[lo, hi] (B, n)`` (at a vertex: the form is convex), rounded up."""
-    n = lo.shape[-1]
-    p = p.to(lo)
-    if n > 8:  # 2^n vertices per box: beyond that, the interval bound
-        return QuadraticLyapunov(p)(Interval(lo, hi)).hi
-    corners = torch.where(vertices(n, lo.device)[None] > 0, hi[:, None, :], lo[:, None, :])  # (B, 2^n, n)
-    values = (corners @ p * corners).sum(-1)
-    mag = (corners.abs() @ p.abs() * corners.abs()).sum(-1)
-    return round_up(values, 4 * (n + 2) * REL1, mag).amax(-1)
 
 
 def outside_lower(v_form, w_form, v_centre: Tensor, w_centre: Tensor, c_q: float, level: float) -> Tensor:
