@@ -83,20 +83,22 @@ def plain_train(cfg, system=None, **kwargs):
     return train(cfg, system, None, **kwargs)
 
 
-def linear_run_dir(path, delta: float = 0.1, prove=None, lyapunov_matrix=None, **overrides):
+def linear_run_dir(path, delta: float = 0.1, prove=None, lyapunov_matrix=None, bump=False, **overrides):
     """A saved DR run of :func:`small_pendulum` (three samples, radius 0.01, risk level 0.3, decay 0.05, ``delta``;
     ``overrides``: other config fields) whose pair is :func:`linear_pair`'s (trained for one iteration, then
-    replaced; ``lyapunov_matrix``: V's P, as ``linear_pair`` takes it): its conditions prove in well under a second.
+    replaced; ``lyapunov_matrix``: V's P, as ``linear_pair`` takes it; ``bump``: :func:`bump_pair`'s instead): its
+    conditions prove in well under a second.
     ``prove(result)``: the trained condition's proof to keep as its certificate (None: none)."""
     from drlyap.runs import save_run
     from drlyap.training import TrainConfig
 
     system = small_pendulum()
-    fields = dict(system="small-pendulum", method="dr", n_states=64, iters=1, check_every=1, lyapunov_hidden=[2],
-                  lyapunov_out=2, controller_hidden=[1], alpha_hat=1e-3, decay_rate=0.05, wasserstein_radius=0.01,
+    fields = dict(system="small-pendulum", method="dr", n_states=64, iters=1, check_every=1,
+                  lyapunov_hidden=[3] if bump else [2], lyapunov_out=3 if bump else 2, controller_hidden=[1],
+                  alpha_hat=1e-3, decay_rate=0.05, wasserstein_radius=0.01,
                   risk_level=0.3, delta=delta, xi_samples=[[0.02, 0.01], [-0.03, 0.0], [0.05, -0.02]], seed=0)
     result = plain_train(TrainConfig(**(fields | overrides)), system, progress=False)
-    lyap, ctrl = linear_pair(system, p=lyapunov_matrix)
+    lyap, ctrl = bump_pair(system) if bump else linear_pair(system, p=lyapunov_matrix)
     result.lyapunov.load_state_dict(lyap.state_dict())
     result.controller.load_state_dict(ctrl.state_dict())
     if prove is not None:

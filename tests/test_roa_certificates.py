@@ -140,6 +140,7 @@ def test_a_certified_region_without_a_certificate_file_says_so():
     from drlyap.verification import RegionOfAttraction
 
     band = RegionOfAttraction(level=0.04, kind="region of attraction", certified=True, local={"method": "band"})
-    assert "(band) is not written yet" in unwritten_region_line(band, [])
-    assert unwritten_region_line(band, ["RUN/certificates/roa-ball.json"]) is None
+    assert "(band route) did not all hold again" in unwritten_region_line(band, [])
+    assert "(band route)" in unwritten_region_line(band, ["RUN/certificates/roa-ball.json"])  # band writes roa
+    assert unwritten_region_line(band, ["RUN/certificates/roa.json"]) is None
     assert unwritten_region_line(RegionOfAttraction(level=0.0), []) is None  # nothing certified, nothing to say

@@ -75,6 +75,16 @@ def claim_sentence(claim: dict) -> str:
                 f"; outside ||x - x*|| < {float(r['delta']):g}, {what.replace('decrease', 'decrease of W', 1)} on it")
             return (f"{{z'Pz <= {level_text(level)}}} (W = z'Pz, P in the file) is a region of attraction: W decreases on "
                     f"it except at x*, on the box |x_i - x*_i| <= [{half}] by the Jacobian's enclosure{ring}")
+        core = claim.get("core")
+        if core is not None:  # V's region resting on the closed loop's ellipsoid (linearisation route, band proof)
+            ellipsoid = (f"{{z'Pz <= {level_text(float(core['level']))}}} (P in the file; a region of attraction by "
+                         f"the certificate {core.get('certificate')!r})")
+            if r.get("ball_of") is not None:
+                return (f"V decreases on {{V <= {level_text(level)}}} inside the ball ||x - x*|| < "
+                        f"{float(r['ball_of']):g}: {what} on the ball's box outside the ellipsoid {ellipsoid}; outside "
+                        f"the ball by the certificate {claim.get('outer')!r}")
+            return (f"{what} holds at every state of {{V <= {level_text(level)}}} outside the ellipsoid {ellipsoid}, "
+                    f"with V > {level_text(level)} on the box's faces")
         if claim.get("cube") is not None:  # roa-ball: V's decrease inside the delta-ball
             half = ", ".join(f"{float(h):.3g}" for h in claim["cube"]["half"])
             rest = "" if float(r["delta"]) >= float(r["ball_of"]) else (  # no ring: the cube covers the ball

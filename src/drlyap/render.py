@@ -187,14 +187,17 @@ def roa_line(r: RegionOfAttraction, true_model: bool) -> str:
 
 
 def unwritten_region_line(roa: RegionOfAttraction | None, written: list) -> str | None:
-    """Where a certified region of attraction has no certificate among the files ``written`` (its route is the
-    linearisation or the band proof, whose proofs are not written yet): the line that says so, else None."""
-    if roa is None or not roa.certified or any(Path(p).name == "roa-ball.json" for p in written):
+    """Where a certified region of attraction has no certificate among the files ``written`` (its proofs, made again
+    with their partitions kept, did not all hold again): the line that says so, else None."""
+    if roa is None or not roa.certified:
         return None
-    ellipsoid = any(Path(p).name == "ellipsoid.json" for p in written)
-    return (f"  no certificate file for the region of attraction: its route ({roa.method}) is not written yet, only "
-            "V's own second-order route is (drlyap check cannot re-check this region" +
-            ("; the closed loop's ellipsoid it rests on is written as ellipsoid)" if ellipsoid else ")"))
+    names = {Path(p).name for p in written}
+    if ("roa.json" if roa.method == "band" else "roa-ball.json") in names:
+        return None
+    ellipsoid = "ellipsoid.json" in names
+    return (f"  no certificate file for the region of attraction: its proofs ({roa.method} route) did not all hold "
+            "again with their partitions kept (drlyap check cannot re-check this region" +
+            ("; the closed loop's ellipsoid is written as ellipsoid)" if ellipsoid else ")"))
 
 
 def verification_lines(ver: RunVerification, system: str, method: str) -> list[str]:
@@ -409,7 +412,8 @@ def check_lines(results) -> list[str]:
                 lines.append(f"  the Hessian of Vdot on the cube is negative definite by the checker's enclosure "
                              f"(its largest eigenvalue about {r.cube_bound:.3g})")
             if r.boxes or r.cube_bound is None:
-                lines.append(f"  {r.proved} boxes re-proved by the checker{refined}, {r.inside_ball} inside the ball; "
+                core = f", {r.inside_core} inside the core (every vertex)" if r.inside_core else ""
+                lines.append(f"  {r.proved} boxes re-proved by the checker{refined}, {r.inside_ball} inside the ball{core}; "
                              f"the boxes cover the region ({r.time_s:.2f} s)")
         else:
             lines.append(f"{r.name}: FAILED - the certificate does not establish: {r.claim or 'its claim'}")

@@ -35,6 +35,26 @@ def outer_missing(run_dir: Path, header: dict) -> list[str]:
     return []
 
 
+def core_missing(run_dir: Path, header: dict) -> list[str]:
+    """Where the certificate a claim with a ``core`` names for its ellipsoid (``core.certificate``) does not state that
+    ellipsoid a region of attraction of the same closed loop: missing, another ``P`` or level, or about other samples
+    or another model (that certificate is checked on its own)."""
+    claim = header["claim"]
+    core = claim.get("core") or {}
+    path = run_dir / "certificates" / f"{core.get('certificate')}.json"
+    try:
+        theirs = json.loads(path.read_text())["claim"]
+        ellipsoid, condition = theirs["ellipsoid"], theirs["condition"]
+    except (OSError, ValueError, KeyError, TypeError):
+        return [f"the certificate it names for its core ({path.name}) cannot be read, or states no ellipsoid"]
+    if ellipsoid.get("P") != core.get("P") or ellipsoid.get("level") != core.get("level"):
+        return [f"{path.name} is about another ellipsoid than the core"]
+    mine = claim["condition"]
+    if any(condition.get(k) != mine.get(k) for k in ("xi", "model")):
+        return [f"{path.name} is about other samples or another model than the decrease around its core"]
+    return []
+
+
 def _strict(condition: dict, networks: dict) -> bool:
     """Whether a decrease condition makes ``Vdot < 0`` away from x*: a decay ``gamma ||z||`` with ``gamma > 0``, or
     ``alpha V`` with ``alpha > 0`` and V positive away from x* by its form (drlyap's V with ``alpha_hat > 0``; an
@@ -58,9 +78,10 @@ def _roa_claim(name: str, header: dict, config: dict, metrics: dict, expected: d
     """The condition and region a ``roa`` or ``roa-ball`` certificate must state for the region of attraction
     ``metrics.json`` reports (``certificate.roa``: its level and shift): ``roa`` the run's trained condition (for
     the DR uniform condition the decrease at each sample it implies), or decrease on the true model at the shift, on
-    ``{V <= level}``; ``roa-ball`` plain decrease on the same model at
-    each of its samples inside the delta-ball (a strict decay, checked with the cube), naming as ``outer`` a
-    certificate of the same model on ``{V <= c'}``, ``c' >=`` the level. ``delta``: the run's. Returns (expected
+    ``{V <= level}`` (for the band proof, with a ``core``: plain decrease on the same model at each of its samples
+    over the box, no inner ball); ``roa-ball`` plain decrease on the same model at each of its samples inside the
+    delta-ball (a strict decay, checked with the cube or the core), naming as ``outer`` a certificate of the same
+    model on ``{V <= c'}``, ``c' >=`` the level. ``delta``: the run's. Returns (expected
     condition fields, expected region fields, other problems)."""
     reported = (metrics.get("certificate") or {}).get("roa") or {}
     xi = reported.get("xi")
@@ -70,11 +91,13 @@ def _roa_claim(name: str, header: dict, config: dict, metrics: dict, expected: d
         _trained_condition(config, metrics)
     if condition["name"] == "uniform":  # one inequality: its region rests on the decrease at each sample it implies
         condition = {"name": "plain", "xi": condition["xi"]}
-    if name == "roa":
-        return expected | condition, {"delta": delta, "level": level}, []
     claim = header["claim"]
     ball = {"name": "plain", "model": "true" if xi is not None else "design", "xi": condition["xi"],
             "exp_rate": 0.0}
+    if name == "roa" and claim.get("core") is not None:  # the band proof: V's strict decrease outside the core
+        return {k: v for k, v in expected.items() if k != "decay_rate"} | ball, {"delta": 0.0, "level": level}, []
+    if name == "roa":
+        return expected | condition, {"delta": delta, "level": level}, []
     decay = claim["condition"].get("decay_rate")
     expected = {k: v for k, v in expected.items() if k not in ("decay_rate", "exp_rate", "model")} | ball | {
         "decay_rate": decay if header.get("partition") is not None else 0.0}
@@ -90,10 +113,14 @@ def _roa_claim(name: str, header: dict, config: dict, metrics: dict, expected: d
 
 def _ellipsoid_mismatch(header: dict, config: dict, metrics: dict) -> list[str]:
     """What of an ``ellipsoid`` certificate's claim differs from the closed loop's quadratic region ``metrics.json``
-    reports (``certificate.roa.quadratic``: its ``P`` and level), on the region's model and samples (plain decrease,
-    as for ``roa-ball``)."""
+    reports (``certificate.roa.quadratic``, or for a region of V from the linearisation the ellipsoid it rests on,
+    ``certificate.roa.local``: its ``P`` and level), on the region's model and samples (plain decrease, as for
+    ``roa-ball``)."""
     reported = (metrics.get("certificate") or {}).get("roa") or {}
     quadratic = reported.get("quadratic") or {}
+    local = reported.get("local") or {}
+    if not quadratic.get("proved") and local.get("method") == "linearisation" and local.get("proved"):
+        quadratic = {"proved": True, "P": local.get("P"), "q_level": local.get("q_level")}  # the ellipsoid V rests on
     claim = header["claim"]
     xi = reported.get("xi")
     samples = [list(map(float, xi))] if xi is not None else _trained_condition(config, metrics)["xi"]

@@ -25,6 +25,9 @@ the file).
 
 A ``roa-ball`` certificate (V's decrease inside the delta-ball) is checked on the ball's box: its ring of boxes as
 above, and its cube around x* by :mod:`drlyap.checker.ball` (Vdot's Hessian over the cube, negative definite).
+An ``ellipsoid`` certificate is checked by :mod:`drlyap.checker.ellipsoid`; a claim with a ``core`` (V's region resting on
+that ellipsoid) has leaves inside it, each of whose vertices the checker places in the ellipsoid
+(:func:`~drlyap.checker.ellipsoid.inside_core`).
 
 A DR uniform claim is one inequality over all the leaves together (:mod:`drlyap.checker.uniform`): each component's
 supremum is bounded over every leaf, and the margin made of those bounds must be ``<= 0``.
@@ -43,10 +46,10 @@ import torch
 from torch import Tensor
 
 from drlyap.checker.affine import Af
-from drlyap.checker.agreement import claim_mismatch, outer_missing
+from drlyap.checker.agreement import claim_mismatch, core_missing, outer_missing
 from drlyap.checker.arith import EPS, F64, Iv
 from drlyap.checker.ball import ball_failures
-from drlyap.checker.ellipsoid import QuadraticPair, ellipsoid_failures
+from drlyap.checker.ellipsoid import QuadraticPair, ellipsoid_failures, inside_core, read_core
 from drlyap.checker.graphs import GraphPair
 from drlyap.checker.model import Pair, Residual, centre_lower, form_upper, upper_bounds, value_lower
 from drlyap.checker.record import drop_record, fingerprint, write_record
@@ -56,7 +59,7 @@ from drlyap.config import Compute
 from drlyap.parallel import check_device, pool_for
 from drlyap.progress import progress as show_progress
 
-INTERNAL, PROVED, INSIDE_BALL, ABOVE_LEVEL = 0, 1, 2, 3
+INTERNAL, PROVED, INSIDE_BALL, ABOVE_LEVEL, INSIDE_CORE = 0, 1, 2, 3, 5
 
 
 @dataclass
@@ -70,6 +73,7 @@ class CheckResult:
     boxes: int = 0
     proved: int = 0
     inside_ball: int = 0
+    inside_core: int = 0
     refined: int = 0
     pieces: int = 0
     faces_min: float | None = None
@@ -99,9 +103,10 @@ def _grid_cells(lo: Tensor, hi: Tensor, grid: list[int]) -> tuple[Tensor, Tensor
             torch.cartesian_prod(*axes_hi).reshape(-1, len(grid)))
 
 
-def check_tree(arrays: dict[str, np.ndarray], cells: int, n: int, level: float | None) -> None:
+def check_tree(arrays: dict[str, np.ndarray], cells: int, n: int, level: float | None, core: bool = False) -> None:
     """Structural checks: roots are exactly the grid's cells, every other node names an earlier internal node as its
-    parent, every internal node has exactly one lower and one upper half, every leaf has a verdict that proves it."""
+    parent, every internal node has exactly one lower and one upper half, every leaf has a verdict that proves it
+    (above the level only with a ``level``, inside the core only with a ``core``)."""
     parent, side = arrays["parent"].astype(np.int64), arrays["side"].astype(np.int64)
     axis, verdict = arrays["axis"].astype(np.int64), arrays["verdict"].astype(np.int64)
     size = parent.shape[0]
@@ -124,7 +129,7 @@ def check_tree(arrays: dict[str, np.ndarray], cells: int, n: int, level: float |
     if (slots[internal] != 1).any() or (slots[~internal] != 0).any():
         raise CertificateError("a split node does not have exactly one lower and one upper half (a box is missing "
                                "or duplicated)")
-    allowed = {PROVED, INSIDE_BALL} | ({ABOVE_LEVEL} if level is not None else set())
+    allowed = {PROVED, INSIDE_BALL} | ({ABOVE_LEVEL} if level is not None else set()) | ({INSIDE_CORE} if core else set())
     leaves = verdict[~internal]
     bad = ~np.isin(leaves, sorted(allowed))
     if bad.any():
@@ -400,6 +405,7 @@ def check_certificate(run_dir: str | Path, name: str, header: dict, arrays: dict
         if claim.get("ellipsoid") is not None:  # the closed loop's own W = z'Pz: its claims are about W, not V
             pair = QuadraticPair(pair, torch.as_tensor(claim["ellipsoid"]["P"], dtype=F64))
         residual = Residual(claim["condition"], pair, system)
+        core = None if claim.get("core") is None else read_core(claim, system.n)
         if claim.get("cube") is not None or claim.get("ellipsoid") is not None:  # a decrease near x* (roa-ball, ellipsoid)
             ring = header["partition"] is not None
             failures, out.cube_bound = ball_failures(claim, pair, system, lo, hi, delta, ring) \
@@ -411,7 +417,7 @@ def check_certificate(run_dir: str | Path, name: str, header: dict, arrays: dict
         grid = [int(k) for k in header["partition"]["grid"]]
         if len(grid) != system.n or min(grid) < 1:
             raise CertificateError(f"the starting grid {grid} does not fit {system.n} states")
-        check_tree(arrays, int(np.prod(grid)), system.n, level)
+        check_tree(arrays, int(np.prod(grid)), system.n, level, core is not None)
     except (CertificateError, KeyError, TypeError, ValueError) as err:
         out.failures.append(str(err) if not isinstance(err, KeyError) else f"the header lacks {err}")
         out.time_s = time.perf_counter() - start
@@ -425,6 +431,12 @@ def check_certificate(run_dir: str | Path, name: str, header: dict, arrays: dict
     out.inside_ball = int(inside.sum())
     if not bool(inside.all()):
         out.failures.append(f"{int((~inside).sum())} boxes said to lie in the open ball ||z|| < {delta:g} do not")
+    if core is not None:
+        inner = (verdict == INSIDE_CORE).nonzero().squeeze(-1)
+        held = inside_core(*core, blo[inner], bhi[inner])
+        out.inside_core = int(held.sum())
+        if not bool(held.all()):
+            out.failures.append(f"{int((~held).sum())} boxes said to lie in the core {{z'Pz <= {core[1]:g}}} do not")
     proved = ((verdict == PROVED) | (verdict == ABOVE_LEVEL)).nonzero().squeeze(-1)
     if residual.name == "uniform":
         _check_uniform(out, residual, blo[proved], bhi[proved], bound[proved], hi - lo, refine)
@@ -525,6 +537,8 @@ def check_run(run_dir: str | Path, system=None, trust: bool = False, names: list
         result.failures += claim_mismatch(name, header, config, metrics)
         if name == "roa-ball":
             result.failures += outer_missing(run_dir, header)
+        if (header.get("claim") or {}).get("core") is not None:
+            result.failures += core_missing(run_dir, header)
         result.ok = not result.failures
         if result.ok:
             write_record(run_dir, name, fingerprint(run_dir, name, header, digest, system_sha), result.proved,

@@ -17,6 +17,13 @@ enclosure to be negative definite (:func:`~drlyap.checker.ball.surely_negative_d
 ``z_i^2 <= c / (c / h_i^2)``), or the certificate's partition proves a strict decrease of W on ``L`` outside the ball
 of radius ``delta <= min_i h_i`` (with ``W > c`` on the state box's faces, checked as for V's sets: ``L`` convex and
 off the faces lies in the state box) and the box covers that ball.
+
+A region of attraction of V that rests on ``L`` (a ``roa-ball`` or ``roa`` certificate with a ``core``: the
+linearisation route and the band proof) has leaves inside ``L`` (``INSIDE_CORE``): every vertex of such a leaf has
+``z^T P z <= c`` by the checker's interval arithmetic (:func:`inside_core`), so the leaf lies in the convex ``L``. The
+rest of the claim follows from V's strict decrease on the set outside ``L`` (its other leaves, and outside the ball
+the certificate it names), V above the level on the faces, and ``L`` a region of attraction (the ``ellipsoid``
+certificate the core names, checked on its own and compared here by :func:`~drlyap.checker.agreement.core_missing`).
 """
 
 from __future__ import annotations
@@ -152,3 +159,34 @@ def ellipsoid_failures(claim: dict, residual: Residual, lo: Tensor, hi: Tensor, 
     if not why:
         _, bound, why = jacobian_decrease(residual, p, h, tau)
     return failures + ([why] if why else []), bound
+
+
+def read_core(claim: dict, n: int) -> tuple[Tensor, float]:
+    """``(P (n, n), c)`` of a claim's ``core``, or a ValueError saying what is wrong (P finite, symmetric and positive
+    semidefinite: the ellipsoid is then convex and a box whose vertices lie in it lies in it)."""
+    core = claim["core"]
+    p = torch.as_tensor(core["P"], dtype=F64)
+    c = float(core["level"])
+    if p.shape != (n, n) or not bool(torch.isfinite(p).all()) or not torch.equal(p, p.T):
+        raise ValueError(f"the core's P is not a finite symmetric {n} x {n} matrix")
+    if not bool(surely_semidefinite(p)):
+        raise ValueError("the core's P is not positive semidefinite")
+    if not (c > 0 and c < float("inf")):
+        raise ValueError("the core's level is not a finite number > 0")
+    if float(claim["region"].get("delta") or 0.0) != 0.0:
+        raise ValueError("a claim with a core has no inner ball (its delta must be 0)")
+    if not float(claim["condition"].get("decay_rate") or 0.0) > 0:
+        raise ValueError("the decrease outside the core is not strict (its decay rate is not > 0)")
+    return p, c
+
+
+def inside_core(p: Tensor, c: float, lo: Tensor, hi: Tensor) -> Tensor:
+    """``(B,)``: whether every vertex of each box ``[lo, hi] (B, n)`` has ``z^T P z <= c`` (interval arithmetic)."""
+    n = lo.shape[-1]
+    if not lo.shape[0]:
+        return torch.ones(0, dtype=torch.bool)
+    signs = torch.tensor([[(k >> i) & 1 for i in range(n)] for k in range(2 ** n)], dtype=torch.bool)
+    corners = torch.where(signs[None], hi[:, None, :], lo[:, None, :]).reshape(-1, n)
+    z = Iv.point(corners)
+    values = (z * z.linear(p.to(corners))).sum(-1)
+    return (values.hi <= c).reshape(-1, 2 ** n).all(-1)

@@ -12,9 +12,11 @@ written by ``drlyap verify RUN --uniform``; a run trained on it writes it as ``t
 for a region of attraction (``verify --roa``), ``roa-ball`` (V's decrease on ``{V <= c}`` inside the delta-ball: a
 ``cube`` where it is proved by second order, the ring around it by a partition, ``outer`` the certificate of the
 decrease outside the ball) and, where no other certificate states that decrease at c, ``roa``; where no sublevel set of
-V is certified but the closed loop's own quadratic region ``{z'Pz <= c_q}`` is, ``ellipsoid`` (``P``, ``c_q``, the
-box where W's decrease is proved by the Jacobian's enclosure and that proof's weights; a partition where W's
-decrease is proved by boxes on the rest of the set).
+V is certified by V's own proofs but the closed loop's own quadratic region ``{z'Pz <= c_q}`` is, ``ellipsoid``
+(``P``, ``c_q``, the box where W's decrease is proved by the Jacobian's enclosure and that proof's weights; a partition
+where W's decrease is proved by boxes on the rest of the set). A sublevel set of V certified through that ellipsoid
+(the linearisation route, the band proof) is a ``roa-ball`` (inside the delta-ball) or ``roa`` (the whole box) whose
+claim names it as its ``core``: V's strict decrease on the set, boxes inside the ellipsoid being leaves of their own.
 The header (format ``drlyap-certificate``, version 1) holds:
 
 * ``claim``: the condition (name, model, samples or shift ``xi`` or a box of shifts ``xi_box``, decay, Wasserstein

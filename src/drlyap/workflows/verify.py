@@ -37,7 +37,7 @@ from drlyap.verification import (
     uniform_margin,
     verify_condition,
 )
-from drlyap.verification.roa import ellipsoid_proof
+from drlyap.verification.roa import band_proof, ellipsoid_proof, linearisation_proofs
 from drlyap.verification.robustness import SEARCH_BUDGET
 
 CHECKPOINTS = "checkpoints"
@@ -294,10 +294,9 @@ def record_certificates(run: Run, ver: RunVerification) -> list[Path]:
 
 
 def record_roa(run: Run, ver: RunVerification, proof: ProofConfig) -> list[Path]:
-    """Write the certificates of the region of attraction ``ver`` certified by V's own proofs (on the run's own delta),
-    what ``drlyap check`` needs to confirm it (:func:`region_certificates`): ``roa-ball``, naming the run's ``trained``
-    or ``true-model`` for the decrease outside the ball where that proof is on ``{V <= c'}`` with ``c' >= c``, else
-    ``roa``. Returns the headers' paths."""
+    """Write the certificates of the region of attraction ``ver`` certified (on the run's own delta), what ``drlyap
+    check`` needs to confirm it (:func:`region_certificates`), naming the run's ``trained`` or ``true-model`` for the
+    decrease outside the ball where that proof is on ``{V <= c'}`` with ``c' >= c``. Returns the headers' paths."""
     roa = ver.roa
     if roa is None or roa.error is not None or float(ver.delta) != float(run.config.delta):
         return []
@@ -310,44 +309,81 @@ def record_roa(run: Run, ver: RunVerification, proof: ProofConfig) -> list[Path]
 def region_certificates(folder: Path, loop: ClosedLoop, condition: Condition, region: Region,
                         roa: RegionOfAttraction, outer: tuple[str, ConditionProof | None], proof: ProofConfig,
                         weights, alpha_hat: float | None) -> list[Path]:
-    """Write into ``folder`` the certificates of a region of attraction ``roa`` of ``condition`` certified by V's own
-    proofs: ``roa-ball``, V's decrease on ``{V <= c}`` inside the delta-ball (the second-order cube and the ring's
-    partition), naming the certificate of the decrease outside the ball: ``outer`` (its name and proof) where that
-    proof is on ``{V <= c'}`` with ``c' >= c``, else ``roa``, a proof of the condition on ``{V <= c}`` made here
-    (``proof``'s budget). Certificates of an earlier region are removed first; none are written for a region the
-    other routes certified (the closed loop's linearisation, the band proof). ``weights``, ``alpha_hat``: as
-    :func:`~drlyap.runs.certificates.write_certificate` takes them. Where the closed loop's own quadratic region is
-    certified (``roa.quadratic``), also ``ellipsoid``: its proofs made again with their weights and partition. Returns
-    the headers' paths."""
+    """Write into ``folder`` the certificates of a region of attraction ``roa`` of ``condition``, by its route:
+
+    * V's own proofs: ``roa-ball``, V's decrease on ``{V <= c}`` inside the delta-ball (the second-order cube and the
+      ring's partition), naming the certificate of the decrease outside the ball (:func:`_outer_certificate`);
+    * the closed loop's linearisation: ``ellipsoid`` (the ellipsoid ``L`` it rests on) and ``roa-ball``, V's strict
+      decrease inside the ball's box except in ``L`` (its ``core``), naming the one outside the ball as above;
+    * the band proof: ``roa``, V's strict decrease on ``{V <= c}`` over the box except in ``L`` (``core``), beside
+      ``ellipsoid``.
+
+    Where the closed loop's own quadratic region is certified (``roa.quadratic``), ``ellipsoid`` states it. The proofs
+    are made again with their partitions kept (``proof``'s budget); where one does not hold again, its certificates
+    are not written. Certificates of an earlier region are removed first. ``weights``, ``alpha_hat``: as
+    :func:`~drlyap.runs.certificates.write_certificate` takes them. Returns the headers' paths."""
     for name in ("roa-ball", "roa", "ellipsoid"):
         remove_certificate(folder, name)
-    written = []
+    written: list[Path] = []
+
+    def write(name, found, cond, where, level=None, extra=None):
+        written.append(write_certificate(folder, name, found, cond, where, loop.system, weights, alpha_hat,
+                                         level=level, extra=extra))
+
+    def write_ellipsoid(found):
+        write("ellipsoid", found.ring, found.condition, found.region, found.level, found.claim())
+
     if roa.ellipsoid_certified:
         found = ellipsoid_proof(loop, condition, region, roa.quadratic, proof.budget())
         if found is not None:
-            written.append(write_certificate(folder, "ellipsoid", found.ring, found.condition, found.region,
-                                             loop.system, weights, alpha_hat, level=found.level, extra=found.claim()))
-    if not roa.certified or roa.ball is None or roa.level is None:
+            write_ellipsoid(found)
+    if not roa.certified or roa.level is None:
         return written
     c = float(roa.level)
-    outer_name, found = outer
-    if not (isinstance(found, ConditionProof) and found.verified and found.level is not None and found.level >= c
-            and (found.partition is not None or found.source == "certificate")):
-        outer_name = "roa"
-        found = verify_condition(loop, condition, region, proof.budget(), level=c, keep_partition=True)
-        if not found.verified:
-            return []
-        written.append(write_certificate(folder, "roa", found, condition, region, loop.system, weights, alpha_hat))
+    if roa.method == "band":
+        cored = band_proof(loop, condition, region, roa.local, proof.budget())
+        if cored is not None and "ellipsoid.json" in {p.name for p in written}:
+            write("roa", cored.proof, cored.condition, cored.region, extra=cored.claim())
+        return written
+    if roa.method == "linearisation":
+        found = linearisation_proofs(loop, condition, region, roa.local, proof.budget())
+        if found is None:
+            return written
+        ellipsoid, cored = found
+        outer_name = _outer_certificate(write, loop, condition, region, c, outer, proof)
+        if outer_name is not None:
+            write_ellipsoid(ellipsoid)
+            write("roa-ball", cored.proof, cored.condition, cored.region,
+                  extra={"ball_of": float(region.delta), "outer": outer_name} | cored.claim())
+        return written
+    if roa.ball is None:
+        return written
+    outer_name = _outer_certificate(write, loop, condition, region, c, outer, proof)
+    if outer_name is None:
+        return written
     ball = roa.ball
     extra = {"ball_of": float(region.delta), "cube": {"half": ball.cube}, "outer": outer_name}
     if ball.ring is None:  # the cube covers the ball: the claim is the cube's alone
-        written.append(write_certificate(folder, "roa-ball", None, condition.per_sample(),
-                                         region.ball_box(region.delta), loop.system, weights, alpha_hat, level=c,
-                                         extra=extra))
+        write("roa-ball", None, condition.per_sample(), region.ball_box(region.delta), c, extra)
     else:
-        written.append(write_certificate(folder, "roa-ball", ball.ring, ball.condition, ball.region, loop.system,
-                                         weights, alpha_hat, extra=extra))
+        write("roa-ball", ball.ring, ball.condition, ball.region, extra=extra)
     return written
+
+
+def _outer_certificate(write, loop: ClosedLoop, condition: Condition, region: Region, level: float,
+                       outer: tuple[str, ConditionProof | None], proof: ProofConfig) -> str | None:
+    """The name of the certificate of ``condition`` on ``{V <= level}`` outside the delta-ball that a ``roa-ball``
+    names: ``outer``'s (its name and proof) where that proof is on ``{V <= c'}`` with ``c' >= level``, else ``roa``,
+    proved here (``proof``'s budget) and written with ``write``; None where that proof fails."""
+    outer_name, found = outer
+    if (isinstance(found, ConditionProof) and found.verified and found.level is not None and found.level >= level
+            and (found.partition is not None or found.source == "certificate")):
+        return outer_name
+    found = verify_condition(loop, condition, region, proof.budget(), level=level, keep_partition=True)
+    if not found.verified:
+        return None
+    write("roa", found, condition, region)
+    return "roa"
 
 
 def record_imported_certificates(run_dir: str | Path, pair, ver: RunVerification, proof: ProofConfig) -> list[Path]:

@@ -19,6 +19,7 @@ from __future__ import annotations
 
 import math
 import time
+from dataclasses import replace
 
 import torch
 from torch import Tensor
@@ -29,7 +30,9 @@ from drlyap.config import Budget
 from drlyap.enclosures import F64
 from drlyap.kinds import Enclosure
 from drlyap.regions import Region, box_grid, default_grid
+from drlyap.verification.branch_and_bound import verify_condition
 from drlyap.verification.roa.levels import below, level_search
+from drlyap.verification.roa.quadratic import CoredProof
 
 
 def band_roa(loop: ClosedLoop, condition: Condition, region: Region, quadratic: dict, top: float,
@@ -123,3 +126,25 @@ def _on_ellipsoid(lyapunov, p: Tensor, c_q: float, count: int = 20_000) -> list[
     with torch.no_grad():
         values = lyapunov(z)
     return [float(values.min()), float(values.max())]
+
+
+
+def band_proof(loop: ClosedLoop, condition: Condition, region: Region, band: dict,
+               budget: Budget) -> CoredProof | None:
+    """The proof behind a sublevel set ``{V <= c}`` that :func:`band_roa` certified (``band``, its result), as a
+    certificate states it: V's strict decrease (the band's decay) on ``{V <= c}`` over the whole box except where a box
+    lies in the ellipsoid ``L = {z^T P z <= c_q}`` (``verify_condition``'s ``core``; no delta-ball), with the affine
+    enclosure, a minimum width that resolves L, and its partition kept. A box that straddles L's boundary is split
+    until it lies in L, above the level by V's own bound, or is proved (the search bounded V on its part outside L
+    instead, so this proof may need more boxes, or not finish: None then)."""
+    plain = condition.per_sample()
+    if plain is None or not band.get("proved"):
+        return None
+    p, c_q = torch.tensor(band["P"], dtype=F64), float(band["q_level"])
+    strict = PlainDecrease(plain.xi, float(band["decay_rate"]), 0.0, plain.model)
+    extent = (c_q * torch.linalg.inv(p).diagonal()).sqrt()
+    fine = min(budget.min_width, 1e-4 * float((extent / region.scale).min()))
+    whole = region.with_delta(0.0)
+    proof = verify_condition(loop, strict, whole, replace(budget, min_width=fine, enclosure=Enclosure.AFFINE),
+                             level=float(band["level"]), core=(p, c_q), keep_partition=True)
+    return CoredProof(strict, whole, proof, p, c_q) if proof.verified else None

@@ -372,3 +372,53 @@ def ellipsoid_proof(loop: ClosedLoop, condition: Condition, region: Region, quad
     if not ring.verified:
         return None
     return EllipsoidProof(p, level, box, tau, ring_condition, ring_region, ring)
+
+
+
+@dataclass
+class CoredProof:
+    """V's strict decrease (``condition``) on ``{V <= level}`` over ``region`` (no inner ball) except where a box lies
+    in the ellipsoid core ``{z^T P z <= c_q}`` of ``ellipsoid`` (``proof``: a verified proof with its partition), the
+    part of a region of attraction that rests on the closed loop's own certified ellipsoid."""
+
+    condition: PlainDecrease
+    region: Region
+    proof: ConditionProof
+    p: Tensor
+    q_level: float
+
+    def claim(self, certificate: str = "ellipsoid") -> dict:
+        """The claim's ``core`` entry, naming the certificate of the ellipsoid."""
+        return {"core": {"P": self.p.tolist(), "level": self.q_level, "certificate": certificate}}
+
+
+def linearisation_proofs(loop: ClosedLoop, condition: Condition, region: Region, local: dict,
+                         budget: Budget) -> tuple[EllipsoidProof, CoredProof] | None:
+    """The proofs behind a region of attraction ``{V <= c}`` that :func:`linearisation_local` certified (``local``,
+    its result; ``c`` its ``level``) as certificates state them: the ellipsoid ``L = {z^T P z <= c_q}`` it rests on
+    (:func:`ellipsoid_proof`), and V's strict decrease (the annulus's decay) on ``{V <= c}`` inside the delta-ball's
+    box except where a box lies in ``L`` (its partition kept; ``verify_condition``'s ``core``). Outside the ball the
+    condition's own proof on ``{V <= c}`` covers the rest; with V above ``c`` on the faces, a trajectory from the set
+    stays in it while outside ``L`` (V decreases there) and reaches ``L`` (the band argument of
+    :mod:`~drlyap.verification.roa.band`): this needs no inner level. None where the annulus's decay is not > 0 (its
+    proof then ran over the whole box) or either proof does not hold again."""
+    plain = condition.per_sample()
+    annulus = local.get("annulus") or {}
+    if (plain is None or not local.get("proved") or annulus.get("region") != "delta-ball" or region.delta <= 0
+            or not annulus.get("decay_rate", 0.0) > 0):
+        return None
+    chosen = next((cand for cand in local["quadratic"]["candidates"]
+                   if cand["P"] == local["P"] and cand["q_level"] == local["q_level"]), None)
+    if chosen is None:
+        return None
+    ellipsoid = ellipsoid_proof(loop, condition, region, chosen | {"proved": True}, budget)
+    if ellipsoid is None:
+        return None
+    strict = PlainDecrease(plain.xi, float(annulus["decay_rate"]), 0.0, plain.model)
+    ball = region.ball_box(0.0)
+    fine = float(annulus["min_width"]) * float((region.scale / ball.scale).min())
+    ring = verify_condition(loop, strict, ball, replace(budget, min_width=min(budget.min_width, fine)),
+                            level=float(local["level"]), core=(ellipsoid.p, ellipsoid.level), keep_partition=True)
+    if not ring.verified:
+        return None
+    return ellipsoid, CoredProof(strict, ball, ring, ellipsoid.p, ellipsoid.level)
