@@ -1,5 +1,7 @@
 """Hand-made certificate/controller pairs on a small pendulum box, shared by the verification tests."""
 
+import json
+
 import torch
 
 from drlyap.config import PAPER_CONDITION
@@ -21,6 +23,22 @@ def small_pendulum(box=((-0.6, -1.2), (0.6, 1.2))) -> UncertainSystem:
         name="small-pendulum", state_names=("theta", "omega"), input_names=("torque",),
         param_names=("mass", "length", "damping", "gravity"), nominal_params=(1.0, 1.0, 0.13, 9.81),
         uncertain=("mass", "damping"), dynamics=_pend, state_box=box,
+        input_box=((-15.0,), (15.0,)), equilibrium=(0.0, 0.0), angle_dims=(0,), defaults=PAPER_CONDITION)
+
+
+def _offset_pend(x, u, p):
+    theta, omega = x.unbind(-1)
+    m, l, b, g, bias = p.unbind(-1)
+    return torch.stack([omega, (m * g * l * torch.sin(theta) - b * omega + u[:, 0] + bias) / (m * l * l)], dim=-1)
+
+
+def offset_pendulum() -> UncertainSystem:
+    """:func:`small_pendulum` with an uncertain constant torque ``bias`` (nominal 0): a shift of it moves the closed
+    loop's equilibrium away from x*, where only practical stability can be proved."""
+    return UncertainSystem(
+        name="offset-pendulum", state_names=("theta", "omega"), input_names=("torque",),
+        param_names=("mass", "length", "damping", "gravity", "bias"), nominal_params=(1.0, 1.0, 0.13, 9.81, 0.0),
+        uncertain=("mass", "damping", "bias"), dynamics=_offset_pend, state_box=((-0.6, -1.2), (0.6, 1.2)),
         input_box=((-15.0,), (15.0,)), equilibrium=(0.0, 0.0), angle_dims=(0,), defaults=PAPER_CONDITION)
 
 
@@ -83,16 +101,17 @@ def plain_train(cfg, system=None, **kwargs):
     return train(cfg, system, None, **kwargs)
 
 
-def linear_run_dir(path, delta: float = 0.1, prove=None, lyapunov_matrix=None, bump=False, **overrides):
+def linear_run_dir(path, delta: float = 0.1, prove=None, lyapunov_matrix=None, bump=False, user_system=None, **overrides):
     """A saved DR run of :func:`small_pendulum` (three samples, radius 0.01, risk level 0.3, decay 0.05, ``delta``;
     ``overrides``: other config fields) whose pair is :func:`linear_pair`'s (trained for one iteration, then
-    replaced; ``lyapunov_matrix``: V's P, as ``linear_pair`` takes it; ``bump``: :func:`bump_pair`'s instead): its
-    conditions prove in well under a second.
+    replaced; ``lyapunov_matrix``: V's P, as ``linear_pair`` takes it; ``bump``: :func:`bump_pair`'s instead; ``user_system``:
+    another two-state system with the same box, e.g. :func:`offset_pendulum`, its name and samples in ``overrides``):
+    its conditions prove in well under a second.
     ``prove(result)``: the trained condition's proof to keep as its certificate (None: none)."""
     from drlyap.runs import save_run
     from drlyap.training import TrainConfig
 
-    system = small_pendulum()
+    system = user_system or small_pendulum()
     fields = dict(system="small-pendulum", method="dr", n_states=64, iters=1, check_every=1,
                   lyapunov_hidden=[3] if bump else [2], lyapunov_out=3 if bump else 2, controller_hidden=[1],
                   alpha_hat=1e-3, decay_rate=0.05, wasserstein_radius=0.01,
@@ -121,3 +140,30 @@ def recheck(folder, name, system, weights, header_change=None, arrays_change=Non
         arrays = arrays_change(arrays) or arrays
     return check_certificate(folder, name, header, arrays, system, weights, sha256_file(folder / "weights.pt"),
                              system_digest(system))
+
+
+def verify_cli(run, spec: str, xi: str, *args: str) -> dict:
+    """``drlyap verify RUN --system SPEC --xi XI --roa --json ARGS``'s JSON (the command must succeed)."""
+    from click.testing import CliRunner
+
+    from drlyap.cli import main
+
+    out = CliRunner().invoke(main, ["verify", str(run), "--system", spec, "--xi", xi, "--roa", "--json", *args])
+    assert out.exit_code == 0, out.output
+    return json.loads(out.output)
+
+
+def check_cli(run, spec: str, *names: str):
+    """``drlyap check RUN --system SPEC [--name N ...]``'s click result."""
+    from click.testing import CliRunner
+
+    from drlyap.cli import main
+
+    return CliRunner().invoke(main, ["check", str(run), "--system", spec, *[a for n in names for a in ("--name", n)]])
+
+
+def run_weights(run) -> dict:
+    """A run's two state dicts as the checker reads them from ``weights.pt``."""
+    from drlyap.runs.validate import load_weights
+
+    return load_weights(run / "weights.pt", (run / "weights.pt").read_bytes())

@@ -12,19 +12,16 @@ import shutil
 import numpy as np
 import pytest
 import torch
-from click.testing import CliRunner
 
 from drlyap.checker.agreement import core_missing
 from drlyap.checker.arith import F64
 from drlyap.checker.ellipsoid import inside_core
-from drlyap.cli import main
 from drlyap.conditions import PlainDecrease
 from drlyap.regions import box_grid
 from drlyap.runs import load_run
 from drlyap.runs.certificates import certificate_partition, read_certificate
-from drlyap.runs.validate import load_weights
 from drlyap.verification.partition import INSIDE_CORE, PROVED
-from handmade import linear_run_dir, recheck, small_pendulum
+from handmade import check_cli, linear_run_dir, recheck, run_weights, small_pendulum, verify_cli
 
 SPEC = f"{os.path.dirname(__file__)}/handmade.py:small_pendulum"
 WRONG = torch.diag(torch.tensor([1.0, 0.01], dtype=F64))  # V = theta^2 + omega^2 / 100 rises near x*
@@ -33,9 +30,7 @@ XI = [0.1, 0.05]
 
 def _verified(path, **pair):
     run = linear_run_dir(path, delta=0.2, **pair)
-    out = CliRunner().invoke(main, ["verify", str(run), "--system", SPEC, "--xi", "0.1,0.05", "--roa", "--json"])
-    assert out.exit_code == 0, out.output
-    return run, json.loads(out.output)
+    return run, verify_cli(run, SPEC, "0.1,0.05")
 
 
 @pytest.fixture(scope="module")
@@ -54,15 +49,6 @@ def _names(run):
     return {p.stem for p in (run / "certificates").glob("*.json") if not p.stem.endswith(".check")}
 
 
-def _check(run, *names):
-    args = ["check", str(run), "--system", SPEC] + [a for n in names for a in ("--name", n)]
-    return CliRunner().invoke(main, args)
-
-
-def _weights(run):
-    return load_weights(run / "weights.pt", (run / "weights.pt").read_bytes())
-
-
 def test_the_linearisation_route_is_written_around_its_ellipsoid_and_check_confirms_it(bump_run):
     run, found = bump_run
     roa = found["roa"]
@@ -74,7 +60,7 @@ def test_the_linearisation_route_is_written_around_its_ellipsoid_and_check_confi
     assert ball["region"]["level"] == roa["level"] and ball["region"]["delta"] == 0.0
     ellipsoid = json.loads((run / "certificates" / "ellipsoid.json").read_text())["claim"]["ellipsoid"]
     assert ellipsoid["P"] == ball["core"]["P"] and ellipsoid["level"] == ball["core"]["level"]
-    out = _check(run)
+    out = check_cli(run, SPEC)
     assert out.exit_code == 0, out.output
     assert "roa-ball: CHECKED" in out.output and "outside the ellipsoid" in out.output
     assert "inside the core" in out.output
@@ -88,7 +74,7 @@ def test_the_band_proof_is_written_as_roa_around_its_ellipsoid_and_check_confirm
     claim = json.loads((run / "certificates" / "roa.json").read_text())["claim"]
     assert claim["core"]["P"] == roa["local"]["P"] and claim["region"]["level"] == roa["level"]
     assert claim["condition"]["name"] == "plain" and claim["condition"]["decay_rate"] > 0
-    out = _check(run)
+    out = check_cli(run, SPEC)
     assert out.exit_code == 0, out.output
     assert "roa: CHECKED" in out.output and "ellipsoid: CHECKED" in out.output and "inside the core" in out.output
 
@@ -108,7 +94,7 @@ def _relabel_proved_as_core(arrays):
 ])
 def test_a_core_that_claims_more_than_it_proves_fails(band_run, header_change, arrays_change, words):
     run, _ = band_run
-    result = recheck(run, "roa", small_pendulum(), _weights(run), header_change, arrays_change)
+    result = recheck(run, "roa", small_pendulum(), run_weights(run), header_change, arrays_change)
     assert not result.ok and any(words in f for f in result.failures), result.failures
 
 
@@ -130,7 +116,7 @@ def test_check_refuses_a_region_whose_ellipsoid_certificate_is_gone(band_run, tm
     copy = tmp_path / "copy"
     shutil.copytree(run, copy)
     (copy / "certificates" / "ellipsoid.json").unlink()
-    out = _check(copy, "roa")
+    out = check_cli(copy, SPEC, "roa")
     assert out.exit_code != 0 and "cannot be read" in out.output
 
 

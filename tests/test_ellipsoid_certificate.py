@@ -19,9 +19,8 @@ from drlyap.config import Budget
 from drlyap.regions import Region
 from drlyap.runs import load_run
 from drlyap.runs.certificates import write_certificate
-from drlyap.runs.validate import load_weights
 from drlyap.verification.roa import ellipsoid_proof
-from handmade import linear_run_dir, recheck, small_pendulum
+from handmade import linear_run_dir, recheck, run_weights, small_pendulum, verify_cli
 
 SPEC = f"{os.path.dirname(__file__)}/handmade.py:small_pendulum"
 WRONG = torch.diag(torch.tensor([1.0, 0.01], dtype=F64))  # V = theta^2 + omega^2 / 100 rises near x*
@@ -32,13 +31,7 @@ def wrong_run(tmp_path_factory):
     """A run whose V certifies no sublevel set while its controller's closed loop is stable, after
     ``verify --xi 0.1,0.05 --roa``: (its folder, verify's JSON)."""
     run = linear_run_dir(tmp_path_factory.mktemp("ellipsoid") / "run", lyapunov_matrix=WRONG)
-    out = CliRunner().invoke(main, ["verify", str(run), "--system", SPEC, "--xi", "0.1,0.05", "--roa", "--json"])
-    assert out.exit_code == 0, out.output
-    return run, json.loads(out.output)
-
-
-def _weights(run):
-    return load_weights(run / "weights.pt", (run / "weights.pt").read_bytes())
+    return run, verify_cli(run, SPEC, "0.1,0.05")
 
 
 def test_verify_writes_the_closed_loops_ellipsoid_and_check_confirms_it(wrong_run):
@@ -70,7 +63,7 @@ def test_an_ellipsoid_that_claims_more_than_it_proves_fails(wrong_run, change, w
     def tamper(header):
         change(header["claim"]["ellipsoid"], header["claim"]["region"])
 
-    result = recheck(run, "ellipsoid", system, _weights(run), tamper)
+    result = recheck(run, "ellipsoid", system, run_weights(run), tamper)
     assert not result.ok and any(words in f for f in result.failures), result.failures
 
 
@@ -91,13 +84,13 @@ def test_an_ellipsoid_inside_its_jacobian_box_needs_no_partition_and_a_larger_on
     (folder / "weights.pt").write_bytes((run / "weights.pt").read_bytes())
     write_certificate(folder, "ellipsoid", None, proof.condition, proof.region, system, folder / "weights.pt",
                       float(loaded.config.alpha_hat), level=proof.level, extra=proof.claim())
-    assert recheck(folder, "ellipsoid", system, _weights(run)).ok
+    assert recheck(folder, "ellipsoid", system, run_weights(run)).ok
 
     def larger(header):
         header["claim"]["ellipsoid"]["level"] *= 1.5
         header["claim"]["region"]["level"] *= 1.5
 
-    result = recheck(folder, "ellipsoid", system, _weights(run), larger)
+    result = recheck(folder, "ellipsoid", system, run_weights(run), larger)
     assert not result.ok and any("not proved to lie in" in f for f in result.failures), result.failures
 
 
@@ -109,7 +102,7 @@ def test_the_checkers_jacobian_enclosure_holds_every_sampled_jacobian(wrong_run)
     header = json.loads((run / "certificates" / "ellipsoid.json").read_text())
     claim = header["claim"]
     h = torch.as_tensor(claim["ellipsoid"]["box"], dtype=F64)
-    residual = Residual(claim["condition"], QuadraticPair(Pair(_weights(run), 1e-3, 2), torch.eye(2, dtype=F64)),
+    residual = Residual(claim["condition"], QuadraticPair(Pair(run_weights(run), 1e-3, 2), torch.eye(2, dtype=F64)),
                         system)
     (field,) = residual.fields(Du.seed(Iv((-h)[None], h[None]), 2, [0, 1]))
     lo = torch.stack([field.d[i].lo[0] for i in range(2)], -1)

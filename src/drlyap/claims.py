@@ -7,7 +7,7 @@ from __future__ import annotations
 import math
 from decimal import ROUND_CEILING, ROUND_FLOOR, Decimal
 
-CERTIFICATES = ("trained", "true-model", "radius", "shift-box", "uniform", "roa", "roa-ball", "ellipsoid")
+CERTIFICATES = ("trained", "true-model", "radius", "shift-box", "uniform", "roa", "roa-ball", "ellipsoid", "practical")
 """The names of a run's certificate files (:mod:`drlyap.runs.certificates` says what each claims)."""
 
 
@@ -75,6 +75,12 @@ def claim_sentence(claim: dict) -> str:
                 f"; outside ||x - x*|| < {float(r['delta']):g}, {what.replace('decrease', 'decrease of W', 1)} on it")
             return (f"{{z'Pz <= {level_text(level)}}} (W = z'Pz, P in the file) is a region of attraction: W decreases on "
                     f"it except at x*, on the box |x_i - x*_i| <= [{half}] by the Jacobian's enclosure{ring}")
+        if claim.get("practical") is not None:  # practical stability: V's bound on the ball, the decrease outside
+            model = what.split(" (")[0].replace("decrease on ", "")
+            return (f"trajectories of {model} from {{V <= {level_text(level)}}} stay in it and end up in "
+                    f"{{V <= {level_text(float(claim['practical']['level']), up=True)}}}: V is at most that on the ball "
+                    f"||x - x*|| < {float(r['ball_of']):g}, and decreases outside it by the certificate "
+                    f"{claim.get('outer')!r}")
         core = claim.get("core")
         if core is not None:  # V's region resting on the closed loop's ellipsoid (linearisation route, band proof)
             ellipsoid = (f"{{z'Pz <= {level_text(float(core['level']))}}} (P in the file; a region of attraction by "

@@ -411,7 +411,10 @@ def check_lines(results) -> list[str]:
             elif r.cube_bound is not None:
                 lines.append(f"  the Hessian of Vdot on the cube is negative definite by the checker's enclosure "
                              f"(its largest eigenvalue about {r.cube_bound:.3g})")
-            if r.boxes or r.cube_bound is None:
+            if r.ball_max is not None:
+                lines.append(f"  V <= its level on the ball by the checker's bisection (V's largest upper bound there "
+                             f"{r.ball_max:.6g}, {r.ball_boxes} boxes; {r.time_s:.2f} s)")
+            elif r.boxes or r.cube_bound is None:
                 core = f", {r.inside_core} inside the core (every vertex)" if r.inside_core else ""
                 lines.append(f"  {r.proved} boxes re-proved by the checker{refined}, {r.inside_ball} inside the ball{core}; "
                              f"the boxes cover the region ({r.time_s:.2f} s)")

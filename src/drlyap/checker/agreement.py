@@ -79,13 +79,16 @@ def _roa_claim(name: str, header: dict, config: dict, metrics: dict, expected: d
     ``metrics.json`` reports (``certificate.roa``: its level and shift): ``roa`` the run's trained condition (for
     the DR uniform condition the decrease at each sample it implies), or decrease on the true model at the shift, on
     ``{V <= level}`` (for the band proof, with a ``core``: plain decrease on the same model at each of its samples
-    over the box, no inner ball); ``roa-ball`` plain decrease on the same model at each of its samples inside the
+    over the box, no inner ball); ``practical`` (practical stability: ``metrics.json`` reports that kind, its level
+    and the level trajectories end up in) as ``roa-ball`` without a partition; ``roa-ball`` plain decrease on the
+    same model at each of its samples inside the
     delta-ball (a strict decay, checked with the cube or the core), naming as ``outer`` a certificate of the same
     model on ``{V <= c'}``, ``c' >=`` the level. ``delta``: the run's. Returns (expected
     condition fields, expected region fields, other problems)."""
     reported = (metrics.get("certificate") or {}).get("roa") or {}
     xi = reported.get("xi")
-    level = reported.get("level", "none reported in metrics.json") if reported.get("certified") else \
+    practical = name in ("practical", "roa") and reported.get("kind") == "practical stability"  # roa: its outer
+    level = reported.get("level", "none reported in metrics.json") if reported.get("certified") or practical else \
         "no certified region reported in metrics.json"
     condition = {"name": "true", "model": "true", "xi": [list(map(float, xi))]} if xi is not None else \
         _trained_condition(config, metrics)
@@ -108,6 +111,8 @@ def _roa_claim(name: str, header: dict, config: dict, metrics: dict, expected: d
     want = "true-model" if xi is not None else "trained"
     if outer not in ("roa", want):
         problems.append(f"outer (names {outer!r}, not roa or {want})")
+    if name == "practical" and (claim.get("practical") or {}).get("level") != reported.get("practical_level"):
+        problems.append("the level trajectories end up in (not the one metrics.json reports)")
     return expected, {"delta": claim["region"].get("delta"), "level": level}, problems
 
 
@@ -189,7 +194,7 @@ def claim_mismatch(name: str, header: dict, config: dict, metrics: dict) -> list
         return [] if not (problems or more) else [
             f"the certificate's claim is not the run's closed-loop ellipsoid ({', '.join(problems + more)} differ "
             "from config.json / metrics.json)"]
-    if name in ("roa", "roa-ball"):  # the region of attraction its metrics report, on its model
+    if name in ("roa", "roa-ball", "practical"):  # the region its metrics report, on its model
         expected, wanted, more = _roa_claim(name, header, config, metrics, expected, wanted["delta"])
         problems += more
     expected_region = [k for k in stated if stated[k] != wanted[k]]

@@ -51,6 +51,7 @@ from drlyap.checker.arith import EPS, F64, Iv
 from drlyap.checker.ball import ball_failures
 from drlyap.checker.ellipsoid import QuadraticPair, ellipsoid_failures, inside_core, read_core
 from drlyap.checker.graphs import GraphPair
+from drlyap.checker.levels import ball_below, faces_above, grid_cells, widest_split
 from drlyap.checker.model import Pair, Residual, centre_lower, form_upper, upper_bounds, value_lower
 from drlyap.checker.record import drop_record, fingerprint, write_record
 from drlyap.checker.uniform import uniform_margin_bound
@@ -74,6 +75,8 @@ class CheckResult:
     proved: int = 0
     inside_ball: int = 0
     inside_core: int = 0
+    ball_max: float | None = None
+    ball_boxes: int = 0
     refined: int = 0
     pieces: int = 0
     faces_min: float | None = None
@@ -90,17 +93,6 @@ class CheckResult:
 
 class CertificateError(ValueError):
     """The certificate is inconsistent with itself or with the run (a structural failure, found before any bound)."""
-
-
-def _grid_cells(lo: Tensor, hi: Tensor, grid: list[int]) -> tuple[Tensor, Tensor]:
-    axes_lo, axes_hi = [], []
-    for i, k in enumerate(grid):
-        edges = lo[i] + (hi[i] - lo[i]) * torch.arange(k + 1, dtype=F64) / k
-        edges[0], edges[-1] = lo[i], hi[i]
-        axes_lo.append(edges[:-1])
-        axes_hi.append(edges[1:])
-    return (torch.cartesian_prod(*axes_lo).reshape(-1, len(grid)),
-            torch.cartesian_prod(*axes_hi).reshape(-1, len(grid)))
 
 
 def check_tree(arrays: dict[str, np.ndarray], cells: int, n: int, level: float | None, core: bool = False) -> None:
@@ -143,7 +135,7 @@ def rebuild_boxes(lo: Tensor, hi: Tensor, grid: list[int], arrays: dict[str, np.
     side = torch.as_tensor(arrays["side"].astype(np.int64))
     axis = torch.as_tensor(arrays["axis"].astype(np.int64))
     size, n = parent.shape[0], lo.shape[0]
-    glo, ghi = _grid_cells(lo, hi, grid)
+    glo, ghi = grid_cells(lo, hi, grid)
     blo = torch.full((size, n), math.nan, dtype=F64)
     bhi = torch.full((size, n), math.nan, dtype=F64)
     cells = glo.shape[0]
@@ -173,16 +165,6 @@ def inside_open_ball(lo: Tensor, hi: Tensor, delta: float) -> Tensor:
     far = Iv(torch.maximum(lo.abs(), hi.abs()), torch.maximum(lo.abs(), hi.abs())).square().sum(-1).hi
     d2 = (Iv.point(delta) * Iv.point(delta)).lo
     return far < d2
-
-
-def _widest_split(lo: Tensor, hi: Tensor, scale: Tensor) -> tuple[Tensor, Tensor]:
-    dim = ((hi - lo) / scale).argmax(-1)
-    rows = torch.arange(lo.shape[0], device=lo.device)
-    mid = (lo[rows, dim] + hi[rows, dim]) / 2
-    hi1, lo2 = hi.clone(), lo.clone()
-    hi1[rows, dim] = mid
-    lo2[rows, dim] = mid
-    return torch.cat([lo, lo2]), torch.cat([hi1, hi])
 
 
 def _by_forms(residual: Residual, lo: Tensor, hi: Tensor, level: float | None) -> Tensor:
@@ -264,7 +246,7 @@ def prove_boxes(residual: Residual, lo: Tensor, hi: Tensor, scale: Tensor, refin
     for _ in range(refine if todo.numel() else 0):
         if pieces + 2 * plo.shape[0] > budget:
             break
-        plo, phi = _widest_split(plo, phi, scale)
+        plo, phi = widest_split(plo, phi, scale)
         owner = owner.repeat(2)
         pieces += int(plo.shape[0])
         failed = ~_holds(residual, plo, phi, level, batch, above[owner], cheap_first)[0]
@@ -338,38 +320,18 @@ def prove_leaves(job: LeafJob, lo: Tensor, hi: Tensor, above: Tensor, compute: C
     return out["ok"], out["centre_low"], int(out["refined"].sum()), int(out["pieces"].sum())
 
 
-def faces_above(pair: Pair, lo: Tensor, hi: Tensor, level: float, max_boxes: int = 200_000,
-                batch: int = 4096) -> tuple[bool, float, int]:
-    """Whether ``V > level`` on every face of the box ``[lo, hi]`` (``(n,)``), by bisecting face boxes (4 cells per free
-    axis at the start) until V's lower bound exceeds the level on each, a face point has ``V <= level`` (the claim is
-    then false) or ``max_boxes`` are spent. Returns (holds, the smallest lower bound of V kept, boxes bounded)."""
-    n = lo.shape[0]
-    flo, fhi = [], []
-    for i in range(n):
-        grid = [4] * n
-        grid[i] = 1
-        for side in (lo[i], hi[i]):
-            a, b = _grid_cells(lo, hi, grid)
-            a[:, i], b[:, i] = side, side
-            flo.append(a)
-            fhi.append(b)
-    qlo, qhi = torch.cat(flo), torch.cat(fhi)
-    scale = torch.where(hi > lo, hi - lo, 1.0)
-    low, spent = math.inf, 0
-    while qlo.shape[0]:
-        a, b, qlo, qhi = qlo[:batch], qhi[:batch], qlo[batch:], qhi[batch:]
-        spent += a.shape[0]
-        bound = value_lower(pair, a, b)
-        above = bound > level
-        if above.any():
-            low = min(low, float(bound[above].min()))
-        if not bool(above.all()):
-            centre = pair.value_and_grad(Iv.point((a + b) / 2))[0].hi
-            if bool((centre[~above] <= level).any()) or spent >= max_boxes:
-                return False, float(bound[~above].min()), spent
-            slo, shi = _widest_split(a[~above], b[~above], scale)
-            qlo, qhi = torch.cat([qlo, slo]), torch.cat([qhi, shi])
-    return True, low, spent
+def _practical_failures(out: CheckResult, claim: dict, pair, lo: Tensor, hi: Tensor) -> list[str]:
+    """What keeps a ``practical`` claim from following: its level ``c0`` (``claim["practical"]["level"]``) below the
+    set's level ``c``, and ``V <= c0`` on the open delta-ball (``region.ball_of``; ``[lo, hi]`` its box) by the
+    checker's bisection (:func:`~drlyap.checker.levels.ball_below`, recorded in ``out``)."""
+    c0, c = float(claim["practical"]["level"]), float(claim["region"]["level"])
+    if not (math.isfinite(c0) and c0 < c):
+        return [f"the level trajectories end up in ({c0:g}) is not below the set's ({c:g})"]
+    holds, out.ball_max, out.ball_boxes = ball_below(pair, lo, hi, float(claim["region"]["ball_of"]), c0)
+    if holds:
+        return []
+    return [f"V <= {c0:g} is not established on the ball (V's upper bound there {out.ball_max:.6g}, {out.ball_boxes} "
+            "boxes)"]
 
 
 def check_certificate(run_dir: str | Path, name: str, header: dict, arrays: dict[str, np.ndarray], system,
@@ -406,6 +368,10 @@ def check_certificate(run_dir: str | Path, name: str, header: dict, arrays: dict
             pair = QuadraticPair(pair, torch.as_tensor(claim["ellipsoid"]["P"], dtype=F64))
         residual = Residual(claim["condition"], pair, system)
         core = None if claim.get("core") is None else read_core(claim, system.n)
+        if claim.get("practical") is not None:  # V's bound on the ball; the decrease outside it is outer's
+            out.failures += _practical_failures(out, claim, pair, lo, hi)
+            out.ok, out.time_s = not out.failures, time.perf_counter() - start
+            return out
         if claim.get("cube") is not None or claim.get("ellipsoid") is not None:  # a decrease near x* (roa-ball, ellipsoid)
             ring = header["partition"] is not None
             failures, out.cube_bound = ball_failures(claim, pair, system, lo, hi, delta, ring) \
@@ -535,7 +501,7 @@ def check_run(run_dir: str | Path, system=None, trust: bool = False, names: list
         header, arrays = read_certificate(run_dir, name)
         result = check_certificate(run_dir, name, header, arrays, system, weights, digest, system_sha, refine, compute)
         result.failures += claim_mismatch(name, header, config, metrics)
-        if name == "roa-ball":
+        if name in ("roa-ball", "practical"):
             result.failures += outer_missing(run_dir, header)
         if (header.get("claim") or {}).get("core") is not None:
             result.failures += core_missing(run_dir, header)

@@ -369,9 +369,10 @@ def _combine_lower(residual: Residual, lower: Tensor) -> Tensor:
     return torch.where(torch.isnan(out), -math.inf, out - pad)
 
 
-def value_lower(pair: Pair, lo: Tensor, hi: Tensor) -> Tensor:
-    """Lower bounds ``(B,)`` of V over the boxes ``[lo, hi] (B, n)``: the tightest of the affine form, the interval
-    bound and the mean-value form ``V(c) - sum_i |dV/dz_i over the box| r_i``."""
+def value_bounds(pair: Pair, lo: Tensor, hi: Tensor) -> tuple[Tensor, Tensor]:
+    """Lower and upper bounds ``(B,)`` each of V over the boxes ``[lo, hi] (B, n)``: the tightest of the affine form,
+    the interval bound and the mean-value form ``V(c) -+ sum_i |dV/dz_i over the box| r_i`` (a NaN bound is
+    ``-inf`` / ``inf``)."""
     n = lo.shape[1]
     centre, rad = radius(lo, hi)
     at_centre = pair.value_and_grad(Iv.point(centre))[0]
@@ -379,6 +380,12 @@ def value_lower(pair: Pair, lo: Tensor, hi: Tensor) -> Tensor:
     spread = Iv.point(torch.zeros_like(at_centre.lo))
     for i, t in enumerate(form.d):
         spread = spread + Iv.point(t.mag()) * Iv.point(rad[:, i])
-    lower = torch.maximum(form.v.lo, (Iv.point(at_centre.lo) - spread).lo)
-    lower = torch.maximum(lower, pair.value_and_grad(Af.seed(lo, hi))[0].interval(dual=True).lo)
-    return torch.where(torch.isnan(lower), -math.inf, lower)
+    affine = pair.value_and_grad(Af.seed(lo, hi))[0].interval(dual=True)
+    lower = torch.maximum(torch.maximum(form.v.lo, (Iv.point(at_centre.lo) - spread).lo), affine.lo)
+    upper = torch.minimum(torch.minimum(form.v.hi, (Iv.point(at_centre.hi) + spread).hi), affine.hi)
+    return torch.where(torch.isnan(lower), -math.inf, lower), torch.where(torch.isnan(upper), math.inf, upper)
+
+
+def value_lower(pair: Pair, lo: Tensor, hi: Tensor) -> Tensor:
+    """Lower bounds ``(B,)`` of V over the boxes ``[lo, hi] (B, n)`` (:func:`value_bounds`)."""
+    return value_bounds(pair, lo, hi)[0]

@@ -35,11 +35,12 @@ def check(run_dir: Path, names: tuple[str, ...], refine: int, workers: int, back
     (verify --xi), `radius` and `shift-box` (verify --max-radius: the DR condition at the certified Wasserstein
     radius, and decrease on the true model for every shift in the certified box), `uniform` (verify --uniform: the
     DR uniform condition's margin, one inequality over the region; a run trained on it has it as `trained`), and
-    for a region of attraction
-    certified by V's own proofs (verify --roa) `roa-ball`, V's decrease inside the delta-ball (Vdot's Hessian on a
-    cube around x*, and the ring around it), with `roa` where the decrease outside the ball on {V <= c} is not
-    already another certificate's; where verify --roa reports the closed loop's own quadratic region {z'Pz <= c},
-    `ellipsoid` (W = z'Pz decreasing by the Jacobian's enclosure on a box, and by boxes beyond it).
+    for a region of attraction (verify --roa) `roa-ball`, V's decrease inside the delta-ball (Vdot's Hessian on a
+    cube around x* and the ring around it, or outside the closed loop's certified ellipsoid), with `roa` where the
+    decrease outside the ball on {V <= c} is not already another certificate's (or, for the band proof, V's decrease
+    on {V <= c} outside that ellipsoid); `ellipsoid`, the closed loop's own quadratic region {z'Pz <= c} (W = z'Pz
+    decreasing by the Jacobian's enclosure on a box, and by boxes beyond it); `practical`, for practical stability,
+    V's bound on the delta-ball.
     """
     settings = compute_settings(workers, backend, address, device)
     refuse_early(runs=[run_dir], systems=[system_spec])

@@ -14,9 +14,12 @@ for a region of attraction (``verify --roa``), ``roa-ball`` (V's decrease on ``{
 decrease outside the ball) and, where no other certificate states that decrease at c, ``roa``; where no sublevel set of
 V is certified by V's own proofs but the closed loop's own quadratic region ``{z'Pz <= c_q}`` is, ``ellipsoid``
 (``P``, ``c_q``, the box where W's decrease is proved by the Jacobian's enclosure and that proof's weights; a partition
-where W's decrease is proved by boxes on the rest of the set). A sublevel set of V certified through that ellipsoid
-(the linearisation route, the band proof) is a ``roa-ball`` (inside the delta-ball) or ``roa`` (the whole box) whose
-claim names it as its ``core``: V's strict decrease on the set, boxes inside the ellipsoid being leaves of their own.
+where W's decrease is proved by boxes on the rest of the set).
+A sublevel set of V certified through that ellipsoid (the linearisation route, the band proof) is a ``roa-ball``
+(inside the delta-ball) or ``roa`` (the whole box) whose claim names it as its ``core``: V's strict decrease on the set,
+boxes inside the ellipsoid being leaves of their own. Where only practical stability is proved (``verify --roa`` at a
+shift that moves the equilibrium), ``practical``: V at most ``c0`` on the delta-ball (no partition: the checker bisects
+the ball itself), naming as ``outer`` the certificate of the decrease outside it on ``{V <= c}``.
 The header (format ``drlyap-certificate``, version 1) holds:
 
 * ``claim``: the condition (name, model, samples or shift ``xi`` or a box of shifts ``xi_box``, decay, Wasserstein
@@ -139,8 +142,8 @@ def write_certificate(folder: str | os.PathLike, name: str, proof: ConditionProo
     header's path."""
     if name not in NAMES:
         raise ValueError(f"unknown certificate name {name!r}; valid: {', '.join(NAMES)}")
-    if proof is None and name not in ("roa-ball", "ellipsoid"):
-        raise ValueError("only a roa-ball or ellipsoid certificate can be written without a proof")
+    if proof is None and name not in ("roa-ball", "ellipsoid", "practical"):
+        raise ValueError("only a roa-ball, ellipsoid or practical certificate can be written without a proof")
     if proof is not None and (proof.partition is None or not proof.verified):
         raise ValueError("only a verified proof that kept its partition can be written as a certificate")
     target = Path(folder) / FOLDER
@@ -194,8 +197,8 @@ def read_certificate(run_dir: str | os.PathLike, name: str) -> tuple[dict, dict[
     if header.get("version") != VERSION:
         raise ValueError(f"{path} has certificate version {header.get('version')!r}; this drlyap reads {VERSION}")
     claim = header.get("claim") or {}
-    if header.get("partition", False) is None and (claim.get("cube") is not None or claim.get("ellipsoid") is not None):
-        return header, {}  # a decrease near x* that covers its whole claim: no boxes to read
+    if header.get("partition", False) is None and any(claim.get(k) is not None for k in ("cube", "ellipsoid", "practical")):
+        return header, {}  # a claim near x* that the checker proves without boxes (a cube, an ellipsoid, V on the ball)
     try:
         part = header["partition"]
         arrays_path = folder / Path(str(part["file"])).name

@@ -316,13 +316,14 @@ def region_certificates(folder: Path, loop: ClosedLoop, condition: Condition, re
     * the closed loop's linearisation: ``ellipsoid`` (the ellipsoid ``L`` it rests on) and ``roa-ball``, V's strict
       decrease inside the ball's box except in ``L`` (its ``core``), naming the one outside the ball as above;
     * the band proof: ``roa``, V's strict decrease on ``{V <= c}`` over the box except in ``L`` (``core``), beside
-      ``ellipsoid``.
+      ``ellipsoid``;
+    * practical stability: ``practical``, V at most ``c0`` on the delta-ball, naming the decrease outside it as above.
 
     Where the closed loop's own quadratic region is certified (``roa.quadratic``), ``ellipsoid`` states it. The proofs
     are made again with their partitions kept (``proof``'s budget); where one does not hold again, its certificates
     are not written. Certificates of an earlier region are removed first. ``weights``, ``alpha_hat``: as
     :func:`~drlyap.runs.certificates.write_certificate` takes them. Returns the headers' paths."""
-    for name in ("roa-ball", "roa", "ellipsoid"):
+    for name in ("roa-ball", "roa", "ellipsoid", "practical"):
         remove_certificate(folder, name)
     written: list[Path] = []
 
@@ -337,6 +338,14 @@ def region_certificates(folder: Path, loop: ClosedLoop, condition: Condition, re
         found = ellipsoid_proof(loop, condition, region, roa.quadratic, proof.budget())
         if found is not None:
             write_ellipsoid(found)
+    if (roa.kind == "practical stability" and roa.level is not None and roa.practical_level is not None
+            and condition.per_sample() is not None):  # a statement about each sample's trajectories
+        outer_name = _outer_certificate(write, loop, condition, region, float(roa.level), outer, proof)
+        if outer_name is not None:  # V at most c0 on the ball: the checker bisects the ball itself
+            write("practical", None, condition.per_sample(), region.ball_box(region.delta), float(roa.level),
+                  {"ball_of": float(region.delta), "outer": outer_name,
+                   "practical": {"level": float(roa.practical_level)}})
+        return written
     if not roa.certified or roa.level is None:
         return written
     c = float(roa.level)

@@ -1,0 +1,108 @@
+"""The checker's bounds of V over the sets a claim's level rests on, by its own bisection: ``V > level`` on the state
+box's faces (a sublevel set ``{V <= level}`` that does not reach them, :func:`faces_above`) and ``V <= level`` on the
+open delta-ball (practical stability: trajectories end up in ``{V <= level}``, :func:`ball_below`). Neither is in
+the certificate file."""
+
+from __future__ import annotations
+
+import math
+
+import torch
+from torch import Tensor
+
+from drlyap.checker.arith import F64, Iv
+from drlyap.checker.model import Pair, value_bounds
+
+
+def grid_cells(lo: Tensor, hi: Tensor, grid: list[int]) -> tuple[Tensor, Tensor]:
+    """The cells ``(C, n)`` of the box ``[lo, hi]`` split into ``grid[i]`` equal parts along axis i (grid order)."""
+    axes_lo, axes_hi = [], []
+    for i, k in enumerate(grid):
+        edges = lo[i] + (hi[i] - lo[i]) * torch.arange(k + 1, dtype=F64) / k
+        edges[0], edges[-1] = lo[i], hi[i]
+        axes_lo.append(edges[:-1])
+        axes_hi.append(edges[1:])
+    return (torch.cartesian_prod(*axes_lo).reshape(-1, len(grid)),
+            torch.cartesian_prod(*axes_hi).reshape(-1, len(grid)))
+
+
+def widest_split(lo: Tensor, hi: Tensor, scale: Tensor) -> tuple[Tensor, Tensor]:
+    """Each box ``[lo, hi] (B, n)`` halved along its widest side relative to ``scale``: the lower halves, then the
+    upper halves."""
+    dim = ((hi - lo) / scale).argmax(-1)
+    rows = torch.arange(lo.shape[0], device=lo.device)
+    mid = (lo[rows, dim] + hi[rows, dim]) / 2
+    hi1, lo2 = hi.clone(), lo.clone()
+    hi1[rows, dim] = mid
+    lo2[rows, dim] = mid
+    return torch.cat([lo, lo2]), torch.cat([hi1, hi])
+
+
+def _bisect(pair: Pair, qlo: Tensor, qhi: Tensor, scale: Tensor, level: float, above: bool, max_boxes: int,
+            batch: int, keep=None, member=None) -> tuple[bool, float, int]:
+    """Bisect the boxes ``[qlo, qhi]`` (those ``keep(lo, hi)`` says meet the set; None: all) until V's lower bound is
+    ``> level`` on each (``above``; else its upper bound ``<= level``), a centre in the set (``member(z)``; None: every
+    centre) breaks it (the claim is then false) or ``max_boxes`` are spent. Returns (holds, the bound closest to the
+    level kept, boxes bounded)."""
+    sign = 1.0 if above else -1.0
+    closest, spent = math.inf, 0
+    while qlo.shape[0]:
+        a, b, qlo, qhi = qlo[:batch], qhi[:batch], qlo[batch:], qhi[batch:]
+        if keep is not None:
+            meets = keep(a, b)
+            a, b = a[meets], b[meets]
+        spent += a.shape[0]
+        lower, upper = value_bounds(pair, a, b)
+        bound = sign * (lower if above else upper)  # > sign * level where it holds
+        fine = bound > sign * level
+        if fine.any():
+            closest = min(closest, float(bound[fine].min()))
+        if not bool(fine.all()):
+            mid = (a + b) / 2
+            at = pair.value_and_grad(Iv.point(mid))[0]
+            broken = sign * (at.hi if above else at.lo) <= sign * level
+            if member is not None:
+                broken = broken & member(mid)
+            if bool(broken[~fine].any()) or spent >= max_boxes:
+                return False, sign * float(bound[~fine].min()), spent
+            slo, shi = widest_split(a[~fine], b[~fine], scale)
+            qlo, qhi = torch.cat([qlo, slo]), torch.cat([qhi, shi])
+    return True, sign * closest, spent
+
+
+def faces_above(pair: Pair, lo: Tensor, hi: Tensor, level: float, max_boxes: int = 200_000,
+                batch: int = 4096) -> tuple[bool, float, int]:
+    """Whether ``V > level`` on every face of the box ``[lo, hi]`` (``(n,)``), by bisecting face boxes (4 cells per free
+    axis at the start) until V's lower bound exceeds the level on each, a face point has ``V <= level`` (the claim is
+    then false) or ``max_boxes`` are spent. Returns (holds, the smallest lower bound of V kept, boxes bounded)."""
+    n = lo.shape[0]
+    flo, fhi = [], []
+    for i in range(n):
+        grid = [4] * n
+        grid[i] = 1
+        for side in (lo[i], hi[i]):
+            a, b = grid_cells(lo, hi, grid)
+            a[:, i], b[:, i] = side, side
+            flo.append(a)
+            fhi.append(b)
+    scale = torch.where(hi > lo, hi - lo, 1.0)
+    return _bisect(pair, torch.cat(flo), torch.cat(fhi), scale, level, True, max_boxes, batch)
+
+
+def ball_below(pair: Pair, lo: Tensor, hi: Tensor, delta: float, level: float, max_boxes: int = 200_000,
+               batch: int = 4096) -> tuple[bool, float, int]:
+    """Whether ``V <= level`` at every state of the box ``[lo, hi]`` (``(n,)``, the delta-ball's box) in the open ball
+    ``||z|| < delta``, by bisecting (4 cells per axis at the start) the boxes that meet the ball until V's upper bound
+    is at most the level on each, a centre has ``V > level`` or ``max_boxes`` are spent. Returns (holds, the largest
+    upper bound of V kept, boxes bounded)."""
+    d2 = (Iv.point(delta) * Iv.point(delta)).hi
+
+    def meets(a: Tensor, b: Tensor) -> Tensor:  # the nearest point's squared distance, rounded down, below delta^2
+        near = torch.where((a <= 0) & (b >= 0), 0.0, torch.minimum(a.abs(), b.abs()))
+        return Iv(near, near).square().sum(-1).lo < d2
+
+    def inside(z: Tensor) -> Tensor:  # a centre's squared distance, rounded up, below delta^2
+        return Iv(z, z).square().sum(-1).hi < (Iv.point(delta) * Iv.point(delta)).lo
+
+    a, b = grid_cells(lo, hi, [4] * lo.shape[0])
+    return _bisect(pair, a, b, hi - lo, level, False, max_boxes, batch, keep=meets, member=inside)
