@@ -9,7 +9,7 @@ import torch
 from drlyap.config import Budget, ProofConfig
 from drlyap.regions import Region
 from drlyap.systems import get_system
-from drlyap.verification import ConditionProof, prove_trained, verify_condition
+from drlyap.verification import Certificate, ConditionProof, prove_trained, verify_condition
 from drlyap.verification.falsifier import confirmed_violations, falsifier_starts, falsify, settle_unknown
 from handmade import plain_train
 
@@ -111,7 +111,7 @@ def test_cegis_settles_the_returned_pairs_verdict(tiny_config, monkeypatch):
     system = result.system
     z = system.to_local(torch.tensor([final["counterexample"]], dtype=torch.float64))
     assert float(result.loop.exact(result.condition, z)[0]) > 0
-    line = certificate_line(cegis.certificate(ConditionProof.from_dict(final), 0.5))
+    line = certificate_line(Certificate.of(ConditionProof.from_dict(final), 0.5))
     assert "NOT VERIFIED (violated)" in line and "found by the falsifier" in line
 
 

@@ -334,6 +334,39 @@ def _practical_failures(out: CheckResult, claim: dict, pair, lo: Tensor, hi: Ten
             "boxes)"]
 
 
+def _claim_box(region: dict, system) -> tuple[Tensor, Tensor]:
+    """The claim's box ``(lo, hi)`` (local coordinates), which must be the system's state box, or with ``ball_of`` the
+    delta-ball's box inside it; a CertificateError where it is not."""
+    lo, hi = (torch.as_tensor(region[k], dtype=F64) for k in ("box_lo", "box_hi"))
+    box_lo, box_hi = (torch.as_tensor(b, dtype=F64) - torch.as_tensor(system.equilibrium, dtype=F64)
+                      for b in system.state_box)
+    if region.get("ball_of") is not None:  # the box of the delta-ball inside the state box (roa-ball)
+        ball = float(region["ball_of"])
+        box_lo, box_hi = torch.maximum(box_lo, torch.full_like(box_lo, -ball)), \
+            torch.minimum(box_hi, torch.full_like(box_hi, ball))
+    if not (torch.equal(lo, box_lo) and torch.equal(hi, box_hi)):
+        raise CertificateError("the certificate's state box is not the system's" + (
+            "" if region.get("ball_of") is None else " inside the delta-ball's box"))
+    return lo, hi
+
+
+def _placed_leaves(out: CheckResult, verdict: Tensor, lo: Tensor, hi: Tensor, delta: float,
+                   core: tuple[Tensor, float] | None) -> None:
+    """Whether the leaves said to lie in the open delta-ball, and in the core ``(P, c)`` where there is one, do (boxes
+    ``[lo, hi]`` of every node, ``verdict`` per node): counts and failures into ``out``."""
+    ball = (verdict == INSIDE_BALL).nonzero().squeeze(-1)
+    inside = inside_open_ball(lo[ball], hi[ball], delta)
+    out.inside_ball = int(inside.sum())
+    if not bool(inside.all()):
+        out.failures.append(f"{int((~inside).sum())} boxes said to lie in the open ball ||z|| < {delta:g} do not")
+    if core is not None:
+        inner = (verdict == INSIDE_CORE).nonzero().squeeze(-1)
+        held = inside_core(*core, lo[inner], hi[inner])
+        out.inside_core = int(held.sum())
+        if not bool(held.all()):
+            out.failures.append(f"{int((~held).sum())} boxes said to lie in the core {{z'Pz <= {core[1]:g}}} do not")
+
+
 def check_certificate(run_dir: str | Path, name: str, header: dict, arrays: dict[str, np.ndarray], system,
                       weights: dict, weights_sha256: str, system_sha256: str, refine: int = 12,
                       compute: Compute = Compute()) -> CheckResult:
@@ -350,16 +383,7 @@ def check_certificate(run_dir: str | Path, name: str, header: dict, arrays: dict
             raise CertificateError(f"the system {system.name!r} is not the one the certificate was proved for "
                                    "(its description's sha256 differs)")
         region = claim["region"]
-        lo, hi = (torch.as_tensor(region[k], dtype=F64) for k in ("box_lo", "box_hi"))
-        box_lo, box_hi = (torch.as_tensor(b, dtype=F64) - torch.as_tensor(system.equilibrium, dtype=F64)
-                          for b in system.state_box)
-        if region.get("ball_of") is not None:  # the box of the delta-ball inside the state box (roa-ball)
-            ball = float(region["ball_of"])
-            box_lo, box_hi = torch.maximum(box_lo, torch.full_like(box_lo, -ball)), \
-                torch.minimum(box_hi, torch.full_like(box_hi, ball))
-        if not (torch.equal(lo, box_lo) and torch.equal(hi, box_hi)):
-            raise CertificateError("the certificate's state box is not the system's" + (
-                "" if region.get("ball_of") is None else " inside the delta-ball's box"))
+        lo, hi = _claim_box(region, system)
         delta, level = float(region["delta"]), region.get("level")
         level = None if level is None else float(level)
         pair = GraphPair(weights["graphs"], weights["tensors"], system.n) if "graphs" in weights else \
@@ -392,17 +416,7 @@ def check_certificate(run_dir: str | Path, name: str, header: dict, arrays: dict
     verdict = torch.as_tensor(arrays["verdict"].astype(np.int64))
     bound = torch.as_tensor(arrays["bound"].astype(np.float64))
     out.boxes = int((verdict != INTERNAL).sum())
-    ball = (verdict == INSIDE_BALL).nonzero().squeeze(-1)
-    inside = inside_open_ball(blo[ball], bhi[ball], delta)
-    out.inside_ball = int(inside.sum())
-    if not bool(inside.all()):
-        out.failures.append(f"{int((~inside).sum())} boxes said to lie in the open ball ||z|| < {delta:g} do not")
-    if core is not None:
-        inner = (verdict == INSIDE_CORE).nonzero().squeeze(-1)
-        held = inside_core(*core, blo[inner], bhi[inner])
-        out.inside_core = int(held.sum())
-        if not bool(held.all()):
-            out.failures.append(f"{int((~held).sum())} boxes said to lie in the core {{z'Pz <= {core[1]:g}}} do not")
+    _placed_leaves(out, verdict, blo, bhi, delta, core)
     proved = ((verdict == PROVED) | (verdict == ABOVE_LEVEL)).nonzero().squeeze(-1)
     if residual.name == "uniform":
         _check_uniform(out, residual, blo[proved], bhi[proved], bound[proved], hi - lo, refine)

@@ -12,7 +12,7 @@
 
 from drlyap.config import TrainConfig
 from drlyap.sections import TrainSections
-from drlyap.training.certified import certificate, train, train_cegis
+from drlyap.training.certified import train, train_cegis
 from drlyap.training.trainer import TrainResult, fit
 
-__all__ = ["TrainConfig", "TrainResult", "TrainSections", "certificate", "fit", "train", "train_cegis"]
+__all__ = ["TrainConfig", "TrainResult", "TrainSections", "fit", "train", "train_cegis"]

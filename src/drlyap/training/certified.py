@@ -46,7 +46,6 @@ import warnings
 import torch
 from torch import Tensor
 
-from drlyap.claims import condition_region
 from drlyap.closed_loop import ClosedLoop
 from drlyap.conditions import Condition
 from drlyap.config import ProofConfig, TrainConfig
@@ -274,7 +273,7 @@ def _proof_rounds(cfg: TrainConfig, system: UncertainSystem, proof: ProofConfig,
     metrics = dict(chosen.metrics)
     final = done[chosen_round] if chosen_round < len(done) else done[-1]
     verdict = kind.settle(final, chosen.loop, chosen_proof)
-    cert = certificate(verdict, float(cfg.delta), rounds=len(done) - 1)
+    cert = Certificate.of(verdict, float(cfg.delta), rounds=len(done) - 1)
     metrics["cegis"] = jsonable({
         "rounds": [e.to_dict() for e in done],
         "final": verdict.to_dict(),
@@ -293,23 +292,6 @@ def _continued(history: list[dict], iterations: int, seconds: float) -> list[dic
     """A retraining round's ``history`` with its iterations and seconds counted on from the rounds before it."""
     return [{"iteration": h["iteration"] + iterations, "loss": h["loss"], "time_s": h["time_s"] + seconds}
             for h in history]
-
-
-def certificate(proof: ConditionProof | UniformMargin, delta: float, rounds: int | None = None) -> Certificate:
-    """``metrics["certificate"]``: what the verifier proved about a run's trained condition.
-
-    ``status`` is ``verified`` (proved at every state of X_delta = the state box minus the open ball of radius
-    ``delta`` around x*; with a ``level`` in the proof, at every state of X_delta with ``V <= level``, and
-    ``V > level`` on the box's boundary), ``violated`` (a counterexample state, re-checked) or ``unknown`` (time or
-    box budget ran out); ``verified_fraction`` a lower bound of the share of X_delta proved.
-    """
-    level = getattr(proof, "level", None)
-    return Certificate(
-        status=proof.status, condition=proof.condition, region=condition_region(level, delta), level=level,
-        delta=delta, verified_fraction=proof.verified_fraction, time_s=proof.time_s, boxes=proof.boxes_processed,
-        counterexample=getattr(proof, "counterexample", None),
-        counterexample_source=getattr(proof, "counterexample_source", None), rounds=rounds,
-        margin_upper=getattr(proof, "margin_upper", None))
 
 
 def train(config: TrainConfig, system: UncertainSystem | None = None, proof: ProofConfig | None = ProofConfig(), *,

@@ -25,6 +25,7 @@ import math
 from dataclasses import dataclass, field
 from typing import Any, ClassVar
 
+from drlyap.claims import condition_region
 from drlyap.kinds import Status
 
 STATUSES = (Status.VERIFIED, Status.VIOLATED, Status.UNKNOWN)
@@ -412,6 +413,20 @@ class Certificate(Result):
     @property
     def verified(self) -> bool:
         return self.status == Status.VERIFIED
+
+    @classmethod
+    def of(cls, proof: ConditionProof | UniformMargin, delta: float, rounds: int | None = None) -> Certificate:
+        """What ``proof`` of a run's trained condition established: ``status`` ``verified`` (proved at every state of
+        X_delta = the state box minus the open ball of radius ``delta`` around x*; with a ``level`` in the proof, at
+        every state of X_delta with ``V <= level``, and ``V > level`` on the box's boundary), ``violated`` (a
+        counterexample state, re-checked) or ``unknown`` (time or box budget ran out); ``verified_fraction`` a lower
+        bound of the share of X_delta proved; ``rounds`` the retraining rounds before it."""
+        level = getattr(proof, "level", None)
+        return cls(status=proof.status, condition=proof.condition, region=condition_region(level, delta), level=level,
+                   delta=delta, verified_fraction=proof.verified_fraction, time_s=proof.time_s,
+                   boxes=proof.boxes_processed, counterexample=getattr(proof, "counterexample", None),
+                   counterexample_source=getattr(proof, "counterexample_source", None), rounds=rounds,
+                   margin_upper=getattr(proof, "margin_upper", None))
 
     def to_dict(self) -> dict:
         if self.status == "not checked":
