@@ -152,3 +152,22 @@ def test_the_core_leaves_hold_dense_samples_and_the_rest_decreases_at_sampled_st
             strict = PlainDecrease(plain.xi, float(claim["condition"]["decay_rate"]), 0.0, plain.model)
             rate = loaded.loop.exact(strict, z)
             assert z.shape[0] > 100 and float(rate.max()) <= 0
+
+
+def test_the_printed_recheck_runs_as_printed_for_a_run_saved_from_python(bump_run):
+    """A run saved from Python records no system source: the check ``verify`` prints carries the --system it was
+    given, and runs as printed."""
+    import re
+    import shlex
+
+    from click.testing import CliRunner
+
+    from drlyap.cli import main
+
+    run, _ = bump_run
+    out = CliRunner().invoke(main, ["verify", str(run), "--system", SPEC, "--xi", "0.1,0.05", "--reprove"])
+    assert out.exit_code == 0, out.output
+    hint = re.search(r"re-check it with `([^`]*)`", out.output).group(1)
+    assert shlex.split(hint)[-2:] == ["--system", SPEC]
+    checked = CliRunner().invoke(main, shlex.split(hint)[1:])
+    assert checked.exit_code == 0 and "true-model: CHECKED" in checked.output, checked.output

@@ -142,14 +142,17 @@ def compute_settings(workers: int, backend: str, address: str | None, device: st
     return {"workers": workers, "backend": backend, "address": address, "device": device, "progress": True}
 
 
-def recorded_source(run_dir: Path) -> dict | None:
+def recorded_source(run_dir: Path, system_spec: str | None = None) -> dict | None:
     """Where a run's system came from, as its ``run.json`` records it (``system_source``), read as plain JSON: nothing
-    is imported. None where the file cannot be read."""
+    is imported. Where it records none (a run saved from Python with a system object), the ``--system`` the command
+    was given (``system_spec``), so that a hint printed for the next command runs as printed. None where neither."""
     try:
         source = json.loads((Path(run_dir) / "run.json").read_text()).get("system_source")
     except (OSError, ValueError, AttributeError):
-        return None
-    return source if isinstance(source, dict) else None
+        source = None
+    if isinstance(source, dict) and source.get("reload"):
+        return source
+    return {"reload": system_spec} if system_spec else (source if isinstance(source, dict) else None)
 
 
 def command_hint(*words: object, source: dict | None = None) -> str:

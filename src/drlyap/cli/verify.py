@@ -123,12 +123,12 @@ def verify(run_dir: Path, delta: float | None, xi: str | None, time_limit: float
             try:
                 record_region(run, result)
                 shift_args = () if xi is None else ("--xi", xi)
-                drawn = command_hint("plot", run_dir, *shift_args, source=recorded_source(run_dir))
+                drawn = command_hint("plot", run_dir, *shift_args, source=recorded_source(run_dir, system_spec))
                 stored = f"  stored in {run.path / 'metrics.json'} (drawn by `{drawn}`)"
             except OSError as err:
                 stored = f"  not stored: {run.path / 'metrics.json'} cannot be written ({err.strerror or err})"
         try:
-            recheck = command_hint("check", run_dir, source=recorded_source(run_dir))
+            recheck = command_hint("check", run_dir, source=recorded_source(run_dir, system_spec))
             paths = record_certificates(run, result) + record_roa(run, result, settings)
             written = [f"  certificate: {p} (re-check it with `{recheck}`)" for p in paths]
             unwritten = unwritten_region_line(result.roa, paths)
@@ -179,7 +179,7 @@ def _verify_imported(run_dir: Path, delta: float | None, xi: str | None, time_li
     result = verify_imported(run.info["pair"], str(run_dir), settings, xi=shift, delta=delta, roa=roa,
                              above_level=above_level)
     try:
-        recheck = command_hint("check", run_dir, source=recorded_source(run_dir))
+        recheck = command_hint("check", run_dir, source=recorded_source(run_dir, system_spec))
         paths = record_imported_certificates(run_dir, run.info["pair"], result, settings.resolved(system))
         written = [f"  certificate: {p} (re-check it with `{recheck}`)" for p in paths]
         written += [line for line in [unwritten_region_line(result.roa, paths)] if line]
