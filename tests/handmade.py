@@ -167,3 +167,13 @@ def run_weights(run) -> dict:
     from drlyap.runs.validate import load_weights
 
     return load_weights(run / "weights.pt", (run / "weights.pt").read_bytes())
+
+
+def check_without(run, copy, spec: str, gone: str, name: str):
+    """``drlyap check`` of certificate ``name`` on a copy (at ``copy``) of ``run`` whose certificate ``gone`` was
+    removed."""
+    import shutil
+
+    shutil.copytree(run, copy)
+    (copy / "certificates" / f"{gone}.json").unlink()
+    return check_cli(copy, spec, name)

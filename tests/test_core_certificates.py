@@ -7,7 +7,6 @@ from __future__ import annotations
 
 import json
 import os
-import shutil
 
 import numpy as np
 import pytest
@@ -21,7 +20,7 @@ from drlyap.regions import box_grid
 from drlyap.runs import load_run
 from drlyap.runs.certificates import certificate_partition, read_certificate
 from drlyap.verification.partition import INSIDE_CORE, PROVED
-from handmade import check_cli, linear_run_dir, recheck, run_weights, small_pendulum, verify_cli
+from handmade import check_cli, check_without, linear_run_dir, recheck, run_weights, small_pendulum, verify_cli
 
 SPEC = f"{os.path.dirname(__file__)}/handmade.py:small_pendulum"
 WRONG = torch.diag(torch.tensor([1.0, 0.01], dtype=F64))  # V = theta^2 + omega^2 / 100 rises near x*
@@ -113,10 +112,7 @@ def test_the_core_must_be_the_ellipsoid_its_certificate_states(band_run):
 
 def test_check_refuses_a_region_whose_ellipsoid_certificate_is_gone(band_run, tmp_path):
     run, _ = band_run
-    copy = tmp_path / "copy"
-    shutil.copytree(run, copy)
-    (copy / "certificates" / "ellipsoid.json").unlink()
-    out = check_cli(copy, SPEC, "roa")
+    out = check_without(run, tmp_path / "copy", SPEC, "ellipsoid", "roa")
     assert out.exit_code != 0 and "cannot be read" in out.output
 
 
