@@ -73,6 +73,15 @@ def _trained_condition(config: dict, metrics: dict) -> dict:
             "wasserstein_radius": config.get("wasserstein_radius"), "risk_level": config.get("risk_level")}
 
 
+def _region_plain(reported: dict, config: dict, metrics: dict) -> dict:
+    """The plain decrease a region's certificates near x* state (``reported``: ``metrics.json``'s
+    ``certificate.roa``): on the true model at the shift it reports, else on the design model at the run's training
+    samples, with no ``alpha V``."""
+    xi = reported.get("xi")
+    samples = [list(map(float, xi))] if xi is not None else _trained_condition(config, metrics)["xi"]
+    return {"name": "plain", "model": "true" if xi is not None else "design", "xi": samples, "exp_rate": 0.0}
+
+
 def _roa_claim(name: str, header: dict, config: dict, metrics: dict, expected: dict,
                delta) -> tuple[dict, dict, list[str]]:
     """The condition and region a ``roa`` or ``roa-ball`` certificate must state for the region of attraction
@@ -95,8 +104,7 @@ def _roa_claim(name: str, header: dict, config: dict, metrics: dict, expected: d
     if condition["name"] == "uniform":  # one inequality: its region rests on the decrease at each sample it implies
         condition = {"name": "plain", "xi": condition["xi"]}
     claim = header["claim"]
-    ball = {"name": "plain", "model": "true" if xi is not None else "design", "xi": condition["xi"],
-            "exp_rate": 0.0}
+    ball = _region_plain(reported, config, metrics)
     if name == "roa" and claim.get("core") is not None:  # the band proof: V's strict decrease outside the core
         return {k: v for k, v in expected.items() if k != "decay_rate"} | ball, {"delta": 0.0, "level": level}, []
     if name == "roa":
@@ -127,9 +135,7 @@ def _ellipsoid_mismatch(header: dict, config: dict, metrics: dict) -> list[str]:
     if not quadratic.get("proved") and local.get("method") == "linearisation" and local.get("proved"):
         quadratic = {"proved": True, "P": local.get("P"), "q_level": local.get("q_level")}  # the ellipsoid V rests on
     claim = header["claim"]
-    xi = reported.get("xi")
-    samples = [list(map(float, xi))] if xi is not None else _trained_condition(config, metrics)["xi"]
-    expected = {"name": "plain", "model": "true" if xi is not None else "design", "xi": samples, "exp_rate": 0.0}
+    expected = _region_plain(reported, config, metrics)
     differ = [k for k, v in expected.items() if claim["condition"].get(k) != v]
     ellipsoid = claim.get("ellipsoid") or {}
     if not quadratic.get("proved"):

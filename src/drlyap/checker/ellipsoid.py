@@ -34,7 +34,7 @@ from torch import Tensor
 from drlyap.checker.arith import EPS, F64, TINY, Du, Iv, _up
 from drlyap.checker.ball import not_equilibrium, surely_negative_definite
 from drlyap.checker.model import Residual
-from drlyap.checker.quadratic import surely_semidefinite
+from drlyap.checker.quadratic import _corners, surely_semidefinite
 
 
 class QuadraticPair:
@@ -47,7 +47,7 @@ class QuadraticPair:
         return QuadraticPair(self.base.to(device), self.p.to(device))
 
     def value(self, z):
-        return (z * z.linear(self.p)).sum(-1)
+        return quadratic_form(z, self.p)
 
     def value_and_grad(self, z) -> tuple[object, object]:
         pz = z.linear(self.p)  # P symmetric: z P^T = (P z)^T
@@ -57,15 +57,26 @@ class QuadraticPair:
         return self.base.controller(z)
 
 
+def quadratic_form(z, p: Tensor):
+    """``z^T P z`` for ``z (B, n)`` in the checker's arithmetic (``P`` symmetric)."""
+    return (z * z.linear(p)).sum(-1)
+
+
+def _read_matrix(value, n: int, what: str) -> Tensor:
+    """``P (n, n)`` from a claim, or a ValueError where it is not a finite symmetric ``n x n`` matrix (``what``: whose)."""
+    p = torch.as_tensor(value, dtype=F64)
+    if p.shape != (n, n) or not bool(torch.isfinite(p).all()) or not torch.equal(p, p.T):
+        raise ValueError(f"the {what}'s P is not a finite symmetric {n} x {n} matrix")
+    return p
+
+
 def read_ellipsoid(claim: dict, n: int) -> tuple[Tensor, float, Tensor, Tensor]:
     """``(P (n, n), c, h (n,), tau (J, n, n))`` from a claim's ``ellipsoid``, or a ValueError saying what is wrong."""
     e = claim["ellipsoid"]
-    p = torch.as_tensor(e["P"], dtype=F64)
+    p = _read_matrix(e["P"], n, "ellipsoid")
     h = torch.as_tensor(e["box"], dtype=F64).reshape(-1)
     tau = torch.as_tensor(e["tau"], dtype=F64)
     c = float(e["level"])
-    if p.shape != (n, n) or not bool(torch.isfinite(p).all()) or not torch.equal(p, p.T):
-        raise ValueError(f"the ellipsoid's P is not a finite symmetric {n} x {n} matrix")
     if h.shape != (n,) or not bool(torch.isfinite(h).all() and (h > 0).all()):
         raise ValueError(f"the ellipsoid's box is not {n} finite positive half-widths")
     if tau.ndim != 3 or tau.shape[1:] != (n, n) or not bool(torch.isfinite(tau).all() and (tau > 0).all()):
@@ -165,10 +176,8 @@ def read_core(claim: dict, n: int) -> tuple[Tensor, float]:
     """``(P (n, n), c)`` of a claim's ``core``, or a ValueError saying what is wrong (P finite, symmetric and positive
     semidefinite: the ellipsoid is then convex and a box whose vertices lie in it lies in it)."""
     core = claim["core"]
-    p = torch.as_tensor(core["P"], dtype=F64)
+    p = _read_matrix(core["P"], n, "core")
     c = float(core["level"])
-    if p.shape != (n, n) or not bool(torch.isfinite(p).all()) or not torch.equal(p, p.T):
-        raise ValueError(f"the core's P is not a finite symmetric {n} x {n} matrix")
     if not bool(surely_semidefinite(p)):
         raise ValueError("the core's P is not positive semidefinite")
     if not (c > 0 and c < float("inf")):
@@ -185,8 +194,7 @@ def inside_core(p: Tensor, c: float, lo: Tensor, hi: Tensor) -> Tensor:
     n = lo.shape[-1]
     if not lo.shape[0]:
         return torch.ones(0, dtype=torch.bool)
-    signs = torch.tensor([[(k >> i) & 1 for i in range(n)] for k in range(2 ** n)], dtype=torch.bool)
-    corners = torch.where(signs[None], hi[:, None, :], lo[:, None, :]).reshape(-1, n)
-    z = Iv.point(corners)
-    values = (z * z.linear(p.to(corners))).sum(-1)
+    upper = _corners(n, lo.device)[0] > 0  # (2^n, n): which coordinates of each vertex are the box's upper ends
+    vertices = torch.where(upper[None], hi[:, None, :], lo[:, None, :]).reshape(-1, n)
+    values = quadratic_form(Iv.point(vertices), p.to(vertices))
     return (values.hi <= c).reshape(-1, 2 ** n).all(-1)

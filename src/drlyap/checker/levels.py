@@ -95,14 +95,14 @@ def ball_below(pair: Pair, lo: Tensor, hi: Tensor, delta: float, level: float, m
     ``||z|| < delta``, by bisecting (4 cells per axis at the start) the boxes that meet the ball until V's upper bound
     is at most the level on each, a centre has ``V > level`` or ``max_boxes`` are spent. Returns (holds, the largest
     upper bound of V kept, boxes bounded)."""
-    d2 = (Iv.point(delta) * Iv.point(delta)).hi
+    d2 = Iv.point(delta) * Iv.point(delta)
 
     def meets(a: Tensor, b: Tensor) -> Tensor:  # the nearest point's squared distance, rounded down, below delta^2
         near = torch.where((a <= 0) & (b >= 0), 0.0, torch.minimum(a.abs(), b.abs()))
-        return Iv(near, near).square().sum(-1).lo < d2
+        return Iv(near, near).square().sum(-1).lo < d2.hi
 
     def inside(z: Tensor) -> Tensor:  # a centre's squared distance, rounded up, below delta^2
-        return Iv(z, z).square().sum(-1).hi < (Iv.point(delta) * Iv.point(delta)).lo
+        return Iv(z, z).square().sum(-1).hi < d2.lo
 
     a, b = grid_cells(lo, hi, [4] * lo.shape[0])
     return _bisect(pair, a, b, hi - lo, level, False, max_boxes, batch, keep=meets, member=inside)

@@ -31,6 +31,7 @@ from drlyap.conditions import Condition, DRUniform
 from drlyap.config import Budget
 from drlyap.enclosures import EPS, F64, Interval, round_down, round_up
 from drlyap.kinds import Status
+from drlyap.networks import QuadraticLyapunov
 from drlyap.progress import progress as show_progress
 from drlyap.regions import Region, box_grid, default_grid, inside_ball, split
 from drlyap.verification.bounding import ConditionJob, run_batches
@@ -111,6 +112,7 @@ class _Search:
                  core: tuple[Tensor, float] | None = None) -> None:
         self.loop, self.condition, self.region, self.budget, self.level = loop, condition, region, budget, level
         self.core = None if core is None else (torch.as_tensor(core[0], dtype=F64), float(core[1]))
+        self.core_form = None if core is None else QuadraticLyapunov(self.core[0])
         self.stop_at_cex, self.violation_width, self.give_up = stop_at_counterexample, violation_width, give_up
         self.n = loop.system.n
         self.enclosure = budget.enclosure_for(self.n)
@@ -283,7 +285,7 @@ class _Search:
             self.sup_hi = max(self.sup_hi, float(ub[ok & ~outside].max()))
         bad = ~ok & in_region & (centre_lb > 0)
         if self.core is not None:  # a violation inside the core is not one of the claim's
-            bad = bad & (((centre @ self.core[0]) * centre).sum(-1) > self.core[1])
+            bad = bad & (self.core_form(centre) > self.core[1])
         if bad.any():
             values = self.loop.exact(condition, centre[bad])
             confirmed = values > 0

@@ -32,6 +32,7 @@ from drlyap.kinds import Enclosure
 from drlyap.regions import Region, box_grid, default_grid
 from drlyap.verification.branch_and_bound import verify_condition
 from drlyap.verification.roa.levels import below, level_search
+from drlyap.verification.roa.local import resolving_ellipsoid
 from drlyap.verification.roa.quadratic import CoredProof
 
 
@@ -74,8 +75,7 @@ def band_roa(loop: ClosedLoop, condition: Condition, region: Region, quadratic: 
     strict = PlainDecrease(plain.xi, 1e-9, 0.0, plain.model)
     lo, hi = box_grid(region.lo, region.hi, default_grid(system.n))
     # boxes must resolve a set as small as L (the box holding x* has to fit inside it)
-    extent = (c_q * torch.linalg.inv(p).diagonal()).sqrt()
-    fine = min(min_width, 1e-4 * float((extent / region.scale).min()))
+    fine = resolving_ellipsoid(min_width, p, c_q, region)
 
     def everywhere(a, b):
         return torch.ones(a.shape[0], dtype=torch.bool, device=a.device)
@@ -142,8 +142,7 @@ def band_proof(loop: ClosedLoop, condition: Condition, region: Region, band: dic
         return None
     p, c_q = torch.tensor(band["P"], dtype=F64), float(band["q_level"])
     strict = PlainDecrease(plain.xi, float(band["decay_rate"]), 0.0, plain.model)
-    extent = (c_q * torch.linalg.inv(p).diagonal()).sqrt()
-    fine = min(budget.min_width, 1e-4 * float((extent / region.scale).min()))
+    fine = resolving_ellipsoid(budget.min_width, p, c_q, region)
     whole = region.with_delta(0.0)
     proof = verify_condition(loop, strict, whole, replace(budget, min_width=fine, enclosure=Enclosure.AFFINE),
                              level=float(band["level"]), core=(p, c_q), keep_partition=True)

@@ -90,6 +90,13 @@ def resolving(min_width: float, r_in: float, region: Region) -> float:
     return min(min_width, 0.05 * r_in / float(region.scale.max()))
 
 
+def resolving_ellipsoid(min_width: float, p: Tensor, level: float, region: Region) -> float:
+    """A minimum box width (relative to the box) small enough for boxes to resolve the ellipsoid ``{z^T P z <= level}``
+    (1e-4 of its smallest extent ``sqrt(level (P^-1)_ii)`` relative to the box's side)."""
+    extent = (level * torch.linalg.inv(p).diagonal()).sqrt()
+    return min(min_width, 1e-4 * float((extent / region.scale).min()))
+
+
 def not_equilibrium(loop: ClosedLoop, plain: PlainDecrease, region: Region) -> str:
     """Why x* is not an equilibrium of some sample's model (``F(x*, pi(x*)) = 0`` up to 1e-9 of the box's
     scale, with the verifier's enclosures), or "" when it is of every one: the local proofs rest on it."""

@@ -61,7 +61,7 @@ from drlyap.verification.linearisation import (
 )
 from drlyap.verification.results import ConditionProof
 from drlyap.verification.roa.levels import below, level_search
-from drlyap.verification.roa.local import not_equilibrium, proved_cube, resolving
+from drlyap.verification.roa.local import not_equilibrium, proved_cube, resolving, resolving_ellipsoid
 from drlyap.verification.roa.sublevel import sublevel_roa
 
 
@@ -305,8 +305,7 @@ def linearisation_local(loop: ClosedLoop, condition: Condition, region: Region, 
     fits = meets(alo, ahi)
     alo, ahi = alo[fits], ahi[fits]
     # boxes near {V = c_1} must resolve a set as small as {W <= c_q}: a minimum width relative to it
-    extent = (c_q * torch.linalg.inv(p).diagonal()).sqrt()
-    fine = min(min_width, 1e-4 * float((extent / region.scale).min()))
+    fine = resolving_ellipsoid(min_width, p, c_q, region)
     c_2, limited_by, cex, boxes = level_search(
         loop, inner, alo, ahi, region.scale, level, "outer proof", max(deadline, time.perf_counter() + 1.0),
         meets=meets, in_region=lambda centre, v: centre.norm(dim=-1) < delta, floor=c_1, min_width=fine,
