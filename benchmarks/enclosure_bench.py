@@ -3,10 +3,11 @@
 Usage::
 
     python benchmarks/enclosure_bench.py [--systems pendulum,cartpole,quadrotor2d] [--widths 0.01,0.03,0.1]
-                                         [--boxes 256] [--samples 512] [--seed 0] [--threads 1]
+                                         [--boxes 256] [--samples 512] [--seed 0] [--threads 1] [--hidden 32,32]
 
-For each system (2, 4 and 6 states) it builds untrained networks with ``drlyap.training.build_networks``
-(the default tanh V and pi, seeded; 2x32 where the default has no hidden layer, the quadrotor's) and draws
+For each system (2, 4 and 6 states) it builds untrained tanh networks V and pi with the system's builder (seeded),
+each with the hidden layers ``--hidden`` (``default``: the system's default networks, 2x32 where the default has no
+hidden layer, the quadrotor's), and draws
 ``--boxes`` random boxes whose sides are a fraction ``--widths`` of the state box's sides, centred uniformly in
 the state box. For three quantities
 
@@ -60,6 +61,8 @@ def main(argv: list[str] | None = None) -> int:
     parser.add_argument("--samples", type=int, default=512, help="uniform samples per box (plus its corners) [512]")
     parser.add_argument("--seed", type=int, default=0, help="seed of the networks and the boxes [0]")
     parser.add_argument("--threads", type=int, default=1, help="torch threads [1]")
+    parser.add_argument("--hidden", default="32,32",
+                        help="hidden layers of both networks, comma-separated widths, or 'default' [32,32]")
     args = parser.parse_args(argv)
     torch.set_num_threads(args.threads)
 
@@ -82,9 +85,10 @@ def main(argv: list[str] | None = None) -> int:
     for name in args.systems.split(","):
         system = get_system(name)
         cfg = TrainConfig(system=name, seed=args.seed).resolved(system)
-        if not cfg.lyapunov_hidden or not cfg.controller_hidden:  # a quadratic V / linear controller: no tanh
-            cfg = TrainConfig(system=name, seed=args.seed, lyapunov_hidden=[32, 32],
-                              controller_hidden=[32, 32]).resolved(system)
+        if args.hidden != "default" or not cfg.lyapunov_hidden or not cfg.controller_hidden:
+            hidden = [32, 32] if args.hidden == "default" else [int(w) for w in args.hidden.split(",")]
+            cfg = TrainConfig(system=name, seed=args.seed, lyapunov_hidden=hidden,
+                              controller_hidden=hidden).resolved(system)
         torch.manual_seed(args.seed)
         lyap, ctrl = TrainSections.of(cfg).networks.build(system)
         lyap64, ctrl64 = copy.deepcopy(lyap).double(), copy.deepcopy(ctrl).double()

@@ -15,7 +15,12 @@ again with the run's enclosure. It prints, per run:
   sublevel set): below 0 means that the condition holds there as far as sampling sees, so the split was the bound's
   doing, not the condition's;
 * the gap between the bound and that maximum, as a multiple of the margin ``|max|``, and the share of the parents a
-  bound with half the gap would have proved: what a tighter bound would save, before it is written.
+  bound with half the gap would have proved: what a tighter bound would save, before it is written;
+* with affine forms, where the gap comes from: the remainder of the residual's components (the interval of the form
+  above its quadratic part: every nonlinear step's and product's terms of third order and above, and rounding) as a
+  multiple of the margin, and the gap between the form's polynomial part (its constant, linear and quadratic parts,
+  no remainder) at the same states and the sampled maximum: a remainder near the gap and a polynomial near the
+  residual say that the quadratic model is accurate and its remainder's enclosure is what splits the box.
 """
 
 from __future__ import annotations
@@ -54,6 +59,27 @@ def sampled_max(loop, condition, level: float | None, lo: torch.Tensor, hi: torc
     return values.amax(0)
 
 
+def remainder_split(loop, condition, level: float | None, lo: torch.Tensor, hi: torch.Tensor, count: int,
+                    generator: torch.Generator) -> tuple[torch.Tensor, torch.Tensor, torch.Tensor]:
+    """``(B,)`` each: the largest remainder (upper end) over the residual's components' affine forms, the largest
+    value of the forms' polynomial parts and of the residual at ``count`` uniform states of each box (both over the
+    states with V <= level; ``-inf`` where none)."""
+    from drlyap.enclosures import Affine
+    from drlyap.verification.bounds import condition_and_value_objective
+
+    form = condition_and_value_objective(loop, condition)(Affine.box(lo, hi))
+    e = torch.rand(count, *lo.shape, generator=generator, dtype=F64) * 2 - 1
+    z = (lo + hi) / 2 + (hi - lo) / 2 * e
+    flat = z.reshape(-1, lo.shape[1])
+    poly = form.c + torch.einsum("bqk,mbk->mbq", form.g, e) + torch.einsum("bqkl,mbk,mbl->mbq", form.q, e, e)
+    with torch.no_grad():
+        values = loop.exact(condition, flat).reshape(count, -1)
+        value = loop.lyapunov(flat).reshape(count, -1)
+    inside = value <= level if level is not None else torch.ones_like(values, dtype=torch.bool)
+    modelled = torch.where(inside, condition.combine(poly[..., :-1]), -torch.inf).amax(0)
+    return form.r.hi[:, :-1].amax(-1), modelled, torch.where(inside, values, -torch.inf).amax(0)
+
+
 def main(argv: list[str] | None = None) -> int:
     parser = argparse.ArgumentParser(description=__doc__, formatter_class=argparse.RawDescriptionHelpFormatter)
     parser.add_argument("runs", nargs="+", help="run directories with a certificate of their trained condition")
@@ -70,7 +96,7 @@ def main(argv: list[str] | None = None) -> int:
     from drlyap.verification.bounding import ConditionJob
 
     header = (f"{'run':<24} {'parents':>9} {'drawn':>6} {'bound<=0':>9} {'sampled<0':>10} {'gap/|max| p50':>14} "
-              f"{'p90':>6} {'proved at half the gap':>23}")
+              f"{'p90':>6} {'proved at half the gap':>23} {'remainder/|max|':>16} {'polynomial-max':>15}")
     print(header)
     print("-" * len(header))
     for path in args.runs:
@@ -92,7 +118,17 @@ def main(argv: list[str] | None = None) -> int:
         half = (best + 0.5 * (upper - best))[seen] <= 0
         print(f"{str(path)[-24:]:<24} {candidates.numel():>9,} {pick.numel():>6} "
               f"{float((upper <= 0).double().mean()):>9.3f} {float((best[seen] < 0).double().mean()):>10.3f} "
-              f"{float(gap.median()):>14.2f} {float(gap.quantile(0.9)):>6.2f} {float(half.double().mean()):>23.3f}")
+              f"{float(gap.median()):>14.2f} {float(gap.quantile(0.9)):>6.2f} {float(half.double().mean()):>23.3f}",
+              end="")
+        if str(enclosure) != "affine":
+            print(f" {'-':>16} {'-':>15}")
+            continue
+        rem, modelled, sampled = remainder_split(run.loop.f64, run.condition, level, blo[pick], bhi[pick],
+                                                 args.samples, g)
+        both = torch.isfinite(sampled)
+        margin = sampled[both].abs().clamp(min=1e-12)
+        print(f" {float((rem[both] / margin).median()):>16.2f} "
+              f"{float(((modelled - sampled)[both] / margin).median()):>15.3f}")
     return 0
 
 
