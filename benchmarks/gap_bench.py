@@ -19,7 +19,7 @@ again with the run's enclosure. It prints, per run:
 * with affine forms, where the gap comes from: the remainder of the residual's components (the interval of the form
   above its quadratic part: every nonlinear step's and product's terms of third order and above, and rounding) as a
   multiple of the margin, and the gap between the form's polynomial part (its constant, linear and quadratic parts,
-  no remainder) at the same states and the sampled maximum: a remainder near the gap and a polynomial near the
+  no remainder) at the same states and the sampled maximum, in margins: a remainder near the gap and a polynomial near the
   residual say that the quadratic model is accurate and its remainder's enclosure is what splits the box.
 """
 
@@ -46,38 +46,32 @@ def parents_of_proved_pairs(arrays: dict) -> torch.Tensor:
     return ((verdict == INTERNAL) & (children == 2) & (proved == 2)).nonzero().squeeze(-1)
 
 
-def sampled_max(loop, condition, level: float | None, lo: torch.Tensor, hi: torch.Tensor, count: int,
-                generator: torch.Generator) -> torch.Tensor:
-    """``(B,)``: the largest residual at ``count`` uniform states of each box (``-inf`` where none has V <= level)."""
-    z = lo + (hi - lo) * torch.rand(count, *lo.shape, generator=generator, dtype=F64)
-    flat = z.reshape(-1, lo.shape[1])
-    values = loop.exact(condition, flat).reshape(count, -1)
+def sampled_max(loop, condition, level: float | None, lo: torch.Tensor, hi: torch.Tensor,
+                t: torch.Tensor) -> tuple[torch.Tensor, torch.Tensor]:
+    """``(B,)``: the largest residual at the states ``lo + (hi - lo) t`` of each box (``t (M, B, n)`` in ``[0, 1]``;
+    ``-inf`` where none has V <= level), and which of those states count ``(M, B)`` (V <= level)."""
+    flat = (lo + (hi - lo) * t).reshape(-1, lo.shape[1])
+    values = loop.exact(condition, flat).reshape(t.shape[:2])
+    inside = torch.ones_like(values, dtype=torch.bool)
     if level is not None:
         with torch.no_grad():
-            inside = loop.lyapunov(flat).reshape(count, -1) <= level
-        values = torch.where(inside, values, -torch.inf)
-    return values.amax(0)
+            inside = loop.lyapunov(flat).reshape(t.shape[:2]) <= level
+    return torch.where(inside, values, -torch.inf).amax(0), inside
 
 
-def remainder_split(loop, condition, level: float | None, lo: torch.Tensor, hi: torch.Tensor, count: int,
-                    generator: torch.Generator) -> tuple[torch.Tensor, torch.Tensor, torch.Tensor]:
-    """``(B,)`` each: the largest remainder (upper end) over the residual's components' affine forms, the largest
-    value of the forms' polynomial parts and of the residual at ``count`` uniform states of each box (both over the
-    states with V <= level; ``-inf`` where none)."""
+def remainder_split(loop, condition, lo: torch.Tensor, hi: torch.Tensor, t: torch.Tensor,
+                    inside: torch.Tensor) -> tuple[torch.Tensor, torch.Tensor]:
+    """``(B,)`` each: the largest remainder (upper end) over the residual's components' affine forms over the boxes, and
+    the largest value of the residual combined from the forms' polynomial parts at the states ``lo + (hi - lo) t`` that
+    count (``inside``, from :func:`sampled_max`; ``-inf`` where none)."""
     from drlyap.enclosures import Affine
     from drlyap.verification.bounds import condition_and_value_objective
 
     form = condition_and_value_objective(loop, condition)(Affine.box(lo, hi))
-    e = torch.rand(count, *lo.shape, generator=generator, dtype=F64) * 2 - 1
-    z = (lo + hi) / 2 + (hi - lo) / 2 * e
-    flat = z.reshape(-1, lo.shape[1])
+    e = 2 * t - 1  # the states' noise symbols
     poly = form.c + torch.einsum("bqk,mbk->mbq", form.g, e) + torch.einsum("bqkl,mbk,mbl->mbq", form.q, e, e)
-    with torch.no_grad():
-        values = loop.exact(condition, flat).reshape(count, -1)
-        value = loop.lyapunov(flat).reshape(count, -1)
-    inside = value <= level if level is not None else torch.ones_like(values, dtype=torch.bool)
     modelled = torch.where(inside, condition.combine(poly[..., :-1]), -torch.inf).amax(0)
-    return form.r.hi[:, :-1].amax(-1), modelled, torch.where(inside, values, -torch.inf).amax(0)
+    return form.r.hi[:, :-1].amax(-1), modelled
 
 
 def main(argv: list[str] | None = None) -> int:
@@ -91,6 +85,7 @@ def main(argv: list[str] | None = None) -> int:
     torch.set_num_threads(args.threads)
 
     from drlyap.checker.check import rebuild_boxes
+    from drlyap.kinds import Enclosure
     from drlyap.runs import load_run
     from drlyap.runs.certificates import read_certificate
     from drlyap.verification.bounding import ConditionJob
@@ -112,7 +107,8 @@ def main(argv: list[str] | None = None) -> int:
         enclosure = head["partition"].get("enclosure") or (run.proof.enclosure if run.proof else None)
         job = ConditionJob(run.loop.f64, run.condition, level, enclosure)
         upper = job(blo[pick], bhi[pick])["upper"]
-        best = sampled_max(run.loop.f64, run.condition, level, blo[pick], bhi[pick], args.samples, g)
+        t = torch.rand(args.samples, *blo[pick].shape, generator=g, dtype=F64)
+        best, inside = sampled_max(run.loop.f64, run.condition, level, blo[pick], bhi[pick], t)
         seen = torch.isfinite(best)
         gap = (upper - best)[seen] / best[seen].abs().clamp(min=1e-12)
         half = (best + 0.5 * (upper - best))[seen] <= 0
@@ -120,15 +116,13 @@ def main(argv: list[str] | None = None) -> int:
               f"{float((upper <= 0).double().mean()):>9.3f} {float((best[seen] < 0).double().mean()):>10.3f} "
               f"{float(gap.median()):>14.2f} {float(gap.quantile(0.9)):>6.2f} {float(half.double().mean()):>23.3f}",
               end="")
-        if str(enclosure) != "affine":
+        if enclosure != Enclosure.AFFINE:
             print(f" {'-':>16} {'-':>15}")
             continue
-        rem, modelled, sampled = remainder_split(run.loop.f64, run.condition, level, blo[pick], bhi[pick],
-                                                 args.samples, g)
-        both = torch.isfinite(sampled)
-        margin = sampled[both].abs().clamp(min=1e-12)
-        print(f" {float((rem[both] / margin).median()):>16.2f} "
-              f"{float(((modelled - sampled)[both] / margin).median()):>15.3f}")
+        rem, modelled = remainder_split(run.loop.f64, run.condition, blo[pick], bhi[pick], t, inside)
+        margin = best[seen].abs().clamp(min=1e-12)
+        print(f" {float((rem[seen] / margin).median()):>16.2f} "
+              f"{float(((modelled - best)[seen] / margin).median()):>15.3f}")
     return 0
 
 
