@@ -33,3 +33,36 @@ def test_saturation_is_a_clamp_with_straight_through_gradient():
     assert torch.equal(y.detach(), torch.tensor([[-1.0], [0.3], [2.0]]))
     y.sum().backward()
     assert torch.equal(x.grad, torch.ones(3, 1))
+
+
+def test_a_controller_with_a_linear_path_starts_at_its_gain_and_learns_a_correction():
+    torch.manual_seed(2)
+    c = Controller(3, ((0.0, 0.0), (6.0, 6.0)), (2.4, 2.4), (16,), input_scale=(1.0, 2.0, 0.5), skip=True).double()
+    k = torch.randn(2, 3, dtype=torch.float64)
+    assert c.set_linear(k)
+    z = torch.randn(64, 3, dtype=torch.float64) * 0.3
+    assert torch.allclose(c.raw(z), -z @ k.T, atol=1e-12)  # the correction starts at 0
+    c(z).sum().backward()
+    assert float(c.varphi.layers[-1].weight.grad.abs().max()) > 0  # and learns from there
+    without = Controller(3, ((0.0, 0.0), (6.0, 6.0)), (2.4, 2.4), (16,))
+    assert not without.set_linear(k)  # hidden layers and no linear path: only regression can fit it
+
+
+def test_the_linear_paths_input_gradient_and_enclosure():
+    from drlyap.enclosures import Affine
+    from drlyap.networks import TanhMLP
+
+    torch.manual_seed(3)
+    mlp = TanhMLP([3, 8, 2], (1.0, 2.0, 0.5), skip=True).double()
+    z = torch.randn(40, 3, dtype=torch.float64, requires_grad=True)
+    out, hidden = mlp.forward_with_hidden(z)
+    v = torch.randn(40, 2, dtype=torch.float64)
+    (auto,) = torch.autograd.grad((mlp(z) * v).sum(), z)
+    assert torch.allclose(mlp.vjp(hidden, v), auto, atol=1e-12)
+    lo = torch.randn(20, 3, dtype=torch.float64)
+    hi = lo + torch.rand(20, 3, dtype=torch.float64) * 0.5
+    box = mlp(Affine.box(lo, hi)).to_interval()
+    with torch.no_grad():
+        pts = lo[:, None] + (hi - lo)[:, None] * torch.rand(20, 500, 3, dtype=torch.float64)
+        vals = mlp(pts.reshape(-1, 3)).reshape(20, 500, 2)
+    assert bool((vals >= box.lo[:, None]).all() and (vals <= box.hi[:, None]).all())

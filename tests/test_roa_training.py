@@ -302,7 +302,9 @@ def test_systems_default_the_step_size_and_the_exponential_rate():
     quad = TrainConfig(system="quadrotor2d").resolved(get_system("quadrotor2d"))
     pend = TrainConfig(system="pendulum").resolved(get_system("pendulum"))
     assert (quad.lr, quad.exp_rate, quad.roa_level, quad.level_margin, quad.iters) == (0.003, 0.1, 0.8, 0.25, 4500)
-    assert (quad.lyapunov_hidden, quad.controller_hidden) == ([], [])  # a quadratic V, a saturated linear controller
+    # a quadratic V; a saturated controller: a linear gain plus a 16-unit layer's correction
+    assert (quad.lyapunov_hidden, quad.controller_hidden, quad.controller_skip) == ([], [16], True)
+    assert TrainConfig(system="cartpole").resolved(get_system("cartpole")).controller_skip is False
     assert (pend.lr, pend.exp_rate, pend.roa_level, pend.warm_start, pend.iters) == (0.002, 0.0, None, None, 3000)
     assert TrainConfig(system="quadrotor2d", iters=7).resolved(get_system("quadrotor2d")).iters == 7
     assert TrainConfig(system="pendulum", lr=0.01, exp_rate=0.2).resolved(get_system("pendulum")).lr == 0.01

@@ -289,8 +289,9 @@ def test_config_json_is_validated(pendulum_run, tmp_path, change, message):
 
 def test_a_run_saved_before_a_later_field_loads_with_the_value_it_was_trained_with(pendulum_run, tmp_path):
     run = copy_run(pendulum_run, tmp_path)
-    edit_json(run / "config.json", lambda c: c.pop("outside_weight"))  # runs saved before the field existed
-    assert load_run(run).config.outside_weight == 0.0
+    edit_json(run / "config.json", lambda c: (c.pop("outside_weight"), c.pop("controller_skip")))  # saved before them
+    loaded = load_run(run)
+    assert loaded.config.outside_weight == 0.0 and loaded.config.controller_skip is False
     edit_json(run / "config.json", lambda c: c.update(outside_weight=None))
     with pytest.raises(RunDirError, match="outside_weight is missing"):
         load_run(run)

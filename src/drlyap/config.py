@@ -50,6 +50,7 @@ class SystemDefaults:
     alpha_hat: float = 1.0
     lyapunov_hidden: tuple[int, ...] = (32, 32)
     controller_hidden: tuple[int, ...] = (32, 32)
+    controller_skip: bool = False
     margin: float = 0.0
     near_share: float = 0.0
     train_box: tuple[tuple[float, ...], tuple[float, ...]] | None = None
@@ -110,9 +111,9 @@ def _thawed(value):
 
 
 RESOLVED = ("wasserstein_radius", "risk_level", "decay_rate", "exp_rate", "n_states", "n_xi", "delta", "lr", "iters",
-            "alpha_hat", "lyapunov_hidden", "controller_hidden", "margin", "near_share", "train_box", "roa_level",
-            "level_margin", "margin_rate", "outside_weight", "exclude_weight", "grow_weight", "local_rate", "adversarial_share",
-            "warm_start", "lqr_weights")
+            "alpha_hat", "lyapunov_hidden", "controller_hidden", "controller_skip", "margin", "near_share", "train_box",
+            "roa_level", "level_margin", "margin_rate", "outside_weight", "exclude_weight", "grow_weight", "local_rate",
+            "adversarial_share", "warm_start", "lqr_weights")
 """The fields a config leaves to its system (``None``) and :meth:`TrainConfig.resolved` fills."""
 
 OPTIONAL = ("train_box", "roa_level", "warm_start", "lqr_weights")
@@ -140,7 +141,7 @@ _KINDS = {
     "exclude_weight": "number", "grow_weight": "number", "local_rate": "number", "adversarial_share": "number",
     "init_gain": "number",
     "n_states": "int", "n_xi": "int", "iters": "int", "check_every": "int", "seed": "int", "lyapunov_out": "int",
-    "resample": "bool", "lyapunov_hidden": "sizes", "controller_hidden": "sizes",
+    "resample": "bool", "controller_skip": "bool", "lyapunov_hidden": "sizes", "controller_hidden": "sizes",
 }
 _REQUIRED = ("system", "method", "loss", "check_every", "seed", "device", "lyapunov_out", "init_gain",
              "resample")
@@ -175,6 +176,9 @@ class TrainConfig:
     lyapunov_out: int = 8
     alpha_hat: float | None = None
     controller_hidden: list[int] | None = None
+    # a linear path from the scaled state to the controller's output beside its hidden layers: pi is a linear gain
+    # plus a network's correction (the LQR warm start sets the gain and starts the correction at 0)
+    controller_skip: bool | None = None
     init_gain: float = 10.0  # scale of the controller's output layer at initialisation
     margin: float | None = None  # training hinge is (residual + margin)_+: pushes the condition past zero
     resample: bool = True  # draw a fresh uniform batch of n_states every iteration (False: one fixed set)

@@ -5,6 +5,10 @@ Both act on local coordinates ``z = x - x*`` (angles wrapped, see :mod:`drlyap.s
     V(z)  = || phi(z) - phi(0) ||^2 + alpha_hat ||z / s||^2        (V(0) = 0, V > 0 elsewhere)
     pi(z) = u* + sat( varphi(z) - varphi(0) )                         (pi(0) = u*)
 
+``varphi`` may carry a linear path beside its hidden layers (``skip``: ``varphi(z) = mlp(z) + L z / s``), so that
+the controller is a linear gain plus a network's correction; the LQR warm start then sets ``L`` to the LQR gain and
+the correction to 0.
+
 ``phi`` and ``varphi`` are tanh MLPs whose first layer sees ``z / s``, with ``s`` the half-widths of
 the state box, so every coordinate enters on the same scale; the quadratic term uses the same
 scaled coordinates (the paper writes ``alpha_hat ||x||^2``; scaling keeps V meaningful when the
@@ -45,14 +49,16 @@ def clamp(v, low: Tensor, high: Tensor):
 
 
 class TanhMLP(nn.Module):
-    """A fully connected network with tanh hidden activations and a linear output layer."""
+    """A fully connected network with tanh hidden activations and a linear output layer; with ``skip``, plus a
+    linear map of its (scaled) input, ``skip.weight (out, in)`` without bias."""
 
-    def __init__(self, sizes: Sequence[int], input_scale: Sequence[float] | None = None) -> None:
+    def __init__(self, sizes: Sequence[int], input_scale: Sequence[float] | None = None, skip: bool = False) -> None:
         super().__init__()
         if len(sizes) < 2 or any(int(s) < 1 for s in sizes):
             raise ValueError(f"layer sizes must be >= 2 positive integers, got {list(sizes)}")
         self.sizes = [int(s) for s in sizes]
         self.layers = nn.ModuleList(nn.Linear(a, b) for a, b in zip(self.sizes[:-1], self.sizes[1:]))
+        self.skip = nn.Linear(self.sizes[0], self.sizes[-1], bias=False) if skip else None
         scale = torch.ones(self.sizes[0]) if input_scale is None else torch.as_tensor(input_scale, dtype=torch.float32)
         self.register_buffer("input_scale", scale)  # inputs are divided by this before the first layer
 
@@ -61,20 +67,20 @@ class TanhMLP(nn.Module):
     def forward(self, z: Tensor) -> Tensor:
         """``z (B, in) -> (B, out)``."""
         layers = self.layers
-        h = z / self.input_scale
+        h = zs = z / self.input_scale
         for i in range(len(layers) - 1):
             h = torch.tanh(layers[i](h))
-        return layers[-1](h)
+        return layers[-1](h) if self.skip is None else layers[-1](h) + self.skip(zs)
 
     def forward_with_hidden(self, z: Tensor) -> tuple[Tensor, list[Tensor]]:
         """Output and the list of hidden activations (needed for the manual input gradient)."""
         layers = self.layers
         hidden = []
-        h = z / self.input_scale
+        h = zs = z / self.input_scale
         for i in range(len(layers) - 1):
             h = torch.tanh(layers[i](h))
             hidden.append(h)
-        return layers[-1](h), hidden
+        return (layers[-1](h) if self.skip is None else layers[-1](h) + self.skip(zs)), hidden
 
     def vjp(self, hidden: list[Tensor], v: Tensor) -> Tensor:
         """``J(z)^T v`` for a cotangent ``v (B, out)``, given the hidden activations at ``z``."""
@@ -82,6 +88,8 @@ class TanhMLP(nn.Module):
         g = F.linear(v, layers[-1].weight.T)
         for i in range(len(layers) - 2, -1, -1):
             g = F.linear(g * (1 - hidden[i].square()), layers[i].weight.T)
+        if self.skip is not None:
+            g = g + F.linear(v, self.skip.weight.T)
         return g / self.input_scale
 
 
@@ -140,14 +148,15 @@ def saturate(v: Tensor, low: Tensor, high: Tensor) -> Tensor:
 
 
 class Controller(nn.Module):
-    """``pi(z) = u* + sat(varphi(z) - varphi(0))`` with outputs inside the input box U."""
+    """``pi(z) = u* + sat(varphi(z) - varphi(0))`` with outputs inside the input box U; with ``skip``, ``varphi``
+    holds a linear path beside its hidden layers (:class:`TanhMLP`)."""
 
     def __init__(self, n: int, input_box: tuple[Sequence[float], Sequence[float]], u_star: Sequence[float],
                  hidden: Sequence[int] = (32, 32), init_gain: float = 10.0,
-                 input_scale: Sequence[float] | None = None) -> None:
+                 input_scale: Sequence[float] | None = None, skip: bool = False) -> None:
         super().__init__()
         m = len(u_star)
-        self.varphi = TanhMLP([n, *hidden, m], input_scale)
+        self.varphi = TanhMLP([n, *hidden, m], input_scale, skip)
         with torch.no_grad():
             self.varphi.layers[-1].weight.mul_(init_gain)
         # float64 buffers: the verifier reads u* and U exactly (a float32 u* would move the equilibrium)
@@ -158,14 +167,20 @@ class Controller(nn.Module):
         self.register_buffer("room_high", hi - us)
 
     def set_linear(self, k: Tensor) -> bool:
-        """Without hidden layers, set ``varphi(z) - varphi(0)`` to ``-k z`` (``k (m, n)`` float64) exactly, in place,
-        and return True; with hidden layers change nothing and return False."""
-        if len(self.varphi.layers) != 1:
+        """Set ``varphi(z) - varphi(0)`` to ``-k z`` (``k (m, n)`` float64) exactly, in place, and return True: without
+        hidden layers by the only layer, with a linear path by that path (the output layer then starts at 0, so the
+        hidden layers' correction is 0 and learns from there); otherwise change nothing and return False."""
+        varphi = self.varphi
+        if varphi.skip is None and len(varphi.layers) != 1:
             return False
-        layer = self.varphi.layers[0]
+        layer = varphi.layers[0] if varphi.skip is None else varphi.skip
         with torch.no_grad():
-            layer.weight.copy_(-k * self.varphi.input_scale.to(k)[None, :])
-            layer.bias.zero_()
+            layer.weight.copy_(-k * varphi.input_scale.to(k)[None, :])
+            if varphi.skip is None:
+                layer.bias.zero_()
+            else:
+                varphi.layers[-1].weight.zero_()
+                varphi.layers[-1].bias.zero_()
         return True
 
     def raw(self, z: Tensor) -> Tensor:

@@ -91,6 +91,7 @@ class NetworkSection:
     lyapunov_out: int
     alpha_hat: float
     controller_hidden: list[int]
+    controller_skip: bool
     init_gain: float
     warm_start: str | None
     lqr_weights: list[list[float]] | None
@@ -101,7 +102,7 @@ class NetworkSection:
         scale = ((hi - lo) / 2).tolist()
         lyapunov = Lyapunov(system.n, self.lyapunov_hidden, self.lyapunov_out, self.alpha_hat, scale)
         controller = Controller(system.n, system.input_box, system.equilibrium_input, self.controller_hidden,
-                                self.init_gain, scale)
+                                self.init_gain, scale, self.controller_skip)
         return lyapunov, controller
 
 

@@ -6,7 +6,8 @@ checker's intervals and duals.
 States are local coordinates ``z = x - x*`` (``(B, n)``). The formulas are the ones docs/method.md states:
 
 * ``V(z) = ||phi(z) - phi(0)||^2 + alpha_hat ||z / s||^2`` with ``phi`` a tanh MLP on ``z / s``;
-* ``pi(z) = u* + clamp(varphi(z) - varphi(0), U - u*)``;
+* ``pi(z) = u* + clamp(varphi(z) - varphi(0), U - u*)``, ``varphi`` a tanh MLP on ``z / s`` plus, where the weights
+  hold one (``varphi.skip.weight``), a linear map of ``z / s``;
 * ``Vdot_j = grad V . (f + W xi_j)`` on the design model (``W = dF/dp`` at the nominal parameters, in the uncertain
   ones) or ``grad V . F(x, u, p0 + E xi_j)`` on the true model; ``decay = gamma ||z|| + alpha V``;
 * components ``Vdot_j + decay`` (+ ``(r / eps) ||W^T grad V||`` for the DR pointwise condition), combined by the
@@ -42,16 +43,19 @@ class Mlp:
         self.weights = [state[f"{prefix}layers.{i}.weight"].to(F64) for i in range(count)]
         self.biases = [state[f"{prefix}layers.{i}.bias"].to(F64) for i in range(count)]
         self.scale = state[f"{prefix}input_scale"].to(F64)
+        skip = state.get(f"{prefix}skip.weight")
+        self.skip = None if skip is None else skip.to(F64)  # the linear path beside the hidden layers, if any
         if count < 1:
             raise ValueError(f"no layers under {prefix!r}")
 
     def forward(self, z) -> tuple[object, list]:
-        h = z / self.scale
+        h = zs = z / self.scale
         hidden = []
         for w, b in zip(self.weights[:-1], self.biases[:-1]):
             h = h.linear(w, b).tanh()
             hidden.append(h)
-        return h.linear(self.weights[-1], self.biases[-1]), hidden
+        out = h.linear(self.weights[-1], self.biases[-1])
+        return (out if self.skip is None else out + zs.linear(self.skip)), hidden
 
     def at_origin(self, n: int) -> Iv:
         return self.forward(Iv.point(torch.zeros(1, n, dtype=F64, device=self.scale.device)))[0]
@@ -62,6 +66,7 @@ class Mlp:
         out.weights = [w.to(device) for w in self.weights]
         out.biases = [b.to(device) for b in self.biases]
         out.scale = self.scale.to(device)
+        out.skip = None if self.skip is None else self.skip.to(device)
         return out
 
 
@@ -70,6 +75,8 @@ class Pair:
 
     def __init__(self, weights: dict, alpha_hat: float, n: int) -> None:
         self.phi = Mlp(weights["lyapunov"], "phi.")
+        if self.phi.skip is not None:
+            raise ValueError("V's network has a linear path (phi.skip.weight): only the controller's may")
         self.varphi = Mlp(weights["controller"], "varphi.")
         ctrl = weights["controller"]
         self.u_star, self.low, self.high = (ctrl[k].to(F64) for k in ("u_star", "room_low", "room_high"))
