@@ -76,3 +76,13 @@ def test_torchscript_export_and_refusals(tmp_path):
     again = CliRunner().invoke(main, ["export", str(tmp_path / "run"), "--format", "torchscript",
                                       "--out", str(tmp_path / "ts")])
     assert again.exit_code != 0 and "already exists" in again.output
+
+
+def test_the_exported_controller_gives_u_star_exactly_at_x_star(tmp_path):
+    run = load_run(untrained_run(tmp_path / "run", "quadrotor2d"))  # u* = m g / 2 is not a float32 number
+    result = CliRunner().invoke(main, ["export", str(tmp_path / "run")])
+    assert result.exit_code == 0, result.output
+    x_star = torch.tensor([run.system.equilibrium], dtype=torch.float64)
+    u = ort.InferenceSession(str(tmp_path / "run" / "export" / "controller.onnx")).run(["u"], {"x": x_star.numpy()})[0]
+    assert u.tolist() == [list(run.system.equilibrium_input)]
+    assert float(torch.tensor(run.system.equilibrium_input[0]).float()) != run.system.equilibrium_input[0]

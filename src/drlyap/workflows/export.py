@@ -3,7 +3,8 @@ modules that a robot's runtime can load, with a record of what was proved about 
 
 Both models take the state in **user coordinates** (``x``, float64, ``(batch, n)``, the system's state order and
 units) and do what :meth:`drlyap.runs.Run.controller` and :meth:`~drlyap.runs.Run.lyapunov` do: the offset to
-x*, angles wrapped into ``[-pi, pi)``, the networks in float32, outputs in float64. The controller includes
+x*, angles wrapped into ``[-pi, pi)``, the networks in float32, outputs in float64 (the controller's u* added in
+float64 in place of its float32 rounding, so that ``pi(x*) = u*`` exactly). The controller includes
 its saturation to the input box U: ``u`` (``(batch, m)``) never leaves U (a last clamp in float64 removes the
 float32 rounding by which the network's ``u* + sat(.)`` can pass a bound). ``V`` is ``(batch,)``.
 
@@ -36,11 +37,18 @@ OPSET = 17
 class UserCoordinates(nn.Module):
     """``net`` applied to user-coordinate states: ``x (B, n)`` float64 -> ``net(to_local(x))`` in float64, with the
     same arithmetic as :meth:`drlyap.systems.UncertainSystem.to_local` (offset to x*, angles wrapped); with
-    ``box`` (U's bounds) the output is clamped to it in float64."""
+    ``box`` (U's bounds) the output is clamped to it in float64. With ``u_star`` (the controller's u*, float64)
+    the float32 network's own u* is replaced by it: ``net(z) - float32(u*) + u*`` in float64, so that
+    ``pi(x*) = u*`` exactly, as in the run (a float32 u* is off by a rounding: the quadrotor's hover thrust by 7e-8
+    N, which makes x* no equilibrium of the exported loop)."""
 
-    def __init__(self, net: nn.Module, equilibrium, angle_dims, box=None) -> None:
+    def __init__(self, net: nn.Module, equilibrium, angle_dims, box=None, u_star=None) -> None:
         super().__init__()
         self.net = net
+        self.recentred = u_star is not None
+        us = torch.as_tensor(u_star if u_star is not None else (0.0,), dtype=torch.float64).reshape(1, -1)
+        self.register_buffer("u_star", us)
+        self.register_buffer("u_star32", us.float().double())
         self.bounded = box is not None
         lo, hi = box if box is not None else ((0.0,), (0.0,))
         self.register_buffer("low", torch.tensor([lo], dtype=torch.float64))
@@ -56,6 +64,8 @@ class UserCoordinates(nn.Module):
         if self.wrap:
             z = torch.where(self.angles, torch.remainder(z + math.pi, 2 * math.pi) - math.pi, z)
         out = self.net(z.float()).double()
+        if self.recentred:
+            out = (out - self.u_star32) + self.u_star
         if self.bounded:  # u* + sat(.) in float32 can pass U's bounds by a float32 rounding (measured: 3.8e-8)
             out = torch.minimum(torch.maximum(out, self.low), self.high)
         return out
@@ -66,7 +76,8 @@ def exported_modules(run: Run) -> dict[str, UserCoordinates]:
     system = run.system
     out = {}
     for name, net, box in (("controller", run.controller_net, system.input_box), ("lyapunov", run.lyapunov_net, None)):
-        out[name] = UserCoordinates(net, system.equilibrium, system.angle_dims, box).cpu().eval()
+        u_star = getattr(net, "u_star", None) if name == "controller" else None  # drlyap's controllers hold u*
+        out[name] = UserCoordinates(net, system.equilibrium, system.angle_dims, box, u_star).cpu().eval()
     return out
 
 
