@@ -83,9 +83,9 @@ class ConditionSection:
 
 @dataclass(frozen=True)
 class NetworkSection:
-    """The networks: V's hidden sizes, output width and ``alpha_hat``; pi's hidden sizes and the scale of its output
-    layer at initialisation; the warm start (``"lqr"`` or None) and its ``lqr_weights`` ([Q diagonal, R diagonal];
-    None: Bryson's rule)."""
+    """The networks: V's hidden sizes, output width and ``alpha_hat``; pi's hidden sizes, whether a linear path runs
+    beside them (``controller_skip``) and the scale of its output layer at initialisation; the warm start (``"lqr"``
+    or None) and its ``lqr_weights`` ([Q diagonal, R diagonal]; None: Bryson's rule)."""
 
     lyapunov_hidden: list[int]
     lyapunov_out: int
