@@ -6,8 +6,8 @@ Usage::
                                          [--boxes 256] [--samples 512] [--seed 0] [--threads 1] [--hidden 32,32]
 
 For each system (2, 4 and 6 states) it builds untrained tanh networks V and pi with the system's builder (seeded),
-each with the hidden layers ``--hidden`` (``default``: the system's default networks, 2x32 where the default has no
-hidden layer, the quadrotor's), and draws
+each with the hidden layers ``--hidden`` and no linear path beside them (``default``: the system's default
+networks, 2x32 where the default has no hidden layer, the quadrotor's), and draws
 ``--boxes`` random boxes whose sides are a fraction ``--widths`` of the state box's sides, centred uniformly in
 the state box. For three quantities
 
@@ -87,8 +87,8 @@ def main(argv: list[str] | None = None) -> int:
         cfg = TrainConfig(system=name, seed=args.seed).resolved(system)
         if args.hidden != "default" or not cfg.lyapunov_hidden or not cfg.controller_hidden:
             hidden = [32, 32] if args.hidden == "default" else [int(w) for w in args.hidden.split(",")]
-            cfg = TrainConfig(system=name, seed=args.seed, lyapunov_hidden=hidden,
-                              controller_hidden=hidden).resolved(system)
+            cfg = TrainConfig(system=name, seed=args.seed, lyapunov_hidden=hidden, controller_hidden=hidden,
+                              controller_skip=False).resolved(system)
         torch.manual_seed(args.seed)
         lyap, ctrl = TrainSections.of(cfg).networks.build(system)
         lyap64, ctrl64 = copy.deepcopy(lyap).double(), copy.deepcopy(ctrl).double()

@@ -19,7 +19,8 @@ F64 = torch.float64
 
 def linear_loop(system, **overrides):
     """A closed loop of networks without hidden layers, warm-started from the system's LQR (exactly)."""
-    cfg = TrainConfig(system=system.name, lyapunov_hidden=[], controller_hidden=[], **overrides).resolved(system)
+    cfg = TrainConfig(system=system.name, lyapunov_hidden=[], controller_hidden=[], controller_skip=False,
+                      **overrides).resolved(system)
     plan = TrainSections.of(cfg)
     lyapunov, controller = plan.networks.build(system)
     region = Region.of(system, cfg.delta)

@@ -70,7 +70,7 @@ class TanhMLP(nn.Module):
         h = zs = z / self.input_scale
         for i in range(len(layers) - 1):
             h = torch.tanh(layers[i](h))
-        return layers[-1](h) if self.skip is None else layers[-1](h) + self.skip(zs)
+        return self._output(h, zs)
 
     def forward_with_hidden(self, z: Tensor) -> tuple[Tensor, list[Tensor]]:
         """Output and the list of hidden activations (needed for the manual input gradient)."""
@@ -80,7 +80,12 @@ class TanhMLP(nn.Module):
         for i in range(len(layers) - 1):
             h = torch.tanh(layers[i](h))
             hidden.append(h)
-        return (layers[-1](h) if self.skip is None else layers[-1](h) + self.skip(zs)), hidden
+        return self._output(h, zs), hidden
+
+    def _output(self, h: Tensor, zs: Tensor) -> Tensor:
+        """The output layer on the last hidden activations ``h``, plus the linear path on the scaled input ``zs``."""
+        out = self.layers[-1](h)
+        return out if self.skip is None else out + self.skip(zs)
 
     def vjp(self, hidden: list[Tensor], v: Tensor) -> Tensor:
         """``J(z)^T v`` for a cotangent ``v (B, out)``, given the hidden activations at ``z``."""

@@ -193,13 +193,13 @@ def _networks(system: UncertainSystem, section: NetworkSection, init: tuple[Lyap
     ``init`` where it fits the section and is finite; on ``device``."""
     lyapunov, controller = section.build(system)
     if init:
-        skips = [(init[1].varphi.skip is not None), (controller.varphi.skip is not None)]
+        init_path, path = init[1].varphi.skip is not None, controller.varphi.skip is not None
         if (init[0].phi.sizes != lyapunov.phi.sizes or init[0].alpha_hat != lyapunov.alpha_hat
-                or init[1].varphi.sizes != controller.varphi.sizes or skips[0] != skips[1]):
+                or init[1].varphi.sizes != controller.varphi.sizes or init_path != path):
             raise ValueError(f"warm-start networks (V {init[0].phi.sizes}, alpha_hat {init[0].alpha_hat}; pi "
-                             f"{init[1].varphi.sizes}, linear path {skips[0]}) do not match the config (V "
+                             f"{init[1].varphi.sizes}, linear path {init_path}) do not match the config (V "
                              f"{lyapunov.phi.sizes}, alpha_hat {lyapunov.alpha_hat}; pi {controller.varphi.sizes}, "
-                             f"linear path {skips[1]})")
+                             f"linear path {path})")
         lyapunov, controller = copy.deepcopy(init[0]), copy.deepcopy(init[1])
         for name, net in (("V", lyapunov), ("pi", controller)):
             bad = [key for key, value in net.state_dict().items()

@@ -75,8 +75,9 @@ def exported_modules(run: Run) -> dict[str, UserCoordinates]:
     """The two modules to export, on the CPU in eval mode: ``controller`` and ``lyapunov``."""
     system = run.system
     out = {}
-    for name, net, box in (("controller", run.controller_net, system.input_box), ("lyapunov", run.lyapunov_net, None)):
-        u_star = getattr(net, "u_star", None) if name == "controller" else None  # drlyap's controllers hold u*
+    controller = run.controller_net
+    for name, net, box, u_star in (("controller", controller, system.input_box, getattr(controller, "u_star", None)),
+                                   ("lyapunov", run.lyapunov_net, None, None)):  # drlyap's controllers hold u*
         out[name] = UserCoordinates(net, system.equilibrium, system.angle_dims, box, u_star).cpu().eval()
     return out
 
