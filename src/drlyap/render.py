@@ -165,6 +165,9 @@ def roa_line(r: RegionOfAttraction, true_model: bool) -> str:
                    f"{level_text(local['q_level'], 3)}}} (--json: roa.band.P), on whose boundary V is as low as {low:.3g} "
                    f"(sampled): " + ("the set reaches beyond the ellipsoid" if r.beyond_ellipsoid else
                                      "the set may lie inside the ellipsoid"))
+        elif (r.strict or {}).get("by") == "proof":
+            how = (f"; V > 0 outside the ball proved (V >= {r.strict['lower']:.3g} there), which makes its decrease "
+                   "alpha V strict")
         return (f"region of attraction: CERTIFIED {{V <= {level_text(r.level, 4)}}} ({size}): every trajectory of {model} "
                 f"that starts there converges to x*{how}")
     if r.kind == "practical stability":
@@ -411,6 +414,9 @@ def check_lines(results) -> list[str]:
             elif r.cube_bound is not None:
                 lines.append(f"  the Hessian of Vdot on the cube is negative definite by the checker's enclosure "
                              f"(its largest eigenvalue about {r.cube_bound:.3g})")
+            if r.positive_min is not None:
+                lines.append(f"  V > 0 outside the ball by the checker's bisection (V's smallest lower bound there "
+                             f"{r.positive_min:.3g}, {r.positive_boxes} boxes): the decrease alpha V there is strict")
             if r.ball_max is not None:
                 lines.append(f"  V <= its level on the ball by the checker's bisection (V's largest upper bound there "
                              f"{r.ball_max:.6g}, {r.ball_boxes} boxes; {r.time_s:.2f} s)")

@@ -8,13 +8,16 @@ from __future__ import annotations
 
 import json
 import math
+from collections.abc import Callable
 from pathlib import Path
 
 
-def outer_missing(run_dir: Path, header: dict) -> list[str]:
+def outer_missing(run_dir: Path, header: dict, positive: Callable[[dict], str] | None = None) -> list[str]:
     """Where the certificate a ``roa-ball`` names for the decrease outside the ball (``outer``) does not cover its
     region: missing, on another delta or a lower level, about other samples, or a decrease that is not strict (that
-    certificate's boxes are checked on their own)."""
+    certificate's boxes are checked on their own). Where only ``alpha V`` can make it strict and V is not positive by
+    its form (an imported V), ``positive(outer's region)`` must establish V > 0 outside the ball: it returns "" where
+    it does, else why not (None: nothing establishes it)."""
 
     region = header["claim"]["region"]
     path = run_dir / "certificates" / f"{header['claim'].get('outer')}.json"
@@ -29,9 +32,13 @@ def outer_missing(run_dir: Path, header: dict) -> list[str]:
         return [f"{path.name} does not prove the decrease outside the ball on {{V <= {level}}}"]
     if samples != header["claim"]["condition"].get("xi"):
         return [f"{path.name} is about other samples or another shift than the decrease inside the ball"]
-    if not _strict(claim["condition"], outer_header.get("networks") or {}):
+    strict = _strict(claim["condition"], outer_header.get("networks") or {})
+    if strict == "positive" and positive is not None:
+        why = positive(outer)
+        return [f"{path.name}'s decrease is strict only where V > 0, and {why}"] if why else []
+    if strict not in ("decay", "form"):
         return [f"{path.name}'s decrease is not strict (no decay gamma ||z||, and no alpha V with V > 0 away from x* "
-                "by its form): V's decrease outside the ball does not rule out rest points there"]
+                "by its form or proved): V's decrease outside the ball does not rule out rest points there"]
     return []
 
 
@@ -55,13 +62,18 @@ def core_missing(run_dir: Path, header: dict) -> list[str]:
     return []
 
 
-def _strict(condition: dict, networks: dict) -> bool:
-    """Whether a decrease condition makes ``Vdot < 0`` away from x*: a decay ``gamma ||z||`` with ``gamma > 0``, or
-    ``alpha V`` with ``alpha > 0`` and V positive away from x* by its form (drlyap's V with ``alpha_hat > 0``; an
-    imported V's positivity is not the checker's)."""
+def _strict(condition: dict, networks: dict) -> str:
+    """What makes a decrease condition ``Vdot < 0`` away from x*: ``"decay"`` (``gamma ||z||`` with ``gamma > 0``),
+    ``"form"`` (``alpha V`` with ``alpha > 0`` and V positive away from x* by its form: drlyap's V with
+    ``alpha_hat > 0``), ``"positive"`` (``alpha V`` with ``alpha > 0``, and V > 0 there still to establish: an
+    imported V), or "" (nothing)."""
     gamma, alpha = float(condition.get("decay_rate") or 0.0), float(condition.get("exp_rate") or 0.0)
     alpha_hat = networks.get("alpha_hat")
-    return gamma > 0 or (alpha > 0 and isinstance(alpha_hat, (int, float)) and alpha_hat > 0)
+    if gamma > 0:
+        return "decay"
+    if not alpha > 0:
+        return ""
+    return "form" if isinstance(alpha_hat, (int, float)) and alpha_hat > 0 else "positive"
 
 
 def _trained_condition(config: dict, metrics: dict) -> dict:

@@ -24,7 +24,9 @@ and ``V > level`` on the state box's faces is established by the checker's own b
 the file).
 
 A ``roa-ball`` certificate (V's decrease inside the delta-ball) is checked on the ball's box: its ring of boxes as
-above, and its cube around x* by :mod:`drlyap.checker.ball` (Vdot's Hessian over the cube, negative definite).
+above, and its cube around x* by :mod:`drlyap.checker.ball` (Vdot's Hessian over the cube, negative definite). The
+decrease outside the ball it rests on must be strict: by a decay ``gamma ||z||``, or by ``alpha V`` with V > 0 there,
+by V's form (drlyap's V) or, for an imported V, by the checker's own bisection of the box outside the ball.
 An ``ellipsoid`` certificate is checked by :mod:`drlyap.checker.ellipsoid`; a claim with a ``core`` (V's region resting on
 that ellipsoid) has leaves inside it, each of whose vertices the checker places in the ellipsoid
 (:func:`~drlyap.checker.ellipsoid.inside_core`).
@@ -38,6 +40,7 @@ from __future__ import annotations
 import json
 import math
 import time
+from collections.abc import Callable
 from dataclasses import dataclass, field
 from pathlib import Path
 
@@ -51,8 +54,9 @@ from drlyap.checker.arith import EPS, F64, Iv
 from drlyap.checker.ball import ball_failures
 from drlyap.checker.ellipsoid import QuadraticPair, ellipsoid_failures, inside_core, read_core
 from drlyap.checker.graphs import GraphPair
-from drlyap.checker.levels import ball_below, faces_above, grid_cells, widest_split
+from drlyap.checker.levels import ball_below, faces_above, grid_cells, outside_positive, widest_split
 from drlyap.checker.model import Pair, Residual, centre_lower, form_upper, upper_bounds, value_lower
+from drlyap.checker.quadratic import surely_semidefinite
 from drlyap.checker.record import drop_record, fingerprint, write_record
 from drlyap.checker.uniform import uniform_margin_bound
 from drlyap.claims import claim_sentence
@@ -81,6 +85,10 @@ class CheckResult:
     pieces: int = 0
     faces_min: float | None = None
     faces_boxes: int = 0
+    positive_min: float | None = None
+    """Where the decrease outside the ball is strict only where V > 0 (an imported V with ``alpha V``): V's smallest
+    lower bound on the box outside the ball by the checker's bisection, over ``positive_boxes`` boxes."""
+    positive_boxes: int = 0
     cube_bound: float | None = None
     """For V's second-order decrease near x* (``roa-ball``): ``lambda_max`` of the Hessian enclosure's centre plus its
     spread, the largest over the samples (< 0 proves the cube); for an ``ellipsoid``, the same of its Jacobian test's
@@ -320,6 +328,37 @@ def prove_leaves(job: LeafJob, lo: Tensor, hi: Tensor, above: Tensor, compute: C
     return out["ok"], out["centre_low"], int(out["refined"].sum()), int(out["pieces"].sum())
 
 
+def _pair(weights: dict, header: dict, n: int) -> Pair | GraphPair:
+    """The checker's V and pi from the run's weights: an imported pair's graphs, or drlyap's networks (with the
+    header's ``alpha_hat``)."""
+    if "graphs" in weights:
+        return GraphPair(weights["graphs"], weights["tensors"], n)
+    return Pair(weights, float(header["networks"]["alpha_hat"]), n)
+
+
+def _positive_outside(out: CheckResult, weights: dict, header: dict, system) -> Callable[[dict], str]:
+    """For :func:`~drlyap.checker.agreement.outer_missing`: ``V > 0`` on an outer claim's region (its state box minus
+    its open delta-ball) by the checker's bisection (:func:`~drlyap.checker.levels.outside_positive`, recorded in
+    ``out``); "" where it holds, else why not."""
+
+    def positive(region: dict) -> str:
+        start = time.perf_counter()
+        try:
+            lo, hi = _claim_box(region, system)
+            pair, delta = _pair(weights, header, system.n), float(region["delta"])
+        except (CertificateError, KeyError, TypeError, ValueError) as err:
+            return f"V > 0 outside the ball cannot be checked ({err})"
+        p = getattr(pair, "p", None)  # the quadratic V of a controller imported alone: positive definite by its P
+        if p is not None and bool(torch.equal(p, p.T)) and bool(surely_semidefinite(p)):
+            return ""
+        holds, out.positive_min, out.positive_boxes = outside_positive(pair, lo, hi, delta)
+        out.time_s += time.perf_counter() - start
+        return "" if holds else (f"V > 0 outside the ball is not established (V's smallest lower bound there "
+                                 f"{out.positive_min:.6g}, {out.positive_boxes} boxes)")
+
+    return positive
+
+
 def _practical_failures(out: CheckResult, claim: dict, pair, lo: Tensor, hi: Tensor) -> list[str]:
     """What keeps a ``practical`` claim from following: its level ``c0`` (``claim["practical"]["level"]``) below the
     set's level ``c``, and ``V <= c0`` on the open delta-ball (``region.ball_of``; ``[lo, hi]`` its box) by the
@@ -386,8 +425,7 @@ def check_certificate(run_dir: str | Path, name: str, header: dict, arrays: dict
         lo, hi = _claim_box(region, system)
         delta, level = float(region["delta"]), region.get("level")
         level = None if level is None else float(level)
-        pair = GraphPair(weights["graphs"], weights["tensors"], system.n) if "graphs" in weights else \
-            Pair(weights, float(header["networks"]["alpha_hat"]), system.n)
+        pair = _pair(weights, header, system.n)
         if claim.get("ellipsoid") is not None:  # the closed loop's own W = z'Pz: its claims are about W, not V
             pair = QuadraticPair(pair, torch.as_tensor(claim["ellipsoid"]["P"], dtype=F64))
         residual = Residual(claim["condition"], pair, system)
@@ -516,7 +554,7 @@ def check_run(run_dir: str | Path, system=None, trust: bool = False, names: list
         result = check_certificate(run_dir, name, header, arrays, system, weights, digest, system_sha, refine, compute)
         result.failures += claim_mismatch(name, header, config, metrics)
         if name in ("roa-ball", "practical"):
-            result.failures += outer_missing(run_dir, header)
+            result.failures += outer_missing(run_dir, header, _positive_outside(result, weights, header, system))
         if (header.get("claim") or {}).get("core") is not None:
             result.failures += core_missing(run_dir, header)
         result.ok = not result.failures

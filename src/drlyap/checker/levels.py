@@ -1,6 +1,7 @@
 """The checker's bounds of V over the sets a claim's level rests on, by its own bisection: ``V > level`` on the state
-box's faces (a sublevel set ``{V <= level}`` that does not reach them, :func:`faces_above`) and ``V <= level`` on the
-open delta-ball (practical stability: trajectories end up in ``{V <= level}``, :func:`ball_below`). Neither is in
+box's faces (a sublevel set ``{V <= level}`` that does not reach them, :func:`faces_above`), ``V <= level`` on the
+open delta-ball (practical stability: trajectories end up in ``{V <= level}``, :func:`ball_below`) and ``V > 0`` on
+the box outside it (what makes a decrease ``Vdot + alpha V <= 0`` strict there, :func:`outside_positive`). None is in
 the certificate file."""
 
 from __future__ import annotations
@@ -106,3 +107,22 @@ def ball_below(pair: Pair, lo: Tensor, hi: Tensor, delta: float, level: float, m
 
     a, b = grid_cells(lo, hi, [4] * lo.shape[0])
     return _bisect(pair, a, b, hi - lo, level, False, max_boxes, batch, keep=meets, member=inside)
+
+
+def outside_positive(pair: Pair, lo: Tensor, hi: Tensor, delta: float, max_boxes: int = 1_000_000,
+                     batch: int = 4096) -> tuple[bool, float, int]:
+    """Whether ``V > 0`` at every state of the box ``[lo, hi]`` (``(n,)``) outside the open ball ``||z|| < delta``, by
+    bisecting (4 cells per axis at the start) the boxes that reach outside the ball until V's lower bound is positive
+    on each, a centre outside the ball has ``V <= 0`` or ``max_boxes`` are spent. Returns (holds, the smallest lower
+    bound of V kept, boxes bounded)."""
+    d2 = Iv.point(delta) * Iv.point(delta)
+
+    def reaches(a: Tensor, b: Tensor) -> Tensor:  # the farthest corner's squared distance, rounded up, at least delta^2
+        far = torch.maximum(a.abs(), b.abs())
+        return Iv(far, far).square().sum(-1).hi >= d2.lo
+
+    def outside(z: Tensor) -> Tensor:  # a centre's squared distance, rounded down, at least delta^2
+        return Iv(z, z).square().sum(-1).lo >= d2.hi
+
+    a, b = grid_cells(lo, hi, [4] * lo.shape[0])
+    return _bisect(pair, a, b, hi - lo, 0.0, True, max_boxes, batch, keep=reaches, member=outside)

@@ -191,8 +191,10 @@ class RegionOfAttraction(Result):
     ``linearisation`` or ``band``), ``outer_level`` the level proved outside the delta-ball, ``share_of_box`` the
     share of the state box in S (estimated), ``limited_by`` what stopped the level, ``counterexample`` one that
     did. ``quadratic``: where no sublevel set of V is certified, the closed loop's own certified ellipsoid
-    ``{z^T P z <= q_level}`` (not V's); ``band``: the band proof's search. ``xi``: the true model's shift the
-    region is about (None: the condition's own model). ``error``: why no search ran (then nothing else is set).
+    ``{z^T P z <= q_level}`` (not V's); ``band``: the band proof's search; ``strict``: how the decrease outside the
+    ball is strict (:func:`~drlyap.verification.roa.sublevel.outer_strictness`; None where no level was found).
+    ``xi``: the true model's shift the region is about (None: the condition's own model). ``error``: why no search
+    ran (then nothing else is set).
     """
 
     OPTIONAL: ClassVar[tuple[str, ...]] = ("xi", "error")
@@ -214,6 +216,7 @@ class RegionOfAttraction(Result):
     condition: str | None = None
     quadratic: dict | None = None
     band: dict | None = None
+    strict: dict | None = None
     xi: list[float] | None = None
     error: str | None = None
     ball: BallProof | None = field(default=None, repr=False, compare=False, metadata={"json": False})

@@ -4,11 +4,11 @@
 module of this package, with its argument in its docstring):
 
 1. V's own proofs (:mod:`~drlyap.verification.roa.sublevel`): the condition on ``{V <= c}`` outside the
-   delta-ball, V above ``c`` on the faces, and inside the ball V's second-order decrease
-   (:mod:`~drlyap.verification.roa.local`);
-2. where the proof inside the ball fails, the closed loop's linearisation (:mod:`~drlyap.verification.roa.quadratic`):
-   ``{V <= c_1}`` inside the closed loop's certified ellipsoid ``{z^T P z <= c_q}``, V strictly decreasing on the
-   rest;
+   delta-ball, strict there (a decay ``gamma ||z||``, or ``alpha V`` with V > 0 there), V above ``c`` on the
+   faces, and inside the ball V's second-order decrease (:mod:`~drlyap.verification.roa.local`);
+2. where the proof inside the ball fails, or the decrease outside it is not strict, the closed loop's
+   linearisation (:mod:`~drlyap.verification.roa.quadratic`): ``{V <= c_1}`` inside the closed loop's certified
+   ellipsoid ``{z^T P z <= c_q}``, V strictly decreasing on the rest;
 3. where no sublevel set of V is certified but the ellipsoid is, the band proof (:mod:`~drlyap.verification.roa.band`):
    V strictly decreasing on ``{V <= c}`` outside the ellipsoid.
 
@@ -32,7 +32,7 @@ from drlyap.verification.results import ConditionProof, RegionOfAttraction
 from drlyap.verification.roa.band import band_roa
 from drlyap.verification.roa.local import local_decrease
 from drlyap.verification.roa.quadratic import linearisation_local, quadratic_roa
-from drlyap.verification.roa.sublevel import finish, outer_search, proof_fits, proved_outer
+from drlyap.verification.roa.sublevel import finish, outer_search, outer_strictness, proof_fits, proved_outer
 
 
 def certified_roa(loop: ClosedLoop, condition: Condition, region: Region, budget: Budget = Budget(seconds=10.0), *,
@@ -57,15 +57,17 @@ def certified_roa(loop: ClosedLoop, condition: Condition, region: Region, budget
     else:
         outer = outer_search(loop, condition, region, budget, max_level)
     c = outer.level
+    strict = outer_strictness(loop, condition, region, budget) if c > 0 else None
     left = max(1.0, (outer.deadline - time.perf_counter()) / 2)
     keep: dict = {}
     local = local_decrease(loop, condition, region, replace(budget, seconds=left), level=c if c > 0 else None,
                            keep=keep)
-    if not local["proved"] and local.get("equilibrium") and c > 0:
+    own_failed = not local["proved"] or not (strict is None or strict["strict"])
+    if own_failed and local.get("equilibrium") and c > 0:  # the linearisation's chain needs no strictness outside
         left = max(3.0, outer.deadline - time.perf_counter())
         local = linearisation_local(loop, condition, region, c, replace(budget, seconds=left)) | {"second_order": local}
     quadratic = None  # the closed loop's own quadratic Lyapunov function, reported where V's sublevel sets are not certified
-    if not (c > 0 and local["proved"]):
+    if not (c > 0 and local["proved"] and (not own_failed or local["method"] == "linearisation")):
         quadratic = local.get("quadratic") or quadratic_roa(
             loop, condition, region, replace(budget, seconds=max(3.0, outer.deadline - time.perf_counter())))
         quadratic = {k: v for k, v in quadratic.items() if k not in ("jacobians", "eigenvalues")}
@@ -73,7 +75,7 @@ def certified_roa(loop: ClosedLoop, condition: Condition, region: Region, budget
     if quadratic is not None and quadratic.get("proved") and (band_time is None or band_time > 0):
         band = band_roa(loop, condition, region, quadratic, outer.top, outer.why,
                         replace(budget, seconds=budget.seconds if band_time is None else band_time))
-    found = finish(loop, condition, region, outer, local, samples_per_axis, quadratic, band)
+    found = finish(loop, condition, region, outer, local, samples_per_axis, quadratic, band, strict)
     if found.certified and found.local is local and found.level == c:  # V's own proofs, the level not lowered
         found.ball = keep.get("ball")
     return found

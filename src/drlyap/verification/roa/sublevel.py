@@ -6,14 +6,18 @@ such that ``S = {z in box : V(z) <= c}``
 1. lies inside the state box (``V > c`` on the box boundary: :func:`~drlyap.verification.sublevel.boundary_minimum`),
 2. satisfies the condition's decrease on ``S`` outside the delta-ball (:func:`~drlyap.verification.roa.levels.level_search`),
 
-and bounds V on the delta-ball. With, 3., ``Vdot < 0`` on S inside the ball except at x*
-(:func:`~drlyap.verification.roa.local.local_decrease`), ``Vdot < 0`` on ``S`` minus x*, so ``S`` is forward
-invariant and every trajectory that starts in it converges to x* (Lyapunov / LaSalle): ``S`` is a **region of
-attraction** of the model the condition is about. Where 3 cannot be proved, only **practical stability** is
-claimed: if ``c`` exceeds an upper bound ``c0`` of V on the delta-ball, trajectories from ``S`` stay in ``S`` and
-end up in ``{V <= c0}`` (:func:`finish` decides which). :func:`sublevel_roa` is this route alone (the one
-:func:`~drlyap.verification.roa.quadratic.quadratic_roa` runs on ``W = z^T P z``);
-:func:`~drlyap.verification.roa.certify.certified_roa` adds the other proofs where it fails.
+and bounds V on the delta-ball. The decrease of 2 is strict (``Vdot < 0``) by a decay ``gamma ||z||``, or by
+``alpha V`` where V > 0 outside the ball: by V's form (drlyap's V, ``alpha_hat > 0``; a positive definite
+``z^T P z``) or, for any other V (an imported graph), proved by a branch and bound on V's lower bound
+(:func:`outer_strictness`); ``{V <= 0}`` lies in ``S``, so V > 0 on X_delta is what ``S`` needs. With, 3.,
+``Vdot < 0`` on S inside the ball except at x* (:func:`~drlyap.verification.roa.local.local_decrease`),
+``Vdot < 0`` on ``S`` minus x*, so ``S`` is forward invariant and every trajectory that starts in it converges to x*
+(Lyapunov / LaSalle): ``S`` is a **region of attraction** of the model the condition is about. Where the decrease
+is not strict neither claim is made (a rest point with ``V <= 0`` outside the ball satisfies it). Where 3 cannot be
+proved, only **practical stability** is claimed: if ``c`` exceeds an upper bound ``c0`` of V on the delta-ball,
+trajectories from ``S`` stay in ``S`` and end up in ``{V <= c0}`` (:func:`finish` decides which).
+:func:`sublevel_roa` is this route alone (the one :func:`~drlyap.verification.roa.quadratic.quadratic_roa` runs on
+``W = z^T P z``); :func:`~drlyap.verification.roa.certify.certified_roa` adds the other proofs where it fails.
 """
 
 from __future__ import annotations
@@ -29,6 +33,7 @@ from drlyap.closed_loop import ClosedLoop
 from drlyap.conditions import Condition
 from drlyap.config import Budget
 from drlyap.enclosures import F64
+from drlyap.networks import Lyapunov, QuadraticLyapunov
 from drlyap.regions import Region, box_grid, default_grid, near_dist
 from drlyap.verification.bounds import value_objective
 from drlyap.verification.branch_and_bound import maximize
@@ -98,6 +103,53 @@ def _ball_max(lyapunov, region: Region, budget: Budget) -> float:
     return float(up[0])
 
 
+def outer_strictness(loop: ClosedLoop, condition: Condition, region: Region, budget: Budget) -> dict:
+    """Whether ``condition``'s decrease outside the delta-ball is strict, ``Vdot < 0`` (module docstring): ``strict``
+    and ``by`` (``"decay"``: gamma > 0; ``"form"``: alpha > 0 and drlyap's V; ``"proof"``: alpha > 0 and V > 0 on
+    X_delta proved, ``lower`` its bound; None), with the proof's ``boxes``, ``time_s`` and a ``reason`` where it is not.
+    The proof runs on a quarter of the budget's time and up to a million boxes."""
+    if condition.decay_rate > 0:
+        return {"strict": True, "by": "decay"}
+    if not condition.exp_rate > 0:
+        return {"strict": False, "by": None, "reason": "the decrease has no decay (gamma = alpha = 0): it is not strict"}
+    if positive_by_form(loop.lyapunov):
+        return {"strict": True, "by": "form"}
+    lower, info = positive_lower(loop.lyapunov, region,
+                                 replace(budget, seconds=budget.seconds / 4, boxes=1_000_000,
+                                         enclosure=budget.enclosure_for(loop.n)))
+    out = {"strict": lower > 0, "by": "proof" if lower > 0 else None, "lower": lower,
+           "boxes": info["boxes_processed"], "time_s": info["time_s"]}
+    if not lower > 0:
+        out["reason"] = (f"V > 0 outside the ball not proved (V's lower bound there {lower:.3g}, "
+                         f"{info['boxes_processed']} boxes, {info['stopped']}): with no decay gamma ||z||, alpha V "
+                         "makes the decrease strict only where V > 0")
+    return out
+
+
+def positive_by_form(lyapunov) -> bool:
+    """Whether V > 0 away from x* follows from V's form: drlyap's V (``alpha_hat > 0``), or ``z^T P z`` with a
+    symmetric P that a Cholesky factorisation of ``P - p I`` shows positive definite (``p`` above its backward error,
+    ``2 (n + 1)^2 eps max_i P_ii``)."""
+    if isinstance(lyapunov, Lyapunov):
+        return True
+    if not isinstance(lyapunov, QuadraticLyapunov):
+        return False
+    p = lyapunov.P.to(F64)
+    n = p.shape[0]
+    margin = 2 * (n + 1) ** 2 * torch.finfo(F64).eps * float(p.diagonal().abs().max()) + 1e-300
+    return bool(torch.equal(p, p.T)) and int(torch.linalg.cholesky_ex(p - margin * torch.eye(n, dtype=F64)).info) == 0
+
+
+def positive_lower(lyapunov, region: Region, budget: Budget) -> tuple[float, dict]:
+    """A sound lower bound of V on X_delta (the box minus the open delta-ball), refined until it is at least half of
+    V's least value at the boxes' centres, or the budget is spent (``maximize``'s info as the second result)."""
+    vobj = value_objective(lyapunov)
+    lo, hi = region.boxes(default_grid(region.n))
+    _, neg_up, info = maximize(lambda z: -vobj(z), lo, hi, region.scale, budget, box_ok=region.meets,
+                               centre_ok=region.in_region, rel_tol=0.5)
+    return float(-neg_up[0]), info
+
+
 def proof_fits(proof: ConditionProof | None, region: Region, max_level: float = math.inf) -> bool:
     """Whether ``proof`` can stand for steps 1 and 2 on ``region``: verified on a sublevel set ``{V <= level}``
     (``level <= max_level``) of the same X_delta, with V proved above the level on the faces."""
@@ -121,26 +173,32 @@ def proved_outer(loop: ClosedLoop, proof: ConditionProof, region: Region, budget
 
 
 def finish(loop: ClosedLoop, condition: Condition, region: Region, outer: OuterSearch, local: dict,
-           samples_per_axis: int = 400, quadratic: dict | None = None, band: dict | None = None) -> RegionOfAttraction:
+           samples_per_axis: int = 400, quadratic: dict | None = None, band: dict | None = None,
+           strict: dict | None = None) -> RegionOfAttraction:
     """The region the proofs add up to: a region of attraction where the band proof certified a level (``band``), or
-    where the outer level is positive and the proof near x* (``local``) holds (the annulus inside the ball may
-    lower the level); practical stability where the outer level only exceeds V's bound on the ball; else none."""
+    where the outer level is positive, its decrease strict (``strict``: :func:`outer_strictness`; the linearisation
+    proof needs no more than its own annulus, where V >= c_1 > 0) and the proof near x* (``local``) holds (the
+    annulus inside the ball may lower the level); practical stability where the outer level only exceeds V's bound
+    on the ball and its decrease is strict; else none."""
     system = loop.system
     c, limited_by = outer.level, outer.limited_by
+    is_strict = strict is None or strict["strict"]
     counterexample = None if outer.counterexample is None else system.to_user(outer.counterexample[None])[0].tolist()
     if band is not None and band["proved"]:  # V's sublevel set from the band proof (the outer search's stays)
         kind, c, limited_by, local = "region of attraction", band["level"], band["limited_by"], band
         counterexample = band["counterexample"]
-    elif c > 0 and local["proved"]:
+    elif c > 0 and local["proved"] and (is_strict or local.get("method") == "linearisation"):
         kind = "region of attraction"
         if local.get("level") is not None and local["level"] < c:  # the annulus inside the ball may lower it
             c = local["level"]
             if local["annulus"]["limited_by"] != "outer proof":
                 limited_by = f"inside the ball: {local['annulus']['limited_by']}"
-    elif c > 0 and c > outer.ball_max_upper:
+    elif c > 0 and c > outer.ball_max_upper and is_strict:
         kind = "practical stability"
     else:
         kind = None
+        if c > 0 and not is_strict:
+            limited_by = strict["reason"]
     share = share_of_box(loop.f64.lyapunov, region, c, samples_per_axis) if c > 0 else 0.0
     return RegionOfAttraction(
         level=c, kind=kind, certified=kind == "region of attraction",
@@ -148,7 +206,7 @@ def finish(loop: ClosedLoop, condition: Condition, region: Region, outer: OuterS
         contains_ball=c > outer.ball_max_upper, limited_by=limited_by, local=local,
         boundary_min_lower=outer.boundary_min_lower, ball_max_upper=outer.ball_max_upper, share_of_box=share,
         counterexample=counterexample, boxes_processed=outer.boxes, time_s=time.perf_counter() - outer.start,
-        delta=float(region.delta), condition=condition.label, quadratic=quadratic, band=band)
+        delta=float(region.delta), condition=condition.label, quadratic=quadratic, band=band, strict=strict)
 
 
 def sublevel_roa(loop: ClosedLoop, condition: Condition, region: Region, budget: Budget = Budget(seconds=10.0), *,
@@ -156,11 +214,12 @@ def sublevel_roa(loop: ClosedLoop, condition: Condition, region: Region, budget:
     """The largest certified ``{V <= c}`` by V's own proofs (module docstring), within ``budget``."""
     outer = outer_search(loop, condition, region, budget, max_level)
     c = outer.level
+    strict = outer_strictness(loop, condition, region, budget) if c > 0 else None
     left = max(1.0, outer.deadline - time.perf_counter())
     local = local_decrease(loop, condition, region, replace(budget, seconds=left,
                                                             enclosure=budget.enclosure_for(loop.n)),
                            level=c if c > 0 else None)
-    return finish(loop, condition, region, outer, local, samples_per_axis)
+    return finish(loop, condition, region, outer, local, samples_per_axis, strict=strict)
 
 
 def share_of_box(lyapunov, region: Region, level: float, samples_per_axis: int) -> float:
