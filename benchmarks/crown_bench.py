@@ -31,12 +31,6 @@ import time
 import torch
 
 
-def _ratio(lower, upper, sampled_lo, sampled_hi) -> float:
-    enc, true = (upper - lower).reshape(-1), (sampled_hi - sampled_lo).reshape(-1)
-    keep = true > 1e-12
-    return float((enc[keep] / true[keep]).median()) if bool(keep.any()) else float("nan")
-
-
 def main(argv: list[str] | None = None) -> int:
     parser = argparse.ArgumentParser(description=__doc__, formatter_class=argparse.RawDescriptionHelpFormatter)
     parser.add_argument("--systems", default="cartpole,quadrotor2d", help="comma-separated system names")
@@ -49,13 +43,14 @@ def main(argv: list[str] | None = None) -> int:
     args = parser.parse_args(argv)
     torch.set_num_threads(args.threads)
 
+    from boxes import random_boxes, width_ratio
+
     from drlyap.enclosures import Interval
     from drlyap.enclosures.crown import mlp_layers, tanh_mlp_bounds
     from drlyap.systems import get_system
     from drlyap.training import TrainConfig, TrainSections
     from drlyap.verification.bounds import box_bounds
 
-    f64 = torch.float64
     print(f"bound width / sampled range (median over {args.boxes} boxes and outputs; 1.0 = exact), time per box in "
           f"microseconds, torch threads {args.threads}")
     header = (f"{'system':<12} {'n':>2} {'hidden':<12} {'net':<7} {'width':>6} | {'interval':>9} {'affine':>8} "
@@ -66,7 +61,6 @@ def main(argv: list[str] | None = None) -> int:
         system = get_system(name)
         n = system.n
         slo, shi = system.local_box()
-        corners = torch.cartesian_prod(*[torch.tensor([0.0, 1.0], dtype=f64)] * n).reshape(-1, n)
         for spec in args.hidden.split(":"):
             hidden = [int(w) for w in spec.split(",")]
             cfg = TrainConfig(system=name, seed=args.seed, lyapunov_hidden=hidden, controller_hidden=hidden,
@@ -77,14 +71,9 @@ def main(argv: list[str] | None = None) -> int:
             for label, net in (("phi", lyap.phi.double()), ("varphi", ctrl.varphi.double())):
                 layers, scale, skip = mlp_layers(net)
                 for width in (float(w) for w in args.widths.split(",")):
-                    centre = slo + (shi - slo) * torch.rand(args.boxes, n, generator=gen, dtype=f64)
-                    half = (shi - slo) * width / 2
-                    lo, hi = centre - half, centre + half
-                    unit = torch.cat([torch.rand(args.boxes, args.samples, n, generator=gen, dtype=f64),
-                                      corners.expand(args.boxes, -1, -1)], 1)
+                    lo, hi, pts = random_boxes(slo, shi, width, args.boxes, args.samples, gen)
                     with torch.no_grad():
-                        values = net((lo[:, None] + (hi - lo)[:, None] * unit).reshape(-1, n))
-                    values = values.reshape(args.boxes, unit.shape[1], -1)
+                        values = net(pts.reshape(-1, n)).reshape(args.boxes, pts.shape[1], -1)
                     s_lo, s_hi = values.amin(1), values.amax(1)
                     iv = net(Interval(lo, hi))
                     tic = time.perf_counter()
@@ -97,7 +86,7 @@ def main(argv: list[str] | None = None) -> int:
                         if not bool(((a <= s_lo) & (s_hi <= b)).all()):
                             print(f"UNSOUND: the {what} bound of {label} on {name} misses sampled values", file=sys.stderr)
                             return 1
-                    r_int, r_af, r_cr = (_ratio(*p, s_lo, s_hi) for p in ((iv.lo, iv.hi), (af_lo, af_hi), (cr_lo, cr_hi)))
+                    r_int, r_af, r_cr = (width_ratio(*p, s_lo, s_hi) for p in ((iv.lo, iv.hi), (af_lo, af_hi), (cr_lo, cr_hi)))
                     us = 1e6 / args.boxes
                     print(f"{name:<12} {n:>2} {'x'.join(map(str, hidden)):<12} {label:<7} {width:>6.3g} | {r_int:>9.3g} "
                           f"{r_af:>8.3g} {r_cr:>8.3g} {r_af / r_cr:>7.2f}x | {t_af * us:>8.0f} {t_cr * us:>9.0f}")

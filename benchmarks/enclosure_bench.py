@@ -39,14 +39,6 @@ import time
 import torch
 
 
-def _ratio(lower, upper, sampled_lo, sampled_hi) -> float:
-    """Median over boxes and components of enclosure width / sampled width (components with a non-zero range)."""
-    enc = (upper - lower).reshape(-1)
-    true = (sampled_hi - sampled_lo).reshape(-1)
-    keep = true > 1e-12
-    return float((enc[keep] / true[keep]).median()) if bool(keep.any()) else float("nan")
-
-
 def _timed(fn, *args):
     tic = time.perf_counter()
     out = fn(*args)
@@ -66,6 +58,8 @@ def main(argv: list[str] | None = None) -> int:
     args = parser.parse_args(argv)
     torch.set_num_threads(args.threads)
 
+    from boxes import random_boxes, width_ratio
+
     from drlyap.closed_loop import ClosedLoop
     from drlyap.conditions import make_condition
     from drlyap.enclosures import Interval
@@ -73,7 +67,6 @@ def main(argv: list[str] | None = None) -> int:
     from drlyap.training import TrainConfig, TrainSections
     from drlyap.verification.bounds import box_bounds, condition_objective, value_objective
 
-    f64 = torch.float64
     widths = [float(w) for w in args.widths.split(",")]
     print(f"enclosure width / sampled range (median over {args.boxes} boxes and components; 1.0 = exact), "
           f"time per box in microseconds, torch threads {args.threads}")
@@ -108,17 +101,11 @@ def main(argv: list[str] | None = None) -> int:
         slo, shi = system.local_box()
         n = system.n
         gen = torch.Generator().manual_seed(args.seed + 1)
-        corners = torch.cartesian_prod(*[torch.tensor([0.0, 1.0], dtype=f64)] * n).reshape(-1, n)
         for width in widths:
-            centre = slo + (shi - slo) * torch.rand(args.boxes, n, generator=gen, dtype=f64)
-            half = (shi - slo) * width / 2
-            lo, hi = centre - half, centre + half
-            unit = torch.cat([torch.rand(args.boxes, args.samples, n, generator=gen, dtype=f64),
-                              corners.expand(args.boxes, -1, -1)], 1)
-            pts = (lo[:, None] + (hi - lo)[:, None] * unit).reshape(-1, n)
+            lo, hi, pts = random_boxes(slo, shi, width, args.boxes, args.samples, gen)
             for label, objective in quantities.items():
                 with torch.no_grad():
-                    values = points[label](pts).reshape(args.boxes, unit.shape[1], -1)
+                    values = points[label](pts.reshape(-1, n)).reshape(args.boxes, pts.shape[1], -1)
                 s_lo, s_hi = values.amin(1), values.amax(1)
                 iv, t_int = _timed(objective, Interval(lo, hi))
                 (mv_lo, mv_hi, _), t_mv = _timed(box_bounds, objective, lo, hi, "mean-value")
@@ -128,9 +115,9 @@ def main(argv: list[str] | None = None) -> int:
                     if not inside:
                         print(f"UNSOUND: {what} bound of {label} on {name} misses sampled values", file=sys.stderr)
                         return 1
-                r_int = _ratio(iv.lo, iv.hi, s_lo, s_hi)
-                r_mv = _ratio(mv_lo, mv_hi, s_lo, s_hi)
-                r_af = _ratio(af_lo, af_hi, s_lo, s_hi)
+                r_int = width_ratio(iv.lo, iv.hi, s_lo, s_hi)
+                r_mv = width_ratio(mv_lo, mv_hi, s_lo, s_hi)
+                r_af = width_ratio(af_lo, af_hi, s_lo, s_hi)
                 summary.setdefault(f"{label} n={n}", []).append(r_mv / r_af)
                 us = 1e6 / args.boxes
                 print(f"{name:<12} {n:>2} {label:<10} {width:>6.3g} | {r_int:>9.3g} {r_mv:>10.3g} {r_af:>8.3g} "

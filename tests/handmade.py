@@ -1,6 +1,7 @@
 """Hand-made certificate/controller pairs on a small pendulum box, shared by the verification tests."""
 
 import json
+from pathlib import Path
 
 import torch
 
@@ -151,6 +152,23 @@ def verify_cli(run, spec: str, xi: str, *args: str) -> dict:
     out = CliRunner().invoke(main, ["verify", str(run), "--system", spec, "--xi", xi, "--roa", "--json", *args])
     assert out.exit_code == 0, out.output
     return json.loads(out.output)
+
+
+def export_and_import(run, spec: str, folder) -> Path:
+    """``drlyap export RUN`` into ``folder/export``, then ``drlyap import SPEC`` of its two ONNX files into
+    ``folder/imported`` (both commands must succeed); returns the imported run's directory."""
+    from click.testing import CliRunner
+
+    from drlyap.cli import main
+
+    runner, export = CliRunner(), Path(folder) / "export"
+    done = runner.invoke(main, ["export", str(run), "--system", spec, "--out", str(export)])
+    assert done.exit_code == 0, done.output
+    out = Path(folder) / "imported"
+    done = runner.invoke(main, ["import", spec, "--controller", str(export / "controller.onnx"),
+                                "--lyapunov", str(export / "lyapunov.onnx"), "--out", str(out)])
+    assert done.exit_code == 0, done.output
+    return out
 
 
 def check_cli(run, spec: str, *names: str):

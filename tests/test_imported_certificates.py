@@ -15,7 +15,7 @@ from drlyap.checker.graphs import GraphPair
 from drlyap.cli import main
 from drlyap.runs.imported import import_run
 from drlyap.systems import get_system
-from handmade import linear_run_dir
+from handmade import export_and_import, linear_run_dir
 from test_import_onnx import Bowl, Saturated, _export, states
 
 pytest.importorskip("onnx")
@@ -26,12 +26,7 @@ def test_verify_writes_an_imported_pair_s_certificate_and_the_checker_confirms_i
     run = linear_run_dir(tmp_path / "run")
     spec = f"{os.path.dirname(__file__)}/handmade.py:small_pendulum"
     runner = CliRunner()
-    exported = runner.invoke(main, ["export", str(run), "--system", spec, "--out", str(tmp_path / "export")])
-    assert exported.exit_code == 0, exported.output
-    out = tmp_path / "imported"
-    made = runner.invoke(main, ["import", spec, "--controller", str(tmp_path / "export" / "controller.onnx"),
-                                "--lyapunov", str(tmp_path / "export" / "lyapunov.onnx"), "--out", str(out)])
-    assert made.exit_code == 0, made.output
+    out = export_and_import(run, spec, tmp_path)
     proved = runner.invoke(main, ["verify", str(out), "--system", spec, "--xi", "0.1,0.05", "--roa"])
     assert proved.exit_code == 0 and "VERIFIED" in proved.output and "CERTIFIED" in proved.output, proved.output
     for name in ("true-model", "roa", "roa-ball"):

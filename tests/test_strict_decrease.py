@@ -2,6 +2,7 @@
 away from x* by its form, an imported V is not, so before a sublevel set of an imported V is called a region of
 attraction the verifier proves V > 0 outside the delta-ball, and the checker proves it again by its own bisection."""
 
+import json
 import os
 import sys
 
@@ -17,13 +18,14 @@ from drlyap.conditions import TrueDecrease
 from drlyap.config import Budget
 from drlyap.networks import QuadraticLyapunov
 from drlyap.regions import Region
+from drlyap.runs.imported import import_pair, import_run
 from drlyap.simulation import simulate
 from drlyap.systems import UncertainSystem
 from drlyap.verification import certified_roa
 from drlyap.verification.roa.sublevel import outer_strictness, positive_lower
 
 sys.path.insert(0, os.path.dirname(__file__))
-from handmade import linear_run_dir  # noqa: E402
+from handmade import export_and_import, linear_run_dir  # noqa: E402
 from test_import_onnx import _export  # noqa: E402
 
 pytest.importorskip("onnx")
@@ -68,8 +70,6 @@ class _Zero(nn.Module):
 
 
 def _imported_wells(tmp_path):
-    from drlyap.runs.imported import import_pair
-
     system = _two_wells()
     _export(_WellsV(), 2, tmp_path / "v.onnx")
     _export(_Zero(), 2, tmp_path / "c.onnx")
@@ -90,10 +90,6 @@ def test_a_v_below_zero_at_another_rest_point_gets_no_region_though_its_decrease
                     torch.tensor([4.0], dtype=F64), dt=0.01, horizon=5.0)
     assert float(traj.x[-1, 0, 0]) == WELL and float(traj.x[-1, 0, 1]) == 0.0
     # the checker's own bisection finds the pocket too
-    import json
-
-    from drlyap.runs.imported import import_run
-
     import_run(system, tmp_path / "c.onnx", tmp_path / "run", tmp_path / "v.onnx")
     pair = GraphPair(json.loads((tmp_path / "run" / "graphs.json").read_text()),
                      torch.load(tmp_path / "run" / "tensors.pt", weights_only=True), 2)
@@ -103,10 +99,8 @@ def test_a_v_below_zero_at_another_rest_point_gets_no_region_though_its_decrease
 
 
 def test_positivity_bounds_hold_below_every_sampled_value_outside_the_ball():
-    """Sound means sound: the verifier's and the checker's lower bounds of V outside the ball lie below V at 20,000
-    sampled states there, and both prove V > 0 for a positive definite V."""
-    from drlyap.checker.model import Pair  # noqa: F401  (the checker's own reading of drlyap's networks)
-
+    """Sound means sound: the verifier's lower bound of V outside the ball (the one its strictness proof uses) lies
+    below V at 20,000 sampled states there and on the ball's rim, and proves V > 0 for a positive definite V."""
     system = _two_wells()
     p = torch.tensor([[3.0, 0.8], [0.8, 1.0]], dtype=F64)
     lyap = QuadraticLyapunov(p)
@@ -147,12 +141,7 @@ def test_an_exported_pair_with_alpha_v_and_no_decay_is_certified_and_checked(tmp
     run = linear_run_dir(tmp_path / "run", decay_rate=0.0, exp_rate=0.05)
     spec = f"{os.path.dirname(__file__)}/handmade.py:small_pendulum"
     runner = CliRunner()
-    done = runner.invoke(main, ["export", str(run), "--system", spec, "--out", str(tmp_path / "export")])
-    assert done.exit_code == 0, done.output
-    out = tmp_path / "imported"
-    done = runner.invoke(main, ["import", spec, "--controller", str(tmp_path / "export" / "controller.onnx"),
-                                "--lyapunov", str(tmp_path / "export" / "lyapunov.onnx"), "--out", str(out)])
-    assert done.exit_code == 0, done.output
+    out = export_and_import(run, spec, tmp_path)
     proved = runner.invoke(main, ["verify", str(out), "--system", spec, "--xi", "0.1,0.05", "--roa"])
     assert proved.exit_code == 0 and "CERTIFIED" in proved.output, proved.output
     assert "V > 0 outside the ball proved" in proved.output

@@ -93,10 +93,18 @@ def _dual_max(g: Tensor, q: Tensor, eig: tuple[Tensor, Tensor] | None = None) ->
     m_y = (m.abs() @ y.abs().unsqueeze(-1)).squeeze(-1)
     value = t.clamp_min(0) * k + (g - 2 * my).abs().sum(-1) + (y * my).sum(-1)
     pad = 8 * (k + 2) * EPS * (g.abs().sum(-1) + 2 * m_y.sum(-1) + (y.abs() * m_y).sum(-1) + t.abs() * k) + TINY
-    backward = 2 * (k + 1) ** 2 * EPS * torch.diagonal(m, dim1=-2, dim2=-1).abs().amax(-1) + 1e-300
-    semidefinite = torch.linalg.cholesky_ex(m - backward[..., None, None] * eye).info == 0
+    semidefinite = surely_semidefinite(m)
     value = value + pad + asym + 2 * EPS * m.abs().sum((-2, -1))
     return torch.where(finite & semidefinite & torch.isfinite(value), value, torch.inf)
+
+
+def surely_semidefinite(m: Tensor) -> Tensor:
+    """``(...)``: where the symmetric float64 matrices ``m (..., k, k)`` are surely positive semidefinite: a Cholesky
+    factorisation of ``m - p I`` succeeds, ``p`` above its backward error (``2 (k + 1)^2 eps max_i m_ii``)."""
+    k = m.shape[-1]
+    eye = torch.eye(k, dtype=F64, device=m.device)
+    backward = 2 * (k + 1) ** 2 * EPS * torch.diagonal(m, dim1=-2, dim2=-1).abs().amax(-1) + 1e-300
+    return torch.linalg.cholesky_ex(m - backward[..., None, None] * eye).info == 0
 
 
 _VERTICES: dict = {}

@@ -33,6 +33,7 @@ from drlyap.closed_loop import ClosedLoop
 from drlyap.conditions import Condition
 from drlyap.config import Budget
 from drlyap.enclosures import F64
+from drlyap.enclosures.quadratic import surely_semidefinite
 from drlyap.networks import Lyapunov, QuadraticLyapunov
 from drlyap.regions import Region, box_grid, default_grid, near_dist
 from drlyap.verification.bounds import value_objective
@@ -135,9 +136,7 @@ def positive_by_form(lyapunov) -> bool:
     if not isinstance(lyapunov, QuadraticLyapunov):
         return False
     p = lyapunov.P.to(F64)
-    n = p.shape[0]
-    margin = 2 * (n + 1) ** 2 * torch.finfo(F64).eps * float(p.diagonal().abs().max()) + 1e-300
-    return bool(torch.equal(p, p.T)) and int(torch.linalg.cholesky_ex(p - margin * torch.eye(n, dtype=F64)).info) == 0
+    return bool(torch.equal(p, p.T)) and bool(surely_semidefinite(p))
 
 
 def positive_lower(lyapunov, region: Region, budget: Budget) -> tuple[float, dict]:
