@@ -7,8 +7,10 @@ Each operation is one of the few the import writes (``linear add sub mul div neg
 sum select squeeze unsqueeze``); a node none of whose inputs depends on the state (``V(0)`` of a V whose minimum is
 not 0, a constant offset) is evaluated on its first input lifted to the state's kind, so it is an outward-rounded
 enclosure of its real value. V's gradient is forward mode: the checker's dual numbers seeded on the state, one tangent
-per state, over intervals, duals or second-order forms alike. V is the graph, less its value at x* where the import
-pinned it (``pinned``), or ``z^T P z`` for the quadratic V of a controller imported alone.
+per state, over intervals, duals or second-order forms alike. V is the graph less its first-order part at x*,
+``V(z) - V(0) - grad V(0) . z`` with ``V(0)`` and ``grad V(0)`` enclosed by the checker's duals at the point x* (so
+``V(x*) = 0`` and ``grad V(x*) = 0`` hold exactly, as the cube's second-order argument needs, whatever the weights),
+or ``z^T P z`` for the quadratic V of a controller imported alone.
 """
 
 from __future__ import annotations
@@ -27,11 +29,13 @@ OPS = {"linear", "add", "sub", "mul", "div", "neg", "square", "pow", "tanh", "ex
        "select", "squeeze", "unsqueeze"}
 
 
-def _kind_of(z, t: Tensor):
-    """The constant ``t`` as a value of ``z``'s kind (an interval, a dual of ``z``'s level, or a form)."""
+def _kind_of(z, t: Tensor | Iv):
+    """The constant ``t`` (a tensor or an interval) as a value of ``z``'s kind (an interval, a dual of ``z``'s level,
+    or a form)."""
+    t = t if isinstance(t, Iv) else Iv.point(t)
     if isinstance(z, Af):
-        return z.constant(Iv.point(t))
-    return lift(Iv.point(t), z.level, z if z.level > 0 else None)
+        return z.constant(t)
+    return lift(t, z.level, z if z.level > 0 else None)
 
 
 def _apply(op: str, args: list, attrs: Mapping):
@@ -108,21 +112,24 @@ class GraphPair:
         self.p = None
         if spec.get("kind") == "quadratic":
             self.p = tensors["lyapunov"]["P"].to(F64)
-            self.v_net, self.pinned = None, False
+            self.v_net = None
         else:
-            self.v_net, self.pinned = GraphNet(spec, tensors["lyapunov"]), bool(spec.get("pinned"))
-        self._v0 = self._origin() if self.pinned else None
+            self.v_net = GraphNet(spec, tensors["lyapunov"])
+            self._v0, self._g0 = self._origin()
 
-    def _origin(self) -> Iv:
+    def _origin(self) -> tuple[Iv, Iv]:
+        """Enclosures of V's value ``(1,)`` and gradient ``(1, n)`` at x*, by the checker's duals at that point."""
         device = self.v_net.constants[next(iter(self.v_net.constants))].device if self.v_net.constants else "cpu"
-        return self.v_net(Iv.point(torch.zeros(1, self.n, dtype=F64, device=device)))
+        at = self.v_net(Du.seed(Iv.point(torch.zeros(1, self.n, dtype=F64, device=device)), self.n,
+                                list(range(self.n))))
+        return at.v, Iv(torch.stack([t.lo for t in at.d], -1), torch.stack([t.hi for t in at.d], -1))
 
     def to(self, device: torch.device | str) -> GraphPair:
         out = copy.copy(self)
         out.controller_net = self.controller_net.to(device)
         if self.v_net is not None:
             out.v_net = self.v_net.to(device)
-            out._v0 = out._origin() if self.pinned else None
+            out._v0, out._g0 = out._origin()
         if self.p is not None:
             out.p = self.p.to(device)
         return out
@@ -130,8 +137,7 @@ class GraphPair:
     def value(self, z):
         if self.p is not None:
             return (z.linear(self.p) * z).sum(-1)
-        v = self.v_net(z)
-        return v - self._v0 if self.pinned else v
+        return self.v_net(z) - _kind_of(z, self._v0) - (_kind_of(z, self._g0) * z).sum(-1)
 
     def value_and_grad(self, z) -> tuple[object, object]:
         seeded = Du.seed(z, self.n, list(range(self.n)))

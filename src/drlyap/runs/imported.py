@@ -121,18 +121,25 @@ def exported_claim(path: str | os.PathLike, system: UncertainSystem) -> dict | N
 
 
 class PinnedLyapunov(nn.Module):
-    """``V(z) - V(0)`` for a graph V with ``V(0) != 0`` (V's own value at the origin, enclosed on enclosures)."""
+    """A graph V less its first-order part at x*: ``V(z) - V(0) - grad V(0) . z``, with ``V(0)`` and ``grad V(0)``
+    computed by the graph itself at the origin (enclosed, where ``z`` is an enclosure). So ``V(x*) = 0`` and
+    ``grad V(x*) = 0`` hold exactly in real arithmetic whatever the weights are, as the second-order proof near x*
+    needs (:mod:`drlyap.verification.roa.local`). The import takes only graphs with ``|grad V(0)| s`` below
+    :data:`MINIMUM_TOL` of V's range (``s``: the box's half-widths), so the linear term moves V by no more than that;
+    a V whose float gradient at x* is 0 (an exported drlyap V) evaluates to the same floats."""
 
     def __init__(self, graph: Graph) -> None:
         super().__init__()
         self.graph = graph
 
     def forward(self, z):
-        return self.graph(z) - self.graph(origin_like(z))
+        v0, g0 = self.graph.value_and_grad(origin_like(z))
+        return self.graph(z) - v0 - (g0 * z).sum(-1)
 
     def value_and_grad(self, z):
         value, grad = self.graph.value_and_grad(z)
-        return value - self.graph(origin_like(z)), grad
+        v0, g0 = self.graph.value_and_grad(origin_like(z))
+        return value - v0 - (g0 * z).sum(-1), grad - g0
 
 
 # ----------------------------------------------------------------------------------------------- checks at x*
@@ -157,7 +164,7 @@ def equilibrium_offset(system: UncertainSystem, controller: nn.Module, what: str
 
 def pinned_certificate(system: UncertainSystem, graph: Graph, samples: int = 4096) -> tuple[nn.Module, dict]:
     """V with its minimum at x*: ``grad V(x*)`` must vanish (:data:`MINIMUM_TOL`) and no sampled state of the box
-    may have ``V < V(x*)`` (else a ValueError); where ``V(x*) != 0`` it is subtracted (:class:`PinnedLyapunov`)."""
+    may have ``V < V(x*)`` (else a ValueError); V is then pinned there to first order (:class:`PinnedLyapunov`)."""
     lo, hi = system.local_box()
     gen = torch.Generator().manual_seed(0)
     z = lo + (hi - lo) * torch.rand(samples, system.n, generator=gen, dtype=F64)
@@ -174,7 +181,7 @@ def pinned_certificate(system: UncertainSystem, graph: Graph, samples: int = 409
         raise ValueError(f"x* is not V's minimum: V = {float(values[low]):.6g} < V(x*) = {float(v0[0]):.6g} at "
                          f"x = {[float(f'{v:.6g}') for v in x]}")
     checks = {"V_at_equilibrium": float(v0[0]), "grad_V_at_equilibrium": g0[0].tolist()}
-    return (graph if float(v0[0]) == 0.0 else PinnedLyapunov(graph)), checks
+    return PinnedLyapunov(graph), checks
 
 
 def quadratic_loop(system: UncertainSystem, controller: nn.Module, what: str = "the controller") -> tuple[ClosedLoop, dict]:
@@ -303,7 +310,7 @@ def save_imported_run(out: str | os.PathLike, pair: ImportedPair, files: dict[st
         tensors["lyapunov"] = {"P": loop.lyapunov.P.detach().clone()}
     else:
         graph = loop.lyapunov.graph if isinstance(loop.lyapunov, PinnedLyapunov) else loop.lyapunov
-        graphs["lyapunov"] = {"kind": "graph", "pinned": isinstance(loop.lyapunov, PinnedLyapunov)} | graph.to_json()
+        graphs["lyapunov"] = {"kind": "graph", "pinned": "first order"} | graph.to_json()
         tensors["lyapunov"] = _pack(graph.tensors())
     config = {"system": system.name, "certificate": pair.certificate, "decay_rate": pair.decay_rate,
               "exp_rate": pair.exp_rate, "level": pair.level, "delta": pair.delta,
@@ -359,12 +366,11 @@ def load_imported_run(path: str | os.PathLike, system: UncertainSystem | None = 
             lyapunov: nn.Module = QuadraticLyapunov(p)
         else:
             graph = Graph.from_json(spec, restore_infinite(tensors["lyapunov"]), f"{path}: lyapunov")
-            lyapunov = PinnedLyapunov(graph) if spec.get("pinned") else graph
+            lyapunov = PinnedLyapunov(graph)  # always: a graph V is certified pinned at x* to first order
         if controller.n != system.n or controller.out_shape != (system.m,):
             raise ValueError(f"the controller maps {controller.n} states to {controller.out_shape}, not "
                              f"{system.n} to ({system.m},)")
-        if isinstance(lyapunov, (Graph, PinnedLyapunov)):
-            graph = getattr(lyapunov, "graph", lyapunov)
+        if isinstance(lyapunov, PinnedLyapunov):
             if graph.n != system.n or graph.out_shape != ():
                 raise ValueError(f"V maps {graph.n} states to {graph.out_shape}, not {system.n} to ()")
         decay, exp_rate = float(config.get("decay_rate", 0.0)), float(config.get("exp_rate", 0.0))
