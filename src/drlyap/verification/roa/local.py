@@ -1,8 +1,8 @@
 """V's own decrease near x*: inside the delta-ball, ``Vdot < 0`` except at x* (:func:`local_decrease`).
 
 For one sample's model ``q(z) = grad V(z) . F(z, pi(z))``: ``q(0) = 0`` and ``grad q(0) = H_V(0) F(0) = 0``
-(``grad V(0) = 0`` by the construction of V, and x* is an equilibrium of the model: checked to 1e-9 of the
-dynamics' scale, :func:`not_equilibrium`), so by Taylor's theorem ``q(z) = z^T H_q(s z) z / 2`` for some ``s`` in
+(``grad V(0) = 0`` by the construction of V, and x* is an equilibrium of the model: its enclosure of ``F(x*)``
+holds 0, :func:`not_equilibrium`), so by Taylor's theorem ``q(z) = z^T H_q(s z) z / 2`` for some ``s`` in
 [0, 1]. On a cube ``C`` around x* the verifier encloses ``H_q`` over the whole cube (nested dual numbers running
 the networks' and the system's own code); if every symmetric matrix in that interval matrix is negative definite
 (centre's largest eigenvalue plus the radius matrix's Frobenius norm < 0), then ``q < 0`` on ``C`` minus x*. The
@@ -98,8 +98,10 @@ def resolving_ellipsoid(min_width: float, p: Tensor, level: float, region: Regio
 
 
 def not_equilibrium(loop: ClosedLoop, plain: PlainDecrease, region: Region) -> str:
-    """Why x* is not an equilibrium of some sample's model (``F(x*, pi(x*)) = 0`` up to 1e-9 of the box's
-    scale, with the verifier's enclosures), or "" when it is of every one: the local proofs rest on it."""
+    """Why x* is not an equilibrium of some sample's model, or "" when it may be of every one: the local proofs
+    rest on it. The verifier's enclosure of ``F(x*, pi(x*))`` must hold 0 in every coordinate (one that does not
+    proves x* is no equilibrium, e.g. for a controller with ``pi(x*) = u* + 1e-12``) and lie within 1e-9 of the
+    box's scale; that the real value is 0 is the premise floating point cannot confirm."""
     system, controller = loop.system, loop.controller
     zero = torch.zeros(system.n, system.n, dtype=F64)  # n copies of x*, one per unit covector below
     x_star = system.to_user(Interval(zero, zero))
@@ -113,6 +115,9 @@ def not_equilibrium(loop: ClosedLoop, plain: PlainDecrease, region: Region) -> s
             gf, gw = system.weighted_design(x_star, u_star, unit)
             f = gf + (gw * Interval.const(xi)).sum(-1)
         size = float(torch.maximum(f.lo.abs(), f.hi.abs()).max())
+        if not bool(((f.lo <= 0) & (f.hi >= 0)).all()):
+            return (f"x* is not an equilibrium of the model at xi = {xi.tolist()} (F(x*) proved nonzero, "
+                    f"|F(x*)| up to {size:.3g})")
         if size > 1e-9 * max(scale, 1.0):
             return f"x* is not an equilibrium of the model at xi = {xi.tolist()} (|F(x*)| up to {size:.3g})"
     return ""

@@ -1,7 +1,9 @@
-"""The second-order proof near x* rests on ``grad V(x*) = 0`` exactly: with a linear term ``g . z`` left in V, however
-small, ``Vdot`` is positive on states a little way from x* that the cube's Hessian test calls decreasing. drlyap's V
-has no linear term by its form; an imported graph V is pinned to first order at x* (``V(z) - V(0) - grad V(0) . z``,
-both terms computed by the graph itself), in the verifier and in the checker alike."""
+"""The proofs near x* rest on two facts there. ``grad V(x*) = 0`` exactly: with a linear term ``g . z`` left in V,
+however small, ``Vdot`` is positive on states a little way from x* that the cube's Hessian test calls decreasing.
+drlyap's V has no linear term by its form; an imported graph V is pinned to first order at x* (``V(z) - V(0) -
+grad V(0) . z``, both terms computed by the graph itself), in the verifier and in the checker alike. And x* must be an
+equilibrium: a controller with ``pi(x*) = u* + 1e-12`` moves the rest point off x*, and the enclosure of ``F(x*)``
+proves it, so no trajectory is said to converge to x*."""
 
 import json
 import os
@@ -15,9 +17,11 @@ from drlyap.checker.arith import Du, Iv
 from drlyap.checker.graphs import GraphPair
 from drlyap.closed_loop import ClosedLoop
 from drlyap.conditions import TrueDecrease
+from drlyap.config import Budget
 from drlyap.regions import Region
 from drlyap.runs.imported import PinnedLyapunov, import_pair, import_run
 from drlyap.systems import UncertainSystem
+from drlyap.verification import certified_roa
 from drlyap.verification.roa.local import _hessian_negative, local_decrease
 
 sys.path.insert(0, os.path.dirname(__file__))
@@ -51,20 +55,34 @@ class _SlopedV(nn.Module):
         return ((x @ self.p) * x).sum(-1) + x @ self.g
 
 
-class _Zero(nn.Module):
-    def __init__(self) -> None:
+class _Constant(nn.Module):
+    """``u = b``: u* = 0 for ``b = 0``."""
+
+    def __init__(self, b: float = 0.0) -> None:
         super().__init__()
         self.register_buffer("k", torch.zeros(2, 1, dtype=F64))
+        self.register_buffer("b", torch.full((1,), b, dtype=F64))
 
     def forward(self, x):
-        return x @ self.k
+        return x @ self.k + self.b
+
+
+class _QuadraticV(nn.Module):
+    def __init__(self) -> None:
+        super().__init__()
+        self.register_buffer("p", P.clone())
+
+    def forward(self, x):
+        return ((x @ self.p) * x).sum(-1)
 
 
 @pytest.fixture(scope="module")
 def files(tmp_path_factory):
     folder = tmp_path_factory.mktemp("sloped")
     _export(_SlopedV(), 2, folder / "v.onnx")
-    _export(_Zero(), 2, folder / "c.onnx")
+    _export(_Constant(), 2, folder / "c.onnx")
+    _export(_Constant(1e-12), 2, folder / "off.onnx")
+    _export(_QuadraticV(), 2, folder / "q.onnx")
     return folder
 
 
@@ -112,3 +130,19 @@ def test_the_checker_pins_the_imported_v_to_first_order_too(files, tmp_path):
     box = pair.value(Iv.point(z))
     expected = ((z @ P) * z).sum(-1)
     assert bool(((box.lo <= expected + 1e-15) & (box.hi >= expected - 1e-15)).all())
+
+
+def test_a_rest_point_moved_off_x_star_by_1e_12_gets_no_region_of_attraction(files):
+    """``pi(x*) = 1e-12`` passes the import (1e-6 of U) and x* is within 1e-9 of an equilibrium, but the closed loop
+    rests at (1e-12, 0): the verifier's enclosure of ``F(x*)`` excludes 0, so only practical stability is claimed."""
+    system = _oscillator()
+    condition = TrueDecrease(torch.zeros(1, 1, dtype=F64), decay_rate=0.0, exp_rate=0.1)
+    region = Region.of(system, 0.1)
+    at_rest = certified_roa(import_pair(system, files / "c.onnx", files / "q.onnx").loop, condition, region,
+                            Budget(seconds=20.0))
+    assert at_rest.certified and at_rest.kind == "region of attraction"
+    moved = import_pair(system, files / "off.onnx", files / "q.onnx")
+    assert moved.checks["pi_minus_u_star"] == [1e-12]
+    roa = certified_roa(moved.loop, condition, region, Budget(seconds=20.0))
+    assert not roa.certified and roa.kind == "practical stability", roa
+    assert "F(x*) proved nonzero" in roa.local["reason"]
