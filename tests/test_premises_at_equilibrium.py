@@ -16,13 +16,15 @@ from torch import nn
 from drlyap.checker.arith import Du, Iv
 from drlyap.checker.graphs import GraphPair
 from drlyap.closed_loop import ClosedLoop
-from drlyap.conditions import TrueDecrease
+from drlyap.conditions import PlainDecrease, TrueDecrease
 from drlyap.config import Budget
+from drlyap.kinds import Model
+from drlyap.networks import Controller, QuadraticLyapunov
 from drlyap.regions import Region
 from drlyap.runs.imported import PinnedLyapunov, import_pair, import_run
-from drlyap.systems import UncertainSystem
+from drlyap.systems import UncertainSystem, get_system
 from drlyap.verification import certified_roa
-from drlyap.verification.roa.local import _hessian_negative, local_decrease
+from drlyap.verification.roa.local import _hessian_negative, local_decrease, not_equilibrium
 
 sys.path.insert(0, os.path.dirname(__file__))
 from test_import_onnx import _export  # noqa: E402
@@ -146,3 +148,16 @@ def test_a_rest_point_moved_off_x_star_by_1e_12_gets_no_region_of_attraction(fil
     roa = certified_roa(moved.loop, condition, region, Budget(seconds=20.0))
     assert not roa.certified and roa.kind == "practical stability", roa
     assert "F(x*) proved nonzero" in roa.local["reason"]
+
+
+@pytest.mark.parametrize("name", ["pendulum", "pendulum-u9", "cartpole", "mountain-car", "quadrotor2d"])
+def test_every_built_in_system_rests_at_x_star_by_the_verifier_s_enclosure(name):
+    """drlyap's controller gives ``pi(x*) = u*`` by its form; the enclosure of ``F(x*, u*)`` holds 0 on the true and
+    design models at the test shift, at no shift and at -2x it, so the proofs near x* are not refused."""
+    system = get_system(name)
+    controller = Controller(system.n, system.input_box, system.equilibrium_input, hidden=(4,))
+    loop = ClosedLoop(system, QuadraticLyapunov(torch.eye(system.n, dtype=F64)), controller).f64
+    xi = torch.tensor(system.test_xi, dtype=F64)
+    for model in (Model.TRUE, Model.DESIGN):
+        for shift in (xi, 0 * xi, -2 * xi):
+            assert not_equilibrium(loop, PlainDecrease(shift[None], 0.0, 0.0, model), Region.of(system, 0.1)) == ""
