@@ -16,8 +16,9 @@ from drlyap.cli.common import command_hint, fail, recorded_source, refuse_early
 @click.option("--controller", "controller", type=click.Path(path_type=Path, dir_okay=False), required=True,
               help="ONNX model of the controller: x (batch, n) -> u (batch, m), e.g. drlyap export's controller.onnx.")
 @click.option("--lyapunov", "lyapunov", type=click.Path(path_type=Path, dir_okay=False), default=None,
-              help="ONNX model of the Lyapunov function V: x (batch, n) -> V (batch,) [none: z'Pz of the closed loop's "
-                   "linearisation at x*, A'P + PA = -S^-2].")
+              help="ONNX model of the Lyapunov function V: x (batch, n) -> V (batch,), its minimum at x*; what is "
+                   "proved is V less its value and slope there, V(x) - V(x*) - grad V(x*).(x - x*) [none: z'Pz of "
+                   "the closed loop's linearisation at x*, A'P + PA = -S^-2].")
 @click.option("--out", type=click.Path(path_type=Path), required=True, help="Run directory to create.")
 @click.option("--json", "as_json", is_flag=True, help="Print one JSON object (run_dir, checks, notes) on stdout.")
 def import_pair(system: str, controller: Path, lyapunov: Path | None, out: Path, as_json: bool) -> None:
