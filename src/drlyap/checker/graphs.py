@@ -122,7 +122,7 @@ class GraphPair:
         device = self.v_net.constants[next(iter(self.v_net.constants))].device if self.v_net.constants else "cpu"
         at = self.v_net(Du.seed(Iv.point(torch.zeros(1, self.n, dtype=F64, device=device)), self.n,
                                 list(range(self.n))))
-        return at.v, Iv(torch.stack([t.lo for t in at.d], -1), torch.stack([t.hi for t in at.d], -1))
+        return at.v, torch.stack(at.d, -1)
 
     def to(self, device: torch.device | str) -> GraphPair:
         out = copy.copy(self)
