@@ -4,6 +4,7 @@ import json
 from pathlib import Path
 
 import torch
+from torch import nn
 
 from drlyap.config import PAPER_CONDITION
 from drlyap.networks import Controller, Lyapunov
@@ -195,3 +196,15 @@ def check_without(run, copy, spec: str, gone: str, name: str):
     shutil.copytree(run, copy)
     (copy / "certificates" / f"{gone}.json").unlink()
     return check_cli(copy, spec, name)
+
+
+class ConstantController(nn.Module):
+    """``u = b`` for 2 states and 1 input, as a module to export to ONNX (u* = 0 at ``b = 0``)."""
+
+    def __init__(self, b: float = 0.0) -> None:
+        super().__init__()
+        self.register_buffer("k", torch.zeros(2, 1, dtype=F64))
+        self.register_buffer("b", torch.full((1,), b, dtype=F64))
+
+    def forward(self, x):
+        return x @ self.k + self.b

@@ -27,6 +27,7 @@ from drlyap.verification import certified_roa
 from drlyap.verification.roa.local import _hessian_negative, local_decrease, not_equilibrium
 
 sys.path.insert(0, os.path.dirname(__file__))
+from handmade import ConstantController  # noqa: E402
 from test_import_onnx import _export  # noqa: E402
 
 pytest.importorskip("onnx")
@@ -57,18 +58,6 @@ class _SlopedV(nn.Module):
         return ((x @ self.p) * x).sum(-1) + x @ self.g
 
 
-class _Constant(nn.Module):
-    """``u = b``: u* = 0 for ``b = 0``."""
-
-    def __init__(self, b: float = 0.0) -> None:
-        super().__init__()
-        self.register_buffer("k", torch.zeros(2, 1, dtype=F64))
-        self.register_buffer("b", torch.full((1,), b, dtype=F64))
-
-    def forward(self, x):
-        return x @ self.k + self.b
-
-
 class _QuadraticV(nn.Module):
     def __init__(self) -> None:
         super().__init__()
@@ -82,8 +71,8 @@ class _QuadraticV(nn.Module):
 def files(tmp_path_factory):
     folder = tmp_path_factory.mktemp("sloped")
     _export(_SlopedV(), 2, folder / "v.onnx")
-    _export(_Constant(), 2, folder / "c.onnx")
-    _export(_Constant(1e-12), 2, folder / "off.onnx")
+    _export(ConstantController(), 2, folder / "c.onnx")
+    _export(ConstantController(1e-12), 2, folder / "off.onnx")
     _export(_QuadraticV(), 2, folder / "q.onnx")
     return folder
 

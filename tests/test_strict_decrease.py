@@ -25,7 +25,7 @@ from drlyap.verification import certified_roa
 from drlyap.verification.roa.sublevel import outer_strictness, positive_lower
 
 sys.path.insert(0, os.path.dirname(__file__))
-from handmade import export_and_import, linear_run_dir  # noqa: E402
+from handmade import ConstantController, export_and_import, linear_run_dir  # noqa: E402
 from test_import_onnx import _export  # noqa: E402
 
 pytest.importorskip("onnx")
@@ -60,19 +60,10 @@ class _WellsV(nn.Module):
         return 16.0 * (q * (q - WELL)) ** 2 + v * v - 1e-4 * torch.exp(-(d * d).sum(-1) / 2.5e-5)
 
 
-class _Zero(nn.Module):
-    def __init__(self) -> None:
-        super().__init__()
-        self.register_buffer("k", torch.zeros(2, 1, dtype=F64))
-
-    def forward(self, x):
-        return x @ self.k
-
-
 def _imported_wells(tmp_path):
     system = _two_wells()
     _export(_WellsV(), 2, tmp_path / "v.onnx")
-    _export(_Zero(), 2, tmp_path / "c.onnx")
+    _export(ConstantController(), 2, tmp_path / "c.onnx")
     return system, import_pair(system, tmp_path / "c.onnx", tmp_path / "v.onnx").loop
 
 
