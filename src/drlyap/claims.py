@@ -24,12 +24,17 @@ def level_text(level: float, digits: int = 6, up: bool = False) -> str:
     return f"{float(exact.quantize(step, rounding=ROUND_CEILING if up else ROUND_FLOOR)):.{digits}g}"
 
 
-def condition_region(level: float | None, delta: float) -> str:
-    """The region a trained condition is proved on: X_delta, or with a level its sublevel set."""
+def condition_region(level: float | None, delta: float, faces: str = "above") -> str:
+    """The region a trained condition is proved on: X_delta, or with a level its sublevel set, which V keeps off the
+    box's faces (``faces`` ``"above"``) or which the box cuts, the flow entering the box wherever the set meets a face
+    (``"inward"``)."""
     region = f"state box minus the open ball ||x - x*|| < {delta:g}"
     if level is not None:
         c = level_text(level)
         region = f"{{V <= {c}}} minus the open ball ||x - x*|| < {delta:g}, with V > {c} on the box's faces"
+        if faces == "inward":
+            region = (f"{{V <= {c}}} in the state box minus the open ball ||x - x*|| < {delta:g}, the flow entering the "
+                      f"box at every point of its faces with V <= {c}")
     return region
 
 
@@ -77,7 +82,8 @@ def claim_sentence(claim: dict) -> str:
                     f"it except at x*, on the box |x_i - x*_i| <= [{half}] by the Jacobian's enclosure{ring}")
         if claim.get("practical") is not None:  # practical stability: V's bound on the ball, the decrease outside
             model = what.split(" (")[0].replace("decrease on ", "")
-            return (f"trajectories of {model} from {{V <= {level_text(level)}}} stay in it and end up in "
+            cut = " in the state box" if claim.get("faces") == "inward" else ""
+            return (f"trajectories of {model} from {{V <= {level_text(level)}}}{cut} stay in it and end up in "
                     f"{{V <= {level_text(float(claim['practical']['level']), up=True)}}}: V is at most that on the ball "
                     f"||x - x*|| < {float(r['ball_of']):g}, and decreases outside it by the certificate "
                     f"{claim.get('outer')!r}")
@@ -98,6 +104,7 @@ def claim_sentence(claim: dict) -> str:
             return (f"V decreases on {{V <= {level_text(level)}}} inside the ball ||x - x*|| < {float(r['ball_of']):g}: "
                     f"Vdot < 0 on the cube |x_i - x*_i| <= [{half}] except at x* (second order){rest}; outside "
                     f"the ball by the certificate {claim.get('outer')!r}")
-        return f"{what} holds at every state of {of_region(condition_region(level, float(r['delta'])))}"
+        return (f"{what} holds at every state of "
+                f"{of_region(condition_region(level, float(r['delta']), claim.get('faces', 'above')))}")
     except (KeyError, TypeError, ValueError, IndexError):
         return "(an unreadable claim)"

@@ -145,6 +145,17 @@ def margin_line(uni: UniformMargin) -> str:
             f"{_num(uni.margin_upper)}] (<= 0 required), (r/eps) L_h <= {_num(uni.lipschitz_term[1])}")
 
 
+def _sublevel(r: RegionOfAttraction) -> str:
+    """The certified set: ``{V <= c}``, or its part in the box where the flow keeps it off the faces."""
+    return f"{{V <= {level_text(r.level, 4)}}}" + (" in the box" if r.faces == "inward" else "")
+
+
+def _faces(r: RegionOfAttraction) -> str:
+    return "" if r.faces != "inward" else (
+        f"; the set meets the box's faces, and the flow there is proved to enter the box (V >= "
+        f"{r.exit_min_lower:.4g} where it may leave)")
+
+
 def roa_line(r: RegionOfAttraction, true_model: bool) -> str:
     """What a certified-region search proved, named for what it is."""
     if r.error is not None:
@@ -168,12 +179,12 @@ def roa_line(r: RegionOfAttraction, true_model: bool) -> str:
         elif (r.strict or {}).get("by") == "proof":
             how = (f"; V > 0 outside the ball proved (V >= {r.strict['lower']:.3g} there), which makes its decrease "
                    "alpha V strict")
-        return (f"region of attraction: CERTIFIED {{V <= {level_text(r.level, 4)}}} ({size}): every trajectory of {model} "
-                f"that starts there converges to x*{how}")
+        return (f"region of attraction: CERTIFIED {_sublevel(r)} ({size}): every trajectory of {model} "
+                f"that starts there converges to x*{how}{_faces(r)}")
     if r.kind == "practical stability":
         line = (f"region of attraction: NOT CERTIFIED ({r.local['reason']}); practical stability instead: "
-                f"trajectories of {model} from {{V <= {level_text(r.level, 4)}}} ({size}) end up in "
-                f"{{V <= {level_text(r.practical_level, 4, up=True)}}}")
+                f"trajectories of {model} from {_sublevel(r)} ({size}) end up in "
+                f"{{V <= {level_text(r.practical_level, 4, up=True)}}}{_faces(r)}")
     else:
         proved = "none" if r.level is None or not math.isfinite(r.level) else level_text(r.level, 4)
         line = (f"region of attraction: NOT CERTIFIED (largest proved level {proved}, limited by "

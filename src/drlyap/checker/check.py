@@ -21,7 +21,8 @@ A claim on a sublevel set ``{V <= level}`` of X_delta is checked the same way, a
 where V is ``> level`` on it or the residual is ``<= 0`` at its states with ``V <= level`` (the S-procedure on the
 second-order forms of the residual and V: ``R - lam (V - level) <= 0`` for one of a fixed list of ``lam >= 0``);
 and ``V > level`` on the state box's faces is established by the checker's own bisection of the faces (it is not in
-the file).
+the file); a claim whose ``faces`` is ``"inward"`` (a set cut by the box, on the true model) has instead, on each face
+box, V above the level or the outward component of every model's flow below 0 established the same way.
 
 A ``roa-ball`` certificate (V's decrease inside the delta-ball) is checked on the ball's box: its ring of boxes as
 above, and its cube around x* by :mod:`drlyap.checker.ball` (Vdot's Hessian over the cube, negative definite). The
@@ -54,7 +55,7 @@ from drlyap.checker.arith import EPS, F64, Iv
 from drlyap.checker.ball import ball_failures
 from drlyap.checker.ellipsoid import QuadraticPair, ellipsoid_failures, inside_core, read_core
 from drlyap.checker.graphs import GraphPair
-from drlyap.checker.levels import ball_below, faces_above, grid_cells, outside_positive, widest_split
+from drlyap.checker.levels import ball_below, faces_above, faces_inward, grid_cells, outside_positive, widest_split
 from drlyap.checker.model import Pair, Residual, centre_lower, form_upper, upper_bounds, value_lower
 from drlyap.checker.quadratic import surely_semidefinite
 from drlyap.checker.record import drop_record, fingerprint, write_record
@@ -479,12 +480,23 @@ def check_certificate(run_dir: str | Path, name: str, header: dict, arrays: dict
         v_centre = pair.value_and_grad(Iv.point((blo[proved] + bhi[proved]) / 2))[0].lo
         false = false | (above & (bound[proved] > v_centre + 4 * EPS * v_centre.abs()))
         holds = True
-        if region.get("ball_of") is None:  # inside the delta-ball the set's boundary is the outer proof's
+        faces = claim.get("faces", "above")
+        if faces not in ("above", "inward") or (faces == "inward" and (residual.model != "true"
+                                                                       or claim.get("ellipsoid") is not None)):
+            holds = False
+            out.failures.append(f"the claim's rule for the box's faces {faces!r} is not one the checker takes "
+                                "('above'; 'inward' for V's sets on the true model)")
+        elif region.get("ball_of") is None and faces == "inward":
+            holds, out.faces_min, out.faces_boxes = faces_inward(residual, lo, hi, level)
+            if not holds:
+                out.failures.append(f"the flow entering the box wherever V <= {level:g} on its faces is not established "
+                                    f"({out.faces_boxes} face boxes)")
+        elif region.get("ball_of") is None:  # inside the delta-ball the set's boundary is the outer proof's
             holds, out.faces_min, out.faces_boxes = faces_above(pair, lo, hi, level)
-        if not holds:
-            what = "W" if claim.get("ellipsoid") is not None else "V"
-            out.failures.append(f"{what} > {level:g} is not established on the box's faces ({what}'s lower bound there "
-                                f"{out.faces_min:.6g}, {out.faces_boxes} face boxes)")
+            if not holds:
+                what = "W" if claim.get("ellipsoid") is not None else "V"
+                out.failures.append(f"{what} > {level:g} is not established on the box's faces ({what}'s lower bound "
+                                    f"there {out.faces_min:.6g}, {out.faces_boxes} face boxes)")
     if bool(false.any()):
         first = proved[false][0]
         out.failures.append(f"{int(false.sum())} recorded bounds lie below the residual at their box's centre (first: "

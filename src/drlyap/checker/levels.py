@@ -1,5 +1,6 @@
 """The checker's bounds of V over the sets a claim's level rests on, by its own bisection: ``V > level`` on the state
-box's faces (a sublevel set ``{V <= level}`` that does not reach them, :func:`faces_above`), ``V <= level`` on the
+box's faces (a sublevel set ``{V <= level}`` that does not reach them, :func:`faces_above`), or the true model's flow
+entering the box wherever ``V <= level`` on them (:func:`faces_inward`), ``V <= level`` on the
 open delta-ball (practical stability: trajectories end up in ``{V <= level}``, :func:`ball_below`) and ``V > 0`` on
 the box outside it (what makes a decrease ``Vdot + alpha V <= 0`` strict there, :func:`outside_positive`). None is in
 the certificate file."""
@@ -12,7 +13,7 @@ import torch
 from torch import Tensor
 
 from drlyap.checker.arith import F64, Iv
-from drlyap.checker.model import Pair, value_bounds
+from drlyap.checker.model import Pair, Residual, value_bounds
 
 
 def grid_cells(lo: Tensor, hi: Tensor, grid: list[int]) -> tuple[Tensor, Tensor]:
@@ -40,11 +41,11 @@ def widest_split(lo: Tensor, hi: Tensor, scale: Tensor) -> tuple[Tensor, Tensor]
 
 
 def _bisect(pair: Pair, qlo: Tensor, qhi: Tensor, scale: Tensor, level: float, above: bool, max_boxes: int,
-            batch: int, keep=None, member=None) -> tuple[bool, float, int]:
+            batch: int, keep=None, member=None, settled=None) -> tuple[bool, float, int]:
     """Bisect the boxes ``[qlo, qhi]`` (those ``keep(lo, hi)`` says meet the set; None: all) until V's lower bound is
-    ``> level`` on each (``above``; else its upper bound ``<= level``), a centre in the set (``member(z)``; None: every
-    centre) breaks it (the claim is then false) or ``max_boxes`` are spent. Returns (holds, the bound closest to the
-    level kept, boxes bounded)."""
+    ``> level`` on each (``above``; else its upper bound ``<= level``) or ``settled(lo, hi)`` (a ``(B,)`` mask; None:
+    never) holds on it, a centre in the set (``member(z)``; None: every centre) breaks it (the claim is then false)
+    or ``max_boxes`` are spent. Returns (holds, the bound closest to the level kept, boxes bounded)."""
     sign = 1.0 if above else -1.0
     closest, spent = math.inf, 0
     while qlo.shape[0]:
@@ -58,6 +59,8 @@ def _bisect(pair: Pair, qlo: Tensor, qhi: Tensor, scale: Tensor, level: float, a
         fine = bound > sign * level
         if fine.any():
             closest = min(closest, float(bound[fine].min()))
+        if settled is not None and not bool(fine.all()):
+            fine = fine | settled(a, b)
         if not bool(fine.all()):
             mid = (a + b) / 2
             at = pair.value_and_grad(Iv.point(mid))[0]
@@ -76,6 +79,13 @@ def faces_above(pair: Pair, lo: Tensor, hi: Tensor, level: float, max_boxes: int
     """Whether ``V > level`` on every face of the box ``[lo, hi]`` (``(n,)``), by bisecting face boxes (4 cells per free
     axis at the start) until V's lower bound exceeds the level on each, a face point has ``V <= level`` (the claim is
     then false) or ``max_boxes`` are spent. Returns (holds, the smallest lower bound of V kept, boxes bounded)."""
+    flo, fhi = _face_boxes(lo, hi)
+    scale = torch.where(hi > lo, hi - lo, 1.0)
+    return _bisect(pair, flo, fhi, scale, level, True, max_boxes, batch)
+
+
+def _face_boxes(lo: Tensor, hi: Tensor) -> tuple[Tensor, Tensor]:
+    """Boxes ``(F, n)`` covering the faces of the box ``[lo, hi]`` (``(n,)``): 4 cells per free axis on each face."""
     n = lo.shape[0]
     flo, fhi = [], []
     for i in range(n):
@@ -86,8 +96,40 @@ def faces_above(pair: Pair, lo: Tensor, hi: Tensor, level: float, max_boxes: int
             a[:, i], b[:, i] = side, side
             flo.append(a)
             fhi.append(b)
+    return torch.cat(flo), torch.cat(fhi)
+
+
+def faces_inward(residual: Residual, lo: Tensor, hi: Tensor, level: float, max_boxes: int = 200_000,
+                 batch: int = 4096) -> tuple[bool, float, int]:
+    """Whether on every face of the box ``[lo, hi]`` (``(n,)``) the flow of each of the claim's models (the true model
+    at its shifts, or at every shift of its box) points strictly into the box wherever ``V <= level``: face boxes are
+    bisected (as by :func:`faces_above`) until V's lower bound exceeds the level or each flow's outward component is
+    bounded below 0 on each, a face point with ``V <= level`` where some flow's outward component is at least 0 is
+    found (the claim is then false) or ``max_boxes`` are spent. Returns (holds, the smallest lower bound of V kept
+    where V settled it, boxes bounded)."""
+    if residual.model != "true":
+        raise ValueError("the flow through the box's faces is checked on the true model only")
+
+    def outward(a: Tensor, b: Tensor) -> tuple[Tensor, Tensor]:  # (B, N) bounds of s F_i on face i, side s
+        upper, lower = (a == hi) & (b == hi), (a == lo) & (b == lo)
+        axis = (upper | lower).to(torch.int8).argmax(-1).long()
+        rows = torch.arange(a.shape[0], device=a.device)
+        flows = residual.fields(Iv(a, b))
+        lows = torch.stack([f.lo[rows, axis] for f in flows], -1)
+        highs = torch.stack([f.hi[rows, axis] for f in flows], -1)
+        up = upper[rows, axis][:, None]
+        out_lo, out_hi = torch.where(up, lows, -highs), torch.where(up, highs, -lows)
+        return torch.nan_to_num(out_lo, nan=-math.inf), torch.nan_to_num(out_hi, nan=math.inf)
+
+    def enters(a: Tensor, b: Tensor) -> Tensor:
+        return (outward(a, b)[1] < 0).all(-1)
+
+    def leaves(z: Tensor) -> Tensor:
+        return (outward(z, z)[0] >= 0).any(-1)
+
+    flo, fhi = _face_boxes(lo, hi)
     scale = torch.where(hi > lo, hi - lo, 1.0)
-    return _bisect(pair, torch.cat(flo), torch.cat(fhi), scale, level, True, max_boxes, batch)
+    return _bisect(residual.pair, flo, fhi, scale, level, True, max_boxes, batch, member=leaves, settled=enters)
 
 
 def ball_below(pair: Pair, lo: Tensor, hi: Tensor, delta: float, level: float, max_boxes: int = 200_000,

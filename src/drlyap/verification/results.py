@@ -194,10 +194,12 @@ class RegionOfAttraction(Result):
     ``{z^T P z <= q_level}`` (not V's); ``band``: the band proof's search; ``strict``: how the decrease outside the
     ball is strict (:func:`~drlyap.verification.roa.sublevel.outer_strictness`; None where no level was found).
     ``xi``: the true model's shift the region is about (None: the condition's own model). ``error``: why no search
-    ran (then nothing else is set).
+    ran (then nothing else is set). ``faces``: how S keeps off the state box's faces: ``"above"`` (V above the level
+    there) or ``"inward"`` (S is ``{V <= c}`` cut by the box, and wherever it meets a face the flow enters the box;
+    ``exit_min_lower``: V's lower bound where the flow may leave, :func:`~drlyap.verification.sublevel.exit_minimum`).
     """
 
-    OPTIONAL: ClassVar[tuple[str, ...]] = ("xi", "error")
+    OPTIONAL: ClassVar[tuple[str, ...]] = ("xi", "error", "exit_min_lower")
     level: float | None = None
     kind: str | None = None
     certified: bool = False
@@ -219,6 +221,8 @@ class RegionOfAttraction(Result):
     strict: dict | None = None
     xi: list[float] | None = None
     error: str | None = None
+    faces: str = "above"
+    exit_min_lower: float | None = None
     ball: BallProof | None = field(default=None, repr=False, compare=False, metadata={"json": False})
     """Where the set is certified by V's second-order decrease near x*: that proof, what a certificate of the region
     inside the delta-ball writes down (None for the other routes)."""

@@ -1,7 +1,8 @@
 """Proofs on a sublevel set ``{V <= level}``: V's minimum on the box's faces (the set lies inside the box when it is
-above the level), and the condition of region-of-attraction training proved there (:func:`verify_sublevel`);
-:func:`prove_trained` proves a run's trained condition either way and settles an unknown verdict with the
-falsifier."""
+above the level), V's minimum where a model's flow may leave the box through them (:func:`exit_minimum`: below it the
+flow enters the box wherever the set meets a face), and the condition of region-of-attraction training proved there
+(:func:`verify_sublevel`); :func:`prove_trained` proves a run's trained condition either way and settles an unknown
+verdict with the falsifier."""
 
 from __future__ import annotations
 
@@ -15,10 +16,10 @@ from drlyap.closed_loop import ClosedLoop
 from drlyap.conditions import Condition
 from drlyap.config import DEFAULT_SETTLE_STARTS, Budget
 from drlyap.enclosures import F64, round_down
-from drlyap.kinds import Status
+from drlyap.kinds import Model, Status
 from drlyap.networks import QuadraticLyapunov
 from drlyap.regions import Region, box_grid, default_grid
-from drlyap.verification.bounds import value_objective
+from drlyap.verification.bounds import box_bounds, value_objective
 from drlyap.verification.branch_and_bound import maximize, verify_condition
 from drlyap.verification.falsifier import settle_unknown
 from drlyap.verification.results import ConditionProof
@@ -59,6 +60,67 @@ def boundary_minimum(lyapunov, region: Region, budget: Budget = Budget(seconds=5
     vobj = value_objective(lyapunov)
     flo, fhi = box_faces(region.lo, region.hi, default_grid(region.n))
     best, neg_up, _ = maximize(lambda z: -vobj(z), flo, fhi, region.scale, budget, rel_tol=rel_tol)
+    return float(-neg_up[0]), float(-best[0])
+
+
+def face_sides(lo: Tensor, hi: Tensor, region: Region) -> tuple[Tensor, Tensor]:
+    """The face each face box ``[lo, hi] (B, n)`` of :func:`box_faces` lies on: its axis ``(B,)`` and the outward
+    sign ``(B,)`` (+1 on the upper face, -1 on the lower)."""
+    upper = (lo == region.hi) & (hi == region.hi)
+    lower = (lo == region.lo) & (hi == region.lo)
+    if not bool((upper | lower).any(-1).all()):
+        raise ValueError("a face box lies on no face of the state box")
+    axis = (upper | lower).to(torch.int8).argmax(-1)
+    return axis, torch.where(upper.gather(-1, axis[:, None])[:, 0], 1.0, -1.0).to(lo.dtype)
+
+
+def outward_bounds(loop: ClosedLoop, condition: Condition, region: Region, lo: Tensor, hi: Tensor,
+                   enclosure: str) -> tuple[Tensor, Tensor]:
+    """Lower and upper bounds ``(B, N)`` of the outward component ``s zdot_i`` of the flow of each of the condition's
+    ``N`` models (the true model at its shifts, or every shift of its box) over the face boxes ``[lo, hi] (B, n)``
+    (face ``i``, outward sign ``s``: :func:`face_sides`)."""
+    if condition.model != Model.TRUE:
+        raise ValueError("the flow through the box's faces is taken on the true model only")
+    axis, sign = face_sides(lo, hi, region)
+    xi = condition.xi
+
+    def flows(z):
+        return torch.cat([loop.rhs(z, shift) for shift in xi], -1)
+
+    low, up, _ = box_bounds(flows, lo, hi, enclosure)
+    n = region.n
+    rows = torch.arange(lo.shape[0], device=lo.device)
+    cols = torch.arange(low.shape[1] // n, device=lo.device) * n
+    at = cols[None, :] + axis.long()[:, None]  # (B, N): the face's component of each model's flow
+    lo_i, up_i = low[rows[:, None], at], up[rows[:, None], at]
+    out_lo = torch.where(sign[:, None] > 0, lo_i, -up_i)
+    out_up = torch.where(sign[:, None] > 0, up_i, -lo_i)
+    return torch.nan_to_num(out_lo, nan=-torch.inf), torch.nan_to_num(out_up, nan=torch.inf)
+
+
+def exit_minimum(loop: ClosedLoop, condition: Condition, region: Region,
+                 budget: Budget = Budget(seconds=5.0, boxes=1_000_000), rel_tol: float = 1e-3) -> tuple[float, float]:
+    """``(lower, upper)``: a sound lower bound of V's minimum over the points of the box's faces where the flow of a
+    model of ``condition`` (the true model, :func:`outward_bounds`) is not proved to point strictly into the box,
+    and V at a face point where some model's flow points out of it or along the face (``inf`` where none was
+    found). Below ``lower``, wherever ``{V <= c}`` meets a face every model's flow enters the box there, so no
+    trajectory leaves ``{z in box : V(z) <= c}`` through a face. Face boxes whose flow is proved inward are dropped;
+    the rest are refined as in :func:`boundary_minimum` (``lower`` is ``-inf`` where the budget runs out first,
+    ``inf`` where every face box is dropped)."""
+    enclosure = budget.enclosure_for(region.n)
+    vobj = value_objective(loop.lyapunov)
+    flo, fhi = box_faces(region.lo, region.hi, default_grid(region.n))
+
+    def may_leave(a: Tensor, b: Tensor) -> Tensor:
+        return (outward_bounds(loop, condition, region, a, b, enclosure)[1] >= 0).any(-1)
+
+    def leaves(centre: Tensor) -> Tensor:
+        return (outward_bounds(loop, condition, region, centre, centre, enclosure)[0] >= 0).any(-1)
+
+    if not bool(may_leave(flo, fhi).any()):
+        return float("inf"), float("inf")
+    best, neg_up, _ = maximize(lambda z: -vobj(z), flo, fhi, region.scale, budget, box_ok=may_leave,
+                               centre_ok=leaves, rel_tol=rel_tol)
     return float(-neg_up[0]), float(-best[0])
 
 

@@ -340,11 +340,12 @@ def region_certificates(folder: Path, loop: ClosedLoop, condition: Condition, re
             write_ellipsoid(found)
     if (roa.kind == "practical stability" and roa.level is not None and roa.practical_level is not None
             and condition.per_sample() is not None):  # a statement about each sample's trajectories
-        outer_name = _outer_certificate(write, loop, condition, region, float(roa.level), outer, proof)
+        outer_name = _outer_certificate(write, loop, condition, region, float(roa.level), outer, proof, roa.faces)
         if outer_name is not None:  # V at most c0 on the ball: the checker bisects the ball itself
             write("practical", None, condition.per_sample(), region.ball_box(region.delta), float(roa.level),
                   {"ball_of": float(region.delta), "outer": outer_name,
-                   "practical": {"level": float(roa.practical_level)}})
+                   "practical": {"level": float(roa.practical_level)}}
+                  | ({"faces": roa.faces} if roa.faces != "above" else {}))
         return written
     if not roa.certified or roa.level is None:
         return written
@@ -359,7 +360,7 @@ def region_certificates(folder: Path, loop: ClosedLoop, condition: Condition, re
         if found is None:
             return written
         ellipsoid, cored = found
-        outer_name = _outer_certificate(write, loop, condition, region, c, outer, proof)
+        outer_name = _outer_certificate(write, loop, condition, region, c, outer, proof, roa.faces)
         if outer_name is not None:
             write_ellipsoid(ellipsoid)
             write("roa-ball", cored.proof, cored.condition, cored.region,
@@ -367,7 +368,7 @@ def region_certificates(folder: Path, loop: ClosedLoop, condition: Condition, re
         return written
     if roa.ball is None:
         return written
-    outer_name = _outer_certificate(write, loop, condition, region, c, outer, proof)
+    outer_name = _outer_certificate(write, loop, condition, region, c, outer, proof, roa.faces)
     if outer_name is None:
         return written
     ball = roa.ball
@@ -380,10 +381,11 @@ def region_certificates(folder: Path, loop: ClosedLoop, condition: Condition, re
 
 
 def _outer_certificate(write, loop: ClosedLoop, condition: Condition, region: Region, level: float,
-                       outer: tuple[str, ConditionProof | None], proof: ProofConfig) -> str | None:
+                       outer: tuple[str, ConditionProof | None], proof: ProofConfig, faces: str = "above") -> str | None:
     """The name of the certificate of ``condition`` on ``{V <= level}`` outside the delta-ball that a ``roa-ball``
-    names: ``outer``'s (its name and proof) where that proof is on ``{V <= c'}`` with ``c' >= level``, else ``roa``,
-    proved here (``proof``'s budget) and written with ``write``; None where that proof fails."""
+    names: ``outer``'s (its name and proof) where that proof is on ``{V <= c'}`` with ``c' >= level`` (V above ``c'``
+    on the faces), else ``roa``, proved here (``proof``'s budget) and written with ``write``, its claim stating how
+    the set keeps off the faces (``faces``: the region's); None where that proof fails."""
     outer_name, found = outer
     if (isinstance(found, ConditionProof) and found.verified and found.level is not None and found.level >= level
             and (found.partition is not None or found.source == "certificate")):
@@ -391,7 +393,7 @@ def _outer_certificate(write, loop: ClosedLoop, condition: Condition, region: Re
     found = verify_condition(loop, condition, region, proof.budget(), level=level, keep_partition=True)
     if not found.verified:
         return None
-    write("roa", found, condition, region)
+    write("roa", found, condition, region, extra={"faces": faces} if faces != "above" else None)
     return "roa"
 
 

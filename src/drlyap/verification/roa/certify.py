@@ -73,7 +73,7 @@ def certified_roa(loop: ClosedLoop, condition: Condition, region: Region, budget
         quadratic = {k: v for k, v in quadratic.items() if k not in ("jacobians", "eigenvalues")}
     band = None
     if quadratic is not None and quadratic.get("proved") and (band_time is None or band_time > 0):
-        band = band_roa(loop, condition, region, quadratic, outer.top, outer.why,
+        band = band_roa(loop, condition, region, quadratic, *outer.inside,
                         replace(budget, seconds=budget.seconds if band_time is None else band_time))
     found = finish(loop, condition, region, outer, local, samples_per_axis, quadratic, band, strict)
     if found.certified and found.local is local and found.level == c:  # V's own proofs, the level not lowered

@@ -224,7 +224,8 @@ def _quadratic_level(loop: ClosedLoop, plain: PlainDecrease, region: Region, p: 
     ring = PlainDecrease(plain.xi, 0.25 * abs(bound) / 2 * r_in, 0.0, plain.model)
     w_roa = sublevel_roa(loop.with_lyapunov(w), ring, Region(region.lo, region.hi, r_in),
                          replace(budget, seconds=max(1.0, time_limit - (time.perf_counter() - start)),
-                                 min_width=resolving(budget.min_width, r_in, region)), samples_per_axis=50)
+                                 min_width=resolving(budget.min_width, r_in, region)), samples_per_axis=50,
+                         cut_by_box=False)  # L must lie inside the box: its certificate is W above c_q on the faces
     c_q = c_box
     if w_roa.kind == "region of attraction" and w_roa.level > c_q:
         c_q = w_roa.level

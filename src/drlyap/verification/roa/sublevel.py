@@ -4,6 +4,11 @@ For a closed loop and a condition (:mod:`drlyap.conditions`) :func:`outer_search
 such that ``S = {z in box : V(z) <= c}``
 
 1. lies inside the state box (``V > c`` on the box boundary: :func:`~drlyap.verification.sublevel.boundary_minimum`),
+   or, for a condition on the true model, is not left through the box's faces: wherever ``V <= c`` on a face, the
+   flow of each of its models points strictly into the box
+   (:func:`~drlyap.verification.sublevel.exit_minimum`; ``faces`` ``"inward"``, the set then cut by the box: a
+   trajectory that reached a face with ``V <= c`` would enter the box again at once, and one that reached ``V = c``
+   inside it would go on decreasing, so none leaves S),
 2. satisfies the condition's decrease on ``S`` outside the delta-ball (:func:`~drlyap.verification.roa.levels.level_search`),
 
 and bounds V on the delta-ball. The decrease of 2 is strict (``Vdot < 0``) by a decay ``gamma ||z||``, or by
@@ -34,6 +39,7 @@ from drlyap.conditions import Condition
 from drlyap.config import Budget
 from drlyap.enclosures import F64
 from drlyap.enclosures.quadratic import surely_semidefinite
+from drlyap.kinds import Model
 from drlyap.networks import Lyapunov, QuadraticLyapunov
 from drlyap.regions import Region, box_grid, default_grid, near_dist
 from drlyap.verification.bounds import value_objective
@@ -41,7 +47,7 @@ from drlyap.verification.branch_and_bound import maximize
 from drlyap.verification.results import ConditionProof, RegionOfAttraction
 from drlyap.verification.roa.levels import below, level_search
 from drlyap.verification.roa.local import local_decrease
-from drlyap.verification.sublevel import boundary_minimum
+from drlyap.verification.sublevel import boundary_minimum, exit_minimum
 
 
 @dataclass
@@ -60,13 +66,29 @@ class OuterSearch:
     why: str
     start: float
     deadline: float
+    exit_min_lower: float | None = None
+
+    @property
+    def faces(self) -> str:
+        """How S stays off the box's faces: ``"above"`` (V above the level there) or ``"inward"`` (the flow enters
+        the box wherever V is at most the level there: step 1 of the module docstring)."""
+        widened = self.exit_min_lower is not None and self.exit_min_lower > self.boundary_min_lower
+        return "inward" if widened and self.level >= self.boundary_min_lower else "above"
+
+    @property
+    def inside(self) -> tuple[float, str]:
+        """The level the search started from and why, capped at V's lower bound on the faces (for the proofs that
+        need ``V > c`` there)."""
+        return (self.top, self.why) if self.top < self.boundary_min_lower else (self.boundary_min_lower, "box boundary")
 
 
 def outer_search(loop: ClosedLoop, condition: Condition, region: Region, budget: Budget,
-                 max_level: float = math.inf) -> OuterSearch:
-    """The faces' minimum of V (a quarter of the budget's time), V's maximum on the delta-ball (a quarter), and the
-    level search outside the ball (until 60% of the time is spent, all of it when ``delta = 0``), capped at
-    ``max_level``. Box budgets: a million for each bound of V, the budget's boxes for the level search."""
+                 max_level: float = math.inf, cut_by_box: bool = True) -> OuterSearch:
+    """The faces' minimum of V (a quarter of the budget's time), for a condition on the true model V's minimum where its
+    flow may leave the box (:func:`~drlyap.verification.sublevel.exit_minimum`, a quarter), V's maximum on the
+    delta-ball (a quarter), and the level search outside the ball (until 60% of the time is spent, all of it when
+    ``delta = 0``), capped at ``max_level``. Box budgets: a million for each bound of V, the budget's boxes for the
+    level search. ``cut_by_box`` False: V above the level on the faces only (no set cut by the box)."""
     start = time.perf_counter()
     system, lyapunov = loop.system, loop.lyapunov
     enclosure = budget.enclosure_for(system.n)
@@ -81,15 +103,20 @@ def outer_search(loop: ClosedLoop, condition: Condition, region: Region, budget:
     ball_max_upper = _ball_max(lyapunov, region, quarter)
     # 3. the decrease condition on the sublevel set outside the ball
     lo, hi = region.boxes(grid)
-    top, why = (boundary_min_lower, "box boundary") if boundary_min_lower <= max_level else (max_level,
-                                                                                             "level asked for")
+    exit_min_lower = None
+    faces, face_why = boundary_min_lower, "box boundary"
+    if cut_by_box and condition.model == Model.TRUE and boundary_min_lower < max_level:
+        exit_min_lower = exit_minimum(loop, condition, region, quarter)[0]
+        if exit_min_lower > boundary_min_lower:
+            faces, face_why = exit_min_lower, "the box's faces where the flow leaves the box"
+    top, why = (faces, face_why) if faces <= max_level else (max_level, "level asked for")
     level, limited_by, cex, processed = level_search(
         loop, condition, lo, hi, scale, top, why,
         start + (0.6 if delta > 0 else 1.0) * time_limit, meets=region.meets,  # 40% kept for the ball
         in_region=lambda centre, v: region.in_region(centre),
         min_width=min_width, batch=budget.batch, enclosure=enclosure)
     return OuterSearch(boundary_min_lower, ball_max_upper, below(level), limited_by, cex, processed, top, why, start,
-                       start + time_limit)
+                       start + time_limit, exit_min_lower)
 
 
 def _ball_max(lyapunov, region: Region, budget: Budget) -> float:
@@ -199,19 +226,24 @@ def finish(loop: ClosedLoop, condition: Condition, region: Region, outer: OuterS
         if c > 0 and not is_strict:
             limited_by = strict["reason"]
     share = share_of_box(loop.f64.lyapunov, region, c, samples_per_axis) if c > 0 else 0.0
+    by_band = band is not None and band["proved"]
+    faces = "inward" if outer.faces == "inward" and kind and not by_band and c >= outer.boundary_min_lower else "above"
     return RegionOfAttraction(
         level=c, kind=kind, certified=kind == "region of attraction",
         practical_level=outer.ball_max_upper if kind == "practical stability" else None, outer_level=outer.level,
         contains_ball=c > outer.ball_max_upper, limited_by=limited_by, local=local,
         boundary_min_lower=outer.boundary_min_lower, ball_max_upper=outer.ball_max_upper, share_of_box=share,
         counterexample=counterexample, boxes_processed=outer.boxes, time_s=time.perf_counter() - outer.start,
-        delta=float(region.delta), condition=condition.label, quadratic=quadratic, band=band, strict=strict)
+        delta=float(region.delta), condition=condition.label, quadratic=quadratic, band=band, strict=strict,
+        faces=faces, exit_min_lower=outer.exit_min_lower)
 
 
 def sublevel_roa(loop: ClosedLoop, condition: Condition, region: Region, budget: Budget = Budget(seconds=10.0), *,
-                 samples_per_axis: int = 400, max_level: float = math.inf) -> RegionOfAttraction:
-    """The largest certified ``{V <= c}`` by V's own proofs (module docstring), within ``budget``."""
-    outer = outer_search(loop, condition, region, budget, max_level)
+                 samples_per_axis: int = 400, max_level: float = math.inf, cut_by_box: bool = True
+                 ) -> RegionOfAttraction:
+    """The largest certified ``{V <= c}`` by V's own proofs (module docstring), within ``budget`` (``cut_by_box``:
+    as for :func:`outer_search`)."""
+    outer = outer_search(loop, condition, region, budget, max_level, cut_by_box)
     c = outer.level
     strict = outer_strictness(loop, condition, region, budget) if c > 0 else None
     left = max(1.0, outer.deadline - time.perf_counter())
