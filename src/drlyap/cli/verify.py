@@ -30,7 +30,8 @@ from drlyap.config import ENCLOSURES, ProofConfig
 @click.option("--time-limit", type=float, default=None,
               help="Seconds per branch and bound, besides its box budget [the system's: 30; 900 for cartpole, "
                    "3600 for quadrotor2d].")
-@click.option("--roa/--no-roa", default=False, show_default=True, help="Certify a sublevel set of V as region of attraction (at --xi it may be cut by the box where "
+@click.option("--roa/--no-roa", default=False, show_default=True,
+              help="Certify a sublevel set of V as region of attraction (at --xi it may be cut by the box where "
                    "the flow enters it there).")
 @click.option("--roa-time", type=float, default=None,
               help="Seconds for --roa's search: the condition on a sublevel set, then decrease inside the ball "
