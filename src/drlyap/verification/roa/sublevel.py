@@ -106,8 +106,9 @@ def outer_search(loop: ClosedLoop, condition: Condition, region: Region, budget:
     exit_min_lower = None
     faces, face_why = boundary_min_lower, "box boundary"
     if cut_by_box and condition.model == Model.TRUE and boundary_min_lower < max_level:
-        exit_min_lower = exit_minimum(loop, condition, region, quarter)[0]
-        if exit_min_lower > boundary_min_lower:
+        found = exit_minimum(loop, condition, region, quarter)[0]
+        exit_min_lower = found if math.isfinite(found) else None  # inf: no face box may leave; -inf: out of budget
+        if exit_min_lower is not None and exit_min_lower > boundary_min_lower:
             faces, face_why = exit_min_lower, "the box's faces where the flow leaves the box"
     top, why = (faces, face_why) if faces <= max_level else (max_level, "level asked for")
     level, limited_by, cex, processed = level_search(
