@@ -487,7 +487,7 @@ def check_certificate(run_dir: str | Path, name: str, header: dict, arrays: dict
             out.failures.append(f"the claim's rule for the box's faces {faces!r} is not one the checker takes "
                                 "('above'; 'inward' for V's sets on the true model)")
         elif region.get("ball_of") is None and faces == "inward":
-            holds, out.faces_min, out.faces_boxes = faces_inward(residual, lo, hi, level)
+            holds, out.faces_min, out.faces_boxes = faces_inward(residual, lo, hi, level, max_boxes=1_000_000)
             if not holds:
                 out.failures.append(f"the flow entering the box wherever V <= {level:g} on its faces is not established "
                                     f"({out.faces_boxes} face boxes)")
