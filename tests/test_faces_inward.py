@@ -2,6 +2,9 @@
 wherever the set meets a face. The verifier's bound of V where the flow may leave is checked against dense sampling,
 the certified set by simulation on the true model, and the checker's face rule against a level where the flow leaves."""
 
+import json
+import os
+
 import pytest
 import torch
 
@@ -16,7 +19,7 @@ from drlyap.simulation import simulate
 from drlyap.verification import certified_roa
 from drlyap.verification.roa.sublevel import EXIT_ROOM
 from drlyap.verification.sublevel import boundary_minimum, exit_minimum, outward_bounds
-from handmade import linear_pair, small_pendulum
+from handmade import check_cli, linear_pair, linear_run_dir, small_pendulum, verify_cli
 
 F64 = torch.float64
 XI = [0.1, 0.05]
@@ -139,3 +142,25 @@ def test_the_claim_says_the_set_is_cut_by_the_box():
     text = claim_sentence(claim)
     assert "{V <= 0.4} in the state box" in text and "the flow entering the box" in text
     assert "V > 0.4 on the box's faces" in claim_sentence({k: v for k, v in claim.items() if k != "faces"})
+
+
+SPEC = f"{os.path.dirname(__file__)}/handmade.py:small_pendulum"
+
+
+def test_verify_writes_the_rule_and_check_holds_a_certificate_to_it(tmp_path):
+    """End to end: `verify --roa` at a shift writes a `roa` certificate with the inward rule, `drlyap check` confirms it,
+    and the same partition claimed with V above the level on the faces (false here), or with a rule the checker does
+    not know, fails."""
+    run = linear_run_dir(tmp_path / "run", delta=0.2)
+    found = verify_cli(run, SPEC, ",".join(map(str, XI)))
+    assert found["roa"]["certified"] and found["roa"]["faces"] == "inward"
+    path = run / "certificates" / "roa.json"
+    header = json.loads(path.read_text())
+    assert header["claim"]["faces"] == "inward" and "the flow entering the box" in header["claim"]["statement"]
+    out = check_cli(run, SPEC, "roa", "roa-ball")
+    assert out.exit_code == 0, out.output
+    for rule, words in (("above", "is not established on the box's faces"), ("sideways", "not one the checker takes")):
+        header["claim"]["faces"] = rule
+        path.write_text(json.dumps(header))
+        out = check_cli(run, SPEC, "roa")
+        assert out.exit_code != 0 and words in out.output, out.output
