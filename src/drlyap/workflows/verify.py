@@ -344,8 +344,7 @@ def region_certificates(folder: Path, loop: ClosedLoop, condition: Condition, re
         if outer_name is not None:  # V at most c0 on the ball: the checker bisects the ball itself
             write("practical", None, condition.per_sample(), region.ball_box(region.delta), float(roa.level),
                   {"ball_of": float(region.delta), "outer": outer_name,
-                   "practical": {"level": float(roa.practical_level)}}
-                  | ({"faces": roa.faces} if roa.faces != "above" else {}))
+                   "practical": {"level": float(roa.practical_level)}} | _faces_claim(roa.faces))
         return written
     if not roa.certified or roa.level is None:
         return written
@@ -393,8 +392,13 @@ def _outer_certificate(write, loop: ClosedLoop, condition: Condition, region: Re
     found = verify_condition(loop, condition, region, proof.budget(), level=level, keep_partition=True)
     if not found.verified:
         return None
-    write("roa", found, condition, region, extra={"faces": faces} if faces != "above" else None)
+    write("roa", found, condition, region, extra=_faces_claim(faces) or None)
     return "roa"
+
+
+def _faces_claim(faces: str) -> dict:
+    """A region claim's rule for the box's faces: nothing for V above the level there (the default), else ``faces``."""
+    return {} if faces == "above" else {"faces": faces}
 
 
 def record_imported_certificates(run_dir: str | Path, pair, ver: RunVerification, proof: ProofConfig) -> list[Path]:

@@ -55,6 +55,14 @@ room for the checker's own bisection of the faces, which must separate the set f
 quadrotor it needed 204,166 face boxes at 1% below, and did not finish within 200,000 one float step below)."""
 
 
+def exit_top(exit_min_lower: float | None, boundary_min_lower: float) -> float | None:
+    """The level a set cut by the box may reach, ``(1 - EXIT_ROOM)`` times V's lower bound where the flow may leave
+    the box, where that is above V's lower bound on the faces (else None: the faces' rule stands)."""
+    if exit_min_lower is None or not (1 - EXIT_ROOM) * exit_min_lower > boundary_min_lower:
+        return None
+    return (1 - EXIT_ROOM) * exit_min_lower
+
+
 @dataclass
 class OuterSearch:
     """Steps 1 and 2 of the route (module docstring) and V's bound on the delta-ball: ``level`` (rounded down) the
@@ -77,7 +85,7 @@ class OuterSearch:
     def faces(self) -> str:
         """How S stays off the box's faces: ``"above"`` (V above the level there) or ``"inward"`` (the flow enters
         the box wherever V is at most the level there: step 1 of the module docstring)."""
-        widened = self.exit_min_lower is not None and (1 - EXIT_ROOM) * self.exit_min_lower > self.boundary_min_lower
+        widened = exit_top(self.exit_min_lower, self.boundary_min_lower) is not None
         return "inward" if widened and self.level >= self.boundary_min_lower else "above"
 
     @property
@@ -113,8 +121,9 @@ def outer_search(loop: ClosedLoop, condition: Condition, region: Region, budget:
     if cut_by_box and condition.model == Model.TRUE and boundary_min_lower < max_level:
         found = exit_minimum(loop, condition, region, quarter)[0]
         exit_min_lower = found if math.isfinite(found) else None  # inf: no face box may leave; -inf: out of budget
-        if exit_min_lower is not None and (1 - EXIT_ROOM) * exit_min_lower > boundary_min_lower:
-            faces, face_why = (1 - EXIT_ROOM) * exit_min_lower, "the box's faces where the flow leaves the box"
+        widened = exit_top(exit_min_lower, boundary_min_lower)
+        if widened is not None:
+            faces, face_why = widened, "the box's faces where the flow leaves the box"
     top, why = (faces, face_why) if faces <= max_level else (max_level, "level asked for")
     level, limited_by, cex, processed = level_search(
         loop, condition, lo, hi, scale, top, why,
