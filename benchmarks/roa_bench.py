@@ -56,8 +56,8 @@ def main(argv: list[str] | None = None) -> int:
         weights = run.config.lqr_weights
         weights_text = "-" if weights is None else "; ".join(",".join(f"{w:g}" for w in part) for part in weights)
         trained, true_model, roa = result.trained, result.true_model, result.roa
-        region = (f"{{V <= {roa.level:.3g}}}" if roa is not None and roa.certified and roa.kind == "region of attraction"
-                  else "none")
+        region = (f"{{V <= {roa.level:.3g}}}" + (" in box" if roa.faces == "inward" else "")
+                  if roa is not None and roa.certified and roa.kind == "region of attraction" else "none")
         share = roa.share_of_box if roa is not None and roa.certified and roa.share_of_box is not None else None
         train_s = (run.metrics.get("cegis") or {}).get("total_time_s", run.metrics.get("train_time_s"))
         print(f"{str(path)[-24:]:<24} {run.system.name:<12} {weights_text[:28]:<28} "
