@@ -8,6 +8,7 @@ import os
 import pytest
 import torch
 
+from drlyap.checker.agreement import outer_missing
 from drlyap.checker.levels import faces_inward
 from drlyap.checker.model import Pair, Residual
 from drlyap.claims import claim_sentence
@@ -164,3 +165,30 @@ def test_verify_writes_the_rule_and_check_holds_a_certificate_to_it(tmp_path):
         path.write_text(json.dumps(header))
         out = check_cli(run, SPEC, "roa")
         assert out.exit_code != 0 and words in out.output, out.output
+    header["claim"]["faces"] = "inward"
+    path.write_text(json.dumps(header))
+    metrics_path = run / "metrics.json"
+    metrics = json.loads(metrics_path.read_text())
+    metrics["certificate"]["roa"]["faces"] = "above"  # the run's report no longer says the set is cut by the box
+    metrics_path.write_text(json.dumps(metrics))
+    out = check_cli(run, SPEC, "roa")
+    assert out.exit_code != 0 and "faces (not the rule" in out.output, out.output
+
+
+def test_a_claim_resting_on_another_certificate_states_its_rule_for_the_faces(tmp_path):
+    """A `practical` claim's rule for the faces is its outer certificate's: another rule, or none where the outer
+    states one, is a failure (the outer's boxes and faces are checked on their own)."""
+    folder = tmp_path / "certificates"
+    folder.mkdir()
+    condition = {"name": "plain", "xi": [[0.1, 0.05]], "decay_rate": 0.1}
+    outer = {"claim": {"region": {"delta": 0.2, "level": 2.0}, "condition": condition, "faces": "inward"}}
+    (folder / "roa.json").write_text(json.dumps(outer))
+    practical = {"claim": {"region": {"ball_of": 0.2, "level": 2.0}, "condition": condition, "outer": "roa",
+                           "practical": {"level": 0.5}}}
+    assert outer_missing(tmp_path, practical | {"claim": practical["claim"] | {"faces": "inward"}}) == []
+    for claim in (practical["claim"] | {"faces": "above"}, practical["claim"] | {"faces": "sideways"}):
+        problems = outer_missing(tmp_path, {"claim": claim})
+        assert len(problems) == 1 and "rule for the box's faces" in problems[0], problems
+    assert outer_missing(tmp_path, practical) != []  # no rule stated: V above the level on the faces, not the outer's
+    ball = {"claim": {k: v for k, v in practical["claim"].items() if k != "practical"}}
+    assert outer_missing(tmp_path, ball) == []  # a roa-ball's claim leaves the set's faces to its outer

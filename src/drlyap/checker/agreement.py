@@ -14,7 +14,8 @@ from pathlib import Path
 
 def outer_missing(run_dir: Path, header: dict, positive: Callable[[dict], str] | None = None) -> list[str]:
     """Where the certificate a ``roa-ball`` names for the decrease outside the ball (``outer``) does not cover its
-    region: missing, on another delta or a lower level, about other samples, or a decrease that is not strict (that
+    region: missing, on another delta or a lower level, about other samples, a rule for the box's faces other than
+    the one the claim states (a ``practical`` claim's ``faces``), or a decrease that is not strict (that
     certificate's boxes are checked on their own). Where only ``alpha V`` can make it strict and V is not positive by
     its form (an imported V), ``positive(outer's region)`` must establish V > 0 outside the ball: it returns "" where
     it does, else why not (None: nothing establishes it)."""
@@ -32,6 +33,9 @@ def outer_missing(run_dir: Path, header: dict, positive: Callable[[dict], str] |
         return [f"{path.name} does not prove the decrease outside the ball on {{V <= {level}}}"]
     if samples != header["claim"]["condition"].get("xi"):
         return [f"{path.name} is about other samples or another shift than the decrease inside the ball"]
+    mine = header["claim"]  # a roa-ball's sentence leaves the set's faces to its outer; a practical one states them
+    if ("faces" in mine or "practical" in mine) and mine.get("faces", "above") != claim.get("faces", "above"):
+        return [f"the rule for the box's faces it states ({mine.get('faces', 'above')!r}) is not {path.name}'s"]
     strict = _strict(claim["condition"], outer_header.get("networks") or {})
     if strict == "positive" and positive is not None:
         why = positive(outer)
@@ -104,7 +108,8 @@ def _roa_claim(name: str, header: dict, config: dict, metrics: dict, expected: d
     and the level trajectories end up in) as ``roa-ball`` without a partition; ``roa-ball`` plain decrease on the
     same model at each of its samples inside the
     delta-ball (a strict decay, checked with the cube or the core), naming as ``outer`` a certificate of the same
-    model on ``{V <= c'}``, ``c' >=`` the level. ``delta``: the run's. Returns (expected
+    model on ``{V <= c'}``, ``c' >=`` the level. A ``roa`` and a ``practical`` claim state the rule for the box's
+    faces ``metrics.json`` reports (``faces``, ``"above"`` where absent). ``delta``: the run's. Returns (expected
     condition fields, expected region fields, other problems)."""
     reported = (metrics.get("certificate") or {}).get("roa") or {}
     xi = reported.get("xi")
@@ -117,10 +122,12 @@ def _roa_claim(name: str, header: dict, config: dict, metrics: dict, expected: d
         condition = {"name": "plain", "xi": condition["xi"]}
     claim = header["claim"]
     ball = _region_plain(reported, config, metrics)
+    faces = [] if claim.get("faces", "above") == reported.get("faces", "above") else [
+        "faces (not the rule for the box's faces metrics.json reports)"]
     if name == "roa" and claim.get("core") is not None:  # the band proof: V's strict decrease outside the core
-        return {k: v for k, v in expected.items() if k != "decay_rate"} | ball, {"delta": 0.0, "level": level}, []
+        return {k: v for k, v in expected.items() if k != "decay_rate"} | ball, {"delta": 0.0, "level": level}, faces
     if name == "roa":
-        return expected | condition, {"delta": delta, "level": level}, []
+        return expected | condition, {"delta": delta, "level": level}, faces
     decay = claim["condition"].get("decay_rate")
     expected = {k: v for k, v in expected.items() if k not in ("decay_rate", "exp_rate", "model")} | ball | {
         "decay_rate": decay if header.get("partition") is not None else 0.0}
@@ -133,6 +140,8 @@ def _roa_claim(name: str, header: dict, config: dict, metrics: dict, expected: d
         problems.append(f"outer (names {outer!r}, not roa or {want})")
     if name == "practical" and (claim.get("practical") or {}).get("level") != reported.get("practical_level"):
         problems.append("the level trajectories end up in (not the one metrics.json reports)")
+    if name == "practical":
+        problems += faces
     return expected, {"delta": claim["region"].get("delta"), "level": level}, problems
 
 
