@@ -455,6 +455,20 @@ def test_maximize_stopped_early_keeps_a_sound_finite_bound():
     assert float(lower[0]) <= float(upper[0])
 
 
+def test_maximize_refines_until_a_centre_is_accepted():
+    """Where no starting centre is accepted (``centre_ok``), the boxes are split until one is, not closed at their
+    first bound: the bracket then closes on the largest value over the accepted part."""
+    def objective(z):  # (B, 2) -> (B, 1): -(z1 - 0.9)^2 - z2^2, largest at (0.9, 0)
+        return -(z[:, :1] - 0.9).square() - z[:, 1:].square()
+
+    lo, hi = torch.tensor([[0.0, -1.0]], dtype=F64), torch.tensor([[1.0, 1.0]], dtype=F64)
+    scale = torch.tensor([1.0, 2.0], dtype=F64)
+    lower, upper, info = maximize(objective, lo, hi, scale, Budget(seconds=30.0, boxes=4000, enclosure="mean-value"),
+                                  centre_ok=lambda z: z[:, 0] > 0.7, rel_tol=1e-9, abs_tol=1e-4)
+    assert info["attained_at"] is not None and float(info["attained_at"][0, 0]) > 0.7
+    assert float(lower[0]) <= 0.0 <= float(upper[0]) and float(upper[0]) - float(lower[0]) < 1e-3
+
+
 def test_a_box_is_bounded_the_same_whatever_is_bounded_beside_it():
     """Each entry picks its own form of a function (second order, or the secant where its input is wide), so a box's
     bound does not depend on the other boxes of its batch, which the number of workers changes (a narrow box beside

@@ -419,7 +419,8 @@ def maximize(objective: Callable, lo: Tensor, hi: Tensor, scale: Tensor, budget:
             best_at = found if best_at is None else torch.where(better[:, None], found, best_at)
             best = cand if best is None else torch.maximum(best, cand)
         ref = best if best is not None else torch.full_like(ub[0], -torch.inf)
-        tol = torch.clamp(rel_tol * ref.abs(), min=abs_tol)
+        # no centre accepted yet (ref = -inf): every box that may hold one is split, not closed at its first bound
+        tol = torch.where(ref.isfinite(), torch.clamp(rel_tol * ref.abs(), min=abs_tol), abs_tol)
         refine = (ub > ref + tol).any(-1) & (((chi - clo) / scale).amax(-1) >= min_width)
         done = ~refine
         if done.any():
