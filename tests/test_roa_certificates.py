@@ -144,3 +144,17 @@ def test_a_certified_region_without_a_certificate_file_says_so():
     assert "(band route)" in unwritten_region_line(band, ["RUN/certificates/roa-ball.json"])  # band writes roa
     assert unwritten_region_line(band, ["RUN/certificates/roa.json"]) is None
     assert unwritten_region_line(RegionOfAttraction(level=0.0), []) is None  # nothing certified, nothing to say
+
+
+def test_a_run_saved_without_a_verdict_stays_readable_after_verify(tmp_path):
+    """A pair trained by ``fit`` and saved has no verdict in ``metrics.json``; ``verify --roa`` keeps its region there
+    beside a "not checked" verdict on the trained condition, so the run still loads."""
+    run = linear_run_dir(tmp_path / "run", delta=0.2)
+    metrics_path = run / "metrics.json"
+    metrics = json.loads(metrics_path.read_text())
+    del metrics["certificate"]  # as `save_run` writes a `fit` result
+    metrics_path.write_text(json.dumps(metrics))
+    _verify(run)
+    kept = json.loads(metrics_path.read_text())["certificate"]
+    assert kept["status"] == "not checked" and kept["roa"]["certified"]
+    assert load_run(run, system=small_pendulum()).metrics["certificate"]["roa"]["certified"]

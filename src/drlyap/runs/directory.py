@@ -188,8 +188,9 @@ class Run:
         if not entries:
             return
         target = self.metrics
-        if certificate:
-            target = self.metrics["certificate"] = self.metrics.get("certificate") or {}
+        if certificate:  # a run saved without a verdict (``fit`` then ``save_run``) gets "not checked" beside them
+            target = self.metrics["certificate"] = self.metrics.get("certificate") or Certificate(
+                status="not checked", condition=self.condition.label).to_dict()
         target.update(entries)
         self.save_metrics()
 
