@@ -132,3 +132,27 @@ def test_proof_rounds_can_end_at_their_first_violation(tiny_config):
     assert runs[True]["stopped"] == "counterexample" and runs[False]["stopped"] != "counterexample"
     assert runs[True]["boxes_processed"] < runs[False]["boxes_processed"]
     assert runs[True]["verified_fraction"] <= runs[False]["verified_fraction"]
+
+
+def test_a_retraining_that_returns_its_starting_pair_is_said_so():
+    """A retraining round whose loss is 0 on every state it draws (a pair holding the condition with its margin) returns
+    the pair it started from: its round is marked ``unchanged`` and its line says so; a retraining that moves the
+    weights is not marked."""
+    from drlyap.config import TrainConfig
+    from drlyap.render import proof_round_line
+    from drlyap.training import train
+    from handmade import linear_pair, small_pendulum
+
+    system = small_pendulum()
+    fields = dict(system="small-pendulum", method="dr", n_states=64, iters=20, check_every=10, lyapunov_hidden=[2],
+                  lyapunov_out=2, controller_hidden=[1], alpha_hat=1e-3, decay_rate=0.05, wasserstein_radius=0.01,
+                  risk_level=0.3, delta=0.2, xi_samples=[[0.02, 0.01], [-0.03, 0.0], [0.05, -0.02]], seed=0)
+    proof = ProofConfig(rounds=1, max_boxes=10)  # too few boxes to prove: a retraining round follows
+    for init, unchanged in ((linear_pair(system), True), (None, False)):
+        lines: list[str] = []
+        result = train(TrainConfig(**fields), system, proof, progress=False, init=init, warn=False,
+                       log=lambda entry, lines=lines: lines.append(proof_round_line(entry)))
+        last = result.metrics["cegis"]["rounds"][-1]
+        assert last["round"] == 1 and last.get("unchanged", False) is unchanged
+        assert ("left the pair unchanged" in lines[-1]) is unchanged
+        assert ProofRound.from_dict(last).unchanged is unchanged and ProofRound.from_dict(last).to_dict() == last

@@ -86,7 +86,8 @@ class ProofRound:
     round followed by retraining, ``added``: how many states its falsifier added (``counterexamples_added``,
     ``neighbours_added``, ``box_centres_added``), its largest residual and seconds, and the retraining states in all
     (``extra_states``); ``counterexamples``: the violating local states found, ``(C, n)`` float64 (not in
-    ``metrics.json``).
+    ``metrics.json``). ``unchanged``: the retraining before this round returned the very pair it started from (its
+    weights bitwise equal), so this round proves that pair again.
     """
 
     round: int
@@ -101,6 +102,7 @@ class ProofRound:
     stopped: str | None = None
     added: dict | None = None
     counterexamples: object = None
+    unchanged: bool = False
 
     def to_dict(self) -> dict:
         """As ``metrics["cegis"]["rounds"]`` keeps it (without the counterexamples themselves)."""
@@ -110,6 +112,8 @@ class ProofRound:
                "train_iterations": self.train_iterations, "acceptance_passed": self.acceptance_passed}
         if self.stopped is not None:
             out["stopped"] = self.stopped
+        if self.unchanged:
+            out["unchanged"] = True
         return out | (self.added or {})
 
     @classmethod
@@ -117,8 +121,9 @@ class ProofRound:
         """From a round of ``metrics["cegis"]["rounds"]``."""
         base = ("round", "verification", "verified", "status", "verified_fraction", "verify_time_s", "train_time_s",
                 "train_iterations", "acceptance_passed")
-        added = {k: v for k, v in data.items() if k not in (*base, "stopped")}
-        return cls(**{k: data[k] for k in base}, stopped=data.get("stopped"), added=added or None)
+        added = {k: v for k, v in data.items() if k not in (*base, "stopped", "unchanged")}
+        return cls(**{k: data[k] for k in base}, stopped=data.get("stopped"), added=added or None,
+                   unchanged=bool(data.get("unchanged", False)))
 
 
 @dataclass(frozen=True)

@@ -246,7 +246,7 @@ def _proof_rounds(cfg: TrainConfig, system: UncertainSystem, proof: ProofConfig,
         entry = ProofRound(round=r, verification=kind.summary(ver), verified=ver.verified, status=ver.status,
                            verified_fraction=ver.verified_fraction, verify_time_s=time.perf_counter() - tic,
                            train_time_s=train_time, train_iterations=trained.iterations,
-                           acceptance_passed=trained.passed)
+                           acceptance_passed=trained.passed, unchanged=bool(r) and _same_pair(warm, result))
         # a proof first; among unproved pairs, one that passes the acceptance check (Hurwitz at x*, no other
         # equilibrium) before a larger proved share: retraining on counterexamples of an infeasible condition
         # can trade stability for area (measured on pendulum-u9: 0/200 stabilised instead of 170/200)
@@ -286,6 +286,13 @@ def _proof_rounds(cfg: TrainConfig, system: UncertainSystem, proof: ProofConfig,
     out = dataclasses.replace(chosen, config=cfg, metrics=metrics, history=chosen_history,
                               trained_proof=chosen_proof if chosen_proof.verified else None)
     return out, done, cert
+
+
+def _same_pair(before: tuple[Lyapunov, Controller], after: TrainResult) -> bool:
+    """Whether a retraining returned the very weights it started from (a loss of 0 on every state it drew)."""
+    pairs = ((before[0], after.lyapunov), (before[1], after.controller))
+    return all(a.keys() == b.keys() and all(torch.equal(a[k].cpu(), b[k].cpu()) for k in a)
+               for a, b in ((x.state_dict(), y.state_dict()) for x, y in pairs))
 
 
 def _continued(history: list[dict], iterations: int, seconds: float) -> list[dict]:
