@@ -24,6 +24,13 @@ def level_text(level: float, digits: int = 6, up: bool = False) -> str:
     return f"{float(exact.quantize(step, rounding=ROUND_CEILING if up else ROUND_FLOOR)):.{digits}g}"
 
 
+def faces_rule(entry: dict) -> str:
+    """The rule for the box's faces a region claim, or ``metrics.json``'s report of a region, states: ``"above"`` (V
+    above the level there; the default, written as nothing) or ``"inward"`` (the set cut by the box, the flow entering
+    it wherever the set meets a face)."""
+    return entry.get("faces", "above")
+
+
 def condition_region(level: float | None, delta: float, faces: str = "above") -> str:
     """The region a trained condition is proved on: X_delta, or with a level its sublevel set, which V keeps off the
     box's faces (``faces`` ``"above"``) or which the box cuts, the flow entering the box wherever the set meets a face
@@ -82,7 +89,7 @@ def claim_sentence(claim: dict) -> str:
                     f"it except at x*, on the box |x_i - x*_i| <= [{half}] by the Jacobian's enclosure{ring}")
         if claim.get("practical") is not None:  # practical stability: V's bound on the ball, the decrease outside
             model = what.split(" (")[0].replace("decrease on ", "")
-            cut = " in the state box" if claim.get("faces") == "inward" else ""
+            cut = " in the state box" if faces_rule(claim) == "inward" else ""
             return (f"trajectories of {model} from {{V <= {level_text(level)}}}{cut} stay in it and end up in "
                     f"{{V <= {level_text(float(claim['practical']['level']), up=True)}}}: V is at most that on the ball "
                     f"||x - x*|| < {float(r['ball_of']):g}, and decreases outside it by the certificate "
@@ -105,6 +112,6 @@ def claim_sentence(claim: dict) -> str:
                     f"Vdot < 0 on the cube |x_i - x*_i| <= [{half}] except at x* (second order){rest}; outside "
                     f"the ball by the certificate {claim.get('outer')!r}")
         return (f"{what} holds at every state of "
-                f"{of_region(condition_region(level, float(r['delta']), claim.get('faces', 'above')))}")
+                f"{of_region(condition_region(level, float(r['delta']), faces_rule(claim)))}")
     except (KeyError, TypeError, ValueError, IndexError):
         return "(an unreadable claim)"

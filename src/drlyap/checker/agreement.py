@@ -11,6 +11,8 @@ import math
 from collections.abc import Callable
 from pathlib import Path
 
+from drlyap.claims import faces_rule
+
 
 def outer_missing(run_dir: Path, header: dict, positive: Callable[[dict], str] | None = None) -> list[str]:
     """Where the certificate a ``roa-ball`` names for the decrease outside the ball (``outer``) does not cover its
@@ -34,8 +36,8 @@ def outer_missing(run_dir: Path, header: dict, positive: Callable[[dict], str] |
     if samples != header["claim"]["condition"].get("xi"):
         return [f"{path.name} is about other samples or another shift than the decrease inside the ball"]
     mine = header["claim"]  # a roa-ball's sentence leaves the set's faces to its outer; a practical one states them
-    if ("faces" in mine or "practical" in mine) and mine.get("faces", "above") != claim.get("faces", "above"):
-        return [f"the rule for the box's faces it states ({mine.get('faces', 'above')!r}) is not {path.name}'s"]
+    if ("faces" in mine or "practical" in mine) and faces_rule(mine) != faces_rule(claim):
+        return [f"the rule for the box's faces it states ({faces_rule(mine)!r}) is not {path.name}'s"]
     strict = _strict(claim["condition"], outer_header.get("networks") or {})
     if strict == "positive" and positive is not None:
         why = positive(outer)
@@ -122,7 +124,7 @@ def _roa_claim(name: str, header: dict, config: dict, metrics: dict, expected: d
         condition = {"name": "plain", "xi": condition["xi"]}
     claim = header["claim"]
     ball = _region_plain(reported, config, metrics)
-    faces = [] if claim.get("faces", "above") == reported.get("faces", "above") else [
+    faces = [] if faces_rule(claim) == faces_rule(reported) else [
         "faces (not the rule for the box's faces metrics.json reports)"]
     if name == "roa" and claim.get("core") is not None:  # the band proof: V's strict decrease outside the core
         return {k: v for k, v in expected.items() if k != "decay_rate"} | ball, {"delta": 0.0, "level": level}, faces

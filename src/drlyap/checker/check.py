@@ -60,7 +60,7 @@ from drlyap.checker.model import Pair, Residual, centre_lower, form_upper, upper
 from drlyap.checker.quadratic import surely_semidefinite
 from drlyap.checker.record import drop_record, fingerprint, write_record
 from drlyap.checker.uniform import uniform_margin_bound
-from drlyap.claims import claim_sentence
+from drlyap.claims import claim_sentence, faces_rule
 from drlyap.config import Compute
 from drlyap.parallel import check_device, pool_for
 from drlyap.progress import progress as show_progress
@@ -480,7 +480,7 @@ def check_certificate(run_dir: str | Path, name: str, header: dict, arrays: dict
         v_centre = pair.value_and_grad(Iv.point((blo[proved] + bhi[proved]) / 2))[0].lo
         false = false | (above & (bound[proved] > v_centre + 4 * EPS * v_centre.abs()))
         holds = True
-        faces = claim.get("faces", "above")
+        faces = faces_rule(claim)
         if faces not in ("above", "inward") or (faces == "inward" and (residual.model != "true"
                                                                        or claim.get("ellipsoid") is not None)):
             holds = False

@@ -290,9 +290,11 @@ def _proof_rounds(cfg: TrainConfig, system: UncertainSystem, proof: ProofConfig,
 
 def _same_pair(before: tuple[Lyapunov, Controller], after: TrainResult) -> bool:
     """Whether a retraining returned the very weights it started from (a loss of 0 on every state it drew)."""
-    pairs = ((before[0], after.lyapunov), (before[1], after.controller))
-    return all(a.keys() == b.keys() and all(torch.equal(a[k].cpu(), b[k].cpu()) for k in a)
-               for a, b in ((x.state_dict(), y.state_dict()) for x, y in pairs))
+    for old, new in ((before[0], after.lyapunov), (before[1], after.controller)):
+        a, b = old.state_dict(), new.state_dict()
+        if a.keys() != b.keys() or not all(torch.equal(a[k].cpu(), b[k].cpu()) for k in a):
+            return False
+    return True
 
 
 def _continued(history: list[dict], iterations: int, seconds: float) -> list[dict]:
