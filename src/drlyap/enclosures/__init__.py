@@ -19,7 +19,8 @@ minimises (no second encoding of any formula).
 * All implement ``__torch_function__`` and the Python operators (:mod:`~drlyap.enclosures.base`), so code written
   with ``+ - * /``, ``**`` by an int, ``torch.sin/cos/tanh/exp/sqrt/square``, ``torch.stack/cat``, ``unbind``,
   indexing, ``torch.nn.functional.linear`` (so ``nn.Linear`` layers) and ``torch.linalg.vector_norm`` runs
-  unchanged on them. Weights met in ``linear`` are read as float64 numbers (exactly).
+  unchanged on them. Weights met in ``linear`` are read as float64 numbers (exactly); within
+  :func:`weight_gradients` they keep their autograd graph, so that a bound can be trained on.
 
 How affine forms enclose each operation:
 Linear operations (``+ -``, products with constants, ``linear``, ``sum``, stacking, indexing) are exact
@@ -37,7 +38,18 @@ linear).
 """
 
 from drlyap.enclosures.affine import Affine
-from drlyap.enclosures.base import Enclosure, cat, constant_like, is_enclosure, level_of, lift, lift_pair, norm, stack
+from drlyap.enclosures.base import (
+    Enclosure,
+    cat,
+    constant_like,
+    is_enclosure,
+    level_of,
+    lift,
+    lift_pair,
+    norm,
+    stack,
+    weight_gradients,
+)
 from drlyap.enclosures.dual import Dual
 from drlyap.enclosures.interval import Interval
 from drlyap.enclosures.quadratic import max_lin_quad, quadratic_max, vertices
@@ -46,5 +58,5 @@ from drlyap.enclosures.rounding import EPS, F64, REL1, RELT, TINY, as_f64, round
 __all__ = [
     "EPS", "F64", "REL1", "RELT", "TINY", "Affine", "Dual", "Enclosure", "Interval", "as_f64", "cat", "constant_like",
     "is_enclosure", "level_of", "lift", "lift_pair", "max_lin_quad", "norm", "quadratic_max", "round_down",
-    "round_up", "stack", "sum_up", "vertices",
+    "round_up", "stack", "sum_up", "vertices", "weight_gradients",
 ]

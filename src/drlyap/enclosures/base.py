@@ -10,7 +10,9 @@ values, level 2 over level-1 duals, ...). An operation lifts the lower operand t
 
 from __future__ import annotations
 
-from collections.abc import Callable, Sequence
+from collections.abc import Callable, Iterator, Sequence
+from contextlib import contextmanager
+from contextvars import ContextVar
 from typing import ClassVar
 
 import torch
@@ -18,6 +20,20 @@ import torch.nn.functional as F  # noqa: N812
 from torch import Tensor
 
 from drlyap.enclosures.rounding import F64
+
+_WEIGHT_GRADIENTS: ContextVar[bool] = ContextVar("weight_gradients", default=False)
+
+
+@contextmanager
+def weight_gradients() -> Iterator[None]:
+    """Within this block the weights an enclosure meets in ``linear`` keep their autograd graph (read as float64 by
+    a differentiable cast, the same numbers), so that a bound computed here can be differentiated in the networks'
+    weights (certified training). Outside it they are detached: the verifier's bounds build no graph."""
+    token = _WEIGHT_GRADIENTS.set(True)
+    try:
+        yield
+    finally:
+        _WEIGHT_GRADIENTS.reset(token)
 
 
 class Enclosure:
@@ -123,7 +139,9 @@ class Enclosure:
         if func is F.linear:
             weight = args[1] if len(args) > 1 else kwargs["weight"]
             bias = args[2] if len(args) > 2 else kwargs.get("bias")
-            return args[0].linear(weight.detach().to(F64), None if bias is None else bias.detach().to(F64))
+            if not _WEIGHT_GRADIENTS.get():
+                weight, bias = weight.detach(), None if bias is None else bias.detach()
+            return args[0].linear(weight.to(F64), None if bias is None else bias.to(F64))
         if func is torch.linalg.vector_norm:
             dim = kwargs.get("dim", args[2] if len(args) > 2 else None)
             if dim is None or isinstance(dim, (tuple, list)) or kwargs.get("ord", 2) != 2 or kwargs.get("keepdim"):

@@ -55,24 +55,30 @@ class ConditionJob:
 
     def __call__(self, lo: Tensor, hi: Tensor) -> dict:
         device = torch.device(self.device)
-        lo, hi = lo.to(device), hi.to(device)
-        level, condition = self.level, self.condition
-        make = condition_objective if level is None else condition_and_value_objective
-        lb_c, ub_c, at, sens, form = box_bounds(make(self.loop, condition), lo, hi, self.enclosure, sensitivity=True,
-                                                keep_form=True)
-        out = {"sensitivity": sens}
-        at_lo = at.lo
-        if level is not None:  # the last component is V
-            out["value_lower"], out["centre_value_upper"] = lb_c[:, -1], at.hi[:, -1]
-            ub_c, at_lo = ub_c[:, :-1], at_lo[:, :-1]
-        upper = combine_upper(condition, ub_c)
-        if level is not None and form is not None:  # the S-procedure where the plain bound proves nothing yet
-            need = ((upper > 0) & (out["value_lower"] <= level)).nonzero().squeeze(-1)
-            if need.numel():
-                upper[need] = torch.minimum(upper[need], sublevel_upper(condition, form[need], level))
-        out["upper"] = upper
-        out["centre_lower"] = combine_lower(condition, at_lo)
+        out = bound_condition(self.loop, self.condition, self.level, self.enclosure, lo.to(device), hi.to(device))
         return {k: v.cpu() for k, v in out.items()}
+
+
+def bound_condition(loop, condition, level: float | None, enclosure: str, lo: Tensor, hi: Tensor) -> dict:
+    """What a :class:`ConditionJob` returns for the boxes ``lo, hi (B, n)`` (local coordinates, on the networks'
+    device), computed with ``loop``'s networks as they are: the verifier passes float64 copies; training passes its
+    live networks within :func:`~drlyap.enclosures.weight_gradients`, and ``upper`` is then the verifier's bound,
+    differentiable in the weights."""
+    make = condition_objective if level is None else condition_and_value_objective
+    lb_c, ub_c, at, sens, form = box_bounds(make(loop, condition), lo, hi, enclosure, sensitivity=True, keep_form=True)
+    out = {"sensitivity": sens}
+    at_lo = at.lo
+    if level is not None:  # the last component is V
+        out["value_lower"], out["centre_value_upper"] = lb_c[:, -1], at.hi[:, -1]
+        ub_c, at_lo = ub_c[:, :-1], at_lo[:, :-1]
+    upper = combine_upper(condition, ub_c)
+    if level is not None and form is not None:  # the S-procedure where the plain bound proves nothing yet
+        need = ((upper > 0) & (out["value_lower"] <= level)).nonzero().squeeze(-1)
+        if need.numel():
+            upper = upper.index_put((need,), torch.minimum(upper[need], sublevel_upper(condition, form[need], level)))
+    out["upper"] = upper
+    out["centre_lower"] = combine_lower(condition, at_lo)
+    return out
 
 
 def _loop_on(loop, device: str):

@@ -75,12 +75,19 @@ def falsifier_starts(region: Region, count: int, generator: torch.Generator) -> 
 def box_centres(system: UncertainSystem, boxes: list[dict]) -> Tensor:
     """The centres ``(B, n)``, in local coordinates, of boxes ``{"lo": [...], "hi": [...]}`` given in user
     coordinates (a verification's ``unverified_boxes``; angles are not wrapped, so a box keeps its centre)."""
+    lo, hi = local_boxes(system, boxes)
+    return (lo + hi) / 2
+
+
+def local_boxes(system: UncertainSystem, boxes: list[dict]) -> tuple[Tensor, Tensor]:
+    """The corners ``lo, hi (B, n)``, in local coordinates, of boxes given in user coordinates (see
+    :func:`box_centres`)."""
     if not boxes:
-        return torch.empty(0, system.n, dtype=F64)
+        return torch.empty(0, system.n, dtype=F64), torch.empty(0, system.n, dtype=F64)
     x_star = torch.as_tensor(system.equilibrium, dtype=F64)
     lo = torch.as_tensor([b["lo"] for b in boxes], dtype=F64) - x_star
     hi = torch.as_tensor([b["hi"] for b in boxes], dtype=F64) - x_star
-    return (lo + hi) / 2
+    return lo, hi
 
 
 def confirmed_violations(loop: ClosedLoop, condition: Condition, region: Region, z: Tensor,
