@@ -459,7 +459,9 @@ class ProofConfig:
     ``max_extra``, repeated ``replicate`` times in every batch): the proof's counterexample, the centres of at most
     ``keep_boxes`` unverified boxes, and a falsifier's counterexamples (``falsifier_starts`` starts, None: 512
     uniform, or 2,048 half near x* where training draws states near x*; ``falsifier_steps`` ascent steps; each with
-    ``neighbours`` jittered copies). ``settle_starts``: falsifier starts that settle an unknown verdict.
+    ``neighbours`` jittered copies); and, with ``box_weight`` > 0, the verifier's own bound over at most
+    ``train_boxes`` boxes the proof left open (certified training, :mod:`drlyap.training.boxes`; 0 of either: off).
+    ``settle_starts``: falsifier starts that settle an unknown verdict.
     ``stop_at_counterexample``: a proof of the rounds ends at the first batch of boxes holding a confirmed
     violation instead of spending its whole budget (None: ``defaults.stop_at_counterexample``; its verified
     fraction then counts every box not yet proved as unproved).
@@ -481,6 +483,8 @@ class ProofConfig:
     max_extra: int = 2000
     replicate: int = 2
     keep_boxes: int = 200
+    train_boxes: int = 1024
+    box_weight: float = 1.0
     falsifier_starts: int | None = None
     falsifier_steps: int = 30
     neighbours: int = 3
@@ -508,6 +512,8 @@ class ProofConfig:
                 problems.append(f"{name} = {value} (must be > 0 seconds)")
         if self.band_time is not None and not (math.isfinite(self.band_time) and self.band_time >= 0):
             problems.append(f"band_time = {self.band_time} (must be >= 0 seconds)")
+        if not (math.isfinite(self.box_weight) and self.box_weight >= 0):
+            problems.append(f"box_weight = {self.box_weight} (must be >= 0)")
         if not (math.isfinite(self.uniform_time) and self.uniform_time > 0):
             problems.append(f"uniform_time = {self.uniform_time} (must be > 0 seconds)")
         if not self.min_width > 0 or (self.max_boxes is not None and int(self.max_boxes) < 1):
@@ -516,7 +522,7 @@ class ProofConfig:
             problems.append(f"iters_per_round = {self.iters_per_round} (must be >= 1)")
         if int(self.max_extra) < 1 or int(self.replicate) < 1:
             problems.append(f"max_extra = {self.max_extra} / replicate = {self.replicate} (must be >= 1)")
-        for name in ("keep_boxes", "falsifier_steps", "neighbours", "settle_starts"):
+        for name in ("keep_boxes", "train_boxes", "falsifier_steps", "neighbours", "settle_starts"):
             if int(getattr(self, name)) < 0:
                 problems.append(f"{name} = {getattr(self, name)} (must be >= 0)")
         if self.falsifier_starts is not None and int(self.falsifier_starts) < 0:

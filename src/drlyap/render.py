@@ -105,6 +105,8 @@ def proof_round_line(entry: ProofRound) -> str:
             else ""
         retrain = (f"{added.get('counterexamples_added')} counterexamples (+{added.get('neighbours_added')} "
                    f"neighbours, {added.get('box_centres_added')} box centres)")
+        if added.get("open_boxes"):
+            retrain += f" and the verifier's bound over {added['open_boxes']} open boxes"
     same = " (the retraining before it left the pair unchanged)" if entry.unchanged else ""
     line = (f"  proof round {entry.round}: {proof.status.upper()}{same}, {what} ({proof.boxes_processed:,} boxes, "
             f"{proof.time_s:.2f} s{capped})")

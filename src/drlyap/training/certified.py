@@ -17,7 +17,8 @@ falsifier that searches for violating states and adds them").
    the states with a positive residual (the *counterexamples*), with ``neighbours`` jittered copies each, and
    the unverified box centres are added (deduplicated, at most ``max_extra``, the newest kept) to the
    accumulated extra states that :func:`~drlyap.training.trainer.fit` appends to every batch (``replicate``
-   times, to weigh them);
+   times, to weigh them); and at most ``train_boxes`` of the unverified boxes themselves, on which the retraining
+   also minimises the verifier's own bound of the residual (``box_weight``; :mod:`drlyap.training.boxes`);
 4. training continues from the current networks for ``iters_per_round`` iterations (default ``iters // 2``; the
    acceptance check may stop it earlier), with explicit xi samples (the same ones as the first run) and a
    per-round seed (fresh batches), and the result is verified again.
@@ -56,9 +57,10 @@ from drlyap.regions import Region
 from drlyap.render import unverified_warning
 from drlyap.sections import TrainSections
 from drlyap.systems import UncertainSystem, get_system
+from drlyap.training.boxes import OpenBoxes
 from drlyap.training.trainer import TrainResult, fit
 from drlyap.verification import Budget, Certificate, ConditionProof, UniformMargin, prove_trained, uniform_margin
-from drlyap.verification.falsifier import box_centres, falsifier_starts, falsify, settle_unknown
+from drlyap.verification.falsifier import box_centres, falsifier_starts, falsify, local_boxes, settle_unknown
 
 F64 = torch.float64
 
@@ -144,11 +146,12 @@ class _Counterexamples:
                                                                             cfg.roa_level)
         self.near = bool(cfg.near_share)
         self.n_random = proof.falsifier_starts if proof.falsifier_starts is not None else (2048 if self.near else 512)
-        self.seed = cfg.seed
+        self.seed, self.system = cfg.seed, result.system
 
     def prove(self, loop: ClosedLoop) -> ConditionProof:
+        keep = max(self.proof.keep_boxes, self.proof.train_boxes if self.proof.box_weight else 0)
         return prove_trained(loop, self.condition, self.region, self.budget, self.level,
-                             keep_boxes=self.proof.keep_boxes, falsify_starts=0,  # its own falsifier below
+                             keep_boxes=keep, falsify_starts=0,  # its own falsifier below
                              stop_at_counterexample=bool(self.proof.stop_at_counterexample))
 
     def summary(self, verdict: ConditionProof) -> dict:
@@ -172,6 +175,15 @@ class _Counterexamples:
         entry.counterexamples = found["counterexamples"]
         return torch.cat([found["box_centres"], found["neighbours"], found["counterexamples"]])
 
+    def open_boxes(self, verdict: ConditionProof, margin: float) -> OpenBoxes | None:
+        """At most ``train_boxes`` boxes the proof left open, to train the verifier's bound on (None: none, or the
+        term is off)."""
+        proof = self.proof
+        if not (proof.box_weight and proof.train_boxes and verdict.unverified_boxes):
+            return None
+        lo, hi = local_boxes(self.system, verdict.unverified_boxes[:proof.train_boxes])
+        return OpenBoxes(lo, hi, self.level, proof.enclosure, weight=float(proof.box_weight), margin=margin)
+
     def settle(self, entry: ProofRound, loop: ClosedLoop, verdict: ConditionProof) -> ConditionProof:
         """The returned pair's verdict: an unknown proof becomes violated where the falsifier finds a certain
         violation."""
@@ -192,6 +204,10 @@ class _MarginPeaks:
 
     def summary(self, verdict: UniformMargin) -> dict:
         return verdict.to_dict()
+
+    def open_boxes(self, verdict: UniformMargin, margin: float) -> None:
+        """None: the uniform margin is one number over X_delta, no per-box residual to train on."""
+        return None
 
     def rank(self, verdict: UniformMargin) -> tuple:
         """After a proof and the acceptance check: a smaller margin."""
@@ -229,12 +245,12 @@ def _proof_rounds(cfg: TrainConfig, system: UncertainSystem, proof: ProofConfig,
     best: tuple | None = None
     history: list[dict] = []  # all rounds' training, iterations and seconds counted from the first run
     total_iters = 0
-    round_cfg, kind, result = cfg, None, None
+    round_cfg, kind, result, boxes = cfg, None, None, None
     for r in range(rounds + 1):
         tic = time.perf_counter()
         warm = init if result is None else (result.lyapunov, result.controller)
         result = fit(round_cfg, system, progress=progress, init=warm,
-                     extra_states=extra.repeat(int(proof.replicate), 1) if r else None, grow=not r)
+                     extra_states=extra.repeat(int(proof.replicate), 1) if r else None, grow=not r, boxes=boxes)
         train_time = time.perf_counter() - (tic if r else start)
         history += _continued(result.history, total_iters, history[-1]["time_s"] if history else 0.0)
         total_iters += result.record.iterations
@@ -262,6 +278,9 @@ def _proof_rounds(cfg: TrainConfig, system: UncertainSystem, proof: ProofConfig,
                 log(entry)
             break
         new = kind.states(result.loop, ver, gen, entry)
+        boxes = kind.open_boxes(ver, float(TrainSections.of(cfg).condition.margin))
+        if boxes is not None:
+            entry.added["open_boxes"] = len(boxes)
         extra = region.distinct(torch.cat([extra, new]))[-int(proof.max_extra):]  # the newest kept
         entry.added["extra_states"] = int(extra.shape[0])
         done.append(entry)

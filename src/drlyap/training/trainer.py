@@ -34,6 +34,7 @@ from drlyap.records import AcceptanceCheck, TrainingRecord
 from drlyap.sections import ConditionSection, NetworkSection, RegionGoal, Schedule, TrainSections
 from drlyap.systems import UncertainSystem
 from drlyap.training.acceptance import PairKeeper, restore, snapshot
+from drlyap.training.boxes import OpenBoxes
 from drlyap.training.states import TrainingStates
 from drlyap.training.warm_start import warm_start_lqr
 from drlyap.verification.results import ConditionProof, UniformMargin
@@ -81,14 +82,15 @@ def growth_words(grown: int, iterations: int) -> str:
 
 
 def fit(cfg: TrainConfig, system: UncertainSystem, progress: bool = True, init: tuple[Lyapunov, Controller] | None = None,
-        extra_states: Tensor | None = None, grow: bool = True) -> TrainResult:
+        extra_states: Tensor | None = None, grow: bool = True, boxes: OpenBoxes | None = None) -> TrainResult:
     """Train a pair for the resolved config ``cfg`` (:meth:`TrainConfig.resolved` for ``system``), without proving
     it (:func:`drlyap.training.train` trains and proves).
 
     ``init`` warm-starts from given networks (copied, not modified). ``extra_states`` ``(E, n)`` are
     local states (e.g. counterexamples found by the verifier) added to every training batch. ``grow=False`` leaves
     out the growth term (``grow_weight``; the faces keep its margin): the retraining rounds repair what a proof
-    found instead of pulling the set further out.
+    found instead of pulling the set further out. ``boxes``: boxes a proof left open, whose verifier bound is trained
+    on beside the states (:class:`~drlyap.training.boxes.OpenBoxes`; certified training).
     """
     if system.name != cfg.system:
         raise ValueError(f"TrainConfig(system={cfg.system!r}) names another system than the one passed "
@@ -115,7 +117,8 @@ def fit(cfg: TrainConfig, system: UncertainSystem, progress: bool = True, init: 
         warm = warm_start_lqr(system, lyapunov, controller, plan.networks, goal.level, schedule.lr, region, gen,
                               n_states=min(4096, int(sampling.n_states)))
     states.start()
-    run = _Iterations(schedule, plan.condition, goal, loop, condition, states, keeper, growing)
+    run = _Iterations(schedule, plan.condition, goal, loop, condition, states, keeper, growing,
+                      None if boxes is None or not len(boxes) else (boxes.to(device), gen))
     run.go(show_progress(schedule.iters, f"{cfg.system} {cfg.method}", progress))
     metrics = run.metrics() | {"condition": condition.describe(), "xi_samples": xi_all.tolist(),
                                "xi_train": xi_train.tolist(), "warm_start": warm}
@@ -128,9 +131,10 @@ class _Iterations:
     Afterwards the networks hold the pair the ``keeper`` ranked best."""
 
     def __init__(self, schedule: Schedule, section: ConditionSection, goal: RegionGoal, loop: ClosedLoop,
-                 condition: Condition, states: TrainingStates, keeper: PairKeeper, growing: bool) -> None:
+                 condition: Condition, states: TrainingStates, keeper: PairKeeper, growing: bool,
+                 boxes: tuple[OpenBoxes, torch.Generator] | None = None) -> None:
         self.schedule, self.section, self.goal, self.loop, self.condition = schedule, section, goal, loop, condition
-        self.states, self.keeper, self.growing = states, keeper, growing
+        self.states, self.keeper, self.growing, self.boxes = states, keeper, growing, boxes
         self.grow_until = math.floor(GROW_SHARE * schedule.iters)  # the last iteration with the growth term
         self.history: list[dict] = []
         self.status = "iteration cap reached without passing the acceptance check"
@@ -150,6 +154,8 @@ class _Iterations:
                 self.iteration = iteration
                 loss = _loss(self.section, self.goal, self.loop, self.condition, self.states, iteration,
                              self.growing and iteration <= self.grow_until)
+                if self.boxes is not None:
+                    loss = loss + self.boxes[0].loss(self.loop, self.condition, self.boxes[1])
                 if not torch.isfinite(loss):
                     restore(lyapunov, controller, last_good)
                     self.status = (f"diverged: loss became {float(loss.detach())} at iteration {iteration}; kept the "
