@@ -70,7 +70,7 @@ def _check_numbers(**given: float | None) -> None:
 @click.option("--xi-samples", default=None,
               help="Explicit xi samples 'a,b;c,d;...' (one sample per ';'); default: drawn from the system.")
 @click.option("--iters", type=int, default=None,
-              help="Iteration cap [the system's: 3000; 4500 for quadrotor2d].")
+              help="Iteration cap [the system's: 3000; 9000 for quadrotor2d].")
 @click.option("--seed", type=int, default=default(TrainConfig, "seed"), show_default=True)
 @click.option("--device", default=default(TrainConfig, "device"), show_default=True, help="cpu or cuda.")
 @click.option("--warm-start", type=click.Path(path_type=Path), default=None,

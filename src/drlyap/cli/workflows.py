@@ -37,7 +37,7 @@ def seed_values(text: str) -> list[int]:
 @click.option("--out", type=click.Path(path_type=Path), default=None,
               help="Output directory [first free runs/reproduce-SYSTEM, -2, -3, ...].")
 @click.option("--iters", type=int, default=None,
-              help="Iteration cap per training run [the system's: 3000; 4500 for quadrotor2d].")
+              help="Iteration cap per training run [the system's: 3000; 9000 for quadrotor2d].")
 @click.option("--device", default=default(TrainConfig, "device"), show_default=True)
 @click.option("--verify/--no-verify", default=True, show_default=True,
               help="Prove each pair's trained condition, retraining on counterexamples until proved (as `train`).")
@@ -159,7 +159,7 @@ def compare(run_dirs: tuple[Path, ...], xi: str, n_init: int, seed: int, horizon
               help="Concurrent combinations (local processes, or CPUs of a local Ray), one torch thread each.")
 @click.option("--address", default=None, help="Ray cluster to join ('auto', 'ray://HOST:10001'); default: start Ray here.")
 @click.option("--iters", type=int, default=None,
-              help="Iteration cap per training run [the system's: 3000; 4500 for quadrotor2d].")
+              help="Iteration cap per training run [the system's: 3000; 9000 for quadrotor2d].")
 @click.option("--verify/--no-verify", default=True, show_default=True,
               help="Prove each trained pair with counterexample-guided rounds, as `train` does.")
 @click.option("--verify-rounds", type=int, default=default(ProofConfig, "rounds"), show_default=True,
