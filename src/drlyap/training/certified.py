@@ -147,6 +147,7 @@ class _Counterexamples:
         self.near = bool(cfg.near_share)
         self.n_random = proof.falsifier_starts if proof.falsifier_starts is not None else (2048 if self.near else 512)
         self.seed, self.system = cfg.seed, result.system
+        self.margin = float(TrainSections.of(cfg).condition.margin)  # the open boxes' hinge margin, the states' own
 
     def prove(self, loop: ClosedLoop) -> ConditionProof:
         keep = max(self.proof.keep_boxes, self.proof.train_boxes if self.proof.box_weight else 0)
@@ -175,14 +176,14 @@ class _Counterexamples:
         entry.counterexamples = found["counterexamples"]
         return torch.cat([found["box_centres"], found["neighbours"], found["counterexamples"]])
 
-    def open_boxes(self, verdict: ConditionProof, margin: float) -> OpenBoxes | None:
+    def open_boxes(self, verdict: ConditionProof) -> OpenBoxes | None:
         """At most ``train_boxes`` boxes the proof left open, to train the verifier's bound on (None: none, or the
         term is off)."""
         proof = self.proof
         if not (proof.box_weight and proof.train_boxes and verdict.unverified_boxes):
             return None
         lo, hi = local_boxes(self.system, verdict.unverified_boxes[:proof.train_boxes])
-        return OpenBoxes(lo, hi, self.level, proof.enclosure, weight=float(proof.box_weight), margin=margin)
+        return OpenBoxes(lo, hi, self.level, proof.enclosure, weight=float(proof.box_weight), margin=self.margin)
 
     def settle(self, entry: ProofRound, loop: ClosedLoop, verdict: ConditionProof) -> ConditionProof:
         """The returned pair's verdict: an unknown proof becomes violated where the falsifier finds a certain
@@ -205,7 +206,7 @@ class _MarginPeaks:
     def summary(self, verdict: UniformMargin) -> dict:
         return verdict.to_dict()
 
-    def open_boxes(self, verdict: UniformMargin, margin: float) -> None:
+    def open_boxes(self, verdict: UniformMargin) -> None:
         """None: the uniform margin is one number over X_delta, no per-box residual to train on."""
         return None
 
@@ -278,7 +279,7 @@ def _proof_rounds(cfg: TrainConfig, system: UncertainSystem, proof: ProofConfig,
                 log(entry)
             break
         new = kind.states(result.loop, ver, gen, entry)
-        boxes = kind.open_boxes(ver, float(TrainSections.of(cfg).condition.margin))
+        boxes = kind.open_boxes(ver)
         if boxes is not None:
             entry.added["open_boxes"] = len(boxes)
         extra = region.distinct(torch.cat([extra, new]))[-int(proof.max_extra):]  # the newest kept
