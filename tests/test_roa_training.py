@@ -301,7 +301,7 @@ def test_verify_command_names_the_sublevel_set_of_a_roa_run(tmp_path):
 def test_systems_default_the_step_size_and_the_exponential_rate():
     quad = TrainConfig(system="quadrotor2d").resolved(get_system("quadrotor2d"))
     pend = TrainConfig(system="pendulum").resolved(get_system("pendulum"))
-    assert (quad.lr, quad.exp_rate, quad.roa_level, quad.level_margin, quad.iters) == (0.003, 0.1, 0.8, 0.25, 9000)
+    assert (quad.lr, quad.exp_rate, quad.roa_level, quad.level_margin, quad.iters) == (0.003, 0.1, 1.0, 0.0, 9000)
     # a quadratic V; a saturated controller: a linear gain plus a 16-unit layer's correction
     assert (quad.lyapunov_hidden, quad.controller_hidden, quad.controller_skip) == ([], [16], True)
     assert TrainConfig(system="cartpole").resolved(get_system("cartpole")).controller_skip is False
