@@ -200,20 +200,22 @@ def test_the_checkers_residual_is_the_conditions(proved):
     assert float((mine.hi - mine.lo).max()) < 1e-9
 
 
-def test_the_checker_reads_a_controller_with_a_linear_path():
+def test_the_checker_reads_networks_with_a_linear_path():
     from drlyap.networks import Controller, Lyapunov
 
     torch.manual_seed(4)
-    lyap = Lyapunov(2, (4,), 3, 0.5).double()
+    lyap = Lyapunov(2, (4,), 3, 0.5, skip=True).double()
     ctrl = Controller(2, ((-2.0,), (3.0,)), (0.5,), (8,), skip=True).double()
     with torch.no_grad():
         ctrl.varphi.skip.weight.copy_(torch.tensor([[-1.5, -0.7]]))
+        lyap.phi.skip.weight.copy_(torch.tensor([[0.8, 0.1], [0.0, 1.2], [0.3, -0.4]]))
     pair = Pair({"lyapunov": lyap.state_dict(), "controller": ctrl.state_dict()}, 0.5, 2)
     z = torch.randn(100, 2, dtype=F64)
     assert_encloses(pair.controller(Iv.point(z)), ctrl(z).detach(), tol=1e-12)
-    bad = {"lyapunov": {**lyap.state_dict(), "phi.skip.weight": torch.zeros(3, 2)}, "controller": ctrl.state_dict()}
-    with pytest.raises(ValueError, match="linear path"):
-        Pair(bad, 0.5, 2)
+    value, grad = pair.value_and_grad(Iv.point(z))
+    theirs_value, theirs_grad = lyap.value_and_grad(z)
+    assert_encloses(value, theirs_value.detach(), tol=1e-12)
+    assert_encloses(grad, theirs_grad.detach(), tol=1e-12)
 
 
 def test_the_boxes_cover_the_state_box(proved):

@@ -48,6 +48,37 @@ def test_a_controller_with_a_linear_path_starts_at_its_gain_and_learns_a_correct
     assert not without.set_linear(k)  # hidden layers and no linear path: only regression can fit it
 
 
+def test_a_lyapunov_function_with_a_linear_path_starts_at_its_quadratic_and_learns_a_term():
+    from drlyap.enclosures import Affine
+
+    torch.manual_seed(5)
+    scale = (1.0, 2.0, 0.5)
+    v = Lyapunov(3, (8,), 3, 0.5, scale, skip=True).double()
+    s = torch.tensor(scale, dtype=torch.float64)
+    p = torch.diag(1.0 / s.square()) * 3.0 + 0.1
+    assert v.set_quadratic(p)
+    z = torch.randn(64, 3, dtype=torch.float64) * 0.3
+    assert torch.allclose(v(z), ((z @ p) * z).sum(-1), atol=1e-12)  # the network's term starts at 0
+    v(z).sum().backward()
+    assert float(v.phi.layers[-1].weight.grad.abs().max()) > 0  # and learns from there
+    with torch.no_grad():
+        v.phi.layers[-1].weight.normal_()
+    zg = z.clone().requires_grad_(True)
+    value, grad = v.value_and_grad(zg)
+    (auto,) = torch.autograd.grad(v(zg).sum(), zg)
+    assert torch.allclose(value, v(z)) and torch.allclose(grad, auto, atol=1e-12)
+    lo = torch.randn(20, 3, dtype=torch.float64)
+    hi = lo + torch.rand(20, 3, dtype=torch.float64) * 0.5
+    box_v, box_g = (e.to_interval() for e in v.value_and_grad(Affine.box(lo, hi)))
+    pts = (lo[:, None] + (hi - lo)[:, None] * torch.rand(20, 300, 3, dtype=torch.float64)).reshape(-1, 3)
+    with torch.no_grad():
+        vals, grads = v.value_and_grad(pts)
+    vals, grads = vals.reshape(20, 300), grads.reshape(20, 300, 3)
+    assert bool((vals >= box_v.lo[:, None]).all() and (vals <= box_v.hi[:, None]).all())
+    assert bool((grads >= box_g.lo[:, None]).all() and (grads <= box_g.hi[:, None]).all())
+    assert not Lyapunov(3, (8,), 3, 0.5, scale).set_quadratic(p)  # hidden layers and no linear path: regression
+
+
 def test_the_linear_paths_input_gradient_and_enclosure():
     from drlyap.enclosures import Affine
     from drlyap.networks import TanhMLP

@@ -51,6 +51,7 @@ class SystemDefaults:
     lyapunov_hidden: tuple[int, ...] = (32, 32)
     controller_hidden: tuple[int, ...] = (32, 32)
     controller_skip: bool = False
+    lyapunov_skip: bool = False
     margin: float = 0.0
     near_share: float = 0.0
     train_box: tuple[tuple[float, ...], tuple[float, ...]] | None = None
@@ -111,9 +112,9 @@ def _thawed(value):
 
 
 RESOLVED = ("wasserstein_radius", "risk_level", "decay_rate", "exp_rate", "n_states", "n_xi", "delta", "lr", "iters",
-            "alpha_hat", "lyapunov_hidden", "controller_hidden", "controller_skip", "margin", "near_share", "train_box",
-            "roa_level", "level_margin", "margin_rate", "outside_weight", "exclude_weight", "grow_weight", "local_rate",
-            "adversarial_share", "warm_start", "lqr_weights")
+            "alpha_hat", "lyapunov_hidden", "lyapunov_skip", "controller_hidden", "controller_skip", "margin",
+            "near_share", "train_box", "roa_level", "level_margin", "margin_rate", "outside_weight", "exclude_weight",
+            "grow_weight", "local_rate", "adversarial_share", "warm_start", "lqr_weights")
 """The fields a config leaves to its system (``None``) and :meth:`TrainConfig.resolved` fills."""
 
 OPTIONAL = ("train_box", "roa_level", "warm_start", "lqr_weights")
@@ -141,8 +142,8 @@ _KINDS = {
     "exclude_weight": "number", "grow_weight": "number", "local_rate": "number", "adversarial_share": "number",
     "init_gain": "number",
     "n_states": "int", "n_xi": "int", "iters": "int", "check_every": "int", "seed": "int", "lyapunov_out": "int",
-    "resample": "bool", "controller_skip": "bool", "lyapunov_hidden": "sizes", "controller_hidden": "sizes",
-}
+    "resample": "bool", "controller_skip": "bool", "lyapunov_skip": "bool", "lyapunov_hidden": "sizes",
+    "controller_hidden": "sizes"}
 _REQUIRED = ("system", "method", "loss", "check_every", "seed", "device", "lyapunov_out", "init_gain",
              "resample")
 
@@ -179,6 +180,7 @@ class TrainConfig:
     # a linear path from the scaled state to the controller's output beside its hidden layers: pi is a linear gain
     # plus a network's correction (the LQR warm start sets the gain and starts the correction at 0)
     controller_skip: bool | None = None
+    lyapunov_skip: bool | None = None  # the same for V's phi: V is a quadratic form plus a network's term
     init_gain: float = 10.0  # scale of the controller's output layer at initialisation
     margin: float | None = None  # training hinge is (residual + margin)_+: pushes the condition past zero
     resample: bool = True  # draw a fresh uniform batch of n_states every iteration (False: one fixed set)
@@ -218,8 +220,8 @@ class TrainConfig:
     # where the condition fails. 0: none
     adversarial_share: float | None = None
     # "lqr": before training, fit V to the LQR's z^T P z (scaled to 1.2 times the training level, or 1, on the faces)
-    # and pi to its gain (exactly without hidden layers, else by regression); lqr_weights = [Q diagonal, R diagonal]
-    # (None: Bryson's rule)
+    # and pi to its gain (exactly without hidden layers or with a linear path, else by regression); lqr_weights = [Q
+    # diagonal, R diagonal] (None: Bryson's rule); "ellipsoid": the same with drlyap.lmi's largest invariant ellipsoid
     warm_start: str | None = None
     lqr_weights: list[list[float]] | None = None
 
@@ -296,8 +298,8 @@ class TrainConfig:
             problems.append(f"roa_level = {self.roa_level} (must be > 0, or None)")
         if self.level_margin and self.roa_level is None:
             problems.append(f"level_margin = {self.level_margin} needs a region-of-attraction level (roa_level)")
-        if self.warm_start not in (None, "lqr"):
-            problems.append(f"warm_start {self.warm_start!r} (valid: lqr, or None)")
+        if self.warm_start not in (None, "lqr", "ellipsoid"):
+            problems.append(f"warm_start {self.warm_start!r} (valid: lqr, ellipsoid, or None)")
         if self.lqr_weights is not None:
             ok = (isinstance(self.lqr_weights, (list, tuple)) and len(self.lqr_weights) == 2
                   and len(self.lqr_weights[0]) == system.n and len(self.lqr_weights[1]) == system.m)

@@ -7,7 +7,9 @@ Both act on local coordinates ``z = x - x*`` (angles wrapped, see :mod:`drlyap.s
 
 ``varphi`` may carry a linear path beside its hidden layers (``skip``: ``varphi(z) = mlp(z) + L z / s``), so that
 the controller is a linear gain plus a network's correction; the LQR warm start then sets ``L`` to the LQR gain and
-the correction to 0.
+the correction to 0. ``phi`` may carry one too: V is then a quadratic form plus a network's term,
+``||A z / s + mlp(z) - mlp(0)||^2 + alpha_hat ||z / s||^2``, and the warm start sets ``A`` to the LQR quadratic and
+the network's term to 0.
 
 ``phi`` and ``varphi`` are tanh MLPs whose first layer sees ``z / s``, with ``s`` the half-widths of
 the state box, so every coordinate enters on the same scale; the quadratic term uses the same
@@ -99,14 +101,15 @@ class TanhMLP(nn.Module):
 
 
 class Lyapunov(nn.Module):
-    """``V(z) = ||phi(z) - phi(0)||^2 + alpha_hat ||z / s||^2``, with ``phi: R^n -> R^p`` a tanh MLP."""
+    """``V(z) = ||phi(z) - phi(0)||^2 + alpha_hat ||z / s||^2``, with ``phi: R^n -> R^p`` a tanh MLP (with ``skip``,
+    plus a linear map of ``z / s``)."""
 
     def __init__(self, n: int, hidden: Sequence[int] = (32, 32), out: int = 8, alpha_hat: float = 1.0,
-                 input_scale: Sequence[float] | None = None) -> None:
+                 input_scale: Sequence[float] | None = None, skip: bool = False) -> None:
         super().__init__()
         if alpha_hat <= 0:
             raise ValueError(f"alpha_hat must be > 0 so that V is positive definite, got {alpha_hat}")
-        self.phi = TanhMLP([n, *hidden, out], input_scale)
+        self.phi = TanhMLP([n, *hidden, out], input_scale, skip)
         self.alpha_hat = float(alpha_hat)
 
     def forward(self, z: Tensor) -> Tensor:
@@ -125,13 +128,15 @@ class Lyapunov(nn.Module):
         return value, grad
 
     def set_quadratic(self, p: Tensor) -> bool:
-        """Without hidden layers, set V to ``z^T p z`` (``p (n, n)`` float64) as closely as its form allows, in place,
-        and return True; with hidden layers change nothing and return False. V is ``||A z/s||^2 + alpha_hat
-        ||z/s||^2``: ``A^T A`` is ``s p s - alpha_hat I`` with negative eigenvalues clipped to 0 (V then lies above
-        ``z^T p z`` there), its leading ``out`` directions when the output has fewer rows than states."""
-        if len(self.phi.layers) != 1:
+        """Without hidden layers, or with a linear path beside them, set V to ``z^T p z`` (``p (n, n)`` float64) as
+        closely as its form allows, in place, and return True (the network's term, with a linear path, then starts
+        at 0); otherwise change nothing and return False. V is ``||A z/s||^2 + alpha_hat ||z/s||^2``: ``A^T A`` is
+        ``s p s - alpha_hat I`` with negative eigenvalues clipped to 0 (V then lies above ``z^T p z`` there), its
+        leading ``out`` directions when the output has fewer rows than states."""
+        phi = self.phi
+        if phi.skip is None and len(phi.layers) != 1:
             return False
-        layer, s = self.phi.layers[0], self.phi.input_scale.to(p)
+        layer, s = (phi.layers[0] if phi.skip is None else phi.skip), phi.input_scale.to(p)
         m = s[:, None] * p * s[None, :] - self.alpha_hat * torch.eye(p.shape[0], dtype=p.dtype)
         eig, vec = torch.linalg.eigh((m + m.T) / 2)
         rows = (eig.clamp_min(0).sqrt()[:, None] * vec.T).flip(0)  # largest first
@@ -140,7 +145,11 @@ class Lyapunov(nn.Module):
         weight[:count] = rows[:count]
         with torch.no_grad():
             layer.weight.copy_(weight)
-            layer.bias.zero_()
+            for bias in (phi.layers[-1].bias, layer.bias):
+                if bias is not None:
+                    bias.zero_()
+            if phi.skip is not None:
+                phi.layers[-1].weight.zero_()
         return True
 
 

@@ -83,11 +83,13 @@ class ConditionSection:
 
 @dataclass(frozen=True)
 class NetworkSection:
-    """The networks: V's hidden sizes, output width and ``alpha_hat``; pi's hidden sizes, whether a linear path runs
-    beside them (``controller_skip``) and the scale of its output layer at initialisation; the warm start (``"lqr"``
-    or None) and its ``lqr_weights`` ([Q diagonal, R diagonal]; None: Bryson's rule)."""
+    """The networks: V's hidden sizes, whether a linear path runs beside them (``lyapunov_skip``), output width and
+    ``alpha_hat``; pi's hidden sizes, whether a linear path runs beside them (``controller_skip``) and the scale of its
+    output layer at initialisation; the warm start (``"lqr"``, ``"ellipsoid"`` or None) and the LQR's
+    ``lqr_weights`` ([Q diagonal, R diagonal]; None: Bryson's rule)."""
 
     lyapunov_hidden: list[int]
+    lyapunov_skip: bool
     lyapunov_out: int
     alpha_hat: float
     controller_hidden: list[int]
@@ -100,7 +102,7 @@ class NetworkSection:
         """Fresh networks (drawn from torch's global generator); inputs are scaled by the state box's half-widths."""
         lo, hi = system.local_box()
         scale = ((hi - lo) / 2).tolist()
-        lyapunov = Lyapunov(system.n, self.lyapunov_hidden, self.lyapunov_out, self.alpha_hat, scale)
+        lyapunov = Lyapunov(system.n, self.lyapunov_hidden, self.lyapunov_out, self.alpha_hat, scale, self.lyapunov_skip)
         controller = Controller(system.n, system.input_box, system.equilibrium_input, self.controller_hidden,
                                 self.init_gain, scale, self.controller_skip)
         return lyapunov, controller

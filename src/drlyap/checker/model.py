@@ -5,9 +5,9 @@ checker's intervals and duals.
 
 States are local coordinates ``z = x - x*`` (``(B, n)``). The formulas are the ones docs/method.md states:
 
-* ``V(z) = ||phi(z) - phi(0)||^2 + alpha_hat ||z / s||^2`` with ``phi`` a tanh MLP on ``z / s``;
-* ``pi(z) = u* + clamp(varphi(z) - varphi(0), U - u*)``, ``varphi`` a tanh MLP on ``z / s`` plus, where the weights
-  hold one (``varphi.skip.weight``), a linear map of ``z / s``;
+* ``V(z) = ||phi(z) - phi(0)||^2 + alpha_hat ||z / s||^2`` with ``phi`` a tanh MLP on ``z / s`` plus, where the
+  weights hold one (``phi.skip.weight``), a linear map of ``z / s``;
+* ``pi(z) = u* + clamp(varphi(z) - varphi(0), U - u*)``, ``varphi`` the same kind of network (``varphi.skip.weight``);
 * ``Vdot_j = grad V . (f + W xi_j)`` on the design model (``W = dF/dp`` at the nominal parameters, in the uncertain
   ones) or ``grad V . F(x, u, p0 + E xi_j)`` on the true model; ``decay = gamma ||z|| + alpha V``;
 * components ``Vdot_j + decay`` (+ ``(r / eps) ||W^T grad V||`` for the DR pointwise condition), combined by the
@@ -75,8 +75,6 @@ class Pair:
 
     def __init__(self, weights: dict, alpha_hat: float, n: int) -> None:
         self.phi = Mlp(weights["lyapunov"], "phi.")
-        if self.phi.skip is not None:
-            raise ValueError("V's network has a linear path (phi.skip.weight): only the controller's may")
         self.varphi = Mlp(weights["controller"], "varphi.")
         ctrl = weights["controller"]
         self.u_star, self.low, self.high = (ctrl[k].to(F64) for k in ("u_star", "room_low", "room_high"))
@@ -105,6 +103,8 @@ class Pair:
         g = (d * 2.0).linear(self.phi.weights[-1].T)
         for i in range(len(hidden) - 1, -1, -1):
             g = (g * (1.0 - hidden[i].square())).linear(self.phi.weights[i].T)
+        if self.phi.skip is not None:
+            g = g + (d * 2.0).linear(self.phi.skip.T)
         return value, g / self.phi.scale + zs / self.phi.scale * (2.0 * self.alpha_hat)
 
     def controller(self, z):

@@ -41,7 +41,8 @@ CORE_KEYS = ("system", "method", "loss", "wasserstein_radius", "risk_level", "de
 """Keys every run's ``config.json`` has held since format 1 (a format-2 run holds every field of TrainConfig)."""
 
 LATER_FIELDS = {"outside_weight": 0.0, "exclude_weight": 0.0, "grow_weight": 0.0, "adversarial_share": 0.0,
-                "level_margin": 0.0, "controller_skip": False}
+                "level_margin": 0.0, "controller_skip": False,
+                "lyapunov_skip": False}
 """TrainConfig fields added after format 2, with the value every run saved before them was trained with (their
 absence means exactly that value)."""
 

@@ -180,7 +180,7 @@ class PairKeeper:
                                    torch.Generator().manual_seed(12345))
             validation = torch.cat([validation, inside])
         check = acceptance_check(self.loop, self.condition, self.xi, self.region, validation=validation, level=level,
-                                 faces=self.states.faces, local=self.local)
+                                 faces=self.states.check_faces(), local=self.local)
         check.iteration = iteration
         self.checks.append(check.summary())
         score = (*check.stability(), -check.violating_fraction, -check.max_violation)

@@ -1,6 +1,7 @@
 """The states a fit trains on (:class:`TrainingStates`): uniform batches in X_delta, a share near x*, with a
 region-of-attraction level states inside the set, and adversarial states moved by projected ascent on the residual
-(:func:`ascend`); what the acceptance check adds inside a small set (:func:`inside_states`)."""
+(:func:`ascend`), states on the box's faces moved by projected descent on V (:func:`descend_on_faces`); what the
+acceptance check adds inside a small set (:func:`inside_states`)."""
 
 from __future__ import annotations
 
@@ -16,6 +17,8 @@ from drlyap.systems import UncertainSystem
 
 ADVERSARIAL_STEP = 0.01  # one ascent step of the adversarial states, as a share of the box's width per coordinate
 ADVERSARIAL_REFRESH = 0.02  # share of the adversarial states redrawn every iteration
+FACE_STATES = 1024  # states on the box's faces drawn anew every iteration, and as many kept and moved by descent
+FACE_DESCENT_STATES = 4  # from this many states on: in 2 or 3 the faces are segments or squares that uniform draws cover
 
 
 def radial_states(lyapunov: Lyapunov, region: Region, level: float, count: int, generator: torch.Generator) -> Tensor:
@@ -65,6 +68,18 @@ def ascend(loop: ClosedLoop, condition: Condition, z: Tensor, region: Region, le
     return moved.to(z)
 
 
+def descend_on_faces(lyapunov: Lyapunov, z: Tensor, region: Region) -> Tensor:
+    """One step of projected descent on V from states ``z (B, n)`` on the box's faces, within their faces: the
+    coordinates at a bound of the box stay there, the others move ``ADVERSARIAL_STEP`` of the box's width along the
+    width-scaled, normalised gradient. A tilted sublevel set meets a face of a 6-state box in a patch that uniform
+    draws on the faces miss; these states find it. No gradient reaches the weights."""
+    with torch.enable_grad():
+        x = z.detach().requires_grad_(True)
+        grad = torch.autograd.grad(lyapunov(x).sum(), x)[0]
+    on_face = (z == region.lo.to(z)) | (z == region.hi.to(z))
+    return region.ascent_step(z.detach(), -grad.masked_fill(on_face, 0.0), ADVERSARIAL_STEP).to(z)
+
+
 def inside_states(lyapunov: Lyapunov, region: Region, level: float, count: int, device: torch.device,
                   generator: torch.Generator, tries: int = 20) -> Tensor:
     """Up to ``count`` states ``(C, n)`` of X_delta with ``V <= level``: uniform draws kept by rejection, at most
@@ -101,6 +116,8 @@ class TrainingStates:
         self.faces_level = goal.faces_level
         self.drawn_in = region
         self.faces = None  # fixed states on the box's faces for the acceptance check (own generator)
+        self.face_minima: Tensor | None = None  # face states moved by descent on V (with a level)
+        self.face_gen: torch.Generator | None = None
         self.batch: Tensor | None = None
         self.adversaries: Tensor | None = None
 
@@ -110,6 +127,10 @@ class TrainingStates:
         self.drawn_in = self.sampling.sampling_region(self.system)
         if self.level is not None:
             self.faces = self.region.sample_faces(20000, torch.Generator().manual_seed(12345)).float().to(self.device)
+        if self.level is not None and self.region.n >= FACE_DESCENT_STATES:
+            # their own generator: where V stays above the faces' level they add nothing, and training is what it was
+            self.face_gen = torch.Generator().manual_seed(54321)
+            self.face_minima = self.region.sample_faces(FACE_STATES, self.face_gen).float().to(self.device)
         self.batch = self.draw()
         if self.n_adv:
             self.adversaries = adversarial_starts(self.lyapunov, self.drawn_in, self.level, self.n_adv,
@@ -141,7 +162,24 @@ class TrainingStates:
         self.adversaries = ascend(loop, condition, self.adversaries, self.drawn_in, self.level)
         return torch.cat([self.batch, self.adversaries])
 
-    def faces_term(self, lyapunov: Lyapunov) -> Tensor:
-        """The mean shortfall of V below the faces' level at 1,024 new states of the box's faces."""
-        faces = self.region.sample_faces(1024, self.gen).float().to(self.device)
-        return torch.relu(self.faces_level - lyapunov(faces)).mean()
+    def faces_term(self, lyapunov: Lyapunov, iteration: int) -> Tensor:
+        """The mean shortfall of V below the faces' level at ``FACE_STATES`` new states of the box's faces; from
+        ``FACE_DESCENT_STATES`` states on, plus the mean shortfall of those kept face states that fall short, a share
+        of them redrawn and all moved one descent step on V (:func:`descend_on_faces`): they gather where V is least
+        on each face, and only the faces the set crosses count (averaged over all of them, a set crossing one face of
+        twelve would barely feel it)."""
+        faces = self.region.sample_faces(FACE_STATES, self.gen).float().to(self.device)
+        uniform = torch.relu(self.faces_level - lyapunov(faces)).mean()
+        if self.face_minima is None:
+            return uniform
+        refresh = max(1, int(ADVERSARIAL_REFRESH * FACE_STATES))
+        row = (iteration * refresh) % FACE_STATES
+        fresh = self.region.sample_faces(refresh, self.face_gen).float().to(self.device)
+        self.face_minima[row:row + refresh] = fresh[:FACE_STATES - row]
+        self.face_minima = descend_on_faces(lyapunov, self.face_minima, self.region)
+        short = torch.relu(self.faces_level - lyapunov(self.face_minima))
+        return uniform + short.sum() / (short > 0).sum().clamp_min(1)
+
+    def check_faces(self) -> Tensor | None:
+        """The acceptance check's face states ``(F, n)``: the fixed uniform ones and the kept descended ones."""
+        return self.faces if self.face_minima is None else torch.cat([self.faces, self.face_minima])

@@ -36,7 +36,7 @@ from drlyap.systems import UncertainSystem
 from drlyap.training.acceptance import PairKeeper, restore, snapshot
 from drlyap.training.boxes import OpenBoxes
 from drlyap.training.states import TrainingStates
-from drlyap.training.warm_start import warm_start_lqr
+from drlyap.training.warm_start import warm_start_pair
 from drlyap.verification.results import ConditionProof, UniformMargin
 
 LOCAL_EVERY = 4  # iterations between evaluations of the local term (second derivatives at x*: ~2x an iteration)
@@ -113,9 +113,10 @@ def fit(cfg: TrainConfig, system: UncertainSystem, progress: bool = True, init: 
     keeper = PairKeeper(loop, condition, xi_all.to(device), region, grid.float().to(device), states,
                         bool(plan.condition.local_rate), growing)
     warm = None
-    if plan.networks.warm_start == "lqr" and not init:
-        warm = warm_start_lqr(system, lyapunov, controller, plan.networks, goal.level, schedule.lr, region, gen,
-                              n_states=min(4096, int(sampling.n_states)))
+    if plan.networks.warm_start and not init:
+        warm = warm_start_pair(system, lyapunov, controller, plan.networks, goal.level, schedule.lr, region, gen,
+                               xi_train, max(plan.condition.local_rate, plan.condition.exp_rate),
+                               n_states=min(4096, int(sampling.n_states)))
     states.start()
     run = _Iterations(schedule, plan.condition, goal, loop, condition, states, keeper, growing,
                       None if boxes is None or not len(boxes) else (boxes.to(device), gen))
@@ -199,13 +200,12 @@ def _networks(system: UncertainSystem, section: NetworkSection, init: tuple[Lyap
     ``init`` where it fits the section and is finite; on ``device``."""
     lyapunov, controller = section.build(system)
     if init:
-        init_path, path = init[1].varphi.skip is not None, controller.varphi.skip is not None
-        if (init[0].phi.sizes != lyapunov.phi.sizes or init[0].alpha_hat != lyapunov.alpha_hat
-                or init[1].varphi.sizes != controller.varphi.sizes or init_path != path):
-            raise ValueError(f"warm-start networks (V {init[0].phi.sizes}, alpha_hat {init[0].alpha_hat}; pi "
-                             f"{init[1].varphi.sizes}, linear path {init_path}) do not match the config (V "
-                             f"{lyapunov.phi.sizes}, alpha_hat {lyapunov.alpha_hat}; pi {controller.varphi.sizes}, "
-                             f"linear path {path})")
+        def shape(v: Lyapunov, pi: Controller) -> str:
+            return (f"V {v.phi.sizes}, linear path {v.phi.skip is not None}, alpha_hat {v.alpha_hat}; pi "
+                    f"{pi.varphi.sizes}, linear path {pi.varphi.skip is not None}")
+
+        if shape(*init) != shape(lyapunov, controller):
+            raise ValueError(f"warm-start networks ({shape(*init)}) do not match the config ({shape(lyapunov, controller)})")
         lyapunov, controller = copy.deepcopy(init[0]), copy.deepcopy(init[1])
         for name, net in (("V", lyapunov), ("pi", controller)):
             bad = [key for key, value in net.state_dict().items()
@@ -234,7 +234,7 @@ def _loss(section: ConditionSection, goal: RegionGoal, loop: ClosedLoop, conditi
     level = states.level
     loss = condition.loss(terms, section.margin, section.margin_rate, level, goal.outside_weight, goal.exclude_weight)
     if level is not None:  # V above the level on the faces of X: {V <= level} inside X
-        loss = loss + states.faces_term(loop.lyapunov)
+        loss = loss + states.faces_term(loop.lyapunov, iteration)
         if grow_now:  # the set pulled out towards the faces
             loss = loss + goal.grow_weight * (torch.relu(terms.value - level) / level).mean()
     if section.local_rate and (iteration - 1) % LOCAL_EVERY == 0:  # V a Lyapunov function of the linearisation

@@ -1,40 +1,47 @@
-"""The LQR warm start (:func:`warm_start_lqr`): before training, V is fitted to the LQR's quadratic and pi to its gain,
-exactly for networks without hidden layers, by regression for the others."""
+"""The warm start (:func:`warm_start_pair`): before training, V is fitted to a quadratic and pi to a linear gain, exactly
+for networks without hidden layers or with a linear path beside them, by regression for the others. The pair is the
+LQR's (``warm_start = "lqr"``) or the largest invariant ellipsoid of the linearisations (``"ellipsoid"``,
+:func:`drlyap.lmi.invariant_ellipsoid`)."""
 
 from __future__ import annotations
 
 import torch
 from torch import Tensor
 
+from drlyap.lmi import invariant_ellipsoid
 from drlyap.lqr import lqr_design
 from drlyap.networks import Controller, Lyapunov
 from drlyap.regions import Region
 from drlyap.sections import NetworkSection
 from drlyap.systems import UncertainSystem
 
+FACES_SCALE = {"lqr": 1.2, "ellipsoid": 1.06}
+"""V's least value on the box's faces after the warm start, per training level: the LQR's quadratic well inside the
+box, the ellipsoid (which meets the faces) just above the faces' level of a growing set (1.05)."""
 
-def warm_start_lqr(system: UncertainSystem, lyapunov: Lyapunov, controller: Controller, networks: NetworkSection,
-                   level: float | None, lr: float, region: Region, generator: torch.Generator, iters: int = 500,
-                   n_states: int = 4096) -> dict:
-    """Fit the networks to an LQR pair (in place): ``V ~ s z^T P z`` and ``varphi(z) - varphi(0) ~ -K z``, exactly for
-    a network without hidden layers (:meth:`~drlyap.networks.Lyapunov.set_quadratic`,
+
+def warm_start_pair(system: UncertainSystem, lyapunov: Lyapunov, controller: Controller, networks: NetworkSection,
+                    level: float | None, lr: float, region: Region, generator: torch.Generator, xi: Tensor,
+                    rate: float, iters: int = 500, n_states: int = 4096) -> dict:
+    """Fit the networks to a quadratic and a gain (in place): ``V ~ s z^T P z`` and ``varphi(z) - varphi(0) ~ -K z``,
+    exactly for a network without hidden layers or with a linear path (:meth:`~drlyap.networks.Lyapunov.set_quadratic`,
     :meth:`~drlyap.networks.Controller.set_linear`), by regression for the others.
 
-    ``P``, ``K``: the LQR design for ``networks.lqr_weights`` (``[Q diagonal, R diagonal]``; None: Bryson's rule) on
-    the nominal linearisation; ``s`` puts the quadratic's minimum over the faces of the box at 1.2 times the training
-    ``level`` (:attr:`~drlyap.sections.RegionGoal.level`; 1.2 without a level). The regression runs Adam at step
-    size ``lr``; states: half uniform in X_delta, half spread over the distance from x*. Returns the design's gain,
-    the scale and the final relative errors.
+    ``P``, ``K``: with ``networks.warm_start == "lqr"`` the LQR design for ``networks.lqr_weights`` (``[Q diagonal, R
+    diagonal]``; None: Bryson's rule) on the nominal linearisation; with ``"ellipsoid"`` the largest ellipsoid in the
+    box kept invariant at decay ``rate`` for the nominal linearisation and those at the training shifts ``xi (N, k)``.
+    ``s`` puts the quadratic's minimum over the faces of the box at :data:`FACES_SCALE` times the training ``level``
+    (:attr:`~drlyap.sections.RegionGoal.level`; 1 without a level). The regression runs Adam at step size ``lr``;
+    states: half uniform in X_delta, half spread over the distance from x*. Returns the design's gain, the scale and
+    the final relative errors.
     """
-    q, r = networks.lqr_weights if networks.lqr_weights is not None else (None, None)
-    try:
-        design = lqr_design(system, q, r)
-    except ValueError as err:
-        raise ValueError(f"{err}; the LQR warm start needs one (TrainConfig.warm_start = 'lqr', the default for a "
-                         "system of one's own): declare warm_start=None in the system's defaults, or "
-                         "drlyap.config.PAPER_CONDITION for the paper's condition") from None
+    kind = networks.warm_start
+    if kind == "ellipsoid":
+        design = invariant_ellipsoid(system, xi.double().cpu(), rate)
+    else:
+        design = _lqr(system, networks)
     half = torch.maximum(-region.lo, region.hi)
-    scale = 1.2 * (level or 1.0) / float((half.square() / torch.linalg.inv(design.P).diagonal()).min())
+    scale = FACES_SCALE[kind] * (level or 1.0) / float((half.square() / torch.linalg.inv(design.P).diagonal()).min())
     ref = next(lyapunov.parameters())
     p_mat, k_mat = (design.P * scale).to(ref), design.K.to(ref)
     exact = {lyapunov: lyapunov.set_quadratic(design.P * scale), controller: controller.set_linear(design.K.to(design.P))}
@@ -58,6 +65,17 @@ def warm_start_lqr(system: UncertainSystem, lyapunov: Lyapunov, controller: Cont
             opt.zero_grad(set_to_none=True)
             (v_err + u_err).backward()
             opt.step()
-    return {"method": "lqr", "K": design.K.tolist(), "P_scale": scale, "v_relative_error": float(v_err.detach()),
-            "u_relative_error": float(u_err.detach()), "iterations": iters if opt else 0}
+    return {"method": kind, "K": design.K.tolist(), "P_scale": scale, "rate": rate if kind == "ellipsoid" else None,
+            "v_relative_error": float(v_err.detach()), "u_relative_error": float(u_err.detach()),
+            "iterations": iters if opt else 0}
 
+
+def _lqr(system: UncertainSystem, networks: NetworkSection):
+    """The LQR design of the warm start (:func:`~drlyap.lqr.lqr_design` for ``networks.lqr_weights``)."""
+    q, r = networks.lqr_weights if networks.lqr_weights is not None else (None, None)
+    try:
+        return lqr_design(system, q, r)
+    except ValueError as err:
+        raise ValueError(f"{err}; the LQR warm start needs one (TrainConfig.warm_start = 'lqr', the default for a "
+                         "system of one's own): declare warm_start=None in the system's defaults, or "
+                         "drlyap.config.PAPER_CONDITION for the paper's condition") from None
