@@ -16,9 +16,8 @@ from drlyap.training.warm_start import warm_start_pair
 
 
 def _half(system):
-    lo, hi = (torch.tensor(b, dtype=torch.float64) for b in system.state_box)
-    x_star = torch.tensor(system.equilibrium, dtype=torch.float64)
-    return torch.minimum(x_star - lo, hi - x_star)
+    lo, hi = system.local_box()
+    return torch.minimum(-lo, hi)
 
 
 def _room(system):

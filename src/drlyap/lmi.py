@@ -44,9 +44,8 @@ def invariant_ellipsoid(system: UncertainSystem, xi: Sequence[Sequence[float]] |
         raise ValueError(f"the ellipsoid's decay rate must be a finite number >= 0, got {rate}")
     shifts = [None] + ([] if xi is None else [system.check_xi(row) for row in torch.as_tensor(xi, dtype=torch.float64)])
     models = [linearize(system, shift) for shift in shifts]
-    lo, hi = (torch.tensor(b, dtype=torch.float64) for b in system.state_box)
-    x_star = torch.tensor(system.equilibrium, dtype=torch.float64)
-    half = torch.minimum(x_star - lo, hi - x_star).numpy()
+    lo, hi = system.local_box()
+    half = torch.minimum(-lo, hi).numpy()
     ulo, uhi = (torch.tensor(b, dtype=torch.float64) for b in system.input_box)
     u_star = torch.tensor(system.equilibrium_input, dtype=torch.float64)
     room = torch.minimum(u_star - ulo, uhi - u_star).numpy()
