@@ -381,3 +381,28 @@ def test_refining_a_false_certificate_costs_at_most_about_as_many_pieces_as_it_h
     result = run_check(proved, header_change=stricter)
     assert not result.ok and result.refined > 0
     assert result.pieces <= max(MIN_PIECES, result.boxes)
+
+
+def test_leaves_a_crowded_chunk_left_unproved_get_the_pieces_the_others_did_not_spend(monkeypatch):
+    import drlyap.checker.check as check
+
+    class Job:  # a hard leaf (lo < 0) is proved by 4 pieces of bisection, where its chunk's budget allows them all
+        def on(self, device):
+            return self
+
+        def __call__(self, lo, hi, above, allowance):
+            budget = int(allowance.sum())
+            hard = lo[:, 0] < 0
+            pieces = 4 * int(hard.sum()) if 4 * int(hard.sum()) <= budget else 0
+            ok = ~hard | torch.tensor(pieces > 0)
+            return {"ok": ok, "centre_low": torch.zeros(len(lo), dtype=torch.float64),
+                    "refined": torch.tensor([int(hard.sum())]), "pieces": torch.tensor([pieces])}
+
+    monkeypatch.setattr(check, "LEAF_CHUNK", 8)
+    lo = torch.ones(64, 1, dtype=torch.float64)
+    lo[:8] = -1.0  # every hard leaf in the first chunk: its own budget of 8 pieces cannot prove them
+    ok, _, _, pieces = check.prove_leaves(Job(), lo, lo + 1, torch.zeros(64, dtype=torch.bool))
+    assert bool(ok.all()) and pieces <= 64
+    lo[:40] = -1.0  # too many hard leaves for one piece per leaf in all: refused, within the same budget
+    ok, _, _, pieces = check.prove_leaves(Job(), lo, lo + 1, torch.zeros(64, dtype=torch.bool))
+    assert not bool(ok[:40].any()) and bool(ok[40:].all()) and pieces <= 64

@@ -232,8 +232,8 @@ MIN_PIECES = 4096
 
 
 def prove_boxes(residual: Residual, lo: Tensor, hi: Tensor, scale: Tensor, refine: int, level: float | None = None,
-                batch: int = 4096, above: Tensor | None = None,
-                cheap_first: bool = False) -> tuple[Tensor, Tensor, int, int]:
+                batch: int = 4096, above: Tensor | None = None, cheap_first: bool = False,
+                budget: int | None = None) -> tuple[Tensor, Tensor, int, int]:
     """Re-prove ``residual <= 0`` on boxes ``(B, n)`` (with ``level``: at the boxes' states where ``V <= level``):
     ``ok (B,)``, lower bounds of the residual at the centres ``(B,)``, and how many boxes needed bisection and into
     how many pieces in all. ``above (B,)``: boxes to try ``V > level`` on first (the certificate's word, a hint
@@ -241,8 +241,9 @@ def prove_boxes(residual: Residual, lo: Tensor, hi: Tensor, scale: Tensor, refin
     before the second-order forms (an order, not a shortcut: see :func:`_holds`).
 
     A box the checker's bounds do not prove is bisected, ``refine`` times at most, and at most as many pieces are
-    bounded in all as there are boxes (at least :data:`MIN_PIECES`): a true certificate whose few boxes the
-    verifier's tighter bounds proved is confirmed, and a false one costs at most about twice its boxes."""
+    bounded in all as there are boxes (at least :data:`MIN_PIECES`; ``budget``: that many instead): a true certificate
+    whose few boxes the verifier's tighter bounds proved is confirmed, and a false one costs at most about twice its
+    boxes."""
     above = torch.zeros(lo.shape[0], dtype=torch.bool, device=lo.device) if above is None else above
     order = torch.argsort(above.to(torch.int8), stable=True)  # the hinted boxes together, so that batches share a path
     ok, centre_low = torch.empty_like(above), torch.empty(lo.shape[0], dtype=F64, device=lo.device)
@@ -251,7 +252,7 @@ def prove_boxes(residual: Residual, lo: Tensor, hi: Tensor, scale: Tensor, refin
     todo = (~ok).nonzero().squeeze(-1)
     refined, pieces = int(todo.numel()), 0
     owner, plo, phi = todo, lo[todo], hi[todo]
-    budget = max(MIN_PIECES, int(lo.shape[0]))
+    budget = max(MIN_PIECES, int(lo.shape[0])) if budget is None else budget
     for _ in range(refine if todo.numel() else 0):
         if pieces + 2 * plo.shape[0] > budget:
             break
@@ -285,10 +286,11 @@ class LeafJob:
         return LeafJob(self.residual.to(device), self.scale.to(device), self.refine, self.level, self.cheap_first,
                        device)
 
-    def __call__(self, lo: Tensor, hi: Tensor, above: Tensor) -> dict:
-        device = torch.device(self.device)
+    def __call__(self, lo: Tensor, hi: Tensor, above: Tensor, allowance: Tensor) -> dict:
+        device = torch.device(self.device)  # allowance (B,): pieces per leaf, summed into the budget of bisection
         ok, low, refined, pieces = prove_boxes(self.residual, lo.to(device), hi.to(device), self.scale, self.refine,
-                                               self.level, above=above.to(device), cheap_first=self.cheap_first)
+                                               self.level, above=above.to(device), cheap_first=self.cheap_first,
+                                               budget=max(MIN_PIECES, int(allowance.sum())))
         return {"ok": ok.cpu(), "centre_low": low.cpu(), "refined": torch.tensor([refined]),
                 "pieces": torch.tensor([pieces])}
 
@@ -302,14 +304,33 @@ def prove_leaves(job: LeafJob, lo: Tensor, hi: Tensor, above: Tensor, compute: C
                  desc: str = "check: leaves") -> tuple[Tensor, Tensor, int, int]:
     """:func:`prove_boxes` of ``job`` on every leaf in chunks of :data:`LEAF_CHUNK`, here or (``compute`` with workers)
     on worker processes, two chunks per worker in flight; the same four results. Progress on stderr as ``desc``
-    where ``compute.progress``."""
+    where ``compute.progress``.
+
+    The leaves a chunk's piece budget left unproved (where hard leaves crowd into a few chunks) are tried once more
+    together with the pieces the first pass left of one per leaf, shared out by count: still at most about twice the
+    leaves bounded in all, and the same chunks on any number of workers."""
+    ok, low, refined, pieces = _prove_chunks(job, lo, hi, above, torch.ones(lo.shape[0], dtype=F64), compute, desc)
+    failed = (~ok).nonzero().squeeze(-1)
+    spare = int(lo.shape[0]) - pieces
+    if failed.numel() and spare > 2 * failed.numel():
+        allowance = torch.full((failed.numel(),), spare / failed.numel(), dtype=F64)
+        again, _, refined_again, pieces_again = _prove_chunks(job, lo[failed], hi[failed], above[failed], allowance,
+                                                              compute, f"{desc} (again)")
+        ok[failed[again]] = True
+        refined, pieces = refined + refined_again, pieces + pieces_again
+    return ok, low, refined, pieces
+
+
+def _prove_chunks(job: LeafJob, lo: Tensor, hi: Tensor, above: Tensor, allowance: Tensor, compute: Compute,
+                  desc: str) -> tuple[Tensor, Tensor, int, int]:
+    """One pass of :func:`prove_leaves`, each chunk bisecting within the pieces its leaves are allowed."""
     pool = pool_for(compute)
     starts = list(range(0, lo.shape[0], LEAF_CHUNK))
     bar = show_progress(int(lo.shape[0]), desc, compute.progress)
     parts, flight = [], []
     local = job.on(compute.device) if pool is None else None
     for i in starts:
-        part = (lo[i:i + LEAF_CHUNK], hi[i:i + LEAF_CHUNK], above[i:i + LEAF_CHUNK])
+        part = (lo[i:i + LEAF_CHUNK], hi[i:i + LEAF_CHUNK], above[i:i + LEAF_CHUNK], allowance[i:i + LEAF_CHUNK])
         if pool is None:
             parts.append(local(*part))
             bar.update(int(part[0].shape[0]))

@@ -20,7 +20,8 @@ from drlyap.cli.common import compute_options, compute_settings, fail, refuse_ea
 @click.option("--refine", type=click.IntRange(0, 20), default=12, show_default=True,
               help="Times the checker may bisect a box its own bounds do not prove (the verifier's bounds may be "
                    "tighter than the checker's); it bounds at most as many pieces as each chunk of 16,384 leaves "
-                   "has (at least 4,096), so a false certificate costs at most about twice a true one.")
+                   "has (at least 4,096), then the leaves still unproved once more with the pieces left over, so "
+                   "a false certificate costs at most about twice a true one.")
 @compute_options()
 @click.option("--json", "as_json", is_flag=True, help="Print one JSON object.")
 @run_source_options
