@@ -269,9 +269,8 @@ def prove_boxes(residual: Residual, lo: Tensor, hi: Tensor, scale: Tensor, refin
 
 
 class LeafJob:
-    """:func:`prove_boxes` on a chunk of leaves, as a job for worker processes (:mod:`drlyap.parallel`) or a device:
-    called on ``lo, hi (B, n)`` and ``above (B,)`` it returns ``ok`` and ``centre_low`` ``(B,)`` and the counts
-    ``refined`` and ``pieces`` ``(1,)``, on the CPU."""
+    """:func:`prove_boxes` as a job for workers (:mod:`drlyap.parallel`) or a device: on leaves ``lo, hi (B, n)``, ``above
+    (B,)`` and the pieces allowed per leaf, ``ok``, ``centre_low`` ``(B,)``, ``refined``, ``pieces`` ``(1,)`` on the CPU."""
 
     def __init__(self, residual: Residual, scale: Tensor, refine: int, level: float | None, cheap_first: bool,
                  device: str = "cpu") -> None:
@@ -286,11 +285,12 @@ class LeafJob:
         return LeafJob(self.residual.to(device), self.scale.to(device), self.refine, self.level, self.cheap_first,
                        device)
 
-    def __call__(self, lo: Tensor, hi: Tensor, above: Tensor, allowance: Tensor) -> dict:
-        device = torch.device(self.device)  # allowance (B,): pieces per leaf, summed into the budget of bisection
+    def __call__(self, lo: Tensor, hi: Tensor, above: Tensor, allowance: Tensor | None = None) -> dict:
+        device = torch.device(self.device)
+        budget = None if allowance is None else max(MIN_PIECES, int(allowance.sum()))
         ok, low, refined, pieces = prove_boxes(self.residual, lo.to(device), hi.to(device), self.scale, self.refine,
                                                self.level, above=above.to(device), cheap_first=self.cheap_first,
-                                               budget=max(MIN_PIECES, int(allowance.sum())))
+                                               budget=budget)
         return {"ok": ok.cpu(), "centre_low": low.cpu(), "refined": torch.tensor([refined]),
                 "pieces": torch.tensor([pieces])}
 
