@@ -63,6 +63,7 @@ class SystemDefaults:
     grow_weight: float = 0.03
     local_rate: float = 0.3
     adversarial_share: float = 0.0
+    reshape_steps: int = 0
     warm_start: str | None = "lqr"
     lqr_weights: tuple[tuple[float, ...], tuple[float, ...]] | None = None
     verify_time: float = 30.0  # seconds per check of `verify`
@@ -114,7 +115,7 @@ def _thawed(value):
 RESOLVED = ("wasserstein_radius", "risk_level", "decay_rate", "exp_rate", "n_states", "n_xi", "delta", "lr", "iters",
             "alpha_hat", "lyapunov_hidden", "lyapunov_skip", "controller_hidden", "controller_skip", "margin",
             "near_share", "train_box", "roa_level", "level_margin", "margin_rate", "outside_weight", "exclude_weight",
-            "grow_weight", "local_rate", "adversarial_share", "warm_start", "lqr_weights")
+            "grow_weight", "local_rate", "adversarial_share", "reshape_steps", "warm_start", "lqr_weights")
 """The fields a config leaves to its system (``None``) and :meth:`TrainConfig.resolved` fills."""
 
 OPTIONAL = ("train_box", "roa_level", "warm_start", "lqr_weights")
@@ -140,8 +141,8 @@ _KINDS = {
     "delta": "number", "lr": "number", "alpha_hat": "number", "margin": "number", "near_share": "number",
     "roa_level": "number", "level_margin": "number", "margin_rate": "number", "outside_weight": "number",
     "exclude_weight": "number", "grow_weight": "number", "local_rate": "number", "adversarial_share": "number",
-    "init_gain": "number",
-    "n_states": "int", "n_xi": "int", "iters": "int", "check_every": "int", "seed": "int", "lyapunov_out": "int",
+    "init_gain": "number", "n_states": "int", "n_xi": "int", "iters": "int", "reshape_steps": "int",
+    "check_every": "int", "seed": "int", "lyapunov_out": "int",
     "resample": "bool", "controller_skip": "bool", "lyapunov_skip": "bool", "lyapunov_hidden": "sizes",
     "controller_hidden": "sizes"}
 _REQUIRED = ("system", "method", "loss", "check_every", "seed", "device", "lyapunov_out", "init_gain",
@@ -187,9 +188,8 @@ class TrainConfig:
     # share of each batch drawn evenly over the distance from x* (Region.sample_near) instead of uniformly:
     # with 4 or more states a uniform batch holds almost no states near x*, where local stability is decided
     near_share: float | None = None
-    # Box ((low...), (high...)) in user coordinates the training states are drawn from; None: the
-    # system's X. Only where training samples: the networks' input scaling, the acceptance check, the
-    # verifier and the success criterion keep X.
+    # Box ((low...), (high...)) in user coordinates the training states are drawn from; None: the system's X. Only
+    # where training samples: the networks' input scaling, the acceptance check, the verifier and success keep X.
     train_box: list[list[float]] | None = None
     # Region-of-attraction training: the condition is asked only of {V <= roa_level}, and a hinge keeps V above
     # roa_level on the faces of X (so the set lies inside X and is forward invariant once the condition holds
@@ -216,9 +216,9 @@ class TrainConfig:
     local_rate: float | None = None
     # share of each batch held by adversarial states: a persistent set moved every iteration by one step of projected
     # ascent on the residual, kept inside the training set {V <= (1 + level_margin) roa_level} (X_delta without a
-    # level); 2% of it redrawn each iteration. In 6 states uniform draws almost never meet the few corners of the set
-    # where the condition fails. 0: none
+    # level); 2% of it redrawn each iteration (in 6 states uniform draws miss where the condition fails). 0: none
     adversarial_share: float | None = None
+    reshape_steps: int | None = None  # convex programs growing a quadratic V's set after training (training/reshape)
     # "lqr": before training, fit V to the LQR's z^T P z (scaled to 1.2 times the training level, or 1, on the faces)
     # and pi to its gain (exactly without hidden layers or with a linear path, else by regression); lqr_weights = [Q
     # diagonal, R diagonal] (None: Bryson's rule); "ellipsoid": the same with drlyap.lmi's largest invariant ellipsoid
@@ -282,6 +282,8 @@ class TrainConfig:
                 problems.append(f"{name} = {value} (must be finite and >= 0)")
         if not 0 < self.risk_level < 1:
             problems.append(f"risk_level = {self.risk_level} (must be in (0, 1))")
+        if self.reshape_steps < 0:
+            problems.append(f"reshape_steps = {self.reshape_steps} (must be >= 0)")
         for name in ("n_states", "n_xi", "iters", "check_every"):
             if int(getattr(self, name)) < 1:
                 problems.append(f"{name} = {getattr(self, name)} (must be >= 1)")

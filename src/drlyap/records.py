@@ -136,7 +136,8 @@ class TrainingRecord:
     ``final_proof`` (the returned pair's verdict as ``ConditionProof.to_dict`` writes it); ``total_iterations`` and
     ``total_time_s`` count every round (the training run's own where there were no rounds).
     ``certificate_status``: the verdict on the trained condition (``verified``, ``violated``, ``unknown``,
-    ``not checked``; None where the run has none)."""
+    ``not checked``; None where the run has none). ``reshape``: the convex programs that grew a quadratic V's set
+    after the first fit (:func:`drlyap.training.reshape.grow_quadratic`'s record; None where none ran)."""
 
     status: str
     passed: bool
@@ -150,6 +151,7 @@ class TrainingRecord:
     retraining_rounds: int | None = None
     final_proof: dict | None = None
     certificate_status: str | None = None
+    reshape: dict | None = None
 
     @property
     def proved_in_rounds(self) -> bool:
@@ -173,4 +175,5 @@ class TrainingRecord:
                    total_time_s=float(cegis.get("total_time_s", seconds)),
                    rounds=tuple(ProofRound.from_dict(r) for r in cegis.get("rounds", ())),
                    returned_round=cegis.get("returned_round"), retraining_rounds=cegis.get("retraining_rounds"),
-                   final_proof=cegis.get("final"), certificate_status=certificate.get("status"))
+                   final_proof=cegis.get("final"), certificate_status=certificate.get("status"),
+                   reshape=metrics.get("reshape"))

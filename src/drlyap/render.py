@@ -85,6 +85,19 @@ def training_lines(system: str, method: str, record: TrainingRecord) -> list[str
         rate = acc.local_rate_max
         lines.append(f"  V near x*: Vdot <= {rate:+.3g} V to second order at the worst training sample "
                      f"({'V decreases' if rate < 0 else 'V does NOT decrease along every direction'})")
+    grown = record.reshape
+    if grown and grown.get("steps"):
+        mix = grown.get("mix")
+        if not grown["kept"]:
+            kept = "NOT kept (the grown V and its mixtures with the trained one failed the acceptance check)"
+        elif mix in (None, 1.0):
+            kept = "kept"
+        else:
+            kept = f"kept {mix:g} of the way from the trained V ({grown['share_kept']:.3g})"
+        lines.append(f"  V's set grown by {grown['steps']} convex program(s) with the controller fixed: "
+                     f"{grown['share_before']:.3g} -> {grown['share_after']:.3g} of the box, {kept}")
+    elif grown:
+        lines.append(f"  V's set not grown by convex programs: {grown['stopped']}")
     if record.proved_in_rounds:
         lines.append(f"  proof: {record.retraining_rounds} retraining round(s) (kept round {record.returned_round})")
     return lines

@@ -150,14 +150,16 @@ class SamplingSection:
 class RegionGoal:
     """Region-of-attraction training: the claimed set ``{V <= roa_level}`` (None: the paper's condition on all of
     X_delta), trained on ``{V <= (1 + level_margin) roa_level}``; the hinge's weight outside the set
-    (``outside_weight``), the term raising V where the set holds a violation (``exclude_weight``) and the one pulling
-    the set out towards the faces (``grow_weight``)."""
+    (``outside_weight``), the term raising V where the set holds a violation (``exclude_weight``), the one pulling
+    the set out towards the faces (``grow_weight``) and the convex programs that grow a quadratic V's set after
+    training (``reshape_steps``)."""
 
     roa_level: float | None
     level_margin: float
     outside_weight: float
     exclude_weight: float
     grow_weight: float
+    reshape_steps: int
 
     @property
     def level(self) -> float | None:

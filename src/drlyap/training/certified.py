@@ -246,13 +246,15 @@ def _proof_rounds(cfg: TrainConfig, system: UncertainSystem, proof: ProofConfig,
     best: tuple | None = None
     history: list[dict] = []  # all rounds' training, iterations and seconds counted from the first run
     total_iters = 0
-    round_cfg, kind, result, boxes = cfg, None, None, None
+    round_cfg, kind, result, boxes, first_reshape = cfg, None, None, None, None
     for r in range(rounds + 1):
         tic = time.perf_counter()
         warm = init if result is None else (result.lyapunov, result.controller)
         result = fit(round_cfg, system, progress=progress, init=warm,
                      extra_states=extra.repeat(int(proof.replicate), 1) if r else None, grow=not r, boxes=boxes)
         train_time = time.perf_counter() - (tic if r else start)
+        if not r:
+            first_reshape = result.metrics.get("reshape")
         history += _continued(result.history, total_iters, history[-1]["time_s"] if history else 0.0)
         total_iters += result.record.iterations
         if kind is None:
@@ -290,7 +292,7 @@ def _proof_rounds(cfg: TrainConfig, system: UncertainSystem, proof: ProofConfig,
         round_cfg = dataclasses.replace(cfg, iters=iters_round, seed=cfg.seed + 1000 * (r + 1),
                                         xi_samples=result.xi_samples.tolist())
     _, chosen, chosen_round, chosen_history, chosen_proof = best
-    metrics = dict(chosen.metrics)
+    metrics = dict(chosen.metrics) | {"reshape": first_reshape}  # the first fit's, which every later round starts from
     final = done[chosen_round] if chosen_round < len(done) else done[-1]
     verdict = kind.settle(final, chosen.loop, chosen_proof)
     cert = Certificate.of(verdict, float(cfg.delta), rounds=len(done) - 1)

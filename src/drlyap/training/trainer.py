@@ -31,15 +31,19 @@ from drlyap.config import TrainConfig
 from drlyap.networks import Controller, Lyapunov
 from drlyap.progress import progress as show_progress
 from drlyap.records import AcceptanceCheck, TrainingRecord
+from drlyap.regions import Region
 from drlyap.sections import ConditionSection, NetworkSection, RegionGoal, Schedule, TrainSections
 from drlyap.systems import UncertainSystem
 from drlyap.training.acceptance import PairKeeper, restore, snapshot
 from drlyap.training.boxes import OpenBoxes
+from drlyap.training.reshape import grow_quadratic, quadratic_form, share
 from drlyap.training.states import TrainingStates
 from drlyap.training.warm_start import warm_start_pair
 from drlyap.verification.results import ConditionProof, UniformMargin
 
 LOCAL_EVERY = 4  # iterations between evaluations of the local term (second derivatives at x*: ~2x an iteration)
+RESHAPE_BATCHES = 3  # states per convex program of the V step, in training batches
+RESHAPE_MIX = (1.0, 0.75, 0.5, 0.25)  # the grown V's matrix mixed back towards the trained one until a check passes
 GROW_SHARE = 2 / 3  # growing sets: the growth term acts on this share of the iterations, the rest repairs
 
 
@@ -121,8 +125,13 @@ def fit(cfg: TrainConfig, system: UncertainSystem, progress: bool = True, init: 
     run = _Iterations(schedule, plan.condition, goal, loop, condition, states, keeper, growing,
                       None if boxes is None or not len(boxes) else (boxes.to(device), gen))
     run.go(show_progress(schedule.iters, f"{cfg.system} {cfg.method}", progress))
+    reshaped = None
+    if growing and goal.reshape_steps:
+        bar = show_progress(goal.reshape_steps, f"{cfg.system}: growing V's set", progress)
+        reshaped = run.reshape(region, gen, RESHAPE_BATCHES * sampling.n_states, bar)
+        bar.close()
     metrics = run.metrics() | {"condition": condition.describe(), "xi_samples": xi_all.tolist(),
-                               "xi_train": xi_train.tolist(), "warm_start": warm}
+                               "xi_train": xi_train.tolist(), "warm_start": warm, "reshape": reshaped}
     return TrainResult(cfg, system, lyapunov.cpu(), controller.cpu(), xi_all, condition, run.history, metrics)
 
 
@@ -183,6 +192,36 @@ class _Iterations:
             self.status = (f"{growth_words(min(self.iteration, self.grow_until), self.iteration)}; kept the latest pair "
                            "passing the acceptance check")
         self.seconds = time.perf_counter() - start
+
+    def reshape(self, region: Region, gen: torch.Generator, n_states: int, bar) -> dict:
+        """After a growing fit that passed its check: grow a quadratic V's set with pi fixed
+        (:func:`~drlyap.training.reshape.grow_quadratic`). The programs see only their states: where the grown V fails
+        the acceptance check, V's matrix is moved back towards the trained one (``P_t = P0 + t (P1 - P0)``, ``t`` in
+        :data:`RESHAPE_MIX`; the condition at a state is convex in P, so a mixture is no worse there than the two
+        ends), and the first that passes is kept, else the trained pair. The record (``steps`` 0 and why where
+        nothing ran; ``mix``: the ``t`` kept)."""
+        if not self.check.passed:
+            return {"steps": 0, "stopped": "the trained pair did not pass its acceptance check", "kept": False}
+        tic = time.perf_counter()
+        kept, before = snapshot(self.loop.lyapunov, self.loop.controller), quadratic_form(self.loop.lyapunov)
+        record = grow_quadratic(self.loop, self.condition, region, self.goal.level, self.goal.faces_level,
+                                self.section.margin_rate, self.section.local_rate, self.goal.reshape_steps, gen,
+                                n_states, bar)
+        if record is None:
+            return {"steps": 0, "stopped": "V is not quadratic, or the condition is not the maximum over its samples",
+                    "kept": False}
+        grown, record["kept"], record["mix"] = quadratic_form(self.loop.lyapunov), False, None
+        for mix in RESHAPE_MIX if record["steps"] else ():
+            self.loop.lyapunov.set_quadratic(before + mix * (grown - before))
+            check = self.keeper.check(self.iteration)
+            if check.passed:
+                self.check, record["kept"], record["mix"] = check, True, mix
+                record["share_kept"] = share(quadratic_form(self.loop.lyapunov) / self.goal.level, region)
+                break
+        if not record["kept"]:
+            restore(self.loop.lyapunov, self.loop.controller, kept)
+        record["seconds"] = time.perf_counter() - tic
+        return record
 
     def metrics(self) -> dict:
         """The run's record (the training part of ``metrics.json``)."""
