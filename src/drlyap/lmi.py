@@ -28,6 +28,7 @@ import torch
 from torch import Tensor
 
 from drlyap.lqr import LQRDesign, linearize
+from drlyap.regions import ball_volume
 from drlyap.systems import UncertainSystem
 
 
@@ -82,6 +83,4 @@ def invariant_ellipsoid(system: UncertainSystem, xi: Sequence[Sequence[float]] |
 def ellipsoid_share(system: UncertainSystem, p: Tensor) -> float:
     """The share of the state box's volume held by ``{z^T P z <= 1}`` (``p (n, n)``, positive definite)."""
     lo, hi = (torch.tensor(b, dtype=torch.float64) for b in system.state_box)
-    n = system.n
-    unit_ball = math.pi ** (n / 2) / math.gamma(n / 2 + 1)
-    return float(unit_ball / torch.linalg.det(p).sqrt() / (hi - lo).prod())
+    return float(ball_volume(1.0, system.n) / torch.linalg.det(p).sqrt() / (hi - lo).prod())

@@ -26,7 +26,6 @@ quantity (its ``components`` read on unit terms give how each enters), so no for
 from __future__ import annotations
 
 import copy
-import math
 import warnings
 
 import numpy as np
@@ -36,7 +35,7 @@ from torch import Tensor
 from drlyap.closed_loop import ClosedLoop
 from drlyap.conditions import Condition, DecreaseTerms
 from drlyap.kinds import Model
-from drlyap.regions import Region
+from drlyap.regions import Region, ball_volume
 
 TRUST = 0.3
 """How far one step may grow the set: the states are drawn in ``{V <= (1 + TRUST) c}`` and the new set lies inside it."""
@@ -147,9 +146,7 @@ def grow_quadratic(loop: ClosedLoop, condition: Condition, region: Region, level
 
 def share(p: Tensor, region: Region) -> float:
     """The share of the region's box held by ``{z^T P z <= 1}`` (the ellipsoid may leave the box: then above it)."""
-    n = p.shape[0]
-    unit_ball = math.pi ** (n / 2) / math.gamma(n / 2 + 1)
-    return float(unit_ball / torch.linalg.det(p).sqrt() / (region.hi - region.lo).double().prod())
+    return float(ball_volume(1.0, p.shape[0]) / torch.linalg.det(p).sqrt() / (region.hi - region.lo).double().prod())
 
 
 def _states_in(p: Tensor, level: float, region: Region, count: int, generator: torch.Generator) -> Tensor:
