@@ -54,7 +54,7 @@ def _available(device: str) -> str | None:
 def proof_rows(paths: list[str], devices: list[str], batches: list[int], boxes: int | None) -> None:
     from parallel_bench import _prove
 
-    from drlyap.config import Compute
+    from drlyap.compute import Compute
     from drlyap.regions import Region
     from drlyap.runs import load_run
     from drlyap.workflows.verify import run_proof

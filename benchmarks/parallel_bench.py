@@ -100,7 +100,7 @@ def _traced(run, boxes: int) -> dict:
 
 
 def _compute(workers: int, backend: str = "local"):
-    from drlyap.config import Compute
+    from drlyap.compute import Compute
 
     return Compute(workers=workers, backend=backend)
 

@@ -13,8 +13,9 @@ from torch.overrides import TorchFunctionMode
 from drlyap.checker.check import LeafJob, rebuild_boxes
 from drlyap.checker.model import Pair, Residual
 from drlyap.closed_loop import ClosedLoop
+from drlyap.compute import Compute
 from drlyap.conditions import DRPointwise, TrueDecrease
-from drlyap.config import Budget, Compute
+from drlyap.config import Budget
 from drlyap.enclosures import Interval
 from drlyap.regions import Region
 from drlyap.runs.certificates import read_certificate, sha256_file, system_digest, write_certificate

@@ -13,8 +13,9 @@ import pytest
 import torch
 
 from drlyap.checker.check import check_certificate
+from drlyap.compute import Compute
 from drlyap.conditions import DRPointwise
-from drlyap.config import Budget, Compute, ProofConfig
+from drlyap.config import Budget, ProofConfig
 from drlyap.parallel import WorkerError, close_pools, pool_for
 from drlyap.regions import Region
 from drlyap.runs.certificates import read_certificate, sha256_file, system_digest, write_certificate
@@ -166,7 +167,8 @@ bounding.ConditionJob.__call__ = lambda self, lo, hi: (time.sleep(0.03), bound(s
 from handmade import linear_pair, small_pendulum
 from drlyap.closed_loop import ClosedLoop
 from drlyap.conditions import DRPointwise
-from drlyap.config import Budget, Compute
+from drlyap.compute import Compute
+from drlyap.config import Budget
 from drlyap.regions import Region
 from drlyap.verification import verify_condition
 system = small_pendulum()

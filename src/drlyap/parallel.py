@@ -1,6 +1,6 @@
 """Worker processes that run one function on the chunks of a batch: local processes or Ray actors.
 
-A proof bounds its boxes a batch at a time; with :class:`~drlyap.config.Compute` ``workers > 1`` (or the Ray
+A proof bounds its boxes a batch at a time; with :class:`~drlyap.compute.Compute` ``workers > 1`` (or the Ray
 backend) each batch is cut into one chunk per worker, and every worker runs the same *job* on its chunk: a picklable
 callable ``job(*arrays) -> dict[str, Tensor]`` whose arrays and results are batched on axis 0. The job (the networks,
 the system, the condition) is sent to a worker once, serialised with cloudpickle (so a system from a user's file
@@ -8,7 +8,7 @@ travels by value: that file ran because the user named it); only the chunks trav
 the order the batches were submitted, so the caller's bookkeeping, and therefore what it proves, is the same for any
 number of workers.
 
-* :func:`pool_for` -- the pool of a :class:`~drlyap.config.Compute` (kept for the rest of the process, so that the
+* :func:`pool_for` -- the pool of a :class:`~drlyap.compute.Compute` (kept for the rest of the process, so that the
   proofs of one command share their workers); None where boxes are bounded in this process;
 * :meth:`Pool.submit` -- send a batch, get a :class:`Pending` whose :meth:`~Pending.result` waits for it;
 * :func:`close_pools` -- stop every worker (also at exit).
@@ -38,7 +38,7 @@ import numpy as np
 import torch
 from torch import Tensor
 
-from drlyap.config import Compute
+from drlyap.compute import Compute
 
 Job = Callable[..., dict]
 _TOKENS = itertools.count(1)

@@ -61,7 +61,7 @@ from drlyap.checker.quadratic import surely_semidefinite
 from drlyap.checker.record import drop_record, fingerprint, write_record
 from drlyap.checker.uniform import uniform_margin_bound
 from drlyap.claims import claim_sentence, faces_rule
-from drlyap.config import Compute
+from drlyap.compute import Compute
 from drlyap.parallel import check_device, pool_for
 from drlyap.progress import progress as show_progress
 

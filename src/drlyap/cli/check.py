@@ -47,7 +47,7 @@ def check(run_dir: Path, names: tuple[str, ...], refine: int, workers: int, back
     refuse_early(runs=[run_dir], systems=[system_spec])
 
     from drlyap.checker import check_run
-    from drlyap.config import Compute
+    from drlyap.compute import Compute
     from drlyap.render import check_lines
 
     try:

@@ -103,7 +103,7 @@ def run_system_of(spec: str | None):
 
 def compute_options(with_device: bool = True):
     """``--workers``, ``--backend``, ``--address`` (and ``--device``): where a command's proofs bound their boxes
-    (:class:`~drlyap.config.Compute`; how fast, never what is proved)."""
+    (:class:`~drlyap.compute.Compute`; how fast, never what is proved)."""
 
     def decorate(command):
         if with_device:
@@ -127,7 +127,7 @@ def compute_options(with_device: bool = True):
 def compute_settings(workers: int, backend: str, address: str | None, device: str = "cpu") -> dict:
     """The :class:`~drlyap.config.ProofConfig` fields of ``--workers``, ``--backend``, ``--address``, ``--device``
     (checked: a usage error names what is wrong), with progress on stderr."""
-    from drlyap.config import compute_problems
+    from drlyap.compute import compute_problems
 
     problems = compute_problems(workers, backend, address, device)
     if problems:

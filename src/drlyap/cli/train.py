@@ -193,7 +193,7 @@ def _check_saved(out: Path, system, compute: dict, source: dict | None) -> list 
     if not (out / "certificates" / "trained.json").is_file():
         return None
     from drlyap.checker import check_run
-    from drlyap.config import Compute
+    from drlyap.compute import Compute
 
     try:
         return check_run(out, system, names=["trained"], compute=Compute(**compute))

@@ -59,7 +59,7 @@ def reproduce(system: str, seeds: str, out: Path | None, iters: int | None, devi
     it must declare a test shift (test_xi) and a training distribution (xi_sampler)."""
     refuse_early(systems=[system])
 
-    from drlyap.config import Compute
+    from drlyap.compute import Compute
     from drlyap.systems import resolve_system, system_source
     from drlyap.workflows.reproduce import format_table
     from drlyap.workflows.reproduce import reproduce as run_reproduce
@@ -122,7 +122,7 @@ def compare(run_dirs: tuple[Path, ...], xi: str, n_init: int, seed: int, horizon
     """
     refuse_early(runs=run_dirs, systems=[system_spec])
 
-    from drlyap.config import Compute
+    from drlyap.compute import Compute
     from drlyap.workflows.compare import compare_runs, format_comparison
 
     compute = Compute(**compute_settings(workers, backend, address, device))

@@ -17,7 +17,7 @@ from collections.abc import Callable, Iterator
 import torch
 from torch import Tensor
 
-from drlyap.config import Compute
+from drlyap.compute import Compute
 from drlyap.enclosures import Interval
 from drlyap.parallel import check_device, discard_pool, pool_for
 from drlyap.verification.bounds import (

@@ -60,7 +60,7 @@ def verify_condition(loop: ClosedLoop, condition: Condition, region: Region, bud
     ``stop_at_counterexample``: return at the first confirmed one (the fraction then counts every box not
     yet verified as unverified). ``budget.enclosure``: how boxes are bounded
     (:func:`~drlyap.verification.bounds.box_bounds`: ``mean-value`` or ``affine``; None: by the dimension).
-    ``budget.compute``: where (:class:`~drlyap.config.Compute`): batches go to worker processes in the order a single
+    ``budget.compute``: where (:class:`~drlyap.compute.Compute`): batches go to worker processes in the order a single
     process takes them, so the result, and the partition a verified proof keeps, are the same for any number of
     workers; with a ``checkpoint_dir`` the search is saved there every ``checkpoint_every`` seconds and when it ends,
     and the same proof (:func:`~drlyap.verification.checkpoints.proof_key`) started again continues from it.

@@ -20,8 +20,9 @@ from torch import Tensor
 
 from drlyap import plotting
 from drlyap.closed_loop import ClosedLoop
+from drlyap.compute import Compute
 from drlyap.conditions import TrueDecrease
-from drlyap.config import Compute, ProofConfig
+from drlyap.config import ProofConfig
 from drlyap.io import jsonable
 from drlyap.kinds import Enclosure
 from drlyap.networks import LinearController, QuadraticLyapunov
@@ -186,7 +187,7 @@ def compare_runs(paths: Sequence[str | os.PathLike], xi: Sequence[float], n_init
     ``certify_time_limit`` (seconds per run; None skips it) runs the verifier on each run at ``xi`` (:func:`certify`).
     ``system``, ``trust``: how runs whose system came from a file or module are loaded
     (:func:`drlyap.runs.load_run`). ``progress``: report scoring progress on stderr (:func:`drlyap.progress.progress`).
-    ``compute``: where the proofs bound their boxes (:class:`~drlyap.config.Compute`).
+    ``compute``: where the proofs bound their boxes (:class:`~drlyap.compute.Compute`).
     """
     if not paths:
         raise ValueError("give at least one run directory")

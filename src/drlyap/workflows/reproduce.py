@@ -15,7 +15,7 @@ from pathlib import Path
 import torch
 
 from drlyap import plotting
-from drlyap.config import Compute
+from drlyap.compute import Compute
 from drlyap.kinds import Method
 from drlyap.progress import progress as show_progress
 from drlyap.render import ACCEPTANCE_LEGEND, decrease_cell, roa_cell
@@ -64,7 +64,7 @@ def reproduce(system: str | UncertainSystem, seeds: Sequence[int], out: Path, it
     the system's cap; they are budgeted by boxes).
     ``horizon``: simulated time of every evaluation and figure (None: the system's). ``source``
     (:func:`drlyap.systems.system_source`) is recorded in each run directory; by default it is derived from a spec,
-    or the registry name. ``compute``: where the proofs bound their boxes (:class:`~drlyap.config.Compute`).
+    or the registry name. ``compute``: where the proofs bound their boxes (:class:`~drlyap.compute.Compute`).
     """
     if isinstance(system, str):
         spec, system = system, resolve_system(system)
