@@ -65,6 +65,7 @@ class SystemDefaults:
     local_rate: float = 0.3
     adversarial_share: float = 0.0
     reshape_steps: int = 0
+    exit_faces: bool = False
     warm_start: str | None = "lqr"
     lqr_weights: tuple[tuple[float, ...], tuple[float, ...]] | None = None
     verify_time: float = 30.0  # seconds per check of `verify`
@@ -116,7 +117,7 @@ def _thawed(value):
 RESOLVED = ("wasserstein_radius", "risk_level", "decay_rate", "exp_rate", "n_states", "n_xi", "delta", "lr", "iters",
             "alpha_hat", "lyapunov_hidden", "lyapunov_skip", "controller_hidden", "controller_skip", "margin",
             "near_share", "train_box", "roa_level", "level_margin", "margin_rate", "outside_weight", "exclude_weight",
-            "grow_weight", "local_rate", "adversarial_share", "reshape_steps", "warm_start", "lqr_weights")
+            "grow_weight", "local_rate", "adversarial_share", "reshape_steps", "exit_faces", "warm_start", "lqr_weights")
 """The fields a config leaves to its system (``None``) and :meth:`TrainConfig.resolved` fills."""
 
 OPTIONAL = ("train_box", "roa_level", "warm_start", "lqr_weights")
@@ -144,8 +145,8 @@ _KINDS = {
     "exclude_weight": "number", "grow_weight": "number", "local_rate": "number", "adversarial_share": "number",
     "init_gain": "number", "n_states": "int", "n_xi": "int", "iters": "int", "reshape_steps": "int",
     "check_every": "int", "seed": "int", "lyapunov_out": "int",
-    "resample": "bool", "controller_skip": "bool", "lyapunov_skip": "bool", "lyapunov_hidden": "sizes",
-    "controller_hidden": "sizes"}
+    "resample": "bool", "controller_skip": "bool", "lyapunov_skip": "bool", "exit_faces": "bool",
+    "lyapunov_hidden": "sizes", "controller_hidden": "sizes"}
 _REQUIRED = ("system", "method", "loss", "check_every", "seed", "device", "lyapunov_out", "init_gain",
              "resample")
 
@@ -220,6 +221,10 @@ class TrainConfig:
     # level); 2% of it redrawn each iteration (in 6 states uniform draws miss where the condition fails). 0: none
     adversarial_share: float | None = None
     reshape_steps: int | None = None  # convex programs growing a quadratic V's set after training (training/reshape)
+    # region-of-attraction training: V is held above the trained level only on the faces where the flow may leave the
+    # box (training/states.may_leave), elsewhere above the claimed level roa_level; with a level margin, the set cut by
+    # the box then grows past the claimed one where the flow enters the box (verify --roa --roa-above-level)
+    exit_faces: bool | None = None
     # "lqr": before training, fit V to the LQR's z^T P z (scaled to 1.2 times the training level, or 1, on the faces)
     # and pi to its gain (exactly without hidden layers or with a linear path, else by regression); lqr_weights = [Q
     # diagonal, R diagonal] (None: Bryson's rule); "ellipsoid": the same with drlyap.lmi's largest invariant ellipsoid
@@ -299,8 +304,9 @@ class TrainConfig:
             problems.append(f"near_share + adversarial_share = {self.near_share + self.adversarial_share} (must be <= 1)")
         if self.roa_level is not None and not (math.isfinite(self.roa_level) and self.roa_level > 0):
             problems.append(f"roa_level = {self.roa_level} (must be > 0, or None)")
-        if self.level_margin and self.roa_level is None:
-            problems.append(f"level_margin = {self.level_margin} needs a region-of-attraction level (roa_level)")
+        for name in ("level_margin", "exit_faces"):
+            if getattr(self, name) and self.roa_level is None:
+                problems.append(f"{name} = {getattr(self, name)} needs a region-of-attraction level (roa_level)")
         if self.warm_start not in (None, "lqr", "ellipsoid"):
             problems.append(f"warm_start {self.warm_start!r} (valid: lqr, ellipsoid, or None)")
         if self.lqr_weights is not None:

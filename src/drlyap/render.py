@@ -103,6 +103,17 @@ def training_lines(system: str, method: str, record: TrainingRecord) -> list[str
     return lines
 
 
+def cut_set_line(roa_level: float, level_margin: float, test_xi, verify_hint: str) -> str:
+    """What ``drlyap train`` adds for a run trained with ``exit_faces``: the set it trained beyond the claim, cut by
+    the box where the flow enters it, and the command that searches it for a certified region of attraction at the
+    system's test shift ``test_xi``."""
+    level = float(roa_level) * (1 + float(level_margin))
+    xi = ",".join(f"{float(v):g}" for v in test_xi)
+    return (f"  trained up to {{V <= {level:g}}} in the box, V held above that level only where the flow may leave "
+            f"the box: `{verify_hint} --xi {xi} --roa --roa-above-level` searches that set cut by the box for a "
+            f"certified region of attraction at the test shift")
+
+
 def proof_round_line(entry: ProofRound) -> str:
     """One line per proof round of counterexample-guided training (or of the DR uniform margin's rounds)."""
     added = entry.added or {}

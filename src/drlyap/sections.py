@@ -151,8 +151,9 @@ class RegionGoal:
     """Region-of-attraction training: the claimed set ``{V <= roa_level}`` (None: the paper's condition on all of
     X_delta), trained on ``{V <= (1 + level_margin) roa_level}``; the hinge's weight outside the set
     (``outside_weight``), the term raising V where the set holds a violation (``exclude_weight``), the one pulling
-    the set out towards the faces (``grow_weight``) and the convex programs that grow a quadratic V's set after
-    training (``reshape_steps``)."""
+    the set out towards the faces (``grow_weight``), the convex programs that grow a quadratic V's set after
+    training (``reshape_steps``) and whether only the faces the flow may leave hold V above the trained level
+    (``exit_faces``)."""
 
     roa_level: float | None
     level_margin: float
@@ -160,6 +161,7 @@ class RegionGoal:
     exclude_weight: float
     grow_weight: float
     reshape_steps: int
+    exit_faces: bool
 
     @property
     def level(self) -> float | None:
@@ -176,6 +178,15 @@ class RegionGoal:
         if level is None:
             return None
         return level * (1 + GROW_FACES_MARGIN if self.grow_weight else 1.0)
+
+    @property
+    def entry_faces_level(self) -> float | None:
+        """With ``exit_faces``, the level V is asked above where the flow enters the box: the claimed level (with
+        ``GROW_FACES_MARGIN`` where the set grows), so that the claimed set stays inside the box; else
+        :attr:`faces_level`."""
+        if not self.exit_faces or self.roa_level is None:
+            return self.faces_level
+        return float(self.roa_level) * (1 + GROW_FACES_MARGIN if self.grow_weight else 1.0)
 
 
 @dataclass(frozen=True)

@@ -176,7 +176,7 @@ def train(system: str, method: str, loss: str, radius: float | None, eps: float 
         click.echo(json.dumps({"run_dir": str(out), "system": sys_.name, "method": method, "metrics": m,
                                "check": None if checked is None else [r.to_dict() for r in checked]}))
         return
-    from drlyap.render import check_lines, training_lines
+    from drlyap.render import check_lines, cut_set_line, training_lines
 
     for line in training_lines(sys_.name, method, result.record):
         click.echo(line)
@@ -185,6 +185,9 @@ def train(system: str, method: str, loss: str, radius: float | None, eps: float 
                                 command_hint("verify", out, source=source)))
     for line in check_lines(checked or []):
         click.echo(f"  {line}")
+    if result.config.exit_faces and sys_.test_xi is not None:
+        click.echo(cut_set_line(result.config.roa_level, result.config.level_margin, sys_.test_xi,
+                                command_hint("verify", out, source=source)))
 
 
 def _check_saved(out: Path, system, compute: dict, source: dict | None) -> list | None:

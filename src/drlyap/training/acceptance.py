@@ -118,14 +118,16 @@ def find_equilibria(loop: ClosedLoop, xi_samples: Tensor, delta: float, starts_p
 
 def acceptance_check(loop: ClosedLoop, condition: Condition, xi_samples: Tensor, region: Region,
                      validation: Tensor | None = None, level: float | None = None, faces: Tensor | None = None,
-                     local: bool = False) -> AcceptanceCheck:
+                     local: bool = False, face_levels: Tensor | None = None) -> AcceptanceCheck:
     """Run all three checks; ``passed`` is True only if all of them pass.
 
     ``xi_samples (N, k)``: every sample; the Jacobian and equilibrium checks run at each of them and at
     their mean (the condition uses its own samples: the baseline's only the mean). ``validation``: the
     states of the first check (default: ``region.grid()``). ``level``: the condition is asked only of the
     validation states with ``V <= level``, and V must exceed ``level`` at every state of ``faces`` ``(F, n)``
-    (default: 20,000 fixed states on the box's boundary), so that ``{V <= level}`` lies inside the box.
+    (default: 20,000 fixed states on the box's boundary), so that ``{V <= level}`` lies inside the box (with
+    ``face_levels (F,)``: V must exceed each face state's own level, and ``level`` is compared with V's least value
+    on the faces only in the record).
     ``local_rates``: V's second-order decay rate at x* on each of the condition's samples
     (:func:`~drlyap.conditions.local_rates`), always reported; with ``local`` every one must be negative.
     """
@@ -136,7 +138,10 @@ def acceptance_check(loop: ClosedLoop, condition: Condition, xi_samples: Tensor,
         asked = z[(loop.value(z) <= level).to(z.device)]
         if faces is None:
             faces = region.sample_faces(20000, torch.Generator().manual_seed(12345))
-        boundary_min = float(loop.value(faces).min())
+        face_values = loop.value(faces)
+        boundary_min = float(face_values.min())
+        above = boundary_min > level if face_levels is None else bool(
+            (face_values.double() > face_levels.to(face_values.device, torch.float64)).all())
     residual = condition_residual(loop, condition, asked) if asked.shape[0] else torch.empty(0)
     max_violation = float(residual.max()) if residual.numel() else -math.inf
     jac = jacobian_check(loop, xi_samples)
@@ -147,7 +152,7 @@ def acceptance_check(loop: ClosedLoop, condition: Condition, xi_samples: Tensor,
     if local:
         passed = passed and all(r < 0 for r in rates)  # NaN fails
     if level is not None:
-        passed = passed and boundary_min > level
+        passed = passed and above
     return AcceptanceCheck(passed=bool(passed and not math.isnan(max_violation)), validation_states=int(z.shape[0]),
                            max_violation=max_violation,
                            violating_fraction=float((residual > 0).double().sum()) / max(1, int(z.shape[0])),
@@ -179,8 +184,10 @@ class PairKeeper:
             inside = inside_states(lyapunov, self.region, level, 20000, self.states.device,
                                    torch.Generator().manual_seed(12345))
             validation = torch.cat([validation, inside])
+        faces = self.states.check_faces(self.loop, self.condition.xi)
         check = acceptance_check(self.loop, self.condition, self.xi, self.region, validation=validation, level=level,
-                                 faces=self.states.check_faces(), local=self.local)
+                                 faces=None if faces is None else faces[0], local=self.local,
+                                 face_levels=None if faces is None else faces[1])
         check.iteration = iteration
         self.checks.append(check.summary())
         score = (*check.stability(), -check.violating_fraction, -check.max_violation)

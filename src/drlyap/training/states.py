@@ -1,7 +1,8 @@
 """The states a fit trains on (:class:`TrainingStates`): uniform batches in X_delta, a share near x*, with a
 region-of-attraction level states inside the set, and adversarial states moved by projected ascent on the residual
-(:func:`ascend`), states on the box's faces moved by projected descent on V (:func:`descend_on_faces`); what the
-acceptance check adds inside a small set (:func:`inside_states`)."""
+(:func:`ascend`), states on the box's faces moved by projected descent on V (:func:`descend_on_faces`) and the faces
+where the flow may leave the box (:func:`may_leave`); what the acceptance check adds inside a small set
+(:func:`inside_states`)."""
 
 from __future__ import annotations
 
@@ -19,6 +20,7 @@ ADVERSARIAL_STEP = 0.01  # one ascent step of the adversarial states, as a share
 ADVERSARIAL_REFRESH = 0.02  # share of the adversarial states redrawn every iteration
 FACE_STATES = 1024  # states on the box's faces drawn anew every iteration, and as many kept and moved by descent
 FACE_DESCENT_STATES = 4  # from this many states on: in 2 or 3 the faces are segments or squares that uniform draws cover
+EXIT_MARGIN = 0.05  # a face state may be left where the flow's outward part exceeds -this share of the half-width per unit time
 
 
 def radial_states(lyapunov: Lyapunov, region: Region, level: float, count: int, generator: torch.Generator) -> Tensor:
@@ -97,6 +99,18 @@ def inside_states(lyapunov: Lyapunov, region: Region, level: float, count: int, 
     return torch.cat(kept)[:count]
 
 
+def may_leave(loop: ClosedLoop, xi: Tensor, z: Tensor, region: Region) -> Tensor:
+    """``(F,)`` bool: the states ``z (F, n)`` on the box's faces where the design model's flow at some sample of
+    ``xi (N, k)`` may leave the box: its component out through a face the state lies on is above ``-EXIT_MARGIN``
+    of the box's half-width per unit time (the margin takes in the points a shift may turn outwards). No gradient."""
+    with torch.no_grad():
+        f, w = loop.system.design_model(loop.system.to_user(z), loop.controller(z))
+        zdot = f + torch.einsum("bnk,jk->jbn", w, xi.to(f))  # (N, F, n)
+        lo, hi = region.lo.to(z), region.hi.to(z)
+        outward = torch.where(z >= hi, zdot, torch.where(z <= lo, -zdot, torch.full_like(zdot, -torch.inf)))
+        return (outward > -EXIT_MARGIN * (hi - lo) / 2).any(-1).any(0)
+
+
 class TrainingStates:
     """The states a fit trains on, drawn from ``gen`` (in this order: a batch, then the adversarial states, at the start;
     then each iteration a new batch where ``sampling.resample``, a share of the adversarial states redrawn and all of
@@ -114,6 +128,8 @@ class TrainingStates:
         self.refresh = max(1, int(ADVERSARIAL_REFRESH * self.n_adv))
         self.level = goal.level  # the claimed level, or above it by the level margin
         self.faces_level = goal.faces_level
+        self.entry_level = goal.entry_faces_level  # below faces_level with exit_faces: where the flow enters the box
+        self.claimed = goal.roa_level if goal.exit_faces else goal.level  # what the acceptance check asks there
         self.drawn_in = region
         self.faces = None  # fixed states on the box's faces for the acceptance check (own generator)
         self.face_minima: Tensor | None = None  # face states moved by descent on V (with a level)
@@ -162,14 +178,28 @@ class TrainingStates:
         self.adversaries = ascend(loop, condition, self.adversaries, self.drawn_in, self.level)
         return torch.cat([self.batch, self.adversaries])
 
-    def faces_term(self, lyapunov: Lyapunov, iteration: int) -> Tensor:
-        """The mean shortfall of V below the faces' level at ``FACE_STATES`` new states of the box's faces; from
-        ``FACE_DESCENT_STATES`` states on, plus the mean shortfall of those kept face states that fall short, a share
-        of them redrawn and all moved one descent step on V (:func:`descend_on_faces`): they gather where V is least
-        on each face, and only the faces the set crosses count (averaged over all of them, a set crossing one face of
-        twelve would barely feel it)."""
+    def face_levels(self, loop: ClosedLoop, xi: Tensor, z: Tensor, level: float, entry: float,
+                    dtype: torch.dtype | None = None) -> Tensor:
+        """``(F,)`` in ``dtype`` (default: ``z``'s): the level V is asked above at each state of ``z (F, n)`` on the
+        faces, ``level`` where the flow may leave the box (:func:`may_leave` at the samples ``xi (N, k)``) and
+        ``entry`` elsewhere; ``level`` everywhere where the two are equal (without ``exit_faces``)."""
+        dtype = dtype or z.dtype
+        if entry == level:
+            return torch.full((z.shape[0],), float(level), dtype=dtype, device=z.device)
+        leave = may_leave(loop, xi, z, self.region)
+        at = {"dtype": dtype, "device": z.device}
+        return torch.where(leave, torch.tensor(float(level), **at), torch.tensor(float(entry), **at))
+
+    def faces_term(self, loop: ClosedLoop, xi: Tensor, iteration: int) -> Tensor:
+        """The mean shortfall of V below the faces' level (:meth:`face_levels`) at ``FACE_STATES`` new states of the
+        box's faces; from ``FACE_DESCENT_STATES`` states on, plus the mean shortfall of those kept face states that
+        fall short, a share of them redrawn and all moved one descent step on V (:func:`descend_on_faces`): they
+        gather where V is least on each face, and only the faces the set crosses count (averaged over all of them, a
+        set crossing one face of twelve would barely feel it). ``xi (N, k)``: the condition's samples."""
+        lyapunov = loop.lyapunov
         faces = self.region.sample_faces(FACE_STATES, self.gen).float().to(self.device)
-        uniform = torch.relu(self.faces_level - lyapunov(faces)).mean()
+        levels = self.face_levels(loop, xi, faces, self.faces_level, self.entry_level)
+        uniform = torch.relu(levels - lyapunov(faces)).mean()
         if self.face_minima is None:
             return uniform
         refresh = max(1, int(ADVERSARIAL_REFRESH * FACE_STATES))
@@ -177,9 +207,15 @@ class TrainingStates:
         fresh = self.region.sample_faces(refresh, self.face_gen).float().to(self.device)
         self.face_minima[row:row + refresh] = fresh[:FACE_STATES - row]
         self.face_minima = descend_on_faces(lyapunov, self.face_minima, self.region)
-        short = torch.relu(self.faces_level - lyapunov(self.face_minima))
+        levels = self.face_levels(loop, xi, self.face_minima, self.faces_level, self.entry_level)
+        short = torch.relu(levels - lyapunov(self.face_minima))
         return uniform + short.sum() / (short > 0).sum().clamp_min(1)
 
-    def check_faces(self) -> Tensor | None:
-        """The acceptance check's face states ``(F, n)``: the fixed uniform ones and the kept descended ones."""
-        return self.faces if self.face_minima is None else torch.cat([self.faces, self.face_minima])
+    def check_faces(self, loop: ClosedLoop, xi: Tensor) -> tuple[Tensor, Tensor] | None:
+        """The acceptance check's face states ``(F, n)``, the fixed uniform ones and the kept descended ones, and the
+        level ``(F,)`` V must exceed at each: the training level, or with ``exit_faces`` the claimed one where the flow
+        enters the box. None without a level."""
+        if self.faces is None:
+            return None
+        faces = self.faces if self.face_minima is None else torch.cat([self.faces, self.face_minima])
+        return faces, self.face_levels(loop, xi, faces, self.level, self.claimed, torch.float64)

@@ -273,7 +273,7 @@ def _loss(section: ConditionSection, goal: RegionGoal, loop: ClosedLoop, conditi
     level = states.level
     loss = condition.loss(terms, section.margin, section.margin_rate, level, goal.outside_weight, goal.exclude_weight)
     if level is not None:  # V above the level on the faces of X: {V <= level} inside X
-        loss = loss + states.faces_term(loop.lyapunov, iteration)
+        loss = loss + states.faces_term(loop, condition.xi, iteration)
         if grow_now:  # the set pulled out towards the faces
             loss = loss + goal.grow_weight * (torch.relu(terms.value - level) / level).mean()
     if section.local_rate and (iteration - 1) % LOCAL_EVERY == 0:  # V a Lyapunov function of the linearisation
