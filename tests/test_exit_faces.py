@@ -48,6 +48,7 @@ def test_the_faces_where_the_flow_enters_are_held_only_above_the_claimed_level()
     assert goal.level == plain.level == 1.5
     assert goal.faces_level == plain.faces_level == pytest.approx(1.575)
     assert goal.entry_faces_level == pytest.approx(1.05) and plain.entry_faces_level == plain.faces_level
+    assert goal.entry_level == 1.0 and plain.entry_level == plain.level  # what the acceptance check asks there
 
 
 def test_the_acceptance_check_asks_each_face_state_its_own_level():

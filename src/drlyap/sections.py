@@ -174,19 +174,23 @@ class RegionGoal:
     def faces_level(self) -> float | None:
         """The level V is asked above on the box's faces: :attr:`level`, ``GROW_FACES_MARGIN`` above it where the set
         grows; None without a level."""
-        level = self.level
-        if level is None:
-            return None
-        return level * (1 + GROW_FACES_MARGIN if self.grow_weight else 1.0)
+        return self._on_faces(self.level)
+
+    @property
+    def entry_level(self) -> float | None:
+        """The level V must exceed where the flow enters the box: with ``exit_faces`` the claimed ``roa_level`` (the
+        claimed set stays inside the box), else :attr:`level`; None without a level."""
+        return float(self.roa_level) if self.exit_faces and self.roa_level is not None else self.level
 
     @property
     def entry_faces_level(self) -> float | None:
-        """With ``exit_faces``, the level V is asked above where the flow enters the box: the claimed level (with
-        ``GROW_FACES_MARGIN`` where the set grows), so that the claimed set stays inside the box; else
-        :attr:`faces_level`."""
-        if not self.exit_faces or self.roa_level is None:
-            return self.faces_level
-        return float(self.roa_level) * (1 + GROW_FACES_MARGIN if self.grow_weight else 1.0)
+        """What :attr:`faces_level` is to :attr:`level`, for :attr:`entry_level`: the level V is asked above where
+        the flow enters the box (:attr:`faces_level` without ``exit_faces``)."""
+        return self._on_faces(self.entry_level)
+
+    def _on_faces(self, level: float | None) -> float | None:
+        """``level`` as asked on the faces in training: ``GROW_FACES_MARGIN`` above it where the set grows."""
+        return None if level is None else level * (1 + GROW_FACES_MARGIN if self.grow_weight else 1.0)
 
 
 @dataclass(frozen=True)

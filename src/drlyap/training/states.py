@@ -129,7 +129,7 @@ class TrainingStates:
         self.level = goal.level  # the claimed level, or above it by the level margin
         self.faces_level = goal.faces_level
         self.entry_level = goal.entry_faces_level  # below faces_level with exit_faces: where the flow enters the box
-        self.claimed = goal.roa_level if goal.exit_faces else goal.level  # what the acceptance check asks there
+        self.entry_check = goal.entry_level  # what the acceptance check asks where the flow enters the box
         self.drawn_in = region
         self.faces = None  # fixed states on the box's faces for the acceptance check (own generator)
         self.face_minima: Tensor | None = None  # face states moved by descent on V (with a level)
@@ -218,4 +218,4 @@ class TrainingStates:
         if self.faces is None:
             return None
         faces = self.faces if self.face_minima is None else torch.cat([self.faces, self.face_minima])
-        return faces, self.face_levels(loop, xi, faces, self.level, self.claimed, torch.float64)
+        return faces, self.face_levels(loop, xi, faces, self.level, self.entry_check, torch.float64)
