@@ -158,3 +158,40 @@ def test_a_run_saved_without_a_verdict_stays_readable_after_verify(tmp_path):
     kept = json.loads(metrics_path.read_text())["certificate"]
     assert kept["status"] == "not checked" and kept["roa"]["certified"]
     assert load_run(run, system=small_pendulum()).metrics["certificate"]["roa"]["certified"]
+
+
+def test_a_region_at_a_shift_may_ask_a_smaller_decay_and_its_certificates_state_it(tmp_path):
+    """``--roa-rate``: the true model's decrease at the shift and its region ask ``Vdot + alpha V <= 0`` with the
+    alpha given (any alpha > 0 is strict); the certificates state that alpha, metrics.json reports it, and the checker
+    confirms them. Here the run's alpha 0.5 fails a little way out, and asking 0.01 certifies far more of the box."""
+    run = linear_run_dir(tmp_path / "run", delta=0.1, exp_rate=0.5)
+    own = _verify(run)["roa"]
+    found = _verify(run, "--roa-rate", "0.01")
+    assert found["roa_rate"] == 0.01 and found["roa"]["certified"]
+    assert own["limited_by"] == "unverified box at minimum size" and own["share_of_box"] < 0.05
+    assert found["roa"]["share_of_box"] > 0.5 and found["roa"]["level"] > 10 * own["level"]
+    folder = run / "certificates"
+    for name in ("true-model", "roa"):
+        assert json.loads((folder / f"{name}.json").read_text())["claim"]["condition"]["exp_rate"] == 0.01
+    reported = json.loads((run / "metrics.json").read_text())["certificate"]
+    assert reported["roa"]["exp_rate"] == reported["true_model"]["exp_rate"] == 0.01
+    checked = _check(run)
+    assert checked.exit_code == 0, checked.output
+    assert "roa: CHECKED" in checked.output and "true-model: CHECKED" in checked.output
+    metrics = json.loads((run / "metrics.json").read_text())
+    metrics["certificate"]["roa"]["exp_rate"] = 0.02  # a region reported with another decay than its certificate's
+    (run / "metrics.json").write_text(json.dumps(metrics))
+    refused = _check(run, "roa")
+    assert refused.exit_code != 0 and "exp_rate" in refused.output
+
+
+@pytest.mark.parametrize("args, message", [
+    (["--xi", XI, "--roa-rate", "0.01"], "goes with --roa and --xi"),
+    (["--roa", "--roa-rate", "0.01"], "goes with --roa and --xi"),
+    (["--xi", XI, "--roa", "--roa-rate", "0"], "--roa-rate must be > 0"),
+    (["--xi", XI, "--roa", "--roa-rate", "nan"], "--roa-rate must be > 0"),
+])
+def test_roa_rate_is_refused_without_a_region_at_a_shift_or_when_not_positive(tmp_path, args, message):
+    run = linear_run_dir(tmp_path / "run")
+    out = CliRunner().invoke(main, ["verify", str(run), "--system", SPEC, *args])
+    assert out.exit_code == 1 and message in out.output, out.output

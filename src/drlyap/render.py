@@ -251,7 +251,8 @@ def verification_lines(ver: RunVerification, system: str, method: str) -> list[s
     if ver.uniform is not None and ver.uniform is not ver.trained:
         lines.append("  " + margin_line(ver.uniform))
     if ver.true_model is not None:
-        lines += condition_lines(ver.true_model, f"  true model at xi = {ver.true_model.xi}")
+        rate = "" if ver.roa_rate is None else f", decay {ver.roa_rate:g} V"
+        lines += condition_lines(ver.true_model, f"  true model at xi = {ver.true_model.xi}{rate}")
     if ver.roa is not None:
         lines.append("  " + roa_line(ver.roa, ver.true_model is not None))
     if ver.robustness is not None:

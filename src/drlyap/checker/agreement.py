@@ -120,6 +120,8 @@ def _roa_claim(name: str, header: dict, config: dict, metrics: dict, expected: d
         "no certified region reported in metrics.json"
     condition = {"name": "true", "model": "true", "xi": [list(map(float, xi))]} if xi is not None else \
         _trained_condition(config, metrics)
+    if xi is not None and reported.get("exp_rate") is not None:  # the decay asked at the shift (verify --roa-rate)
+        condition["exp_rate"] = float(reported["exp_rate"])
     if condition["name"] == "uniform":  # one inequality: its region rests on the decrease at each sample it implies
         condition = {"name": "plain", "xi": condition["xi"]}
     claim = header["claim"]
@@ -212,6 +214,8 @@ def claim_mismatch(name: str, header: dict, config: dict, metrics: dict) -> list
         reported = (metrics.get("certificate") or {}).get("true_model") or {}
         if reported.get("xi") is not None:  # the shift the run reports its decrease and region at
             expected |= {"xi": [list(map(float, reported["xi"]))]}
+        if reported.get("exp_rate") is not None and claim.get("exp_rate") == reported["exp_rate"]:
+            expected["exp_rate"] = float(reported["exp_rate"])  # the decay asked there (verify --roa-rate)
     stated = {"delta": delta, "level": level}
     wanted = {"delta": config.get("delta"), "level": config.get("roa_level")}
     if expected.get("name") == "uniform":  # one inequality over X_delta: no sublevel set

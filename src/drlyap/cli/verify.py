@@ -4,6 +4,7 @@ from __future__ import annotations
 
 import dataclasses
 import json
+import math
 from pathlib import Path
 
 import click
@@ -40,6 +41,10 @@ from drlyap.config import ENCLOSURES, ProofConfig
 @click.option("--roa-above-level", is_flag=True,
               help="Let --roa's search go above the level the run was trained for (or the level of the run an imported "
                    "pair was exported from); without it the region certified is at most that level, the run's claim.")
+@click.option("--roa-rate", type=float, default=None,
+              help="With --roa at --xi: the decay alpha of the true model's decrease Vdot + alpha V <= 0 proved there and "
+                   "asked of its region (a region of attraction needs only a strict decrease: any alpha > 0) [the "
+                   "run's alpha].")
 @click.option("--uniform", is_flag=True,
               help="Also bound the uniform DR condition's margin at the run's radius, risk level and samples (a "
                    "stricter condition than the pointwise one the default pairs are trained on); a margin proved "
@@ -61,9 +66,9 @@ from drlyap.config import ENCLOSURES, ProofConfig
 @click.option("--json", "as_json", is_flag=True, help="Print one JSON object.")
 @run_source_options
 def verify(run_dir: Path, delta: float | None, xi: str | None, time_limit: float | None, roa: bool,
-           roa_time: float | None, roa_above_level: bool, uniform: bool, max_radius: bool, radius_tol: float,
-           enclosure: str | None, reprove: bool, workers: int, backend: str, address: str | None, device: str, as_json: bool,
-           system_spec: str | None, trust_run: bool) -> None:
+           roa_time: float | None, roa_above_level: bool, roa_rate: float | None, uniform: bool, max_radius: bool,
+           radius_tol: float, enclosure: str | None, reprove: bool, workers: int, backend: str, address: str | None,
+           device: str, as_json: bool, system_spec: str | None, trust_run: bool) -> None:
     """Prove the decrease condition of RUN_DIR on the whole state box minus the delta-ball, or find a counterexample.
 
     A run trained for a region of attraction (the default of every built-in system but the pendulum, and of your own
@@ -107,7 +112,13 @@ def verify(run_dir: Path, delta: float | None, xi: str | None, time_limit: float
             raise ValueError("--roa-above-level goes with --roa (it lets the region-of-attraction search pass the level)")
         if not radius_tol > 0:
             raise ValueError(f"--radius-tol must be > 0, got {radius_tol}")
+        if roa_rate is not None and not (roa and xi is not None and math.isfinite(roa_rate) and roa_rate > 0):
+            raise ValueError(f"--roa-rate must be > 0 and goes with --roa and --xi (the decay asked at the shift), "
+                             f"got {roa_rate}" + ("" if roa and xi is not None else " without them"))
         if read_run_kind(run_dir).get("kind") == "imported":
+            if roa_rate is not None:
+                raise ValueError("--roa-rate is for runs trained here: an imported pair's certificates state the "
+                                 "decay it was exported with")
             _verify_imported(run_dir, delta, xi, time_limit, roa, roa_time, enclosure, as_json, system_spec, trust_run,
                              compute, roa_above_level)
             return
@@ -119,7 +130,7 @@ def verify(run_dir: Path, delta: float | None, xi: str | None, time_limit: float
         settings = run_proof(run, settings)
         shift = None if xi is None else run.system.check_xi(floats(xi, "--xi"))
         result = prove_run(run, settings, delta=delta, xi=shift, roa=roa, uniform=uniform, reprove=reprove,
-                            above_level=roa_above_level)
+                            above_level=roa_above_level, roa_rate=roa_rate)
         stored = None
         if roa:
             try:

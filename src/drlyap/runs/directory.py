@@ -30,7 +30,7 @@ import torch
 from torch import Tensor
 
 from drlyap.closed_loop import ClosedLoop
-from drlyap.conditions import Condition
+from drlyap.conditions import Condition, TrueDecrease
 from drlyap.config import ProofConfig, TrainConfig, legacy_proof
 from drlyap.io import write_json, write_json_atomic
 from drlyap.networks import Controller, Lyapunov
@@ -121,17 +121,19 @@ class Run:
         """The condition the run was trained on (:meth:`~drlyap.sections.ConditionSection.build`)."""
         return self.sections.condition.build(self.xi_train)
 
-    def region_condition(self, xi=None) -> Condition | None:
+    def region_condition(self, xi=None, exp_rate: float | None = None) -> Condition | None:
         """The per-state condition a region of attraction of the run rests on: its trained condition, or with a shift
-        ``xi (k,)`` decrease on the true model there; for the DR uniform condition (one inequality, no per-state
-        residual) the decrease at every sample it implies (:meth:`~drlyap.conditions.Condition.per_sample`, None
-        where it implies none)."""
-        condition = self.condition if xi is None else self.true_condition(xi)
+        ``xi (k,)`` decrease on the true model there (``exp_rate``: its decay ``alpha V``, None: the run's); for the DR
+        uniform condition (one inequality, no per-state residual) the decrease at every sample it implies
+        (:meth:`~drlyap.conditions.Condition.per_sample`, None where it implies none)."""
+        condition = self.condition if xi is None else self.true_condition(xi, exp_rate)
         return condition if condition.per_state else condition.per_sample(condition.decay_rate, condition.exp_rate)
 
-    def true_condition(self, xi) -> Condition:
-        """Plain decrease on the true model at the shift ``xi (k,)``, with the run's decay terms."""
-        return self.sections.condition.build(self.system.check_xi(xi)[None], "true")
+    def true_condition(self, xi, exp_rate: float | None = None) -> Condition:
+        """Plain decrease on the true model at the shift ``xi (k,)``, with the run's decay terms (``exp_rate``: another
+        ``alpha`` of its ``alpha V``)."""
+        condition = self.sections.condition.build(self.system.check_xi(xi)[None], "true")
+        return condition if exp_rate is None else TrueDecrease(condition.xi, condition.decay_rate, float(exp_rate))
 
     @property
     def acceptance(self) -> AcceptanceCheck | None:

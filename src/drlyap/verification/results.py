@@ -459,7 +459,7 @@ class RunVerification(Result):
     ``main`` is what the run's status is about: the true model at the shift when one was given, else the trained
     condition."""
 
-    OPTIONAL: ClassVar[tuple[str, ...]] = ("uniform", "true_model", "robustness")
+    OPTIONAL: ClassVar[tuple[str, ...]] = ("uniform", "true_model", "robustness", "roa_rate")
     run_dir: str
     system: str
     method: str
@@ -471,6 +471,7 @@ class RunVerification(Result):
     true_model: ConditionProof | None = None
     roa: RegionOfAttraction | None = None
     robustness: RunRobustness | None = None
+    roa_rate: float | None = None  # the decay alpha V asked at the shift where it is not the run's
 
     @property
     def main(self):
@@ -497,7 +498,7 @@ class RunVerification(Result):
         return cls(data["run_dir"], data["system"], data["method"], data.get("loss"), data["delta"], data["enclosure"],
                    proof(data["trained"]), proof(data.get("uniform")), proof(data.get("true_model")),
                    None if roa is None else RegionOfAttraction.from_dict(roa),
-                   None if rob is None else RunRobustness.from_dict(rob))
+                   None if rob is None else RunRobustness.from_dict(rob), data.get("roa_rate"))
 
 
 def proof_from_dict(data: dict | None) -> ConditionProof | UniformMargin | None:

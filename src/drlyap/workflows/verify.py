@@ -119,7 +119,7 @@ def confirmed_certificate(run: Run, name: str, condition, region: Region, level:
 
 def verify(run: Run, proof: ProofConfig | None = None, *, delta: float | None = None,
                xi: Sequence[float] | Tensor | None = None, roa: bool = False, uniform: bool = False,
-               reprove: bool = False, above_level: bool = False) -> RunVerification:
+               reprove: bool = False, above_level: bool = False, roa_rate: float | None = None) -> RunVerification:
     """Verify a loaded run (:func:`drlyap.runs.load_run`) on X_delta (``delta``: the run's by default).
 
     ``trained``: the run's own condition (pointwise / nominal by :func:`~drlyap.verification.prove_trained`, uniform
@@ -133,8 +133,13 @@ def verify(run: Run, proof: ProofConfig | None = None, *, delta: float | None = 
     level too (the claim the run was trained for stays the default). ``proof``: the settings (:func:`run_proof`). A
     condition whose
     certificate file states the same claim and is confirmed by the checker is not proved again
-    (:func:`confirmed_certificate`), unless ``reprove``.
+    (:func:`confirmed_certificate`), unless ``reprove``. ``roa_rate``: with ``xi``, the decay ``alpha`` of the true
+    model's decrease ``Vdot + alpha V <= 0`` proved there and asked of its region (None: the run's ``exp_rate``; a
+    region of attraction needs only a strict decrease, any ``alpha > 0``).
     """
+    if roa_rate is not None and (xi is None or not (math.isfinite(roa_rate) and roa_rate > 0)):
+        raise ValueError(f"roa_rate must be > 0 and given with a shift (xi), got {roa_rate}"
+                         + ("" if xi is not None else " without xi"))
     proof = run_proof(run, proof)
     cfg, system, loop = run.config, run.system, run.loop
     region = _region(run, delta)
@@ -155,7 +160,7 @@ def verify(run: Run, proof: ProofConfig | None = None, *, delta: float | None = 
                                     proof.budget(proof.uniform_time), keep_partition=True)
     true_model, main_condition = None, trained_condition
     if xi is not None:
-        main_condition = run.true_condition(xi)
+        main_condition = run.true_condition(xi, roa_rate)
         true_model = None if reprove or float(region.delta) != float(cfg.delta) else \
             confirmed_certificate(run, "true-model", main_condition, region, level, proof)
         if true_model is None:
@@ -178,7 +183,7 @@ def verify(run: Run, proof: ProofConfig | None = None, *, delta: float | None = 
     return RunVerification(run_dir=str(run.path), system=system.name, method=cfg.method,
                            loss=cfg.loss if cfg.method == Method.DR else None, delta=region.delta,
                            enclosure=proof.enclosure, trained=trained, uniform=margin, true_model=true_model,
-                           roa=region_of_attraction)
+                           roa=region_of_attraction, roa_rate=roa_rate)
 
 
 def _region_of_attraction(loop: ClosedLoop, condition: Condition, region: Region, proof: ProofConfig, budget: Budget,
@@ -226,10 +231,11 @@ def record_region(run: Run, ver: RunVerification) -> None:
     ``metrics.json`` (atomically). Nothing is kept of a verification without a region."""
     if ver.roa is None:
         return
-    kept = {"roa": jsonable({**ver.roa.to_dict(), "xi": ver.roa.xi})}  # xi None: about the trained condition
+    rate = {} if ver.roa_rate is None else {"exp_rate": float(ver.roa_rate)}  # the decay asked at the shift
+    kept = {"roa": jsonable({**ver.roa.to_dict(), "xi": ver.roa.xi} | rate)}  # xi None: about the trained condition
     if ver.true_model is not None:
         keys = ("status", "xi", "verified_fraction", "time_s", "counterexample", "counterexample_source")
-        kept["true_model"] = jsonable({k: getattr(ver.true_model, k) for k in keys})
+        kept["true_model"] = jsonable({k: getattr(ver.true_model, k) for k in keys} | rate)
     run.keep(kept, certificate=True)
 
 
@@ -285,7 +291,8 @@ def record_certificates(run: Run, ver: RunVerification) -> list[Path]:
     uniform = None if ver.uniform is None or ver.uniform is ver.trained else ver.uniform
     for name, proof, condition in (("trained", ver.trained, run.condition),
                                    ("true-model", ver.true_model,
-                                    None if ver.true_model is None else run.true_condition(ver.true_model.xi)),
+                                    None if ver.true_model is None else run.true_condition(ver.true_model.xi,
+                                                                                           ver.roa_rate)),
                                    ("uniform", uniform, run.sections.condition.build(run.xi_samples, Loss.UNIFORM))):
         if proof is not None and proof.verified and proof.partition is not None:
             written.append(write_certificate(run.path, name, proof, condition, region, run.system,
@@ -300,7 +307,7 @@ def record_roa(run: Run, ver: RunVerification, proof: ProofConfig) -> list[Path]
     roa = ver.roa
     if roa is None or roa.error is not None or float(ver.delta) != float(run.config.delta):
         return []
-    condition = run.region_condition(roa.xi)
+    condition = run.region_condition(roa.xi, ver.roa_rate)
     outer = ("trained", ver.trained) if roa.xi is None else ("true-model", ver.true_model)
     return region_certificates(run.path, run.loop, condition, Region.of(run.system, float(ver.delta)), roa, outer,
                                proof, run.path / "weights.pt", float(run.config.alpha_hat))
