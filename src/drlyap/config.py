@@ -66,6 +66,7 @@ class SystemDefaults:
     adversarial_share: float = 0.0
     reshape_steps: int = 0
     exit_faces: bool = False
+    exit_margin: float = 0.0
     warm_start: str | None = "lqr"
     lqr_weights: tuple[tuple[float, ...], tuple[float, ...]] | None = None
     verify_time: float = 30.0  # seconds per check of `verify`
@@ -117,7 +118,8 @@ def _thawed(value):
 RESOLVED = ("wasserstein_radius", "risk_level", "decay_rate", "exp_rate", "n_states", "n_xi", "delta", "lr", "iters",
             "alpha_hat", "lyapunov_hidden", "lyapunov_skip", "controller_hidden", "controller_skip", "margin",
             "near_share", "train_box", "roa_level", "level_margin", "margin_rate", "outside_weight", "exclude_weight",
-            "grow_weight", "local_rate", "adversarial_share", "reshape_steps", "exit_faces", "warm_start", "lqr_weights")
+            "grow_weight", "local_rate", "adversarial_share", "reshape_steps", "exit_faces", "exit_margin", "warm_start",
+            "lqr_weights")
 """The fields a config leaves to its system (``None``) and :meth:`TrainConfig.resolved` fills."""
 
 OPTIONAL = ("train_box", "roa_level", "warm_start", "lqr_weights")
@@ -142,7 +144,8 @@ _KINDS = {
     "wasserstein_radius": "number", "risk_level": "number", "decay_rate": "number", "exp_rate": "number",
     "delta": "number", "lr": "number", "alpha_hat": "number", "margin": "number", "near_share": "number",
     "roa_level": "number", "level_margin": "number", "margin_rate": "number", "outside_weight": "number",
-    "exclude_weight": "number", "grow_weight": "number", "local_rate": "number", "adversarial_share": "number",
+    "exclude_weight": "number", "grow_weight": "number", "exit_margin": "number", "local_rate": "number",
+    "adversarial_share": "number",
     "init_gain": "number", "n_states": "int", "n_xi": "int", "iters": "int", "reshape_steps": "int",
     "check_every": "int", "seed": "int", "lyapunov_out": "int",
     "resample": "bool", "controller_skip": "bool", "lyapunov_skip": "bool", "exit_faces": "bool",
@@ -225,6 +228,9 @@ class TrainConfig:
     # box (training/states.may_leave), elsewhere above the claimed level roa_level; with a level margin, the set cut by
     # the box then grows past the claimed one where the flow enters the box (verify --roa --roa-above-level)
     exit_faces: bool | None = None
+    # with exit_faces: V asked above (1 + exit_margin) times the trained level where the flow may leave (the set cut by
+    # the box then ends at the exits above the level the condition was trained to; a decrease proved there reaches it)
+    exit_margin: float | None = None
     # "lqr": before training, fit V to the LQR's z^T P z (scaled to 1.2 times the training level, or 1, on the faces)
     # and pi to its gain (exactly without hidden layers or with a linear path, else by regression); lqr_weights = [Q
     # diagonal, R diagonal] (None: Bryson's rule); "ellipsoid": the same with drlyap.lmi's largest invariant ellipsoid
@@ -304,6 +310,10 @@ class TrainConfig:
             problems.append(f"near_share + adversarial_share = {self.near_share + self.adversarial_share} (must be <= 1)")
         if self.roa_level is not None and not (math.isfinite(self.roa_level) and self.roa_level > 0):
             problems.append(f"roa_level = {self.roa_level} (must be > 0, or None)")
+        if not (math.isfinite(self.exit_margin) and self.exit_margin >= 0):
+            problems.append(f"exit_margin = {self.exit_margin} (must be >= 0)")
+        elif self.exit_margin and not self.exit_faces:
+            problems.append(f"exit_margin = {self.exit_margin} needs exit_faces = True")
         for name in ("level_margin", "exit_faces"):
             if getattr(self, name) and self.roa_level is None:
                 problems.append(f"{name} = {getattr(self, name)} needs a region-of-attraction level (roa_level)")

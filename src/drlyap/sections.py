@@ -152,8 +152,8 @@ class RegionGoal:
     X_delta), trained on ``{V <= (1 + level_margin) roa_level}``; the hinge's weight outside the set
     (``outside_weight``), the term raising V where the set holds a violation (``exclude_weight``), the one pulling
     the set out towards the faces (``grow_weight``), the convex programs that grow a quadratic V's set after
-    training (``reshape_steps``) and whether only the faces the flow may leave hold V above the trained level
-    (``exit_faces``)."""
+    training (``reshape_steps``), whether only the faces the flow may leave hold V above the trained level
+    (``exit_faces``) and by how much more (``exit_margin``)."""
 
     roa_level: float | None
     level_margin: float
@@ -162,6 +162,7 @@ class RegionGoal:
     grow_weight: float
     reshape_steps: int
     exit_faces: bool
+    exit_margin: float
 
     @property
     def level(self) -> float | None:
@@ -187,6 +188,13 @@ class RegionGoal:
         """What :attr:`faces_level` is to :attr:`level`, for :attr:`entry_level`: the level V is asked above where
         the flow enters the box (:attr:`faces_level` without ``exit_faces``)."""
         return self._on_faces(self.entry_level)
+
+    @property
+    def exit_faces_level(self) -> float | None:
+        """The level V is asked above where the flow may leave the box: :attr:`faces_level`, with ``exit_faces`` times
+        ``1 + exit_margin``."""
+        faces = self.faces_level
+        return None if faces is None or not self.exit_faces else faces * (1.0 + float(self.exit_margin or 0.0))
 
     def _on_faces(self, level: float | None) -> float | None:
         """``level`` as asked on the faces in training: ``GROW_FACES_MARGIN`` above it where the set grows."""

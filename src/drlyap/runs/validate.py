@@ -42,7 +42,8 @@ CORE_KEYS = ("system", "method", "loss", "wasserstein_radius", "risk_level", "de
 
 LATER_FIELDS = {"outside_weight": 0.0, "exclude_weight": 0.0, "grow_weight": 0.0, "adversarial_share": 0.0,
                 "level_margin": 0.0, "controller_skip": False,
-                "lyapunov_skip": False, "reshape_steps": 0, "exit_faces": False}
+                "lyapunov_skip": False, "reshape_steps": 0, "exit_faces": False,
+                "exit_margin": 0.0}
 """TrainConfig fields added after format 2, with the value every run saved before them was trained with (their
 absence means exactly that value)."""
 

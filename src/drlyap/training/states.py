@@ -1,8 +1,8 @@
 """The states a fit trains on (:class:`TrainingStates`): uniform batches in X_delta, a share near x*, with a
 region-of-attraction level states inside the set, and adversarial states moved by projected ascent on the residual
-(:func:`ascend`), states on the box's faces moved by projected descent on V (:func:`descend_on_faces`) and the faces
-where the flow may leave the box (:func:`may_leave`); what the acceptance check adds inside a small set
-(:func:`inside_states`)."""
+(:func:`ascend`), states on the box's faces moved by projected descent on V (:func:`descend_on_faces`), the faces
+where the flow may leave the box (:func:`may_leave`) and states moved by descent among them (:func:`descend_on_exits`);
+what the acceptance check adds inside a small set (:func:`inside_states`)."""
 
 from __future__ import annotations
 
@@ -21,6 +21,7 @@ ADVERSARIAL_REFRESH = 0.02  # share of the adversarial states redrawn every iter
 FACE_STATES = 1024  # states on the box's faces drawn anew every iteration, and as many kept and moved by descent
 FACE_DESCENT_STATES = 4  # from this many states on: in 2 or 3 the faces are segments or squares that uniform draws cover
 EXIT_MARGIN = 0.05  # a face state may be left where the flow's outward part exceeds -this share of the half-width per unit time
+EXIT_PENALTY = 20.0  # the exits' descent: V plus this times the shortfall of the flow's outward part (per half-width)
 
 
 def radial_states(lyapunov: Lyapunov, region: Region, level: float, count: int, generator: torch.Generator) -> Tensor:
@@ -99,16 +100,37 @@ def inside_states(lyapunov: Lyapunov, region: Region, level: float, count: int, 
     return torch.cat(kept)[:count]
 
 
+def exit_speed(loop: ClosedLoop, xi: Tensor, z: Tensor, region: Region) -> Tensor:
+    """``(F,)``: how fast the design model's flow at the samples ``xi (N, k)`` may leave the box at the states
+    ``z (F, n)`` on its faces, the largest outward component through a face a state lies on, over the samples, in
+    shares of the box's half-width per unit time (below 0 where every sample's flow enters the box). Differentiable
+    in ``z``."""
+    f, w = loop.system.design_model(loop.system.to_user(z), loop.controller(z))
+    zdot = f + torch.einsum("bnk,jk->jbn", w, xi.to(f))  # (N, F, n)
+    lo, hi = region.lo.to(z), region.hi.to(z)
+    outward = torch.where(z >= hi, zdot, torch.where(z <= lo, -zdot, torch.full_like(zdot, -torch.inf)))
+    return (outward / ((hi - lo) / 2)).amax(-1).amax(0)
+
+
 def may_leave(loop: ClosedLoop, xi: Tensor, z: Tensor, region: Region) -> Tensor:
     """``(F,)`` bool: the states ``z (F, n)`` on the box's faces where the design model's flow at some sample of
     ``xi (N, k)`` may leave the box: its component out through a face the state lies on is above ``-EXIT_MARGIN``
     of the box's half-width per unit time (the margin takes in the points a shift may turn outwards). No gradient."""
     with torch.no_grad():
-        f, w = loop.system.design_model(loop.system.to_user(z), loop.controller(z))
-        zdot = f + torch.einsum("bnk,jk->jbn", w, xi.to(f))  # (N, F, n)
-        lo, hi = region.lo.to(z), region.hi.to(z)
-        outward = torch.where(z >= hi, zdot, torch.where(z <= lo, -zdot, torch.full_like(zdot, -torch.inf)))
-        return (outward > -EXIT_MARGIN * (hi - lo) / 2).any(-1).any(0)
+        return exit_speed(loop, xi, z, region) > -EXIT_MARGIN
+
+
+def descend_on_exits(loop: ClosedLoop, xi: Tensor, z: Tensor, region: Region) -> Tensor:
+    """One step of :func:`descend_on_faces` on V plus ``EXIT_PENALTY`` times how far a state falls short of
+    :func:`may_leave` (:func:`exit_speed` below ``-EXIT_MARGIN``): the states gather where V is least among the face
+    points the flow may leave, which uniform draws on the faces miss (there the verifier's level search at a shift
+    stops). No gradient reaches the weights."""
+    with torch.enable_grad():
+        x = z.detach().requires_grad_(True)
+        short = torch.relu(-EXIT_MARGIN - exit_speed(loop, xi, x, region))
+        grad = torch.autograd.grad((loop.lyapunov(x) + EXIT_PENALTY * short).sum(), x)[0]
+    on_face = (z == region.lo.to(z)) | (z == region.hi.to(z))
+    return region.ascent_step(z.detach(), -grad.masked_fill(on_face, 0.0), ADVERSARIAL_STEP).to(z)
 
 
 class TrainingStates:
@@ -134,6 +156,10 @@ class TrainingStates:
         self.faces = None  # fixed states on the box's faces for the acceptance check (own generator)
         self.face_minima: Tensor | None = None  # face states moved by descent on V (with a level)
         self.face_gen: torch.Generator | None = None
+        self.exits = goal.exit_faces and goal.level is not None
+        self.exit_level = goal.exit_faces_level or self.faces_level  # where the flow may leave the box
+        self.exit_minima: Tensor | None = None  # face states moved by descent on V among the exits (exit_faces)
+        self.exit_gen: torch.Generator | None = None
         self.batch: Tensor | None = None
         self.adversaries: Tensor | None = None
 
@@ -147,6 +173,9 @@ class TrainingStates:
             # their own generator: where V stays above the faces' level they add nothing, and training is what it was
             self.face_gen = torch.Generator().manual_seed(54321)
             self.face_minima = self.region.sample_faces(FACE_STATES, self.face_gen).float().to(self.device)
+            if self.exits:
+                self.exit_gen = torch.Generator().manual_seed(67890)
+                self.exit_minima = self.region.sample_faces(FACE_STATES, self.exit_gen).float().to(self.device)
         self.batch = self.draw()
         if self.n_adv:
             self.adversaries = adversarial_starts(self.lyapunov, self.drawn_in, self.level, self.n_adv,
@@ -195,27 +224,47 @@ class TrainingStates:
         box's faces; from ``FACE_DESCENT_STATES`` states on, plus the mean shortfall of those kept face states that
         fall short, a share of them redrawn and all moved one descent step on V (:func:`descend_on_faces`): they
         gather where V is least on each face, and only the faces the set crosses count (averaged over all of them, a
-        set crossing one face of twelve would barely feel it). ``xi (N, k)``: the condition's samples."""
+        set crossing one face of twelve would barely feel it). With ``exit_faces``, as many kept states again move
+        by descent among the points the flow may leave (:func:`descend_on_exits`), V asked above the exits' level
+        there. ``xi (N, k)``: the condition's samples."""
         lyapunov = loop.lyapunov
         faces = self.region.sample_faces(FACE_STATES, self.gen).float().to(self.device)
-        levels = self.face_levels(loop, xi, faces, self.faces_level, self.entry_level)
+        levels = self.face_levels(loop, xi, faces, self.exit_level, self.entry_level)
         uniform = torch.relu(levels - lyapunov(faces)).mean()
         if self.face_minima is None:
             return uniform
+        self.face_minima = self._refresh(self.face_minima, self.face_gen, iteration)
+        self.face_minima = descend_on_faces(lyapunov, self.face_minima, self.region)
+        levels = self.face_levels(loop, xi, self.face_minima, self.exit_level, self.entry_level)
+        term = uniform + _mean_short(levels - lyapunov(self.face_minima))
+        if self.exit_minima is None:
+            return term
+        self.exit_minima = self._refresh(self.exit_minima, self.exit_gen, iteration)
+        self.exit_minima = descend_on_exits(loop, xi, self.exit_minima, self.region)
+        leave = may_leave(loop, xi, self.exit_minima, self.region)
+        return term + _mean_short((self.exit_level - lyapunov(self.exit_minima))[leave])
+
+    def _refresh(self, kept: Tensor, gen: torch.Generator, iteration: int) -> Tensor:
+        """``kept (FACE_STATES, n)`` with the share ``ADVERSARIAL_REFRESH`` of its rows that ``iteration`` turns to
+        redrawn on the faces from ``gen``."""
         refresh = max(1, int(ADVERSARIAL_REFRESH * FACE_STATES))
         row = (iteration * refresh) % FACE_STATES
-        fresh = self.region.sample_faces(refresh, self.face_gen).float().to(self.device)
-        self.face_minima[row:row + refresh] = fresh[:FACE_STATES - row]
-        self.face_minima = descend_on_faces(lyapunov, self.face_minima, self.region)
-        levels = self.face_levels(loop, xi, self.face_minima, self.faces_level, self.entry_level)
-        short = torch.relu(levels - lyapunov(self.face_minima))
-        return uniform + short.sum() / (short > 0).sum().clamp_min(1)
+        fresh = self.region.sample_faces(refresh, gen).float().to(self.device)
+        kept[row:row + refresh] = fresh[:FACE_STATES - row]
+        return kept
 
     def check_faces(self, loop: ClosedLoop, xi: Tensor) -> tuple[Tensor, Tensor] | None:
-        """The acceptance check's face states ``(F, n)``, the fixed uniform ones and the kept descended ones, and the
-        level ``(F,)`` V must exceed at each: the training level, or with ``exit_faces`` the claimed one where the flow
-        enters the box. None without a level."""
+        """The acceptance check's face states ``(F, n)``, the fixed uniform ones and the kept descended ones (on V, and
+        with ``exit_faces`` among the exits), and the level ``(F,)`` V must exceed at each: the training level, or with
+        ``exit_faces`` the claimed one where the flow enters the box. None without a level."""
         if self.faces is None:
             return None
-        faces = self.faces if self.face_minima is None else torch.cat([self.faces, self.face_minima])
+        kept = [t for t in (self.face_minima, self.exit_minima) if t is not None]
+        faces = torch.cat([self.faces, *kept])
         return faces, self.face_levels(loop, xi, faces, self.level, self.entry_check, torch.float64)
+
+
+def _mean_short(short: Tensor) -> Tensor:
+    """The mean of the positive entries of ``short (F,)`` (0 where none is): a shortfall of V below a level."""
+    short = torch.relu(short)
+    return short.sum() / (short > 0).sum().clamp_min(1)
