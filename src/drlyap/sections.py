@@ -191,8 +191,8 @@ class RegionGoal:
 
     @property
     def exit_faces_level(self) -> float | None:
-        """The level V is asked above where the flow may leave the box: :attr:`faces_level`, with ``exit_faces`` times
-        ``1 + exit_margin``."""
+        """With ``exit_faces``, the level V is asked above where the flow may leave the box: :attr:`faces_level` times
+        ``1 + exit_margin``; None without ``exit_faces`` or a level (then :attr:`faces_level` holds on every face)."""
         faces = self.faces_level
         return None if faces is None or not self.exit_faces else faces * (1.0 + float(self.exit_margin or 0.0))
 
