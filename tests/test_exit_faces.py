@@ -107,8 +107,10 @@ def test_training_with_exit_faces_lets_the_set_cross_the_faces_the_flow_enters()
 
 def test_train_prints_the_set_cut_by_the_box_and_the_command_that_searches_it():
     from drlyap.render import cut_set_line
+    from drlyap.systems import get_system
 
-    line = cut_set_line(1.0, 0.6, (0.8, -2.5), "drlyap verify RUN")
+    level = TrainSections.of(TrainConfig(system="quadrotor2d", level_margin=0.6).resolved(get_system("quadrotor2d"))).goal.level
+    line = cut_set_line(level, (0.8, -2.5), "drlyap verify RUN")
     assert "{V <= 1.6} in the box" in line and "only where the flow may leave the box" in line
     assert "`drlyap verify RUN --xi 0.8,-2.5 --roa --roa-above-level`" in line
 

@@ -103,11 +103,10 @@ def training_lines(system: str, method: str, record: TrainingRecord) -> list[str
     return lines
 
 
-def cut_set_line(roa_level: float, level_margin: float, test_xi, verify_hint: str) -> str:
-    """What ``drlyap train`` adds for a run trained with ``exit_faces``: the set it trained beyond the claim, cut by
-    the box where the flow enters it, and the command that searches it for a certified region of attraction at the
-    system's test shift ``test_xi``."""
-    level = float(roa_level) * (1 + float(level_margin))
+def cut_set_line(level: float, test_xi, verify_hint: str) -> str:
+    """What ``drlyap train`` adds for a run trained with ``exit_faces``: the set it trained beyond the claim (up to
+    the trained ``level``, :attr:`~drlyap.sections.RegionGoal.level`), cut by the box where the flow enters it, and
+    the command that searches it for a certified region of attraction at the system's test shift ``test_xi``."""
     xi = ",".join(f"{float(v):g}" for v in test_xi)
     return (f"  trained up to {{V <= {level:g}}} in the box, V held above that level only where the flow may leave "
             f"the box: `{verify_hint} --xi {xi} --roa --roa-above-level` searches that set cut by the box for a "

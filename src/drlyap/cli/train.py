@@ -177,6 +177,7 @@ def train(system: str, method: str, loss: str, radius: float | None, eps: float 
                                "check": None if checked is None else [r.to_dict() for r in checked]}))
         return
     from drlyap.render import check_lines, cut_set_line, training_lines
+    from drlyap.sections import TrainSections
 
     for line in training_lines(sys_.name, method, result.record):
         click.echo(line)
@@ -186,7 +187,7 @@ def train(system: str, method: str, loss: str, radius: float | None, eps: float 
     for line in check_lines(checked or []):
         click.echo(f"  {line}")
     if result.config.exit_faces and sys_.test_xi is not None:
-        click.echo(cut_set_line(result.config.roa_level, result.config.level_margin, sys_.test_xi,
+        click.echo(cut_set_line(TrainSections.of(result.config).goal.level, sys_.test_xi,
                                 command_hint("verify", out, source=source)))
 
 

@@ -21,7 +21,7 @@ from __future__ import annotations
 import csv
 import os
 from collections.abc import Callable
-from dataclasses import dataclass
+from dataclasses import dataclass, replace
 from functools import cached_property
 from pathlib import Path
 from typing import TYPE_CHECKING
@@ -30,7 +30,7 @@ import torch
 from torch import Tensor
 
 from drlyap.closed_loop import ClosedLoop
-from drlyap.conditions import Condition, TrueDecrease
+from drlyap.conditions import Condition
 from drlyap.config import ProofConfig, TrainConfig, legacy_proof
 from drlyap.io import write_json, write_json_atomic
 from drlyap.networks import Controller, Lyapunov
@@ -132,8 +132,10 @@ class Run:
     def true_condition(self, xi, exp_rate: float | None = None) -> Condition:
         """Plain decrease on the true model at the shift ``xi (k,)``, with the run's decay terms (``exp_rate``: another
         ``alpha`` of its ``alpha V``)."""
-        condition = self.sections.condition.build(self.system.check_xi(xi)[None], "true")
-        return condition if exp_rate is None else TrueDecrease(condition.xi, condition.decay_rate, float(exp_rate))
+        section = self.sections.condition
+        if exp_rate is not None:
+            section = replace(section, exp_rate=float(exp_rate))
+        return section.build(self.system.check_xi(xi)[None], "true")
 
     @property
     def acceptance(self) -> AcceptanceCheck | None:

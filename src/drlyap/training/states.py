@@ -156,8 +156,8 @@ class TrainingStates:
         self.faces = None  # fixed states on the box's faces for the acceptance check (own generator)
         self.face_minima: Tensor | None = None  # face states moved by descent on V (with a level)
         self.face_gen: torch.Generator | None = None
-        self.exits = goal.exit_faces and goal.level is not None
-        self.exit_level = goal.exit_faces_level or self.faces_level  # where the flow may leave the box
+        self.exits = goal.exit_faces_level is not None  # exit_faces with a level: kept states among the exits
+        self.exit_level = goal.exit_faces_level if self.exits else self.faces_level  # where the flow may leave the box
         self.exit_minima: Tensor | None = None  # face states moved by descent on V among the exits (exit_faces)
         self.exit_gen: torch.Generator | None = None
         self.batch: Tensor | None = None
