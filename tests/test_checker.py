@@ -406,3 +406,19 @@ def test_leaves_a_crowded_chunk_left_unproved_get_the_pieces_the_others_did_not_
     lo[:40] = -1.0  # too many hard leaves for one piece per leaf in all: refused, within the same budget
     ok, _, _, pieces = check.prove_leaves(Job(), lo, lo + 1, torch.zeros(64, dtype=torch.bool))
     assert not bool(ok[:40].any()) and bool(ok[40:].all()) and pieces <= 64
+    # with 6 pieces per leaf (`drlyap check --pieces 6`) every chunk affords its hard leaves' 4 pieces each
+    ok, _, _, pieces = check.prove_leaves(Job(), lo, lo + 1, torch.zeros(64, dtype=torch.bool), pieces_per_leaf=6.0)
+    assert bool(ok.all()) and pieces == 4 * 40 <= 7 * 64
+    with pytest.raises(ValueError, match="pieces per leaf must be >= 1"):
+        check.prove_leaves(Job(), lo, lo + 1, torch.zeros(64, dtype=torch.bool), pieces_per_leaf=0.5)
+
+
+@pytest.mark.parametrize("value, says", [("0.5", "0.5 is not in the range x>=1.0"),
+                                         ("nan", "--pieces must be a finite number >= 1, got nan")])
+def test_check_refuses_a_piece_budget_below_one_per_leaf_before_reading_the_run(tmp_path, value, says):
+    from click.testing import CliRunner
+
+    from drlyap.cli import main
+
+    result = CliRunner().invoke(main, ["check", str(tmp_path / "missing"), "--pieces", value])
+    assert result.exit_code != 0 and says in result.output

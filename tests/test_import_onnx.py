@@ -451,9 +451,9 @@ def test_a_users_system_pair_exported_and_imported_again_certifies_the_same_regi
                                 "--lyapunov", str(folder / "lyapunov.onnx"), "--out", str(out)])
     assert done.exit_code == 0 and "its run's claim is taken" in done.output, done.output
 
-    def verify(path):
+    def verify(path, *more):
         res = runner.invoke(main, ["verify", str(path), "--system", spec, "--xi", "0.02,0.01", "--roa", "--json",
-                                   "--time-limit", "10"])
+                                   "--time-limit", "10", *more])
         assert res.exit_code == 0, res.output
         return json.loads(res.stdout)
 
@@ -462,3 +462,14 @@ def test_a_users_system_pair_exported_and_imported_again_certifies_the_same_regi
     assert theirs["true_model"]["boxes_processed"] == mine["true_model"]["boxes_processed"]
     assert theirs["roa"]["level"] == mine["roa"]["level"] and theirs["roa"]["share_of_box"] == mine["roa"]["share_of_box"]
     print(f"run and import: {mine['true_model']['status']}, level {mine['roa']['level']}, {mine['roa']['share_of_box']}")
+    # a slower decay asked at the shift (--roa-rate): the same proof and region for the pair and its import, and the
+    # imported pair's certificates state that decay and are checked against it
+    slow_mine, slow_theirs = verify(run_dir, "--roa-rate", "0.05"), verify(out, "--roa-rate", "0.05")
+    assert slow_theirs["roa_rate"] == slow_mine["roa_rate"] == 0.05
+    assert slow_theirs["true_model"]["boxes_processed"] == slow_mine["true_model"]["boxes_processed"]
+    assert slow_theirs["roa"]["level"] == slow_mine["roa"]["level"]
+    assert slow_theirs["roa"]["share_of_box"] == slow_mine["roa"]["share_of_box"]
+    claim = json.loads((out / "certificates" / "true-model.json").read_text())["claim"]["condition"]
+    assert claim["exp_rate"] == 0.05
+    checked = runner.invoke(main, ["check", str(out), "--system", spec])
+    assert checked.exit_code == 0 and "FAILED" not in checked.output, checked.output

@@ -227,8 +227,7 @@ def _holds(residual: Residual, lo: Tensor, hi: Tensor, level: float | None, batc
     return torch.cat(ok), torch.cat(low)
 
 
-MIN_PIECES = 4096
-"""Pieces the refinement of :func:`prove_boxes` may always bound, however few the boxes."""
+MIN_PIECES = 4096  # pieces the refinement of prove_boxes may always bound, however few the boxes
 
 
 def prove_boxes(residual: Residual, lo: Tensor, hi: Tensor, scale: Tensor, refine: int, level: float | None = None,
@@ -301,17 +300,18 @@ any number of workers, so the verdict never depends on where they are bounded.""
 
 
 def prove_leaves(job: LeafJob, lo: Tensor, hi: Tensor, above: Tensor, compute: Compute = Compute(),
-                 desc: str = "check: leaves") -> tuple[Tensor, Tensor, int, int]:
-    """:func:`prove_boxes` of ``job`` on every leaf in chunks of :data:`LEAF_CHUNK`, here or (``compute`` with workers)
-    on worker processes, two chunks per worker in flight; the same four results. Progress on stderr as ``desc``
-    where ``compute.progress``.
-
-    The leaves a chunk's piece budget left unproved (where hard leaves crowd into a few chunks) are tried once more
-    together with the pieces the first pass left of one per leaf, shared out by count: still at most about twice the
-    leaves bounded in all, and the same chunks on any number of workers."""
-    ok, low, refined, pieces = _prove_chunks(job, lo, hi, above, torch.ones(lo.shape[0], dtype=F64), compute, desc)
+                 desc: str = "check: leaves", pieces_per_leaf: float = 1.0) -> tuple[Tensor, Tensor, int, int]:
+    """:func:`prove_boxes` of ``job`` on every leaf in chunks of :data:`LEAF_CHUNK`, here or on ``compute``'s workers
+    (two chunks each in flight); the same four results; progress as ``desc``. Each chunk may bound
+    ``pieces_per_leaf`` pieces per leaf; the leaves a chunk's budget left unproved (hard leaves crowd into a few
+    chunks) are tried once more with the pieces the first pass left, shared out by count: at most about ``1 +
+    pieces_per_leaf`` times the leaves bounded in all, the same chunks on any number of workers."""
+    if not (math.isfinite(pieces_per_leaf) and pieces_per_leaf >= 1):
+        raise ValueError(f"pieces per leaf must be >= 1, got {pieces_per_leaf}")
+    ok, low, refined, pieces = _prove_chunks(job, lo, hi, above, torch.full((len(lo),), pieces_per_leaf, dtype=F64),
+                                             compute, desc)
     failed = (~ok).nonzero().squeeze(-1)
-    spare = int(lo.shape[0]) - pieces
+    spare = int(pieces_per_leaf * lo.shape[0]) - pieces
     if failed.numel() and spare > 2 * failed.numel():
         allowance = torch.full((failed.numel(),), spare / failed.numel(), dtype=F64)
         again, _, refined_again, pieces_again = _prove_chunks(job, lo[failed], hi[failed], above[failed], allowance,
@@ -430,10 +430,9 @@ def _placed_leaves(out: CheckResult, verdict: Tensor, lo: Tensor, hi: Tensor, de
 
 def check_certificate(run_dir: str | Path, name: str, header: dict, arrays: dict[str, np.ndarray], system,
                       weights: dict, weights_sha256: str, system_sha256: str, refine: int = 12,
-                      compute: Compute = Compute()) -> CheckResult:
-    """Re-check one certificate of ``run_dir`` against the run's own weights (``weights``: the two state dicts read
-    from ``weights.pt``, whose file has ``weights_sha256``) and system (``system_sha256`` its description's); the
-    leaves are bounded where ``compute`` says (here, or by worker processes: the same verdict)."""
+                      compute: Compute = Compute(), pieces_per_leaf: float = 1.0) -> CheckResult:
+    """Re-check one certificate of ``run_dir`` against the run's own weights (``weights``, from the file with
+    ``weights_sha256``) and system (``system_sha256``); leaves bounded as :func:`prove_leaves`, where ``compute`` says."""
     start = time.perf_counter()
     claim = header.get("claim") or {}
     out = CheckResult(name=name, ok=False, claim=claim_sentence(claim))
@@ -485,7 +484,7 @@ def check_certificate(run_dir: str | Path, name: str, header: dict, arrays: dict
     cheap_first = header["partition"].get("enclosure") in ("interval", "mean-value")  # an order, as for ``above``
     job = LeafJob(residual, hi - lo, refine, level, cheap_first)
     ok, centre_low, out.refined, out.pieces = prove_leaves(job, blo[proved], bhi[proved], verdict[proved] == ABOVE_LEVEL,
-                                                           compute, f"check ({name}): leaves")
+                                                           compute, f"check ({name}): leaves", pieces_per_leaf)
     out.proved = int(ok.sum())
     if not bool(ok.all()):
         first = proved[~ok][0]
@@ -549,10 +548,10 @@ def _fmt(v: Tensor) -> str:
 
 
 def check_run(run_dir: str | Path, system=None, trust: bool = False, names: list[str] | None = None,
-              refine: int = 12, compute: Compute = Compute()) -> list[CheckResult]:
+              refine: int = 12, compute: Compute = Compute(), pieces_per_leaf: float = 1.0) -> list[CheckResult]:
     """Re-check the certificates of a run directory (``names``: which; default every one it holds). ``system`` and
-    ``trust``: as for :func:`drlyap.runs.load_run` (a system from a file runs only when named or trusted);
-    ``compute``: where the leaves are bounded. A run without certificates is a ValueError that says so."""
+    ``trust``: as for :func:`drlyap.runs.load_run` (a system from a file runs only when named or trusted); the rest:
+    as for :func:`check_certificate`. A run without certificates is a ValueError that says so."""
     from drlyap.runs.certificates import FOLDER, NAMES, networks_digest, read_certificate, system_digest
     from drlyap.runs.reading import read_run_json, read_run_kind, run_system
     from drlyap.runs.validate import RunDirError, load_weights
@@ -584,7 +583,8 @@ def check_run(run_dir: str | Path, system=None, trust: bool = False, names: list
     out = []
     for name in names:
         header, arrays = read_certificate(run_dir, name)
-        result = check_certificate(run_dir, name, header, arrays, system, weights, digest, system_sha, refine, compute)
+        result = check_certificate(run_dir, name, header, arrays, system, weights, digest, system_sha, refine,
+                                   compute, pieces_per_leaf)
         result.failures += claim_mismatch(name, header, config, metrics)
         if name in ("roa-ball", "practical"):
             result.failures += outer_missing(run_dir, header, _positive_outside(result, weights, header, system))

@@ -3,6 +3,7 @@
 from __future__ import annotations
 
 import json
+import math
 import sys
 from pathlib import Path
 
@@ -22,11 +23,15 @@ from drlyap.cli.common import compute_options, compute_settings, fail, refuse_ea
                    "tighter than the checker's); it bounds at most as many pieces as each chunk of 16,384 leaves "
                    "has (at least 4,096), then the leaves still unproved once more with the pieces left over, so "
                    "a false certificate costs at most about twice a true one.")
+@click.option("--pieces", "pieces_per_leaf", type=click.FloatRange(min=1.0), default=1.0, show_default=True,
+              help="Pieces per leaf that bisection may bound in each of those two passes: more confirms a true "
+                   "certificate whose hard leaves need many pieces, at most about 1 + this times the leaves' cost "
+                   "for a false one.")
 @compute_options()
 @click.option("--json", "as_json", is_flag=True, help="Print one JSON object.")
 @run_source_options
-def check(run_dir: Path, names: tuple[str, ...], refine: int, workers: int, backend: str, address: str | None,
-          device: str, as_json: bool, system_spec: str | None, trust_run: bool) -> None:
+def check(run_dir: Path, names: tuple[str, ...], refine: int, pieces_per_leaf: float, workers: int, backend: str,
+          address: str | None, device: str, as_json: bool, system_spec: str | None, trust_run: bool) -> None:
     """Re-check the certificates in RUN_DIR/certificates/ box by box with a small checker of its own (its own float64
     interval arithmetic, its own reading of V, pi and the condition), and say whether every box holds and the boxes
     cover the claimed region. Exits 1 when a certificate fails.
@@ -44,6 +49,8 @@ def check(run_dir: Path, names: tuple[str, ...], refine: int, workers: int, back
     V's bound on the delta-ball.
     """
     settings = compute_settings(workers, backend, address, device)
+    if not math.isfinite(pieces_per_leaf):
+        fail(ValueError(f"--pieces must be a finite number >= 1, got {pieces_per_leaf}"))
     refuse_early(runs=[run_dir], systems=[system_spec])
 
     from drlyap.checker import check_run
@@ -52,7 +59,7 @@ def check(run_dir: Path, names: tuple[str, ...], refine: int, workers: int, back
 
     try:
         results = check_run(run_dir, run_system_of(system_spec), trust_run, list(names) or None, refine,
-                            Compute(**settings))
+                            Compute(**settings), pieces_per_leaf)
     except ValueError as err:
         fail(err)
     if as_json:

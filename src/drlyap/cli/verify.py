@@ -116,11 +116,8 @@ def verify(run_dir: Path, delta: float | None, xi: str | None, time_limit: float
             raise ValueError(f"--roa-rate must be > 0 and goes with --roa and --xi (the decay asked at the shift), "
                              f"got {roa_rate}" + ("" if roa and xi is not None else " without them"))
         if read_run_kind(run_dir).get("kind") == "imported":
-            if roa_rate is not None:
-                raise ValueError("--roa-rate is for runs trained here: an imported pair's certificates state the "
-                                 "decay it was exported with")
             _verify_imported(run_dir, delta, xi, time_limit, roa, roa_time, enclosure, as_json, system_spec, trust_run,
-                             compute, roa_above_level)
+                             compute, roa_above_level, roa_rate)
             return
         run = load_run(run_dir, run_system_of(system_spec), trust_run)
         settings = dataclasses.replace(run.proof or ProofConfig(), roa_time=roa_time, enclosure=enclosure, **compute,
@@ -173,7 +170,7 @@ def verify(run_dir: Path, delta: float | None, xi: str | None, time_limit: float
 
 def _verify_imported(run_dir: Path, delta: float | None, xi: str | None, time_limit: float | None, roa: bool,
                      roa_time: float | None, enclosure: str | None, as_json: bool, system_spec: str | None,
-                     trust_run: bool, compute: dict, above_level: bool = False) -> None:
+                     trust_run: bool, compute: dict, above_level: bool = False, roa_rate: float | None = None) -> None:
     """``drlyap verify`` on an imported pair: decrease on the true model at --xi (the system's test shift by default)
     and with --roa its region of attraction; what is verified is written as certificates."""
     from drlyap.io import jsonable
@@ -190,7 +187,7 @@ def _verify_imported(run_dir: Path, delta: float | None, xi: str | None, time_li
     if time_limit is not None:
         settings = dataclasses.replace(settings, time_limit=time_limit)
     result = verify_imported(run.info["pair"], str(run_dir), settings, xi=shift, delta=delta, roa=roa,
-                             above_level=above_level)
+                             above_level=above_level, roa_rate=roa_rate)
     try:
         recheck = command_hint("check", run_dir, source=recorded_source(run_dir, system_spec))
         paths = record_imported_certificates(run_dir, run.info["pair"], result, settings.resolved(system))

@@ -198,13 +198,16 @@ def _region_of_attraction(loop: ClosedLoop, condition: Condition, region: Region
 
 
 def verify_imported(pair, run_dir: str, proof: ProofConfig | None = None, *, xi: Tensor, delta: float | None = None,
-                    roa: bool = False, above_level: bool = False) -> RunVerification:
+                    roa: bool = False, above_level: bool = False, roa_rate: float | None = None) -> RunVerification:
     """Verify an imported pair (:class:`drlyap.runs.imported.ImportedPair`, ``drlyap import``): plain decrease on the
     true model at the shift ``xi (k,)`` with the pair's decay, on X_delta (``delta``: the pair's, from the export of a
     drlyap run, else the system's default), by the same proof as for a trained run's ``--xi``: on ``{V <= level}``
     with V above the level on the box's faces for a pair exported from a run trained for a region of attraction (and
     with ``roa`` its certified region of attraction there, up to that level, as for its run; ``above_level``: above it
-    too). An imported pair has no trained condition (``trained`` is None)."""
+    too). An imported pair has no trained condition (``trained`` is None). ``roa_rate``: with ``roa``, the decay
+    ``alpha`` asked at the shift instead of the pair's (as for :func:`verify`)."""
+    if roa_rate is not None and not (roa and math.isfinite(roa_rate) and roa_rate > 0):
+        raise ValueError(f"roa_rate must be > 0 and given with roa, got {roa_rate}" + ("" if roa else " without it"))
     loop = pair.loop
     system = loop.system
     proof = (proof or ProofConfig()).resolved(system)
@@ -213,7 +216,7 @@ def verify_imported(pair, run_dir: str, proof: ProofConfig | None = None, *, xi:
     region = Region.of(system, float(delta))
     level = pair.level
     budget = proof.budget()
-    condition = TrueDecrease(system.check_xi(xi)[None], decay_rate=pair.decay_rate, exp_rate=pair.exp_rate)
+    condition = imported_condition(pair, system.check_xi(xi)[None], roa_rate)
     true_model = prove_trained(loop, condition, region, budget, level, falsify_starts=proof.settle_starts)
     true_model.xi = condition.xi[0].tolist()
     region_of_attraction = None
@@ -222,7 +225,14 @@ def verify_imported(pair, run_dir: str, proof: ProofConfig | None = None, *, xi:
                                                      above_level)
         region_of_attraction.xi = true_model.xi
     return RunVerification(run_dir=str(run_dir), system=system.name, method="imported", loss=None, delta=region.delta,
-                           enclosure=proof.enclosure, trained=None, true_model=true_model, roa=region_of_attraction)
+                           enclosure=proof.enclosure, trained=None, true_model=true_model, roa=region_of_attraction,
+                           roa_rate=roa_rate)
+
+
+def imported_condition(pair, xi: Tensor, exp_rate: float | None = None) -> TrueDecrease:
+    """Decrease on the true model at the shifts ``xi (1, k)`` with an imported pair's decay, or with the decay
+    ``exp_rate`` (alpha) in place of its own."""
+    return TrueDecrease(xi, decay_rate=pair.decay_rate, exp_rate=pair.exp_rate if exp_rate is None else exp_rate)
 
 
 def record_region(run: Run, ver: RunVerification) -> None:
@@ -231,12 +241,19 @@ def record_region(run: Run, ver: RunVerification) -> None:
     ``metrics.json`` (atomically). Nothing is kept of a verification without a region."""
     if ver.roa is None:
         return
-    rate = {} if ver.roa_rate is None else {"exp_rate": float(ver.roa_rate)}  # the decay asked at the shift
+    run.keep(region_record(ver), certificate=True)
+
+
+def region_record(ver: RunVerification) -> dict:
+    """What a run's ``metrics["certificate"]`` keeps of a verification with a region (``ver.roa``): the region
+    (``roa``) and the decrease on the true model it rests on (``true_model``), each with the decay asked at the shift
+    where it is not the run's (``exp_rate``, :func:`verify`'s ``roa_rate``), for the checker to compare."""
+    rate = {} if ver.roa_rate is None else {"exp_rate": float(ver.roa_rate)}
     kept = {"roa": jsonable({**ver.roa.to_dict(), "xi": ver.roa.xi} | rate)}  # xi None: about the trained condition
     if ver.true_model is not None:
         keys = ("status", "xi", "verified_fraction", "time_s", "counterexample", "counterexample_source")
         kept["true_model"] = jsonable({k: getattr(ver.true_model, k) for k in keys} | rate)
-    run.keep(kept, certificate=True)
+    return kept
 
 
 def record_robustness(run: Run, robustness: RunRobustness) -> list[Path]:
@@ -412,8 +429,8 @@ def record_imported_certificates(run_dir: str | Path, pair, ver: RunVerification
     """Write the certificates of what :func:`verify_imported` proved about an imported pair, naming the pair by its
     ``graphs.json`` and ``tensors.pt`` (the checker reads those as data): ``true-model`` for its verified decrease at
     the shift, and with a region of attraction certified by V's own proofs its ``roa-ball`` (and ``roa``:
-    :func:`region_certificates`), whose level and shift are kept in the run's ``metrics.json`` (``certificate.roa``)
-    for the checker to compare. Earlier ones are removed first. Returns the headers' paths."""
+    :func:`region_certificates`), whose level, shift and decay are kept in the run's ``metrics.json``
+    (:func:`region_record`) for the checker to compare. Earlier ones are removed first. Returns the headers' paths."""
     import json
 
     from drlyap.io import write_json_atomic
@@ -422,8 +439,7 @@ def record_imported_certificates(run_dir: str | Path, pair, ver: RunVerification
     remove_certificate(run_dir, "true-model")
     system = pair.loop.system
     found = ver.true_model
-    xi = system.check_xi(found.xi)[None]
-    condition = TrueDecrease(xi, decay_rate=pair.decay_rate, exp_rate=pair.exp_rate)
+    condition = imported_condition(pair, system.check_xi(found.xi)[None], ver.roa_rate)
     region = Region.of(system, float(ver.delta))
     files = [run_dir / "graphs.json", run_dir / "tensors.pt"]
     written = []
@@ -433,7 +449,7 @@ def record_imported_certificates(run_dir: str | Path, pair, ver: RunVerification
         found = None
     if ver.roa is not None and ver.roa.error is None:
         metrics = json.loads((run_dir / "metrics.json").read_text())
-        metrics["certificate"] = {"roa": jsonable({**ver.roa.to_dict(), "xi": ver.roa.xi})}
+        metrics["certificate"] = region_record(ver)
         write_json_atomic(run_dir / "metrics.json", metrics)
         written += region_certificates(run_dir, pair.loop, condition, region, ver.roa, ("true-model", found), proof,
                                        files, None)
