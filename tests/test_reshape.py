@@ -8,6 +8,7 @@ import torch
 from drlyap.closed_loop import ClosedLoop
 from drlyap.conditions import DRPointwise, Nominal, local_rates
 from drlyap.regions import Region
+from drlyap.sections import TrainSections
 from drlyap.systems import cartpole, quadrotor2d
 from drlyap.training import TrainConfig, fit
 from drlyap.training.reshape import _affine_structure, grow_quadratic, quadratic_form, share
@@ -46,11 +47,12 @@ def test_the_programs_grow_the_set_within_their_constraints(grown):
     assert record["share_after"] > record["share_before"]
     p = quadratic_form(result.loop.lyapunov)  # the V kept is the grown one
     region = Region.of(system, cfg.delta)
-    assert share(p, region) == pytest.approx(record["share_after"], rel=1e-4)
+    level = TrainSections.of(cfg).goal.level  # the trained level, (1 + level_margin) roa_level
+    assert share(p / level, region) == pytest.approx(record["share_after"], rel=1e-4)
     # V at least the faces' level on every face: min over the face z_i = h_i of z'Pz is h_i^2 / (P^-1)_ii
     lo, hi = system.local_box()
     half = torch.minimum(-lo, hi)
-    assert bool((half.square() / torch.linalg.inv(p).diagonal() >= 1.05 * (1 - 1e-5)).all())
+    assert bool((half.square() / torch.linalg.inv(p).diagonal() >= 1.05 * cfg.roa_level * (1 - 1e-5)).all())
     # V's local rate at x* at least local_rate at every training sample
     assert float(local_rates(result.condition, result.loop.f64).detach().max()) <= -cfg.local_rate * (1 - 1e-4)
 

@@ -301,7 +301,9 @@ def test_verify_command_names_the_sublevel_set_of_a_roa_run(tmp_path):
 def test_systems_default_the_step_size_and_the_exponential_rate():
     quad = TrainConfig(system="quadrotor2d").resolved(get_system("quadrotor2d"))
     pend = TrainConfig(system="pendulum").resolved(get_system("pendulum"))
-    assert (quad.lr, quad.exp_rate, quad.roa_level, quad.level_margin, quad.iters) == (0.003, 0.1, 1.0, 0.0, 9000)
+    assert (quad.lr, quad.exp_rate, quad.roa_level, quad.level_margin, quad.iters) == (0.003, 0.1, 1.0, 0.6, 9000)
+    # trained up to {V <= 1.6}, V held above 2 only where the flow may leave the box
+    assert (quad.exit_faces, quad.exit_margin, quad.local_rate, quad.outside_weight) == (True, 0.25, 0.5, 0.05)
     # a quadratic V; a saturated controller: a linear gain plus a 16-unit layer's correction
     assert (quad.lyapunov_hidden, quad.controller_hidden, quad.controller_skip) == ([], [16], True)
     assert TrainConfig(system="cartpole").resolved(get_system("cartpole")).controller_skip is False
