@@ -137,9 +137,7 @@ def verify(run: Run, proof: ProofConfig | None = None, *, delta: float | None = 
     model's decrease ``Vdot + alpha V <= 0`` proved there and asked of its region (None: the run's ``exp_rate``; a
     region of attraction needs only a strict decrease, any ``alpha > 0``).
     """
-    if roa_rate is not None and (xi is None or not (math.isfinite(roa_rate) and roa_rate > 0)):
-        raise ValueError(f"roa_rate must be > 0 and given with a shift (xi), got {roa_rate}"
-                         + ("" if xi is not None else " without xi"))
+    _check_roa_rate(roa_rate, xi is not None, "a shift (xi)")
     proof = run_proof(run, proof)
     cfg, system, loop = run.config, run.system, run.loop
     region = _region(run, delta)
@@ -186,6 +184,13 @@ def verify(run: Run, proof: ProofConfig | None = None, *, delta: float | None = 
                            roa=region_of_attraction, roa_rate=roa_rate)
 
 
+def _check_roa_rate(roa_rate: float | None, given_with: bool, what: str) -> None:
+    """Refuse a ``roa_rate`` that is not a finite number > 0, or that comes without ``what`` (``given_with`` False)."""
+    if roa_rate is not None and not (given_with and math.isfinite(roa_rate) and roa_rate > 0):
+        raise ValueError(f"roa_rate must be > 0 and given with {what}, got {roa_rate}"
+                         + ("" if given_with else f" without {what}"))
+
+
 def _region_of_attraction(loop: ClosedLoop, condition: Condition, region: Region, proof: ProofConfig, budget: Budget,
                           level: float | None, proved: ConditionProof | None, above_level: bool) -> RegionOfAttraction:
     """:func:`~drlyap.verification.certified_roa` of ``condition`` for ``proof.roa_time`` seconds (None: 3x
@@ -206,8 +211,7 @@ def verify_imported(pair, run_dir: str, proof: ProofConfig | None = None, *, xi:
     with ``roa`` its certified region of attraction there, up to that level, as for its run; ``above_level``: above it
     too). An imported pair has no trained condition (``trained`` is None). ``roa_rate``: with ``roa``, the decay
     ``alpha`` asked at the shift instead of the pair's (as for :func:`verify`)."""
-    if roa_rate is not None and not (roa and math.isfinite(roa_rate) and roa_rate > 0):
-        raise ValueError(f"roa_rate must be > 0 and given with roa, got {roa_rate}" + ("" if roa else " without it"))
+    _check_roa_rate(roa_rate, roa, "roa")
     loop = pair.loop
     system = loop.system
     proof = (proof or ProofConfig()).resolved(system)
