@@ -157,3 +157,27 @@ def test_a_retraining_that_returns_its_starting_pair_is_said_so():
         assert last["round"] == 1 and last.get("unchanged", False) is unchanged
         assert ("left the pair unchanged" in lines[-1]) is unchanged
         assert ProofRound.from_dict(last).unchanged is unchanged and ProofRound.from_dict(last).to_dict() == last
+
+
+def test_retraining_the_controller_only_keeps_v(tiny_config):
+    """``retrain="controller"``: every retraining round keeps V as the first fit left it (so its sets stay where that
+    fit put them) and trains the controller; ``"pair"`` trains both. A bad value is refused when resolved."""
+    system = get_system("pendulum")
+    cfg = tiny_config(iters=20, check_every=20).resolved(system)
+    first = plain_train(cfg, progress=False)
+    assert ProofConfig().resolved(system).retrain == "pair"  # the system's default
+    pairs = {}
+    for retrain in ("pair", "controller"):
+        proof = ProofConfig(rounds=1, time_limit=1.0, max_boxes=2_000, iters_per_round=10, falsifier_starts=64,
+                            falsifier_steps=5, retrain=retrain).resolved(system)
+        result, rounds = train_cegis(cfg, system, proof, progress=False)
+        assert len(rounds) == 2 and not rounds[1].unchanged  # a retraining round ran and moved the weights
+        pairs[retrain] = result
+    for retrain, result in pairs.items():
+        assert result.metrics["cegis"]["returned_round"] == 1  # the retrained pair (ranked above round 0's here)
+        v_same = all(torch.equal(a, b) for a, b in zip(first.lyapunov.state_dict().values(),
+                                                         result.lyapunov.state_dict().values()))
+        assert v_same is (retrain == "controller")
+        assert all(p.requires_grad for p in result.lyapunov.parameters())  # V trainable again afterwards
+    with pytest.raises(ValueError, match="retrain = 'v'"):
+        ProofConfig(retrain="v").resolved(system)

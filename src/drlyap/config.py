@@ -73,6 +73,7 @@ class SystemDefaults:
     verify_boxes: int = 200_000  # boxes per proof: about 30 s of a 2-state proof on one thread of a laptop core
     round_time: float = 300.0  # outer cap (seconds) of each proof of the training rounds
     stop_at_counterexample: bool = False  # a proof of the training rounds ends at its first confirmed violation
+    retrain: str = "pair"  # what the retraining rounds train: "pair", or "controller" (V kept as the first fit left it)
 
     def __post_init__(self) -> None:
         for f in fields(self):
@@ -434,6 +435,8 @@ class ProofConfig:
     ``stop_at_counterexample``: a proof of the rounds ends at the first batch of boxes holding a confirmed
     violation instead of spending its whole budget (None: ``defaults.stop_at_counterexample``; its verified
     fraction then counts every box not yet proved as unproved).
+    ``retrain``: what the retraining rounds train, ``"pair"`` (V and pi) or ``"controller"`` (V kept as the first
+    fit left it, so its sets stay where that fit put them; None: ``defaults.retrain``).
     Checks of ``verify``: ``uniform_time`` seconds for the uniform DR margin, ``roa_time`` for the region of
     attraction (None: 3x ``time_limit``), ``band_time`` for its band proof (None: ``roa_time`` again; 0: off).
     Where the boxes are bounded (:class:`Compute`; how fast, never what is proved, so a run does not record them):
@@ -459,6 +462,7 @@ class ProofConfig:
     neighbours: int = 3
     settle_starts: int = DEFAULT_SETTLE_STARTS
     stop_at_counterexample: bool | None = None
+    retrain: str | None = None
     uniform_time: float = 3.0
     roa_time: float | None = None
     band_time: float | None = None
@@ -496,6 +500,8 @@ class ProofConfig:
                 problems.append(f"{name} = {getattr(self, name)} (must be >= 0)")
         if self.falsifier_starts is not None and int(self.falsifier_starts) < 0:
             problems.append(f"falsifier_starts = {self.falsifier_starts} (must be >= 0)")
+        if self.retrain is not None and self.retrain not in RETRAIN:
+            problems.append(f"retrain = {self.retrain!r} (valid: {', '.join(RETRAIN)})")
         if self.enclosure is not None and self.enclosure not in ENCLOSURES:
             problems.append(f"enclosure {self.enclosure!r} (valid: {', '.join(ENCLOSURES)})")
         if problems:
@@ -505,13 +511,16 @@ class ProofConfig:
         """A copy with the system's defaults filled in (seconds and boxes per proof, the enclosure), validated."""
         self.validate()
         d = system.defaults
-        return dataclasses.replace(self, time_limit=float(self.time_limit or d.verify_time),
-                                   max_boxes=int(self.max_boxes or d.verify_boxes),
-                                   round_time=float(self.round_time or self.time_limit or d.round_time),
-                                   enclosure=Enclosure(self.enclosure or default_enclosure(system.n)),
-                                   stop_at_counterexample=bool(d.stop_at_counterexample
-                                                               if self.stop_at_counterexample is None
-                                                               else self.stop_at_counterexample))
+        out = dataclasses.replace(self, time_limit=float(self.time_limit or d.verify_time),
+                                  max_boxes=int(self.max_boxes or d.verify_boxes),
+                                  round_time=float(self.round_time or self.time_limit or d.round_time),
+                                  enclosure=Enclosure(self.enclosure or default_enclosure(system.n)),
+                                  stop_at_counterexample=bool(d.stop_at_counterexample
+                                                              if self.stop_at_counterexample is None
+                                                              else self.stop_at_counterexample),
+                                  retrain=str(self.retrain or d.retrain))
+        out.validate()  # the system's defaults too
+        return out
 
     @property
     def is_resolved(self) -> bool:
@@ -551,6 +560,9 @@ class ProofConfig:
     def from_dict(cls, data: dict) -> ProofConfig:
         return from_fields(cls, data, "proof settings")
 
+
+RETRAIN = ("pair", "controller")
+"""What the retraining rounds of :class:`ProofConfig` may train."""
 
 COMPUTE_FIELDS = ("workers", "backend", "address", "device", "checkpoint_dir", "checkpoint_every", "progress")
 """The fields of :class:`ProofConfig` that say where its proofs run (:class:`Compute`), not what they prove."""

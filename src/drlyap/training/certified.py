@@ -19,7 +19,8 @@ falsifier that searches for violating states and adds them").
    accumulated extra states that :func:`~drlyap.training.trainer.fit` appends to every batch (``replicate``
    times, to weigh them); and at most ``train_boxes`` of the unverified boxes themselves, on which the retraining
    also minimises the verifier's own bound of the residual (``box_weight``; :mod:`drlyap.training.boxes`);
-4. training continues from the current networks for ``iters_per_round`` iterations (default ``iters // 2``; the
+4. training continues from the current networks (both, or with ``retrain="controller"`` the controller only, V kept
+   as the first run left it) for ``iters_per_round`` iterations (default ``iters // 2``; the
    acceptance check may stop it earlier), with explicit xi samples (the same ones as the first run) and a
    per-round seed (fresh batches), and the result is verified again.
 
@@ -251,7 +252,8 @@ def _proof_rounds(cfg: TrainConfig, system: UncertainSystem, proof: ProofConfig,
         tic = time.perf_counter()
         warm = init if result is None else (result.lyapunov, result.controller)
         result = fit(round_cfg, system, progress=progress, init=warm,
-                     extra_states=extra.repeat(int(proof.replicate), 1) if r else None, grow=not r, boxes=boxes)
+                     extra_states=extra.repeat(int(proof.replicate), 1) if r else None, grow=not r, boxes=boxes,
+                     train_lyapunov=not r or proof.retrain == "pair")
         train_time = time.perf_counter() - (tic if r else start)
         if not r:
             first_reshape = result.metrics.get("reshape")

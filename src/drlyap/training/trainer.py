@@ -86,7 +86,8 @@ def growth_words(grown: int, iterations: int) -> str:
 
 
 def fit(cfg: TrainConfig, system: UncertainSystem, progress: bool = True, init: tuple[Lyapunov, Controller] | None = None,
-        extra_states: Tensor | None = None, grow: bool = True, boxes: OpenBoxes | None = None) -> TrainResult:
+        extra_states: Tensor | None = None, grow: bool = True, boxes: OpenBoxes | None = None,
+        train_lyapunov: bool = True) -> TrainResult:
     """Train a pair for the resolved config ``cfg`` (:meth:`TrainConfig.resolved` for ``system``), without proving
     it (:func:`drlyap.training.train` trains and proves).
 
@@ -94,7 +95,8 @@ def fit(cfg: TrainConfig, system: UncertainSystem, progress: bool = True, init: 
     local states (e.g. counterexamples found by the verifier) added to every training batch. ``grow=False`` leaves
     out the growth term (``grow_weight``; the faces keep its margin): the retraining rounds repair what a proof
     found instead of pulling the set further out. ``boxes``: boxes a proof left open, whose verifier bound is trained
-    on beside the states (:class:`~drlyap.training.boxes.OpenBoxes`; certified training).
+    on beside the states (:class:`~drlyap.training.boxes.OpenBoxes`; certified training). ``train_lyapunov=False``
+    keeps V as it starts (``init``'s) and trains the controller only: a retraining round that must not move V's sets.
     """
     if system.name != cfg.system:
         raise ValueError(f"TrainConfig(system={cfg.system!r}) names another system than the one passed "
@@ -124,7 +126,11 @@ def fit(cfg: TrainConfig, system: UncertainSystem, progress: bool = True, init: 
     states.start()
     run = _Iterations(schedule, plan.condition, goal, loop, condition, states, keeper, growing,
                       None if boxes is None or not len(boxes) else (boxes.to(device), gen))
-    run.go(show_progress(schedule.iters, f"{cfg.system} {cfg.method}", progress))
+    lyapunov.requires_grad_(train_lyapunov)
+    try:
+        run.go(show_progress(schedule.iters, f"{cfg.system} {cfg.method}", progress))
+    finally:
+        lyapunov.requires_grad_(True)
     reshaped = None
     if growing and goal.reshape_steps:
         bar = show_progress(goal.reshape_steps, f"{cfg.system}: growing V's set", progress)
@@ -155,8 +161,8 @@ class _Iterations:
     def go(self, bar) -> None:
         """Train, showing the iterations on ``bar``, and load the pair kept."""
         lyapunov, controller = self.loop.lyapunov, self.loop.controller
-        opt = torch.optim.Adam(list(lyapunov.parameters()) + list(controller.parameters()), lr=self.schedule.lr,
-                               fused=True)
+        trained = [p for p in (*lyapunov.parameters(), *controller.parameters()) if p.requires_grad]
+        opt = torch.optim.Adam(trained, lr=self.schedule.lr, fused=True)
         last_good = snapshot(lyapunov, controller)
         start = time.perf_counter()
         try:
