@@ -192,3 +192,30 @@ def test_a_claim_resting_on_another_certificate_states_its_rule_for_the_faces(tm
     assert outer_missing(tmp_path, practical) != []  # no rule stated: V above the level on the faces, not the outer's
     ball = {"claim": {k: v for k, v in practical["claim"].items() if k != "practical"}}
     assert outer_missing(tmp_path, ball) == []  # a roa-ball's claim leaves the set's faces to its outer
+
+
+def test_the_region_search_reports_each_long_step_on_stderr(loop, monkeypatch):
+    """A region search with ``compute.progress`` prints a line of boxes for the exits' bound and the level search
+    (the quadrotor's went ten minutes without a word); without it nothing."""
+    import io
+
+    from drlyap import progress as progress_module
+    from drlyap.compute import Compute
+
+    stream = io.StringIO()
+
+    def every_step(total, desc, enabled=True, **_):
+        return progress_module.progress(total, desc, enabled, stream=stream, every=0.0)
+
+    for module in ("drlyap.verification.branch_and_bound", "drlyap.verification.roa.levels"):
+        monkeypatch.setattr(f"{module}.show_progress", every_step)
+    region = Region.of(loop.system, 0.2)
+    quiet = certified_roa(loop, _condition(), region, Budget(seconds=10), samples_per_axis=20)
+    assert stream.getvalue() == ""
+    shown = certified_roa(loop, _condition(), region, Budget(seconds=10, compute=Compute(progress=True)),
+                          samples_per_axis=20)
+    assert shown.level == quiet.level
+    lines = stream.getvalue().splitlines()
+    assert any(line.startswith("V's least value where the flow may leave the box: boxes: ") for line in lines)
+    search = [line for line in lines if line.startswith("region of attraction: level search, boxes: ")]
+    assert search and "level=" in search[-1] and "queued=" in search[-1]

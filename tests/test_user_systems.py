@@ -172,6 +172,10 @@ def test_progress_lines_when_piped_and_nothing_when_disabled():
     bar.update(2)
     bar.close()
     assert "work: 2/3 (67%) loss=1e-3" in stream.getvalue()
+    count = io.StringIO()
+    bar = progress(None, "search", stream=count, every=0.0)  # no known end: a count
+    bar.update(5)
+    assert count.getvalue().startswith("search: 5, ")
     quiet = io.StringIO()
     bar = progress(3, "work", enabled=False, stream=quiet)
     bar.update(3)

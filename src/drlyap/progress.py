@@ -18,19 +18,19 @@ class _NoBar:
 
 
 class _LineBar:
-    """``desc: i/total (p%) key=value, 12 s`` on ``stream`` at most every ``every`` seconds."""
+    """``desc: i/total (p%) key=value, 12 s`` (``desc: i key=value, 12 s`` without a total) on ``stream`` at most
+    every ``every`` seconds."""
 
-    def __init__(self, total: int, desc: str, stream: TextIO, every: float) -> None:
+    def __init__(self, total: int | None, desc: str, stream: TextIO, every: float) -> None:
         self.total, self.desc, self.stream, self.every = total, desc, stream, every
         self.count, self.shown, self.postfix = 0, 0, ""
         self.start = self.last = time.monotonic()
 
     def _line(self) -> None:
         self.shown = self.count
-        pct = f" ({100 * self.count / self.total:.0f}%)" if self.total else ""
+        count = f"{self.count}/{self.total} ({100 * self.count / self.total:.0f}%)" if self.total else f"{self.count}"
         extra = f" {self.postfix}" if self.postfix else ""
-        print(f"{self.desc}: {self.count}/{self.total}{pct}{extra}, {time.monotonic() - self.start:.0f} s",
-              file=self.stream, flush=True)
+        print(f"{self.desc}: {count}{extra}, {time.monotonic() - self.start:.0f} s", file=self.stream, flush=True)
 
     def update(self, n: int = 1) -> None:
         self.count += n
@@ -47,8 +47,9 @@ class _LineBar:
             self._line()
 
 
-def progress(total: int, desc: str, enabled: bool = True, stream: TextIO | None = None, every: float = 5.0):
-    """A progress reporter for ``total`` steps with ``update(n)``, ``set_postfix(**kw)`` and ``close()``.
+def progress(total: int | None, desc: str, enabled: bool = True, stream: TextIO | None = None, every: float = 5.0):
+    """A progress reporter for ``total`` steps (None: a count with no known end) with ``update(n)``,
+    ``set_postfix(**kw)`` and ``close()``.
 
     A tqdm bar when ``stream`` (default ``sys.stderr``) is a terminal, else a line every ``every`` seconds;
     nothing when ``enabled`` is false.

@@ -373,7 +373,7 @@ class _Search:
 def maximize(objective: Callable, lo: Tensor, hi: Tensor, scale: Tensor, budget: Budget, *,
              centre_ok: Callable | None = None, box_ok: Callable | None = None, rel_tol: float = 1e-3,
              abs_tol: float = 1e-9, tree: PartitionRecorder | None = None,
-             leaf_bound: Callable | None = None) -> tuple[Tensor, Tensor, dict]:
+             leaf_bound: Callable | None = None, label: str | None = None) -> tuple[Tensor, Tensor, dict]:
     """Bounds ``lower <= sup <= upper`` (each ``(Q,)``) of every component of ``objective`` over a union of boxes
     ``[lo, hi] (B, n)`` (``scale (n,)``: the widths that box sides are measured against).
 
@@ -384,7 +384,8 @@ def maximize(objective: Callable, lo: Tensor, hi: Tensor, scale: Tensor, budget:
     boxes (``lo, hi`` are then its grid's cells, in order): those ``box_ok`` drops as inside the ball, the splits, and
     every other leaf as proved with ``leaf_bound(upper (L, Q)) -> (L,)`` of its components' upper bounds.
     The third result also holds ``attained_at`` ``(Q, n)``: the centre at which each component's lower bound was
-    found (None where no centre was accepted).
+    found (None where no centre was accepted). ``label``: what a progress line of its boxes calls the search (where
+    ``budget.compute.progress``; None: none).
     """
     enclosure = budget.enclosure_for(lo.shape[-1])
     time_limit, max_boxes, min_width, batch = budget.seconds, budget.boxes, budget.min_width, budget.batch
@@ -401,6 +402,7 @@ def maximize(objective: Callable, lo: Tensor, hi: Tensor, scale: Tensor, budget:
             tree.inside_ball(ids[~keep])
         lo, hi, ids = lo[keep], hi[keep], ids[keep]
     known: Tensor | None = None  # (B, Q): an upper bound on each queued box (its parent's), once one is split
+    bar = show_progress(int(max_boxes), f"{label}: boxes", budget.compute.progress and label is not None)
     while lo.shape[0]:
         if time.perf_counter() - start > time_limit or processed >= max_boxes:
             stopped = "time limit" if processed < max_boxes else "box budget"
@@ -410,6 +412,7 @@ def maximize(objective: Callable, lo: Tensor, hi: Tensor, scale: Tensor, budget:
             known = known[clo.shape[0]:]
         _, ub, at = box_bounds(objective, clo, chi, enclosure)
         processed += clo.shape[0]
+        bar.update(clo.shape[0])
         centre = (clo + chi) / 2
         good = centre_ok(centre) if centre_ok is not None else torch.ones(clo.shape[0], dtype=torch.bool)
         if good.any():
@@ -442,6 +445,7 @@ def maximize(objective: Callable, lo: Tensor, hi: Tensor, scale: Tensor, budget:
                 known = torch.full((lo.shape[0], ub.shape[1]), torch.inf, dtype=ub.dtype, device=ub.device)
             lo, hi, known = torch.cat([lo, nlo]), torch.cat([hi, nhi]), torch.cat([known, inherited])
             ids = torch.cat([ids, nids])
+    bar.close()
     if lo.shape[0]:
         if lo.shape[0] <= 4 * batch:
             leftover = box_bounds(objective, lo, hi, enclosure)[1]
@@ -480,7 +484,7 @@ def uniform_margin(loop: ClosedLoop, condition: DRUniform, region: Region, budge
     lower, upper, info = maximize(
         condition_objective(loop, condition), lo, hi, region.scale, budget,
         centre_ok=region.in_region, box_ok=lambda a, b: ~inside_ball(a, b, delta), rel_tol=rel_tol, tree=tree,
-        leaf_bound=margin_up)
+        leaf_bound=margin_up, label="proof of the uniform margin")
     attained = info.pop("attained_at")
     m_up = float(margin_up(upper))
     m_lo = float(round_down(condition.margin(lower), 64 * EPS, lower.abs().amax() * (1 + coef)))

@@ -59,7 +59,8 @@ def boundary_minimum(lyapunov, region: Region, budget: Budget = Budget(seconds=5
         return low, float(lyapunov(point[None])[0])
     vobj = value_objective(lyapunov)
     flo, fhi = box_faces(region.lo, region.hi, default_grid(region.n))
-    best, neg_up, _ = maximize(lambda z: -vobj(z), flo, fhi, region.scale, budget, rel_tol=rel_tol)
+    best, neg_up, _ = maximize(lambda z: -vobj(z), flo, fhi, region.scale, budget, rel_tol=rel_tol,
+                               label="V's least value on the box's faces")
     return float(-neg_up[0]), float(-best[0])
 
 
@@ -120,7 +121,7 @@ def exit_minimum(loop: ClosedLoop, condition: Condition, region: Region,
     if not bool(may_leave(flo, fhi).any()):
         return float("inf"), float("inf")
     best, neg_up, _ = maximize(lambda z: -vobj(z), flo, fhi, region.scale, budget, box_ok=may_leave,
-                               centre_ok=leaves, rel_tol=rel_tol)
+                               centre_ok=leaves, rel_tol=rel_tol, label="V's least value where the flow may leave the box")
     return float(-neg_up[0]), float(-best[0])
 
 

@@ -90,7 +90,7 @@ def band_roa(loop: ClosedLoop, condition: Condition, region: Region, quadratic: 
             loop, strict, lo, hi, region.scale, target,
             limited_by if target >= top else "next level not reached", start + time_limit, meets=everywhere,
             in_region=lambda centre, v: everywhere(centre, centre), min_width=fine, batch=budget.batch,
-            enclosure=Enclosure.AFFINE, ellipsoid=(p, c_q))
+            enclosure=Enclosure.AFFINE, ellipsoid=(p, c_q), progress=budget.compute.progress)
         boxes += count
         targets.append({"level": target, "reached": level >= target, "boxes": count,
                         "time_s": time.perf_counter() - start})

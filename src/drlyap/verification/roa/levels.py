@@ -15,6 +15,7 @@ from drlyap.conditions import Condition
 from drlyap.enclosures import F64, REL1, round_down
 from drlyap.kinds import Enclosure
 from drlyap.networks import QuadraticLyapunov
+from drlyap.progress import progress as show_progress
 from drlyap.regions import split
 from drlyap.verification.bounds import (
     box_bounds,
@@ -35,7 +36,8 @@ def below(level: float) -> float:
 def level_search(loop: ClosedLoop, condition: Condition, lo: Tensor, hi: Tensor, scale: Tensor, level: float,
                  limited_by: str, deadline: float, *, meets, in_region, floor: float = -math.inf,
                  min_width: float = 1e-4, batch: int = 4096, enclosure: Enclosure = Enclosure.MEAN_VALUE,
-                 ellipsoid: tuple[Tensor, float] | None = None) -> tuple[float, str, Tensor | None, int]:
+                 ellipsoid: tuple[Tensor, float] | None = None,
+                 progress: bool = False) -> tuple[float, str, Tensor | None, int]:
     """The largest level (at most ``level``) such that ``condition`` holds on every state of the boxes
     ``[lo, hi]`` (and of their parts where ``meets(lo, hi)``, a ``(B,)`` mask) with ``floor <= V <= level``
     (with ``ellipsoid = (P, c_q)``: and ``z^T P z >= c_q``, outside the ellipsoid ``L``).
@@ -51,7 +53,8 @@ def level_search(loop: ClosedLoop, condition: Condition, lo: Tensor, hi: Tensor,
     V's lower bound is taken on each box's part outside ``L`` (:func:`outside_lower`), and boxes are split on the side
     that adds most to the bounds (``split``'s sensitivity): the search behind
     :func:`~drlyap.verification.roa.band.band_roa`. Returns the level, what limited it, the counterexample (local, or
-    None) and the number of boxes processed."""
+    None) and the number of boxes processed. ``progress``: a line on stderr of the boxes processed, the level so far
+    and the boxes queued."""
     base = condition_and_value_objective(loop, condition)
     if ellipsoid is None:
         objective = base
@@ -68,6 +71,7 @@ def level_search(loop: ClosedLoop, condition: Condition, lo: Tensor, hi: Tensor,
     processed = 0
     cex = None
     known = torch.full((lo.shape[0],), -math.inf, dtype=lo.dtype)  # a lower bound of V on each queued box
+    bar = show_progress(None, "region of attraction: level search, boxes", progress)
     while lo.shape[0]:
         if time.perf_counter() > deadline:
             order = known.argsort()
@@ -96,6 +100,7 @@ def level_search(loop: ClosedLoop, condition: Condition, lo: Tensor, hi: Tensor,
         lb, ub, at, form = bounds[0], bounds[1], bounds[2], bounds[-1]
         sens = bounds[3] if ellipsoid is not None else None
         processed += clo.shape[0]
+        bar.update(clo.shape[0])
         v_lb = lb[:, -1]
         if ellipsoid is not None:
             v_lb = torch.maximum(v_lb, outside_lower(form[:, -1], form[:, -2], at.mid[:, -1], at.mid[:, -2], c_q, level))
@@ -131,6 +136,8 @@ def level_search(loop: ClosedLoop, condition: Condition, lo: Tensor, hi: Tensor,
         above = known > level  # queued boxes the lowered level no longer asks about
         if above.any():
             lo, hi, known = lo[~above], hi[~above], known[~above]
+        bar.set_postfix(level=f"{level:.6g}", queued=lo.shape[0])
+    bar.close()
     return level, limited_by, cex, processed
 
 

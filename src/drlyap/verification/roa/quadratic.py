@@ -275,7 +275,8 @@ def linearisation_local(loop: ClosedLoop, condition: Condition, region: Region, 
         seconds = max(1.0, 0.3 * (deadline - time.perf_counter()) / (len(candidates) - i))
         _, neg_up, _ = maximize(lambda z: -vobj(z), blo, bhi, region.scale,
                                 replace(budget, seconds=seconds, boxes=1_000_000, enclosure=enclosure), box_ok=outside,
-                                centre_ok=lambda z, w_i=w_i, c_qi=c_qi: w_i(z) >= c_qi)
+                                centre_ok=lambda z, w_i=w_i, c_qi=c_qi: w_i(z) >= c_qi,
+                                label="V's least value outside the closed loop's ellipsoid")
         c_1i = float(round_down(round_down(-neg_up[0], REL1), 1e-9))
         cand["inner_level"] = c_1i
         if c_1i > c_1:
@@ -310,7 +311,7 @@ def linearisation_local(loop: ClosedLoop, condition: Condition, region: Region, 
     c_2, limited_by, cex, boxes = level_search(
         loop, inner, alo, ahi, region.scale, level, "outer proof", max(deadline, time.perf_counter() + 1.0),
         meets=meets, in_region=lambda centre, v: centre.norm(dim=-1) < delta, floor=c_1, min_width=fine,
-        batch=budget.batch, enclosure=enclosure)
+        batch=budget.batch, enclosure=enclosure, progress=budget.compute.progress)
     c_2 = below(c_2)
     out["annulus"] = {"level": c_2, "limited_by": limited_by, "boxes": boxes, "decay_rate": inner.decay_rate,
                       "exp_rate": inner.exp_rate, "region": "delta-ball" if strict else "box", "min_width": fine,

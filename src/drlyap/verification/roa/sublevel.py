@@ -129,7 +129,7 @@ def outer_search(loop: ClosedLoop, condition: Condition, region: Region, budget:
         loop, condition, lo, hi, scale, top, why,
         start + (0.6 if delta > 0 else 1.0) * time_limit, meets=region.meets,  # 40% kept for the ball
         in_region=lambda centre, v: region.in_region(centre),
-        min_width=min_width, batch=budget.batch, enclosure=enclosure)
+        min_width=min_width, batch=budget.batch, enclosure=enclosure, progress=budget.compute.progress)
     return OuterSearch(boundary_min_lower, ball_max_upper, below(level), limited_by, cex, processed, top, why, start,
                        start + time_limit, exit_min_lower)
 
@@ -142,7 +142,7 @@ def _ball_max(lyapunov, region: Region, budget: Budget) -> float:
     ball = region.ball_box(delta)
     glo, ghi = box_grid(ball.lo, ball.hi, default_grid(region.lo.shape[0]))
     _, up, _ = maximize(value_objective(lyapunov), glo, ghi, region.scale, budget,
-                        box_ok=lambda a, b: near_dist(a, b) < delta)
+                        box_ok=lambda a, b: near_dist(a, b) < delta, label="V's largest value on the delta-ball")
     return float(up[0])
 
 
@@ -187,7 +187,7 @@ def positive_lower(lyapunov, region: Region, budget: Budget) -> tuple[float, dic
     vobj = value_objective(lyapunov)
     lo, hi = region.boxes(default_grid(region.n))
     _, neg_up, info = maximize(lambda z: -vobj(z), lo, hi, region.scale, budget, box_ok=region.meets,
-                               centre_ok=region.in_region, rel_tol=0.5)
+                               centre_ok=region.in_region, rel_tol=0.5, label="V's least value outside the delta-ball")
     return float(-neg_up[0]), info
 
 
