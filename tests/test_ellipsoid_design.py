@@ -99,7 +99,9 @@ def test_the_ellipsoid_warm_start_sets_the_pair_exactly_just_above_the_faces_lev
     with torch.no_grad():
         v = lyapunov.double()(z)
         assert torch.allclose(v, warm["P_scale"] * ((z @ design.P) * z).sum(-1), rtol=1e-5)
-        assert torch.allclose(controller.double().raw(z), -(z @ design.K.T), rtol=1e-5, atol=1e-6)
+        # the network holds K in float32: each output is exact up to K's rounding times |z|
+        rounding = 4 * torch.finfo(torch.float32).eps * (z.abs() @ design.K.abs().T)
+        assert ((controller.double().raw(z) + z @ design.K.T).abs() <= rounding).all()
     assert warm["P_scale"] == pytest.approx(1.06, rel=1e-3)  # the ellipsoid meets a face: V = 1.06 there
 
 
