@@ -2,6 +2,15 @@ import pytest
 import torch
 
 
+@pytest.fixture(autouse=True, scope="session")
+def _own_seal_key(tmp_path_factory):
+    """The tests' seals use a key of their own (:mod:`drlyap.seal`), not the user's."""
+    import os
+
+    os.environ["DRLYAP_STATE_DIR"] = str(tmp_path_factory.mktemp("state"))
+    yield
+
+
 @pytest.fixture(autouse=True)
 def _one_thread():
     torch.set_num_threads(1)

@@ -23,6 +23,7 @@ from drlyap.training import TrainConfig, fit
 from drlyap.verification import verify_condition
 from drlyap.workflows.export import export_run
 from drlyap.workflows.policies import load_policy_run
+from handmade import verified_json
 
 onnx = pytest.importorskip("onnx")
 F64 = torch.float64
@@ -118,8 +119,7 @@ def test_import_writes_a_run_that_loads_and_compares(exported, tmp_path):
     args = ["--xi", "0.1,0.05", "--time-limit", "1e9", "--json"]
     own = CliRunner().invoke(main, ["verify", str(exported[0].path), *args])
     imported = CliRunner().invoke(main, ["verify", str(out), *args])
-    assert own.exit_code == 0 and imported.exit_code == 0, imported.output
-    own, imported = json.loads(own.stdout)["true_model"], json.loads(imported.stdout)["true_model"]
+    own, imported = verified_json(own)["true_model"], verified_json(imported)["true_model"]
     for key in ("status", "verified_fraction", "boxes_processed", "boxes_verified", "counterexample"):
         assert own[key] == imported[key], key
     shown = CliRunner().invoke(main, ["compare", str(out), "--xi", "0.1,0.05", "--n-init", "4", "--certify-time", "0.5",

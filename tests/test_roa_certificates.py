@@ -16,7 +16,7 @@ from drlyap.checker.model import Pair, Residual
 from drlyap.cli import main
 from drlyap.runs import load_run
 from drlyap.runs.validate import load_weights
-from handmade import linear_run_dir, small_pendulum
+from handmade import linear_run_dir, small_pendulum, verified_json
 
 SPEC = f"{os.path.dirname(__file__)}/handmade.py:small_pendulum"
 XI = "0.1,0.05"
@@ -24,8 +24,7 @@ XI = "0.1,0.05"
 
 def _verify(run, *args):
     out = CliRunner().invoke(main, ["verify", str(run), "--system", SPEC, "--xi", XI, "--roa", "--json", *args])
-    assert out.exit_code == 0, out.output
-    return json.loads(out.output)
+    return verified_json(out)
 
 
 def _check(run, *names):

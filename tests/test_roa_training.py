@@ -293,7 +293,7 @@ def test_verify_command_names_the_sublevel_set_of_a_roa_run(tmp_path):
                       controller_hidden=[8])
     run_dir = save_run(tmp_path / "cp", plain_train(cfg, progress=False))
     result = CliRunner().invoke(main, ["verify", str(run_dir), "--time-limit", "2"])
-    assert result.exit_code == 0, result.output
+    assert result.exit_code in (3, 4), result.output  # ten iterations: violated, or unknown in two seconds
     assert "on {V <= 1} only; min of V on the box's faces" in result.output
     assert "of X_delta (condition or V > 1)" in result.output
 

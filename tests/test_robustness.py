@@ -1,6 +1,5 @@
 """Certified robustness (drlyap.verification.robustness): the largest proved Wasserstein radius and shift box."""
 
-import json
 import math
 
 import pytest
@@ -13,7 +12,7 @@ from drlyap.config import Budget
 from drlyap.enclosures import Interval
 from drlyap.regions import Region
 from drlyap.verification import certified_radius, certified_shift_box, shift_box_condition, verify_condition
-from handmade import linear_pair, small_pendulum
+from handmade import linear_pair, small_pendulum, verified_json
 
 F64 = torch.float64
 XI = torch.tensor([[0.02, 0.01], [-0.03, 0.0], [0.05, -0.02]], dtype=F64)
@@ -129,14 +128,13 @@ def test_cli_max_radius_on_a_baseline_run(tmp_path, tiny_config):
     save_run(tmp_path / "run", plain_train(tiny_config(iters=5, check_every=5, method="baseline"), progress=False))
     runner = CliRunner()
     out = runner.invoke(main, ["verify", str(tmp_path / "run"), "--time-limit", "1", "--max-radius", "--json"])
-    assert out.exit_code == 0, out.output
-    rob = json.loads(out.output)["robustness"]
+    rob = verified_json(out)["robustness"]
     assert {"radius", "shift_box", "radius_training_sample"} <= set(rob)
     for res in (rob["radius"], rob["radius_training_sample"]):
         assert (res["radius"] is None and "at 0" in res["reason"]) or res["radius"] >= 0
     assert rob["shift_box"]["parameters"] == ["mass", "damping"]
     text = runner.invoke(main, ["verify", str(tmp_path / "run"), "--time-limit", "1", "--max-radius"])
-    assert text.exit_code == 0 and "certified Wasserstein radius" in text.output
+    assert text.exit_code == 3 and "certified Wasserstein radius" in text.output  # five iterations: violated
     assert "certified shift box" in text.output
     bad = runner.invoke(main, ["verify", str(tmp_path / "run"), "--max-radius", "--radius-tol", "0"])
     assert bad.exit_code != 0 and "--radius-tol" in bad.output

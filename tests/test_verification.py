@@ -28,7 +28,7 @@ from drlyap.verification import (
     uniform_margin,
     verify_condition,
 )
-from handmade import linear_pair, plain_train, small_pendulum
+from handmade import linear_pair, plain_train, small_pendulum, verified_json
 
 F64 = torch.float64
 
@@ -320,15 +320,15 @@ def test_cli_verify_on_a_run_directory(tmp_path, tiny_config):
     runner = CliRunner()
     out = runner.invoke(main, ["verify", str(tmp_path / "run"), "--time-limit", "2", "--xi", "0.1,0.05", "--uniform",
                                "--json"])
-    assert out.exit_code == 0, out.output
-    data = json.loads(out.output)
+    data = verified_json(out)
     assert data["status"] in ("verified", "violated", "unknown")
     assert {"trained", "uniform", "true_model", "roa"} <= set(data)
     assert data["uniform"]["margin_lower"] <= data["uniform"]["margin_upper"]
     if data["counterexample"] is not None:
         assert data["counterexample_value"] > 0
     text = runner.invoke(main, ["verify", str(tmp_path / "run"), "--time-limit", "1", "--roa"])
-    assert text.exit_code == 0 and "uniform DR condition" not in text.output and "region of attraction" in text.output
+    assert text.exit_code in (3, 4) and "uniform DR condition" not in text.output  # five iterations: not proved
+    assert "region of attraction" in text.output
     assert f"drawn by `drlyap plot {tmp_path / 'run'}`" in text.output  # verify --roa keeps its region for plot
     assert "roa" in json.loads((tmp_path / "run" / "metrics.json").read_text())["certificate"]
     bad = runner.invoke(main, ["verify", str(tmp_path / "run"), "--xi", "1"])
@@ -336,8 +336,7 @@ def test_cli_verify_on_a_run_directory(tmp_path, tiny_config):
     missing = runner.invoke(main, ["verify", str(tmp_path / "nope")])
     assert missing.exit_code != 0 and "does not exist" in missing.output
     affine = runner.invoke(main, ["verify", str(tmp_path / "run"), "--time-limit", "2", "--enclosure", "affine", "--json"])
-    assert affine.exit_code == 0, affine.output
-    both = json.loads(affine.output)
+    both = verified_json(affine)
     assert both["enclosure"] == "affine" and both["trained"]["status"] in ("verified", "violated", "unknown")
     if both["trained"]["status"] == "verified" or data["trained"]["status"] == "verified":  # sound: never contradict
         assert "violated" not in (both["trained"]["status"], data["trained"]["status"])

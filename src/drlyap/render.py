@@ -38,13 +38,17 @@ def _num(value, digits: int = 4) -> str:
 
 
 # --------------------------------------------------------------------------- a run's trained condition
-def certificate_line(cert: Certificate, verify_command: str = "drlyap verify RUN") -> str:
+def certificate_line(cert: Certificate, verify_command: str = "drlyap verify RUN", confirmed: bool = True) -> str:
     """The one line that says what was proved about a run's trained condition; ``verify_command``: the command that
-    proves it, named when nothing was checked."""
+    proves it, named when nothing was checked; ``confirmed``: False where the independent checker did not confirm the
+    proof's certificate (the verdict is then not stronger than the checker's)."""
     status = cert.status
     if status == "not checked":
         return f"certificate: NOT CHECKED ({cert.condition} condition; run `{verify_command}`)"
     where = cert.region or "X_delta"
+    if status == Status.VERIFIED and not confirmed:
+        return (f"certificate: NOT VERIFIED (the independent checker did not confirm the proof's certificate, below) - "
+                f"the {cert.condition} condition on {of_region(where)}")
     if status == Status.VERIFIED:
         holds = (f"holds over {of_region(where)} (one inequality: its suprema over the region)"
                  if cert.margin_upper is not None else f"holds at every state of {of_region(where)}")

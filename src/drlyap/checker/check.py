@@ -38,10 +38,8 @@ supremum is bounded over every leaf, and the margin made of those bounds must be
 
 from __future__ import annotations
 
-import json
 import math
 import time
-from collections.abc import Callable
 from dataclasses import dataclass, field
 from pathlib import Path
 
@@ -50,15 +48,12 @@ import torch
 from torch import Tensor
 
 from drlyap.checker.affine import Af
-from drlyap.checker.agreement import claim_mismatch, core_missing, outer_missing
 from drlyap.checker.arith import EPS, F64, Iv
 from drlyap.checker.ball import ball_failures
 from drlyap.checker.ellipsoid import QuadraticPair, ellipsoid_failures, inside_core, read_core
 from drlyap.checker.graphs import GraphPair
-from drlyap.checker.levels import ball_below, faces_above, faces_inward, grid_cells, outside_positive, widest_split
+from drlyap.checker.levels import ball_below, faces_above, faces_inward, grid_cells, widest_split
 from drlyap.checker.model import Pair, Residual, centre_lower, form_upper, upper_bounds, value_lower
-from drlyap.checker.quadratic import surely_semidefinite
-from drlyap.checker.record import drop_record, fingerprint, write_record
 from drlyap.checker.uniform import uniform_margin_bound
 from drlyap.claims import claim_sentence, faces_rule
 from drlyap.compute import Compute
@@ -358,29 +353,6 @@ def _pair(weights: dict, header: dict, n: int) -> Pair | GraphPair:
     return Pair(weights, float(header["networks"]["alpha_hat"]), n)
 
 
-def _positive_outside(out: CheckResult, weights: dict, header: dict, system) -> Callable[[dict], str]:
-    """For :func:`~drlyap.checker.agreement.outer_missing`: ``V > 0`` on an outer claim's region (its state box minus
-    its open delta-ball) by the checker's bisection (:func:`~drlyap.checker.levels.outside_positive`, recorded in
-    ``out``); "" where it holds, else why not."""
-
-    def positive(region: dict) -> str:
-        start = time.perf_counter()
-        try:
-            lo, hi = _claim_box(region, system)
-            pair, delta = _pair(weights, header, system.n), float(region["delta"])
-        except (CertificateError, KeyError, TypeError, ValueError) as err:
-            return f"V > 0 outside the ball cannot be checked ({err})"
-        p = getattr(pair, "p", None)  # the quadratic V of a controller imported alone: positive definite by its P
-        if p is not None and bool(torch.equal(p, p.T)) and bool(surely_semidefinite(p)):
-            return ""
-        holds, out.positive_min, out.positive_boxes = outside_positive(pair, lo, hi, delta)
-        out.time_s += time.perf_counter() - start
-        return "" if holds else (f"V > 0 outside the ball is not established (V's smallest lower bound there "
-                                 f"{out.positive_min:.6g}, {out.positive_boxes} boxes)")
-
-    return positive
-
-
 def _practical_failures(out: CheckResult, claim: dict, pair, lo: Tensor, hi: Tensor) -> list[str]:
     """What keeps a ``practical`` claim from following: its level ``c0`` (``claim["practical"]["level"]``) below the
     set's level ``c``, and ``V <= c0`` on the open delta-ball (``region.ball_of``; ``[lo, hi]`` its box) by the
@@ -545,56 +517,3 @@ def _check_uniform(out: CheckResult, residual: Residual, lo: Tensor, hi: Tensor,
 
 def _fmt(v: Tensor) -> str:
     return ", ".join(f"{float(a):.6g}" for a in v)
-
-
-def check_run(run_dir: str | Path, system=None, trust: bool = False, names: list[str] | None = None,
-              refine: int = 12, compute: Compute = Compute(), pieces_per_leaf: float = 1.0) -> list[CheckResult]:
-    """Re-check the certificates of a run directory (``names``: which; default every one it holds). ``system`` and
-    ``trust``: as for :func:`drlyap.runs.load_run` (a system from a file runs only when named or trusted); the rest:
-    as for :func:`check_certificate`. A run without certificates is a ValueError that says so."""
-    from drlyap.runs.certificates import FOLDER, NAMES, networks_digest, read_certificate, system_digest
-    from drlyap.runs.reading import read_run_json, read_run_kind, run_system
-    from drlyap.runs.validate import RunDirError, load_weights
-
-    run_dir = Path(run_dir)
-    imported = read_run_kind(run_dir).get("kind") == "imported"
-    info, config, metrics = read_run_json(run_dir, "imported" if imported else "lyapunov", "run.json", "config.json",
-                                          "metrics.json")
-    system = run_system(run_dir, str(config.get("system")), system, info, trust)
-    present = [k for k in NAMES if (run_dir / FOLDER / f"{k}.json").is_file()]
-    names = present if names is None else names
-    if not names:
-        raise ValueError(f"{run_dir} holds no certificate ({run_dir / FOLDER} is empty or missing): a verified "
-                         "`drlyap train` or `drlyap verify` writes one")
-    files = [run_dir / "graphs.json", run_dir / "tensors.pt"] if imported else [run_dir / "weights.pt"]
-    try:
-        contents = [f.read_bytes() for f in files]  # read once: the bytes hashed are the bytes checked
-    except FileNotFoundError as err:
-        raise RunDirError(f"{err.filename} is missing") from None
-    if imported:  # the graphs as data (JSON) and their constants (tensors only)
-        try:
-            graphs = json.loads(contents[0])
-        except (UnicodeDecodeError, json.JSONDecodeError) as err:
-            raise RunDirError(f"{files[0]} is damaged: {err}") from None
-        weights = {"graphs": graphs, "tensors": load_weights(files[1], contents[1])}
-    else:
-        weights = load_weights(files[0], contents[0])
-    digest, system_sha = networks_digest(contents), system_digest(system)
-    out = []
-    for name in names:
-        header, arrays = read_certificate(run_dir, name)
-        result = check_certificate(run_dir, name, header, arrays, system, weights, digest, system_sha, refine,
-                                   compute, pieces_per_leaf)
-        result.failures += claim_mismatch(name, header, config, metrics)
-        if name in ("roa-ball", "practical"):
-            result.failures += outer_missing(run_dir, header, _positive_outside(result, weights, header, system))
-        if (header.get("claim") or {}).get("core") is not None:
-            result.failures += core_missing(run_dir, header)
-        result.ok = not result.failures
-        if result.ok:
-            write_record(run_dir, name, fingerprint(run_dir, name, header, digest, system_sha), result.proved,
-                         result.time_s)
-        else:
-            drop_record(run_dir, name)
-        out.append(result)
-    return out

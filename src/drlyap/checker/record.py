@@ -4,7 +4,8 @@ When the checker confirms a certificate it records the sha256 of exactly what it
 weights, the system's description) and the drlyap version it ran as. ``drlyap verify`` takes a certificate whose record
 matches those files for confirmed without re-checking it (the same bytes, the same checker), which makes a second
 ``verify`` of a large proof take seconds; ``drlyap check`` always checks again from the files, and rewrites the record
-(or removes it, when the certificate is no longer confirmed).
+(or removes it, when the certificate is no longer confirmed). A record carries this machine's seal
+(:mod:`drlyap.seal`): one made elsewhere or edited is not taken, whatever hashes it states.
 """
 
 from __future__ import annotations
@@ -15,6 +16,8 @@ import os
 import time
 from importlib.metadata import PackageNotFoundError, version
 from pathlib import Path
+
+from drlyap.seal import canonical, opens, seal
 
 FORMAT = "drlyap-check"
 VERSION = 1
@@ -41,17 +44,23 @@ def fingerprint(run_dir: str | os.PathLike, name: str, header: dict, weights_sha
 
 
 def write_record(run_dir: str | os.PathLike, name: str, prints: dict, leaves: int, seconds: float) -> Path | None:
-    """Record that the checker confirmed certificate ``name`` (atomically); None where the folder cannot be
-    written (nothing is lost: the next ``verify`` checks again)."""
+    """Record that the checker confirmed certificate ``name`` (atomically, sealed); None where the folder cannot be
+    written or there is no key to seal it with (nothing is lost: the next ``verify`` checks again)."""
     path = _path(run_dir, name)
     data = {"format": FORMAT, "version": VERSION, "confirmed": True, **prints, "leaves": int(leaves),
             "time_s": float(seconds), "date": time.strftime("%Y-%m-%dT%H:%M:%S%z")}
+    mark = seal(canonical(data))
+    if mark is None:
+        return None
     tmp = path.with_name(f".{path.name}.tmp-{os.getpid()}")
     try:
-        tmp.write_text(json.dumps(data, indent=1) + "\n")
+        tmp.write_text(json.dumps({**data, "seal": mark}, indent=1) + "\n")
         os.replace(tmp, path)
     except OSError:
-        tmp.unlink(missing_ok=True)
+        try:
+            tmp.unlink(missing_ok=True)
+        except OSError:  # a read-only folder: nothing was written
+            pass
         return None
     return path
 
@@ -65,13 +74,19 @@ def drop_record(run_dir: str | os.PathLike, name: str) -> None:
 
 
 def recorded(run_dir: str | os.PathLike, name: str, prints: dict) -> dict | None:
-    """The record of certificate ``name`` when it confirms exactly the files ``prints`` describes with this drlyap's
-    checker, else None."""
+    """The record of certificate ``name`` when this machine sealed it and it confirms exactly the files ``prints``
+    describes with this drlyap's checker, else None."""
     try:
         data = json.loads(_path(run_dir, name).read_text())
     except (OSError, ValueError):
         return None
     if not isinstance(data, dict) or data.get("format") != FORMAT or data.get("version") != VERSION:
+        return None
+    mark = data.pop("seal", None)
+    try:
+        if not opens(canonical(data), mark):
+            return None
+    except ValueError:  # not canonical JSON (a NaN)
         return None
     if data.get("confirmed") is not True or any(data.get(k) != v for k, v in prints.items()):
         return None

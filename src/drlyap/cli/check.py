@@ -46,7 +46,12 @@ def check(run_dir: Path, names: tuple[str, ...], refine: int, pieces_per_leaf: f
     decrease outside the ball on {V <= c} is not already another certificate's (or, for the band proof, V's decrease
     on {V <= c} outside that ellipsoid); `ellipsoid`, the closed loop's own quadratic region {z'Pz <= c} (W = z'Pz
     decreasing by the Jacobian's enclosure on a box, and by boxes beyond it); `practical`, for practical stability,
-    V's bound on the delta-ball.
+    V's bound on the delta-ball. A certificate that rests on another (a roa-ball on the decrease outside the ball,
+    a region on its core's ellipsoid) is checked with it and fails where that one fails.
+
+    What the checker confirms is recorded beside the certificate (NAME.check.json), sealed with a key that stays on
+    this machine: `drlyap verify` takes only a record this machine sealed for these very files, never one that came
+    with the run directory.
     """
     settings = compute_settings(workers, backend, address, device)
     if not math.isfinite(pieces_per_leaf):

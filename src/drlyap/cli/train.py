@@ -112,7 +112,8 @@ def train(system: str, method: str, loss: str, radius: float | None, eps: float 
     The certificate line says whether the condition is VERIFIED (proved at every state of the region it trained for:
     the box minus the delta-ball, or a sublevel set {V <= c} of it), VIOLATED (a counterexample) or UNKNOWN (budget ran
     out); after a proof, the lines below it whether the independent checker confirmed its certificate (--no-check: not
-    run). OUT is written only when training and its proofs end: interrupted (Ctrl-C, exit status 130), nothing is
+    run; a certificate it does not confirm makes the verdict NOT VERIFIED and the exit status 1). OUT is written only
+    when training and its proofs end: interrupted (Ctrl-C, exit status 130), nothing is
     saved but a long proof's progress, kept beside OUT (a hidden folder .OUT.proofs): the same command, run again,
     trains the same pair and resumes that proof.
     """
@@ -161,6 +162,8 @@ def train(system: str, method: str, loss: str, radius: float | None, eps: float 
         shutil.rmtree(proof_checkpoints(out), ignore_errors=True)
     except ValueError as err:
         fail(err)
+    except OSError as err:  # a file drlyap writes on the way (what publishing OUT meets is a ValueError above)
+        fail(f"cannot write {err.filename or out}: {err.strerror or err}; {out} was not written")
     except KeyboardInterrupt:
         kept = proof_checkpoints(out)
         if any(kept.glob("proof-*.npz")):
@@ -171,10 +174,14 @@ def train(system: str, method: str, loss: str, radius: float | None, eps: float 
                        "end)", err=True)
         sys.exit(130)
     checked = _check_saved(out, sys_, compute, source) if check else None
+    refused = checked is not None and not all(r.ok for r in checked)  # the verdict is never stronger than the checker's
     m = result.metrics
     if as_json:
         click.echo(json.dumps({"run_dir": str(out), "system": sys_.name, "method": method, "metrics": m,
-                               "check": None if checked is None else [r.to_dict() for r in checked]}))
+                               "check": None if checked is None else [r.to_dict() for r in checked],
+                               "confirmed": None if checked is None else not refused}))
+        if refused:
+            sys.exit(1)
         return
     from drlyap.render import check_lines, cut_set_line, training_lines
     from drlyap.sections import TrainSections
@@ -183,12 +190,14 @@ def train(system: str, method: str, loss: str, radius: float | None, eps: float 
         click.echo(line)
     click.echo(f"  saved {out}")
     click.echo(certificate_line(Certificate.from_dict(m["certificate"]),
-                                command_hint("verify", out, source=source)))
+                                command_hint("verify", out, source=source), confirmed=not refused))
     for line in check_lines(checked or []):
         click.echo(f"  {line}")
-    if result.config.exit_faces and sys_.test_xi is not None:
+    if result.config.exit_faces and sys_.test_xi is not None and not refused:
         click.echo(cut_set_line(TrainSections.of(result.config).goal.level, result.config.exp_rate, sys_.test_xi,
                                 command_hint("verify", out, source=source)))
+    if refused:
+        sys.exit(1)
 
 
 def _check_saved(out: Path, system, compute: dict, source: dict | None) -> list | None:

@@ -5,6 +5,7 @@ from __future__ import annotations
 import dataclasses
 import json
 import math
+import sys
 from pathlib import Path
 
 import click
@@ -22,6 +23,16 @@ from drlyap.cli.common import (
     run_system_of,
 )
 from drlyap.config import ENCLOSURES, ProofConfig
+
+EXIT_CODES = {"verified": 0, "violated": 3, "unknown": 4}
+"""``drlyap verify``'s exit status by the outcome of what it was asked (``RunVerification.outcome``); 1: an error, 2: a
+usage error."""
+
+
+def _exit(result) -> None:
+    code = EXIT_CODES[str(result.outcome())]
+    if code:
+        sys.exit(code)
 
 
 @click.command()
@@ -82,6 +93,9 @@ def verify(run_dir: Path, delta: float | None, xi: str | None, time_limit: float
     progress in RUN_DIR/checkpoints/: the same command, run again after an interruption, resumes it. A pair brought
     with `drlyap import` has no trained condition: its decrease on the true model at --xi (the system's test shift by
     default) is proved, and with --roa its region of attraction; what is verified is written as certificates.
+
+    Exit status: 0 when every condition asked holds and the region asked for is certified, 3 when one is violated (a
+    counterexample), 4 when one is unknown (its budget ran out) or no region was certified, 1 on an error.
     """
     compute = compute_settings(workers, backend, address, device)
     refuse_early(runs=[run_dir], systems=[system_spec])
@@ -159,6 +173,7 @@ def verify(run_dir: Path, delta: float | None, xi: str | None, time_limit: float
         fail(err)
     if as_json:
         click.echo(json.dumps(jsonable(result.to_dict())))
+        _exit(result)
         return
     for line in verification_lines(result, run.system.name, run.config.method):
         click.echo(line)
@@ -166,6 +181,7 @@ def verify(run_dir: Path, delta: float | None, xi: str | None, time_limit: float
         click.echo(stored)
     for line in written:
         click.echo(line)
+    _exit(result)
 
 
 def _verify_imported(run_dir: Path, delta: float | None, xi: str | None, time_limit: float | None, roa: bool,
@@ -197,11 +213,13 @@ def _verify_imported(run_dir: Path, delta: float | None, xi: str | None, time_li
         written = [f"  no certificate written: {run_dir} cannot be written ({err.strerror or err})"]
     if as_json:
         click.echo(json.dumps(jsonable(result.to_dict())))
+        _exit(result)
         return
     for line in verification_lines(result, system.name, "imported pair"):
         click.echo(line)
     for line in written:
         click.echo(line)
+    _exit(result)
 
 
 @click.command("guarantee")

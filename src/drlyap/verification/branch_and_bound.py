@@ -21,6 +21,7 @@ from __future__ import annotations
 
 import math
 import time
+import warnings
 from collections.abc import Callable, Sequence
 
 import torch
@@ -196,8 +197,15 @@ class _Search:
         self.resumed = self.processed
 
     def _save(self) -> None:
-        if self.key is not None:
+        if self.key is None:
+            return
+        try:
             save_checkpoint(self.compute.checkpoint_dir, self.key, self._arrays(), self._meta())
+        except OSError as err:  # a read-only or full folder: the proof goes on, it only cannot resume
+            why = err.strerror or err
+            warnings.warn(f"the proof's checkpoint cannot be written in {self.compute.checkpoint_dir} ({why}); it goes "
+                          "on without one", stacklevel=2)
+            self.key = None
 
     # ------------------------------------------------------------------ the search
     def run(self) -> None:
@@ -341,6 +349,16 @@ class _Search:
             sup_hi = math.inf
         left_lo = torch.cat(leaves_lo) if leaves_lo else torch.empty(0, n, dtype=F64)
         left_hi = torch.cat(leaves_hi) if leaves_hi else torch.empty(0, n, dtype=F64)
+        partition = self.tree.finish() if left_lo.shape[0] == 0 or keep_partition else None
+        stopped = self.stopped
+        if left_lo.shape[0] == 0 and bool((partition.verdict == OPEN).any()):
+            # nothing queued, yet a leaf of the tree was never decided: the state the search went on from was not
+            # the one it left (never a verified proof)
+            undecided = partition.verdict == OPEN
+            blo, bhi = partition.boxes(*box_grid(self.region.lo, self.region.hi, self.tree.grid))
+            left_lo, left_hi = blo[undecided], bhi[undecided]
+            unverified_vol += float((left_hi - left_lo).prod(-1).sum())
+            sup_hi, stopped = math.inf, "leaves of its tree were left undecided"
         if self.cex is not None:
             status = Status.VIOLATED
         elif left_lo.shape[0] == 0:
@@ -356,10 +374,10 @@ class _Search:
             condition=self.condition.label, status=status, verified_fraction=fraction, delta=float(self.region.delta),
             boxes_processed=self.processed, boxes_verified=self.verified_count, time_s=self.elapsed,
             n_unverified=int(left_lo.shape[0]), unverified_boxes=boxes, n_counterexample_boxes=self.n_cex_boxes,
-            sup_bounds=[self.sup_lo, sup_hi], stopped=self.stopped, level=self.level,
+            sup_bounds=[self.sup_lo, sup_hi], stopped=stopped, level=self.level,
             resumed_boxes=self.resumed or None)
         if status == Status.VERIFIED or keep_partition:
-            result.partition = self.tree.finish()
+            result.partition = partition
         if self.cex is not None:
             z = self.cex[1]
             result.counterexample_value = self.cex[0]

@@ -6,8 +6,11 @@ everything the proof's course depends on (:func:`proof_key`: the networks' float
 and dynamics code, the condition and its samples, the region, the level, the starting grid, the enclosure, the batch
 and the splitting limits), so a checkpoint is only ever read by the very same proof; budgets in boxes and seconds are
 not part of it (a resumed proof may be given more). It is written to a temporary file and renamed into place, so a
-kill leaves the previous checkpoint or the new one, never half of one. A checkpoint that cannot be read is ignored
-(the proof starts afresh, with a warning); the caller removes a finished proof's checkpoint.
+kill leaves the previous checkpoint or the new one, never half of one. Its content is sealed with this machine's key
+(:mod:`drlyap.seal`): the key names the proof, not what it found, so a checkpoint edited (an emptied queue, leaves
+marked proved) or made elsewhere is refused like a damaged one. A checkpoint that cannot be read or whose seal does
+not open is ignored (the proof starts afresh, with a warning); without a key none is written. The caller removes a
+finished proof's checkpoint.
 """
 
 from __future__ import annotations
@@ -23,6 +26,8 @@ from pathlib import Path
 import numpy as np
 import torch
 from torch import Tensor
+
+from drlyap.seal import opens, seal
 
 FORMAT = "drlyap-proof-checkpoint"
 VERSION = 1
@@ -75,20 +80,42 @@ def _path(directory: str | os.PathLike, key: str) -> Path:
     return Path(directory) / f"proof-{key[:32]}.npz"
 
 
-def save_checkpoint(directory: str | os.PathLike, key: str, arrays: dict[str, Tensor], meta: dict) -> Path:
-    """Write the checkpoint atomically (a temporary file renamed into place); ``meta``: JSON-friendly values."""
+def _content(header: bytes, arrays: dict[str, np.ndarray]) -> bytes:
+    """What a checkpoint's seal is of: its header and every array's name, type, shape and bytes, in name order."""
+    h = hashlib.sha256(header)
+    for name in sorted(arrays):
+        a = np.ascontiguousarray(arrays[name])
+        h.update(json.dumps([name, a.dtype.str, list(a.shape)]).encode())
+        h.update(a.tobytes())
+    return h.digest()
+
+
+def save_checkpoint(directory: str | os.PathLike, key: str, arrays: dict[str, Tensor], meta: dict) -> Path | None:
+    """Write the checkpoint atomically (a temporary file renamed into place), sealed; ``meta``: JSON-friendly values.
+    None (nothing written) where there is no key to seal it with."""
     path = _path(directory, key)
-    path.parent.mkdir(parents=True, exist_ok=True)
     header = json.dumps({"format": FORMAT, "version": VERSION, "key": key, **meta}).encode()
+    data = {k: v.detach().cpu().numpy() for k, v in arrays.items()}
+    mark = seal(_content(header, data))
+    if mark is None:
+        return None
+    path.parent.mkdir(parents=True, exist_ok=True)
     buf = io.BytesIO()
-    np.savez(buf, __header__=np.frombuffer(header, dtype=np.uint8),
-             **{k: v.detach().cpu().numpy() for k, v in arrays.items()})
+    np.savez(buf, __header__=np.frombuffer(header, dtype=np.uint8), __seal__=np.frombuffer(mark.encode(), np.uint8),
+             **data)
     tmp = path.with_name(f".{path.name}.tmp-{os.getpid()}")
-    with open(tmp, "wb") as f:
-        f.write(buf.getvalue())
-        f.flush()
-        os.fsync(f.fileno())
-    os.replace(tmp, path)
+    try:
+        with open(tmp, "wb") as f:
+            f.write(buf.getvalue())
+            f.flush()
+            os.fsync(f.fileno())
+        os.replace(tmp, path)
+    except OSError:
+        try:
+            tmp.unlink(missing_ok=True)
+        except OSError:
+            pass
+        raise
     return path
 
 
@@ -102,8 +129,13 @@ def load_checkpoint(directory: str | os.PathLike | None, key: str) -> tuple[dict
         return None
     try:
         with np.load(path, allow_pickle=False) as data:
-            header = json.loads(bytes(data["__header__"]).decode())
-            arrays = {k: torch.from_numpy(data[k].copy()) for k in data.files if k != "__header__"}
+            raw = bytes(data["__header__"])
+            mark = bytes(data["__seal__"]).decode() if "__seal__" in data.files else None
+            loaded = {k: data[k].copy() for k in data.files if k not in ("__header__", "__seal__")}
+        if not opens(_content(raw, loaded), mark):
+            raise ValueError("its seal does not open with this machine's key: it was edited or made elsewhere")
+        header = json.loads(raw.decode())
+        arrays = {k: torch.from_numpy(v) for k, v in loaded.items()}
         if header.get("format") != FORMAT or header.get("version") != VERSION or header.get("key") != key:
             raise ValueError("it belongs to another proof or format")
     except Exception as err:  # noqa: BLE001 - any damage: start afresh, lose nothing else

@@ -481,8 +481,19 @@ class RunVerification(Result):
     def status(self) -> str:
         return self.main.status
 
+    def outcome(self) -> str:
+        """The verdict on everything that was asked: ``verified`` where every condition proved holds and the region
+        asked for (``roa``) is certified (V's, or the closed loop's own ellipsoid); ``violated`` where a condition has
+        a counterexample; else ``unknown``. The robustness searches report values, not verdicts."""
+        proofs = [p for p in (self.trained, self.uniform, self.true_model) if p is not None]
+        if any(p.status == Status.VIOLATED for p in proofs):
+            return Status.VIOLATED
+        region = self.roa is None or (self.roa.error is None and (self.roa.certified or self.roa.ellipsoid_certified))
+        return Status.VERIFIED if region and all(p.status == Status.VERIFIED for p in proofs) else Status.UNKNOWN
+
     def to_dict(self) -> dict:
         out = super().to_dict()
+        out["outcome"] = self.outcome()
         out["roa"] = None if self.roa is None else self.roa.to_dict()
         main = self.main
         out.update(status=main.status, condition=main.condition, verified_fraction=main.verified_fraction,

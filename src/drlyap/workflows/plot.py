@@ -23,9 +23,10 @@ from drlyap.verification import RegionOfAttraction
 from drlyap.workflows.verify import run_proof, verify
 
 
-def region_to_draw(run: Run, roa: RegionOfAttraction | None) -> dict | None:
+def region_to_draw(run: Run, roa: RegionOfAttraction | None, recorded: bool = False) -> dict | None:
     """``{"level", "certified", "label"}`` for :func:`~drlyap.plotting.draw_phase`, or None when there is no
-    level."""
+    level. ``recorded``: ``roa`` was read from the run's ``metrics.json``, not proved here (the label says so: a run
+    directory may come from anyone)."""
     if roa is None:
         return None
     where = (plotting.shift_text(run.system, roa.xi) + " (true model)" if roa.xi is not None
@@ -33,7 +34,9 @@ def region_to_draw(run: Run, roa: RegionOfAttraction | None) -> dict | None:
     label = region_label(roa, where)
     if not label:
         return None
-    return {"level": float(roa.level), "certified": bool(roa.certified), "label": label}
+    if recorded:
+        label = f"as metrics.json records it, not re-proved here: {label}"
+    return {"level": float(roa.level), "certified": bool(roa.certified), "label": label, "recorded": recorded}
 
 
 def decrease_residual(run: Run, x: Tensor, xi: Tensor | None) -> Tensor:
@@ -79,7 +82,7 @@ def plot_run(run_dir: str | os.PathLike, xi: Sequence[float] | None = None, n_in
         missing = "none stored in metrics.json; --roa computes one"
     else:
         found, missing = None, "--no-roa"
-    region = region_to_draw(run, found)
+    region = region_to_draw(run, found, recorded=roa is None)
     if found is not None and region is None:
         missing = f"the verifier's level is {found.level}: no sublevel set certified"
 
@@ -96,6 +99,9 @@ def plot_run(run_dir: str | os.PathLike, xi: Sequence[float] | None = None, n_in
         note = f"no certified set drawn ({missing})"
     else:
         note = "shaded: " + ("certified" if region["certified"] else "not certified")
+        if region["recorded"]:
+            note = "shaded: " + ("recorded as certified in metrics.json (`drlyap check` re-proves it)"
+                                 if region["certified"] else "recorded in metrics.json, not certified")
     title = (f"{system.name} ({run.config.method}), true model at {where}\n"
              f"{int(success.sum())}/{n_init} stabilised; {note}")
     paths = [plotting.phase_portrait(system, traj, success.tolist(), folder / "phase_portrait.png", title, grid,
