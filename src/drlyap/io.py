@@ -3,6 +3,7 @@
 from __future__ import annotations
 
 import dataclasses
+import io
 import json
 import math
 import os
@@ -24,6 +25,15 @@ def write_json(path: Path, data: dict) -> None:
     """Write ``data`` as indented strict JSON (NaN and inf become null)."""
     data = jsonable(data)
     path.write_text(json.dumps(data, indent=2, sort_keys=False) + "\n")
+
+
+def write_bytes_of(path: Path, save) -> None:
+    """Write the bytes that ``save(buffer)`` puts into an in-memory buffer (``torch.save``, ``torch.jit.save``) to
+    ``path`` with Python's own file I/O, so that a failed write (a full disk, a file-size limit) is an OSError with
+    its errno, not torch's RuntimeError without one."""
+    buffer = io.BytesIO()
+    save(buffer)
+    Path(path).write_bytes(buffer.getbuffer())
 
 
 def write_json_atomic(path: Path, data: dict) -> None:

@@ -24,6 +24,12 @@ def export(run_dir: Path, fmt: str, out: Path | None, as_json: bool, system_spec
     coordinates (float64, the system's state order), with export.json: names, units, hashes and what was
     proved about the pair."""
     refuse_early(runs=[run_dir], systems=[system_spec])
+    from drlyap.runs.publish import check_writable
+
+    try:  # before the run and torch load
+        check_writable(out if out is not None else run_dir / "export")
+    except ValueError as err:
+        fail(err)
 
     from drlyap.runs import load_run
     from drlyap.workflows.export import export_run
@@ -42,5 +48,6 @@ def export(run_dir: Path, fmt: str, out: Path | None, as_json: bool, system_spec
     click.echo(f"wrote {folder} ({files}, export.json)")
     click.echo(f"  inputs: x (batch, {run.system.n}) float64 = ({', '.join(run.system.state_names)}), user "
                f"coordinates; outputs: u (batch, {run.system.m}) inside U, V (batch,)")
-    click.echo(f"  certificate of the run: {cert.get('status', 'none')} ({cert.get('condition', '-')}); "
-               f"weights sha256 {record['weights_sha256'][:16]}...")
+    click.echo(f"  the run's certificate as its metrics.json records it: {cert.get('status', 'none')} "
+               f"({cert.get('condition', '-')}; `drlyap check` re-proves it); weights sha256 "
+               f"{record['weights_sha256'][:16]}...")

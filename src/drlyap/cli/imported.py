@@ -31,6 +31,12 @@ def import_pair(system: str, controller: Path, lyapunov: Path | None, out: Path,
     as for a trained pair, and `drlyap compare` puts it beside other runs. SYSTEM is a registered name,
     package.module:factory or path/to/file.py:factory."""
     refuse_early(systems=[system])
+    from drlyap.runs.publish import check_writable
+
+    try:  # before the files and torch load
+        check_writable(out)
+    except ValueError as err:
+        fail(err)
 
     from drlyap.runs.imported import import_run
 

@@ -2,7 +2,9 @@
 
 The file is parsed with the ``onnx`` package (protobuf: nothing in it runs); tensors stored outside the file are
 refused. Only the operations in :data:`SUPPORTED` are read, each into the interpreter's operations; anything else
-is refused with one line naming the operation and the file:
+is refused with one line naming the operation and the file, as is a file that declares a tensor of more than
+:data:`MAX_ELEMENTS` elements (:data:`MAX_TOTAL` in all; layers wider than :data:`MAX_WIDTH`), checked on the declared
+dimensions before anything is allocated, or whose data do not fill them. What is read:
 
 * ``Gemm``, ``MatMul`` with constant weights -> ``F.linear``; ``Add``, ``Sub``, ``Mul``, ``Div``, ``Neg``, ``Tanh``,
   ``Exp``, ``Pow`` by a constant integer; ``Relu`` -> a clamp at 0; ``Sigmoid`` -> ``0.5 + 0.5 tanh(x / 2)``;
@@ -28,6 +30,7 @@ the user state ``x = x* + z``.
 
 from __future__ import annotations
 
+import math
 import os
 from pathlib import Path
 
@@ -45,7 +48,14 @@ SUPPORTED = ("Add", "Cast", "Clip", "Concat", "Constant", "ConstantOfShape", "Di
 """The ONNX operations drlyap reads (``Where``, ``Floor``, ``Mod`` only as the input's angle wrap)."""
 
 FLOAT_TYPES = {1, 10, 11, 16}  # FLOAT, FLOAT16, DOUBLE, BFLOAT16
+NUMBER_TYPES = FLOAT_TYPES | {2, 3, 4, 5, 6, 7, 9, 12, 13}  # and UINT8, INT8, UINT16, INT16, INT32, INT64, BOOL, UINT32/64
 ROLES = ("controller", "lyapunov")
+
+# What a file may declare, checked before anything is allocated: elements of one tensor (a weight, a constant a node
+# makes; a layer of width 1000 has 10^6 weights), of all its constants, the axes of a tensor, the values per state of
+# a state-dependent value (a layer's width: the proofs evaluate it on thousands of states and boxes at once), and the
+# file's size (512 MB: more than MAX_TOTAL float64 numbers).
+MAX_ELEMENTS, MAX_TOTAL, MAX_RANK, MAX_WIDTH, MAX_FILE_BYTES = 10**7, 5 * 10**7, 8, 10**4, 2**29
 
 
 class Sym(tuple):
@@ -70,6 +80,10 @@ def read_onnx(path: str | os.PathLike, system: UncertainSystem, role: str) -> tu
         raise ValueError(f"unknown role {role!r}; valid: {', '.join(ROLES)}")
     onnx, numpy_helper = _onnx()
     path = Path(path)
+    size = path.stat().st_size if path.is_file() else 0  # else onnx.load says what is wrong
+    if size > MAX_FILE_BYTES:
+        raise ValueError(f"{path}: the file is {size / 2**20:.0f} MB, more than the {MAX_FILE_BYTES // 2**20} MB "
+                         "drlyap reads")
     try:
         model = onnx.load(str(path), load_external_data=False)
     except FileNotFoundError:
@@ -93,17 +107,66 @@ class _Reader:
         self.b = GraphBuilder(system.n, f"{path}")
         self.values: dict[str, object] = {}  # ONNX name -> np.ndarray (constant), Sym, or a builder name (str)
         self.const_names: dict[int, tuple[object, str]] = {}
+        self.elements = 0  # of the constants held (MAX_TOTAL)
+        self.counted: dict[int, object] = {}  # id -> the array counted (kept alive, so that its id is not reused)
+        self.node_attrs: dict[int, dict] = {}  # node index -> its attributes, read once
+        self.current = "the graph"  # the node being read, as errors name it
 
     def fail(self, what: str) -> ValueError:
         return ValueError(f"{self.path}: {what}")
+
+    # ------------------------------------------------------------------ sizes
+    def fits(self, dims, what: str, add: bool = False) -> int:
+        """The element count of a tensor of shape ``dims`` that ``what`` (a tensor, a node) would make, checked
+        before it is made: rank, no negative dimension, :data:`MAX_ELEMENTS`, and :data:`MAX_TOTAL` with the
+        constants held (counted among them with ``add``); a ValueError naming the file, ``what`` and the cap."""
+        if len(dims) > MAX_RANK:
+            raise self.fail(f"{what} has {len(dims)} axes; drlyap reads tensors of at most {MAX_RANK}")
+        dims = [int(d) for d in dims]
+        if any(d < 0 for d in dims):
+            raise self.fail(f"{what} has a negative dimension {dims}")
+        count = math.prod(dims)
+        if count > MAX_ELEMENTS:
+            raise self.fail(f"{what} has {count:,} elements {dims}, more than the {MAX_ELEMENTS:,} drlyap reads in "
+                            "one tensor")
+        if self.elements + count > MAX_TOTAL:
+            raise self.fail(f"{what} brings the file's constants to {self.elements + count:,} elements, more than the "
+                            f"{MAX_TOTAL:,} drlyap reads in all")
+        self.elements += count if add else 0
+        return count
+
+    def count(self, value, what: str) -> None:
+        """Count a constant array (once) among those held, within :data:`MAX_TOTAL`."""
+        if _is_const(value) and id(value) not in self.counted:
+            self.fits(value.shape, what, add=True)
+            self.counted[id(value)] = value
+
+    def tensor(self, t, what: str) -> np.ndarray:
+        """A TensorProto of the file as an array, its declared dimensions (:meth:`fits`), type and data length
+        checked before anything is allocated; a ValueError naming the file and ``what`` otherwise."""
+        if self.onnx.external_data_helper.uses_external_data(t):
+            raise self.fail(f"{what} is stored outside the file; drlyap reads self-contained models only")
+        if t.data_type not in NUMBER_TYPES:
+            name = {v: k for k, v in self.onnx.TensorProto.DataType.items()}.get(t.data_type, t.data_type)
+            raise self.fail(f"{what} has data type {name}; drlyap reads numbers (float, int, bool) only")
+        count = self.fits(t.dims, what)
+        if t.raw_data:
+            size = np.dtype(self.onnx.helper.tensor_dtype_to_np_dtype(t.data_type)).itemsize
+            if len(t.raw_data) != count * size:
+                raise self.fail(f"{what} declares {count:,} elements {list(t.dims)} ({count * size:,} bytes) but "
+                                f"holds {len(t.raw_data):,} bytes")
+        else:
+            held = sum(len(f) for f in (t.float_data, t.int32_data, t.int64_data, t.double_data, t.uint64_data))
+            if held != count:
+                raise self.fail(f"{what} declares {count:,} elements {list(t.dims)} but holds {held:,}")
+        self.count(value := self.nh.to_array(t), what)
+        return value
 
     # ------------------------------------------------------------------ the file
     def read(self) -> tuple[Graph, list[str]]:
         graph = self.model.graph
         for t in graph.initializer:
-            if self.onnx.external_data_helper.uses_external_data(t):
-                raise self.fail(f"tensor {t.name!r} is stored outside the file; drlyap reads self-contained models only")
-            self.values[t.name] = self.nh.to_array(t)
+            self.values[t.name] = self.tensor(t, f"tensor {t.name!r}")
         inputs = [i for i in graph.input if i.name not in self.values]
         if len(inputs) != 1 or len(graph.output) != 1:
             raise self.fail(f"a {self.role} model needs one input (the state) and one output, got {len(inputs)} and "
@@ -111,12 +174,12 @@ class _Reader:
         self._check_input(inputs[0])
         x = inputs[0].name
         nodes = list(graph.node)
-        for node in nodes:  # constants the prefix compares with (pi, 2 pi) are Constant nodes
+        for i, node in enumerate(nodes):  # constants the prefix compares with (pi, 2 pi) are Constant nodes
             if node.op_type == "Constant" and node.domain in ("", "ai.onnx") and len(node.output) == 1:
                 try:
-                    self.values[node.output[0]] = _constant(self, [], self.attrs(node))
+                    self.values[node.output[0]] = _constant(self, [], self.attrs(node, i))
                 except ValueError:
-                    pass
+                    pass  # refused where the node is read
         prefix, local, notes = strip_prefix(nodes, self.values, x, self.system, self.path)
         for name in local:
             self.values[name] = INPUT
@@ -184,16 +247,20 @@ class _Reader:
     def shape(self, v) -> tuple:
         return tuple(self.b.example(v).shape) if isinstance(v, str) else np.shape(v)
 
-    def attrs(self, node) -> dict:
+    def attrs(self, node, index: int) -> dict:
+        """The attributes of the node at ``index`` (read once: tensors checked by :meth:`tensor`)."""
+        if index in self.node_attrs:
+            return self.node_attrs[index]
         out = {}
         for a in node.attribute:
             value = self.onnx.helper.get_attribute_value(a)
             if isinstance(value, self.onnx.TensorProto):
-                if self.onnx.external_data_helper.uses_external_data(value):
-                    raise self.fail(f"attribute {a.name!r} of node {node.name or node.op_type!r} is stored outside "
-                                    "the file; drlyap reads self-contained models only")
-                value = self.nh.to_array(value)
+                value = self.tensor(value, f"attribute {a.name!r} of node {node.name or index} ({node.op_type})")
+            elif isinstance(value, list) and len(value) > MAX_ELEMENTS:
+                raise self.fail(f"attribute {a.name!r} of node {node.name or index} has {len(value):,} entries, more "
+                                f"than the {MAX_ELEMENTS:,} drlyap reads")
             out[a.name] = value
+        self.node_attrs[index] = out
         return out
 
     # ------------------------------------------------------------------ nodes
@@ -209,10 +276,12 @@ class _Reader:
         if missing:
             raise self.fail(f"node {node.name or index} ({op}) reads {missing} before they are made")
         ins = [self.values[i] if i else None for i in node.input]
+        self.current = f"node {node.name or index} ({op})"
         if len([o for o in node.output if o]) != 1:
             raise self.fail(f"node {node.name or index} ({op}) has {len(node.output)} outputs; one is read")
         try:
-            out = _HANDLERS[op](self, ins, self.attrs(node))
+            out = _HANDLERS[op](self, ins, self.attrs(node, index))
+            self.count(out, self.current)
         except ValueError as err:
             msg = str(err)
             raise (err if msg.startswith(str(self.path)) else self.fail(f"{op} (node {node.name or index}): {msg}")) \
@@ -230,16 +299,29 @@ def _is_const(v) -> bool:
 def _emit_elementwise(r: _Reader, op: str, a, b=None):
     """``op`` on data (dynamic or constant), checking that no state-dependent value is broadcast."""
     args = [a] if b is None else [a, b]
-    if all(_is_const(v) and np.issubdtype(v.dtype, np.integer) for v in args) and op in ("add", "sub", "mul"):
+    integers = all(_is_const(v) and np.issubdtype(v.dtype, np.integer) for v in args) and op in ("add", "sub", "mul")
+    _check_broadcast(r, args, made=not integers, what="broadcasts a state-dependent value")
+    if integers:
         return {"add": np.add, "sub": np.subtract, "mul": np.multiply}[op](*args)  # shape arithmetic, exact
     if op == "mul" and isinstance(a, str) and isinstance(b, str) and a == b:
         return r.b.emit("square", [a])
-    out = r.b.emit(op, [r.name(v) for v in args])
-    shape = tuple(r.b.example(out).shape)
+    return r.b.emit(op, [r.name(v) for v in args])
+
+
+def _check_broadcast(r: _Reader, args: list, made: bool, what: str) -> None:
+    """Before an operation on ``args`` runs: its output's size is within the caps (:meth:`_Reader.fits`; counted
+    among the constants where it is one the builder holds, ``made``), and no state-dependent value is broadcast
+    (a ValueError starting with ``what``). Shapes that do not broadcast are left to the operation to refuse."""
+    shapes = [tuple(r.shape(v)) for v in args if v is not None]
+    try:
+        shape = tuple(np.broadcast_shapes(*shapes))
+    except ValueError:
+        return
     for v in args:
-        if isinstance(v, str) and r.b.is_dynamic(v) and tuple(r.b.example(v).shape) != shape:
-            raise ValueError(f"broadcasts a state-dependent value of shape {tuple(r.b.example(v).shape)} to {shape}")
-    return out
+        if isinstance(v, str) and r.b.is_dynamic(v) and tuple(r.shape(v)) != shape:
+            raise ValueError(f"{what} of shape {tuple(r.shape(v))} to {shape}")
+    dynamic = any(isinstance(v, str) and r.b.is_dynamic(v) for v in args)
+    r.fits(shape, r.current, add=made and not dynamic)
 
 
 def _gemm(r: _Reader, ins, attrs):
@@ -257,6 +339,11 @@ def _linear(r: _Reader, a, weight: np.ndarray, c, alpha: float = 1.0, beta: floa
     if k != weight.shape[1]:
         raise ValueError(f"its input has shape {r.shape(a)}, its weight expects (batch, {weight.shape[1]})")
     h = weight.shape[0]
+    if isinstance(a, str) and r.b.is_dynamic(a):
+        if h > MAX_WIDTH:
+            raise ValueError(f"makes {h:,} values per state, more than the {MAX_WIDTH:,} drlyap reads")
+    else:
+        r.fits((r.shape(a)[0], h), r.current, add=True)
     bias = None
     if c is not None and alpha == 1.0 and beta == 1.0 and _is_const(c) and c.size in (1, h) and \
             (c.ndim <= 1 or (c.ndim == 2 and c.shape[0] == 1)):
@@ -289,10 +376,8 @@ def _clamp(r: _Reader, x, low, high):
         raise ValueError("a bound is NaN")
     if (lo > hi).any():
         raise ValueError("a lower bound exceeds its upper bound (min > max)")
-    out = r.b.emit("clamp", [r.name(x), r.name(lo), r.name(hi)])
-    if isinstance(x, str) and tuple(r.b.example(out).shape) != tuple(r.b.example(x).shape):
-        raise ValueError("its bounds broadcast the state-dependent value")
-    return out
+    _check_broadcast(r, [x, lo, hi], made=True, what="its bounds broadcast the state-dependent value")
+    return r.b.emit("clamp", [r.name(x), r.name(lo), r.name(hi)])
 
 
 def _minmax(r: _Reader, ins, which: str):
@@ -339,6 +424,8 @@ def _cast(r: _Reader, ins, attrs):
             return x  # a float <-> float cast is the identity in the float64 reading
         raise ValueError(f"a cast of a state-dependent value to the non-float type {to}")
     value = np.asarray(x)
+    if to not in NUMBER_TYPES:  # strings and the like: not numbers, and a costly copy
+        raise ValueError(f"a cast of a constant to the non-numeric type {to}")
     if to in FLOAT_TYPES and np.issubdtype(value.dtype, np.floating):
         return value  # the float64 reading keeps the constant's value
     return value.astype(r.onnx.helper.tensor_dtype_to_np_dtype(to))
@@ -451,17 +538,20 @@ def _gather(r: _Reader, ins, attrs):
         raise ValueError("only one column of a (batch, k) value, or constant entries of a shape or a constant, "
                          "are gathered")
     if isinstance(data, Sym):
+        r.fits(np.shape(idx), r.current)
         picked = [data[int(i)] for i in np.asarray(idx).reshape(-1)]
         if None in picked:
             return Sym(picked) if np.ndim(idx) else picked[0]
         out = np.array(picked, dtype=np.int64)
         return out if np.ndim(idx) else out.reshape(())
+    r.fits(list(np.shape(idx)) + list(np.shape(data)[1:]), r.current)
     return np.take(data, idx, axis=0)
 
 
 def _concat(r: _Reader, ins, attrs):
     if any(isinstance(v, str) for v in ins):
         raise ValueError("only the concatenation of shapes and constants is read")
+    r.fits((sum(int(np.size(v)) for v in ins),), r.current)
     if any(isinstance(v, Sym) for v in ins):
         return Sym([d for v in ins for d in (v if isinstance(v, Sym) else np.asarray(v).reshape(-1).tolist())])
     return np.concatenate(ins, axis=int(attrs.get("axis", 0)))
@@ -471,8 +561,10 @@ def _constant_of_shape(r: _Reader, ins, attrs):
     shape = ins[0]
     if isinstance(shape, Sym) or not _is_const(shape):
         raise ValueError("a constant whose shape depends on the batch size")
+    dims = shape.reshape(-1)
+    r.fits(dims, r.current)
     value = attrs.get("value", np.zeros(1, dtype=np.float32))
-    return np.full([int(d) for d in shape.reshape(-1)], np.asarray(value).reshape(-1)[0], dtype=np.asarray(value).dtype)
+    return np.full([int(d) for d in dims], np.asarray(value).reshape(-1)[0], dtype=np.asarray(value).dtype)
 
 
 def _transpose(r: _Reader, ins, attrs):

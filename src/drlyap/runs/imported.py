@@ -38,7 +38,7 @@ from torch import Tensor, nn
 
 from drlyap.closed_loop import ClosedLoop
 from drlyap.graph import INPUT, Graph, GraphBuilder, read_onnx, simplify
-from drlyap.io import write_json
+from drlyap.io import write_bytes_of, write_json
 from drlyap.networks import QuadraticLyapunov, origin_like
 from drlyap.runs.directory import RunDirError, atomic_dir, read_run_json, run_record, run_system
 from drlyap.runs.policies import PolicyRun
@@ -283,7 +283,11 @@ def rl_actor_graph(system: UncertainSystem, algo: str, policy: nn.Module) -> Gra
 
 # ----------------------------------------------------------------------------------------------- run directories
 def _sha256(path: Path) -> str:
-    return hashlib.sha256(Path(path).read_bytes()).hexdigest()
+    digest = hashlib.sha256()
+    with open(path, "rb") as fh:
+        for block in iter(lambda: fh.read(2**20), b""):
+            digest.update(block)
+    return digest.hexdigest()
 
 
 def _pack(tensors: dict[str, Tensor]) -> dict[str, Tensor]:
@@ -319,7 +323,7 @@ def save_imported_run(out: str | os.PathLike, pair: ImportedPair, files: dict[st
     def fill(tmp: Path) -> None:
         write_json(tmp / "config.json", config)
         write_json(tmp / "graphs.json", graphs)
-        torch.save(tensors, tmp / "tensors.pt")
+        write_bytes_of(tmp / "tensors.pt", lambda buffer: torch.save(tensors, buffer))
         write_json(tmp / "metrics.json", {"samples": None, "train_time_s": None, "checks": pair.checks,
                                           "notes": pair.notes})
         (tmp / "source").mkdir()

@@ -17,6 +17,7 @@ import ctypes
 import ctypes.util
 import errno
 import os
+import re
 import shutil
 import sys
 import tempfile
@@ -63,10 +64,23 @@ def complete_run_dir(path: str | os.PathLike) -> Path:
 
 
 def ensure_new(out: str | os.PathLike) -> None:
-    """Refuse an output directory that already exists (checked before long work starts): a
-    :class:`DestinationError`."""
-    if Path(out).exists():
+    """Refuse an output directory that already exists, or is a symbolic link in any form (one that points nowhere
+    included: the final rename would fail on it), checked before long work starts: a :class:`DestinationError`."""
+    out = Path(out)
+    if out.is_symlink():
+        raise DestinationError(f"{out} is a symlink to {_link_target(out)}; drlyap writes a new directory, never "
+                               "through a link: ", " or remove the link")
+    if out.exists():
         raise DestinationError(f"{out} already exists; ", " or remove it")
+
+
+def _link_target(link: Path) -> str:
+    """Where the symbolic link ``link`` points, and whether that exists."""
+    try:
+        target = os.readlink(link)
+    except OSError:
+        return "an unreadable target"
+    return target if link.exists() else f"{target}, which does not exist"
 
 
 def proof_checkpoints(out: str | os.PathLike) -> Path:
@@ -77,15 +91,18 @@ def proof_checkpoints(out: str | os.PathLike) -> Path:
 
 
 def check_writable(out: str | os.PathLike, need: int | None = None) -> None:
-    """Refuse ``out`` before any work when it exists, when a process owns its parent (a running sweep), or when
-    the nearest existing folder above it cannot be written to (a read-only file system) or has less than ``need``
-    bytes free."""
+    """Refuse ``out`` before any work when it exists or is a symbolic link, when a process owns its parent (a
+    running sweep), or when the nearest existing folder above it cannot be written to (a read-only file system), is
+    a link that points nowhere, has less than ``need`` bytes free, or when the process may not write files that
+    large (``ulimit -f``)."""
     out = Path(out)
     ensure_new(out)
     if held_by_another(out.parent):
         raise DestinationError(f"{out.parent} is in use by another drlyap process (a sweep is running there); ")
     base = out.parent
     while not base.exists() and base != base.parent:
+        if base.is_symlink():  # mkdir would fail on it at the end
+            raise DestinationError(f"cannot create {out}: {base} is a symlink to {_link_target(base)}; ")
         base = base.parent
     if not base.is_dir():
         raise RunDirError(f"cannot create {out}: {base} is not a directory")
@@ -100,6 +117,24 @@ def check_writable(out: str | os.PathLike, need: int | None = None) -> None:
     if free < need:
         raise DestinationError(f"{base} has {free / 2**20:.1f} MB free, less than the {need / 2**20:.0f} MB a run "
                                "needs; free some space or ")
+    limit = _file_size_limit()
+    if limit is not None and limit < need:
+        raise RunDirError(f"cannot write {out}: this process may write files of {_size(limit)} at most (ulimit -f), "
+                          f"less than the {_size(need)} a run needs; raise the limit (ulimit -f unlimited)")
+
+
+def _file_size_limit() -> int | None:
+    """The largest file this process may write, in bytes (``ulimit -f``); None where unlimited or unknown."""
+    try:
+        import resource
+    except ImportError:  # not on Windows
+        return None
+    soft = resource.getrlimit(resource.RLIMIT_FSIZE)[0]
+    return None if soft == resource.RLIM_INFINITY or soft < 0 else int(soft)
+
+
+def _size(nbytes: int) -> str:
+    return f"{nbytes / 2**20:.0f} MB" if nbytes >= 2**20 else f"{nbytes / 2**10:.0f} KB"
 
 
 _RENAME_NOREPLACE = 1
@@ -163,30 +198,97 @@ def atomic_dir(out: Path, fill: Callable[[Path], None], overwrite: bool = False)
     ``fill(tmp)`` writes the contents. If it raises (or the process is interrupted) the temporary directory is
     removed and ``out`` is untouched. The rename never replaces an ``out`` that appeared meanwhile (that is
     refused); with ``overwrite`` an existing ``out`` is replaced. The directory gets the permissions the umask
-    allows (readable by the group, as any directory the user makes).
+    allows (readable by the group, as any directory the user makes). A failed write (a full disk, a file-size
+    limit, a read-only file system...) is a :class:`DestinationError` of one line naming ``out``, the OS error and
+    what was kept.
     """
     out = Path(out)
-    if not overwrite:
+    if not overwrite or out.is_symlink():  # replaced or not, a link is never written through
         ensure_new(out)
     if held_by_another(out.parent):
         raise RunDirError(f"{out.parent} is in use by another drlyap process (a sweep is running there)")
-    out.parent.mkdir(parents=True, exist_ok=True)
-    clean_stale(out.parent)
-    tmp = Path(tempfile.mkdtemp(prefix=f".{out.name}.tmp-{os.getpid()}-", dir=out.parent))
     try:
-        fill(tmp)
-        os.chmod(tmp, 0o777 & ~_umask())
-        if overwrite and out.exists():
-            shutil.rmtree(out)
+        out.parent.mkdir(parents=True, exist_ok=True)
+        clean_stale(out.parent)
+        tmp = Path(tempfile.mkdtemp(prefix=f".{out.name}.tmp-{os.getpid()}-", dir=out.parent))
+    except OSError as err:
+        raise _write_error(out, err) from None
+    try:
+        try:
+            fill(tmp)
+            os.chmod(tmp, 0o777 & ~_umask())
+            if overwrite and out.exists():
+                shutil.rmtree(out)
+        except OSError as err:
+            raise _write_error(out, err, tmp) from None
+        except RuntimeError as err:  # torch.save reports a failed write as a RuntimeError, without its errno
+            if not _torch_write_failure(err):
+                raise
+            raise _write_error(out, err, tmp) from None
         try:
             rename_noreplace(tmp, out)
         except FileExistsError:
+            if out.is_symlink():
+                raise DestinationError(f"{out} became a symlink while this process ran (to {_link_target(out)}); "
+                                       "nothing was written through it (this run is lost: ", ")") from None
             raise DestinationError(f"{out} was created by another process while this one ran; nothing was replaced "
                                    "(this run is lost: ", ")") from None
+        except OSError as err:
+            raise _write_error(out, err, tmp) from None
     except BaseException:
         shutil.rmtree(tmp, ignore_errors=True)
         raise
     return out
+
+
+_SPACE_HINTS = {errno.ENOSPC: "free some space or ", errno.EDQUOT: "free some space (the disk quota is used up) or ",
+                errno.EFBIG: "raise the file-size limit (ulimit -f) or "}
+
+
+def _torch_write_failure(err: RuntimeError) -> bool:
+    """Whether ``err`` is torch's report of a file it could not write (its zip writer's ``enforce fail``)."""
+    text = str(err)
+    return "inline_container" in text or "PytorchStreamWriter" in text or "file write failed" in text
+
+
+def _kept_note(out: Path) -> str:
+    """What is kept beside ``out`` when it could not be written: the progress of its proofs (a hidden
+    ``.NAME.proofs``, :func:`proof_checkpoints`), which the same command resumes; empty where there is none."""
+    kept = proof_checkpoints(out)
+    try:
+        if any(kept.glob("proof-*")):
+            return f"; its proofs' progress is kept in {kept}: the same command, run again, resumes them"
+    except OSError:
+        pass
+    return ""
+
+
+def _write_error(out: Path, err: Exception, tmp: Path | None = None) -> DestinationError:
+    """The one-line :class:`DestinationError` for a write of ``out`` that failed with ``err`` (an OSError: a full
+    disk, a file-size limit, a read-only file system...; or torch's report of a failed write), its temporary ``tmp``
+    (named in the error as ``out``) being removed."""
+    if isinstance(err, OSError):
+        code = errno.errorcode.get(err.errno or 0)
+        reason = f"{err.strerror or err}" + (f" ({code})" if code else "")
+        name = err.filename
+        if name is not None and tmp is not None and str(name).startswith(str(tmp)):
+            name = str(out) + str(name)[len(str(tmp)):]
+        elif name is not None and Path(name).name.startswith(f".{out.name}.tmp-"):
+            name = None  # the temporary folder that could not be made: the error is about out's place
+        where = f" at {name}" if name is not None and str(name) != str(out) else ""
+        hint = _SPACE_HINTS.get(err.errno or 0, "")
+    else:  # torch's writer says only that a file came out short: a file-size limit or a full disk
+        first = (str(err).strip().splitlines() or [""])[0]
+        detail = re.sub(r"^\[enforce fail at [^\]]*\]\s*\.?\s*", "", first).strip()
+        reason, where = f"a file could not be written in full (torch: {detail})", ""
+        limit = _file_size_limit()
+        if limit is not None:
+            reason += f"; files are limited to {_size(limit)} (ulimit -f)"
+            hint = "raise the file-size limit (ulimit -f) or "
+        else:
+            hint = "free some space or "
+    removed = "" if tmp is None else "; nothing was written there (its temporary folder is removed)"
+    return DestinationError(f"cannot write {out}: {reason}{where}{removed}{_kept_note(out)}; {hint}")
 
 
 class DirectoryLock:

@@ -27,7 +27,7 @@ from pathlib import Path
 import torch
 from torch import Tensor, nn
 
-from drlyap.io import jsonable, write_json
+from drlyap.io import jsonable, write_bytes_of, write_json
 from drlyap.runs import Run, atomic_dir, check_writable
 
 FORMATS = ("onnx", "torchscript")
@@ -144,7 +144,8 @@ def export_run(run: Run, out: str | os.PathLike | None = None, fmt: str = "onnx"
                 path = tmp / f"{name}.pt"
                 with torch.no_grad(), warnings.catch_warnings():
                     warnings.simplefilter("ignore")  # TorchScript announces its successor too
-                    torch.jit.trace(module, (example,)).save(str(path))
+                    traced = torch.jit.trace(module, (example,))
+                write_bytes_of(path, lambda buffer, m=traced: torch.jit.save(m, buffer))  # a failed write: an OSError
             files[name] = {"file": path.name, "sha256": _sha256(path)}
         record["files"] = files
         write_json(tmp / "export.json", record)
