@@ -249,3 +249,22 @@ def test_verify_and_check_on_a_read_only_run_directory(tmp_path):
     done = _read_only(run, *drlyap, "check", str(run), "--system", SPEC)
     assert done.returncode == 0 and "Traceback" not in done.stderr, done.stderr
     assert done.stdout.count("CHECKED") == 2
+
+
+# --------------------------------------------------------------------------- metrics.json
+def test_a_region_in_metrics_json_is_drawn_as_recorded_not_as_certified(tmp_path):
+    """A region of attraction written into metrics.json by hand (no proof, no certificate): plot draws it as what
+    metrics.json records, not as a certified region, and export says its status is the run's record."""
+    run = linear_run_dir(tmp_path / "run")
+    metrics = json.loads((run / "metrics.json").read_text())
+    metrics["certificate"] = {"status": "verified", "condition": "DR pointwise",
+                              "roa": {"level": 0.5, "kind": "region of attraction", "certified": True,
+                                      "xi": [0.1, 0.05], "share_of_box": 0.9}}
+    (run / "metrics.json").write_text(json.dumps(metrics))
+    out = CliRunner().invoke(main, ["plot", str(run), "--system", SPEC, "--xi", "0.1,0.05", "--n-init", "2",
+                                    "--horizon", "1", "--out", str(tmp_path / "fig")])
+    assert out.exit_code == 0, out.output
+    assert "as metrics.json records it, not re-proved here: certified region of attraction" in out.output
+    out = CliRunner().invoke(main, ["export", str(run), "--system", SPEC, "--out", str(tmp_path / "export")])
+    assert out.exit_code == 0, out.output
+    assert "certificate: VERIFIED" not in out.output and "as its metrics.json records it: verified" in out.output
