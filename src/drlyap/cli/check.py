@@ -67,6 +67,10 @@ def check(run_dir: Path, names: tuple[str, ...], refine: int, pieces_per_leaf: f
                             Compute(**settings), pieces_per_leaf)
     except ValueError as err:
         fail(err)
+    except KeyboardInterrupt:
+        click.echo("drlyap: interrupted; nothing was changed (the checker keeps no progress: run it again to check "
+                   "from the start)", err=True)
+        sys.exit(130)
     if as_json:
         click.echo(json.dumps({"ok": all(r.ok for r in results), "certificates": [r.to_dict() for r in results]}))
     else:

@@ -35,6 +35,18 @@ def _exit(result) -> None:
         sys.exit(code)
 
 
+def _interrupted(run_dir: Path) -> None:
+    """Ctrl-C: say what is kept (a long proof's checkpoint in RUN/checkpoints) and exit 130, as ``train`` does."""
+    kept = run_dir / "checkpoints"
+    if any(kept.glob("proof-*.npz")):
+        click.echo(f"drlyap: interrupted; the proof's progress is kept in {kept}: the same command, run again, "
+                   "resumes it", err=True)
+    else:
+        click.echo("drlyap: interrupted; nothing new was written (a proof keeps a checkpoint after 30 s: a shorter "
+                   "one starts again)", err=True)
+    sys.exit(130)
+
+
 @click.command()
 @click.argument("run_dir", type=click.Path(path_type=Path))
 @click.option("--delta", type=float, default=None, help="Radius of the excluded ball around x* [the run's delta].")
@@ -171,6 +183,8 @@ def verify(run_dir: Path, delta: float | None, xi: str | None, time_limit: float
         clear_checkpoints(run)
     except ValueError as err:
         fail(err)
+    except KeyboardInterrupt:
+        _interrupted(run_dir)
     if as_json:
         click.echo(json.dumps(jsonable(result.to_dict())))
         _exit(result)

@@ -214,7 +214,9 @@ class _Search:
         start, saved_at = time.perf_counter(), time.perf_counter()
         before = self.elapsed
         taken = self.processed
-        bar = show_progress(int(budget.boxes), f"proof ({proof_label(condition, level)}): boxes", self.compute.progress)
+        resumed = f" (resumed from its checkpoint after {self.resumed} boxes)" if self.resumed else ""
+        bar = show_progress(int(budget.boxes), f"proof ({proof_label(condition, level)}){resumed}: boxes",
+                            self.compute.progress)
         if self.resumed:
             bar.update(min(self.resumed, int(budget.boxes)))
 
