@@ -21,6 +21,7 @@ from drlyap.runs.imported import import_pair, import_run, load_onnx_pair, quadra
 from drlyap.systems import get_system
 from drlyap.training import TrainConfig, fit
 from drlyap.verification import verify_condition
+from drlyap.verification.roa.sublevel import TRAINED_LEVEL
 from drlyap.workflows.export import export_run
 from drlyap.workflows.policies import load_policy_run
 from handmade import verified_json
@@ -402,7 +403,7 @@ def test_an_exported_region_of_attraction_pair_imports_with_its_run_s_claim_and_
     assert theirs.true_model.level == mine.true_model.level == 1.0
     assert theirs.true_model.status == mine.true_model.status
     assert theirs.true_model.boxes_processed == mine.true_model.boxes_processed
-    assert mine.true_model.verified and mine.roa.limited_by == "level asked for" and 0.99 < mine.roa.level <= 1.0
+    assert mine.true_model.verified and mine.roa.limited_by == TRAINED_LEVEL and 0.99 < mine.roa.level <= 1.0
     assert theirs.roa.level == mine.roa.level and theirs.roa.share_of_box == mine.roa.share_of_box
     above = verify_imported(pair, str(out), proof, xi=xi, roa=True, above_level=True)
     run_above = verify(run, proof, xi=xi, roa=True, above_level=True)

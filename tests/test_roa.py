@@ -25,6 +25,7 @@ from drlyap.verification.linearisation import (
 )
 from drlyap.verification.roa import band_roa, linearisation_local, quadratic_roa, share_of_box
 from drlyap.verification.roa.levels import outside_lower, vertex_max
+from drlyap.verification.roa.sublevel import TRAINED_LEVEL
 from handmade import bump_pair, linear_pair, small_pendulum
 
 F64 = torch.float64
@@ -203,7 +204,7 @@ def test_a_capped_search_certifies_the_level_asked_for_and_no_more():
     cap = full.level / 3
     capped = certified_roa(ClosedLoop(system, lyap, ctrl), condition, Region.of(system, 0.2), Budget(seconds=10),
                            samples_per_axis=50, max_level=cap)
-    assert capped.certified and capped.limited_by == "level asked for", capped
+    assert capped.certified and capped.limited_by == TRAINED_LEVEL, capped
     assert cap * (1 - 1e-12) <= capped.level <= cap
     assert capped.share_of_box < full.share_of_box
     z0 = _inside(system, lyap.double(), capped.level, 50, seed=3)

@@ -18,6 +18,7 @@ from drlyap.training import TrainConfig, train
 from drlyap.verification import boundary_minimum, box_bounds, verify_condition, verify_sublevel
 from drlyap.verification.bounds import combine_upper, condition_and_value_objective, sublevel_upper
 from drlyap.verification.linearisation import lyapunov_matrix
+from drlyap.verification.roa.sublevel import TRAINED_LEVEL
 from handmade import linear_pair, plain_train, small_pendulum
 
 F64 = torch.float64
@@ -173,7 +174,7 @@ def test_a_verified_proof_on_the_set_stands_for_the_level_search_of_the_region()
     ok = verify_sublevel(loop, cond, region, 0.002, budget)
     assert ok.status == "verified"
     roa = certified_roa(loop, cond, region, budget, max_level=0.002, proved=ok)
-    assert roa.certified and roa.limited_by == "level asked for" and 0.002 * (1 - 1e-12) < roa.level <= 0.002
+    assert roa.certified and roa.limited_by == TRAINED_LEVEL and 0.002 * (1 - 1e-12) < roa.level <= 0.002
     searched = certified_roa(loop, cond, region, budget, max_level=0.002)  # the search reaches the same set
     assert searched.level == pytest.approx(roa.level) and searched.share_of_box == pytest.approx(roa.share_of_box)
     bad = verify_sublevel(loop, cond, region, 1.0, Budget(seconds=5, enclosure="mean-value"))

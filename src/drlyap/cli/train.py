@@ -30,7 +30,7 @@ def systems(as_json: bool) -> None:
 
     described = [get_system(name).describe() for name in system_names()]
     if as_json:
-        click.echo(json.dumps(described, indent=2))
+        click.echo(json.dumps({"systems": described}, indent=2))
         return
     for d in described:
         params = ", ".join(f"{k}={v:g}" for k, v in d["parameters"].items())

@@ -74,6 +74,8 @@ def reproduce(system: str, seeds: str, out: Path | None, iters: int | None, devi
             k = 2
             while out.exists():
                 out, k = Path("runs") / f"reproduce-{sys_.name}-{k}", k + 1
+            if k > 2:
+                log(f"runs/reproduce-{sys_.name} exists: writing {out} (--out names the folder)")
         if verify_rounds < 0:
             raise ValueError(f"--verify-rounds must be >= 0, got {verify_rounds}")
         for name, value in (("--verify-time", verify_time), ("--horizon", horizon)):

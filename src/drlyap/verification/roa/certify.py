@@ -44,7 +44,7 @@ def certified_roa(loop: ClosedLoop, condition: Condition, region: Region, budget
     on the cube around x* is interval arithmetic on nested dual numbers).
 
     ``max_level`` caps the search (e.g. at the level a region of attraction was trained for: ``limited_by`` then
-    reads ``"level asked for"`` when the cap is proved). ``band_time``: seconds for the band proof, where it runs
+    is ``TRAINED_LEVEL`` when the cap is proved). ``band_time``: seconds for the band proof, where it runs
     (None: ``budget.seconds`` again; 0: not run). ``samples_per_axis``: the grid that estimates the share of the box
     in S (n <= 2). ``proved``: a verified proof of ``condition`` on ``{V <= level}`` (a region-of-attraction run's,
     :func:`~drlyap.verification.sublevel.verify_sublevel`, ``level <= max_level``), taken for the search outside

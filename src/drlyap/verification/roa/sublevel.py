@@ -54,6 +54,9 @@ EXIT_ROOM = 0.01
 room for the checker's own bisection of the faces, which must separate the set from those points (on the planar
 quadrotor it needed 204,166 face boxes at 1% below, and did not finish within 200,000 one float step below)."""
 
+TRAINED_LEVEL = "the level the run was trained for (--roa-above-level searches above it)"
+"""``limited_by`` of a search capped at the level the run was trained for."""
+
 
 def exit_top(exit_min_lower: float | None, boundary_min_lower: float) -> float | None:
     """The level a set cut by the box may reach, ``(1 - EXIT_ROOM)`` times V's lower bound where the flow may leave
@@ -124,7 +127,7 @@ def outer_search(loop: ClosedLoop, condition: Condition, region: Region, budget:
         widened = exit_top(exit_min_lower, boundary_min_lower)
         if widened is not None:
             faces, face_why = widened, "the box's faces where the flow leaves the box"
-    top, why = (faces, face_why) if faces <= max_level else (max_level, "level asked for")
+    top, why = (faces, face_why) if faces <= max_level else (max_level, TRAINED_LEVEL)
     level, limited_by, cex, processed = level_search(
         loop, condition, lo, hi, scale, top, why,
         start + (0.6 if delta > 0 else 1.0) * time_limit, meets=region.meets,  # 40% kept for the ball
@@ -209,8 +212,8 @@ def proved_outer(loop: ClosedLoop, proof: ConditionProof, region: Region, budget
     start = time.perf_counter()
     quarter = replace(budget, seconds=budget.seconds / 4, boxes=1_000_000, enclosure=budget.enclosure_for(loop.n))
     ball_max_upper = _ball_max(loop.lyapunov, region, quarter)
-    return OuterSearch(proof.boundary_min_lower, ball_max_upper, below(proof.level), "level asked for", None,
-                       proof.boxes_processed, proof.level, "level asked for", start, start + budget.seconds)
+    return OuterSearch(proof.boundary_min_lower, ball_max_upper, below(proof.level), TRAINED_LEVEL, None,
+                       proof.boxes_processed, proof.level, TRAINED_LEVEL, start, start + budget.seconds)
 
 
 def finish(loop: ClosedLoop, condition: Condition, region: Region, outer: OuterSearch, local: dict,
