@@ -106,6 +106,9 @@ def test_cli_train_proves_by_default(tmp_path):
                                "--verify-time", "1", "--out", str(tmp_path / "run")])
     assert out.exit_code == 0, out.output
     assert "proof round 0:" in out.output and "proof round 1:" in out.output
+    assert "; retraining round 1 of at most 1 (2 iterations from this pair) on " in out.output  # the next phase named
+    if "proof round 1: VERIFIED" not in out.output:
+        assert "no more retraining: its 1 retraining round(s) are spent" in out.output
     last = out.output.strip().splitlines()[-1]
     metrics = json.loads((tmp_path / "run" / "metrics.json").read_text())
     assert "cegis" in metrics and metrics["cegis"]["max_rounds"] == 1

@@ -138,9 +138,20 @@ def proof_round_line(entry: ProofRound) -> str:
         if added.get("open_boxes"):
             retrain += f" and the verifier's bound over {added['open_boxes']} open boxes"
     same = " (the retraining before it left the pair unchanged)" if entry.unchanged else ""
+    ended = "" if proof.status != Status.UNKNOWN else f"; ended by {_stopped(proof.stopped)}"
     line = (f"  proof round {entry.round}: {proof.status.upper()}{same}, {what} ({proof.boxes_processed:,} boxes, "
-            f"{proof.time_s:.2f} s{capped})")
-    return line + (f"; retraining with {retrain}" if entry.added else "")
+            f"{proof.time_s:.2f} s{capped}{ended})")
+    if entry.added:
+        nxt = added.get("next_iterations")
+        plan = (f"retraining round {entry.round + 1} of at most {added.get('max_rounds')} ({nxt} iterations from "
+                f"this pair)" if nxt is not None else "retraining")
+        return line + f"; {plan} on {retrain}"
+    return line + (f"; no more retraining: {entry.stopped}" if entry.stopped and not entry.verified else "")
+
+
+def _stopped(why: str | None) -> str:
+    """Why a proof that is neither verified nor refuted stopped, in words."""
+    return {"box budget": "its box budget", "time limit": "its time cap", None: "its budget"}.get(why, why)
 
 
 # --------------------------------------------------------------------------- verify

@@ -42,6 +42,7 @@ from __future__ import annotations
 
 import dataclasses
 import math
+import sys
 import time
 import warnings
 
@@ -55,7 +56,7 @@ from drlyap.io import jsonable
 from drlyap.networks import Controller, Lyapunov
 from drlyap.records import ProofRound
 from drlyap.regions import Region
-from drlyap.render import unverified_warning
+from drlyap.render import proof_round_line, unverified_warning
 from drlyap.sections import TrainSections
 from drlyap.systems import UncertainSystem, get_system
 from drlyap.training.boxes import OpenBoxes
@@ -276,8 +277,9 @@ def _proof_rounds(cfg: TrainConfig, system: UncertainSystem, proof: ProofConfig,
             best = (score, result, r, list(history), ver)
         out_of_time = time_budget is not None and time.perf_counter() - start > time_budget
         if entry.verified or r == rounds or out_of_time:
-            if out_of_time and not entry.verified and r < rounds:
-                entry.stopped = "time budget"
+            if not entry.verified:
+                entry.stopped = ("its time budget (verify_budget) is spent" if out_of_time and r < rounds
+                                 else f"its {rounds} retraining round(s) are spent")
             done.append(entry)
             if log is not None:
                 log(entry)
@@ -288,6 +290,7 @@ def _proof_rounds(cfg: TrainConfig, system: UncertainSystem, proof: ProofConfig,
             entry.added["open_boxes"] = len(boxes)
         extra = region.distinct(torch.cat([extra, new]))[-int(proof.max_extra):]  # the newest kept
         entry.added["extra_states"] = int(extra.shape[0])
+        entry.added.update(next_iterations=iters_round, max_rounds=rounds)
         done.append(entry)
         if log is not None:
             log(entry)
@@ -338,11 +341,14 @@ def train(config: TrainConfig, system: UncertainSystem | None = None, proof: Pro
     :func:`train_cegis`; the uniform DR condition runs rounds on its margin's suprema (module docstring).
     ``metrics["certificate"]`` records the verdict (:class:`~drlyap.verification.Certificate`); with ``warn``
     a run that is not verified raises a :class:`UserWarning` saying so. ``init``: networks to start from (copied);
-    ``log(round)``: called after each proof round.
+    ``log(round)``: called after each proof round (None: with ``progress``, its line is printed on stderr).
     """
     system = system or get_system(config.system)
     cfg = config.resolved(system)
     proof = None if proof is None else proof.resolved(system)
+    if log is None and progress:  # every phase named where progress is shown: a line per proof round on stderr
+        def log(entry: ProofRound) -> None:
+            print(proof_round_line(entry), file=sys.stderr, flush=True)
     settings, budget = (None, None) if proof is None else (proof.to_dict(), proof.round_budget())
     if proof is None:
         result = fit(cfg, system, progress=progress, init=init)

@@ -18,7 +18,7 @@ from drlyap import plotting
 from drlyap.compute import Compute
 from drlyap.kinds import Method
 from drlyap.progress import progress as show_progress
-from drlyap.render import ACCEPTANCE_LEGEND, decrease_cell, roa_cell
+from drlyap.render import ACCEPTANCE_LEGEND, decrease_cell, proof_round_line, roa_cell
 from drlyap.runs import Run, atomic_dir, check_writable, load_run, save_run
 from drlyap.simulation import evaluate, initial_states, score, simulate
 from drlyap.systems import UncertainSystem, resolve_system, system_source
@@ -92,7 +92,9 @@ def reproduce(system: str | UncertainSystem, seeds: Sequence[int], out: Path, it
                 cfg = TrainConfig(system=system_name, method=method, seed=seed, device=device)
                 if iters is not None:
                     cfg.iters = iters
-                result = train(cfg, system, proof, progress=progress, warn=False)
+                result = train(cfg, system, proof, progress=progress, warn=False,
+                               log=(lambda entry, m=method, s=seed: log(f"seed {s} {m}: {proof_round_line(entry)[2:]}"))
+                               if progress else None)
                 run_dir = save_run(tmp / f"seed{seed}" / method, result, source=source)
                 run = load_run(run_dir, system)
                 paper_traj = simulate(system, run.controller, x_paper, xi_test, horizon=horizon)  # drawn below too
