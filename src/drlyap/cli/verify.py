@@ -106,6 +106,9 @@ def verify(run_dir: Path, delta: float | None, xi: str | None, time_limit: float
     with `drlyap import` has no trained condition: its decrease on the true model at --xi (the system's test shift by
     default) is proved, and with --roa its region of attraction; what is verified is written as certificates.
 
+    A run keeps one account of the true model: a verify at another shift replaces true-model.* and removes a region
+    certified at the old shift with its certificates (verify copies of the run to keep several shifts).
+
     Exit status: 0 when every condition asked holds and the region asked for is certified, 3 when one is violated (a
     counterexample), 4 when one is unknown (its budget ran out) or no region was certified, 1 on an error.
     """

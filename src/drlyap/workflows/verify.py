@@ -239,13 +239,27 @@ def imported_condition(pair, xi: Tensor, exp_rate: float | None = None) -> TrueD
     return TrueDecrease(xi, decay_rate=pair.decay_rate, exp_rate=pair.exp_rate if exp_rate is None else exp_rate)
 
 
+REGION_CERTIFICATES = ("roa-ball", "roa", "ellipsoid", "practical")
+"""The certificates of a region of attraction: they state the region ``metrics.json`` reports
+(``certificate.roa``), and are removed whenever that entry is replaced or dropped."""
+
+
 def record_region(run: Run, ver: RunVerification) -> None:
-    """Keep what ``ver`` proved at a shift in the run's ``metrics["certificate"]``: the decrease on the true model
-    (``true_model``) and the region of attraction (``roa``), which ``drlyap plot`` draws; then rewrite
-    ``metrics.json`` (atomically). Nothing is kept of a verification without a region."""
+    """Keep what ``ver`` proved at a shift in the run's ``metrics["certificate"]``: the region of attraction
+    (``roa``), which ``drlyap plot`` draws, and on the run's own delta the decrease on the true model it rests on
+    (``true_model``; at another delta the run's account of its true model and its certificate stay as they are); then
+    rewrite ``metrics.json`` (atomically). The certificates of the region reported before are removed first (those of
+    this one are written by :func:`record_roa`), and so is a ``true-model`` certificate that ``ver`` did not take as it
+    stands (:func:`record_certificates` writes ``ver``'s). Nothing is kept of a verification without a region."""
     if ver.roa is None:
         return
-    run.keep(region_record(ver), certificate=True)
+    entries = region_record(ver)
+    if ver.true_model is not None and float(ver.delta) == float(run.config.delta):
+        _drop_true_model_certificate(run.path, ver)
+    else:
+        entries.pop("true_model", None)
+    _remove_region_certificates(run.path)
+    run.keep(entries, certificate=True)
 
 
 def region_record(ver: RunVerification) -> dict:
@@ -255,9 +269,74 @@ def region_record(ver: RunVerification) -> dict:
     rate = {} if ver.roa_rate is None else {"exp_rate": float(ver.roa_rate)}
     kept = {"roa": jsonable({**ver.roa.to_dict(), "xi": ver.roa.xi} | rate)}  # xi None: about the trained condition
     if ver.true_model is not None:
-        keys = ("status", "xi", "verified_fraction", "time_s", "counterexample", "counterexample_source")
-        kept["true_model"] = jsonable({k: getattr(ver.true_model, k) for k in keys} | rate)
+        kept["true_model"] = true_model_record(ver)
     return kept
+
+
+def true_model_record(ver: RunVerification) -> dict:
+    """What ``metrics["certificate"]["true_model"]`` keeps of ``ver``'s decrease on the true model: its verdict and
+    shift, with the decay asked there where it is not the run's (``exp_rate``); the ``true-model`` certificate, where
+    there is one, states that shift and decay (:func:`record_certificates`)."""
+    rate = {} if ver.roa_rate is None else {"exp_rate": float(ver.roa_rate)}
+    keys = ("status", "xi", "verified_fraction", "time_s", "counterexample", "counterexample_source")
+    return jsonable({k: getattr(ver.true_model, k) for k in keys} | rate)
+
+
+def _leaves_true_model_certificate(found) -> bool:
+    """Whether a proof of the decrease on the true model leaves a ``true-model`` certificate stating it: verified,
+    and with its partition (written by :func:`record_certificates`) or taken from that certificate as it stands."""
+    return isinstance(found, ConditionProof) and found.verified and (
+        found.partition is not None or found.source == "certificate")
+
+
+def _drop_true_model_certificate(folder: Path, ver: RunVerification) -> None:
+    """Remove ``folder``'s ``true-model`` certificate unless ``ver`` took it as it stands (the same claim, confirmed by
+    the checker): it states another shift or decay, or a decrease ``ver`` did not prove again (a verified proof
+    writes its own anew)."""
+    found = ver.true_model
+    if not (isinstance(found, ConditionProof) and found.verified and found.source == "certificate"):
+        remove_certificate(folder, "true-model")
+
+
+def _remove_region_certificates(folder: Path) -> None:
+    for name in REGION_CERTIFICATES:
+        remove_certificate(folder, name)
+
+
+def _region_stands(reported: dict, ver: RunVerification) -> bool:
+    """Whether the region a run's ``metrics["certificate"]`` reports (``reported``: its ``roa`` and ``true_model``)
+    stands beside ``ver``'s decrease on the true model, where ``ver`` certified no region: a region about the trained
+    condition does (its certificates rest on ``trained``); one at a shift only where ``ver`` leaves a ``true-model``
+    certificate at that very shift, decay and delta, which the region's certificates may name for the decrease
+    outside the ball (all that is about a shift is about one shift)."""
+    region = reported.get("roa")
+    if not isinstance(region, dict):
+        return True
+    xi = region["xi"] if "xi" in region else (reported.get("true_model") or {}).get("xi")  # older runs: see Certificate
+    if xi is None:
+        return True
+    found = ver.true_model
+    rate = None if ver.roa_rate is None else float(ver.roa_rate)
+    return (_leaves_true_model_certificate(found) and [float(v) for v in xi] == [float(v) for v in found.xi]
+            and region.get("exp_rate") == rate and region.get("delta") == float(ver.delta))
+
+
+def _settle_true_model(folder: Path, reported: dict, ver: RunVerification) -> bool:
+    """Make ``reported`` (a run's ``metrics["certificate"]``, changed in place) the account of ``ver``'s decrease on
+    the true model, after removing from ``folder`` what no longer agrees with it: the ``true-model`` certificate
+    (:func:`_drop_true_model_certificate`) and, where ``ver`` certified no region, a region reported at another shift
+    (:func:`_region_stands`): its entry and its certificates. Returns whether ``reported`` changed."""
+    _drop_true_model_certificate(folder, ver)
+    changed = False
+    if ver.roa is None and "roa" in reported and not _region_stands(reported, ver):
+        _remove_region_certificates(folder)
+        del reported["roa"]
+        changed = True
+    entry = true_model_record(ver)
+    if reported.get("true_model") != entry:
+        reported["true_model"] = entry
+        changed = True
+    return changed
 
 
 def record_robustness(run: Run, robustness: RunRobustness) -> list[Path]:
@@ -303,10 +382,17 @@ def record_certificates(run: Run, ver: RunVerification) -> list[Path]:
     """Write a certificate file (:mod:`drlyap.runs.certificates`) into the run directory for each proof of ``ver``
     that is verified on X_delta and kept its partition: ``trained``, with a shift ``true-model``, and the DR uniform
     margin at the run's radius as ``uniform`` (a run trained on the uniform condition has it as ``trained``). Only on
-    the run's own delta (the claim ``drlyap check`` compares with the run). Returns the headers' paths (an OSError
-    where the directory cannot be written)."""
+    the run's own delta (the claim ``drlyap check`` compares with the run). With a shift, ``metrics.json``'s
+    ``certificate.true_model`` becomes the account of ``ver``'s decrease there before the certificate is written: an
+    earlier ``true-model`` certificate is removed (unless ``ver`` took it as it stands), and where ``ver`` certified
+    no region, so is a region reported at another shift, decay or delta, with its certificates
+    (:func:`_settle_true_model`). Returns the headers' paths (an OSError where the directory cannot be written)."""
     if float(ver.delta) != float(run.config.delta):  # a certificate states the run's own X_delta (check compares)
         return []
+    if ver.true_model is not None:  # metrics.json's account first, the files it no longer describes removed
+        reported = run.metrics.get("certificate") or {}
+        if _settle_true_model(run.path, reported, ver):
+            run.keep({"true_model": reported["true_model"]}, certificate=True)
     region = Region.of(run.system, float(ver.delta))
     written = []
     uniform = None if ver.uniform is None or ver.uniform is ver.trained else ver.uniform
@@ -326,7 +412,10 @@ def record_roa(run: Run, ver: RunVerification, proof: ProofConfig) -> list[Path]
     check`` needs to confirm it (:func:`region_certificates`), naming the run's ``trained`` or ``true-model`` for the
     decrease outside the ball where that proof is on ``{V <= c'}`` with ``c' >= c``. Returns the headers' paths."""
     roa = ver.roa
-    if roa is None or roa.error is not None or float(ver.delta) != float(run.config.delta):
+    if roa is None or float(ver.delta) != float(run.config.delta):
+        return []
+    if roa.error is not None:  # no region: none of an earlier one stays (record_region replaced its entry)
+        _remove_region_certificates(run.path)
         return []
     condition = run.region_condition(roa.xi, ver.roa_rate)
     outer = ("trained", ver.trained) if roa.xi is None else ("true-model", ver.true_model)
@@ -434,27 +523,38 @@ def record_imported_certificates(run_dir: str | Path, pair, ver: RunVerification
     ``graphs.json`` and ``tensors.pt`` (the checker reads those as data): ``true-model`` for its verified decrease at
     the shift, and with a region of attraction certified by V's own proofs its ``roa-ball`` (and ``roa``:
     :func:`region_certificates`), whose level, shift and decay are kept in the run's ``metrics.json``
-    (:func:`region_record`) for the checker to compare. Earlier ones are removed first. Returns the headers' paths."""
+    (:func:`region_record`) for the checker to compare, beside the decrease at the shift (``true_model``), as for a
+    run (:func:`record_region`, :func:`record_certificates`): the files the new account no longer describes are
+    removed first. On a delta other than the pair's (where its export states one) no certificate is written, and only
+    a region is kept. Returns the headers' paths."""
     import json
 
     from drlyap.io import write_json_atomic
 
     run_dir = Path(run_dir)
-    remove_certificate(run_dir, "true-model")
     system = pair.loop.system
     found = ver.true_model
     condition = imported_condition(pair, system.check_xi(found.xi)[None], ver.roa_rate)
     region = Region.of(system, float(ver.delta))
     files = [run_dir / "graphs.json", run_dir / "tensors.pt"]
+    own = pair.delta is None or float(ver.delta) == float(pair.delta)  # the checker compares a stated delta
+    metrics = json.loads((run_dir / "metrics.json").read_text())
+    reported = dict(metrics.get("certificate") or {})
+    if own:
+        _settle_true_model(run_dir, reported, ver)
+    if ver.roa is not None:
+        _remove_region_certificates(run_dir)
+        reported["roa"] = region_record(ver)["roa"]
+    metrics["certificate"] = reported
+    write_json_atomic(run_dir / "metrics.json", metrics)
+    if not own:
+        return []
     written = []
     if isinstance(found, ConditionProof) and found.verified and found.partition is not None:
         written.append(write_certificate(run_dir, "true-model", found, condition, region, system, files, None))
     else:
         found = None
     if ver.roa is not None and ver.roa.error is None:
-        metrics = json.loads((run_dir / "metrics.json").read_text())
-        metrics["certificate"] = region_record(ver)
-        write_json_atomic(run_dir / "metrics.json", metrics)
         written += region_certificates(run_dir, pair.loop, condition, region, ver.roa, ("true-model", found), proof,
                                        files, None)
     return written
