@@ -4,12 +4,9 @@
 from __future__ import annotations
 
 import os
-import threading
-import time
 from collections.abc import Iterator, Sequence
 
-import torch
-
+from drlyap.lifeline import init_worker
 from drlyap.workflows.sweep.grid import Combination, SweepError
 from drlyap.workflows.sweep.task import run_combination
 
@@ -32,21 +29,6 @@ class Backend:
 
     def close(self) -> None:
         """Release what the backend started."""
-
-
-def _watch_parent(parent: int, every: float = 0.5) -> None:
-    """End this worker process as soon as ``parent`` (the sweep's main process) is gone: a killed sweep leaves no
-    worker behind (they would otherwise finish their task, then wait for work that never comes)."""
-    while True:
-        time.sleep(every)
-        if os.getppid() != parent:
-            os._exit(1)
-
-
-def _init_worker(threads: int, parent: int) -> None:
-    os.environ["OMP_NUM_THREADS"] = str(threads)
-    torch.set_num_threads(threads)
-    threading.Thread(target=_watch_parent, args=(parent,), daemon=True, name="drlyap-parent-watch").start()
 
 
 def _crashed(task: Task, err: BaseException) -> dict:
@@ -74,7 +56,7 @@ class LocalBackend(Backend):
             return
         self._pool = ProcessPoolExecutor(max_workers=min(self.workers, len(tasks)),
                                          mp_context=multiprocessing.get_context("spawn"),
-                                         initializer=_init_worker, initargs=(self.threads, os.getpid()))
+                                         initializer=init_worker, initargs=(self.threads, os.getpid()))
         futures = {self._pool.submit(run_combination, *task, self.threads): task for task in tasks}
         try:
             for future in as_completed(futures):
