@@ -196,3 +196,9 @@ def test_ctrl_c_in_verify_and_check_exits_130_saying_what_is_kept(tmp_path, monk
     monkeypatch.setattr("drlyap.checker.check_run", stop)
     result = CliRunner().invoke(main, ["check", str(run), "--system", spec])
     assert result.exit_code == 130 and "interrupted; nothing was changed" in result.output
+
+
+def test_a_mistyped_system_name_gets_a_suggestion(tmp_path):
+    result = CliRunner().invoke(main, ["train", "pendullum", "--out", str(tmp_path / "x")])
+    assert result.exit_code != 0
+    assert "unknown system 'pendullum' (did you mean 'pendulum'?); valid: cartpole" in result.output

@@ -20,8 +20,12 @@ def is_file_spec(target: str) -> bool:
 
 def unknown_name(spec: str, names: Iterable[str]) -> ValueError:
     """The error of a spec without ``:factory`` that is no registered name (``names``)."""
+    import difflib
+
     hint = " (add ':factory', the name of the system or of a function returning it)" if is_file_spec(spec) else ""
-    return ValueError(f"unknown system {spec!r}{hint}; valid: {', '.join(sorted(names))}, or {SPEC_FORMS}")
+    close = difflib.get_close_matches(spec, list(names), n=1, cutoff=0.6)
+    guess = f" (did you mean {close[0]!r}?)" if close and not hint else ""
+    return ValueError(f"unknown system {spec!r}{hint}{guess}; valid: {', '.join(sorted(names))}, or {SPEC_FORMS}")
 
 
 def split_spec(spec: str) -> tuple[str, str]:

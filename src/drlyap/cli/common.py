@@ -92,13 +92,15 @@ def run_source_options(command):
                              "package.module:factory (run as you name it; default: refuse to run recorded code).")(command)
 
 
-def run_system_of(spec: str | None):
-    """The system object ``--system`` names, or None."""
+def run_system_of(spec: str | None, verifier: bool | None = None):
+    """The system object ``--system`` names, or None. Its dynamics are probed as :func:`drlyap.systems.resolve_system`
+    says (``verifier=False``: not on the verifier's enclosures, for a command that runs only the checker); a dynamics
+    that cannot run there is a ValueError naming the file, the line and the operation (one ``Error:`` line)."""
     if spec is None:
         return None
     from drlyap.systems import resolve_system
 
-    return resolve_system(spec)
+    return resolve_system(spec, verifier=verifier)
 
 
 def compute_options(with_device: bool = True):

@@ -26,6 +26,7 @@ import torch
 from torch import Tensor
 
 from drlyap.config import SystemDefaults
+from drlyap.systems.probe import dynamics_error, probe_system
 
 if TYPE_CHECKING:  # the enclosures load where a system is bounded, not where it is only described or run
     from drlyap.enclosures import Interval
@@ -209,14 +210,22 @@ class UncertainSystem:
         if self.test_xi is not None and len(self.test_xi) != self.k:
             raise ValueError(f"{self.name}: test_xi needs {self.k} values ({', '.join(self.uncertain)})")
         x_star = torch.tensor([self.equilibrium], dtype=torch.float64)
-        residual = self.true_dynamics(x_star, torch.tensor([u_star], dtype=torch.float64))
-        if tuple(residual.shape) != (1, n):
-            raise ValueError(f"{self.name}: dynamics must return shape (B, {n}) for B states, got {tuple(residual.shape)} "
-                             "for B = 1")
+        try:
+            residual = self.true_dynamics(x_star, torch.tensor([u_star], dtype=torch.float64))
+        except Exception as err:  # noqa: BLE001 - the user's code: named by file and line, whatever it raised
+            raise dynamics_error(self, err, f"float64 tensors at x* = {list(self.equilibrium)}, u* = {list(u_star)} "
+                                            "(B = 1)") from None
+        if not isinstance(residual, Tensor) or tuple(residual.shape) != (1, n):
+            got = tuple(residual.shape) if isinstance(residual, Tensor) else f"a {type(residual).__name__}"
+            raise ValueError(f"{self.name}: dynamics must return shape (B, {n}) for B states, got {got} for B = 1")
         if self.perturbation is not None:
-            w = self.perturbation(x_star, torch.tensor([u_star], dtype=torch.float64))
-            if tuple(w.shape) != (1, n, self.k):
-                raise ValueError(f"{self.name}: perturbation must return shape (B, {n}, {self.k}), got {tuple(w.shape)}")
+            try:
+                w = self.perturbation(x_star, torch.tensor([u_star], dtype=torch.float64))
+            except Exception as err:  # noqa: BLE001 - as the dynamics' above
+                raise dynamics_error(self, err, f"the perturbation W at x* = {list(self.equilibrium)} (B = 1)") from None
+            if not isinstance(w, Tensor) or tuple(w.shape) != (1, n, self.k):
+                got = tuple(w.shape) if isinstance(w, Tensor) else f"a {type(w).__name__}"
+                raise ValueError(f"{self.name}: perturbation must return shape (B, {n}, {self.k}), got {got}")
         if not torch.isfinite(residual).all() or residual.abs().max() > 1e-9:
             raise ValueError(f"{self.name}: F(x*, u*, p0) = {residual.tolist()[0]} is not zero; "
                              "the equilibrium must be an equilibrium of the nominal system")
@@ -343,7 +352,12 @@ class UncertainSystem:
         Evaluated before any training or proof, on ``states (S, n)`` (user coordinates, e.g. a training grid),
         the box's corners and ``count`` states drawn uniformly from the state box, with inputs drawn uniformly
         from U, at the nominal parameters and at the rows of ``xi_samples (N, k)`` (cycled over the states):
-        dynamics that are not finite on the box would otherwise surface as errors deep inside linear algebra."""
+        dynamics that are not finite on the box would otherwise surface as errors deep inside linear algebra.
+
+        First, once per system (:func:`~drlyap.systems.probe.probe_system`): one small batch through everything that
+        will run the dynamics (tensors with autograd, the verifier's enclosures, the checker's arithmetic), so that
+        an operation training or a proof cannot take is named, with its file and line, before any training."""
+        probe_system(self)
         gen = torch.Generator().manual_seed(seed)
         lo, hi = (torch.tensor(b, dtype=torch.float64) for b in self.state_box)
         ulo, uhi = (torch.tensor(b, dtype=torch.float64) for b in self.input_box)

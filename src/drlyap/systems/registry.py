@@ -15,6 +15,7 @@ from pathlib import Path
 from drlyap.specs import is_file_spec, split_spec, system_file, unknown_name
 from drlyap.systems.library import cartpole, mountain_car, pendulum, quadrotor2d
 from drlyap.systems.model import UncertainSystem
+from drlyap.systems.probe import probe_system
 
 _REGISTRY: dict[str, Callable[[], UncertainSystem]] = {
     "pendulum": pendulum,
@@ -71,13 +72,17 @@ def _import_file(path: Path):
     return module
 
 
-def resolve_system(spec: str) -> UncertainSystem:
+def resolve_system(spec: str, verifier: bool | None = None) -> UncertainSystem:
     """A system from a command-line spec: a registered name (``pendulum``), ``package.module:factory``
     or ``path/to/file.py:factory``.
 
     ``factory`` names an :class:`UncertainSystem` object or a zero-argument callable returning one.
     A file is imported by path (under a module name unique to its absolute path), so it need not be
-    on ``sys.path``. Errors name the spec and the valid forms.
+    on ``sys.path``. Errors name the spec and the valid forms. A system from a file or a module has its dynamics
+    run once through what training, the verifier and the checker will run them on
+    (:func:`~drlyap.systems.probe.probe_system`; the verifier's enclosures only where this process has loaded them):
+    an operation they cannot take is a ValueError naming the file, the line and the operation. ``verifier``: True
+    or False to probe the verifier's enclosures or not, whatever this process has loaded.
     """
     spec = str(spec).strip()
     if ":" not in spec:
@@ -106,6 +111,7 @@ def resolve_system(spec: str) -> UncertainSystem:
             raise ValueError(f"{spec}: the factory failed: {type(err).__name__}: {err}") from None
     if not isinstance(obj, UncertainSystem):
         raise ValueError(f"{spec} gives a {type(obj).__name__}, not an UncertainSystem")
+    probe_system(obj, verifier=verifier)  # None: the verifier's enclosures where this process has loaded them
     return obj
 
 
