@@ -40,10 +40,22 @@ def _alive(pid: int) -> bool:
     return state != "Z"
 
 
+_PROOF_DRIVER = textwrap.dedent("""
+    import time
+    from drlyap.parallel import LocalPool
+
+    if __name__ == "__main__":
+        pool = LocalPool(2)
+        print(" ".join(str(p.pid) for p in pool._procs), flush=True)
+        time.sleep(120)
+""")
+
+
 @pytest.mark.skipif(not sys.platform.startswith("linux"), reason="reads /proc")
-def test_pool_workers_end_within_two_seconds_of_a_killed_driver(tmp_path):
+@pytest.mark.parametrize("driver_code", [_DRIVER, _PROOF_DRIVER], ids=["sweep-pool", "proof-workers"])
+def test_workers_end_within_two_seconds_of_a_killed_driver(tmp_path, driver_code):
     script = tmp_path / "driver.py"
-    script.write_text(_DRIVER)
+    script.write_text(driver_code)
     driver = subprocess.Popen([sys.executable, str(script)], stdout=subprocess.PIPE, text=True)
     try:
         workers = [int(p) for p in driver.stdout.readline().split()]

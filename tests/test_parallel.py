@@ -16,6 +16,7 @@ from drlyap.checker.check import check_certificate
 from drlyap.compute import Compute
 from drlyap.conditions import DRPointwise
 from drlyap.config import Budget, ProofConfig
+from drlyap.networks import Controller, Lyapunov
 from drlyap.parallel import WorkerError, close_pools, pool_for
 from drlyap.regions import Region
 from drlyap.runs.certificates import read_certificate, sha256_file, system_digest, write_certificate
@@ -37,6 +38,32 @@ def pendulum_loop():
     close_pools()
 
 
+@pytest.fixture(scope="module")
+def wide_loop():
+    """:func:`linear_pair`'s closed loop with 16 tanh units in each network's hidden layer (the pair's own, and others
+    with random weights whose output weights are small): it still proves, and its float64 matrix products are wide
+    enough for their last bits to depend on the number of boxes bounded together."""
+    from drlyap.closed_loop import ClosedLoop
+
+    system = small_pendulum()
+    lyap, ctrl = linear_pair(system)
+    scale = lyap.phi.input_scale.tolist()
+    wide_lyap = Lyapunov(2, hidden=[16], out=2, alpha_hat=lyap.alpha_hat, input_scale=scale)
+    wide_ctrl = Controller(2, system.input_box, system.equilibrium_input, hidden=[16], input_scale=scale)
+    gen = torch.Generator().manual_seed(0)
+    with torch.no_grad():
+        for wide, narrow in ((wide_lyap.phi, lyap.phi), (wide_ctrl.varphi, ctrl.varphi)):
+            (first, last), units = wide.layers, narrow.layers[0].weight.shape[0]
+            first.weight.copy_(torch.randn(first.weight.shape, generator=gen))
+            first.bias.copy_(0.1 * torch.randn(first.bias.shape, generator=gen))
+            last.weight.copy_(1e-3 * torch.randn(last.weight.shape, generator=gen))
+            last.bias.zero_()
+            first.weight[:units], first.bias[:units] = narrow.layers[0].weight, 0.0
+            last.weight[:, :units] = narrow.layers[1].weight
+    yield ClosedLoop(system, wide_lyap, wide_ctrl), DRPointwise(0.01, 0.3, XI, decay_rate=0.05), Region.of(system, 0.1)
+    close_pools()
+
+
 def _same(a, b) -> None:
     assert (a.status, a.boxes_processed, a.boxes_verified, a.verified_fraction) == \
         (b.status, b.boxes_processed, b.boxes_verified, b.verified_fraction)
@@ -44,7 +71,10 @@ def _same(a, b) -> None:
     if a.partition is not None:
         for name in ("parent", "side", "axis", "verdict"):
             assert torch.equal(getattr(a.partition, name), getattr(b.partition, name)), name
-        assert torch.equal(a.partition.bound.nan_to_num(7.0), b.partition.bound.nan_to_num(7.0))
+        bits_a, bits_b = a.partition.bound.view(torch.int64), b.partition.bound.view(torch.int64)  # bit for bit
+        differ = bits_a != bits_b
+        assert not differ.any(), (f"{int(differ.sum())} of {differ.numel()} bounds differ, by up to "
+                                  f"{float((a.partition.bound - b.partition.bound)[differ].abs().nan_to_num(0).max()):.3g}")
 
 
 def test_two_workers_prove_the_same_partition_as_one(pendulum_loop):
@@ -107,6 +137,21 @@ def test_a_worker_failure_is_an_error_that_names_it(pendulum_loop):
 
     with pytest.raises(WorkerError, match="no bounds here"):
         pool.submit(broken, torch.zeros(4, 2), torch.ones(4, 2)).result()
+
+
+def test_the_bounds_are_the_same_bits_for_any_number_of_workers(wide_loop, monkeypatch):
+    import drlyap.verification.bounding as bounding
+
+    loop, condition, region = wide_loop
+    proofs = {}
+    for workers in (1, 2, 3):
+        for chunk in (512, 96):  # one or two chunks a batch; up to eleven (the last one shorter), dealt in turn
+            monkeypatch.setattr(bounding, "CHUNK", chunk)
+            proofs[chunk, workers] = verify_condition(loop, condition, region, Budget(
+                seconds=600, batch=1000, compute=Compute(workers=workers)))
+    for (chunk, _), proof in proofs.items():
+        assert proof.status == "verified" and proof.partition.bound.isfinite().sum() > 500
+        _same(proofs[chunk, 1], proof)  # every bound bit for bit (a chunk per worker differed in the last bits)
 
 
 def test_a_system_from_a_users_file_travels_to_the_workers(tmp_path):
@@ -243,21 +288,28 @@ def test_another_proof_does_not_read_the_checkpoint(pendulum_loop, tmp_path):
 
 
 # --------------------------------------------------------------------------- Ray
-def test_ray_backend_on_two_local_workers_proves_the_same_and_the_checker_accepts_it(pendulum_loop, tmp_path):
+def test_ray_backend_on_two_local_workers_proves_the_same_and_the_checker_accepts_it(pendulum_loop, wide_loop, tmp_path,
+                                                                                    monkeypatch):
     pytest.importorskip("ray")
     import cloudpickle
 
+    import drlyap.verification.bounding as bounding
     import handmade
 
     cloudpickle.register_pickle_by_value(handmade)  # Ray's workers do not see this folder: the test's system travels
     loop, condition, region = pendulum_loop
     one = verify_condition(loop, condition, region, Budget(seconds=600, batch=64))
+    monkeypatch.setattr(bounding, "CHUNK", 96)  # batches of several chunks, dealt to the actors in turn
+    wide_one = verify_condition(*wide_loop, Budget(seconds=600, batch=1000))
     try:
         two = verify_condition(loop, condition, region,
                                Budget(seconds=600, batch=64, compute=Compute(workers=2, backend="ray")))
+        wide_two = verify_condition(*wide_loop, Budget(seconds=600, batch=1000, compute=Compute(workers=2,
+                                                                                              backend="ray")))
     finally:
         close_pools()
     _same(one, two)
+    _same(wide_one, wide_two)  # every bound bit for bit
     torch.save({"lyapunov": loop.lyapunov.state_dict(), "controller": loop.controller.state_dict()},
                tmp_path / "weights.pt")
     write_certificate(tmp_path, "trained", two, condition, region, loop.system, tmp_path / "weights.pt",

@@ -42,6 +42,15 @@ def bind_to_parent(parent: int, every: float = 0.5) -> None:
     threading.Thread(target=_watch, args=(parent, every), daemon=True, name="drlyap-parent-watch").start()
 
 
+def bound_main(parent: int, module: str, name: str, *args) -> None:
+    """A process's target that binds it to ``parent`` before it imports ``module`` (torch, say) and runs its
+    function ``name(*args)``."""
+    bind_to_parent(parent)
+    import importlib
+
+    getattr(importlib.import_module(module), name)(*args)
+
+
 def init_worker(threads: int, parent: int) -> None:
     """A pool worker's initializer: bound to ``parent`` first, then ``threads`` torch threads (set in the environment
     for torch to read when it is first imported, and in torch itself if it already is)."""

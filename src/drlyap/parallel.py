@@ -1,16 +1,24 @@
 """Worker processes that run one function on the chunks of a batch: local processes or Ray actors.
 
 A proof bounds its boxes a batch at a time; with :class:`~drlyap.compute.Compute` ``workers > 1`` (or the Ray
-backend) each batch is cut into one chunk per worker, and every worker runs the same *job* on its chunk: a picklable
-callable ``job(*arrays) -> dict[str, Tensor]`` whose arrays and results are batched on axis 0. The job (the networks,
-the system, the condition) is sent to a worker once, serialised with cloudpickle (so a system from a user's file
-travels by value: that file ran because the user named it); only the chunks travel after that. Results come back in
-the order the batches were submitted, so the caller's bookkeeping, and therefore what it proves, is the same for any
-number of workers.
+backend) each batch is cut into chunks, and the workers run the same *job* on the chunks: a picklable callable
+``job(*arrays) -> dict[str, Tensor]`` whose arrays and results are batched on axis 0. The job (the networks, the
+system, the condition) is sent to a worker once, serialised with cloudpickle (so a system from a user's file travels
+by value: that file ran because the user named it); only the chunks travel after that. Results come back in the order
+the batches were submitted, so the caller's bookkeeping, and therefore what it proves, is the same for any number of
+workers.
+
+A caller that names a chunk size (``submit(..., chunk=size)``) gets chunks of that many rows, the same ones
+:func:`run_in_chunks` bounds in this process, dealt to the workers in turn: each chunk's results are then the same
+bits wherever it is bounded. The bits of a row can depend on the rows bounded with it (float64 matrix products
+take another kernel for the rows beyond a multiple of the kernel's block, so a box's bound may change in its last
+bits with the number of boxes beside it); a chunk per worker, as without a size, would make them depend on the number
+of workers.
 
 * :func:`pool_for` -- the pool of a :class:`~drlyap.compute.Compute` (kept for the rest of the process, so that the
   proofs of one command share their workers); None where boxes are bounded in this process;
 * :meth:`Pool.submit` -- send a batch, get a :class:`Pending` whose :meth:`~Pending.result` waits for it;
+* :func:`run_in_chunks` -- the same chunks, bounded in this process;
 * :func:`close_pools` -- stop every worker (also at exit).
 
 Local workers are ``spawn``-ed processes with one torch thread each that end when this process ends, however it ends.
@@ -27,8 +35,6 @@ import os
 import queue
 import signal
 import sys
-import threading
-import time
 import traceback
 import types
 import weakref
@@ -39,6 +45,7 @@ import torch
 from torch import Tensor
 
 from drlyap.compute import Compute
+from drlyap.lifeline import bound_main
 
 Job = Callable[..., dict]
 _TOKENS = itertools.count(1)
@@ -83,9 +90,11 @@ def run_chunk(job: Job, arrays: tuple) -> dict:
 
 
 class _JobCache:
-    """The jobs a worker holds, by token (the latest few: a proof's job is used for all of its batches)."""
+    """The jobs a worker holds, by token (the latest :attr:`KEEP`: a proof's job is used for all of its batches)."""
 
-    def __init__(self, keep: int = 4) -> None:
+    KEEP = 4
+
+    def __init__(self, keep: int = KEEP) -> None:
         self.keep, self.jobs = keep, {}
 
     def load(self, token: int, payload: bytes) -> None:
@@ -100,20 +109,12 @@ class _JobCache:
 
 
 # --------------------------------------------------------------------------- the worker process
-def _watch_parent(parent: int, every: float = 0.5) -> None:
-    while True:
-        time.sleep(every)
-        if os.getppid() != parent:
-            os._exit(1)
-
-
-def _worker_main(requests, results, threads: int, parent: int) -> None:
-    """A local worker: load jobs, run chunks, until told to stop or the parent is gone. Ctrl-C is the parent's to
-    handle (it stops the workers)."""
+def _worker_main(requests, results, threads: int) -> None:
+    """A local worker: load jobs, run chunks, until told to stop (it was bound to its parent before it imported this
+    module: :func:`drlyap.lifeline.bound_main`). Ctrl-C is the parent's to handle (it stops the workers)."""
     signal.signal(signal.SIGINT, signal.SIG_IGN)
     os.environ["OMP_NUM_THREADS"] = str(threads)
     torch.set_num_threads(threads)
-    threading.Thread(target=_watch_parent, args=(parent,), daemon=True, name="drlyap-parent-watch").start()
     cache = _JobCache()
     while True:
         msg = requests.get()
@@ -129,6 +130,13 @@ def _worker_main(requests, results, threads: int, parent: int) -> None:
 
 
 # --------------------------------------------------------------------------- pools
+def _join(parts: list[dict]) -> dict:
+    """The results of a batch's chunks, in order, as one: tensors joined on axis 0; anything else the first chunk's."""
+    if len(parts) == 1:
+        return parts[0]
+    return {k: torch.cat([p[k] for p in parts]) if isinstance(parts[0][k], Tensor) else parts[0][k] for k in parts[0]}
+
+
 class Pending:
     """A batch submitted to a pool; :meth:`result` waits for its chunks and joins them (axis 0, in order)."""
 
@@ -137,9 +145,7 @@ class Pending:
 
     def result(self) -> dict:
         if self._value is None:
-            parts = [_to_torch(p) for p in self._fetch()]
-            self._value = {k: torch.cat([p[k] for p in parts]) if isinstance(parts[0][k], Tensor) else parts[0][k]
-                           for k in parts[0]}
+            self._value = _join([_to_torch(p) for p in self._fetch()])
         return self._value
 
 
@@ -151,6 +157,7 @@ class Pool:
 
     def __init__(self) -> None:
         self._tokens: weakref.WeakKeyDictionary = weakref.WeakKeyDictionary()
+        self._turn = 0  # the worker that gets the next chunk
 
     def _token(self, job: Job) -> tuple[int, bool]:
         """The job's token, and whether it is new to this pool (its workers must load it)."""
@@ -161,18 +168,40 @@ class Pool:
         self._tokens[job] = token
         return token, True
 
-    def submit(self, job: Job, *arrays: Tensor) -> Pending:
-        """Run ``job`` on ``arrays`` (each batched on axis 0, the same length), cut into one chunk per worker."""
+    def _deal(self, count: int) -> list[int]:
+        """The workers of ``count`` chunks, in turn from where the last batch left off (so that a small batch sent while
+        another is in flight goes to other workers)."""
+        start = self._turn
+        self._turn = (start + count) % self.workers
+        return [(start + i) % self.workers for i in range(count)]
+
+    def submit(self, job: Job, *arrays: Tensor, chunk: int | None = None) -> Pending:
+        """Run ``job`` on ``arrays`` (each batched on axis 0, the same length), cut into chunks of ``chunk`` rows (the
+        last one shorter; each chunk one call of ``job``, the calls :func:`run_in_chunks` makes) dealt to the workers in
+        turn, else (None) into one chunk per worker."""
         raise NotImplementedError
 
     def close(self) -> None:
         """Stop the workers."""
 
 
-def _chunks(arrays: tuple, parts: int) -> list[tuple]:
-    count = max(1, min(parts, int(arrays[0].shape[0])))
-    pieces = [torch.tensor_split(a, count) for a in arrays]
-    return [tuple(p[i] for p in pieces) for i in range(count)]
+def _chunks(arrays: tuple, parts: int, size: int | None = None) -> list[tuple]:
+    """``arrays`` (each ``(B, ...)``) cut on axis 0 into chunks of ``size`` rows (the last one shorter; one chunk where
+    ``B <= size``), or (``size`` None) into ``parts`` chunks of about the same length: a list of tuples of views."""
+    if size is not None:
+        if size < 1:
+            raise ValueError(f"a chunk holds at least one row, got {size}")
+        pieces = [torch.split(a, size) for a in arrays]
+    else:
+        pieces = [torch.tensor_split(a, max(1, min(parts, int(arrays[0].shape[0])))) for a in arrays]
+    return list(zip(*pieces))
+
+
+def run_in_chunks(job: Job, arrays: tuple, size: int) -> dict:
+    """``job`` on ``arrays`` (each ``(B, ...)``) in this process, one call per chunk of ``size`` rows (the chunks a
+    pool's ``submit(job, *arrays, chunk=size)`` deals to its workers), the results joined on axis 0 in order: the same
+    bits as the pool's."""
+    return _join([job(*chunk) for chunk in _chunks(arrays, 1, size)])
 
 
 def _start_without_main(proc) -> None:
@@ -201,15 +230,15 @@ class LocalPool(Pool):
         self._procs, self._requests, self._results = [], [], []
         for _ in range(workers):
             req, res = ctx.Queue(), ctx.Queue()
-            proc = ctx.Process(target=_worker_main, args=(req, res, threads, os.getpid()), daemon=True,
-                               name="drlyap-proof-worker")
+            proc = ctx.Process(target=bound_main, args=(os.getpid(), __name__, "_worker_main", req, res, threads),
+                               daemon=True, name="drlyap-proof-worker")
             _start_without_main(proc)
             self._procs.append(proc)
             self._requests.append(req)
             self._results.append(res)
         self._outstanding = 0
 
-    def submit(self, job: Job, *arrays: Tensor) -> Pending:
+    def submit(self, job: Job, *arrays: Tensor, chunk: int | None = None) -> Pending:
         if not self._procs:
             raise WorkerError("the proof workers were stopped")
         token, new = self._token(job)
@@ -217,13 +246,15 @@ class LocalPool(Pool):
             payload = _dumps(job)
             for req in self._requests:
                 req.put(("load", token, payload))
-        chunks = _chunks(arrays, self.workers)
-        for req, chunk in zip(self._requests, chunks):
-            req.put(("run", token, _to_numpy(chunk)))
-        used = list(range(len(chunks)))
+        chunks = _chunks(arrays, self.workers, chunk)
+        used = self._deal(len(chunks))
+        for i, part in zip(used, chunks):
+            self._requests[i].put(("run", token, _to_numpy(part)))
 
         def fetch() -> list[dict]:
-            replies = [self._receive(i) for i in used]  # every chunk's reply, so that none is left for the next batch
+            # every chunk's reply, so that none is left for the next batch; a worker answers its chunks in the order
+            # they were sent, and batches are fetched in the order they were submitted
+            replies = [self._receive(i) for i in used]
             for kind, value in replies:
                 if kind == "error":
                     raise WorkerError(f"a proof worker failed:\n{value}")
@@ -283,12 +314,20 @@ class RayPool(Pool):
             self._started = True
         actor = ray.remote(num_cpus=1, max_restarts=0)(_RayWorker)
         self._actors = [actor.remote(threads) for _ in range(workers)]
+        self._loads: dict[int, tuple[object, set[int]]] = {}  # token: (the job in Ray's store, the actors that have it)
 
-    def submit(self, job: Job, *arrays: Tensor) -> Pending:
-        token, new = self._token(job)
-        payload = self.ray.put(_dumps(job)) if new else None  # loaded with the job's first chunks: errors surface
-        chunks = _chunks(arrays, self.workers)
-        refs = [a.run.remote(token, _to_numpy(c), payload) for a, c in zip(self._actors, chunks)]
+    def submit(self, job: Job, *arrays: Tensor, chunk: int | None = None) -> Pending:
+        token, _ = self._token(job)
+        if token not in self._loads:  # each actor loads the job with its first chunk of it: errors surface there
+            self._loads[token] = (self.ray.put(_dumps(job)), set())
+            while len(self._loads) > _JobCache.KEEP:  # what the actors forgot too
+                self._loads.pop(next(iter(self._loads)))
+        payload, loaded = self._loads[token]
+        chunks = _chunks(arrays, self.workers, chunk)
+        refs = []
+        for i, part in zip(self._deal(len(chunks)), chunks):
+            refs.append(self._actors[i].run.remote(token, _to_numpy(part), None if i in loaded else payload))
+            loaded.add(i)
 
         def fetch() -> list[dict]:
             try:

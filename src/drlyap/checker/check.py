@@ -330,7 +330,7 @@ def _prove_chunks(job: LeafJob, lo: Tensor, hi: Tensor, above: Tensor, allowance
             parts.append(local(*part))
             bar.update(int(part[0].shape[0]))
             continue
-        flight.append((pool.submit(job, *part), int(part[0].shape[0])))
+        flight.append((pool.submit(job, *part, chunk=LEAF_CHUNK), int(part[0].shape[0])))  # whole, as here
         if len(flight) > 2 * pool.workers:
             future, count = flight.pop(0)
             parts.append(future.result())
