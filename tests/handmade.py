@@ -219,3 +219,28 @@ class ConstantController(nn.Module):
 
     def forward(self, x):
         return x @ self.k + self.b
+
+
+def survivors_of_kill(driver, workers, seconds: float = 2.0) -> list[int]:
+    """``kill -9`` the process ``driver`` (a Popen), then the ``workers`` (pids) still running ``seconds`` later."""
+    import os
+    import signal
+    import time
+
+    os.kill(driver.pid, signal.SIGKILL)
+    driver.wait()
+    deadline = time.monotonic() + seconds
+    while time.monotonic() < deadline and any(alive(p) for p in workers):
+        time.sleep(0.05)
+    return [p for p in workers if alive(p)]
+
+
+def alive(pid: int) -> bool:
+    """Whether process ``pid`` runs (read from /proc; a zombie waiting to be reaped counts as ended)."""
+    from pathlib import Path
+
+    try:
+        state = Path(f"/proc/{pid}/stat").read_text().rsplit(")", 1)[1].split()[0]
+    except (OSError, IndexError):
+        return False
+    return state != "Z"

@@ -466,7 +466,7 @@ def test_an_interrupted_verify_resumes_its_proof_and_clears_its_checkpoints(line
 
     run, spec = linear_run
     runner = CliRunner()
-    fresh = json.loads(runner.invoke(main, ["verify", str(run), "--system", spec, "--reprove", "--json"]).output)
+    fresh = json.loads(runner.invoke(main, ["verify", str(run), "--system", spec, "--reprove", "--json"]).stdout)
     calls = {"n": 0}
     bound = bounding.ConditionJob.__call__
 
@@ -479,11 +479,13 @@ def test_an_interrupted_verify_resumes_its_proof_and_clears_its_checkpoints(line
     monkeypatch.setattr(bounding.ConditionJob, "__call__", interrupted)
     small = ["--time-limit", "600"]
     out = runner.invoke(main, ["verify", str(run), "--system", spec, "--reprove", *small])
-    assert out.exit_code != 0 and list((run / "checkpoints").glob("proof-*.npz"))
+    assert out.exit_code == 130 and list((run / "checkpoints").glob("proof-*.npz"))  # as train: Ctrl-C is 130
+    assert out.output.strip().splitlines()[-1] == (f"drlyap: interrupted; the proof's progress is kept in "
+                                                   f"{run / 'checkpoints'}: the same command, run again, resumes it")
     monkeypatch.setattr(bounding.ConditionJob, "__call__", bound)
     out = runner.invoke(main, ["verify", str(run), "--system", spec, "--reprove", "--json", *small])
     assert out.exit_code == 0, out.output
-    resumed = json.loads(out.output)["trained"]
+    resumed = json.loads(out.stdout)["trained"]
     assert resumed["resumed_boxes"] > 0 and resumed["boxes_processed"] == fresh["trained"]["boxes_processed"]
     assert resumed["status"] == "verified" and not (run / "checkpoints").exists()
 

@@ -19,6 +19,7 @@ from drlyap.workflows.sweep import (
     run_sweep,
 )
 from drlyap.workflows.sweep.task import run_combination
+from handmade import survivors_of_kill
 
 TINY = dict(n_states=256, iters=20, check_every=20, lyapunov_hidden=[8], lyapunov_out=4, controller_hidden=[8])
 
@@ -191,18 +192,8 @@ def _children(pid: int) -> set[int]:
     return found
 
 
-def _alive(pid: int) -> bool:
-    try:
-        state = Path(f"/proc/{pid}/stat").read_text().rsplit(")", 1)[1].split()[0]
-    except OSError:
-        return False
-    return state != "Z"
-
-
 @pytest.mark.skipif(not Path("/proc/self/stat").exists(), reason="reads the process table from /proc")
 def test_kill_9_of_a_sweep_leaves_no_process_and_a_rerun_gives_the_same_table(local_sweep, tmp_path):
-    import os
-    import signal
     import subprocess
     import sys
     import time
@@ -216,12 +207,7 @@ def test_kill_9_of_a_sweep_leaves_no_process_and_a_rerun_gives_the_same_table(lo
         time.sleep(0.05)
     workers |= _children(main_proc.pid)
     assert workers, "the sweep started no worker"
-    os.kill(main_proc.pid, signal.SIGKILL)
-    main_proc.wait()
-    gone_by = time.monotonic() + 10
-    while time.monotonic() < gone_by and any(_alive(p) for p in workers):
-        time.sleep(0.1)
-    assert not [p for p in workers if _alive(p)], "workers outlived the killed sweep by 10 s"
+    assert not survivors_of_kill(main_proc, workers, 2.0), "workers outlived the killed sweep by 2 s"
     rerun = run_sweep(tiny_spec(seeds=[0]), out, InProcess(), figures=False)
     same = [r for r in local_sweep[1]["rows"] if r["seed"] == 0]
     assert rerun["failed"] == 0 and [r["name"] for r in rerun["rows"]] == [r["name"] for r in same]
