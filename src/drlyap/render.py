@@ -139,6 +139,8 @@ def proof_round_line(entry: ProofRound) -> str:
             retrain += f" and the verifier's bound over {added['open_boxes']} open boxes"
     same = " (the retraining before it left the pair unchanged)" if entry.unchanged else ""
     ended = "" if proof.status != Status.UNKNOWN else f"; ended by {_stopped(proof.stopped)}"
+    if getattr(proof, "resumed_boxes", None):
+        ended += f"; resumed from its checkpoint after {proof.resumed_boxes:,} boxes"
     line = (f"  proof round {entry.round}: {proof.status.upper()}{same}, {what} ({proof.boxes_processed:,} boxes, "
             f"{proof.time_s:.2f} s{capped}{ended})")
     if entry.added:
