@@ -408,6 +408,11 @@ class Budget:
         return dataclasses.replace(self, seconds=seconds)
 
 
+ROA_TIME_CAP = 10.0
+"""The time cap of the region-of-attraction search of ``verify --roa`` where ``ProofConfig.roa_time`` is None, in
+multiples of the checks' ``time_limit`` (300 s on the 2-state systems): the search is budgeted by boxes
+(``ProofConfig.roa_boxes``), and its default ends in well under a minute there."""
+
 DEFAULT_SETTLE_STARTS = 4096
 """Falsifier starts of a verdict (:func:`~drlyap.verification.falsifier.settle_unknown`): about 1.6 s on the
 quadrotor, one thread."""
@@ -437,8 +442,12 @@ class ProofConfig:
     fraction then counts every box not yet proved as unproved).
     ``retrain``: what the retraining rounds train, ``"pair"`` (V and pi) or ``"controller"`` (V kept as the first
     fit left it, so its sets stay where that fit put them; None: ``defaults.retrain``).
-    Checks of ``verify``: ``uniform_time`` seconds for the uniform DR margin, ``roa_time`` for the region of
-    attraction (None: 3x ``time_limit``), ``band_time`` for its band proof (None: ``roa_time`` again; 0: off).
+    Checks of ``verify``: ``uniform_time`` seconds for the uniform DR margin; the region of attraction's search
+    (``verify --roa``) does at most ``roa_boxes`` boxes (None: the system's ``defaults.verify_boxes``; its steps'
+    shares: :func:`~drlyap.verification.roa.certified_roa`), so that the region does not depend on the machine's speed,
+    and stops after ``roa_time`` seconds at most (None: :data:`ROA_TIME_CAP` x ``time_limit``, an outer cap whose
+    hitting the result reports); ``band_time`` caps its band proof's seconds (None: ``roa_time`` again; 0: off),
+    which gets ``roa_boxes`` boxes again.
     Where the boxes are bounded (:class:`Compute`; how fast, never what is proved, so a run does not record them):
     ``workers``, ``backend``, ``address``, ``device``, ``checkpoint_dir`` and ``checkpoint_every`` for proofs that
     resume, ``progress``.
@@ -465,6 +474,7 @@ class ProofConfig:
     retrain: str | None = None
     uniform_time: float = 3.0
     roa_time: float | None = None
+    roa_boxes: int | None = None
     band_time: float | None = None
     workers: int = 1
     backend: str = "local"
@@ -491,6 +501,8 @@ class ProofConfig:
             problems.append(f"uniform_time = {self.uniform_time} (must be > 0 seconds)")
         if not self.min_width > 0 or (self.max_boxes is not None and int(self.max_boxes) < 1):
             problems.append(f"min_width = {self.min_width} (> 0) / max_boxes = {self.max_boxes} (>= 1)")
+        if self.roa_boxes is not None and int(self.roa_boxes) < 1:
+            problems.append(f"roa_boxes = {self.roa_boxes} (must be >= 1)")
         if self.iters_per_round is not None and int(self.iters_per_round) < 1:
             problems.append(f"iters_per_round = {self.iters_per_round} (must be >= 1)")
         if int(self.max_extra) < 1 or int(self.replicate) < 1:
@@ -508,11 +520,13 @@ class ProofConfig:
             raise ValueError("invalid proof settings: " + "; ".join(problems))
 
     def resolved(self, system) -> ProofConfig:
-        """A copy with the system's defaults filled in (seconds and boxes per proof, the enclosure), validated."""
+        """A copy with the system's defaults filled in (seconds and boxes per proof and of the region-of-attraction
+        search, the enclosure), validated."""
         self.validate()
         d = system.defaults
         out = dataclasses.replace(self, time_limit=float(self.time_limit or d.verify_time),
                                   max_boxes=int(self.max_boxes or d.verify_boxes),
+                                  roa_boxes=int(self.roa_boxes or d.verify_boxes),
                                   round_time=float(self.round_time or self.time_limit or d.round_time),
                                   enclosure=Enclosure(self.enclosure or default_enclosure(system.n)),
                                   stop_at_counterexample=bool(d.stop_at_counterexample
@@ -545,6 +559,12 @@ class ProofConfig:
         return Compute(workers=int(self.workers), backend=self.backend, address=self.address, device=self.device,
                        checkpoint_dir=None if self.checkpoint_dir is None else str(self.checkpoint_dir),
                        checkpoint_every=float(self.checkpoint_every), progress=bool(self.progress))
+
+    def roa_budget(self) -> Budget:
+        """The :class:`Budget` of the region-of-attraction search of ``verify --roa``: ``roa_boxes`` boxes, and
+        ``roa_time`` seconds at most (None: :data:`ROA_TIME_CAP` x ``time_limit``)."""
+        budget = self.budget(self.roa_time if self.roa_time is not None else ROA_TIME_CAP * self.time_limit)
+        return dataclasses.replace(budget, boxes=int(self.roa_boxes or self.max_boxes))
 
     def round_budget(self) -> Budget:
         """The :class:`Budget` of each proof of the training rounds: ``max_boxes`` boxes, ``round_time`` seconds at

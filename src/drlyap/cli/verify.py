@@ -57,10 +57,15 @@ def _interrupted(run_dir: Path) -> None:
 @click.option("--roa/--no-roa", default=False, show_default=True,
               help="Certify a sublevel set of V as region of attraction (at --xi it may be cut by the box where "
                    "the flow enters it there).")
+@click.option("--roa-boxes", type=int, default=None,
+              help="Boxes for --roa's search: the condition on a sublevel set (60%), then decrease inside the ball "
+                   "(what that leaves), each bound of V up to a quarter; where that certifies no sublevel set of V but "
+                   "the closed loop's own ellipsoid {z'Pz <= c}, as many boxes again for V's decrease outside that "
+                   "ellipsoid (the band proof). Budgeted by boxes, the region does not depend on the machine's speed "
+                   "[the system's proof budget: 200,000; 1,500,000 for cartpole, 6,000,000 for quadrotor2d].")
 @click.option("--roa-time", type=float, default=None,
-              help="Seconds for --roa's search: the condition on a sublevel set, then decrease inside the ball "
-                   "[3x --time-limit]; where that certifies no sublevel set of V but the closed loop's own ellipsoid "
-                   "{z'Pz <= c}, as many seconds again for V's decrease outside that ellipsoid (the band proof).")
+              help="A cap on the seconds of --roa's search (and again of its band proof); a search that reaches it "
+                   "says so: its region may differ on a faster machine [10x --time-limit].")
 @click.option("--roa-above-level", is_flag=True,
               help="Let --roa's search go above the level the run was trained for (or the level of the run an imported "
                    "pair was exported from); without it the region certified is at most that level, the run's claim.")
@@ -89,9 +94,9 @@ def _interrupted(run_dir: Path) -> None:
 @click.option("--json", "as_json", is_flag=True, help="Print one JSON object.")
 @run_source_options
 def verify(run_dir: Path, delta: float | None, xi: str | None, time_limit: float | None, roa: bool,
-           roa_time: float | None, roa_above_level: bool, roa_rate: float | None, uniform: bool, max_radius: bool,
-           radius_tol: float, enclosure: str | None, reprove: bool, workers: int, backend: str, address: str | None,
-           device: str, as_json: bool, system_spec: str | None, trust_run: bool) -> None:
+           roa_boxes: int | None, roa_time: float | None, roa_above_level: bool, roa_rate: float | None, uniform: bool,
+           max_radius: bool, radius_tol: float, enclosure: str | None, reprove: bool, workers: int, backend: str,
+           address: str | None, device: str, as_json: bool, system_spec: str | None, trust_run: bool) -> None:
     """Prove the decrease condition of RUN_DIR on the whole state box minus the delta-ball, or find a counterexample.
 
     A run trained for a region of attraction (the default of every built-in system but the pendulum, and of your own
@@ -137,6 +142,8 @@ def verify(run_dir: Path, delta: float | None, xi: str | None, time_limit: float
             raise ValueError(f"--time-limit must be > 0, got {time_limit}")
         if roa_time is not None and not roa_time > 0:
             raise ValueError(f"--roa-time must be > 0, got {roa_time}")
+        if roa_boxes is not None and not roa_boxes >= 1:
+            raise ValueError(f"--roa-boxes must be >= 1, got {roa_boxes}")
         if roa_above_level and not roa:
             raise ValueError("--roa-above-level goes with --roa (it lets the region-of-attraction search pass the level)")
         if not radius_tol > 0:
@@ -146,11 +153,11 @@ def verify(run_dir: Path, delta: float | None, xi: str | None, time_limit: float
                              f"got {roa_rate}" + ("" if roa and xi is not None else " without them"))
         if read_run_kind(run_dir).get("kind") == "imported":
             _verify_imported(run_dir, delta, xi, time_limit, roa, roa_time, enclosure, as_json, system_spec, trust_run,
-                             compute, roa_above_level, roa_rate)
+                             compute, roa_above_level, roa_rate, roa_boxes)
             return
         run = load_run(run_dir, run_system_of(system_spec), trust_run)
-        settings = dataclasses.replace(run.proof or ProofConfig(), roa_time=roa_time, enclosure=enclosure, **compute,
-                                       checkpoint_dir=run_checkpoints(run))
+        settings = dataclasses.replace(run.proof or ProofConfig(), roa_time=roa_time, roa_boxes=roa_boxes,
+                                       enclosure=enclosure, **compute, checkpoint_dir=run_checkpoints(run))
         if time_limit is not None:
             settings = dataclasses.replace(settings, time_limit=time_limit)
         settings = run_proof(run, settings)
@@ -203,7 +210,8 @@ def verify(run_dir: Path, delta: float | None, xi: str | None, time_limit: float
 
 def _verify_imported(run_dir: Path, delta: float | None, xi: str | None, time_limit: float | None, roa: bool,
                      roa_time: float | None, enclosure: str | None, as_json: bool, system_spec: str | None,
-                     trust_run: bool, compute: dict, above_level: bool = False, roa_rate: float | None = None) -> None:
+                     trust_run: bool, compute: dict, above_level: bool = False, roa_rate: float | None = None,
+                     roa_boxes: int | None = None) -> None:
     """``drlyap verify`` on an imported pair: decrease on the true model at --xi (the system's test shift by default)
     and with --roa its region of attraction; what is verified is written as certificates."""
     from drlyap.io import jsonable
@@ -216,7 +224,8 @@ def _verify_imported(run_dir: Path, delta: float | None, xi: str | None, time_li
     if xi is None and system.test_xi is None:
         raise ValueError(f"an imported pair has no trained condition: give --xi ({system.k} values)")
     shift = system.check_xi(floats(xi, "--xi") if xi is not None else list(system.test_xi))
-    settings = dataclasses.replace(ProofConfig(), roa_time=roa_time, enclosure=enclosure, **compute)
+    settings = dataclasses.replace(ProofConfig(), roa_time=roa_time, roa_boxes=roa_boxes, enclosure=enclosure,
+                                   **compute)
     if time_limit is not None:
         settings = dataclasses.replace(settings, time_limit=time_limit)
     result = verify_imported(run.info["pair"], str(run_dir), settings, xi=shift, delta=delta, roa=roa,

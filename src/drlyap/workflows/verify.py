@@ -122,20 +122,19 @@ def verify(run: Run, proof: ProofConfig | None = None, *, delta: float | None = 
                reprove: bool = False, above_level: bool = False, roa_rate: float | None = None) -> RunVerification:
     """Verify a loaded run (:func:`drlyap.runs.load_run`) on X_delta (``delta``: the run's by default).
 
-    ``trained``: the run's own condition (pointwise / nominal by :func:`~drlyap.verification.prove_trained`, uniform
-    by :func:`~drlyap.verification.uniform_margin`); with ``uniform``, the uniform DR margin at the run's radius,
-    risk level and samples (the trained condition itself for a run trained on it); with ``xi``, ``true_model``:
-    plain decrease on the true model at that shift; with ``roa``, the certified region of attraction of the main
-    condition (the true model's when ``xi`` is given), for ``proof.roa_time`` seconds (None: 3x
-    ``proof.time_limit``), up to the level a region-of-attraction run was trained for. A run trained for a region
-    of attraction (``config.roa_level``) has its trained and true-model conditions proved on ``{V <= roa_level}``
-    with V above the level on the box's faces; ``above_level``: the region-of-attraction search goes on above that
-    level too (the claim the run was trained for stays the default). ``proof``: the settings (:func:`run_proof`). A
-    condition whose
-    certificate file states the same claim and is confirmed by the checker is not proved again
-    (:func:`confirmed_certificate`), unless ``reprove``. ``roa_rate``: with ``xi``, the decay ``alpha`` of the true
-    model's decrease ``Vdot + alpha V <= 0`` proved there and asked of its region (None: the run's ``exp_rate``; a
-    region of attraction needs only a strict decrease, any ``alpha > 0``).
+    ``trained``: the run's own condition (pointwise / nominal by :func:`~drlyap.verification.prove_trained`, uniform by
+    :func:`~drlyap.verification.uniform_margin`); with ``uniform``, the uniform DR margin at the run's radius, risk
+    level and samples (the trained condition itself for a run trained on it); with ``xi``, ``true_model``: plain
+    decrease on the true model at that shift; with ``roa``, the certified region of attraction of the main condition
+    (the true model's when ``xi`` is given) within ``proof.roa_budget()`` (boxes, not seconds), up to the level a
+    region-of-attraction run was trained for. A run trained for a region of attraction (``config.roa_level``) has its
+    trained and true-model conditions proved on ``{V <= roa_level}`` with V above the level on the box's faces;
+    ``above_level``: the region-of-attraction search goes on above that level too (the claim the run was trained for
+    stays the default). ``proof``: the settings (:func:`run_proof`). A condition whose certificate file states the same
+    claim and is confirmed by the checker is not proved again (:func:`confirmed_certificate`), unless ``reprove``.
+    ``roa_rate``: with ``xi``, the decay ``alpha`` of the true model's decrease ``Vdot + alpha V <= 0`` proved there and
+    asked of its region (None: the run's ``exp_rate``; a region of attraction needs only a strict decrease, any ``alpha
+    > 0``).
     """
     _check_roa_rate(roa_rate, xi is not None, "a shift (xi)")
     proof = run_proof(run, proof)
@@ -173,9 +172,8 @@ def verify(run: Run, proof: ProofConfig | None = None, *, delta: float | None = 
                 "the uniform DR condition with eps N > 1 implies no decrease at each sample (its CVaR is not their "
                 "maximum); no sublevel-set certificate")
         else:
-            region_of_attraction = _region_of_attraction(loop, roa_condition, region, proof, budget, level,
-                                                         outer if isinstance(outer, ConditionProof) else None,
-                                                         above_level)
+            proved = outer if isinstance(outer, ConditionProof) else None
+            region_of_attraction = _region_of_attraction(loop, roa_condition, region, proof, level, proved, above_level)
             if true_model is not None:
                 region_of_attraction.xi = true_model.xi
     return RunVerification(run_dir=str(run.path), system=system.name, method=cfg.method,
@@ -191,13 +189,10 @@ def _check_roa_rate(roa_rate: float | None, given_with: bool, what: str) -> None
                          + ("" if given_with else f" without {what}"))
 
 
-def _region_of_attraction(loop: ClosedLoop, condition: Condition, region: Region, proof: ProofConfig, budget: Budget,
+def _region_of_attraction(loop: ClosedLoop, condition: Condition, region: Region, proof: ProofConfig,
                           level: float | None, proved: ConditionProof | None, above_level: bool) -> RegionOfAttraction:
-    """:func:`~drlyap.verification.certified_roa` of ``condition`` for ``proof.roa_time`` seconds (None: 3x
-    ``proof.time_limit``), up to ``level`` (a run's claim; None: no cap) unless ``above_level``. ``proved``: the proof
-    of ``condition`` on ``{V <= level}``, which stands for the level search up to that level only."""
-    seconds = 3 * proof.time_limit if proof.roa_time is None else proof.roa_time
-    return certified_roa(loop, condition, region, budget.with_seconds(seconds),
+    """``certified_roa`` in ``proof.roa_budget()``, up to ``level`` (``proved`` there) unless ``above_level``."""
+    return certified_roa(loop, condition, region, proof.roa_budget(),
                          max_level=math.inf if level is None or above_level else float(level),
                          band_time=proof.band_time, proved=None if above_level else proved)
 
@@ -225,8 +220,7 @@ def verify_imported(pair, run_dir: str, proof: ProofConfig | None = None, *, xi:
     true_model.xi = condition.xi[0].tolist()
     region_of_attraction = None
     if roa:
-        region_of_attraction = _region_of_attraction(loop, condition, region, proof, budget, level, true_model,
-                                                     above_level)
+        region_of_attraction = _region_of_attraction(loop, condition, region, proof, level, true_model, above_level)
         region_of_attraction.xi = true_model.xi
     return RunVerification(run_dir=str(run_dir), system=system.name, method="imported", loss=None, delta=region.delta,
                            enclosure=proof.enclosure, trained=None, true_model=true_model, roa=region_of_attraction,

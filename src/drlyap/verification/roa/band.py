@@ -31,7 +31,7 @@ from drlyap.enclosures import F64
 from drlyap.kinds import Enclosure
 from drlyap.regions import Region, box_grid, default_grid
 from drlyap.verification.branch_and_bound import verify_condition
-from drlyap.verification.roa.levels import below, level_search
+from drlyap.verification.roa.levels import BOX_BUDGET, TIME_LIMIT, below, level_search, time_capped
 from drlyap.verification.roa.local import resolving_ellipsoid
 from drlyap.verification.roa.quadratic import CoredProof
 
@@ -44,7 +44,9 @@ def band_roa(loop: ClosedLoop, condition: Condition, region: Region, quadratic: 
     :func:`~drlyap.verification.roa.quadratic.quadratic_roa` (``quadratic``: its result, with ``P`` and ``q_level``).
     ``top`` must be a lower bound of V on the box's faces (or lower). Runs
     :func:`~drlyap.verification.roa.levels.level_search` with the ellipsoid (affine enclosure) over the whole box,
-    for ``budget.seconds``.
+    one level after the other, until ``budget.boxes`` boxes are spent between them (``limited_by``
+    :data:`~drlyap.verification.roa.levels.BOX_BUDGET`), or ``budget.seconds``, a time cap (``TIME_LIMIT``, and
+    ``capped`` names the band proof).
 
     Returns ``proved`` (``c > 0``), ``level``, ``limited_by``, ``boxes``, ``time_s``, ``counterexample`` (user
     coordinates, or None), ``P``, ``q_level``, ``v_on_ellipsoid``: V's smallest and largest value at 20,000
@@ -90,22 +92,28 @@ def band_roa(loop: ClosedLoop, condition: Condition, region: Region, quadratic: 
             loop, strict, lo, hi, region.scale, target,
             limited_by if target >= top else "next level not reached", start + time_limit, meets=everywhere,
             in_region=lambda centre, v: everywhere(centre, centre), min_width=fine, batch=budget.batch,
-            enclosure=Enclosure.AFFINE, ellipsoid=(p, c_q), progress=budget.compute.progress)
+            enclosure=Enclosure.AFFINE, ellipsoid=(p, c_q), max_boxes=max(1, budget.boxes - boxes),
+            progress=budget.compute.progress)
         boxes += count
         targets.append({"level": target, "reached": level >= target, "boxes": count,
                         "time_s": time.perf_counter() - start})
         if level >= target and target < top:
             reached = target
-            if time.perf_counter() < start + time_limit:
+            if boxes >= budget.boxes:
+                limited_by = BOX_BUDGET
+            elif time.perf_counter() < start + time_limit:
                 target = min(top, 1.3 * target)
                 continue
-            limited_by = "time limit"
+            else:
+                limited_by = TIME_LIMIT
         elif level > reached:  # the last search's own level (a lower bound of V on what it left), if higher
             reached, limited_by = level, why
         else:
             limited_by, cex = f"{why} at the next level ({target:.4g})", None
         break
     c = below(reached)
+    if time_capped(limited_by):
+        out["capped"] = ["the band proof"]
     out.update(proved=c > 0, level=c, limited_by=limited_by, boxes=boxes, decay_rate=strict.decay_rate, levels=targets,
                beyond_ellipsoid=c > out["v_on_ellipsoid"][0],
                counterexample=None if cex is None else system.to_user(cex[None])[0].tolist(),

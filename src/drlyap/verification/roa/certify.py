@@ -21,7 +21,6 @@ the same closed loop, not a sublevel set of V).
 from __future__ import annotations
 
 import math
-import time
 from dataclasses import replace
 
 from drlyap.closed_loop import ClosedLoop
@@ -32,7 +31,14 @@ from drlyap.verification.results import ConditionProof, RegionOfAttraction
 from drlyap.verification.roa.band import band_roa
 from drlyap.verification.roa.local import local_decrease
 from drlyap.verification.roa.quadratic import linearisation_local, quadratic_roa
-from drlyap.verification.roa.sublevel import finish, outer_search, outer_strictness, proof_fits, proved_outer
+from drlyap.verification.roa.sublevel import (
+    finish,
+    near_budget,
+    outer_search,
+    outer_strictness,
+    proof_fits,
+    proved_outer,
+)
 
 
 def certified_roa(loop: ClosedLoop, condition: Condition, region: Region, budget: Budget = Budget(seconds=10.0), *,
@@ -43,13 +49,20 @@ def certified_roa(loop: ClosedLoop, condition: Condition, region: Region, budget
     conditions in every branch and bound here, inside the ball too; None: by the dimension; the Hessian enclosure
     on the cube around x* is interval arithmetic on nested dual numbers).
 
+    ``budget.boxes`` is the search's work: the level search gets 60% of it (all of it with ``delta = 0``), each bound
+    of V (on the faces, where the flow may leave them, on the ball) up to a quarter, and the proofs near x* what the
+    level search leaves (:func:`~drlyap.verification.roa.sublevel.near_budget`: half of it to V's own proof in the
+    ball, then the rest to the linearisation or the closed loop's ellipsoid), so that the result does not depend on
+    the machine's speed. ``budget.seconds`` is a cap on the wall time, split in the same proportions; a step that
+    reaches it is named in ``limited_by`` (:data:`~drlyap.verification.roa.levels.TIME_LIMIT`).
+
     ``max_level`` caps the search (e.g. at the level a region of attraction was trained for: ``limited_by`` then
-    is ``TRAINED_LEVEL`` when the cap is proved). ``band_time``: seconds for the band proof, where it runs
-    (None: ``budget.seconds`` again; 0: not run). ``samples_per_axis``: the grid that estimates the share of the box
-    in S (n <= 2). ``proved``: a verified proof of ``condition`` on ``{V <= level}`` (a region-of-attraction run's,
-    :func:`~drlyap.verification.sublevel.verify_sublevel`, ``level <= max_level``), taken for the search outside
-    the ball (:func:`~drlyap.verification.roa.sublevel.proved_outer`); the search runs where it does not fit
-    (:func:`~drlyap.verification.roa.sublevel.proof_fits`).
+    is ``TRAINED_LEVEL`` when the cap is proved). ``band_time``: the time cap of the band proof, where it runs (None:
+    ``budget.seconds`` again; 0: not run); it gets ``budget.boxes`` boxes again. ``samples_per_axis``: the grid that
+    estimates the share of the box in S (n <= 2). ``proved``: a verified proof of ``condition`` on ``{V <= level}`` (a
+    region-of-attraction run's, :func:`~drlyap.verification.sublevel.verify_sublevel`, ``level <= max_level``), taken
+    for the search outside the ball (:func:`~drlyap.verification.roa.sublevel.proved_outer`); the search runs where it
+    does not fit (:func:`~drlyap.verification.roa.sublevel.proof_fits`).
     """
     budget = replace(budget, enclosure=budget.enclosure_for(loop.n))
     if proof_fits(proved, region, max_level):
@@ -58,18 +71,21 @@ def certified_roa(loop: ClosedLoop, condition: Condition, region: Region, budget
         outer = outer_search(loop, condition, region, budget, max_level)
     c = outer.level
     strict = outer_strictness(loop, condition, region, budget) if c > 0 else None
-    left = max(1.0, (outer.deadline - time.perf_counter()) / 2)
     keep: dict = {}
-    local = local_decrease(loop, condition, region, replace(budget, seconds=left), level=c if c > 0 else None,
-                           keep=keep)
+    local = local_decrease(loop, condition, region, near_budget(budget, outer, fraction=0.5),
+                           level=c if c > 0 else None, keep=keep)
+    spent = local["boxes"]  # by the proofs near x*
     own_failed = not local["proved"] or not (strict is None or strict["strict"])
     if own_failed and local.get("equilibrium") and c > 0:  # the linearisation's chain needs no strictness outside
-        left = max(3.0, outer.deadline - time.perf_counter())
-        local = linearisation_local(loop, condition, region, c, replace(budget, seconds=left)) | {"second_order": local}
+        second = local
+        local = linearisation_local(loop, condition, region, c, near_budget(budget, outer, spent, least_seconds=3.0))
+        spent += local["boxes"]
+        capped = [*second.get("capped", ()), *local.get("capped", ())]
+        local |= {"second_order": second} | ({"capped": capped} if capped else {})
     quadratic = None  # the closed loop's own quadratic Lyapunov function, reported where V's sublevel sets are not certified
     if not (c > 0 and local["proved"] and (not own_failed or local["method"] == "linearisation")):
         quadratic = local.get("quadratic") or quadratic_roa(
-            loop, condition, region, replace(budget, seconds=max(3.0, outer.deadline - time.perf_counter())))
+            loop, condition, region, near_budget(budget, outer, spent, least_seconds=3.0))
         quadratic = {k: v for k, v in quadratic.items() if k not in ("jacobians", "eigenvalues")}
     band = None
     if quadratic is not None and quadratic.get("proved") and (band_time is None or band_time > 0):

@@ -1,6 +1,11 @@
 """The level search behind every region of attraction: the largest level ``c`` such that a condition holds on
 ``{V <= c}`` (over given boxes, optionally outside an ellipsoid ``{z^T P z <= c_q}``), by branch and bound with
-the boxes of lowest V first (:func:`level_search`)."""
+the boxes of lowest V first (:func:`level_search`); and how a region-of-attraction search is budgeted.
+
+**Work, not seconds.** Every step of a region-of-attraction search stops after a number of boxes (its share of the
+budget's ``boxes``, ``--roa-boxes``), so that what it certifies does not depend on how busy the machine is. The
+budget's ``seconds`` (``--roa-time``) stay as a cap on the wall time, split between the steps as the boxes are; a
+step that reaches it says so (:data:`TIME_LIMIT`, :func:`time_capped`): its result may differ on a faster machine."""
 
 from __future__ import annotations
 
@@ -27,6 +32,24 @@ from drlyap.verification.bounds import (
     vertex_max,
 )
 
+BOX_BUDGET = "box budget (--roa-boxes)"
+"""``limited_by`` of a level search that spent its box budget (the level is V's least lower bound on the boxes it left
+open)."""
+
+TIME_LIMIT = "time limit (--roa-time): the result may differ on a faster machine"
+"""``limited_by`` of a level search stopped by its time cap (as for :data:`BOX_BUDGET`), and what a search whose step
+reached its time cap adds to its ``limited_by`` (:func:`time_capped`)."""
+
+
+def share(boxes: int, fraction: float) -> int:
+    """``fraction`` of a box budget ``boxes``, at least 1."""
+    return max(1, int(boxes * fraction))
+
+
+def time_capped(stopped: str | None) -> bool:
+    """Whether a step's ``stopped`` (a branch and bound's) or ``limited_by`` (a level search's) is its time cap."""
+    return stopped is not None and (stopped == "time limit" or TIME_LIMIT in stopped)
+
 
 def below(level: float) -> float:
     """A level rounded one float64 step down (a sound level stays sound below), infinities as they are."""
@@ -36,7 +59,7 @@ def below(level: float) -> float:
 def level_search(loop: ClosedLoop, condition: Condition, lo: Tensor, hi: Tensor, scale: Tensor, level: float,
                  limited_by: str, deadline: float, *, meets, in_region, floor: float = -math.inf,
                  min_width: float = 1e-4, batch: int = 4096, enclosure: Enclosure = Enclosure.MEAN_VALUE,
-                 ellipsoid: tuple[Tensor, float] | None = None,
+                 ellipsoid: tuple[Tensor, float] | None = None, max_boxes: int | None = None,
                  progress: bool = False) -> tuple[float, str, Tensor | None, int]:
     """The largest level (at most ``level``) such that ``condition`` holds on every state of the boxes
     ``[lo, hi]`` (and of their parts where ``meets(lo, hi)``, a ``(B,)`` mask) with ``floor <= V <= level``
@@ -44,10 +67,11 @@ def level_search(loop: ClosedLoop, condition: Condition, lo: Tensor, hi: Tensor,
 
     Boxes with V's lower bound above the level, or V's upper bound below ``floor``, need no proof; the rest are
     proved or split, those with the lowest bound on V first (a box's parts inherit its bound), so that the
-    sets ``{V <= c}`` are settled from small ``c`` up and a time limit costs the least level. A box that cannot
-    be proved lowers the level to (a lower bound of) V on it: to V at its centre when that centre is a
+    sets ``{V <= c}`` are settled from small ``c`` up and a budget that runs out costs the least level. A box that
+    cannot be proved lowers the level to (a lower bound of) V on it: to V at its centre when that centre is a
     confirmed violation in the region (``in_region(centre, V enclosure)``), else to V's lower bound on it once
-    it reaches the minimum size or the time runs out.
+    it reaches the minimum size, or once ``max_boxes`` boxes are processed (None: no limit; ``limited_by``
+    :data:`BOX_BUDGET`) or the clock passes ``deadline`` (:data:`TIME_LIMIT`), whichever comes first.
 
     With ``ellipsoid`` (the affine enclosure only): boxes inside ``L`` (every vertex; ``L`` is convex) need no proof,
     V's lower bound is taken on each box's part outside ``L`` (:func:`outside_lower`), and boxes are split on the side
@@ -71,9 +95,10 @@ def level_search(loop: ClosedLoop, condition: Condition, lo: Tensor, hi: Tensor,
     processed = 0
     cex = None
     known = torch.full((lo.shape[0],), -math.inf, dtype=lo.dtype)  # a lower bound of V on each queued box
-    bar = show_progress(None, "region of attraction: level search, boxes", progress)
+    bar = show_progress(max_boxes, "region of attraction: level search, boxes", progress)
     while lo.shape[0]:
-        if time.perf_counter() > deadline:
+        spent = max_boxes is not None and processed >= max_boxes
+        if spent or time.perf_counter() > deadline:
             order = known.argsort()
             first = order[:16 * batch]  # tighten the lowest inherited bounds, the rest stand as they are
             v_min = float(known[order[16 * batch:]].min()) if order.shape[0] > first.shape[0] else math.inf
@@ -82,7 +107,7 @@ def level_search(loop: ClosedLoop, condition: Condition, lo: Tensor, hi: Tensor,
                 fresh = box_bounds(vobj, lo[rows], hi[rows], enclosure)[0][:, 0]
                 v_min = min(v_min, float(torch.maximum(fresh, known[rows]).min()))  # both are lower bounds
             if v_min < level:
-                level, limited_by = v_min, "time limit"
+                level, limited_by = v_min, BOX_BUDGET if spent else TIME_LIMIT
             break
         if lo.shape[0] > batch:
             take = torch.zeros(lo.shape[0], dtype=torch.bool)

@@ -31,6 +31,7 @@ from drlyap.regions import Region
 from drlyap.verification.branch_and_bound import verify_condition
 from drlyap.verification.linearisation import jacobian_negative
 from drlyap.verification.results import BallProof
+from drlyap.verification.roa.levels import time_capped
 
 
 def _hessian_negative(loop: ClosedLoop, plain: PlainDecrease, half_width: Tensor) -> tuple[bool, float, str]:
@@ -129,12 +130,14 @@ def local_decrease(loop: ClosedLoop, condition: Condition, region: Region,
     """Prove ``Vdot < 0`` on the delta-ball minus x* (with ``level``: on its part in ``{V <= level}``) for every
     sample of ``condition``'s model (see the module docstring). Returns ``proved``, the cube half-width ``cube``
     of the second-order proof, its bound ``hessian_bound``, the ring verification's status and ``reason`` when
-    it fails. ``keep``: where a proof that holds is put, as ``keep["ball"]`` (a
+    it fails, and ``boxes``: the ring's boxes (its proof: ``budget``, boxes and seconds; ``capped`` names it where
+    it stopped at its time cap). ``keep``: where a proof that holds is put, as ``keep["ball"]`` (a
     :class:`~drlyap.verification.results.BallProof`, the ring's partition kept), for a certificate to write down."""
     start = time.perf_counter()
     time_limit, min_width = budget.seconds, budget.min_width
     method = "mean-value Jacobian" if isinstance(loop.lyapunov, QuadraticLyapunov) else "second order"
-    out: dict = {"method": method, "proved": False, "cube": None, "hessian_bound": None, "ring": None, "reason": ""}
+    out: dict = {"method": method, "proved": False, "cube": None, "hessian_bound": None, "ring": None, "reason": "",
+                 "boxes": 0}
     plain = condition.per_sample()
     if plain is None:
         out["reason"] = "the condition implies no per-sample decrease (a CVaR over several samples)"
@@ -177,11 +180,14 @@ def local_decrease(loop: ClosedLoop, condition: Condition, region: Region,
                                                            min_width=resolving(min_width, r_in, region)),
                            stop_at_counterexample=True, level=level, keep_partition=keep is not None)
     out["ring"] = {"status": res.status, "decay_rate": gamma_in, "inner_radius": r_in, "boxes": res.boxes_processed,
-                   "verified_fraction": res.verified_fraction}
+                   "verified_fraction": res.verified_fraction, "stopped": res.stopped}
+    out["boxes"] = res.boxes_processed
+    if time_capped(res.stopped):
+        out["capped"] = ["the proof between the cube and the delta-ball"]
     out["proved"] = res.status == Status.VERIFIED
     if out["proved"] and keep is not None:
         keep["ball"] = BallProof(cube=half.tolist(), condition=ring_plain, region=ring, ring=res)
     if not out["proved"]:
-        out["reason"] = f"decrease between the cube and the delta-ball: {res.status}"
+        out["reason"] = f"decrease between the cube and the delta-ball: {res.status} ({res.stopped})"
     out["time_s"] = time.perf_counter() - start
     return out

@@ -60,7 +60,7 @@ from drlyap.verification.linearisation import (
     scaled_jacobians,
 )
 from drlyap.verification.results import ConditionProof
-from drlyap.verification.roa.levels import below, level_search
+from drlyap.verification.roa.levels import below, level_search, share, time_capped
 from drlyap.verification.roa.local import not_equilibrium, proved_cube, resolving, resolving_ellipsoid
 from drlyap.verification.roa.sublevel import sublevel_roa
 
@@ -75,14 +75,18 @@ def quadratic_roa(loop: ClosedLoop, condition: Condition, region: Region,
     (:func:`common_lyapunov_matrix`) on the widest cube (halving) where it is proved, and a ``P`` fitted to the cube
     (:func:`_fitted_cube`: wider cubes, rounder ellipsoids). For each, ``c_cube = min_i h_i^2 / (P^-1)_ii`` (rounded
     down) puts ``{W <= c_cube}`` inside the cube, and :func:`~drlyap.verification.roa.sublevel.sublevel_roa` on ``W``
-    may prove a larger level (:func:`_quadratic_level`; the candidates share the time left). The result is the candidate
-    with the larger volume: ``proved``, ``P``, ``P_choice``, ``q_level`` (``c_q``), ``cube``, ``cube_level``, ``q_roa``
-    (the search beyond the cube), ``share_of_box`` (the ellipsoid's exact volume over the box's), ``candidates`` (both,
-    each with its ``P``), the Jacobians and their eigenvalues, and ``reason`` when it fails."""
+    may prove a larger level (:func:`_quadratic_level`; the candidates share the budget's boxes, and its seconds
+    left). The choice of the cubes is not a branch and bound: a bounded number of tries (halving, then bisection
+    steps), each capped by half the budget's seconds (``capped`` names a step that stopped at its time cap). The result
+    is the candidate with the larger volume: ``proved``, ``P``, ``P_choice``, ``q_level`` (``c_q``), ``cube``,
+    ``cube_level``, ``q_roa`` (the search beyond the cube), ``share_of_box`` (the ellipsoid's exact volume over the
+    box's), ``candidates`` (both, each with its ``P``), ``boxes`` (all the searches'), the Jacobians and their
+    eigenvalues, and ``reason`` when it fails."""
     start = time.perf_counter()
     time_limit = budget.seconds
     deadline = start + time_limit
-    out: dict = {"method": "linearisation", "proved": False, "q_level": None, "share_of_box": 0.0, "reason": ""}
+    out: dict = {"method": "linearisation", "proved": False, "q_level": None, "share_of_box": 0.0, "reason": "",
+                 "boxes": 0}
     plain = condition.per_sample()
     if plain is None:
         out["reason"] = "the condition implies no per-sample decrease (a CVaR over several samples)"
@@ -116,30 +120,36 @@ def quadratic_roa(loop: ClosedLoop, condition: Condition, region: Region,
                                       1e-9 * float(half_box.max()), s)
     if half is not None:
         candidates.append(("Lyapunov equation", p_mean, half, bound))
-    fitted = _fitted_cube(loop, plain, p_mean, half_box, s, cube_deadline)
+    capped = []
+    fitted = _fitted_cube(loop, plain, p_mean, half_box, s, cube_deadline, capped)
     if fitted is not None:
         candidates.append(("fitted", *fitted))
     if not candidates:
         out["reason"] = f"W = z'Pz: Wdot < 0 not proved on any cube around x* ({reason})"
+        out.update({"capped": capped} if capped else {})
         return out
-    results = []
+    results, spent = [], 0
     for i, (name, p, half, bound) in enumerate(candidates):
         left = (deadline - time.perf_counter()) / (len(candidates) - i)
-        results.append(_quadratic_level(loop, plain, region, p, half, bound, replace(budget, seconds=left))
-                       | {"P_choice": name})
+        boxes = share(max(budget.boxes - spent, budget.boxes // 10), 1 / (len(candidates) - i))
+        found = _quadratic_level(loop, plain, region, p, half, bound, replace(budget, seconds=left, boxes=boxes))
+        spent += found["boxes"]
+        capped += found.pop("capped", [])
+        results.append(found | {"P_choice": name})
     best = max(results, key=lambda r: r["share_of_box"])
     out.update(best)
     out["candidates"] = results  # each with its P: linearisation_local tries every one
-    out.update(proved=True, time_s=time.perf_counter() - start)
+    out.update(proved=True, time_s=time.perf_counter() - start, boxes=spent, **({"capped": capped} if capped else {}))
     return out
 
 
 def _fitted_cube(loop: ClosedLoop, plain: PlainDecrease, p_mean: Tensor, half_box: Tensor, s: Tensor,
-                 deadline: float) -> tuple[Tensor, Tensor, float] | None:
-    """``(P, half, bound)``: the widest cube ``half_box * f`` (f halving, then two bisection steps) on which a
-    ``P`` fitted by :func:`robust_lyapunov_matrix` (from ``p_mean``, warm-started cube to cube) is proved by
+                 deadline: float, capped: list | None = None) -> tuple[Tensor, Tensor, float] | None:
+    """``(P, half, bound)``: the widest cube ``half_box * f`` (f halving down to 1e-9, then two bisection steps) on
+    which a ``P`` fitted by :func:`robust_lyapunov_matrix` (from ``p_mean``, warm-started cube to cube) is proved by
     :func:`~drlyap.verification.linearisation.jacobian_negative`, that ``P`` refitted for the largest ellipsoid inside
-    the cube; None if none."""
+    the cube; None if none. Past ``deadline`` (a time cap) no further cube is tried, and ``capped`` (a list) gets
+    the step's name."""
 
     def attempt(frac: float, p_from: Tensor, t_from: Tensor | None, steps: int):
         h = half_box * frac
@@ -154,16 +164,22 @@ def _fitted_cube(loop: ClosedLoop, plain: PlainDecrease, p_mean: Tensor, half_bo
         ok, bound, _ = jacobian_negative(loop, plain, p, h, s, log_t, (centre, radius))
         return ((p, h, bound, log_t) if ok else None), p_s, log_t
 
+    def out_of_time() -> bool:
+        late = time.perf_counter() > deadline
+        if late and capped is not None:
+            capped.append("the fitted cube of the closed loop's quadratic W")
+        return late
+
     found, frac, failed, log_t = None, 1.0, None, None
     p_start = p_mean * s[:, None] * s[None, :]
-    while found is None and frac > 1e-9 and time.perf_counter() < deadline:
+    while found is None and frac > 1e-9 and not out_of_time():
         found, p_start, log_t = attempt(frac, p_start, log_t, 300)
         if found is None:
             failed, frac = frac, frac / 2
     if found is None:
         return None
     for _ in range(2):
-        if failed is None or time.perf_counter() > deadline:
+        if failed is None or out_of_time():
             break
         mid = (frac + failed) / 2
         better, _, _ = attempt(mid, found[0] * s[:, None] * s[None, :], found[3], 1000)
@@ -189,9 +205,10 @@ def _quadratic_level(loop: ClosedLoop, plain: PlainDecrease, region: Region, p: 
     largest ellipsoid inside the cube (``cube_level``), grown while
     :func:`~drlyap.verification.linearisation.jacobian_negative` proves the decrease on the ellipsoid's bounding box
     (``box_level``; up to 30% of the time), or more where :func:`~drlyap.verification.roa.sublevel.sublevel_roa` on
-    W proves it; with
-    ``P``, the cube, ``share_of_box`` (the ellipsoid's exact volume over the box's), ``extent`` (the largest
-    ``|z_i|`` in it, per state) and the search's details."""
+    W proves it (the budget's boxes; the doubling and bisection are a bounded number of tests, up to 30% of the
+    seconds as a cap, named in ``capped`` where reached); with ``P``, the cube, ``share_of_box`` (the ellipsoid's
+    exact volume over the box's), ``extent`` (the largest ``|z_i|`` in it, per state), ``boxes`` and the search's
+    details."""
     start = time.perf_counter()
     time_limit = budget.seconds
     inv_diag = torch.linalg.inv(p).diagonal()
@@ -207,14 +224,22 @@ def _quadratic_level(loop: ClosedLoop, plain: PlainDecrease, region: Region, p: 
         box = bounding_box(c)
         return bool((box <= half_box).all()) and jacobian_negative(loop, plain, p, box, region.scale / 2)[0]
 
-    c_box, failed = c_cube, None
-    while failed is None and time.perf_counter() - start < 0.3 * time_limit:
+    capped = []
+
+    def out_of_time() -> bool:
+        late = time.perf_counter() - start > 0.3 * time_limit
+        if late:
+            capped.append("the growth of the closed loop's ellipsoid W")
+        return late
+
+    c_box, failed = c_cube, None  # doubling ends where the bounding box leaves the state box, if not before
+    while failed is None and not out_of_time():
         if decreases(2 * c_box):
             c_box *= 2
         else:
             failed = 2 * c_box
     for _ in range(4):
-        if failed is None or time.perf_counter() - start > 0.3 * time_limit:
+        if failed is None or out_of_time():
             break
         mid = math.sqrt(c_box * failed)
         c_box, failed = (mid, failed) if decreases(mid) else (c_box, mid)
@@ -229,6 +254,8 @@ def _quadratic_level(loop: ClosedLoop, plain: PlainDecrease, region: Region, p: 
     c_q = c_box
     if w_roa.kind == "region of attraction" and w_roa.level > c_q:
         c_q = w_roa.level
+    if time_capped(w_roa.limited_by):
+        capped.append("the search of the closed loop's ellipsoid W")
     n = loop.n
     volume = math.pi ** (n / 2) / math.gamma(n / 2 + 1) * c_q ** (n / 2) / math.sqrt(float(torch.linalg.det(p)))
     return {"P": p.tolist(), "q_level": c_q, "share_of_box": volume / float(region.scale.prod()),
@@ -236,7 +263,8 @@ def _quadratic_level(loop: ClosedLoop, plain: PlainDecrease, region: Region, p: 
             "cube": half.tolist(), "cube_fraction": float((half / torch.minimum(-region.lo, region.hi)).max()),
             "hessian_bound": bound, "cube_level": c_cube, "box_level": c_box, "box": proved_on.tolist(),
             "q_roa": {k: getattr(w_roa, k) for k in ("level", "kind", "limited_by", "boxes_processed", "time_s")} | {
-                "decay_rate": ring.decay_rate, "inner_radius": r_in, "enclosure": budget.enclosure}}
+                "decay_rate": ring.decay_rate, "inner_radius": r_in, "enclosure": budget.enclosure},
+            "boxes": w_roa.boxes_processed + w_roa.local.get("boxes", 0), "capped": capped}
 
 
 def linearisation_local(loop: ClosedLoop, condition: Condition, region: Region, level: float,
@@ -245,18 +273,26 @@ def linearisation_local(loop: ClosedLoop, condition: Condition, region: Region, 
     docstring, "The linearisation proof"). ``level``: the level ``c`` up to which ``condition`` is proved on
     ``{V <= c}`` outside the delta-ball. Returns ``proved``, ``level`` (the largest ``c' <= c`` for which the
     whole chain holds: ``{V <= c'}`` is then a region of attraction), ``P``, ``q_level`` (``c_q``), ``inner_level``
-    (``c_1``), ``quadratic`` (:func:`quadratic_roa`'s result), the proofs' details and ``reason`` when it fails."""
+    (``c_1``), ``quadratic`` (:func:`quadratic_roa`'s result), ``boxes``, the proofs' details and ``reason`` when it
+    fails. ``budget``: :func:`quadratic_roa` gets 40% of its boxes and seconds, V's bound outside each candidate
+    ellipsoid 30% (shared between them), the annulus the rest; ``capped`` names a step that stopped at its time cap."""
     start = time.perf_counter()
     system, lyapunov = loop.system, loop.lyapunov
     time_limit, min_width, enclosure = budget.seconds, budget.min_width, budget.enclosure_for(loop.n)
     deadline = start + time_limit
-    out: dict = {"method": "linearisation", "proved": False, "level": None, "reason": ""}
-    quad = quadratic_roa(loop, condition, region, replace(budget, seconds=0.4 * time_limit, enclosure=enclosure))
+    out: dict = {"method": "linearisation", "proved": False, "level": None, "reason": "", "boxes": 0}
+    quad = quadratic_roa(loop, condition, region, replace(budget, seconds=0.4 * time_limit,
+                                                          boxes=share(budget.boxes, 0.4), enclosure=enclosure))
     out["quadratic"] = {k: v for k, v in quad.items() if k not in ("jacobians", "eigenvalues")}
     out.update({k: quad[k] for k in ("jacobians", "eigenvalues", "P", "q_level", "cube") if k in quad})
+    capped, spent = list(quad.get("capped", ())), quad["boxes"]
+
+    def done() -> dict:
+        return out | {"boxes": spent} | ({"capped": capped} if capped else {})
+
     if not quad["proved"]:
         out["reason"] = quad["reason"]
-        return out
+        return done()
     plain = condition.per_sample()
     # 3. c_1 <= min of V over {W >= c_q} in the box, so that {V <= c_1} lies inside {W <= c_q}; of the candidate
     # W's (quadratic_roa), the one that holds the largest sublevel set of V
@@ -273,10 +309,12 @@ def linearisation_local(loop: ClosedLoop, condition: Condition, region: Region, 
             return box_bounds(wobj, a, b, enclosure)[1][:, 0] >= c_qi
 
         seconds = max(1.0, 0.3 * (deadline - time.perf_counter()) / (len(candidates) - i))
-        _, neg_up, _ = maximize(lambda z: -vobj(z), blo, bhi, region.scale,
-                                replace(budget, seconds=seconds, boxes=1_000_000, enclosure=enclosure), box_ok=outside,
-                                centre_ok=lambda z, w_i=w_i, c_qi=c_qi: w_i(z) >= c_qi,
-                                label="V's least value outside the closed loop's ellipsoid")
+        _, neg_up, info = maximize(lambda z: -vobj(z), blo, bhi, region.scale,
+                                   replace(budget, seconds=seconds, boxes=share(budget.boxes, 0.3 / len(candidates)),
+                                           enclosure=enclosure), box_ok=outside,
+                                   centre_ok=lambda z, w_i=w_i, c_qi=c_qi: w_i(z) >= c_qi,
+                                   label="V's least value outside the closed loop's ellipsoid")
+        capped += ["V's minimum outside the closed loop's ellipsoid"] if time_capped(info["stopped"]) else []
         c_1i = float(round_down(round_down(-neg_up[0], REL1), 1e-9))
         cand["inner_level"] = c_1i
         if c_1i > c_1:
@@ -286,7 +324,7 @@ def linearisation_local(loop: ClosedLoop, condition: Condition, region: Region, 
         out.update({k: chosen[k] for k in ("P", "q_level", "cube")})
     if not c_1 > 0:
         out["reason"] = "no sublevel set of V provably inside {W <= c_q}"
-        return out
+        return done()
     p, c_q = torch.tensor(chosen["P"], dtype=F64), chosen["q_level"]
     # any smaller c_1 will do ({V <= c_1} only shrinks): keep it below the outer level, so that the annulus
     # {c_1 <= V <= c} is not empty and {V <= c} is forward invariant
@@ -311,7 +349,10 @@ def linearisation_local(loop: ClosedLoop, condition: Condition, region: Region, 
     c_2, limited_by, cex, boxes = level_search(
         loop, inner, alo, ahi, region.scale, level, "outer proof", max(deadline, time.perf_counter() + 1.0),
         meets=meets, in_region=lambda centre, v: centre.norm(dim=-1) < delta, floor=c_1, min_width=fine,
-        batch=budget.batch, enclosure=enclosure, progress=budget.compute.progress)
+        batch=budget.batch, enclosure=enclosure, max_boxes=share(max(budget.boxes - spent, budget.boxes // 10), 1.0),
+        progress=budget.compute.progress)
+    spent += boxes
+    capped += ["the annulus inside the ball"] if time_capped(limited_by) else []
     c_2 = below(c_2)
     out["annulus"] = {"level": c_2, "limited_by": limited_by, "boxes": boxes, "decay_rate": inner.decay_rate,
                       "exp_rate": inner.exp_rate, "region": "delta-ball" if strict else "box", "min_width": fine,
@@ -320,9 +361,9 @@ def linearisation_local(loop: ClosedLoop, condition: Condition, region: Region, 
     if not c_2 > c_1:
         out["reason"] = (f"decrease of V on {{{c_1:.4g} <= V <= c}} inside the ball fails below the inner level "
                          f"({limited_by})")
-        return out
+        return done()
     out.update(proved=True, level=c_2)
-    return out
+    return done()
 
 
 @dataclass

@@ -45,7 +45,8 @@ from drlyap.regions import Region, box_grid, default_grid, near_dist
 from drlyap.verification.bounds import value_objective
 from drlyap.verification.branch_and_bound import maximize
 from drlyap.verification.results import ConditionProof, RegionOfAttraction
-from drlyap.verification.roa.levels import below, level_search
+from drlyap.verification.roa.levels import BOX_BUDGET, TIME_LIMIT, below, level_search, time_capped
+from drlyap.verification.roa.levels import share as box_share
 from drlyap.verification.roa.local import local_decrease
 from drlyap.verification.sublevel import boundary_minimum, exit_minimum
 
@@ -70,7 +71,9 @@ def exit_top(exit_min_lower: float | None, boundary_min_lower: float) -> float |
 class OuterSearch:
     """Steps 1 and 2 of the route (module docstring) and V's bound on the delta-ball: ``level`` (rounded down) the
     largest proved, ``top`` the level the search started from (V's lower bound on the faces, or the cap asked for)
-    with ``why`` it, ``counterexample`` (local) one that limited it, ``deadline`` the end of the whole budget."""
+    with ``why`` it, ``counterexample`` (local) one that limited it, ``boxes`` the level search's boxes (or the
+    proof's that stood for it), ``spent`` those this search's level search bounded, ``deadline`` the end of the whole
+    budget's time cap, ``capped`` the bounds of V that stopped at their time cap (their names)."""
 
     boundary_min_lower: float
     ball_max_upper: float
@@ -83,6 +86,8 @@ class OuterSearch:
     start: float
     deadline: float
     exit_min_lower: float | None = None
+    capped: tuple[str, ...] = ()
+    spent: int = 0
 
     @property
     def faces(self) -> str:
@@ -98,13 +103,20 @@ class OuterSearch:
         return (self.top, self.why) if self.top < self.boundary_min_lower else (self.boundary_min_lower, "box boundary")
 
 
+def bound_budget(budget: Budget) -> Budget:
+    """The budget of each bound of V in a search with ``budget`` (V's minimum on the faces, where the flow may leave
+    them, outside the ball; its maximum on the ball): a quarter of its boxes and of its seconds."""
+    return replace(budget, seconds=budget.seconds / 4, boxes=box_share(budget.boxes, 0.25))
+
+
 def outer_search(loop: ClosedLoop, condition: Condition, region: Region, budget: Budget,
                  max_level: float = math.inf, cut_by_box: bool = True) -> OuterSearch:
-    """The faces' minimum of V (a quarter of the budget's time), for a condition on the true model V's minimum where its
-    flow may leave the box (:func:`~drlyap.verification.sublevel.exit_minimum`, a quarter), V's maximum on the
-    delta-ball (a quarter), and the level search outside the ball (until 60% of the time is spent, all of it when
-    ``delta = 0``), capped at ``max_level``. Box budgets: a million for each bound of V, the budget's boxes for the
-    level search. ``cut_by_box`` False: V above the level on the faces only (no set cut by the box)."""
+    """The faces' minimum of V, for a condition on the true model V's minimum where its flow may leave the box
+    (:func:`~drlyap.verification.sublevel.exit_minimum`), V's maximum on the delta-ball (each a quarter of the budget's
+    boxes and seconds at most: :func:`bound_budget`), and the level search outside the ball (60% of the boxes, all of
+    them when ``delta = 0``; its time cap ends when 60% of the budget's seconds are spent, all of them when
+    ``delta = 0``), capped at ``max_level``. ``cut_by_box`` False: V above the level on the faces only (no set cut
+    by the box)."""
     start = time.perf_counter()
     system, lyapunov = loop.system, loop.lyapunov
     enclosure = budget.enclosure_for(system.n)
@@ -112,59 +124,76 @@ def outer_search(loop: ClosedLoop, condition: Condition, region: Region, budget:
     delta = region.delta
     scale = region.scale
     grid = default_grid(system.n)
-    quarter = replace(budget, seconds=time_limit / 4, boxes=1_000_000, enclosure=enclosure)
+    quarter = replace(bound_budget(budget), enclosure=enclosure)
+    capped = []
     # 1. min of V on the boundary of the box
-    boundary_min_lower = boundary_minimum(lyapunov, region, quarter)[0]
+    info: dict = {}
+    boundary_min_lower = boundary_minimum(lyapunov, region, quarter, info=info)[0]
+    faces, face_why = boundary_min_lower, "box boundary"
+    if not math.isfinite(boundary_min_lower) and info["stopped"] != "finished":  # no level fits: say why
+        face_why = TIME_LIMIT if time_capped(info["stopped"]) else BOX_BUDGET
+    capped += ["V's minimum on the faces"] if time_capped(info["stopped"]) else []
     # 2. max of V on the delta-ball
-    ball_max_upper = _ball_max(lyapunov, region, quarter)
+    ball_max_upper, stopped = _ball_max(lyapunov, region, quarter)
+    capped += ["V's maximum on the ball"] if time_capped(stopped) else []
     # 3. the decrease condition on the sublevel set outside the ball
     lo, hi = region.boxes(grid)
     exit_min_lower = None
-    faces, face_why = boundary_min_lower, "box boundary"
     if cut_by_box and condition.model == Model.TRUE and boundary_min_lower < max_level:
-        found = exit_minimum(loop, condition, region, quarter)[0]
+        found = exit_minimum(loop, condition, region, quarter, info=info)[0]
+        capped += ["V's minimum where the flow may leave"] if time_capped(info["stopped"]) else []
         exit_min_lower = found if math.isfinite(found) else None  # inf: no face box may leave; -inf: out of budget
         widened = exit_top(exit_min_lower, boundary_min_lower)
         if widened is not None:
             faces, face_why = widened, "the box's faces where the flow leaves the box"
     top, why = (faces, face_why) if faces <= max_level else (max_level, TRAINED_LEVEL)
+    whole = 0.6 if delta > 0 else 1.0  # 40% kept for the ball
     level, limited_by, cex, processed = level_search(
-        loop, condition, lo, hi, scale, top, why,
-        start + (0.6 if delta > 0 else 1.0) * time_limit, meets=region.meets,  # 40% kept for the ball
-        in_region=lambda centre, v: region.in_region(centre),
-        min_width=min_width, batch=budget.batch, enclosure=enclosure, progress=budget.compute.progress)
+        loop, condition, lo, hi, scale, top, why, start + whole * time_limit, meets=region.meets,
+        in_region=lambda centre, v: region.in_region(centre), min_width=min_width, batch=budget.batch,
+        enclosure=enclosure, max_boxes=box_share(budget.boxes, whole), progress=budget.compute.progress)
     return OuterSearch(boundary_min_lower, ball_max_upper, below(level), limited_by, cex, processed, top, why, start,
-                       start + time_limit, exit_min_lower)
+                       start + time_limit, exit_min_lower, tuple(capped), processed)
 
 
-def _ball_max(lyapunov, region: Region, budget: Budget) -> float:
-    """An upper bound of V on the delta-ball (0 without a ball)."""
+def _ball_max(lyapunov, region: Region, budget: Budget) -> tuple[float, str]:
+    """An upper bound of V on the delta-ball (0 without a ball), and how its branch and bound stopped."""
     delta = region.delta
     if delta <= 0:
-        return 0.0
+        return 0.0, "finished"
     ball = region.ball_box(delta)
     glo, ghi = box_grid(ball.lo, ball.hi, default_grid(region.lo.shape[0]))
-    _, up, _ = maximize(value_objective(lyapunov), glo, ghi, region.scale, budget,
-                        box_ok=lambda a, b: near_dist(a, b) < delta, label="V's largest value on the delta-ball")
-    return float(up[0])
+    _, up, info = maximize(value_objective(lyapunov), glo, ghi, region.scale, budget,
+                           box_ok=lambda a, b: near_dist(a, b) < delta, label="V's largest value on the delta-ball")
+    return float(up[0]), info["stopped"]
+
+
+def near_budget(budget: Budget, outer: OuterSearch, spent: int = 0, fraction: float = 1.0,
+                least_seconds: float = 1.0) -> Budget:
+    """The budget of a proof near x* after the level search ``outer`` of a search with ``budget``: ``fraction`` of the
+    boxes the level search left (``budget.boxes`` less its boxes and ``spent`` by the proofs near x* before it; at
+    least a tenth of the budget's), and ``fraction`` of the seconds left before the budget's time cap (at least
+    ``least_seconds``)."""
+    boxes = box_share(max(budget.boxes - outer.spent - spent, budget.boxes // 10), fraction)
+    return replace(budget, boxes=boxes,
+                   seconds=max(least_seconds, fraction * (outer.deadline - time.perf_counter())))
 
 
 def outer_strictness(loop: ClosedLoop, condition: Condition, region: Region, budget: Budget) -> dict:
     """Whether ``condition``'s decrease outside the delta-ball is strict, ``Vdot < 0`` (module docstring): ``strict``
     and ``by`` (``"decay"``: gamma > 0; ``"form"``: alpha > 0 and drlyap's V; ``"proof"``: alpha > 0 and V > 0 on
-    X_delta proved, ``lower`` its bound; None), with the proof's ``boxes``, ``time_s`` and a ``reason`` where it is not.
-    The proof runs on a quarter of the budget's time and up to a million boxes."""
+    X_delta proved, ``lower`` its bound; None), with the proof's ``boxes``, ``time_s``, ``stopped`` and a ``reason`` where
+    it is not. The proof runs on a quarter of the budget's boxes and seconds (:func:`bound_budget`)."""
     if condition.decay_rate > 0:
         return {"strict": True, "by": "decay"}
     if not condition.exp_rate > 0:
         return {"strict": False, "by": None, "reason": "the decrease has no decay (gamma = alpha = 0): it is not strict"}
     if positive_by_form(loop.lyapunov):
         return {"strict": True, "by": "form"}
-    lower, info = positive_lower(loop.lyapunov, region,
-                                 replace(budget, seconds=budget.seconds / 4, boxes=1_000_000,
-                                         enclosure=budget.enclosure_for(loop.n)))
+    lower, info = positive_lower(loop.lyapunov, region, replace(bound_budget(budget),
+                                                                enclosure=budget.enclosure_for(loop.n)))
     out = {"strict": lower > 0, "by": "proof" if lower > 0 else None, "lower": lower,
-           "boxes": info["boxes_processed"], "time_s": info["time_s"]}
+           "boxes": info["boxes_processed"], "time_s": info["time_s"], "stopped": info["stopped"]}
     if not lower > 0:
         out["reason"] = (f"V > 0 outside the ball not proved (V's lower bound there {lower:.3g}, "
                          f"{info['boxes_processed']} boxes, {info['stopped']}): with no decay gamma ||z||, alpha V "
@@ -210,10 +239,11 @@ def proved_outer(loop: ClosedLoop, proof: ConditionProof, region: Region, budget
         raise ValueError("a verified proof on a sublevel set {V <= level} of this X_delta, with V above the level "
                          "on the faces, is needed")
     start = time.perf_counter()
-    quarter = replace(budget, seconds=budget.seconds / 4, boxes=1_000_000, enclosure=budget.enclosure_for(loop.n))
-    ball_max_upper = _ball_max(loop.lyapunov, region, quarter)
+    quarter = replace(bound_budget(budget), enclosure=budget.enclosure_for(loop.n))
+    ball_max_upper, stopped = _ball_max(loop.lyapunov, region, quarter)
     return OuterSearch(proof.boundary_min_lower, ball_max_upper, below(proof.level), TRAINED_LEVEL, None,
-                       proof.boxes_processed, proof.level, TRAINED_LEVEL, start, start + budget.seconds)
+                       proof.boxes_processed, proof.level, TRAINED_LEVEL, start, start + budget.seconds,
+                       capped=("V's maximum on the ball",) if time_capped(stopped) else ())
 
 
 def finish(loop: ClosedLoop, condition: Condition, region: Region, outer: OuterSearch, local: dict,
@@ -223,7 +253,8 @@ def finish(loop: ClosedLoop, condition: Condition, region: Region, outer: OuterS
     where the outer level is positive, its decrease strict (``strict``: :func:`outer_strictness`; the linearisation
     proof needs no more than its own annulus, where V >= c_1 > 0) and the proof near x* (``local``) holds (the
     annulus inside the ball may lower the level); practical stability where the outer level only exceeds V's bound
-    on the ball and its decrease is strict; else none."""
+    on the ball and its decrease is strict; else none. Where a step of the search stopped at its time cap (its
+    ``capped``), ``limited_by`` says so (:data:`~drlyap.verification.roa.levels.TIME_LIMIT`)."""
     system = loop.system
     c, limited_by = outer.level, outer.limited_by
     is_strict = strict is None or strict["strict"]
@@ -243,6 +274,10 @@ def finish(loop: ClosedLoop, condition: Condition, region: Region, outer: OuterS
         kind = None
         if c > 0 and not is_strict:
             limited_by = strict["reason"]
+    capped = [*outer.capped, *(["V > 0 outside the ball"] if time_capped((strict or {}).get("stopped")) else []),
+              *local.get("capped", ()), *(quadratic or {}).get("capped", ()), *(band or {}).get("capped", ())]
+    if capped and not time_capped(limited_by):
+        limited_by = f"{limited_by}; {TIME_LIMIT} (reached by {', '.join(dict.fromkeys(capped))})"
     share = share_of_box(loop.f64.lyapunov, region, c, samples_per_axis) if c > 0 else 0.0
     by_band = band is not None and band["proved"]
     faces = "inward" if outer.faces == "inward" and kind and not by_band and c >= outer.boundary_min_lower else "above"
@@ -259,13 +294,13 @@ def finish(loop: ClosedLoop, condition: Condition, region: Region, outer: OuterS
 def sublevel_roa(loop: ClosedLoop, condition: Condition, region: Region, budget: Budget = Budget(seconds=10.0), *,
                  samples_per_axis: int = 400, max_level: float = math.inf, cut_by_box: bool = True
                  ) -> RegionOfAttraction:
-    """The largest certified ``{V <= c}`` by V's own proofs (module docstring), within ``budget`` (``cut_by_box``:
-    as for :func:`outer_search`)."""
+    """The largest certified ``{V <= c}`` by V's own proofs (module docstring), within ``budget`` (the level search
+    as in :func:`outer_search`, the proof near x* what it leaves: :func:`near_budget`; ``cut_by_box``: as for
+    :func:`outer_search`)."""
     outer = outer_search(loop, condition, region, budget, max_level, cut_by_box)
     c = outer.level
     strict = outer_strictness(loop, condition, region, budget) if c > 0 else None
-    left = max(1.0, outer.deadline - time.perf_counter())
-    local = local_decrease(loop, condition, region, replace(budget, seconds=left,
+    local = local_decrease(loop, condition, region, replace(near_budget(budget, outer),
                                                             enclosure=budget.enclosure_for(loop.n)),
                            level=c if c > 0 else None)
     return finish(loop, condition, region, outer, local, samples_per_axis, strict=strict)
