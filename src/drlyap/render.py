@@ -193,7 +193,7 @@ def margin_line(uni: UniformMargin) -> str:
 
 def _sublevel(r: RegionOfAttraction) -> str:
     """The certified set: ``{V <= c}``, or its part in the box where the flow keeps it off the faces."""
-    return f"{{V <= {level_text(r.level, 4)}}}" + (" in the box" if r.faces == "inward" else "")
+    return f"{{V <= {level_text(r.level)}}}" + (" in the box" if r.faces == "inward" else "")
 
 
 def _faces(r: RegionOfAttraction) -> str:
@@ -215,11 +215,11 @@ def roa_line(r: RegionOfAttraction, true_model: bool) -> str:
         how = ""
         if r.method == "linearisation":
             how = (f"; near x* by the closed-loop linearisation's z'Pz, proved decreasing on {{z'Pz <= "
-                   f"{level_text(local['q_level'], 3)}}} which contains {{V <= {level_text(local['inner_level'], 3)}}}")
+                   f"{level_text(local['q_level'])}}} which contains {{V <= {level_text(local['inner_level'])}}}")
         elif r.method == "band":
             low = local["v_on_ellipsoid"][0]
             how = (f"; V proved decreasing on it outside the closed loop's certified ellipsoid {{z'Pz <= "
-                   f"{level_text(local['q_level'], 3)}}} (--json: roa.band.P), on whose boundary V is as low as {low:.3g} "
+                   f"{level_text(local['q_level'])}}} (--json: roa.band.P), on whose boundary V is as low as {low:.3g} "
                    f"(sampled): " + ("the set reaches beyond the ellipsoid" if r.beyond_ellipsoid else
                                      "the set may lie inside the ellipsoid"))
         elif (r.strict or {}).get("by") == "proof":
@@ -230,15 +230,15 @@ def roa_line(r: RegionOfAttraction, true_model: bool) -> str:
     if r.kind == "practical stability":
         line = (f"region of attraction: NOT CERTIFIED ({r.local['reason']}); practical stability instead: "
                 f"trajectories of {model} from {_sublevel(r)} ({size}) end up in "
-                f"{{V <= {level_text(r.practical_level, 4, up=True)}}}{_faces(r)}")
+                f"{{V <= {level_text(r.practical_level, up=True)}}}{_faces(r)}")
     else:
-        proved = "none" if r.level is None or not math.isfinite(r.level) else level_text(r.level, 4)
+        proved = "none" if r.level is None or not math.isfinite(r.level) else level_text(r.level)
         line = (f"region of attraction: NOT CERTIFIED (largest proved level {proved}, limited by "
                 f"{r.limited_by}; inside the ball: {r.local.get('reason') or 'proved'})")
     quad = r.quadratic
     if r.ellipsoid_certified:
         line += (f"\n  the closed loop's own quadratic Lyapunov function: CERTIFIED region of attraction {{z'Pz <= "
-                 f"{level_text(quad['q_level'], 4)}}} ({quad['share_of_box']:.3g} of the box, |x_i - x*_i| up to "
+                 f"{level_text(quad['q_level'])}}} ({quad['share_of_box']:.3g} of the box, |x_i - x*_i| up to "
                  f"{[float(f'{e:.3g}') for e in quad['extent']]}; P chosen from the closed-loop linearisation, --json: "
                  f"roa.quadratic.P): every trajectory of {model} that starts there converges to x*")
     elif quad:
@@ -387,14 +387,14 @@ def region_label(roa: RegionOfAttraction | None, where: str) -> str:
     """
     if roa is None or roa.level is None or not roa.level > 0:
         return ""
-    c = level_text(float(roa.level), 3)
+    c = level_text(float(roa.level))
     c0 = roa.ball_max_upper
-    inner = f"{{V <= {level_text(float(c0), 3, up=True)}}}" if c0 is not None else "the delta-ball"
+    inner = f"{{V <= {level_text(float(c0), up=True)}}}" if c0 is not None else "the delta-ball"
     if roa.kind == "practical stability":
         return f"practical stability at {where}: from {{V <= {c}}} converges to {inner}"
     if roa.certified and roa.kind in (None, "region of attraction"):
         return f"certified region of attraction {{V <= {c}}} at {where}"
-    bound = f", but V may reach {level_text(float(c0), 3, up=True)} on the delta-ball" if c0 is not None else ""
+    bound = f", but V may reach {level_text(float(c0), up=True)} on the delta-ball" if c0 is not None else ""
     return f"not certified at {where}: decrease proved on {{V <= {c}}} outside the delta-ball{bound}"
 
 
