@@ -183,6 +183,7 @@ def test_compare_and_evaluate_cli(tmp_path):
                                str(out)])
     assert res.exit_code == 0, res.output
     assert "| lqr |" in res.output and "lyapunov-dr-pointwise" in res.output
+    assert "'violated' means a state of that region where it fails" in res.output  # the table's words explained
     report = json.loads((out / "compare.json").read_text())
     assert [r["samples"] for r in report["rows"]] == [0, 0, 3600 * 7]
     assert "certified radius; shift box" in res.output

@@ -432,8 +432,18 @@ def _robust_cell(attempt: ProofAttempt) -> str:
     else:
         r = "r* none" if "n_samples" in rob else "r* n/a"
     scale = ", ".join(f"{w:.3g}" for w in rob["shift_scale"])
-    s = "none" if rob["shift_box_s"] is None else f"{rob['shift_box_s']:.3g} x ({scale})"
+    s = "none" if rob["shift_box_s"] is None else f"|xi| <= {rob['shift_box_s']:.3g} x ({scale})"
     return f"{r}; shift box {s}"
+
+
+COMPARE_LEGEND = (
+    "verified decrease at xi: Vdot + gamma |x - x*| (+ alpha V) <= 0 on the true model at xi, proved at every state of "
+    "X_delta (the box minus the delta-ball) or of the sublevel set named; 'violated' means a state of that region "
+    "where it fails, which does not keep a smaller set from being certified. certified region of attraction at xi: the "
+    "largest sublevel set of V (an LQR or RL run: of its own quadratic z'Pz) proved to converge to x*, as a share of "
+    "the box. certified radius: the largest Wasserstein radius r* at which the run's DR condition is proved; shift "
+    "box |xi| <= s x (w): decrease on the true model proved for every shift with |xi_i| <= s w_i, w the size of the "
+    "test shift per uncertain parameter (where it is 0: the samples' spread, else 10% of the nominal value).")
 
 
 # --------------------------------------------------------------------------- the covering check

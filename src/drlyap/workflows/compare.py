@@ -28,7 +28,7 @@ from drlyap.kinds import Enclosure
 from drlyap.networks import LinearController, QuadraticLyapunov
 from drlyap.progress import progress as show_progress
 from drlyap.regions import Region
-from drlyap.render import attempt_cells
+from drlyap.render import COMPARE_LEGEND, attempt_cells
 from drlyap.runs import PolicyRun, atomic_dir, check_writable, read_run_kind
 from drlyap.runs.imported import quadratic_loop, rl_actor_graph
 from drlyap.simulation import initial_states, simulate, success_mask, wrap_steps
@@ -271,4 +271,4 @@ def format_comparison(report: dict) -> str:
         lines.append(f"| {r['run_dir']} | {r['label']} | {r['system']} | {r['n_success']}/{r['n']} "
                      f"({100 * r['success_rate']:.1f}%) | {r['samples'] if r['samples'] is not None else '-'} | {t} | "
                      f"{inc} | {mono} | {proof} | {roa} | {robust} |")
-    return "\n".join(lines)
+    return "\n".join([*lines, "", COMPARE_LEGEND])
