@@ -186,3 +186,18 @@ def test_a_mistyped_system_name_gets_a_suggestion(tmp_path):
     result = CliRunner().invoke(main, ["train", "pendullum", "--out", str(tmp_path / "x")])
     assert result.exit_code != 0
     assert "unknown system 'pendullum' (did you mean 'pendulum'?); valid: cartpole" in result.output
+
+
+def test_a_slow_start_says_what_it_loads(tmp_path):
+    """Where importing torch takes longer than the threshold (here 0 s), one line on stderr says what is loading;
+    a bad argument, refused before torch loads, prints none."""
+    import subprocess
+    import sys
+
+    code = ("import drlyap.cli.startup as s; s.SLOW = 0.0\nfrom drlyap.cli import main\nimport sys\n"
+            "try:\n    main(sys.argv[1:])\nexcept SystemExit:\n    pass\n")
+    slow = subprocess.run([sys.executable, "-c", code, "systems"], capture_output=True, text=True, timeout=120)
+    assert slow.stderr.count("drlyap: loading torch and the numerical code") == 1, slow.stderr
+    refused = subprocess.run([sys.executable, "-c", code, "verify", str(tmp_path / "none")], capture_output=True,
+                             text=True, timeout=120)
+    assert "loading torch" not in refused.stderr and "does not exist" in refused.stderr

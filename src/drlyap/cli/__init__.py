@@ -19,6 +19,7 @@ import click
 
 from drlyap.cli import baselines, check, evaluate, export, imported, train, verify, workflows
 from drlyap.cli.common import setup_threads
+from drlyap.cli.startup import announce_slow_loading
 
 
 @click.group(context_settings={"help_option_names": ["-h", "--help"]})
@@ -30,6 +31,7 @@ def main() -> None:
     parameters, then evaluate the closed loop on the true, shifted system.
     """
     setup_threads()
+    announce_slow_loading()
 
 
 for command in (train.systems, train.train, evaluate.evaluate, workflows.reproduce, baselines.lqr, baselines.rl,
