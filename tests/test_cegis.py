@@ -184,3 +184,34 @@ def test_retraining_the_controller_only_keeps_v(tiny_config):
         assert all(p.requires_grad for p in result.lyapunov.parameters())  # V trainable again afterwards
     with pytest.raises(ValueError, match="retrain = 'v'"):
         ProofConfig(retrain="v").resolved(system)
+
+
+def test_an_interrupted_train_resumes_without_training_again(tmp_path, monkeypatch):
+    """Ctrl-C in the second round's proof, then the same command: the fits already done are taken from the checkpoints
+    (the command says so), the proof resumes, and the run is bit for bit the uninterrupted one's."""
+    import drlyap.verification.bounding as bounding
+    from drlyap.cli import main
+
+    args = ["train", "pendulum", "--iters", "4", "--verify-rounds", "1", "--verify-time", "600", "--verify-boxes",
+            "6000"]
+    whole = CliRunner().invoke(main, [*args, "--out", str(tmp_path / "whole")])
+    assert whole.exit_code == 0, whole.output
+    assert "proof round 1:" in whole.output
+    calls = {"n": 0}
+    bound = bounding.ConditionJob.__call__
+
+    def interrupted(self, lo, hi):
+        calls["n"] += 1
+        if calls["n"] == 4:  # the first proof takes two batches at most of these 6,000 boxes: this is round 1's
+            raise KeyboardInterrupt
+        return bound(self, lo, hi)
+
+    monkeypatch.setattr(bounding.ConditionJob, "__call__", interrupted)
+    out = tmp_path / "run"
+    first = CliRunner().invoke(main, [*args, "--out", str(out)])
+    assert first.exit_code == 130, first.output
+    monkeypatch.setattr(bounding.ConditionJob, "__call__", bound)
+    again = CliRunner().invoke(main, [*args, "--out", str(out)])
+    assert again.exit_code == 0, again.output
+    assert again.output.count("taken from the checkpoint, not trained again") >= 1
+    assert (out / "weights.pt").read_bytes() == (tmp_path / "whole" / "weights.pt").read_bytes()

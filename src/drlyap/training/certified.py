@@ -60,6 +60,7 @@ from drlyap.render import proof_round_line, unverified_warning
 from drlyap.sections import TrainSections
 from drlyap.systems import UncertainSystem, get_system
 from drlyap.training.boxes import OpenBoxes
+from drlyap.training.resume import fit_or_resume
 from drlyap.training.trainer import TrainResult, fit
 from drlyap.verification import Budget, Certificate, ConditionProof, UniformMargin, prove_trained, uniform_margin
 from drlyap.verification.falsifier import box_centres, falsifier_starts, falsify, local_boxes, settle_unknown
@@ -252,9 +253,9 @@ def _proof_rounds(cfg: TrainConfig, system: UncertainSystem, proof: ProofConfig,
     for r in range(rounds + 1):
         tic = time.perf_counter()
         warm = init if result is None else (result.lyapunov, result.controller)
-        result = fit(round_cfg, system, progress=progress, init=warm,
-                     extra_states=extra.repeat(int(proof.replicate), 1) if r else None, grow=not r, boxes=boxes,
-                     train_lyapunov=not r or proof.retrain == "pair")
+        result = fit_or_resume(proof.checkpoint_dir, round_cfg, system, progress, warm,
+                               extra.repeat(int(proof.replicate), 1) if r else None, not r, boxes,
+                               not r or proof.retrain == "pair")
         train_time = time.perf_counter() - (tic if r else start)
         if not r:
             first_reshape = result.metrics.get("reshape")
