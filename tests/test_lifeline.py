@@ -43,3 +43,34 @@ def test_sweep_and_proof_workers_are_bound_first():
     assert backends.init_worker is init_worker
     source = Path(backends.__file__).read_text()
     assert "initializer=init_worker" in source
+
+
+_RAY_DRIVER = textwrap.dedent("""
+    import time
+    from drlyap.parallel import RayPool
+
+    if __name__ == "__main__":
+        pool = RayPool(2)
+        pool.ray.get([actor.__ray_ready__.remote() for actor in pool._actors])
+        print("ready", flush=True)
+        time.sleep(120)
+""")
+
+
+@pytest.mark.skipif(not sys.platform.startswith("linux"), reason="reads /proc")
+def test_a_local_ray_ends_within_two_seconds_of_a_killed_driver(tmp_path):
+    """Its servers, its actors and its agents (which outlived the driver by 50 s and more)."""
+    pytest.importorskip("ray")
+    from drlyap.lifeline import descendants
+
+    script = tmp_path / "driver.py"
+    script.write_text(_RAY_DRIVER)
+    driver = subprocess.Popen([sys.executable, str(script)], stdout=subprocess.PIPE, stderr=subprocess.DEVNULL,
+                              text=True)
+    try:
+        assert driver.stdout.readline().strip() == "ready"
+        started = descendants(driver.pid)
+        assert len(started) >= 4  # gcs_server, raylet, two actors (and the agents)
+        assert not survivors_of_kill(driver, started, 2.0), "a process of the local Ray outlived its driver by 2 s"
+    finally:
+        driver.kill()

@@ -45,7 +45,7 @@ import torch
 from torch import Tensor
 
 from drlyap.compute import Compute
-from drlyap.lifeline import bound_main
+from drlyap.lifeline import bound_main, ray_processes, reap_with_me
 
 Job = Callable[..., dict]
 _TOKENS = itertools.count(1)
@@ -312,6 +312,7 @@ class RayPool(Pool):
                 ray.init(num_cpus=workers, include_dashboard=False, runtime_env=env, log_to_driver=False,
                          configure_logging=False)
             self._started = True
+            reap_with_me(ray_processes())  # its agents are no children of this process: they would outlive a kill
         actor = ray.remote(num_cpus=1, max_restarts=0)(_RayWorker)
         self._actors = [actor.remote(threads) for _ in range(workers)]
         self._loads: dict[int, tuple[object, set[int]]] = {}  # token: (the job in Ray's store, the actors that have it)

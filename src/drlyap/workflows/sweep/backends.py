@@ -6,7 +6,7 @@ from __future__ import annotations
 import os
 from collections.abc import Iterator, Sequence
 
-from drlyap.lifeline import init_worker
+from drlyap.lifeline import init_worker, ray_processes, reap_with_me
 from drlyap.workflows.sweep.grid import Combination, SweepError
 from drlyap.workflows.sweep.task import run_combination
 
@@ -96,6 +96,7 @@ class RayBackend(Backend):
                 ray.init(num_cpus=workers, include_dashboard=False, runtime_env=env, log_to_driver=False,
                          configure_logging=False)
             self._started = True
+            reap_with_me(ray_processes())  # its agents are no children of this process: they would outlive a kill
 
     def run(self, tasks: Sequence[Task]) -> Iterator[dict]:
         ray = self.ray
