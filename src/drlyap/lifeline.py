@@ -81,24 +81,46 @@ def descendants(pid: int | None = None) -> list[int]:
 
 _REAPER = """
 import os, signal, sys, time
-parent, marks = int(sys.argv[1]), [a.split(":") for a in sys.argv[2:]]
-while os.getppid() == parent:
-    time.sleep(0.25)
-stats = {}
-for name in os.listdir("/proc"):
-    if name.isdigit():
-        try:
-            with open(f"/proc/{name}/stat") as f:
-                stats[int(name)] = f.read().rsplit(")", 1)[1].split()
-        except OSError:
-            pass
-doomed = [int(pid) for pid, start in marks if int(pid) in stats and stats[int(pid)][19] == start]
-todo = list(doomed)
-while todo:  # what those started since (a Ray's workers, below its raylet)
-    pid = todo.pop()
-    kids = [p for p, fields in stats.items() if int(fields[1]) == pid and p not in doomed]
-    doomed += kids
-    todo += kids
+parent = int(sys.argv[1])
+known = {int(pid): start for pid, start in (a.split(":") for a in sys.argv[2:])}
+
+
+def table():
+    stats = {}
+    for name in os.listdir("/proc"):
+        if name.isdigit():
+            try:
+                with open(f"/proc/{name}/stat") as f:
+                    stats[int(name)] = f.read().rsplit(")", 1)[1].split()
+            except OSError:
+                pass
+    return stats
+
+
+def below(stats, roots):
+    found, todo = [], list(roots)
+    while todo:
+        parent_pid = todo.pop()
+        kids = [p for p, fields in stats.items() if int(fields[1]) == parent_pid]
+        found += kids
+        todo += kids
+    return found
+
+
+while os.getppid() == parent:  # what Ray starts later (its workers) is taken in as it comes
+    stats = table()
+    for pid in below(stats, [parent]):
+        if pid != os.getpid() and pid not in known:
+            try:
+                with open(f"/proc/{pid}/cmdline", "rb") as f:
+                    if f.read().startswith(b"ray::"):
+                        known[pid] = stats[pid][19]
+            except OSError:
+                pass
+    time.sleep(0.5)
+stats = table()
+doomed = [pid for pid, start in known.items() if pid in stats and stats[pid][19] == start]
+doomed += [p for p in below(stats, doomed) if p not in doomed]
 for pid in doomed:
     try:
         os.kill(pid, signal.SIGKILL)
@@ -116,9 +138,10 @@ def _start_time(pid: int) -> str | None:
 
 def reap_with_me(pids: list[int]) -> None:
     """Start a small process that kills ``pids`` (processes a library started below this one that are not bound to
-    it, such as a local Ray's servers and agents) and what they started meanwhile, within a quarter second of this
-    process ending, however it ends. It runs in a session of its own, so that a Ctrl-C to this process does not end it
-    first; a pid taken by another process meanwhile is left alone."""
+    it, such as a local Ray's agents), the ``ray::`` processes that appear below this one later (it looks every half
+    second) and what they started, within half a second of this process ending, however it ends. It runs in a session
+    of its own, so that a Ctrl-C to this process does not end it first; a pid taken by another process meanwhile is
+    left alone."""
     marks = [f"{pid}:{start}" for pid in pids if (start := _start_time(pid)) is not None]
     if marks:
         subprocess.Popen([sys.executable, "-c", _REAPER, str(os.getpid()), *marks], start_new_session=True,
