@@ -62,15 +62,23 @@ def init_worker(threads: int, parent: int) -> None:
         sys.modules["torch"].set_num_threads(threads)
 
 
-def descendants(pid: int | None = None) -> list[int]:
-    """The processes below ``pid`` (default: this one), children first, read from /proc (empty elsewhere)."""
-    parents: dict[int, list[int]] = {}
+def _table() -> dict[int, list[str]]:
+    """Every process's fields of ``/proc/PID/stat`` after its name (``[1]``: its parent, ``[19]``: its start time)."""
+    stats = {}
     for stat in Path("/proc").glob("[0-9]*/stat"):
         try:
-            ppid = int(stat.read_text().rsplit(")", 1)[1].split()[1])
-        except (OSError, IndexError, ValueError):
+            stats[int(stat.parent.name)] = stat.read_text().rsplit(")", 1)[1].split()
+        except (OSError, IndexError):
             continue
-        parents.setdefault(ppid, []).append(int(stat.parent.name))
+    return stats
+
+
+def descendants(pid: int | None = None, stats: dict[int, list[str]] | None = None) -> list[int]:
+    """The processes below ``pid`` (default: this one), children first, read from /proc (empty elsewhere);
+    ``stats``: a :func:`_table` already read."""
+    parents: dict[int, list[int]] = {}
+    for child, fields in (_table() if stats is None else stats).items():
+        parents.setdefault(int(fields[1]), []).append(child)
     found, todo = [], [os.getpid() if pid is None else pid]
     while todo:
         kids = parents.get(todo.pop(0), [])
@@ -79,85 +87,50 @@ def descendants(pid: int | None = None) -> list[int]:
     return found
 
 
-_REAPER = """
-import os, signal, sys, time
-parent = int(sys.argv[1])
-known = {int(pid): start for pid, start in (a.split(":") for a in sys.argv[2:])}
-
-
-def table():
-    stats = {}
-    for name in os.listdir("/proc"):
-        if name.isdigit():
-            try:
-                with open(f"/proc/{name}/stat") as f:
-                    stats[int(name)] = f.read().rsplit(")", 1)[1].split()
-            except OSError:
-                pass
-    return stats
-
-
-def below(stats, roots):
-    found, todo = [], list(roots)
-    while todo:
-        parent_pid = todo.pop()
-        kids = [p for p, fields in stats.items() if int(fields[1]) == parent_pid]
-        found += kids
-        todo += kids
-    return found
-
-
-while os.getppid() == parent:  # what Ray starts later (its workers) is taken in as it comes
-    stats = table()
-    for pid in below(stats, [parent]):
-        if pid != os.getpid() and pid not in known:
-            try:
-                with open(f"/proc/{pid}/cmdline", "rb") as f:
-                    if f.read().startswith(b"ray::"):
-                        known[pid] = stats[pid][19]
-            except OSError:
-                pass
-    time.sleep(0.5)
-stats = table()
-doomed = [pid for pid, start in known.items() if pid in stats and stats[pid][19] == start]
-doomed += [p for p in below(stats, doomed) if p not in doomed]
-for pid in doomed:
+def _is_ray(pid: int) -> bool:
     try:
-        os.kill(pid, signal.SIGKILL)
+        return Path(f"/proc/{pid}/cmdline").read_bytes().startswith(b"ray::")
     except OSError:
-        pass
-"""
-
-
-def _start_time(pid: int) -> str | None:
-    try:
-        return Path(f"/proc/{pid}/stat").read_text().rsplit(")", 1)[1].split()[19]
-    except (OSError, IndexError):
-        return None
-
-
-def reap_with_me(pids: list[int]) -> None:
-    """Start a small process that kills ``pids`` (processes a library started below this one that are not bound to
-    it, such as a local Ray's agents), the ``ray::`` processes that appear below this one later (it looks every half
-    second) and what they started, within half a second of this process ending, however it ends. It runs in a session
-    of its own, so that a Ctrl-C to this process does not end it first; a pid taken by another process meanwhile is
-    left alone."""
-    marks = [f"{pid}:{start}" for pid in pids if (start := _start_time(pid)) is not None]
-    if marks:
-        subprocess.Popen([sys.executable, "-c", _REAPER, str(os.getpid()), *marks], start_new_session=True,
-                         stdin=subprocess.DEVNULL, stdout=subprocess.DEVNULL, stderr=subprocess.DEVNULL)
+        return False
 
 
 def ray_processes() -> list[int]:
     """The processes below this one that a local Ray started under names of its own (``ray::...``: its dashboard and
     runtime-environment agents, idle workers). Its servers (gcs_server, raylet) end with this process by themselves
     and stop their workers as they do; those agents did not (seen: 50 s and more after a ``kill -9``)."""
-    found = []
-    for pid in descendants():
+    return [pid for pid in descendants() if _is_ray(pid)]
+
+
+def reap(parent: int, marks: list[str]) -> None:
+    """The reaper's loop (:func:`reap_with_me`): while ``parent`` lives, take in the ``ray::`` processes below it every
+    half second; then kill those of them still running (``marks``: ``PID:START``, the start time telling the very
+    process from one that took its pid) and what they started."""
+    known = {int(pid): start for pid, start in (m.split(":") for m in marks)}
+    while os.getppid() == parent:
+        stats = _table()
+        for pid in descendants(parent, stats):
+            if pid != os.getpid() and pid not in known and _is_ray(pid):
+                known[pid] = stats[pid][19]
+        time.sleep(0.5)
+    stats = _table()
+    doomed = [pid for pid, start in known.items() if pid in stats and stats[pid][19] == start]
+    for root in list(doomed):
+        doomed += [p for p in descendants(root, stats) if p not in doomed]
+    for pid in doomed:
         try:
-            command = Path(f"/proc/{pid}/cmdline").read_bytes()
+            os.kill(pid, signal.SIGKILL)
         except OSError:
-            continue
-        if command.startswith(b"ray::"):
-            found.append(pid)
-    return found
+            pass
+
+
+def reap_with_me(pids: list[int]) -> None:
+    """Start a small process (:func:`reap`) that kills ``pids`` (processes a library started below this one that are
+    not bound to it, such as a local Ray's agents), the ``ray::`` processes that appear below this one later and what
+    they started, within half a second of this process ending, however it ends. It runs in a session of its own, so
+    that a Ctrl-C to this process does not end it first; a pid taken by another process meanwhile is left alone."""
+    stats = _table()
+    marks = [f"{pid}:{stats[pid][19]}" for pid in pids if pid in stats]
+    if marks:
+        code = "import sys\nfrom drlyap.lifeline import reap\nreap(int(sys.argv[1]), sys.argv[2:])"
+        subprocess.Popen([sys.executable, "-c", code, str(os.getpid()), *marks], start_new_session=True,
+                         stdin=subprocess.DEVNULL, stdout=subprocess.DEVNULL, stderr=subprocess.DEVNULL)

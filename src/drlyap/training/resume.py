@@ -15,21 +15,20 @@ import torch
 from torch import Tensor
 
 from drlyap.config import TrainConfig
+from drlyap.io import jsonable
 from drlyap.networks import Controller, Lyapunov
 from drlyap.sections import TrainSections
 from drlyap.systems import UncertainSystem
 from drlyap.training.boxes import OpenBoxes
 from drlyap.training.trainer import TrainResult, fit
-from drlyap.verification.checkpoints import load_checkpoint, save_checkpoint
+from drlyap.verification.checkpoints import load_checkpoint, save_checkpoint, update_hash
 
 
 def _update(h, t: Tensor | None) -> None:
     if t is None:
         h.update(b"none")
-        return
-    t = t.detach().cpu().contiguous()
-    h.update(str((tuple(t.shape), str(t.dtype))).encode())
-    h.update(t.numpy().tobytes())
+    else:
+        update_hash(h, t)
 
 
 def fit_key(cfg: TrainConfig, system: UncertainSystem, init: tuple[Lyapunov, Controller] | None,
@@ -81,14 +80,7 @@ def fit_or_resume(folder: str | None, cfg: TrainConfig, system: UncertainSystem,
     arrays |= {f"controller.{k}": v for k, v in result.controller.state_dict().items()}
     arrays |= {"xi_all": result.xi_samples, "rng": torch.get_rng_state()}
     try:
-        save_checkpoint(folder, key, arrays, {"history": result.history, "metrics": _plain(result.metrics)})
+        save_checkpoint(folder, key, arrays, {"history": result.history, "metrics": jsonable(result.metrics)})
     except OSError:  # no place to keep it: the fit is done again after an interruption
         pass
     return result
-
-
-def _plain(value):
-    """``value`` with tensors as lists (JSON)."""
-    from drlyap.io import jsonable
-
-    return jsonable(value)

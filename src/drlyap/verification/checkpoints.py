@@ -33,7 +33,8 @@ FORMAT = "drlyap-proof-checkpoint"
 VERSION = 1
 
 
-def _update_tensor(h, t: Tensor) -> None:
+def update_hash(h, t: Tensor) -> None:
+    """Feed a tensor's shape, dtype and bytes to the hash ``h``."""
     t = t.detach().cpu().contiguous()
     h.update(str((tuple(t.shape), str(t.dtype))).encode())
     h.update(t.numpy().tobytes() if t.dtype != torch.bfloat16 else t.float().numpy().tobytes())
@@ -57,7 +58,7 @@ def proof_key(loop, condition, region, **settings) -> str:
         h.update(type(net).__name__.encode())
         for name, value in sorted(net.state_dict().items()):
             h.update(name.encode())
-            _update_tensor(h, value.to(torch.float64) if value.is_floating_point() else value)
+            update_hash(h, value.to(torch.float64) if value.is_floating_point() else value)
     system = loop.system
     h.update(json.dumps(system.describe(), sort_keys=True, default=str).encode())
     for fn in (system.dynamics, getattr(system, "perturbation", None)):
@@ -66,12 +67,12 @@ def proof_key(loop, condition, region, **settings) -> str:
     h.update(json.dumps(condition.describe(), sort_keys=True, default=str).encode())
     xi = condition.xi
     if isinstance(xi, Tensor):
-        _update_tensor(h, xi)
+        update_hash(h, xi)
     elif xi is not None:  # an interval of shifts
-        _update_tensor(h, xi.lo)
-        _update_tensor(h, xi.hi)
+        update_hash(h, xi.lo)
+        update_hash(h, xi.hi)
     for t in (region.lo, region.hi):
-        _update_tensor(h, t)
+        update_hash(h, t)
     h.update(json.dumps({"delta": float(region.delta), **settings}, sort_keys=True, default=str).encode())
     return h.hexdigest()
 
