@@ -1,51 +1,67 @@
-"""The README's quoted outputs are what the commands print: the quickstart's reproduction table and the checker's
-lines for its DR pair, from a fresh `drlyap reproduce pendulum` (about 90 s: behind -m slow). Seconds are the
-machine's and are not compared."""
+"""The README's and docs' quoted outputs are what the commands print: docs/quotes.py produces them and these tests
+compare (seconds aside). The --help blocks of docs/cli.md always; the README's reproduction table and check lines
+from a fresh `drlyap reproduce pendulum` and `drlyap train pendulum --method dr` (about 2 min: behind -m slow).
+docs/results/pendulum.md's seed-0 rows must say what the README's quoted table says."""
 
+import importlib.util
 import re
+import sys
 from pathlib import Path
 
 import pytest
-from click.testing import CliRunner
 
-from drlyap.cli import main
-
-README = Path(__file__).resolve().parents[1] / "README.md"
-
-
-def _blocks() -> list[str]:
-    """The README's fenced blocks, each as its text."""
-    blocks, current = [], None
-    for line in README.read_text().splitlines():
-        if line.startswith("```"):
-            if current is None:
-                current = []
-            else:
-                blocks.append("\n".join(current))
-                current = None
-        elif current is not None:
-            current.append(line)
-    return blocks
+ROOT = Path(__file__).resolve().parents[1]
+_spec = importlib.util.spec_from_file_location("doc_quotes", ROOT / "docs" / "quotes.py")
+quotes = sys.modules["doc_quotes"] = importlib.util.module_from_spec(_spec)
+_spec.loader.exec_module(quotes)
 
 
-def _without_seconds(row: str) -> list[str]:
-    """A table row's cells but the training seconds (the column headed 'train s')."""
-    cells = [c.strip() for c in row.strip().strip("|").split("|")]
-    return cells[:9] + cells[10:]
+def test_every_help_block_is_what_help_prints():
+    assert len(quotes.help_quotes()) >= 15
+    assert quotes.stale(["help"]) == [], "run: python docs/quotes.py --only help"
+
+
+def test_a_changed_quote_is_found_stale(tmp_path):
+    page = tmp_path / "cli.md"
+    page.write_text((ROOT / "docs" / "cli.md").read_text().replace("  --seed INTEGER", "  --seed INT", 1))
+    moved = [quotes.Quote(page, q.first_line, q.group, q.name) for q in quotes.help_quotes()]
+    assert [q.name for q in moved if quotes.differs(q, quotes.help_text(q))] == ["drlyap train"]
+
+
+def test_seconds_are_not_compared():
+    table = "| seed | train s | x |\n|---|---|---|\n| 0 | 9 | a (0.07 s) |"
+    assert quotes.without_seconds(table) == quotes.without_seconds(table.replace("9", "15").replace("0.07", "1.3"))
+    assert quotes.without_seconds(table) != quotes.without_seconds(table.replace("| a", "| b"))
+
+
+def _rows(text: str, header: str) -> list[dict[str, str]]:
+    lines = [line for line in text.splitlines() if line.startswith("|")]
+    start = next(i for i, line in enumerate(lines) if line.startswith(header))
+    names = [c.strip() for c in lines[start].strip().strip("|").split("|")]
+    rows = []
+    for line in lines[start + 2:]:
+        if not line.startswith("| "):
+            break
+        cells = [re.sub(r"\*\*", "", c).strip() for c in line.strip().strip("|").split("|")]
+        rows.append(dict(zip(names, cells)))
+    return rows
+
+
+def test_the_pendulum_page_agrees_with_the_readme_on_seed_0():
+    readme = _rows(quotes.quoted(ROOT / "README.md", quotes.REPRODUCTION_HEADER), quotes.REPRODUCTION_HEADER)
+    page = [r for r in _rows((ROOT / "docs" / "results" / "pendulum.md").read_text(), "| seed | method | paper 10")
+            if r["seed"] == "0"]
+    assert [r["method"] for r in readme] == [r["method"] for r in page] == ["baseline", "dr"]
+    for ours, theirs in zip(readme, page):
+        assert ours["10 test states"] == theirs["paper 10"]
+        assert ours["200 more"] == theirs["200 more"]
+        assert ours["acceptance"] == theirs["acceptance"]
+        assert theirs["trained condition"].startswith(ours["trained condition (verifier)"])
+        assert ours["decrease on the true model at the test shift"] == \
+            theirs["decrease on the true model at the test shift"]
+        assert ours["certified region of attraction"] == theirs["certified region of attraction (share of the box)"]
 
 
 @pytest.mark.slow
-def test_the_quoted_reproduction_and_check_are_what_the_commands_print(tmp_path, monkeypatch):
-    monkeypatch.chdir(tmp_path)
-    done = CliRunner().invoke(main, ["reproduce", "pendulum"])
-    assert done.exit_code == 0, done.output
-    quoted = next(b for b in _blocks() if b.startswith("| seed | method | 10 test states"))
-    printed = [line for line in done.output.splitlines() if line.startswith("| 0 | ")][:2]
-    assert [_without_seconds(r) for r in printed] == [_without_seconds(r) for r in quoted.splitlines()[2:4]]
-    check = CliRunner().invoke(main, ["check", "runs/reproduce-pendulum/seed0/dr", "--name", "trained"])
-    assert check.exit_code == 0, check.output
-    block = next(b for b in _blocks() if b.startswith("$ drlyap check"))
-    first, second = block.splitlines()[1:3]
-    lines = check.output.splitlines()
-    assert lines[0] == first
-    assert re.sub(r"\(\d+\.\d+ s\)", "", lines[1]) == re.sub(r"\(\d+\.\d+ s\)", "", second)
+def test_the_readme_quotes_are_what_the_commands_print():
+    assert quotes.stale(["reproduction"]) == [], "run: python docs/quotes.py --only reproduction"
