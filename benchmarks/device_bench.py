@@ -72,7 +72,7 @@ def proof_rows(paths: list[str], devices: list[str], batches: list[int], boxes: 
                 print(f"{str(path)[-24:]:<24} {device}: {why}")
                 continue
             for batch in batches:
-                proof, wall = _prove(run, budget, Compute(device=device), batch, keep_partition=True)
+                proof, wall, _ = _prove(run, budget, Compute(device=device), batch, keep_partition=True)
                 digest = _leaf_digest(proof, Region.of(run.system, float(run.config.delta)))
                 first = first or digest
                 print(f"{str(path)[-24:]:<24} {device:<7} {batch:>7,} {proof.status:<8} {proof.boxes_processed:>10,} "

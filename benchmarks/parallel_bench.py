@@ -1,5 +1,5 @@
-"""Proofs on worker processes: wall time and boxes per second for 1 and 2 local workers and for Ray with 2 local
-workers, on existing run directories (trains nothing), and a model of 16 and 64 workers.
+"""Proofs on worker processes: wall and CPU time for 1 and 2 local workers and for Ray with 2 local workers, on
+existing run directories (trains nothing), and a model of more workers.
 
 Usage::
 
@@ -7,15 +7,19 @@ Usage::
 
 Each row proves the run's trained condition (on its sublevel set for a region-of-attraction run) with the same box
 budget (``--boxes``; default: the run's own, so that the proof finishes) and reports its verdict, the boxes bounded,
-the wall time (the workers' start included: they start once per command), boxes per second, and whether the
-partition is the same as the one-worker proof's (it must be).
+the wall time, the CPU time of every process (this one, the fork server and the workers), boxes per second, both
+times over the one-process proof's, and whether the partition is the same as the one-process proof's (it must be).
+A row ``N local`` starts its workers with the proof (they start once per command: until they are up this process
+bounds the boxes); the row ``N local, up`` proves the same again on the workers already up, as a command's later
+proofs do (the proof rounds of `train`, the claims of one `verify`).
 
-The model: one process's proof is timed batch by batch (the time to bound each batch of ``n_b`` boxes, fitted as
-``a + c n_b`` on chunks of its boxes, and this process's own time to sort it out, ``s_b``); with ``W`` workers each
-batch costs ``max(a + c n_b / W, s_b)`` (the next batch is bounded while this process sorts the last) plus the
-measured time to send a batch and get its bounds back (from the two-worker row). Batches hold at most 4,096 boxes;
-where the queue holds fewer (the frontier of the search) the workers cannot all be busy, which the model keeps: it
-uses the proof's own batch sizes.
+The model: one process's proof is traced batch by batch (each batch's size and this process's time to sort it out,
+``s_b``); a chunk of ``n`` boxes costs ``a + c n`` (fitted on chunks of the run's own region). With ``W`` workers a
+batch's chunks (:func:`drlyap.verification.bounding.chunk_sizes`) are dealt in turn and the batch costs the busiest
+worker's share, or ``s_b`` where that is longer (the next batch is bounded while this process sorts the last), plus
+the measured cost of sending a batch and getting its bounds back (from the two-worker row). Where the queue holds
+fewer than a full batch (the frontier of the search) the workers cannot all be busy, which the model keeps: it uses
+the proof's own batch sizes.
 """
 
 from __future__ import annotations
@@ -27,9 +31,28 @@ import time
 import torch
 
 
+def cpu_seconds() -> float:
+    """CPU time (user + system) of this process and of every process below it that is still running (the proof
+    workers: they run until the pools are closed)."""
+    import os
+
+    from drlyap.lifeline import descendants
+
+    tick = os.sysconf("SC_CLK_TCK")
+    total = time.process_time()
+    for pid in descendants():
+        try:
+            fields = open(f"/proc/{pid}/stat").read().rsplit(")", 1)[1].split()
+        except OSError:
+            continue
+        total += (int(fields[11]) + int(fields[12])) / tick
+    return total
+
+
 def _prove(run, boxes: int, compute, batch: int | None = None, keep_partition: bool = False):
     """The run's trained condition proved from scratch with ``boxes`` at most (``batch``: boxes bounded at a time,
-    None: the default): ``(proof, wall seconds)``, the device synchronised before the clock starts."""
+    None: the default): ``(proof, wall seconds, CPU seconds of every process)``, the device synchronised before the
+    clock starts; the workers' start is in both."""
     import dataclasses
 
     from drlyap.config import Budget
@@ -41,10 +64,10 @@ def _prove(run, boxes: int, compute, batch: int | None = None, keep_partition: b
     region = Region.of(run.system, float(run.config.delta))
     if compute.device.startswith("cuda"):
         torch.cuda.synchronize()
-    tic = time.perf_counter()
+    tic, cpu = time.perf_counter(), cpu_seconds()
     proof = verify_condition(run.loop, run.condition, region, budget, level=run.config.roa_level,
                              keep_partition=keep_partition)
-    return proof, time.perf_counter() - tic
+    return proof, time.perf_counter() - tic, cpu_seconds() - cpu
 
 
 def _same(a, b) -> bool:
@@ -54,18 +77,18 @@ def _same(a, b) -> bool:
 
 
 def _traced(run, boxes: int) -> dict:
-    """One process's proof with each batch's bounding and sorting timed, and the per-box cost fitted."""
-    import drlyap.verification.branch_and_bound as bb
+    """One process's proof with each batch's size and this process's sorting of it timed, and the cost of a chunk of
+    n boxes fitted as a + c n."""
+    import drlyap.verification.bounding as bounding
     from drlyap.verification.bounding import ConditionJob
 
+    bb = sys.modules["drlyap.verification.branch_and_bound"]
     batches, sorts = [], []
-    bound, sort = ConditionJob.__call__, bb._Search._sort
+    in_chunks, sort = bounding.run_in_chunks, bb._Search._sort
 
-    def timed_bound(self, lo, hi):
-        tic = time.perf_counter()
-        out = bound(self, lo, hi)
-        batches.append((lo.shape[0], time.perf_counter() - tic))
-        return out
+    def traced_chunks(job, arrays, size):
+        batches.append(int(arrays[0].shape[0]))
+        return in_chunks(job, arrays, size)
 
     def timed_sort(self, *args):
         tic = time.perf_counter()
@@ -73,30 +96,44 @@ def _traced(run, boxes: int) -> dict:
         sorts.append(time.perf_counter() - tic)
         return out
 
-    ConditionJob.__call__, bb._Search._sort = timed_bound, timed_sort
+    bounding.run_in_chunks, bb._Search._sort = traced_chunks, timed_sort
     try:
-        proof, wall = _prove(run, boxes, _compute(1))
-        # the cost of a chunk of n boxes: a + c n, from chunks of 512 and 4096 boxes of the run's own region
-        from drlyap.regions import Region
-
-        region = Region.of(run.system, float(run.config.delta))
-        job = ConditionJob(run.loop.f64, run.condition, run.config.roa_level, proof.partition.enclosure
-                           if proof.partition is not None else run.proof.enclosure)
-        g = torch.Generator().manual_seed(0)
-        centre = region.lo + region.scale * torch.rand(4096, region.n, generator=g, dtype=torch.float64)
-        half = region.scale * 0.01
-        times = {}
-        for n in (512, 4096):
-            job(centre[:n] - half, centre[:n] + half)  # warm
-            tic = time.perf_counter()
-            for _ in range(3):
-                job(centre[:n] - half, centre[:n] + half)
-            times[n] = (time.perf_counter() - tic) / 3
+        proof, wall, cpu = _prove(run, boxes, _compute(1))
     finally:
-        ConditionJob.__call__, bb._Search._sort = bound, sort
-    c = (times[4096] - times[512]) / (4096 - 512)
-    a = max(0.0, times[512] - 512 * c)
-    return {"proof": proof, "wall": wall, "batches": batches, "sorts": sorts, "a": a, "c": c}
+        bounding.run_in_chunks, bb._Search._sort = in_chunks, sort
+    # the cost of a chunk of n boxes: a + c n, from chunks of 256 and 1024 boxes of the run's own region
+    from drlyap.regions import Region
+
+    region = Region.of(run.system, float(run.config.delta))
+    job = ConditionJob(run.loop.f64, run.condition, run.config.roa_level, proof.partition.enclosure
+                       if proof.partition is not None else run.proof.enclosure)
+    g = torch.Generator().manual_seed(0)
+    centre = region.lo + region.scale * torch.rand(1024, region.n, generator=g, dtype=torch.float64)
+    half = region.scale * 0.01
+    times = {}
+    for n in (256, 1024):
+        job(centre[:n] - half, centre[:n] + half)  # warm
+        tic = time.perf_counter()
+        for _ in range(3):
+            job(centre[:n] - half, centre[:n] + half)
+        times[n] = (time.perf_counter() - tic) / 3
+    c = (times[1024] - times[256]) / (1024 - 256)
+    a = max(0.0, times[256] - 256 * c)
+    return {"proof": proof, "wall": wall, "cpu": cpu, "batches": batches, "sorts": sorts, "a": a, "c": c}
+
+
+def _modelled(trace: dict, workers: int, transfer: float) -> float:
+    """Seconds of a proof on ``workers`` workers: per batch, its chunks dealt in turn, the busiest worker's share (or
+    this process's sorting of the batch before, which overlaps it), plus ``transfer``."""
+    from drlyap.verification.bounding import chunk_sizes
+
+    total = 0.0
+    for n, s in zip(trace["batches"], trace["sorts"]):
+        load = [0.0] * workers
+        for i, size in enumerate(chunk_sizes(n)):
+            load[i % workers] += trace["a"] + trace["c"] * size
+        total += max(max(load), s) + transfer
+    return total
 
 
 def _compute(workers: int, backend: str = "local"):
@@ -111,17 +148,19 @@ def main(argv: list[str] | None = None) -> int:
     parser.add_argument("--boxes", type=int, default=None, help="boxes per proof [the run's own budget]")
     parser.add_argument("--workers", default="1,2", help="local worker counts to time [1,2]")
     parser.add_argument("--ray", type=int, default=2, help="Ray workers to time (0: none) [2]")
-    parser.add_argument("--model", default="2,16,64", help="worker counts the model predicts [2,16,64]")
+    parser.add_argument("--model", default="2,4,8", help="worker counts the model predicts [2,4,8]")
     parser.add_argument("--threads", type=int, default=1, help="torch threads [1]")
     args = parser.parse_args(argv)
-    torch.set_num_threads(args.threads)
+    import drlyap
+
+    drlyap.set_threads(args.threads)  # and malloc's settings, as the command line has them
 
     from drlyap.parallel import close_pools
     from drlyap.runs import load_run
     from drlyap.workflows.verify import run_proof
 
-    header = (f"{'run':<24} {'workers':<9} {'status':<8} {'boxes':>10} {'wall s':>8} {'boxes/s':>9} {'vs 1':>6} "
-              f"{'same partition':>15}")
+    header = (f"{'run':<24} {'workers':<12} {'status':<8} {'boxes':>10} {'wall s':>8} {'CPU s':>8} {'boxes/s':>9} "
+              f"{'wall/1':>7} {'CPU/1':>6} {'same partition':>15}")
     print(header)
     print("-" * len(header))
     models = []
@@ -130,40 +169,41 @@ def main(argv: list[str] | None = None) -> int:
         boxes = args.boxes or run_proof(run).max_boxes
         trace = _traced(run, boxes)
         base = trace["proof"]
-        rows = [("1 (traced)", trace["proof"], trace["wall"])]
+        rows = [("1 (traced)", trace["proof"], trace["wall"], trace["cpu"])]
         kinds = [(int(w), "local") for w in args.workers.split(",") if int(w) > 1]
         kinds += [(args.ray, "ray")] if args.ray else []
         for workers, backend in kinds:
             try:
-                proof, wall = _prove(run, boxes, _compute(workers, backend))
+                proof, wall, cpu = _prove(run, boxes, _compute(workers, backend))
+                rows.append((f"{workers} {backend}", proof, wall, cpu))
+                if backend == "local":  # the same again, on the workers already up
+                    proof, wall, cpu = _prove(run, boxes, _compute(workers, backend))
+                    rows.append((f"{workers} local, up", proof, wall, cpu))
             except ValueError as err:  # e.g. Ray not installed
                 print(f"{str(path)[-24:]:<24} {backend} {workers}: {err}")
-                continue
             finally:
                 close_pools()  # each row starts its own workers (their start is in its wall time)
-            rows.append((f"{workers} {backend}", proof, wall))
-        for label, proof, wall in rows:
-            print(f"{str(path)[-24:]:<24} {label:<9} {proof.status:<8} {proof.boxes_processed:>10,} {wall:>8.1f} "
-                  f"{proof.boxes_processed / wall:>9,.0f} {trace['wall'] / wall:>6.2f} {str(_same(base, proof)):>15}")
+        for label, proof, wall, cpu in rows:
+            print(f"{str(path)[-24:]:<24} {label:<12} {proof.status:<8} {proof.boxes_processed:>10,} {wall:>8.1f} "
+                  f"{cpu:>8.1f} {proof.boxes_processed / wall:>9,.0f} {wall / trace['wall']:>7.2f} "
+                  f"{cpu / trace['cpu']:>6.2f} {str(_same(base, proof)):>15}")
         ipc = None
         two = [r for r in rows if r[0] == "2 local"]
-        sizes = [n for n, _ in trace["batches"]]
         if two:  # what two workers cost beyond the model's compute: sending and receiving, per batch
-            ideal = sum(max(trace["a"] + trace["c"] * n / 2, s) for n, s in zip(sizes, trace["sorts"]))
-            ipc = max(0.0, (two[0][2] - ideal) / max(len(sizes), 1))
-        models.append((path, trace, sizes, ipc))
+            ipc = max(0.0, (two[0][2] - _modelled(trace, 2, 0.0)) / max(len(trace["batches"]), 1))
+        models.append((path, trace, ipc))
     print()
-    print("model (per batch: the larger of the workers' a + c n / W and this process's sorting of the batch before, "
-          "which overlap, plus the measured transfer; batches as the proof made them)")
-    for path, trace, sizes, ipc in models:
-        total = sum(sizes)
+    print("model (per batch: its chunks dealt to the workers in turn, the busiest worker's share or this process's "
+          "sorting of the batch before, which overlap, plus the measured transfer; batches as the proof made them)")
+    for path, trace, ipc in models:
+        sizes = trace["batches"]
         full = sum(1 for n in sizes if n >= 4096)
         print(f"{str(path)[-24:]}: {len(sizes)} batches ({full} full, {len(sizes) - full} smaller: the frontier), "
-              f"a = {1e3 * trace['a']:.1f} ms, c = {1e6 * trace['c']:.1f} us/box, sorting {sum(trace['sorts']):.1f} s, "
-              f"transfer {1e3 * (ipc or 0):.1f} ms/batch")
+              f"a = {1e3 * trace['a']:.1f} ms a chunk, c = {1e6 * trace['c']:.1f} us/box, sorting "
+              f"{sum(trace['sorts']):.1f} s, transfer {1e3 * (ipc or 0):.1f} ms/batch")
         for w in [int(v) for v in args.model.split(",")]:
-            t = sum(max(trace["a"] + trace["c"] * n / w, s) + (ipc or 0) for n, s in zip(sizes, trace["sorts"]))
-            print(f"  {w:>3} workers: {t:8.1f} s, {total / t:,.0f} boxes/s, {trace['wall'] / t:5.1f}x one process")
+            t = _modelled(trace, w, ipc or 0.0)
+            print(f"  {w:>3} workers: {t:8.1f} s, {sum(sizes) / t:,.0f} boxes/s, {trace['wall'] / t:5.1f}x one process")
     return 0
 
 

@@ -14,8 +14,10 @@ always, the reproduction behind -m slow).
 from __future__ import annotations
 
 import argparse
+import json
 import os
 import re
+import subprocess
 import sys
 import tempfile
 from collections.abc import Callable, Iterator
@@ -77,17 +79,30 @@ def help_quotes() -> list[Quote]:
     return [Quote(page, head, "help", head.removeprefix("Usage: ").removesuffix(" [OPTIONS]")) for head in heads]
 
 
-def help_text(quote: Quote) -> str:
-    """What `drlyap ... --help` prints, at the width the docs use."""
-    from click.testing import CliRunner
-
-    from drlyap.cli import main
-
-    command = quote.first_line.split()[2:-1]
-    done = CliRunner().invoke(main, [*command, "--help"], prog_name="drlyap", terminal_width=HELP_WIDTH)
+_HELP_SCRIPT = """
+import json, sys
+from click.testing import CliRunner
+from drlyap.cli import main
+out = {}
+for command in json.loads(sys.argv[1]):
+    done = CliRunner().invoke(main, [*command, "--help"], prog_name="drlyap", terminal_width=int(sys.argv[2]))
     if done.exit_code != 0:
-        raise RuntimeError(f"drlyap {' '.join(command)} --help failed: {done.output}")
-    return done.output.rstrip("\n")
+        sys.exit(f"drlyap {' '.join(command)} --help failed: {done.output}")
+    out[" ".join(command)] = done.output.rstrip("\\n")
+print(json.dumps(out))
+"""
+
+
+def help_texts(quotes: list[Quote]) -> dict[str, str]:
+    """What `drlyap ... --help` prints for each quote, at the width the docs use, by a fresh Python (what the help
+    says must not depend on what else ran in this process): first line -> text."""
+    commands = [q.first_line.split()[2:-1] for q in quotes]
+    done = subprocess.run([sys.executable, "-c", _HELP_SCRIPT, json.dumps(commands), str(HELP_WIDTH)],
+                          capture_output=True, text=True, check=False)
+    if done.returncode != 0:
+        raise RuntimeError(done.stderr.strip().splitlines()[-1] if done.stderr.strip() else "--help failed")
+    texts = json.loads(done.stdout)
+    return {q.first_line: texts[" ".join(c)] for q, c in zip(quotes, commands)}
 
 
 @contextmanager
@@ -142,7 +157,7 @@ def without_seconds(text: str) -> str:
 
 
 GROUPS: dict[str, tuple[Callable[[], list[Quote]], Callable[[list[Quote]], dict[str, str]]]] = {
-    "help": (help_quotes, lambda quotes: {q.first_line: help_text(q) for q in quotes}),
+    "help": (help_quotes, help_texts),
     "reproduction": (reproduction_quotes, lambda quotes: reproduction_texts()),
 }
 

@@ -11,26 +11,34 @@ import pytest
 from handmade import alive, survivors_of_kill
 
 _PROOF_DRIVER = textwrap.dedent("""
-    import time
+    import sys, time
+    from drlyap.lifeline import descendants
     from drlyap.parallel import LocalPool
 
     if __name__ == "__main__":
         pool = LocalPool(2)
-        print(" ".join(str(p.pid) for p in pool._procs), flush=True)
+        if sys.argv[1] == "up":
+            pool.wait_up()
+        else:
+            time.sleep(0.5)  # the fork server is still importing torch
+        print(" ".join(str(p) for p in descendants()), flush=True)
         time.sleep(120)
 """)
 
 
 @pytest.mark.skipif(not sys.platform.startswith("linux"), reason="reads /proc")
-def test_proof_workers_end_within_two_seconds_of_a_killed_driver(tmp_path):
-    """Killed while its workers still import torch (the sweep's: tests/test_sweep.py)."""
+@pytest.mark.parametrize("when", ["up", "starting"])
+def test_proof_workers_end_within_two_seconds_of_a_killed_driver(tmp_path, when):
+    """Killed with its workers up, or while they still start (the fork server importing torch); the sweep's:
+    tests/test_sweep.py."""
     script = tmp_path / "driver.py"
     script.write_text(_PROOF_DRIVER)
-    driver = subprocess.Popen([sys.executable, str(script)], stdout=subprocess.PIPE, text=True)
+    driver = subprocess.Popen([sys.executable, str(script), when], stdout=subprocess.PIPE, text=True)
     try:
-        workers = [int(p) for p in driver.stdout.readline().split()]
-        assert len(workers) == 2 and all(alive(p) for p in workers)
-        assert not survivors_of_kill(driver, workers, 2.0), "workers outlived their killed driver by more than 2 s"
+        below = [int(p) for p in driver.stdout.readline().split()]
+        assert below and all(alive(p) for p in below)
+        assert len(below) >= (3 if when == "up" else 1)  # the fork server and the two workers
+        assert not survivors_of_kill(driver, below, 2.0), "workers outlived their killed driver by more than 2 s"
     finally:
         driver.kill()
 

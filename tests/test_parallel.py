@@ -64,6 +64,14 @@ def wide_loop():
     close_pools()
 
 
+def _up(workers: int, **settings) -> Compute:
+    """A Compute of ``workers`` local workers whose pool is up, so that the workers bound every batch (until it is,
+    this process bounds them: the same bits, but not what these tests are about)."""
+    compute = Compute(workers=workers, **settings)
+    pool_for(compute).wait_up()
+    return compute
+
+
 def _same(a, b) -> None:
     assert (a.status, a.boxes_processed, a.boxes_verified, a.verified_fraction) == \
         (b.status, b.boxes_processed, b.boxes_verified, b.verified_fraction)
@@ -81,14 +89,14 @@ def test_two_workers_prove_the_same_partition_as_one(pendulum_loop):
     loop, condition, region = pendulum_loop
     budget = Budget(seconds=600, batch=64)
     one = verify_condition(loop, condition, region, budget)
-    two = verify_condition(loop, condition, region, Budget(seconds=600, batch=64, compute=Compute(workers=2)))
+    two = verify_condition(loop, condition, region, Budget(seconds=600, batch=64, compute=_up(2)))
     assert one.status == "verified" and one.boxes_processed > 4 * 64  # several batches, prefetched
     _same(one, two)
     # a budget that runs out part way: the same boxes, the same unknown verdict and share
     part = Budget(seconds=600, batch=64, boxes=500)
     _same(verify_condition(loop, condition, region, part),
           verify_condition(loop, condition, region, Budget(seconds=600, batch=64, boxes=500,
-                                                           compute=Compute(workers=2))))
+                                                           compute=_up(2))))
 
 
 def test_a_violation_stops_the_workers_and_they_go_on_with_the_next_proof(pendulum_loop):
@@ -96,14 +104,14 @@ def test_a_violation_stops_the_workers_and_they_go_on_with_the_next_proof(pendul
     strict = DRPointwise(0.01, 0.3, XI, decay_rate=50.0)  # far more decay than the pair has
     kwargs = dict(stop_at_counterexample=True)
     one = verify_condition(loop, strict, region, Budget(seconds=600, batch=64), **kwargs)
-    two = verify_condition(loop, strict, region, Budget(seconds=600, batch=64, compute=Compute(workers=2)), **kwargs)
+    two = verify_condition(loop, strict, region, Budget(seconds=600, batch=64, compute=_up(2)), **kwargs)
     assert one.status == two.status == "violated"
     assert one.counterexample == two.counterexample
     _same(one, two)
     assert one.n_unverified == two.n_unverified
     _, condition, _ = pendulum_loop  # the pool is still usable: nothing of the stopped proof is left in flight
     assert verify_condition(loop, condition, region,
-                            Budget(seconds=600, batch=64, compute=Compute(workers=2))).status == "verified"
+                            Budget(seconds=600, batch=64, compute=_up(2))).status == "verified"
 
 
 def test_the_checker_accepts_a_certificate_proved_by_workers_and_checks_with_workers(pendulum_loop, tmp_path,
@@ -112,7 +120,7 @@ def test_the_checker_accepts_a_certificate_proved_by_workers_and_checks_with_wor
 
     monkeypatch.setattr(check, "LEAF_CHUNK", 256)  # several chunks, each with its own bisection budget
     loop, condition, region = pendulum_loop
-    proof = verify_condition(loop, condition, region, Budget(seconds=600, batch=64, compute=Compute(workers=2)))
+    proof = verify_condition(loop, condition, region, Budget(seconds=600, batch=64, compute=_up(2)))
     torch.save({"lyapunov": loop.lyapunov.state_dict(), "controller": loop.controller.state_dict()},
                tmp_path / "weights.pt")
     write_certificate(tmp_path, "trained", proof, condition, region, loop.system, tmp_path / "weights.pt",
@@ -120,7 +128,7 @@ def test_the_checker_accepts_a_certificate_proved_by_workers_and_checks_with_wor
     header, arrays = read_certificate(tmp_path, "trained")
     weights = torch.load(tmp_path / "weights.pt", weights_only=True)
     results = []
-    for compute in (Compute(), Compute(workers=2)):
+    for compute in (Compute(), _up(2)):
         res = check_certificate(tmp_path, "trained", header, arrays, loop.system, weights,
                                 sha256_file(tmp_path / "weights.pt"), system_digest(loop.system), compute=compute)
         assert res.ok, res.failures
@@ -131,6 +139,7 @@ def test_the_checker_accepts_a_certificate_proved_by_workers_and_checks_with_wor
 
 def test_a_worker_failure_is_an_error_that_names_it(pendulum_loop):
     pool = pool_for(Compute(workers=2))
+    pool.wait_up()
 
     def broken(lo, hi):
         raise RuntimeError("no bounds here")
@@ -148,7 +157,7 @@ def test_the_bounds_are_the_same_bits_for_any_number_of_workers(wide_loop, monke
         for chunk in (512, 96):  # one or two chunks a batch; up to eleven (the last one shorter), dealt in turn
             monkeypatch.setattr(bounding, "CHUNK", chunk)
             proofs[chunk, workers] = verify_condition(loop, condition, region, Budget(
-                seconds=600, batch=1000, compute=Compute(workers=workers)))
+                seconds=600, batch=1000, compute=_up(workers) if workers > 1 else Compute()))
     for (chunk, _), proof in proofs.items():
         assert proof.status == "verified" and proof.partition.bound.isfinite().sum() > 500
         _same(proofs[chunk, 1], proof)  # every bound bit for bit (a chunk per worker differed in the last bits)
@@ -180,7 +189,7 @@ def test_a_system_from_a_users_file_travels_to_the_workers(tmp_path):
     loop = ClosedLoop(system, QuadraticLyapunov(p), LinearController(k, system.input_box, system.equilibrium_input))
     condition, region = TrueDecrease(torch.tensor([[0.1]], dtype=F64)), Region.of(system, 0.05)
     one = verify_condition(loop, condition, region, Budget(seconds=600, batch=128), level=0.5)
-    two = verify_condition(loop, condition, region, Budget(seconds=600, batch=128, compute=Compute(workers=2)),
+    two = verify_condition(loop, condition, region, Budget(seconds=600, batch=128, compute=_up(2)),
                            level=0.5)
     assert one.status == "verified"
     _same(one, two)
@@ -337,7 +346,7 @@ def test_ctrl_c_while_workers_bound_keeps_the_batches_in_flight_and_the_proof_re
         return result(self)
 
     monkeypatch.setattr(parallel.Pending, "result", interrupted)
-    compute = Compute(workers=2, checkpoint_dir=str(tmp_path), checkpoint_every=3600.0)  # saved at the interruption
+    compute = _up(2, checkpoint_dir=str(tmp_path), checkpoint_every=3600.0)  # saved at the interruption
     with pytest.raises(KeyboardInterrupt):
         verify_condition(loop, condition, region, Budget(seconds=600, batch=32, compute=compute))
     monkeypatch.setattr(parallel.Pending, "result", result)

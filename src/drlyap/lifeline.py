@@ -30,9 +30,9 @@ def _watch(parent: int, every: float) -> None:
             os._exit(1)
 
 
-def bind_to_parent(parent: int, every: float = 0.5) -> None:
-    """End this process when ``parent`` (the pid that started it) ends: at once where the kernel offers it, else
-    within ``every`` seconds."""
+def die_with_parent(parent: int) -> None:
+    """Ask the kernel to kill this process the moment its parent ends (Linux; elsewhere nothing), and end now where
+    ``parent`` already has."""
     if sys.platform.startswith("linux"):
         try:
             libc = ctypes.CDLL(ctypes.util.find_library("c") or "libc.so.6", use_errno=True)
@@ -41,16 +41,41 @@ def bind_to_parent(parent: int, every: float = 0.5) -> None:
             pass
     if os.getppid() != parent:  # the parent ended before the request took effect
         os._exit(1)
+
+
+def bind_to_parent(parent: int, every: float = 0.5) -> None:
+    """End this process when ``parent`` (the pid that started it) ends: at once where the kernel offers it, else
+    within ``every`` seconds."""
+    die_with_parent(parent)
     threading.Thread(target=_watch, args=(parent, every), daemon=True, name="drlyap-parent-watch").start()
 
 
-def bound_main(parent: int, module: str, name: str, *args) -> None:
-    """A process's target that binds it to ``parent`` before it imports ``module`` (torch, say) and runs its
-    function ``name(*args)``."""
-    bind_to_parent(parent)
+def bound_main(parent: int | None, module: str, name: str, *args) -> None:
+    """A process's target that binds it to ``parent`` (None: the process that started it, such as a fork server
+    that ends with the process that started it) before it imports ``module`` (torch, say) and runs its function
+    ``name(*args)``."""
+    if parent is None:
+        _let_the_fork_server_end()
+    bind_to_parent(os.getppid() if parent is None else parent)
     import importlib
 
     getattr(importlib.import_module(module), name)(*args)
+
+
+def _let_the_fork_server_end() -> None:
+    """In a process forked by multiprocessing's fork server: close the end of the pipe by which the fork server learns
+    that the process that started it has ended (each forked process gets a copy). Held here, it would keep the server,
+    and so this process, alive after that process was killed."""
+    import multiprocessing.forkserver as forkserver
+
+    server = getattr(forkserver, "_forkserver", None)
+    fd = getattr(server, "_forkserver_alive_fd", None)
+    if fd is not None:
+        try:
+            os.close(fd)
+        except OSError:
+            pass
+        server._forkserver_alive_fd = None
 
 
 def init_worker(threads: int, parent: int) -> None:

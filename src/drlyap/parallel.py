@@ -35,6 +35,7 @@ import os
 import queue
 import signal
 import sys
+import threading
 import traceback
 import types
 import weakref
@@ -46,6 +47,7 @@ from torch import Tensor
 
 from drlyap.compute import Compute
 from drlyap.lifeline import bound_main, ray_processes, reap_with_me
+from drlyap.memory import keep_freed_memory
 
 Job = Callable[..., dict]
 _TOKENS = itertools.count(1)
@@ -115,6 +117,7 @@ def _worker_main(requests, results, threads: int) -> None:
     signal.signal(signal.SIGINT, signal.SIG_IGN)
     os.environ["OMP_NUM_THREADS"] = str(threads)
     torch.set_num_threads(threads)
+    keep_freed_memory()  # as the parent does: without it a worker faults in its batches' pages again, every batch
     cache = _JobCache()
     while True:
         msg = requests.get()
@@ -168,28 +171,30 @@ class Pool:
         self._tokens[job] = token
         return token, True
 
-    def _deal(self, count: int) -> list[int]:
-        """The workers of ``count`` chunks, in turn from where the last batch left off (so that a small batch sent while
-        another is in flight goes to other workers)."""
-        start = self._turn
-        self._turn = (start + count) % self.workers
-        return [(start + i) % self.workers for i in range(count)]
+    def _deal(self, count: int, among: int | None = None) -> list[int]:
+        """The workers of ``count`` chunks (among the first ``among``, default all), in turn from where the last batch
+        left off (so that a small batch sent while another is in flight goes to other workers)."""
+        among = among or self.workers
+        start = self._turn % among
+        self._turn = (start + count) % among
+        return [(start + i) % among for i in range(count)]
 
-    def submit(self, job: Job, *arrays: Tensor, chunk: int | None = None) -> Pending:
+    def submit(self, job: Job, *arrays: Tensor, chunk: int | list[int] | None = None) -> Pending:
         """Run ``job`` on ``arrays`` (each batched on axis 0, the same length), cut into chunks of ``chunk`` rows (the
-        last one shorter; each chunk one call of ``job``, the calls :func:`run_in_chunks` makes) dealt to the workers in
-        turn, else (None) into one chunk per worker."""
+        last one shorter; a list: chunks of those sizes; each chunk one call of ``job``, the calls
+        :func:`run_in_chunks` makes) dealt to the workers in turn, else (None) into one chunk per worker."""
         raise NotImplementedError
 
     def close(self) -> None:
         """Stop the workers."""
 
 
-def _chunks(arrays: tuple, parts: int, size: int | None = None) -> list[tuple]:
+def _chunks(arrays: tuple, parts: int, size: int | list[int] | None = None) -> list[tuple]:
     """``arrays`` (each ``(B, ...)``) cut on axis 0 into chunks of ``size`` rows (the last one shorter; one chunk where
-    ``B <= size``), or (``size`` None) into ``parts`` chunks of about the same length: a list of tuples of views."""
+    ``B <= size``; a list: chunks of those sizes, in order, summing to ``B``), or (``size`` None) into ``parts`` chunks of
+    about the same length: a list of tuples of views."""
     if size is not None:
-        if size < 1:
+        if min([size] if isinstance(size, int) else size) < 1:
             raise ValueError(f"a chunk holds at least one row, got {size}")
         pieces = [torch.split(a, size) for a in arrays]
     else:
@@ -197,8 +202,9 @@ def _chunks(arrays: tuple, parts: int, size: int | None = None) -> list[tuple]:
     return list(zip(*pieces))
 
 
-def run_in_chunks(job: Job, arrays: tuple, size: int) -> dict:
-    """``job`` on ``arrays`` (each ``(B, ...)``) in this process, one call per chunk of ``size`` rows (the chunks a
+def run_in_chunks(job: Job, arrays: tuple, size: int | list[int]) -> dict:
+    """``job`` on ``arrays`` (each ``(B, ...)``) in this process, one call per chunk of ``size`` rows (or of the sizes
+    listed; the chunks a
     pool's ``submit(job, *arrays, chunk=size)`` deals to its workers), the results joined on axis 0 in order: the same
     bits as the pool's."""
     return _join([job(*chunk) for chunk in _chunks(arrays, 1, size)])
@@ -216,39 +222,99 @@ def _start_without_main(proc) -> None:
         sys.modules["__main__"] = main
 
 
+PRELOAD = ("drlyap.fork_server", "drlyap.parallel", "drlyap.verification.bounding", "drlyap.checker.check")
+"""What the fork server imports once, before it forks the workers: first what binds it to this process, then the
+modules a proof's and a check's jobs need."""
+
+
+def _context():
+    """How local workers start: on Linux forked from a fork server that imported torch and :data:`PRELOAD` once (a
+    worker is then ready in milliseconds; a spawned one imports torch itself, about 2.5 s and as much CPU each); elsewhere
+    spawned. The fork server ends when this process ends (it reads a pipe from it), and the workers with it."""
+    import multiprocessing
+
+    if sys.platform.startswith("linux"):
+        import multiprocessing.forkserver
+
+        ctx = multiprocessing.get_context("forkserver")
+        ctx.set_forkserver_preload(list(PRELOAD))
+        multiprocessing.forkserver.ensure_running()  # from the calling thread: the server ends when that thread ends
+        return ctx, None
+    return multiprocessing.get_context("spawn"), os.getpid()
+
+
 class LocalPool(Pool):
-    """``workers`` processes on this machine (``spawn``), one torch thread each."""
+    """``workers`` processes on this machine (:func:`_context`), one torch thread each.
+
+    They start in the background: until the first of them is up (the fork server's first start imports torch, about
+    2.5 s) this process bounds the chunks itself, so that a proof starts at once; a chunk's bounds are the same bits
+    wherever it is bounded. Afterwards the chunks go to the workers that are up, in turn."""
 
     name = "local"
 
     def __init__(self, workers: int, threads: int = 1) -> None:
-        import multiprocessing
-
         super().__init__()
-        ctx = multiprocessing.get_context("spawn")
-        self.workers = workers
-        self._procs, self._requests, self._results = [], [], []
-        for _ in range(workers):
-            req, res = ctx.Queue(), ctx.Queue()
-            proc = ctx.Process(target=bound_main, args=(os.getpid(), __name__, "_worker_main", req, res, threads),
-                               daemon=True, name="drlyap-proof-worker")
-            _start_without_main(proc)
-            self._procs.append(proc)
-            self._requests.append(req)
-            self._results.append(res)
-        self._outstanding = 0
+        self.workers, self._threads = workers, threads
+        self._procs, self._requests, self._results = [], [], []  # of the workers up, in the order they came up
+        self._payloads: dict[int, bytes] = {}  # token: the job as bytes (the latest _JobCache.KEEP)
+        self._loaded: list[set[int]] = []  # per worker up: the tokens it holds
+        self._lock = threading.Lock()
+        self._failed: BaseException | None = None
+        self._stopping = False
+        ctx, parent = _context()
+        self._starter = threading.Thread(target=self._start, args=(ctx, parent), daemon=True, name="drlyap-pool-start")
+        self._starter.start()
 
-    def submit(self, job: Job, *arrays: Tensor, chunk: int | None = None) -> Pending:
-        if not self._procs:
+    def _start(self, ctx, parent: int | None) -> None:
+        try:
+            for _ in range(self.workers):
+                req, res = ctx.Queue(), ctx.Queue()
+                proc = ctx.Process(target=bound_main, args=(parent, __name__, "_worker_main", req, res,
+                                                            self._threads), daemon=True, name="drlyap-proof-worker")
+                _start_without_main(proc)
+                with self._lock:
+                    if self._stopping:
+                        proc.kill()
+                        return
+                    self._procs.append(proc)
+                    self._requests.append(req)
+                    self._results.append(res)
+                    self._loaded.append(set())
+        except BaseException as err:  # noqa: BLE001 - reported by the next submit
+            self._failed = err
+
+    def _up(self) -> int:
+        """How many workers are up now."""
+        if self._failed is not None:
+            raise WorkerError(f"the proof workers could not start: {self._failed}")
+        with self._lock:
+            return len(self._procs)
+
+    def wait_up(self, timeout: float = 120.0) -> list[int]:
+        """Wait until every worker is up (at most ``timeout`` seconds); their process ids."""
+        self._starter.join(timeout)
+        self._up()
+        if self._starter.is_alive():
+            raise WorkerError(f"the proof workers were not up after {timeout:g} s")
+        return [proc.pid for proc in self._procs]
+
+    def submit(self, job: Job, *arrays: Tensor, chunk: int | list[int] | None = None) -> Pending:
+        if self._stopping:
             raise WorkerError("the proof workers were stopped")
-        token, new = self._token(job)
-        if new:
-            payload = _dumps(job)
-            for req in self._requests:
-                req.put(("load", token, payload))
+        up = self._up()
         chunks = _chunks(arrays, self.workers, chunk)
-        used = self._deal(len(chunks))
+        if not up:  # none up yet: this process bounds them, when asked for the result
+            return Pending(lambda: [job(*part) for part in chunks])
+        token, _ = self._token(job)
+        if token not in self._payloads:
+            self._payloads[token] = _dumps(job)
+            while len(self._payloads) > _JobCache.KEEP:
+                self._payloads.pop(next(iter(self._payloads)))
+        used = self._deal(len(chunks), up)
         for i, part in zip(used, chunks):
+            if token not in self._loaded[i]:
+                self._requests[i].put(("load", token, self._payloads[token]))
+                self._loaded[i] = (self._loaded[i] | {token}) if len(self._loaded[i]) < _JobCache.KEEP else {token}
             self._requests[i].put(("run", token, _to_numpy(part)))
 
         def fetch() -> list[dict]:
@@ -273,6 +339,8 @@ class LocalPool(Pool):
                     raise WorkerError(f"a proof worker process died (exit code {code}); the proof stopped") from None
 
     def close(self) -> None:
+        with self._lock:  # a worker that comes up after this is stopped by the thread that started it
+            self._stopping = True
         for req, proc in zip(self._requests, self._procs):
             if proc.is_alive():
                 try:
@@ -317,7 +385,7 @@ class RayPool(Pool):
         self._actors = [actor.remote(threads) for _ in range(workers)]
         self._loads: dict[int, tuple[object, set[int]]] = {}  # token: (the job in Ray's store, the actors that have it)
 
-    def submit(self, job: Job, *arrays: Tensor, chunk: int | None = None) -> Pending:
+    def submit(self, job: Job, *arrays: Tensor, chunk: int | list[int] | None = None) -> Pending:
         token, _ = self._token(job)
         if token not in self._loads:  # each actor loads the job with its first chunk of it: errors surface there
             self._loads[token] = (self.ray.put(_dumps(job)), set())
@@ -355,6 +423,7 @@ class _RayWorker:
 
     def __init__(self, threads: int) -> None:
         torch.set_num_threads(threads)
+        keep_freed_memory()
         self.cache = _JobCache()
 
     def run(self, token: int, arrays: tuple, payload: bytes | None = None) -> dict:
