@@ -62,6 +62,25 @@ def bound_main(parent: int | None, module: str, name: str, *args) -> None:
     getattr(importlib.import_module(module), name)(*args)
 
 
+FORK_SERVER_PRELOAD = ("drlyap.fork_server", "drlyap.parallel", "drlyap.verification.bounding", "drlyap.checker.check")
+"""What the fork server of the local proof workers imports once, before it forks them: first what binds it to this
+process, then the modules a proof's and a check's jobs need."""
+
+
+def start_fork_server() -> bool:
+    """Start multiprocessing's fork server for the local proof workers (Linux; elsewhere nothing: False), if it does
+    not run yet. It returns at once: the server imports torch meanwhile, so that a command that starts it early finds
+    it ready when its first proof needs workers. The server ends when the calling thread's process ends."""
+    if not sys.platform.startswith("linux"):
+        return False
+    import multiprocessing
+    import multiprocessing.forkserver
+
+    multiprocessing.get_context("forkserver").set_forkserver_preload(list(FORK_SERVER_PRELOAD))
+    multiprocessing.forkserver.ensure_running()
+    return True
+
+
 def _let_the_fork_server_end() -> None:
     """In a process forked by multiprocessing's fork server: close the end of the pipe by which the fork server learns
     that the process that started it has ended (each forked process gets a copy). Held here, it would keep the server,

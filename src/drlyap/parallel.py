@@ -46,7 +46,7 @@ import torch
 from torch import Tensor
 
 from drlyap.compute import Compute
-from drlyap.lifeline import bound_main, ray_processes, reap_with_me
+from drlyap.lifeline import bound_main, ray_processes, reap_with_me, start_fork_server
 from drlyap.memory import keep_freed_memory
 
 Job = Callable[..., dict]
@@ -222,24 +222,15 @@ def _start_without_main(proc) -> None:
         sys.modules["__main__"] = main
 
 
-PRELOAD = ("drlyap.fork_server", "drlyap.parallel", "drlyap.verification.bounding", "drlyap.checker.check")
-"""What the fork server imports once, before it forks the workers: first what binds it to this process, then the
-modules a proof's and a check's jobs need."""
-
-
 def _context():
-    """How local workers start: on Linux forked from a fork server that imported torch and :data:`PRELOAD` once (a
-    worker is then ready in milliseconds; a spawned one imports torch itself, about 2.5 s and as much CPU each); elsewhere
-    spawned. The fork server ends when this process ends (it reads a pipe from it), and the workers with it."""
+    """How local workers start: on Linux forked from a fork server that imported torch and the modules a job needs
+    once (:func:`drlyap.lifeline.start_fork_server`; a worker is then ready in milliseconds, where a spawned one imports
+    torch itself, about 2.5 s and as much CPU each); elsewhere spawned. The fork server ends when this process ends, and
+    the workers with it."""
     import multiprocessing
 
-    if sys.platform.startswith("linux"):
-        import multiprocessing.forkserver
-
-        ctx = multiprocessing.get_context("forkserver")
-        ctx.set_forkserver_preload(list(PRELOAD))
-        multiprocessing.forkserver.ensure_running()  # from the calling thread: the server ends when that thread ends
-        return ctx, None
+    if start_fork_server():  # from the calling thread: the server ends when that thread ends
+        return multiprocessing.get_context("forkserver"), None
     return multiprocessing.get_context("spawn"), os.getpid()
 
 

@@ -141,6 +141,10 @@ def compute_settings(workers: int, backend: str, address: str | None, device: st
             check_device(device)
         except ValueError as err:
             raise click.UsageError(str(err)) from None
+    if workers > 1 and backend == "local":  # its fork server imports torch now, beside this process, not at the proof
+        from drlyap.lifeline import start_fork_server
+
+        start_fork_server()
     return {"workers": workers, "backend": backend, "address": address, "device": device, "progress": True}
 
 

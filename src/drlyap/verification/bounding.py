@@ -53,7 +53,7 @@ def chunk_sizes(boxes: int) -> list[int]:
     on any number of workers."""
     if boxes >= SPREAD * CHUNK:
         return [CHUNK] * (boxes // CHUNK) + ([boxes % CHUNK] if boxes % CHUNK else [])
-    parts = max(1, min(SPREAD, -(-boxes // max(1, CHUNK // SPREAD))))
+    parts = max(1, min(SPREAD, -(-boxes // max(1, 512))))
     size, extra = divmod(boxes, parts)
     return [size + 1] * extra + [size] * (parts - extra)
 
