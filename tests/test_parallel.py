@@ -137,6 +137,14 @@ def test_the_checker_accepts_a_certificate_proved_by_workers_and_checks_with_wor
     assert results[0] == results[1]  # the same chunks, the same bisections, wherever they are bounded
 
 
+def test_a_batch_is_cut_into_as_few_chunks_of_about_equal_size():
+    from drlyap.verification.bounding import CHUNK, chunk_sizes
+
+    for boxes in (1, 300, CHUNK, CHUNK + 1, 1134, 4 * CHUNK - 1, 4 * CHUNK, 5000):
+        sizes = chunk_sizes(boxes)
+        assert sum(sizes) == boxes and len(sizes) == -(-boxes // CHUNK) and max(sizes) - min(sizes) <= 1
+
+
 def test_a_worker_failure_is_an_error_that_names_it(pendulum_loop):
     pool = pool_for(Compute(workers=2))
     pool.wait_up()
@@ -154,7 +162,7 @@ def test_the_bounds_are_the_same_bits_for_any_number_of_workers(wide_loop, monke
     loop, condition, region = wide_loop
     proofs = {}
     for workers in (1, 2, 3):
-        for chunk in (512, 96):  # one or two chunks a batch; up to eleven (the last one shorter), dealt in turn
+        for chunk in (512, 96):  # one or two chunks a batch; up to eleven (of about equal size), dealt in turn
             monkeypatch.setattr(bounding, "CHUNK", chunk)
             proofs[chunk, workers] = verify_condition(loop, condition, region, Budget(
                 seconds=600, batch=1000, compute=_up(workers) if workers > 1 else Compute()))

@@ -39,21 +39,13 @@ flight with the batch sent ahead, which is as many workers as one proof keeps bu
 cart-pole costs about the same (CPU time +2% with 1,024, -7% with 2,048, +23% with 512: each call has a fixed cost of
 about 50 ms, and fewer boxes a call are cheaper per box)."""
 
-SPREAD = 4
-"""A batch of fewer than ``SPREAD`` full chunks (the frontier of a search, where the queue is short) is cut into up to
-``SPREAD`` chunks of about equal size instead, none below ``CHUNK // SPREAD`` boxes: with chunks of ``CHUNK`` a batch of
-1,100 boxes kept one worker busy with 1,024 of them and another with 76. On the cart-pole's proof such batches hold
-about a quarter of the boxes."""
-
-
 def chunk_sizes(boxes: int) -> list[int]:
-    """The chunks a batch of ``boxes`` boxes is bounded in, one call of the job each, in order: chunks of :data:`CHUNK`
-    (the last one shorter) where the batch holds at least :data:`SPREAD` of them, else up to :data:`SPREAD` of about
-    equal size. It depends on the batch alone, so the chunks (and their bounds' bits) are the same in this process and
-    on any number of workers."""
-    if boxes >= SPREAD * CHUNK:
-        return [CHUNK] * (boxes // CHUNK) + ([boxes % CHUNK] if boxes % CHUNK else [])
-    parts = max(1, min(SPREAD, -(-boxes // max(1, 512))))
+    """The chunks a batch of ``boxes`` boxes is bounded in, one call of the job each, in order: as few as chunks of
+    :data:`CHUNK` allow, of about equal size (a batch of 1,134 boxes: 567 and 567, not 1,024 and 110, which kept one
+    worker busy and the other idle; at the frontier of a search, where the queue is short, such batches hold a quarter
+    of the cart-pole's boxes). It depends on the batch alone, so the chunks (and their bounds' bits) are the same in
+    this process and on any number of workers."""
+    parts = max(1, -(-boxes // CHUNK))
     size, extra = divmod(boxes, parts)
     return [size + 1] * extra + [size] * (parts - extra)
 
