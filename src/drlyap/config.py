@@ -481,7 +481,7 @@ class ProofConfig:
     address: str | None = None
     device: str = "cpu"
     checkpoint_dir: str | None = None
-    checkpoint_every: float = 30.0
+    checkpoint_every: float = 2.0
     progress: bool = False
 
     def validate(self) -> None:

@@ -28,6 +28,7 @@ import torch
 from torch import Tensor
 
 from drlyap.closed_loop import ClosedLoop
+from drlyap.compute import SAVE_SPACING
 from drlyap.conditions import Condition, DRUniform
 from drlyap.config import Budget
 from drlyap.enclosures import EPS, F64, Interval, round_down, round_up
@@ -241,7 +242,7 @@ class _Search:
             return clo, chi, cids
 
         job = ConditionJob(self.loop, condition, level, self.enclosure)
-        sorting = False
+        sorting, spacing = False, self.compute.checkpoint_every
         try:
             for clo, chi, cids, bounds in run_batches(job, self.compute, take, lambda: self.lo.shape[0] >= batch):
                 sorting = True
@@ -251,10 +252,12 @@ class _Search:
                 if self._sort(clo, chi, cids, bounds, scale):
                     break
                 sorting = False
-                if self.key is not None and time.perf_counter() - saved_at >= self.compute.checkpoint_every:
+                if self.key is not None and time.perf_counter() - saved_at >= spacing:
                     self.elapsed = before + time.perf_counter() - start
+                    tic = time.perf_counter()
                     self._save()
                     saved_at = time.perf_counter()
+                    spacing = max(self.compute.checkpoint_every, SAVE_SPACING * (saved_at - tic))
                 bar.set_postfix(queued=int(self.lo.shape[0]))
         except KeyboardInterrupt:
             if not sorting:  # between batches the state is whole: keep it, so that the same proof resumes here
