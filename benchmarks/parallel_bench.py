@@ -36,17 +36,10 @@ def cpu_seconds() -> float:
     workers: they run until the pools are closed)."""
     import os
 
-    from drlyap.lifeline import descendants
+    from drlyap.lifeline import descendants, process_table
 
-    tick = os.sysconf("SC_CLK_TCK")
-    total = time.process_time()
-    for pid in descendants():
-        try:
-            fields = open(f"/proc/{pid}/stat").read().rsplit(")", 1)[1].split()
-        except OSError:
-            continue
-        total += (int(fields[11]) + int(fields[12])) / tick
-    return total
+    tick, stats = os.sysconf("SC_CLK_TCK"), process_table()
+    return time.process_time() + sum(int(stats[pid][11]) + int(stats[pid][12]) for pid in descendants(stats=stats)) / tick
 
 
 def _prove(run, boxes: int, compute, batch: int | None = None, keep_partition: bool = False):

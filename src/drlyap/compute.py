@@ -21,7 +21,8 @@ class Compute:
     ``RAY_ADDRESS``, else a local Ray with ``workers`` CPUs); ``device``: where this process bounds them (``cpu`` or
     ``cuda``, float64 on the device; with one worker only); ``checkpoint_dir``: a directory where a long proof keeps
     its open boxes and proved leaves, so that the same proof, started again after it was killed, resumes there (None:
-    no checkpoints), at least ``checkpoint_every`` seconds apart and at least :data:`SAVE_SPACING` times as long as
+    no checkpoints), at least ``checkpoint_every`` seconds apart and at least
+    :data:`drlyap.verification.checkpoints.SAVE_SPACING` times as long as
     the last save took (so that saving costs a proof at most about 5%); ``progress``: a long proof reports its boxes
     on stderr."""
 
@@ -44,11 +45,6 @@ class Compute:
     def parallel(self) -> bool:
         """Whether boxes are bounded by worker processes (not by this process)."""
         return self.workers > 1 or self.backend == "ray"
-
-
-SAVE_SPACING = 20
-"""A proof's checkpoints are at least this many times as long apart as the last one took to save (the cart-pole's
-proof: about 7 ms a save, so every 2 s; a proof of millions of boxes saves less often)."""
 
 
 def compute_problems(workers, backend, address, device) -> list[str]:

@@ -70,7 +70,8 @@ process, then the modules a proof's and a check's jobs need."""
 def start_fork_server() -> bool:
     """Start multiprocessing's fork server for the local proof workers (Linux; elsewhere nothing: False), if it does
     not run yet. It returns at once: the server imports torch meanwhile, so that a command that starts it early finds
-    it ready when its first proof needs workers. The server ends when the calling thread's process ends."""
+    it ready when its first proof needs workers. The server ends when the thread that started it ends (the kernel's
+    parent-death signal follows the parent thread), and with it the process."""
     if not sys.platform.startswith("linux"):
         return False
     import multiprocessing
@@ -106,7 +107,7 @@ def init_worker(threads: int, parent: int) -> None:
         sys.modules["torch"].set_num_threads(threads)
 
 
-def _table() -> dict[int, list[str]]:
+def process_table() -> dict[int, list[str]]:
     """Every process's fields of ``/proc/PID/stat`` after its name (``[1]``: its parent, ``[19]``: its start time)."""
     stats = {}
     for stat in Path("/proc").glob("[0-9]*/stat"):
@@ -119,9 +120,9 @@ def _table() -> dict[int, list[str]]:
 
 def descendants(pid: int | None = None, stats: dict[int, list[str]] | None = None) -> list[int]:
     """The processes below ``pid`` (default: this one), children first, read from /proc (empty elsewhere);
-    ``stats``: a :func:`_table` already read."""
+    ``stats``: a :func:`process_table` already read."""
     parents: dict[int, list[int]] = {}
-    for child, fields in (_table() if stats is None else stats).items():
+    for child, fields in (process_table() if stats is None else stats).items():
         parents.setdefault(int(fields[1]), []).append(child)
     found, todo = [], [os.getpid() if pid is None else pid]
     while todo:
@@ -151,12 +152,12 @@ def reap(parent: int, marks: list[str]) -> None:
     process from one that took its pid) and what they started."""
     known = {int(pid): start for pid, start in (m.split(":") for m in marks)}
     while os.getppid() == parent:
-        stats = _table()
+        stats = process_table()
         for pid in descendants(parent, stats):
             if pid != os.getpid() and pid not in known and _is_ray(pid):
                 known[pid] = stats[pid][19]
         time.sleep(0.5)
-    stats = _table()
+    stats = process_table()
     doomed = [pid for pid, start in known.items() if pid in stats and stats[pid][19] == start]
     for root in list(doomed):
         doomed += [p for p in descendants(root, stats) if p not in doomed]
@@ -172,7 +173,7 @@ def reap_with_me(pids: list[int]) -> None:
     not bound to it, such as a local Ray's agents), the ``ray::`` processes that appear below this one later and what
     they started, within half a second of this process ending, however it ends. It runs in a session of its own, so
     that a Ctrl-C to this process does not end it first; a pid taken by another process meanwhile is left alone."""
-    stats = _table()
+    stats = process_table()
     marks = [f"{pid}:{stats[pid][19]}" for pid in pids if pid in stats]
     if marks:
         code = "import sys\nfrom drlyap.lifeline import reap\nreap(int(sys.argv[1]), sys.argv[2:])"

@@ -204,9 +204,8 @@ def _chunks(arrays: tuple, parts: int, size: int | list[int] | None = None) -> l
 
 def run_in_chunks(job: Job, arrays: tuple, size: int | list[int]) -> dict:
     """``job`` on ``arrays`` (each ``(B, ...)``) in this process, one call per chunk of ``size`` rows (or of the sizes
-    listed; the chunks a
-    pool's ``submit(job, *arrays, chunk=size)`` deals to its workers), the results joined on axis 0 in order: the same
-    bits as the pool's."""
+    listed; the chunks a pool's ``submit(job, *arrays, chunk=size)`` deals to its workers), the results joined on axis
+    0 in order: the same bits as the pool's."""
     return _join([job(*chunk) for chunk in _chunks(arrays, 1, size)])
 
 

@@ -28,7 +28,6 @@ import torch
 from torch import Tensor
 
 from drlyap.closed_loop import ClosedLoop
-from drlyap.compute import SAVE_SPACING
 from drlyap.conditions import Condition, DRUniform
 from drlyap.config import Budget
 from drlyap.enclosures import EPS, F64, Interval, round_down, round_up
@@ -38,7 +37,7 @@ from drlyap.progress import progress as show_progress
 from drlyap.regions import Region, box_grid, default_grid, inside_ball, split
 from drlyap.verification.bounding import ConditionJob, run_batches
 from drlyap.verification.bounds import box_bounds, condition_objective, vertex_max
-from drlyap.verification.checkpoints import load_checkpoint, proof_key, save_checkpoint
+from drlyap.verification.checkpoints import SAVE_SPACING, load_checkpoint, proof_key, save_checkpoint
 from drlyap.verification.partition import INSIDE_CORE, OPEN, PROVED, Partition, PartitionRecorder
 from drlyap.verification.results import ConditionProof, UniformMargin
 

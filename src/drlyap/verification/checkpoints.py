@@ -31,6 +31,9 @@ from drlyap.seal import opens, seal
 
 FORMAT = "drlyap-proof-checkpoint"
 VERSION = 1
+SAVE_SPACING = 20
+"""A proof's checkpoints are at least this many times as long apart as the last one took to save (the cart-pole's
+proof: about 7 ms a save, so every 2 s, ``Compute.checkpoint_every``; a proof of millions of boxes saves less often)."""
 
 
 def update_hash(h, t: Tensor) -> None:
