@@ -110,11 +110,9 @@ def test_train_prints_the_set_cut_by_the_box_and_the_command_that_searches_it():
     from drlyap.systems import get_system
 
     level = TrainSections.of(TrainConfig(system="quadrotor2d", level_margin=0.6).resolved(get_system("quadrotor2d"))).goal.level
-    line = cut_set_line(level, 0.1, (0.8, -2.5), "drlyap verify RUN")
+    line = cut_set_line(level, (0.8, -2.5), "drlyap verify RUN")
     assert "{V <= 1.6} in the box" in line and "only where the flow may leave the box" in line
-    assert "`drlyap verify RUN --xi 0.8,-2.5 --roa --roa-above-level`" in line
-    assert "`--roa-rate A` asks the shift a decay A V below the run's alpha = 0.1" in line
-    assert "--roa-rate" not in cut_set_line(level, 0.0, (0.8, -2.5), "drlyap verify RUN")
+    assert "`drlyap verify RUN --xi 0.8,-2.5 --roa` searches that set cut by the box" in line
 
 
 def test_descent_among_the_exits_finds_where_v_is_least_among_the_face_points_the_flow_may_leave():

@@ -379,7 +379,8 @@ def test_an_imported_v_has_sound_values_and_gradients(tmp_path):
 
 def test_an_exported_region_of_attraction_pair_imports_with_its_run_s_claim_and_certifies_the_same(tmp_path):
     """The export of a run trained for a region of attraction carries its claim (decay, level, delta): the imported
-    pair is proved on the same {V <= level} and certifies the same region; --roa-above-level lifts the cap for both."""
+    pair is proved on the same {V <= level} and certifies the same region; above that level (the default), both
+    certify the same larger one."""
     from drlyap.workflows.verify import verify, verify_imported
 
     system = get_system("pendulum")
@@ -398,23 +399,23 @@ def test_an_exported_region_of_attraction_pair_imports_with_its_run_s_claim_and_
     assert (pair.level, pair.delta, pair.decay_rate, pair.exp_rate) == (1.0, run.config.delta, 0.0, 0.3)
     xi = torch.tensor(system.test_xi, dtype=F64)
     proof = dataclasses.replace(run.proof or ProofConfig(), time_limit=20.0)
-    mine = verify(run, proof, xi=xi, roa=True, reprove=True)
-    theirs = verify_imported(pair, str(out), proof, xi=xi, roa=True)
+    mine = verify(run, proof, xi=xi, roa=True, reprove=True, above_level=False)
+    theirs = verify_imported(pair, str(out), proof, xi=xi, roa=True, above_level=False)
     assert theirs.true_model.level == mine.true_model.level == 1.0
     assert theirs.true_model.status == mine.true_model.status
     assert theirs.true_model.boxes_processed == mine.true_model.boxes_processed
     assert mine.true_model.verified and mine.roa.limited_by == TRAINED_LEVEL and 0.99 < mine.roa.level <= 1.0
     assert theirs.roa.level == mine.roa.level and theirs.roa.share_of_box == mine.roa.share_of_box
-    above = verify_imported(pair, str(out), proof, xi=xi, roa=True, above_level=True)
-    run_above = verify(run, proof, xi=xi, roa=True, above_level=True)
+    above = verify_imported(pair, str(out), proof, xi=xi, roa=True)
+    run_above = verify(run, proof, xi=xi, roa=True)
     assert above.roa.level == pytest.approx(run_above.roa.level, rel=1e-9)  # V's bounds move by rounding
     assert above.roa.level > mine.roa.level  # this pair's decrease reaches past its level
     assert above.roa.share_of_box == pytest.approx(run_above.roa.share_of_box, rel=1e-6)
     assert above.roa.share_of_box > mine.roa.share_of_box
     print(f"run and import: level {mine.roa.level}, {mine.roa.share_of_box}; above it: {above.roa.level}, "
           f"{above.roa.share_of_box}")
-    refused = CliRunner().invoke(main, ["verify", str(path), "--roa-above-level"])
-    assert refused.exit_code == 1 and "--roa-above-level goes with --roa" in refused.output
+    refused = CliRunner().invoke(main, ["verify", str(path), "--roa-at-level"])
+    assert refused.exit_code == 1 and "--roa-at-level goes with --roa" in refused.output
 
 
 def test_a_damaged_claim_in_an_export_is_refused_in_one_line():
@@ -458,14 +459,15 @@ def test_a_users_system_pair_exported_and_imported_again_certifies_the_same_regi
         assert res.exit_code == 0, res.output
         return json.loads(res.stdout)
 
-    mine, theirs = verify(run_dir), verify(out)
+    mine, theirs = verify(run_dir, "--roa-at-level"), verify(out, "--roa-at-level")  # the run's claimed level
+    assert theirs["roa_rate"] == mine["roa_rate"] == 0.01  # the strict decrease a region needs, by default
     assert theirs["true_model"]["level"] == mine["true_model"]["level"] == 1.0
     assert theirs["true_model"]["boxes_processed"] == mine["true_model"]["boxes_processed"]
     assert theirs["roa"]["level"] == mine["roa"]["level"] and theirs["roa"]["share_of_box"] == mine["roa"]["share_of_box"]
     print(f"run and import: {mine['true_model']['status']}, level {mine['roa']['level']}, {mine['roa']['share_of_box']}")
     # a slower decay asked at the shift (--roa-rate): the same proof and region for the pair and its import, and the
     # imported pair's certificates state that decay and are checked against it
-    slow_mine, slow_theirs = verify(run_dir, "--roa-rate", "0.05"), verify(out, "--roa-rate", "0.05")
+    slow_mine, slow_theirs = (verify(path, "--roa-rate", "0.05", "--roa-at-level") for path in (run_dir, out))
     assert slow_theirs["roa_rate"] == slow_mine["roa_rate"] == 0.05
     assert slow_theirs["true_model"]["boxes_processed"] == slow_mine["true_model"]["boxes_processed"]
     assert slow_theirs["roa"]["level"] == slow_mine["roa"]["level"]

@@ -139,3 +139,15 @@ def test_an_exported_pair_with_alpha_v_and_no_decay_is_certified_and_checked(tmp
     checked = runner.invoke(main, ["check", str(out), "--system", spec])
     assert checked.exit_code == 0 and checked.output.count(": CHECKED") == 3, checked.output
     assert "V > 0 outside the ball by the checker's bisection" in checked.output
+
+
+def test_a_region_at_a_shift_asks_a_strict_decrease_and_no_more():
+    """What ``verify --roa`` asks of the true model at a shift by default: the least decay that makes the decrease
+    strict, never more than the run's own."""
+    from drlyap.verification.roa import REGION_RATE, region_rate
+
+    assert REGION_RATE == 0.01
+    assert region_rate(0.0, 0.3) == REGION_RATE
+    assert region_rate(0.0, 0.0) == REGION_RATE  # no decay at all: not strict without one
+    assert region_rate(0.0, 0.003) is None  # the run's own alpha is smaller
+    assert region_rate(1.0, 0.0) is None  # gamma ||z|| already makes it strict

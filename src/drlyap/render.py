@@ -107,17 +107,14 @@ def training_lines(system: str, method: str, record: TrainingRecord) -> list[str
     return lines
 
 
-def cut_set_line(level: float, exp_rate: float, test_xi, verify_hint: str) -> str:
+def cut_set_line(level: float, test_xi, verify_hint: str) -> str:
     """What ``drlyap train`` adds for a run trained with ``exit_faces``: the set it trained beyond the claim (up to
     the trained ``level``, :attr:`~drlyap.sections.RegionGoal.level`), cut by the box where the flow enters it, and
-    the command that searches it for a certified region of attraction at the system's test shift ``test_xi``; with
-    the run's decay ``exp_rate`` (alpha) above 0, that ``--roa-rate`` asks a slower one there."""
+    the command that searches it for a certified region of attraction at the system's test shift ``test_xi``."""
     xi = ",".join(f"{float(v):g}" for v in test_xi)
-    slower = (f" (`--roa-rate A` asks the shift a decay A V below the run's alpha = {exp_rate:g} there: a region of "
-              f"attraction needs only a strict decrease)") if exp_rate > 0 else ""
     return (f"  trained up to {{V <= {level:g}}} in the box, V held above that level only where the flow may leave "
-            f"the box: `{verify_hint} --xi {xi} --roa --roa-above-level` searches that set cut by the box for a "
-            f"certified region of attraction at the test shift{slower}")
+            f"the box: `{verify_hint} --xi {xi} --roa` searches that set cut by the box for a certified region of "
+            f"attraction at the test shift (with the strict decrease a region of attraction needs there)")
 
 
 def proof_round_line(entry: ProofRound) -> str:

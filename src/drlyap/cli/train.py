@@ -194,7 +194,7 @@ def train(system: str, method: str, loss: str, radius: float | None, eps: float 
     for line in check_lines(checked or []):
         click.echo(f"  {line}")
     if result.config.exit_faces and sys_.test_xi is not None and not refused:
-        click.echo(cut_set_line(TrainSections.of(result.config).goal.level, result.config.exp_rate, sys_.test_xi,
+        click.echo(cut_set_line(TrainSections.of(result.config).goal.level, sys_.test_xi,
                                 command_hint("verify", out, source=source)))
     if refused:
         sys.exit(1)

@@ -42,7 +42,7 @@ def _interrupted(run_dir: Path) -> None:
         click.echo(f"drlyap: interrupted; the proof's progress is kept in {kept}: the same command, run again, "
                    "resumes it", err=True)
     else:
-        click.echo("drlyap: interrupted; nothing new was written (a proof keeps a checkpoint after 30 s: a shorter "
+        click.echo("drlyap: interrupted; nothing new was written (a proof keeps a checkpoint after 2 s: a shorter "
                    "one starts again)", err=True)
     sys.exit(130)
 
@@ -66,13 +66,14 @@ def _interrupted(run_dir: Path) -> None:
 @click.option("--roa-time", type=float, default=None,
               help="A cap on the seconds of --roa's search (and again of its band proof); a search that reaches it "
                    "says so: its region may differ on a faster machine [10x --time-limit].")
-@click.option("--roa-above-level", is_flag=True,
-              help="Let --roa's search go above the level the run was trained for (or the level of the run an imported "
-                   "pair was exported from); without it the region certified is at most that level, the run's claim.")
+@click.option("--roa-above-level/--roa-at-level", default=None,
+              help="Whether --roa's search goes above the level the run was trained for (or the level of the run an "
+                   "imported pair was exported from), to the largest set it certifies; --roa-at-level: at most that "
+                   "level, the run's claim [above].")
 @click.option("--roa-rate", type=float, default=None,
               help="With --roa at --xi: the decay alpha of the true model's decrease Vdot + alpha V <= 0 proved there and "
-                   "asked of its region (a region of attraction needs only a strict decrease: any alpha > 0) [the "
-                   "run's alpha].")
+                   "asked of its region [0.01, or the run's alpha where smaller: a region of attraction needs only a "
+                   "strict decrease, any alpha > 0 (none with a decay gamma ||z||: the run's)].")
 @click.option("--uniform", is_flag=True,
               help="Also bound the uniform DR condition's margin at the run's radius, risk level and samples (a "
                    "stricter condition than the pointwise one the default pairs are trained on); a margin proved "
@@ -94,7 +95,7 @@ def _interrupted(run_dir: Path) -> None:
 @click.option("--json", "as_json", is_flag=True, help="Print one JSON object.")
 @run_source_options
 def verify(run_dir: Path, delta: float | None, xi: str | None, time_limit: float | None, roa: bool,
-           roa_boxes: int | None, roa_time: float | None, roa_above_level: bool, roa_rate: float | None, uniform: bool,
+           roa_boxes: int | None, roa_time: float | None, roa_above_level: bool | None, roa_rate: float | None, uniform: bool,
            max_radius: bool, radius_tol: float, enclosure: str | None, reprove: bool, workers: int, backend: str,
            address: str | None, device: str, as_json: bool, system_spec: str | None, trust_run: bool) -> None:
     """Prove the decrease condition of RUN_DIR on the whole state box minus the delta-ball, or find a counterexample.
@@ -144,8 +145,10 @@ def verify(run_dir: Path, delta: float | None, xi: str | None, time_limit: float
             raise ValueError(f"--roa-time must be > 0, got {roa_time}")
         if roa_boxes is not None and not roa_boxes >= 1:
             raise ValueError(f"--roa-boxes must be >= 1, got {roa_boxes}")
-        if roa_above_level and not roa:
-            raise ValueError("--roa-above-level goes with --roa (it lets the region-of-attraction search pass the level)")
+        if roa_above_level is not None and not roa:
+            raise ValueError(f"--roa-{'above' if roa_above_level else 'at'}-level goes with --roa (where the "
+                             "region-of-attraction search may go)")
+        above_level = roa_above_level is not False
         if not radius_tol > 0:
             raise ValueError(f"--radius-tol must be > 0, got {radius_tol}")
         if roa_rate is not None and not (roa and xi is not None and math.isfinite(roa_rate) and roa_rate > 0):
@@ -153,7 +156,7 @@ def verify(run_dir: Path, delta: float | None, xi: str | None, time_limit: float
                              f"got {roa_rate}" + ("" if roa and xi is not None else " without them"))
         if read_run_kind(run_dir).get("kind") == "imported":
             _verify_imported(run_dir, delta, xi, time_limit, roa, roa_time, enclosure, as_json, system_spec, trust_run,
-                             compute, roa_above_level, roa_rate, roa_boxes)
+                             compute, above_level, roa_rate, roa_boxes)
             return
         run = load_run(run_dir, run_system_of(system_spec), trust_run)
         settings = dataclasses.replace(run.proof or ProofConfig(), roa_time=roa_time, roa_boxes=roa_boxes,
@@ -163,7 +166,7 @@ def verify(run_dir: Path, delta: float | None, xi: str | None, time_limit: float
         settings = run_proof(run, settings)
         shift = None if xi is None else run.system.check_xi(floats(xi, "--xi"))
         result = prove_run(run, settings, delta=delta, xi=shift, roa=roa, uniform=uniform, reprove=reprove,
-                            above_level=roa_above_level, roa_rate=roa_rate)
+                            above_level=above_level, roa_rate=roa_rate)
         stored = None
         if roa:
             try:
@@ -210,7 +213,7 @@ def verify(run_dir: Path, delta: float | None, xi: str | None, time_limit: float
 
 def _verify_imported(run_dir: Path, delta: float | None, xi: str | None, time_limit: float | None, roa: bool,
                      roa_time: float | None, enclosure: str | None, as_json: bool, system_spec: str | None,
-                     trust_run: bool, compute: dict, above_level: bool = False, roa_rate: float | None = None,
+                     trust_run: bool, compute: dict, above_level: bool = True, roa_rate: float | None = None,
                      roa_boxes: int | None = None) -> None:
     """``drlyap verify`` on an imported pair: decrease on the true model at --xi (the system's test shift by default)
     and with --roa its region of attraction; what is verified is written as certificates."""

@@ -37,6 +37,7 @@ import torch
 from torch import Tensor, nn
 
 from drlyap.closed_loop import ClosedLoop
+from drlyap.conditions import TrueDecrease
 from drlyap.graph import INPUT, Graph, GraphBuilder, read_onnx, simplify
 from drlyap.io import write_bytes_of, write_json
 from drlyap.networks import QuadraticLyapunov, origin_like
@@ -71,6 +72,11 @@ class ImportedPair:
     notes: dict = field(default_factory=dict)
     level: float | None = None
     delta: float | None = None
+
+    def true_condition(self, xi: Tensor, exp_rate: float | None = None) -> TrueDecrease:
+        """Decrease on the true model at the shifts ``xi (1, k)`` with the pair's decay, or with the decay ``exp_rate``
+        (alpha) in place of its own."""
+        return TrueDecrease(xi, decay_rate=self.decay_rate, exp_rate=self.exp_rate if exp_rate is None else exp_rate)
 
 
 def _claim_number(value, what: str, lowest: float, above: bool = False) -> float:

@@ -43,6 +43,7 @@ from drlyap.verification import (
     shift_scale,
     verify_condition,
 )
+from drlyap.verification.roa import region_rate
 from drlyap.workflows.policies import load_policy_run
 from drlyap.workflows.verify import run_proof, run_robustness, verify
 
@@ -146,21 +147,27 @@ def certify(run: PolicyRun, xi: Tensor, time_limit: float, compute: Compute = Co
 def certify_loop(loop: ClosedLoop, xi: Tensor, time_limit: float, decay_rate: float, exp_rate: float,
                  compute: Compute = Compute()) -> ProofAttempt:
     """What a closed loop proves at the shift ``xi (k,)`` on the true model over the system's X_delta (its default
-    delta): decrease ``Vdot + gamma ||z|| + alpha V <= 0`` (``decay_rate`` gamma, ``exp_rate`` alpha), the certified
-    region of attraction, and the certified box of shifts with that decay (``time_limit`` seconds per proof; the
-    search at most 4x that). What ``certify`` runs for LQR, imported pairs and RL actors."""
+    delta), as ``drlyap verify RUN --xi XI --roa`` proves a run there: decrease ``Vdot + gamma ||z|| + alpha V <= 0``
+    (``decay_rate`` gamma; alpha the strict decrease a region of attraction asks,
+    :func:`~drlyap.verification.roa.region_rate` of ``exp_rate``), the certified region of attraction by the same
+    search in the same budget (the system's boxes, a cap of 10x ``time_limit`` seconds), and the certified box of
+    shifts with the loop's own decay (``time_limit`` seconds per proof; the search at most 4x that). What ``certify``
+    runs for LQR, imported pairs and RL actors."""
     system = loop.system
+    checks = ProofConfig(time_limit=time_limit).resolved(system).with_compute(compute)
     search = Budget(seconds=time_limit, enclosure="mean-value", compute=compute)
-    condition = TrueDecrease(xi[None], decay_rate=decay_rate, exp_rate=exp_rate)
+    rate = region_rate(decay_rate, exp_rate)
+    rate = exp_rate if rate is None else rate
+    condition = TrueDecrease(xi[None], decay_rate=decay_rate, exp_rate=rate)
     region = Region.of(system, system.defaults.delta)
     result = verify_condition(loop, condition, region, search)
-    roa = certified_roa(loop, condition, region, Budget(seconds=time_limit, compute=compute))
+    roa = certified_roa(loop, condition, region, checks.roa_budget(), band_time=checks.band_time)
     box = certified_shift_box(loop, decay_rate, exp_rate, region, shift_scale(system), search,
                               total_time=4 * time_limit)
     return ProofAttempt(status=result.status, verified_fraction=result.verified_fraction,
                         counterexample=result.counterexample, time_s=result.time_s, roa_certified=roa.certified,
                         roa_kind=roa.kind, roa_share=roa.share_of_box, decay_rate=decay_rate,
-                        exp_rate=exp_rate if exp_rate or not decay_rate else None,  # a scale-free decay is shown
+                        exp_rate=rate if rate or not decay_rate else None,  # a scale-free decay is shown
                         robustness=_robust_summary(None, box))
 
 

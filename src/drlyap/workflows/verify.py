@@ -13,7 +13,7 @@ import torch
 from torch import Tensor
 
 from drlyap.closed_loop import ClosedLoop
-from drlyap.conditions import Condition, TrueDecrease
+from drlyap.conditions import Condition
 from drlyap.io import jsonable
 from drlyap.kinds import Enclosure, Loss, Method, Status
 from drlyap.regions import Region
@@ -37,7 +37,7 @@ from drlyap.verification import (
     uniform_margin,
     verify_condition,
 )
-from drlyap.verification.roa import band_proof, ellipsoid_proof, linearisation_proofs
+from drlyap.verification.roa import band_proof, ellipsoid_proof, linearisation_proofs, region_rate
 from drlyap.verification.robustness import SEARCH_BUDGET
 
 CHECKPOINTS = "checkpoints"
@@ -119,26 +119,25 @@ def confirmed_certificate(run: Run, name: str, condition, region: Region, level:
 
 def verify(run: Run, proof: ProofConfig | None = None, *, delta: float | None = None,
                xi: Sequence[float] | Tensor | None = None, roa: bool = False, uniform: bool = False,
-               reprove: bool = False, above_level: bool = False, roa_rate: float | None = None) -> RunVerification:
+               reprove: bool = False, above_level: bool = True, roa_rate: float | None = None) -> RunVerification:
     """Verify a loaded run (:func:`drlyap.runs.load_run`) on X_delta (``delta``: the run's by default).
 
     ``trained``: the run's own condition (pointwise / nominal by :func:`~drlyap.verification.prove_trained`, uniform by
     :func:`~drlyap.verification.uniform_margin`); with ``uniform``, the uniform DR margin at the run's radius, risk
     level and samples (the trained condition itself for a run trained on it); with ``xi``, ``true_model``: plain
     decrease on the true model at that shift; with ``roa``, the certified region of attraction of the main condition
-    (the true model's when ``xi`` is given) within ``proof.roa_budget()`` (boxes, not seconds), up to the level a
-    region-of-attraction run was trained for. A run trained for a region of attraction (``config.roa_level``) has its
-    trained and true-model conditions proved on ``{V <= roa_level}`` with V above the level on the box's faces;
-    ``above_level``: the region-of-attraction search goes on above that level too (the claim the run was trained for
-    stays the default). ``proof``: the settings (:func:`run_proof`). A condition whose certificate file states the same
-    claim and is confirmed by the checker is not proved again (:func:`confirmed_certificate`), unless ``reprove``.
-    ``roa_rate``: with ``xi``, the decay ``alpha`` of the true model's decrease ``Vdot + alpha V <= 0`` proved there and
-    asked of its region (None: the run's ``exp_rate``; a region of attraction needs only a strict decrease, any ``alpha
-    > 0``).
+    (the true model's when ``xi`` is given) within ``proof.roa_budget()`` (boxes, not seconds). A run trained for a
+    region of attraction (``config.roa_level``) has its trained and true-model conditions proved on ``{V <= roa_level}``
+    with V above the level on the box's faces; the region-of-attraction search goes on above that level
+    (``above_level`` False: at most that level, the claim the run was trained for). ``proof``: the settings
+    (:func:`run_proof`). A condition whose certificate file states the same claim and is confirmed by the checker is not
+    proved again (:func:`confirmed_certificate`), unless ``reprove``. ``roa_rate``: with ``xi``, the decay ``alpha`` of
+    the true model's decrease ``Vdot + alpha V <= 0`` proved there and asked of its region (None: with ``roa``, what a
+    region of attraction needs, a strict decrease, :func:`~drlyap.verification.roa.region_rate`; without, the run's).
     """
-    _check_roa_rate(roa_rate, xi is not None, "a shift (xi)")
-    proof = run_proof(run, proof)
     cfg, system, loop = run.config, run.system, run.loop
+    roa_rate = _roa_rate(roa_rate, xi is not None, "a shift (xi)", roa and xi is not None, cfg)
+    proof = run_proof(run, proof)
     region = _region(run, delta)
     level = cfg.roa_level
     budget = proof.budget()
@@ -182,11 +181,15 @@ def verify(run: Run, proof: ProofConfig | None = None, *, delta: float | None = 
                            roa=region_of_attraction, roa_rate=roa_rate)
 
 
-def _check_roa_rate(roa_rate: float | None, given_with: bool, what: str) -> None:
-    """Refuse a ``roa_rate`` that is not a finite number > 0, or that comes without ``what`` (``given_with`` False)."""
+def _roa_rate(roa_rate: float | None, given_with: bool, what: str, region: bool, decay) -> float | None:
+    """``roa_rate``, refused where it is not a finite number > 0 or comes without ``what`` (``given_with`` False); None
+    for a ``region`` of attraction at a shift: :func:`~drlyap.verification.roa.region_rate` of ``decay``'s rates."""
     if roa_rate is not None and not (given_with and math.isfinite(roa_rate) and roa_rate > 0):
         raise ValueError(f"roa_rate must be > 0 and given with {what}, got {roa_rate}"
                          + ("" if given_with else f" without {what}"))
+    if roa_rate is None and region:
+        return region_rate(float(decay.decay_rate or 0.0), float(decay.exp_rate or 0.0))
+    return roa_rate
 
 
 def _region_of_attraction(loop: ClosedLoop, condition: Condition, region: Region, proof: ProofConfig,
@@ -198,15 +201,15 @@ def _region_of_attraction(loop: ClosedLoop, condition: Condition, region: Region
 
 
 def verify_imported(pair, run_dir: str, proof: ProofConfig | None = None, *, xi: Tensor, delta: float | None = None,
-                    roa: bool = False, above_level: bool = False, roa_rate: float | None = None) -> RunVerification:
+                    roa: bool = False, above_level: bool = True, roa_rate: float | None = None) -> RunVerification:
     """Verify an imported pair (:class:`drlyap.runs.imported.ImportedPair`, ``drlyap import``): plain decrease on the
     true model at the shift ``xi (k,)`` with the pair's decay, on X_delta (``delta``: the pair's, from the export of a
     drlyap run, else the system's default), by the same proof as for a trained run's ``--xi``: on ``{V <= level}``
     with V above the level on the box's faces for a pair exported from a run trained for a region of attraction (and
-    with ``roa`` its certified region of attraction there, up to that level, as for its run; ``above_level``: above it
-    too). An imported pair has no trained condition (``trained`` is None). ``roa_rate``: with ``roa``, the decay
-    ``alpha`` asked at the shift instead of the pair's (as for :func:`verify`)."""
-    _check_roa_rate(roa_rate, roa, "roa")
+    with ``roa`` its certified region of attraction there, above that level as for its run; ``above_level`` False: at
+    most that level). An imported pair has no trained condition (``trained`` is None). ``roa_rate``: with ``roa``, the
+    decay ``alpha`` asked at the shift instead of the pair's (None: :func:`~drlyap.verification.roa.region_rate`)."""
+    roa_rate = _roa_rate(roa_rate, roa, "roa", roa, pair)
     loop = pair.loop
     system = loop.system
     proof = (proof or ProofConfig()).resolved(system)
@@ -215,7 +218,7 @@ def verify_imported(pair, run_dir: str, proof: ProofConfig | None = None, *, xi:
     region = Region.of(system, float(delta))
     level = pair.level
     budget = proof.budget()
-    condition = imported_condition(pair, system.check_xi(xi)[None], roa_rate)
+    condition = pair.true_condition(system.check_xi(xi)[None], roa_rate)
     true_model = prove_trained(loop, condition, region, budget, level, falsify_starts=proof.settle_starts)
     true_model.xi = condition.xi[0].tolist()
     region_of_attraction = None
@@ -225,12 +228,6 @@ def verify_imported(pair, run_dir: str, proof: ProofConfig | None = None, *, xi:
     return RunVerification(run_dir=str(run_dir), system=system.name, method="imported", loss=None, delta=region.delta,
                            enclosure=proof.enclosure, trained=None, true_model=true_model, roa=region_of_attraction,
                            roa_rate=roa_rate)
-
-
-def imported_condition(pair, xi: Tensor, exp_rate: float | None = None) -> TrueDecrease:
-    """Decrease on the true model at the shifts ``xi (1, k)`` with an imported pair's decay, or with the decay
-    ``exp_rate`` (alpha) in place of its own."""
-    return TrueDecrease(xi, decay_rate=pair.decay_rate, exp_rate=pair.exp_rate if exp_rate is None else exp_rate)
 
 
 REGION_CERTIFICATES = ("roa-ball", "roa", "ellipsoid", "practical")
@@ -528,7 +525,7 @@ def record_imported_certificates(run_dir: str | Path, pair, ver: RunVerification
     run_dir = Path(run_dir)
     system = pair.loop.system
     found = ver.true_model
-    condition = imported_condition(pair, system.check_xi(found.xi)[None], ver.roa_rate)
+    condition = pair.true_condition(system.check_xi(found.xi)[None], ver.roa_rate)
     region = Region.of(system, float(ver.delta))
     files = [run_dir / "graphs.json", run_dir / "tensors.pt"]
     own = pair.delta is None or float(ver.delta) == float(pair.delta)  # the checker compares a stated delta

@@ -5,10 +5,10 @@ ellipsoid), :mod:`~drlyap.verification.roa.band` (V's decrease outside that elli
 :mod:`~drlyap.verification.roa.levels` (the level search they share)."""
 
 from drlyap.verification.roa.band import band_proof, band_roa
-from drlyap.verification.roa.certify import certified_roa
+from drlyap.verification.roa.certify import REGION_RATE, certified_roa, region_rate
 from drlyap.verification.roa.local import local_decrease
 from drlyap.verification.roa.quadratic import ellipsoid_proof, linearisation_local, linearisation_proofs, quadratic_roa
 from drlyap.verification.roa.sublevel import share_of_box, sublevel_roa
 
-__all__ = ["band_proof", "band_roa", "certified_roa", "ellipsoid_proof", "linearisation_local", "linearisation_proofs",
-           "local_decrease", "quadratic_roa", "share_of_box", "sublevel_roa"]
+__all__ = ["REGION_RATE", "band_proof", "band_roa", "certified_roa", "ellipsoid_proof", "linearisation_local",
+           "linearisation_proofs", "local_decrease", "quadratic_roa", "region_rate", "share_of_box", "sublevel_roa"]

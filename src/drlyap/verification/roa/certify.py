@@ -40,6 +40,20 @@ from drlyap.verification.roa.sublevel import (
     proved_outer,
 )
 
+REGION_RATE = 0.01
+"""The decay ``alpha`` of ``Vdot + alpha V <= 0`` that a region of attraction at a shift asks of the true model by
+default: any ``alpha > 0`` makes the decrease strict where V > 0, all a region of attraction needs, and a small one
+asks the least of the pair (the run's own alpha where that is smaller, :func:`region_rate`)."""
+
+
+def region_rate(decay_rate: float, exp_rate: float) -> float | None:
+    """The decay ``alpha`` a region of attraction asks of the true model at a shift by default, where it is not the
+    pair's own (None: the pair's ``gamma ||z||`` already makes its decrease strict, or its ``alpha`` is at most
+    :data:`REGION_RATE`); else :data:`REGION_RATE`."""
+    if decay_rate > 0 or 0 < exp_rate <= REGION_RATE:
+        return None
+    return REGION_RATE
+
 
 def certified_roa(loop: ClosedLoop, condition: Condition, region: Region, budget: Budget = Budget(seconds=10.0), *,
                   samples_per_axis: int = 400, max_level: float = math.inf,

@@ -55,7 +55,7 @@ EXIT_ROOM = 0.01
 room for the checker's own bisection of the faces, which must separate the set from those points (on the planar
 quadrotor it needed 204,166 face boxes at 1% below, and did not finish within 200,000 one float step below)."""
 
-TRAINED_LEVEL = "the level the run was trained for (--roa-above-level searches above it)"
+TRAINED_LEVEL = "the level the run was trained for (--roa-at-level keeps the search there)"
 """``limited_by`` of a search capped at the level the run was trained for."""
 
 
