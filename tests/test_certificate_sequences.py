@@ -32,7 +32,7 @@ STEPS = [
     (["--xi", A], A, TRAINED),  # a region about the trained condition stays
     (["--xi", B, "--roa"], B, B),
     (["--xi", B, "--roa", "--roa-rate", "0.5"], B, B),
-    (["--xi", B], B, None),  # the run's decay, not the region's 0.5
+    (["--xi", B], B, None),  # the default decay, not the region's 0.5
     (["--delta", "0.3", "--xi", A, "--roa"], B, None),  # a region at another delta has no certificate
     (["--xi", A, "--roa", "--uniform"], A, A),
     (["--max-radius"], A, A),
@@ -99,20 +99,27 @@ def _assert_described(run: Path, shift: str | None, region_shift: str | None) ->
             assert _claim(run, claim["outer"])["condition"]["xi"] == samples
 
 
-@pytest.mark.parametrize("overrides", [{}, {"roa_level": 0.2}], ids=["own-proof", "trained-for-a-region"])
-def test_certificates_and_metrics_agree_after_every_verify(tmp_path, overrides):
-    """Without a level the region's decrease outside the ball is its own ``roa``; a run trained for a region has it
-    proved by ``trained`` / ``true-model`` on ``{V <= 0.2}``, which ``roa-ball`` names."""
+@pytest.mark.parametrize("overrides, at_level, outers_named", [
+    ({}, False, {"roa"}), ({"roa_level": 0.2}, True, {"trained", "true-model"}), ({"roa_level": 0.2}, False, {"roa"}),
+    ({"decay_rate": 0.0, "exp_rate": 0.3}, False, {"roa"})],
+    ids=["own-proof", "trained-for-a-region", "above-the-trained-level", "alpha-v"])
+def test_certificates_and_metrics_agree_after_every_verify(tmp_path, overrides, at_level, outers_named):
+    """Without a level the region's decrease outside the ball is its own ``roa``; a run trained for a region searched
+    at its level (``--roa-at-level``) has it proved by ``trained`` / ``true-model`` on ``{V <= 0.2}``, which
+    ``roa-ball`` names; searched above it (the default), by its own ``roa`` again."""
     run = linear_run_dir(tmp_path / "run", delta=0.5, **overrides)
     outers = set()
     for args, shift, region_shift in STEPS:
+        args = [*args, "--roa-at-level"] if at_level and "--roa" in args else args
         out = CliRunner().invoke(main, ["verify", str(run), "--system", SPEC, *args])
         assert out.exit_code in EXIT_CODES.values(), out.output
         _check_as_printed(run, out.output)
         _assert_described(run, shift, region_shift)
+        if shift is not None and "exp_rate" in overrides:  # at a shift a strict decrease, 0.01 V, unless asked
+            assert _claim(run, "true-model")["condition"]["exp_rate"] == (0.5 if "--roa-rate" in args else 0.01)
         if (run / "certificates" / "roa-ball.json").is_file():
             outers.add(_claim(run, "roa-ball")["outer"])
-    assert outers == ({"roa"} if not overrides else {"trained", "true-model"})
+    assert outers == outers_named
     assert {"radius", "shift-box"} <= set(_present(run))
 
 

@@ -50,7 +50,9 @@ def _interrupted(run_dir: Path) -> None:
 @click.command()
 @click.argument("run_dir", type=click.Path(path_type=Path))
 @click.option("--delta", type=float, default=None, help="Radius of the excluded ball around x* [the run's delta].")
-@click.option("--xi", default=None, help="Also verify plain decrease on the true model at this shift (comma-separated).")
+@click.option("--xi", default=None,
+              help="Also verify plain decrease on the true model at this shift (comma-separated), with the decay of "
+                   "--roa-rate.")
 @click.option("--time-limit", type=float, default=None,
               help="Seconds per branch and bound, besides its box budget [the system's: 30; 900 for cartpole, "
                    "3600 for quadrotor2d].")
@@ -71,8 +73,8 @@ def _interrupted(run_dir: Path) -> None:
                    "imported pair was exported from), to the largest set it certifies; --roa-at-level: at most that "
                    "level, the run's claim [above].")
 @click.option("--roa-rate", type=float, default=None,
-              help="With --roa at --xi: the decay alpha of the true model's decrease Vdot + alpha V <= 0 proved there and "
-                   "asked of its region [0.01, or the run's alpha where smaller: a region of attraction needs only a "
+              help="At --xi: the decay alpha of the true model's decrease Vdot + alpha V <= 0 proved there and asked of "
+                   "its region with --roa [0.01, or the run's alpha where smaller: a region of attraction needs only a "
                    "strict decrease, any alpha > 0 (none with a decay gamma ||z||: the run's)].")
 @click.option("--uniform", is_flag=True,
               help="Also bound the uniform DR condition's margin at the run's radius, risk level and samples (a "
@@ -151,9 +153,9 @@ def verify(run_dir: Path, delta: float | None, xi: str | None, time_limit: float
         above_level = roa_above_level is not False
         if not radius_tol > 0:
             raise ValueError(f"--radius-tol must be > 0, got {radius_tol}")
-        if roa_rate is not None and not (roa and xi is not None and math.isfinite(roa_rate) and roa_rate > 0):
-            raise ValueError(f"--roa-rate must be > 0 and goes with --roa and --xi (the decay asked at the shift), "
-                             f"got {roa_rate}" + ("" if roa and xi is not None else " without them"))
+        if roa_rate is not None and not (xi is not None and math.isfinite(roa_rate) and roa_rate > 0):
+            raise ValueError(f"--roa-rate must be > 0 and goes with --xi (the decay asked at the shift), "
+                             f"got {roa_rate}" + ("" if xi is not None else " without it"))
         if read_run_kind(run_dir).get("kind") == "imported":
             _verify_imported(run_dir, delta, xi, time_limit, roa, roa_time, enclosure, as_json, system_spec, trust_run,
                              compute, above_level, roa_rate, roa_boxes)

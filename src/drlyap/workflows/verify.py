@@ -132,11 +132,11 @@ def verify(run: Run, proof: ProofConfig | None = None, *, delta: float | None = 
     (``above_level`` False: at most that level, the claim the run was trained for). ``proof``: the settings
     (:func:`run_proof`). A condition whose certificate file states the same claim and is confirmed by the checker is not
     proved again (:func:`confirmed_certificate`), unless ``reprove``. ``roa_rate``: with ``xi``, the decay ``alpha`` of
-    the true model's decrease ``Vdot + alpha V <= 0`` proved there and asked of its region (None: with ``roa``, what a
-    region of attraction needs, a strict decrease, :func:`~drlyap.verification.roa.region_rate`; without, the run's).
+    the true model's decrease ``Vdot + alpha V <= 0`` proved there and asked of its region (None: what a region of
+    attraction needs, a strict decrease, :func:`~drlyap.verification.roa.region_rate`).
     """
     cfg, system, loop = run.config, run.system, run.loop
-    roa_rate = _roa_rate(roa_rate, xi is not None, "a shift (xi)", roa and xi is not None, cfg)
+    roa_rate = _shift_rate(roa_rate, xi is not None, cfg)
     proof = run_proof(run, proof)
     region = _region(run, delta)
     level = cfg.roa_level
@@ -181,13 +181,13 @@ def verify(run: Run, proof: ProofConfig | None = None, *, delta: float | None = 
                            roa=region_of_attraction, roa_rate=roa_rate)
 
 
-def _roa_rate(roa_rate: float | None, given_with: bool, what: str, region: bool, decay) -> float | None:
-    """``roa_rate``, refused where it is not a finite number > 0 or comes without ``what`` (``given_with`` False); None
-    for a ``region`` of attraction at a shift: :func:`~drlyap.verification.roa.region_rate` of ``decay``'s rates."""
-    if roa_rate is not None and not (given_with and math.isfinite(roa_rate) and roa_rate > 0):
-        raise ValueError(f"roa_rate must be > 0 and given with {what}, got {roa_rate}"
-                         + ("" if given_with else f" without {what}"))
-    if roa_rate is None and region:
+def _shift_rate(roa_rate: float | None, at_shift: bool, decay) -> float | None:
+    """The decay alpha asked of the true model at a shift: ``roa_rate``, refused where it is not a finite number > 0 or
+    comes without a shift (``at_shift`` False); None: :func:`~drlyap.verification.roa.region_rate` of ``decay``'s."""
+    if roa_rate is not None and not (at_shift and math.isfinite(roa_rate) and roa_rate > 0):
+        raise ValueError(f"roa_rate must be > 0 and given with a shift (xi), got {roa_rate}"
+                         + ("" if at_shift else " without one"))
+    if roa_rate is None and at_shift:
         return region_rate(float(decay.decay_rate or 0.0), float(decay.exp_rate or 0.0))
     return roa_rate
 
@@ -208,8 +208,8 @@ def verify_imported(pair, run_dir: str, proof: ProofConfig | None = None, *, xi:
     with V above the level on the box's faces for a pair exported from a run trained for a region of attraction (and
     with ``roa`` its certified region of attraction there, above that level as for its run; ``above_level`` False: at
     most that level). An imported pair has no trained condition (``trained`` is None). ``roa_rate``: with ``roa``, the
-    decay ``alpha`` asked at the shift instead of the pair's (None: :func:`~drlyap.verification.roa.region_rate`)."""
-    roa_rate = _roa_rate(roa_rate, roa, "roa", roa, pair)
+    decay ``alpha`` asked at the shift (None: :func:`~drlyap.verification.roa.region_rate` of the pair's)."""
+    roa_rate = _shift_rate(roa_rate, True, pair)
     loop = pair.loop
     system = loop.system
     proof = (proof or ProofConfig()).resolved(system)
