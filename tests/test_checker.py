@@ -422,3 +422,12 @@ def test_check_refuses_a_piece_budget_below_one_per_leaf_before_reading_the_run(
 
     result = CliRunner().invoke(main, ["check", str(tmp_path / "missing"), "--pieces", value])
     assert result.exit_code != 0 and says in result.output
+
+
+def test_the_check_command_bisects_as_deep_as_the_checker_by_default():
+    """`drlyap check`'s --refine (written out there: its help loads no torch) is the checker's own default."""
+    from drlyap.checker.check import REFINE
+    from drlyap.cli.check import check
+
+    refine = next(p for p in check.params if p.name == "refine")
+    assert refine.default == REFINE == 20

@@ -15,7 +15,7 @@ from pathlib import Path
 import torch
 
 from drlyap.checker.agreement import claim_mismatch, core_missing, outer_missing
-from drlyap.checker.check import CertificateError, CheckResult, _claim_box, _pair, check_certificate
+from drlyap.checker.check import REFINE, CertificateError, CheckResult, _claim_box, _pair, check_certificate
 from drlyap.checker.levels import outside_positive
 from drlyap.checker.quadratic import surely_semidefinite
 from drlyap.checker.record import drop_record, fingerprint, write_record
@@ -23,7 +23,7 @@ from drlyap.compute import Compute
 
 
 def check_run(run_dir: str | Path, system=None, trust: bool = False, names: list[str] | None = None,
-              refine: int = 12, compute: Compute = Compute(), pieces_per_leaf: float = 1.0) -> list[CheckResult]:
+              refine: int = REFINE, compute: Compute = Compute(), pieces_per_leaf: float = 1.0) -> list[CheckResult]:
     """Re-check the certificates of a run directory (``names``: which; default every one it holds). ``system`` and
     ``trust``: as for :func:`drlyap.runs.load_run` (a system from a file runs only when named or trusted); the rest:
     as for :func:`check_certificate`. A run without certificates is a ValueError that says so."""
