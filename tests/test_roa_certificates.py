@@ -185,12 +185,12 @@ def test_a_region_at_a_shift_may_ask_a_smaller_decay_and_its_certificates_state_
 
 
 @pytest.mark.parametrize("args, message", [
-    (["--xi", XI, "--roa-rate", "0.01"], "goes with --roa and --xi"),
-    (["--roa", "--roa-rate", "0.01"], "goes with --roa and --xi"),
+    (["--roa-rate", "0.01"], "goes with --xi"),
+    (["--roa", "--roa-rate", "0.01"], "goes with --xi"),
     (["--xi", XI, "--roa", "--roa-rate", "0"], "--roa-rate must be > 0"),
-    (["--xi", XI, "--roa", "--roa-rate", "nan"], "--roa-rate must be > 0"),
+    (["--xi", XI, "--roa-rate", "nan"], "--roa-rate must be > 0"),
 ])
-def test_roa_rate_is_refused_without_a_region_at_a_shift_or_when_not_positive(tmp_path, args, message):
+def test_roa_rate_is_refused_without_a_shift_or_when_not_positive(tmp_path, args, message):
     run = linear_run_dir(tmp_path / "run")
     out = CliRunner().invoke(main, ["verify", str(run), "--system", SPEC, *args])
     assert out.exit_code == 1 and message in out.output, out.output

@@ -29,7 +29,8 @@ class SystemDefaults:
     ``SystemDefaults``); the field defaults below are the rest. Units: ``wasserstein_radius`` in the units of xi,
     ``delta`` and ``train_box`` in local state units, ``lr`` per Adam step, ``verify_time`` seconds per check of
     ``verify``, ``verify_boxes`` boxes per proof (the work budget that makes the proof rounds of training give the
-    same pair on an idle and on a loaded machine), ``round_time`` the outer cap in seconds of each proof of those
+    same pair on an idle and on a loaded machine), ``roa_boxes`` those of ``verify --roa``'s search (None: as many),
+    ``round_time`` the outer cap in seconds of each proof of those
     rounds (reported when hit).
 
     Unless a system declares otherwise, training is for a region of attraction ``{V <= 1}``: the decay ``0.3 V``, an
@@ -71,6 +72,7 @@ class SystemDefaults:
     lqr_weights: tuple[tuple[float, ...], tuple[float, ...]] | None = None
     verify_time: float = 30.0  # seconds per check of `verify`
     verify_boxes: int = 200_000  # boxes per proof: about 30 s of a 2-state proof on one thread of a laptop core
+    roa_boxes: int | None = None  # boxes of the region-of-attraction search of `verify --roa` (None: verify_boxes)
     round_time: float = 300.0  # outer cap (seconds) of each proof of the training rounds
     stop_at_counterexample: bool = False  # a proof of the training rounds ends at its first confirmed violation
     retrain: str = "pair"  # what the retraining rounds train: "pair", or "controller" (V kept as the first fit left it)
@@ -443,8 +445,8 @@ class ProofConfig:
     ``retrain``: what the retraining rounds train, ``"pair"`` (V and pi) or ``"controller"`` (V kept as the first
     fit left it, so its sets stay where that fit put them; None: ``defaults.retrain``).
     Checks of ``verify``: ``uniform_time`` seconds for the uniform DR margin; the region of attraction's search
-    (``verify --roa``) does at most ``roa_boxes`` boxes (None: the system's ``defaults.verify_boxes``; its steps'
-    shares: :func:`~drlyap.verification.roa.certified_roa`), so that the region does not depend on the machine's speed,
+    (``verify --roa``) does at most ``roa_boxes`` boxes (None: the system's ``defaults.roa_boxes``, else its
+    ``verify_boxes``; its steps' shares: :func:`~drlyap.verification.roa.certified_roa`), so that the region does not depend on the machine's speed,
     and stops after ``roa_time`` seconds at most (None: :data:`ROA_TIME_CAP` x ``time_limit``, an outer cap whose
     hitting the result reports); ``band_time`` caps its band proof's seconds (None: ``roa_time`` again; 0: off),
     which gets ``roa_boxes`` boxes again.
@@ -526,7 +528,7 @@ class ProofConfig:
         d = system.defaults
         out = dataclasses.replace(self, time_limit=float(self.time_limit or d.verify_time),
                                   max_boxes=int(self.max_boxes or d.verify_boxes),
-                                  roa_boxes=int(self.roa_boxes or d.verify_boxes),
+                                  roa_boxes=int(self.roa_boxes or d.roa_boxes or d.verify_boxes),
                                   round_time=float(self.round_time or self.time_limit or d.round_time),
                                   enclosure=Enclosure(self.enclosure or default_enclosure(system.n)),
                                   stop_at_counterexample=bool(d.stop_at_counterexample

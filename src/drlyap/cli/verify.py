@@ -64,7 +64,7 @@ def _interrupted(run_dir: Path) -> None:
                    "(what that leaves), each bound of V up to a quarter; where that certifies no sublevel set of V but "
                    "the closed loop's own ellipsoid {z'Pz <= c}, as many boxes again for V's decrease outside that "
                    "ellipsoid (the band proof). Budgeted by boxes, the region does not depend on the machine's speed "
-                   "[the system's proof budget: 200,000; 1,500,000 for cartpole, 6,000,000 for quadrotor2d].")
+                   "[the system's: 200,000; 1,500,000 for cartpole, 8,000,000 for quadrotor2d].")
 @click.option("--roa-time", type=float, default=None,
               help="A cap on the seconds of --roa's search (and again of its band proof); a search that reaches it "
                    "says so: its region may differ on a faster machine [10x --time-limit].")
