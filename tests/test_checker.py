@@ -430,4 +430,4 @@ def test_the_check_command_bisects_as_deep_as_the_checker_by_default():
     from drlyap.cli.check import check
 
     refine = next(p for p in check.params if p.name == "refine")
-    assert refine.default == REFINE == 20
+    assert refine.default == REFINE == 30

@@ -289,10 +289,11 @@ class LeafJob:
                 "pieces": torch.tensor([pieces])}
 
 
-REFINE = 20
-"""Times the checker may bisect a leaf its own bounds do not prove, by default: in 6 states 12 halved each side
-only twice, and a region certificate of the quadrotor kept 2 of 302,883 leaves unproved there that 20 proves. The cost
-is capped by the pieces a chunk may bound (:func:`prove_leaves`), not by the depth."""
+REFINE = 30
+"""Times the checker may bisect a leaf its own bounds do not prove, by default: in 6 states 12 halved each side only
+twice, and the quadrotor's default region certificate at its test shift kept 2 of 302,883 leaves unproved at depth 12
+(another pair's, 12 of 318,528 at depth 20) that depth 30 proves within the default pieces. The cost is capped by
+the pieces a chunk may bound (:func:`prove_leaves`), not by the depth."""
 
 LEAF_CHUNK = 16_384
 """Leaves bounded per job (each its own piece budget for bisection, :func:`prove_boxes`): the same chunks here and on

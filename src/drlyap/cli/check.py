@@ -18,7 +18,7 @@ from drlyap.cli.common import compute_options, compute_settings, fail, refuse_ea
 @click.option("--name", "names", multiple=True,
               type=click.Choice(CERTIFICATES),
               help="Which certificate to check (repeatable) [every one the run holds].")
-@click.option("--refine", type=click.IntRange(0, 30), default=20, show_default=True,
+@click.option("--refine", type=click.IntRange(0, 40), default=30, show_default=True,
               help="Times the checker may bisect a box its own bounds do not prove (the verifier's bounds may be "
                    "tighter than the checker's); it bounds at most as many pieces as each chunk of 16,384 leaves "
                    "has (at least 4,096), then the leaves still unproved once more with the pieces left over, so "
