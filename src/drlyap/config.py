@@ -446,10 +446,10 @@ class ProofConfig:
     fit left it, so its sets stay where that fit put them; None: ``defaults.retrain``).
     Checks of ``verify``: ``uniform_time`` seconds for the uniform DR margin; the region of attraction's search
     (``verify --roa``) does at most ``roa_boxes`` boxes (None: the system's ``defaults.roa_boxes``, else its
-    ``verify_boxes``; its steps' shares: :func:`~drlyap.verification.roa.certified_roa`), so that the region does not depend on the machine's speed,
-    and stops after ``roa_time`` seconds at most (None: :data:`ROA_TIME_CAP` x ``time_limit``, an outer cap whose
-    hitting the result reports); ``band_time`` caps its band proof's seconds (None: ``roa_time`` again; 0: off),
-    which gets ``roa_boxes`` boxes again.
+    ``verify_boxes``; its steps' shares: :func:`~drlyap.verification.roa.certified_roa`), so that the region does
+    not depend on the machine's speed, and stops after ``roa_time`` seconds at most (None: :data:`ROA_TIME_CAP` x
+    ``time_limit``, an outer cap whose hitting the result reports); ``band_time`` caps its band proof's seconds (None:
+    ``roa_time`` again; 0: off), which gets ``roa_boxes`` boxes again.
     Where the boxes are bounded (:class:`Compute`; how fast, never what is proved, so a run does not record them):
     ``workers``, ``backend``, ``address``, ``device``, ``checkpoint_dir`` and ``checkpoint_every`` for proofs that
     resume, ``progress``.
