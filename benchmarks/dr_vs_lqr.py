@@ -40,7 +40,8 @@ def drlyap(*args: str) -> float:
     return time.perf_counter() - start
 
 
-def test_shift(spec: str) -> str:
+def shift_of(spec: str) -> str:
+    """The system's test shift, as `--xi` takes it."""
     from drlyap.systems import resolve_system
 
     system = resolve_system(spec)
@@ -64,7 +65,7 @@ def main(argv: list[str] | None = None) -> int:
         train_s = None if dr.exists() else drlyap("train", spec, "--out", str(dr), "--seed", str(args.seed))
         if not lqr.exists():
             drlyap("lqr", spec, "--out", str(lqr))
-        compare_s = None if cmp.exists() else drlyap("compare", str(dr), str(lqr), "--xi", test_shift(spec),
+        compare_s = None if cmp.exists() else drlyap("compare", str(dr), str(lqr), "--xi", shift_of(spec),
                                                       "--system", spec, "--out", str(cmp))
         rows = {row["kind"]: row["certified"] for row in json.loads((cmp / "compare.json").read_text())["rows"]}
 

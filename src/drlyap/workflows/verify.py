@@ -207,8 +207,9 @@ def verify_imported(pair, run_dir: str, proof: ProofConfig | None = None, *, xi:
     drlyap run, else the system's default), by the same proof as for a trained run's ``--xi``: on ``{V <= level}``
     with V above the level on the box's faces for a pair exported from a run trained for a region of attraction (and
     with ``roa`` its certified region of attraction there, above that level as for its run; ``above_level`` False: at
-    most that level). An imported pair has no trained condition (``trained`` is None). ``roa_rate``: with ``roa``, the
-    decay ``alpha`` asked at the shift (None: :func:`~drlyap.verification.roa.region_rate` of the pair's)."""
+    most that level). An imported pair has no trained condition (``trained`` is None). ``roa_rate``: the decay
+    ``alpha`` asked at the shift, of the decrease and of its region (None: :func:`~drlyap.verification.roa.region_rate`
+    of the pair's)."""
     roa_rate = _shift_rate(roa_rate, True, pair)
     loop = pair.loop
     system = loop.system
