@@ -4,6 +4,7 @@ bound to their parent before they import anything heavy."""
 import subprocess
 import sys
 import textwrap
+import time
 from pathlib import Path
 
 import pytest
@@ -45,6 +46,35 @@ def test_proof_workers_end_within_two_seconds_of_a_killed_driver(tmp_path, when)
         assert not survivors_of_kill(driver, below, 2.0), "workers outlived their killed driver by more than 2 s"
     finally:
         driver.kill()
+
+
+_LATE_CHILD = textwrap.dedent("""
+    import os, sys, time
+    import drlyap.fork_server  # as the fork server does first: this process plays the server
+    from drlyap.lifeline import bound_main
+
+    child = os.fork()
+    if child == 0:
+        while os.getppid() == drlyap.fork_server.SERVER:  # the server ends before this worker binds itself
+            time.sleep(0.01)
+        bound_main(None, "os", "mkdir", sys.argv[1])
+        os._exit(0)
+    print(child, flush=True)
+""")
+
+
+@pytest.mark.skipif(not sys.platform.startswith("linux"), reason="reads /proc")
+def test_a_worker_that_binds_itself_after_its_fork_server_ended_ends_at_once(tmp_path):
+    """Its parent is the server's pid, not whichever process adopted it (seen on a busy machine: workers that came up
+    after their server was killed outlived it)."""
+    script, ran = tmp_path / "server.py", tmp_path / "ran"
+    script.write_text(_LATE_CHILD)
+    out = subprocess.run([sys.executable, str(script), str(ran)], capture_output=True, text=True, check=True).stdout
+    child = int(out)
+    deadline = time.monotonic() + 30
+    while alive(child) and time.monotonic() < deadline:
+        time.sleep(0.05)
+    assert not alive(child) and not ran.exists()
 
 
 def test_sweep_and_proof_workers_are_bound_first():

@@ -52,11 +52,12 @@ def bind_to_parent(parent: int, every: float = 0.5) -> None:
 
 def bound_main(parent: int | None, module: str, name: str, *args) -> None:
     """A process's target that binds it to ``parent`` (None: the process that started it, such as a fork server
-    that ends with the process that started it) before it imports ``module`` (torch, say) and runs its function
-    ``name(*args)``."""
+    that ends with the process that started it: :func:`fork_server_pid`) before it imports ``module`` (torch, say)
+    and runs its function ``name(*args)``."""
     if parent is None:
         _let_the_fork_server_end()
-    bind_to_parent(os.getppid() if parent is None else parent)
+        parent = fork_server_pid()
+    bind_to_parent(parent)
     import importlib
 
     getattr(importlib.import_module(module), name)(*args)
@@ -80,6 +81,13 @@ def start_fork_server() -> bool:
     multiprocessing.get_context("forkserver").set_forkserver_preload(list(FORK_SERVER_PRELOAD))
     multiprocessing.forkserver.ensure_running()
     return True
+
+
+def fork_server_pid() -> int:
+    """In a process forked by the fork server of :func:`start_fork_server`: that server's pid, even where it has ended
+    meanwhile (``os.getppid()`` then names the process that adopted this one). Elsewhere: this process's parent."""
+    server = sys.modules.get("drlyap.fork_server")
+    return server.SERVER if server is not None and server.SERVER != os.getpid() else os.getppid()
 
 
 def _let_the_fork_server_end() -> None:
