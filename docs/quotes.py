@@ -7,8 +7,10 @@
 A quote is a fenced block found by its first line: `Usage: drlyap ...` in docs/cli.md is that command's --help;
 `| seed | method | 10 test states ...` in README.md is the table of `drlyap reproduce pendulum`; `$ drlyap check
 runs/pendulum-dr` is what that command prints after the README's API block (`drlyap train pendulum --method dr`).
-Seconds are the machine's: --check does not compare them. The tests run --check's comparison (the help blocks
-always, the reproduction behind -m slow).
+Seconds are the machine's: --check does not compare them. The reproduction's numbers depend on the float kernels
+(drlyap.kernels; its quote names their fingerprint): --check compares them where this machine's fingerprint is the
+quote's, and only the words elsewhere. The tests run --check's comparison (the help blocks always, the reproduction
+behind -m slow).
 """
 
 from __future__ import annotations
@@ -29,6 +31,9 @@ ROOT = Path(__file__).resolve().parents[1]
 HELP_WIDTH = 112
 REPRODUCTION_HEADER = "| seed | method | 10 test states"
 CHECK_COMMAND = "$ drlyap check runs/pendulum-dr"
+KERNELS_LINE = "float kernels:"  # the line drlyap reproduce prints under its table
+FINGERPRINT = re.compile(r"fingerprint ([0-9a-f]{16})")
+NUMBER = re.compile(r"-?\d[\d,]*(\.\d+)?(e[-+]?\d+)?%?")
 
 
 @dataclass(frozen=True)
@@ -129,12 +134,15 @@ def reproduction_texts() -> dict[str, str]:
         return done.output
 
     with _in_scratch():
-        table = [line for line in run("reproduce", "pendulum").splitlines() if line.startswith("|")]
+        printed = run("reproduce", "pendulum")
+        table = [line for line in printed.splitlines() if line.startswith("|")]
         run("train", "pendulum", "--method", "dr", "--out", "runs/pendulum-dr")
         check = run(*CHECK_COMMAND.split()[2:]).rstrip("\n")
     header = next(i for i, line in enumerate(table) if line.startswith(REPRODUCTION_HEADER))
     rows = [line for line in table[header + 2:] if line.startswith("| 0 | ")][:2]
-    return {REPRODUCTION_HEADER: "\n".join(table[header:header + 2] + rows), CHECK_COMMAND: CHECK_COMMAND + "\n" + check}
+    kernels = next(line for line in printed.splitlines() if line.startswith(KERNELS_LINE))
+    return {REPRODUCTION_HEADER: "\n".join(table[header:header + 2] + rows + ["", kernels]),
+            CHECK_COMMAND: CHECK_COMMAND + "\n" + check}
 
 
 def reproduction_quotes() -> list[Quote]:
@@ -173,14 +181,46 @@ def produce(groups: list[str]) -> list[tuple[Quote, str]]:
     return out
 
 
-def differs(quote: Quote, text: str) -> bool:
-    """Whether `quote` as its page has it says other than `text` (seconds aside)."""
-    return without_seconds(quoted(quote.page, quote.first_line)) != without_seconds(text)
+def words_only(text: str) -> str:
+    """`text` without its float kernels' line and with every number blanked: what other float kernels print alike."""
+    return NUMBER.sub("#", "\n".join(line for line in text.splitlines() if not line.startswith(KERNELS_LINE)))
 
 
-def stale(groups: list[str]) -> list[str]:
-    """Names of the quotes of `groups` that differ from what their commands print now."""
-    return [q.name for q, text in produce(groups) if differs(q, text)]
+def fingerprint(text: str) -> str | None:
+    """The float kernels' fingerprint a quote or an output names (None: it names none)."""
+    found = FINGERPRINT.search(text)
+    return found.group(1) if found else None
+
+
+def differs(quote: Quote, text: str, digits: bool = True) -> bool:
+    """Whether `quote` as its page has it says other than `text` (seconds aside; with `digits` False, numbers aside
+    too: they depend on the float kernels, drlyap.kernels)."""
+    old, new = without_seconds(quoted(quote.page, quote.first_line)), without_seconds(text)
+    return old != new if digits else words_only(old) != words_only(new)
+
+
+def kernels_of_groups(produced: list[tuple[Quote, str]]) -> dict[str, tuple[str | None, str | None]]:
+    """Per group: the fingerprint its quotes were made with and the one here (None, None: the group's output does
+    not depend on the float kernels)."""
+    out: dict[str, tuple[str | None, str | None]] = {}
+    for q, text in produced:
+        here = fingerprint(text)
+        if here is not None:
+            out[q.group] = (fingerprint(quoted(q.page, q.first_line)), here)
+    return out
+
+
+def stale(groups: list[str], log: Callable[[str], None] | None = None) -> list[str]:
+    """Names of the quotes of `groups` that differ from what their commands print now: every word and number where
+    this machine's float kernels are the quotes' (and for output that does not depend on them), the words only
+    where they are not (`log` says so)."""
+    produced = produce(groups)
+    kernels = kernels_of_groups(produced)
+    for group, (then, now) in kernels.items():
+        if then != now and log is not None:
+            log(f"{group}: numbers not compared, the float kernels differ (quoted: {then}, here: {now})")
+    return [q.name for q, text in produced
+            if differs(q, text, digits=q.group not in kernels or kernels[q.group][0] == kernels[q.group][1])]
 
 
 def main(argv: list[str] | None = None) -> int:
@@ -191,7 +231,7 @@ def main(argv: list[str] | None = None) -> int:
     os.environ.setdefault("DRLYAP_THREADS", "1")
     groups = args.only or sorted(GROUPS)
     if args.check:
-        names = stale(groups)
+        names = stale(groups, log=lambda line: print(line, file=sys.stderr))
         for name in names:
             print(f"stale: {name}", file=sys.stderr)
         return 1 if names else 0

@@ -80,6 +80,12 @@ def test_reproduce_end_to_end_writes_table_json_and_figures(tmp_path):
     legend = next(line for line in table.splitlines() if line.startswith("acceptance: "))
     for column in ("acceptance", "Hurwitz", "other eq."):  # every column not defined elsewhere has its legend
         assert f"| {column} |" in header and f"{column}: " in legend
+    from drlyap.kernels import describe, float_kernels
+
+    kernels = float_kernels()  # what the digits were computed with, in the report and under its table
+    assert report["float_kernels"] == kernels and f"float kernels: {describe(kernels)}" in table
+    metrics = json.loads((out / "seed0" / "dr" / "metrics.json").read_text())
+    assert metrics["float_kernels"] == kernels
 
 
 def test_proved_shares_are_never_rounded_up_to_a_proof():

@@ -29,6 +29,23 @@ def test_a_changed_quote_is_found_stale(tmp_path):
     assert [q.name for q in moved if quotes.differs(q, texts[q.first_line])] == ["drlyap train"]
 
 
+def test_the_numbers_are_compared_only_where_the_float_kernels_are_the_quotes(tmp_path):
+    """The reproduction's digits depend on the float kernels (drlyap.kernels): where this machine's are not the
+    quote's, a quote with other numbers is not stale, one with other words is."""
+    header = quotes.REPRODUCTION_HEADER + " | region |"
+    quote = "\n".join([header, "|---|", "| 0 | dr | 10/10 | verified | 41.8% |", "",
+                       "float kernels: torch 2.13.0+cpu, cpu AVX2 kernels, 1 thread, fingerprint 0123456789abcdef"])
+    page = tmp_path / "README.md"
+    page.write_text(f"text\n\n```\n{quote}\n```\n")
+    q = quotes.Quote(page, quotes.REPRODUCTION_HEADER, "reproduction", "table")
+    other_kernels = quote.replace("41.8%", "28.2%").replace("0123456789abcdef", "fedcba9876543210")
+    assert quotes.kernels_of_groups([(q, other_kernels)]) == {"reproduction": ("0123456789abcdef", "fedcba9876543210")}
+    assert not quotes.differs(q, other_kernels, digits=False)
+    assert quotes.differs(q, other_kernels.replace("verified", "violated"), digits=False)
+    assert quotes.differs(q, quote.replace("41.8%", "28.2%"))  # the same kernels: every number counts
+    assert not quotes.differs(q, quote)
+
+
 def test_seconds_are_not_compared():
     table = "| seed | train s | x |\n|---|---|---|\n| 0 | 9 | a (0.07 s) |"
     assert quotes.without_seconds(table) == quotes.without_seconds(table.replace("9", "15").replace("0.07", "1.3"))

@@ -28,6 +28,7 @@ from torch import Tensor
 from drlyap.closed_loop import ClosedLoop
 from drlyap.conditions import Condition, local_rates
 from drlyap.config import TrainConfig
+from drlyap.kernels import float_kernels
 from drlyap.networks import Controller, Lyapunov
 from drlyap.progress import progress as show_progress
 from drlyap.records import AcceptanceCheck, TrainingRecord
@@ -137,7 +138,8 @@ def fit(cfg: TrainConfig, system: UncertainSystem, progress: bool = True, init: 
         reshaped = run.reshape(region, gen, RESHAPE_BATCHES * sampling.n_states, bar)
         bar.close()
     metrics = run.metrics() | {"condition": condition.describe(), "xi_samples": xi_all.tolist(),
-                               "xi_train": xi_train.tolist(), "warm_start": warm, "reshape": reshaped}
+                               "xi_train": xi_train.tolist(), "warm_start": warm, "reshape": reshaped,
+                               "float_kernels": float_kernels(device)}
     return TrainResult(cfg, system, lyapunov.cpu(), controller.cpu(), xi_all, condition, run.history, metrics)
 
 

@@ -16,6 +16,8 @@ import torch
 
 from drlyap import plotting
 from drlyap.compute import Compute
+from drlyap.kernels import describe as describe_kernels
+from drlyap.kernels import float_kernels
 from drlyap.kinds import Method
 from drlyap.progress import progress as show_progress
 from drlyap.render import ACCEPTANCE_LEGEND, decrease_cell, proof_round_line, roa_cell
@@ -29,6 +31,7 @@ from drlyap.workflows.verify import record_certificates, record_region, record_r
 from drlyap.workflows.verify import verify as prove_run
 
 METHODS = (Method.BASELINE, Method.DR)
+KERNELS_LINE = "float kernels:"
 SWEEP = (1, 2, 3, 4, 5)  # evaluation shifts, as multiples of the paper's test shift
 
 
@@ -136,6 +139,7 @@ def reproduce(system: str | UncertainSystem, seeds: Sequence[int], out: Path, it
             report.setdefault("figures", {})[str(seed)] = [str(Path(out) / f"seed{seed}" / "figures" / f.name)
                                                           for f in figures]
         bar.close()
+        report["float_kernels"] = float_kernels(device)
         report["figures"]["sweep"] = str(Path(out) / "shift_sweep.png")
         plotting.sweep_plot(system.name, sweep, report["results"], tmp / "shift_sweep.png", list(system.test_xi))
         (tmp / "report.json").write_text(json.dumps(report, indent=2) + "\n")
@@ -202,6 +206,8 @@ def format_table(report: dict) -> str:
                      f"{'passed' if r['passed_acceptance'] else 'not passed'} | {r['max_violation']:.3g} | "
                      f"{100 * r['violating_fraction']:.2f} | {r['hurwitz']} | {r['other_equilibria']} | "
                      f"{r['train_time_s']:.0f} | {r['certificate']} | {_decrease(r)} | {r['roa'] or '-'} |")
+    if "float_kernels" in report:
+        lines += ["", f"{KERNELS_LINE} {describe_kernels(report['float_kernels'])} (the digits depend on them)"]
     lines += ["", ACCEPTANCE_LEGEND]
     factors = report["sweep"]
     lines += ["", f"Success on the {report['results'][0]['more_200']['n']} more states at k x the test shift:", "",
