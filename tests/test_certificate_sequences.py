@@ -76,6 +76,8 @@ def _assert_described(run: Path, shift: str | None, region_shift: str | None) ->
         claim = _claim(run, "true-model")["condition"]
         assert claim["xi"] == [true_model["xi"]] == [[float(v) for v in shift.split(",")]]
         assert claim["exp_rate"] == true_model.get("exp_rate", float(config.get("exp_rate") or 0.0))
+        # --roa-rate asks alpha V in place of the run's decay terms: no gamma ||z|| beside it
+        assert claim["decay_rate"] == (0.0 if "exp_rate" in true_model else float(config.get("decay_rate") or 0.0))
     region = reported.get("roa")
     mine = [n for n in REGION if n in present]
     if region_shift is None:

@@ -122,6 +122,7 @@ def _roa_claim(name: str, header: dict, config: dict, metrics: dict, expected: d
         _trained_condition(config, metrics)
     if xi is not None and reported.get("exp_rate") is not None:  # the decay asked at the shift (verify --roa-rate)
         condition["exp_rate"] = float(reported["exp_rate"])
+        condition["decay_rate"] = float(reported.get("decay_rate", config.get("decay_rate") or 0.0))
     if condition["name"] == "uniform":  # one inequality: its region rests on the decrease at each sample it implies
         condition = {"name": "plain", "xi": condition["xi"]}
     claim = header["claim"]
@@ -216,6 +217,7 @@ def claim_mismatch(name: str, header: dict, config: dict, metrics: dict) -> list
             expected |= {"xi": [list(map(float, reported["xi"]))]}
         if reported.get("exp_rate") is not None and claim.get("exp_rate") == reported["exp_rate"]:
             expected["exp_rate"] = float(reported["exp_rate"])  # the decay asked there (verify --roa-rate)
+            expected["decay_rate"] = float(reported.get("decay_rate", expected["decay_rate"]))
     stated = {"delta": delta, "level": level}
     wanted = {"delta": config.get("delta"), "level": config.get("roa_level")}
     if expected.get("name") == "uniform":  # one inequality over X_delta: no sublevel set

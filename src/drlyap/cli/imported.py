@@ -62,7 +62,7 @@ def import_pair(system: str, controller: Path, lyapunov: Path | None, out: Path,
         graph = getattr(pair.loop.lyapunov, "graph", pair.loop.lyapunov)
         click.echo(f"  certificate: V from {lyapunov.name}, {graph.describe()}; decay "
                    f"{pair.decay_rate:g} ||z|| + {pair.exp_rate:g} V "
-                   f"({'its run' if pair.delta is not None else 'the system'}'s)")
+                   + ("(its run's)" if pair.delta is not None else "(plain decrease)"))
         for note in pair.notes.get("lyapunov", []):
             click.echo(f"    {note}")
     offset = ", ".join(f"{v:.3g}" for v in pair.checks["pi_minus_u_star"])

@@ -74,8 +74,9 @@ def _interrupted(run_dir: Path) -> None:
                    "level, the run's claim [above].")
 @click.option("--roa-rate", type=float, default=None,
               help="At --xi: the decay alpha of the true model's decrease Vdot + alpha V <= 0 proved there and asked of "
-                   "its region with --roa [0.01, or the run's alpha where smaller: a region of attraction needs only a "
-                   "strict decrease, any alpha > 0 (none with a decay gamma ||z||: the run's)].")
+                   "its region with --roa, in place of the run's decay terms [0.01, or the run's alpha where smaller: "
+                   "a region of attraction needs only a strict decrease, any alpha > 0 (none with a decay gamma "
+                   "||z||: the run's)].")
 @click.option("--uniform", is_flag=True,
               help="Also bound the uniform DR condition's margin at the run's radius, risk level and samples (a "
                    "stricter condition than the pointwise one the default pairs are trained on); a margin proved "

@@ -130,11 +130,11 @@ class Run:
         return condition if condition.per_state else condition.per_sample(condition.decay_rate, condition.exp_rate)
 
     def true_condition(self, xi, exp_rate: float | None = None) -> Condition:
-        """Plain decrease on the true model at the shift ``xi (k,)``, with the run's decay terms (``exp_rate``: another
-        ``alpha`` of its ``alpha V``)."""
+        """Plain decrease on the true model at the shift ``xi (k,)``, with the run's decay terms (``exp_rate``: the decay
+        ``alpha V`` alone in their place, ``Vdot + alpha V <= 0``)."""
         section = self.sections.condition
         if exp_rate is not None:
-            section = replace(section, exp_rate=float(exp_rate))
+            section = replace(section, exp_rate=float(exp_rate), decay_rate=0.0)
         return section.build(self.system.check_xi(xi)[None], "true")
 
     @property

@@ -75,8 +75,10 @@ class ImportedPair:
 
     def true_condition(self, xi: Tensor, exp_rate: float | None = None) -> TrueDecrease:
         """Decrease on the true model at the shifts ``xi (1, k)`` with the pair's decay, or with the decay ``exp_rate``
-        (alpha) in place of its own."""
-        return TrueDecrease(xi, decay_rate=self.decay_rate, exp_rate=self.exp_rate if exp_rate is None else exp_rate)
+        (``alpha V`` alone) in place of its own."""
+        if exp_rate is not None:
+            return TrueDecrease(xi, decay_rate=0.0, exp_rate=exp_rate)
+        return TrueDecrease(xi, decay_rate=self.decay_rate, exp_rate=self.exp_rate)
 
 
 def _claim_number(value, what: str, lowest: float, above: bool = False) -> float:
@@ -227,9 +229,10 @@ def import_pair(system: UncertainSystem, controller_path: str | os.PathLike,
     lyapunov, checks = pinned_certificate(system, graph)
     checks["pi_minus_u_star"] = offset
     claim = exported_claim(lyapunov_path, system)
-    if claim is None:  # the system's decay, on the whole region
-        claim = {"decay_rate": system.defaults.decay_rate, "exp_rate": system.defaults.exp_rate, "level": None,
-                 "delta": None}
+    if claim is None:  # plain decrease on the whole region: a decay with gamma ||z|| would depend on V's scale
+        claim = {"decay_rate": 0.0, "exp_rate": 0.0, "level": None, "delta": None}
+        all_notes["lyapunov"].append("not a drlyap export: plain decrease Vdot <= 0 is its claim (at a shift a region "
+                                     "asks Vdot + 0.01 V <= 0, which no scale of V changes)")
     else:
         where = "the whole region" if claim["level"] is None else f"{{V <= {claim['level']:.6g}}}"
         all_notes["lyapunov"].append(f"a drlyap export: its run's claim is taken (decrease with gamma = "

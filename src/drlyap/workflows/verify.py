@@ -258,18 +258,24 @@ def region_record(ver: RunVerification) -> dict:
     """What a run's ``metrics["certificate"]`` keeps of a verification with a region (``ver.roa``): the region
     (``roa``) and the decrease on the true model it rests on (``true_model``), each with the decay asked at the shift
     where it is not the run's (``exp_rate``, :func:`verify`'s ``roa_rate``), for the checker to compare."""
-    rate = {} if ver.roa_rate is None else {"exp_rate": float(ver.roa_rate)}
+    rate = shift_decay(ver)
     kept = {"roa": jsonable({**ver.roa.to_dict(), "xi": ver.roa.xi} | rate)}  # xi None: about the trained condition
     if ver.true_model is not None:
         kept["true_model"] = true_model_record(ver)
     return kept
 
 
+def shift_decay(ver: RunVerification) -> dict:
+    """The decay asked of the true model at the shift where it is not the run's: ``alpha V`` alone
+    (``{"exp_rate": alpha, "decay_rate": 0}``, :func:`verify`'s ``roa_rate``), else nothing."""
+    return {} if ver.roa_rate is None else {"exp_rate": float(ver.roa_rate), "decay_rate": 0.0}
+
+
 def true_model_record(ver: RunVerification) -> dict:
     """What ``metrics["certificate"]["true_model"]`` keeps of ``ver``'s decrease on the true model: its verdict and
     shift, with the decay asked there where it is not the run's (``exp_rate``); the ``true-model`` certificate, where
     there is one, states that shift and decay (:func:`record_certificates`)."""
-    rate = {} if ver.roa_rate is None else {"exp_rate": float(ver.roa_rate)}
+    rate = shift_decay(ver)
     keys = ("status", "xi", "verified_fraction", "time_s", "counterexample", "counterexample_source")
     return jsonable({k: getattr(ver.true_model, k) for k in keys} | rate)
 
