@@ -127,19 +127,9 @@ def verify(run_dir: Path, delta: float | None, xi: str | None, time_limit: float
     from drlyap.io import jsonable
     from drlyap.render import unwritten_region_line, verification_lines
     from drlyap.runs import load_run, read_run_kind
-    from drlyap.workflows.verify import (
-        clear_checkpoints,
-        record_certificates,
-        record_region,
-        record_roa,
-        record_robustness,
-        run_checkpoints,
-        run_proof,
-        run_robustness,
-    )
-    from drlyap.workflows.verify import (
-        verify as prove_run,
-    )
+    from drlyap.workflows.record import record_certificates, record_region, record_roa, record_robustness
+    from drlyap.workflows.verify import clear_checkpoints, run_checkpoints, run_proof, run_robustness
+    from drlyap.workflows.verify import verify as prove_run
 
     try:
         if time_limit is not None and not time_limit > 0:
@@ -223,7 +213,8 @@ def _verify_imported(run_dir: Path, delta: float | None, xi: str | None, time_li
     from drlyap.io import jsonable
     from drlyap.render import unwritten_region_line, verification_lines
     from drlyap.runs import load_imported_run
-    from drlyap.workflows.verify import record_imported_certificates, verify_imported
+    from drlyap.workflows.record import record_imported_certificates
+    from drlyap.workflows.verify import verify_imported
 
     run = load_imported_run(run_dir, run_system_of(system_spec), trust_run)
     system = run.system

@@ -27,7 +27,7 @@ from drlyap.systems import UncertainSystem, resolve_system, system_source
 from drlyap.training import TrainConfig, train
 from drlyap.verification import ProofConfig
 from drlyap.workflows.plot import region_to_draw
-from drlyap.workflows.verify import record_certificates, record_region, record_roa
+from drlyap.workflows.record import record_certificates, record_region, record_roa
 from drlyap.workflows.verify import verify as prove_run
 
 METHODS = (Method.BASELINE, Method.DR)
