@@ -27,11 +27,12 @@ from contextlib import contextmanager
 from dataclasses import dataclass
 from pathlib import Path
 
+from drlyap.workflows.reproduce import KERNELS_LINE  # the line drlyap reproduce prints under its table
+
 ROOT = Path(__file__).resolve().parents[1]
 HELP_WIDTH = 112
 REPRODUCTION_HEADER = "| seed | method | 10 test states"
 CHECK_COMMAND = "$ drlyap check runs/pendulum-dr"
-KERNELS_LINE = "float kernels:"  # the line drlyap reproduce prints under its table
 FINGERPRINT = re.compile(r"fingerprint ([0-9a-f]{16})")
 NUMBER = re.compile(r"-?\d[\d,]*(\.\d+)?(e[-+]?\d+)?%?")
 

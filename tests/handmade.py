@@ -244,3 +244,16 @@ def alive(pid: int) -> bool:
     except (OSError, IndexError):
         return False
     return state != "Z"
+
+
+def doc_quotes():
+    """docs/quotes.py (the script that produces the outputs README and docs quote) as a module."""
+    import importlib.util
+    import sys
+    from pathlib import Path
+
+    if "doc_quotes" not in sys.modules:
+        spec = importlib.util.spec_from_file_location("doc_quotes", Path(__file__).resolve().parents[1] / "docs" / "quotes.py")
+        sys.modules["doc_quotes"] = module = importlib.util.module_from_spec(spec)
+        spec.loader.exec_module(module)
+    return sys.modules["doc_quotes"]

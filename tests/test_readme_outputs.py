@@ -3,17 +3,15 @@ compare (seconds aside). The --help blocks of docs/cli.md always; the README's r
 from a fresh `drlyap reproduce pendulum` and `drlyap train pendulum --method dr` (about 2 min: behind -m slow).
 docs/results/pendulum.md's seed-0 rows must say what the README's quoted table says."""
 
-import importlib.util
 import re
-import sys
 from pathlib import Path
 
 import pytest
 
+from handmade import doc_quotes
+
 ROOT = Path(__file__).resolve().parents[1]
-_spec = importlib.util.spec_from_file_location("doc_quotes", ROOT / "docs" / "quotes.py")
-quotes = sys.modules["doc_quotes"] = importlib.util.module_from_spec(_spec)
-_spec.loader.exec_module(quotes)
+quotes = doc_quotes()
 
 
 def test_every_help_block_is_what_help_prints():

@@ -298,6 +298,12 @@ class PlainDecrease(Condition):
         return super().describe() | {"model": self.model}
 
 
+def decay_at_shift(decay_rate: float, exp_rate: float, rate: float | None = None) -> tuple[float, float]:
+    """``(gamma, alpha)`` of the decrease asked of the true model at a shift: a pair's own decay terms, or with
+    ``rate`` the decay ``rate V`` alone in their place (``Vdot + rate V <= 0``, ``verify --roa-rate``)."""
+    return (float(decay_rate), float(exp_rate)) if rate is None else (0.0, float(rate))
+
+
 class TrueDecrease(PlainDecrease):
     """Plain decrease on the TRUE model at given shifts ``xi (N, k)`` (usually one): the condition that
     simulation tests, proved over the whole region."""

@@ -30,7 +30,7 @@ import torch
 from torch import Tensor
 
 from drlyap.closed_loop import ClosedLoop
-from drlyap.conditions import Condition
+from drlyap.conditions import Condition, decay_at_shift
 from drlyap.config import ProofConfig, TrainConfig, legacy_proof
 from drlyap.io import write_json, write_json_atomic
 from drlyap.networks import Controller, Lyapunov
@@ -133,9 +133,8 @@ class Run:
         """Plain decrease on the true model at the shift ``xi (k,)``, with the run's decay terms (``exp_rate``: the decay
         ``alpha V`` alone in their place, ``Vdot + alpha V <= 0``)."""
         section = self.sections.condition
-        if exp_rate is not None:
-            section = replace(section, exp_rate=float(exp_rate), decay_rate=0.0)
-        return section.build(self.system.check_xi(xi)[None], "true")
+        gamma, alpha = decay_at_shift(section.decay_rate, section.exp_rate, exp_rate)
+        return replace(section, decay_rate=gamma, exp_rate=alpha).build(self.system.check_xi(xi)[None], "true")
 
     @property
     def acceptance(self) -> AcceptanceCheck | None:

@@ -37,7 +37,7 @@ import torch
 from torch import Tensor, nn
 
 from drlyap.closed_loop import ClosedLoop
-from drlyap.conditions import TrueDecrease
+from drlyap.conditions import TrueDecrease, decay_at_shift
 from drlyap.graph import INPUT, Graph, GraphBuilder, read_onnx, simplify
 from drlyap.io import write_bytes_of, write_json
 from drlyap.networks import QuadraticLyapunov, origin_like
@@ -76,9 +76,7 @@ class ImportedPair:
     def true_condition(self, xi: Tensor, exp_rate: float | None = None) -> TrueDecrease:
         """Decrease on the true model at the shifts ``xi (1, k)`` with the pair's decay, or with the decay ``exp_rate``
         (``alpha V`` alone) in place of its own."""
-        if exp_rate is not None:
-            return TrueDecrease(xi, decay_rate=0.0, exp_rate=exp_rate)
-        return TrueDecrease(xi, decay_rate=self.decay_rate, exp_rate=self.exp_rate)
+        return TrueDecrease(xi, *decay_at_shift(self.decay_rate, self.exp_rate, exp_rate))
 
 
 def _claim_number(value, what: str, lowest: float, above: bool = False) -> float:

@@ -11,7 +11,7 @@ from pathlib import Path
 import torch
 
 from drlyap.closed_loop import ClosedLoop
-from drlyap.conditions import Condition
+from drlyap.conditions import Condition, decay_at_shift
 from drlyap.io import jsonable
 from drlyap.kinds import Loss
 from drlyap.regions import Region
@@ -54,7 +54,7 @@ def record_region(run: Run, ver: RunVerification) -> None:
 def region_record(ver: RunVerification) -> dict:
     """What a run's ``metrics["certificate"]`` keeps of a verification with a region (``ver.roa``): the region
     (``roa``) and the decrease on the true model it rests on (``true_model``), each with the decay asked at the shift
-    where it is not the run's (``exp_rate``, :func:`verify`'s ``roa_rate``), for the checker to compare."""
+    where it is not the run's (:func:`shift_decay`), for the checker to compare."""
     rate = shift_decay(ver)
     kept = {"roa": jsonable({**ver.roa.to_dict(), "xi": ver.roa.xi} | rate)}  # xi None: about the trained condition
     if ver.true_model is not None:
@@ -63,9 +63,13 @@ def region_record(ver: RunVerification) -> dict:
 
 
 def shift_decay(ver: RunVerification) -> dict:
-    """The decay asked of the true model at the shift where it is not the run's: ``alpha V`` alone
-    (``{"exp_rate": alpha, "decay_rate": 0}``, :func:`verify`'s ``roa_rate``), else nothing."""
-    return {} if ver.roa_rate is None else {"exp_rate": float(ver.roa_rate), "decay_rate": 0.0}
+    """The decay asked of the true model at the shift where it is not the run's (``roa_rate`` of
+    :func:`~drlyap.workflows.verify.verify`: :func:`~drlyap.conditions.decay_at_shift`), as ``{"exp_rate",
+    "decay_rate"}``; else nothing."""
+    if ver.roa_rate is None:
+        return {}
+    gamma, alpha = decay_at_shift(0.0, 0.0, ver.roa_rate)
+    return {"exp_rate": alpha, "decay_rate": gamma}
 
 
 def true_model_record(ver: RunVerification) -> dict:
@@ -314,10 +318,10 @@ def _faces_claim(faces: str) -> dict:
 
 
 def record_imported_certificates(run_dir: str | Path, pair, ver: RunVerification, proof: ProofConfig) -> list[Path]:
-    """Write the certificates of what :func:`verify_imported` proved about an imported pair, naming the pair by its
-    ``graphs.json`` and ``tensors.pt`` (the checker reads those as data): ``true-model`` for its verified decrease at
-    the shift, and with a region of attraction certified by V's own proofs its ``roa-ball`` (and ``roa``:
-    :func:`region_certificates`), whose level, shift and decay are kept in the run's ``metrics.json``
+    """Write the certificates of what :func:`~drlyap.workflows.verify.verify_imported` proved about an imported pair,
+    naming the pair by its ``graphs.json`` and ``tensors.pt`` (the checker reads those as data): ``true-model`` for
+    its verified decrease at the shift, and with a region of attraction certified by V's own proofs its ``roa-ball``
+    (and ``roa``: :func:`region_certificates`), whose level, shift and decay are kept in the run's ``metrics.json``
     (:func:`region_record`) for the checker to compare, beside the decrease at the shift (``true_model``), as for a
     run (:func:`record_region`, :func:`record_certificates`): the files the new account no longer describes are
     removed first. On a delta other than the pair's (where its export states one) no certificate is written, and only
