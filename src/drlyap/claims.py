@@ -7,7 +7,8 @@ from __future__ import annotations
 import math
 from decimal import ROUND_CEILING, ROUND_FLOOR, Decimal
 
-CERTIFICATES = ("trained", "true-model", "radius", "shift-box", "uniform", "roa", "roa-ball", "ellipsoid", "practical")
+CERTIFICATES = ("trained", "true-model", "radius", "shift-box", "uniform", "roa", "roa-ball", "ellipsoid", "practical",
+                "band")
 """The names of a run's certificate files (:mod:`drlyap.runs.certificates` says what each claims)."""
 
 
@@ -94,6 +95,8 @@ def claim_sentence(claim: dict) -> str:
                     f"{{V <= {level_text(float(claim['practical']['level']), up=True)}}}: V is at most that on the ball "
                     f"||x - x*|| < {float(r['ball_of']):g}, and decreases outside it by the certificate "
                     f"{claim.get('outer')!r}")
+        if claim.get("band") is not None:  # practical stability on a band c1 <= V <= c2 (the field's form)
+            return band_sentence(what, float(claim["band"]["low"]), float(level))
         core = claim.get("core")
         if core is not None:  # V's region resting on the closed loop's ellipsoid (linearisation route, band proof)
             ellipsoid = (f"{{z'Pz <= {level_text(float(core['level']))}}} (P in the file; a region of attraction by "
@@ -115,3 +118,13 @@ def claim_sentence(claim: dict) -> str:
                 f"{of_region(condition_region(level, float(r['delta']), faces_rule(claim)))}")
     except (KeyError, TypeError, ValueError, IndexError):
         return "(an unreadable claim)"
+
+
+def band_sentence(what: str, low: float, high: float) -> str:
+    """A band claim (:mod:`drlyap.verification.band_claim`) in words: ``what`` (the decrease, as
+    :func:`claim_sentence` names it) on ``low <= V <= high``, and what follows."""
+    model = what.split(" (")[0].replace("decrease on ", "")
+    c1, c2 = level_text(low, up=True), level_text(high)
+    return (f"trajectories of {model} from {{V <= {c2}}} in the state box stay in it and reach {{V <= {c1}}}: {what} "
+            f"on the band {c1} <= V <= {c2}, and the flow enters the box wherever V <= {c2} on its faces (V as the run's "
+            "files give it)")

@@ -11,7 +11,7 @@ from __future__ import annotations
 import math
 from pathlib import Path
 
-from drlyap.claims import level_text, of_region
+from drlyap.claims import band_sentence, level_text, of_region
 from drlyap.io import proved_percent
 from drlyap.kinds import Status
 from drlyap.records import ProofRound, TrainingRecord
@@ -182,6 +182,28 @@ def condition_lines(proof: ConditionProof, title: str) -> list[str]:
     return lines
 
 
+def band_lines(band) -> list[str]:
+    """What ``drlyap verify --band`` prints of a band claim (:class:`~drlyap.verification.band_claim.BandProof`)."""
+    c1, c2 = level_text(band.low, up=True), level_text(band.high)
+    title = f"  band {c1} <= V <= {c2} on the true model at xi = {band.xi}, decay {band.exp_rate:g} V"
+    proof = band.decrease
+    counts = (proof.partition.counts() if proof.partition is not None else {})
+    how = (f"{proof.boxes_processed} boxes, {band.time_s:.2f} s" + (
+        f": {counts.get('proved', 0)} proved, {counts.get('below level', 0)} below the band, "
+        f"{counts.get('above level', 0)} above it" if counts else ""))
+    if band.status == Status.VERIFIED:
+        what = f"decrease on the true model at xi = {band.xi} (gamma = 0, alpha = {band.exp_rate:g})"
+        return [f"{title}: VERIFIED ({how})",
+                f"    {band_sentence(what, band.low, band.high)}",
+                f"    practical stability: convergence to {{V <= {c1}}}, not to x* (no region of attraction of x* is "
+                "claimed)"]
+    lines = [f"{title}: {band.status.upper()}; {band.reason} (verified {proved_share(proof)} of the box; {how})"]
+    if proof.counterexample is not None:
+        lines.append(f"    counterexample x = {[round(v, 6) for v in proof.counterexample]} with residual "
+                     f"{proof.counterexample_value:.4g} > 0 on the band")
+    return lines
+
+
 def margin_line(uni: UniformMargin) -> str:
     """The uniform DR condition's bracket."""
     return (f"uniform DR condition: {uni.status.upper()}; margin in [{_num(uni.margin_lower)}, "
@@ -269,6 +291,8 @@ def verification_lines(ver: RunVerification, system: str, method: str) -> list[s
     if ver.true_model is not None:
         rate = "" if ver.roa_rate is None else f", decay {ver.roa_rate:g} V"
         lines += condition_lines(ver.true_model, f"  true model at xi = {ver.true_model.xi}{rate}")
+    if ver.band is not None:
+        lines += band_lines(ver.band)
     if ver.roa is not None:
         lines.append("  " + roa_line(ver.roa, ver.true_model is not None))
     if ver.robustness is not None:

@@ -50,6 +50,7 @@ from torch import Tensor
 from drlyap.checker.affine import Af
 from drlyap.checker.arith import EPS, F64, Iv
 from drlyap.checker.ball import ball_failures
+from drlyap.checker.band import band_floor, below_failures, statement_failures
 from drlyap.checker.ellipsoid import QuadraticPair, ellipsoid_failures, inside_core, read_core
 from drlyap.checker.graphs import GraphPair
 from drlyap.checker.levels import ball_below, faces_above, faces_inward, grid_cells, widest_split
@@ -60,7 +61,7 @@ from drlyap.compute import Compute
 from drlyap.parallel import check_device, pool_for
 from drlyap.progress import progress as show_progress
 
-INTERNAL, PROVED, INSIDE_BALL, ABOVE_LEVEL, INSIDE_CORE = 0, 1, 2, 3, 5
+INTERNAL, PROVED, INSIDE_BALL, ABOVE_LEVEL, INSIDE_CORE, BELOW_LEVEL = 0, 1, 2, 3, 5, 6
 
 
 @dataclass
@@ -99,10 +100,11 @@ class CertificateError(ValueError):
     """The certificate is inconsistent with itself or with the run (a structural failure, found before any bound)."""
 
 
-def check_tree(arrays: dict[str, np.ndarray], cells: int, n: int, level: float | None, core: bool = False) -> None:
+def check_tree(arrays: dict[str, np.ndarray], cells: int, n: int, level: float | None, core: bool = False,
+               band: bool = False) -> None:
     """Structural checks: roots are exactly the grid's cells, every other node names an earlier internal node as its
     parent, every internal node has exactly one lower and one upper half, every leaf has a verdict that proves it
-    (above the level only with a ``level``, inside the core only with a ``core``)."""
+    (above the level only with a ``level``, inside the core only with a ``core``, below the band only on a ``band``)."""
     parent, side = arrays["parent"].astype(np.int64), arrays["side"].astype(np.int64)
     axis, verdict = arrays["axis"].astype(np.int64), arrays["verdict"].astype(np.int64)
     size = parent.shape[0]
@@ -125,7 +127,8 @@ def check_tree(arrays: dict[str, np.ndarray], cells: int, n: int, level: float |
     if (slots[internal] != 1).any() or (slots[~internal] != 0).any():
         raise CertificateError("a split node does not have exactly one lower and one upper half (a box is missing "
                                "or duplicated)")
-    allowed = {PROVED, INSIDE_BALL} | ({ABOVE_LEVEL} if level is not None else set()) | ({INSIDE_CORE} if core else set())
+    allowed = {PROVED, INSIDE_BALL} | ({ABOVE_LEVEL} if level is not None else set()) | (
+        {INSIDE_CORE} if core else set()) | ({BELOW_LEVEL} if band and level is not None else set())
     leaves = verdict[~internal]
     bad = ~np.isin(leaves, sorted(allowed))
     if bad.any():
@@ -425,6 +428,13 @@ def check_certificate(run_dir: str | Path, name: str, header: dict, arrays: dict
         delta, level = float(region["delta"]), region.get("level")
         level = None if level is None else float(level)
         pair = _pair(weights, header, system.n)
+        floor = band_floor(claim)
+        if floor is not None:  # about V as the files give it (an imported V is not pinned at x* for it)
+            out.failures += statement_failures(claim)
+            pair = pair.as_given() if isinstance(pair, GraphPair) else pair
+        elif not getattr(pair, "pinned", True):
+            raise CertificateError("V is not pinned at x* (graphs.json: imported as given): only a band claim is "
+                                   "checked for it")
         if claim.get("ellipsoid") is not None:  # the closed loop's own W = z'Pz: its claims are about W, not V
             pair = QuadraticPair(pair, torch.as_tensor(claim["ellipsoid"]["P"], dtype=F64))
         residual = Residual(claim["condition"], pair, system)
@@ -444,7 +454,7 @@ def check_certificate(run_dir: str | Path, name: str, header: dict, arrays: dict
         grid = [int(k) for k in header["partition"]["grid"]]
         if len(grid) != system.n or min(grid) < 1:
             raise CertificateError(f"the starting grid {grid} does not fit {system.n} states")
-        check_tree(arrays, int(np.prod(grid)), system.n, level, core is not None)
+        check_tree(arrays, int(np.prod(grid)), system.n, level, core is not None, floor is not None)
     except (CertificateError, KeyError, TypeError, ValueError) as err:
         out.failures.append(str(err) if not isinstance(err, KeyError) else f"the header lacks {err}")
         out.time_s = time.perf_counter() - start
@@ -495,6 +505,11 @@ def check_certificate(run_dir: str | Path, name: str, header: dict, arrays: dict
                 what = "W" if claim.get("ellipsoid") is not None else "V"
                 out.failures.append(f"{what} > {level:g} is not established on the box's faces ({what}'s lower bound "
                                     f"there {out.faces_min:.6g}, {out.faces_boxes} face boxes)")
+    below = (verdict == BELOW_LEVEL).nonzero().squeeze(-1)
+    if floor is not None:  # a band's leaves below it: V < c1 there, by the checker's bisection
+        failures, spent = below_failures(pair, blo[below], bhi[below], bound[below], floor, hi - lo)
+        out.failures, out.pieces = out.failures + failures, out.pieces + spent
+        out.proved += int(below.numel()) if not failures else 0
     if bool(false.any()):
         first = proved[false][0]
         out.failures.append(f"{int(false.sum())} recorded bounds lie below the residual at their box's centre (first: "

@@ -10,7 +10,9 @@ enclosure of its real value. V's gradient is forward mode: the checker's dual nu
 per state, over intervals, duals or second-order forms alike. V is the graph less its first-order part at x*,
 ``V(z) - V(0) - grad V(0) . z`` with ``V(0)`` and ``grad V(0)`` enclosed by the checker's duals at the point x* (so
 ``V(x*) = 0`` and ``grad V(x*) = 0`` hold exactly, as the cube's second-order argument needs, whatever the weights),
-or ``z^T P z`` for the quadratic V of a controller imported alone.
+or ``z^T P z`` for the quadratic V of a controller imported alone; a V that ``graphs.json`` marks ``"pinned": "no"`` (not
+least at x*, imported as given) is the graph as it is, and only a band claim is checked for it (nothing of it rests
+on x*). A band claim is about V as the file gives it, pinned or not (its levels are in V's own units).
 """
 
 from __future__ import annotations
@@ -115,6 +117,7 @@ class GraphPair:
             self.v_net = None
         else:
             self.v_net = GraphNet(spec, tensors["lyapunov"])
+            self.pinned = spec.get("pinned") != "no"  # a V imported as given (not least at x*) is not pinned
             self._v0, self._g0 = self._origin()
 
     def _origin(self) -> tuple[Iv, Iv]:
@@ -123,6 +126,12 @@ class GraphPair:
         at = self.v_net(Du.seed(Iv.point(torch.zeros(1, self.n, dtype=F64, device=device)), self.n,
                                 list(range(self.n))))
         return at.v, torch.stack(at.d, -1)
+
+    def as_given(self) -> GraphPair:
+        """The same pair with V as the file gives it, not pinned at x* (what a band claim is about)."""
+        out = copy.copy(self)
+        out.pinned = False
+        return out
 
     def to(self, device: torch.device | str) -> GraphPair:
         out = copy.copy(self)
@@ -137,6 +146,8 @@ class GraphPair:
     def value(self, z):
         if self.p is not None:
             return (z.linear(self.p) * z).sum(-1)
+        if not self.pinned:
+            return self.v_net(z)
         return self.v_net(z) - _kind_of(z, self._v0) - (_kind_of(z, self._g0) * z).sum(-1)
 
     def value_and_grad(self, z) -> tuple[object, object]:

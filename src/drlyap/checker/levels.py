@@ -168,3 +168,11 @@ def outside_positive(pair: Pair, lo: Tensor, hi: Tensor, delta: float, max_boxes
 
     a, b = grid_cells(lo, hi, [4] * lo.shape[0])
     return _bisect(pair, a, b, hi - lo, 0.0, True, max_boxes, batch, keep=reaches, member=outside)
+
+
+def boxes_below(pair: Pair, lo: Tensor, hi: Tensor, scale: Tensor, level: float, max_boxes: int,
+                batch: int = 4096) -> tuple[bool, float, int]:
+    """Whether ``V < level`` at every state of the boxes ``[lo, hi] (B, n)``, by bisecting each (along its widest side
+    relative to ``scale``) until V's upper bound is below the level on every piece, a centre has ``V >= level`` or
+    ``max_boxes`` are spent. Returns (holds, the largest upper bound of V kept, boxes bounded)."""
+    return _bisect(pair, lo, hi, scale, level, False, max_boxes, batch)

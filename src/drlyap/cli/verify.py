@@ -35,6 +35,19 @@ def _exit(result) -> None:
         sys.exit(code)
 
 
+def _band_levels(text: str, roa: bool) -> tuple[float, float]:
+    """``--band C1,C2`` read, or a ValueError naming what is wrong (``0 < C1 < C2``; not with ``--roa``)."""
+    from drlyap.verification.band_claim import band_levels
+
+    values = floats(text, "--band")
+    if len(values) != 2:
+        raise ValueError(f"--band takes two levels C1,C2, got {text!r}")
+    if roa:
+        raise ValueError("--band and --roa are proved apart: the band claim is convergence to {V <= C1}, a region of "
+                         "attraction convergence to x*")
+    return band_levels(*values)
+
+
 def _interrupted(run_dir: Path) -> None:
     """Ctrl-C: say what is kept (a long proof's checkpoint in RUN/checkpoints) and exit 130, as ``train`` does."""
     kept = run_dir / "checkpoints"
@@ -77,6 +90,12 @@ def _interrupted(run_dir: Path) -> None:
                    "its region with --roa, in place of the run's decay terms [0.01, or the run's alpha where smaller: "
                    "a region of attraction needs only a strict decrease, any alpha > 0 (none with a decay gamma "
                    "||z||: the run's)].")
+@click.option("--band", default=None, metavar="C1,C2",
+              help="Prove the band claim instead of the decrease at --xi and a region: on the true model at --xi "
+                   "(the system's test shift by default), V decreases (Vdot + alpha V <= 0, alpha from --roa-rate) on "
+                   "C1 <= V <= C2 over the whole state box, and the flow enters the box wherever V <= C2 on its "
+                   "faces: trajectories from {V <= C2} stay in it and reach {V <= C1} (practical stability, the form "
+                   "the field's verifiers prove; V need not be least or zero at x*). Written as certificates/band.*.")
 @click.option("--uniform", is_flag=True,
               help="Also bound the uniform DR condition's margin at the run's radius, risk level and samples (a "
                    "stricter condition than the pointwise one the default pairs are trained on); a margin proved "
@@ -98,7 +117,8 @@ def _interrupted(run_dir: Path) -> None:
 @click.option("--json", "as_json", is_flag=True, help="Print one JSON object.")
 @run_source_options
 def verify(run_dir: Path, delta: float | None, xi: str | None, time_limit: float | None, roa: bool,
-           roa_boxes: int | None, roa_time: float | None, roa_above_level: bool | None, roa_rate: float | None, uniform: bool,
+           roa_boxes: int | None, roa_time: float | None, roa_above_level: bool | None, roa_rate: float | None,
+           band: str | None, uniform: bool,
            max_radius: bool, radius_tol: float, enclosure: str | None, reprove: bool, workers: int, backend: str,
            address: str | None, device: str, as_json: bool, system_spec: str | None, trust_run: bool) -> None:
     """Prove the decrease condition of RUN_DIR on the whole state box minus the delta-ball, or find a counterexample.
@@ -127,7 +147,13 @@ def verify(run_dir: Path, delta: float | None, xi: str | None, time_limit: float
     from drlyap.io import jsonable
     from drlyap.render import unwritten_region_line, verification_lines
     from drlyap.runs import load_run, read_run_kind
-    from drlyap.workflows.record import record_certificates, record_region, record_roa, record_robustness
+    from drlyap.workflows.record import (
+        record_band,
+        record_certificates,
+        record_region,
+        record_roa,
+        record_robustness,
+    )
     from drlyap.workflows.verify import clear_checkpoints, run_checkpoints, run_proof, run_robustness
     from drlyap.workflows.verify import verify as prove_run
 
@@ -144,12 +170,14 @@ def verify(run_dir: Path, delta: float | None, xi: str | None, time_limit: float
         above_level = roa_above_level is not False
         if not radius_tol > 0:
             raise ValueError(f"--radius-tol must be > 0, got {radius_tol}")
-        if roa_rate is not None and not (xi is not None and math.isfinite(roa_rate) and roa_rate > 0):
-            raise ValueError(f"--roa-rate must be > 0 and goes with --xi (the decay asked at the shift), "
-                             f"got {roa_rate}" + ("" if xi is not None else " without it"))
+        at_shift = xi is not None or band is not None
+        if roa_rate is not None and not (at_shift and math.isfinite(roa_rate) and roa_rate > 0):
+            raise ValueError(f"--roa-rate must be > 0 and goes with --xi or --band (the decay asked at the shift), "
+                             f"got {roa_rate}" + ("" if at_shift else " without them"))
+        levels = None if band is None else _band_levels(band, roa)
         if read_run_kind(run_dir).get("kind") == "imported":
             _verify_imported(run_dir, delta, xi, time_limit, roa, roa_time, enclosure, as_json, system_spec, trust_run,
-                             compute, above_level, roa_rate, roa_boxes)
+                             compute, above_level, roa_rate, roa_boxes, levels)
             return
         run = load_run(run_dir, run_system_of(system_spec), trust_run)
         settings = dataclasses.replace(run.proof or ProofConfig(), roa_time=roa_time, roa_boxes=roa_boxes,
@@ -159,7 +187,7 @@ def verify(run_dir: Path, delta: float | None, xi: str | None, time_limit: float
         settings = run_proof(run, settings)
         shift = None if xi is None else run.system.check_xi(floats(xi, "--xi"))
         result = prove_run(run, settings, delta=delta, xi=shift, roa=roa, uniform=uniform, reprove=reprove,
-                            above_level=above_level, roa_rate=roa_rate)
+                            above_level=above_level, roa_rate=roa_rate, band=levels)
         stored = None
         if roa:
             try:
@@ -171,7 +199,9 @@ def verify(run_dir: Path, delta: float | None, xi: str | None, time_limit: float
                 stored = f"  not stored: {run.path / 'metrics.json'} cannot be written ({err.strerror or err})"
         try:
             recheck = command_hint("check", run_dir, source=recorded_source(run_dir, system_spec))
-            paths = record_certificates(run, result) + record_roa(run, result, settings)
+            paths = record_certificates(run, result) + record_roa(run, result, settings) + record_band(
+                run.path, run.system, result.band, run.true_condition, run.path / "weights.pt",
+                float(run.config.alpha_hat))
             written = [f"  certificate: {p} (re-check it with `{recheck}`)" for p in paths]
             unwritten = unwritten_region_line(result.roa, paths)
         except OSError as err:
@@ -207,13 +237,14 @@ def verify(run_dir: Path, delta: float | None, xi: str | None, time_limit: float
 def _verify_imported(run_dir: Path, delta: float | None, xi: str | None, time_limit: float | None, roa: bool,
                      roa_time: float | None, enclosure: str | None, as_json: bool, system_spec: str | None,
                      trust_run: bool, compute: dict, above_level: bool = True, roa_rate: float | None = None,
-                     roa_boxes: int | None = None) -> None:
+                     roa_boxes: int | None = None, band: tuple[float, float] | None = None) -> None:
     """``drlyap verify`` on an imported pair: decrease on the true model at --xi (the system's test shift by default)
-    and with --roa its region of attraction; what is verified is written as certificates."""
+    and with --roa its region of attraction, or with ``band`` the band claim there; what is verified is written as
+    certificates."""
     from drlyap.io import jsonable
     from drlyap.render import unwritten_region_line, verification_lines
     from drlyap.runs import load_imported_run
-    from drlyap.workflows.record import record_imported_certificates
+    from drlyap.workflows.record import record_band, record_imported_certificates
     from drlyap.workflows.verify import verify_imported
 
     run = load_imported_run(run_dir, run_system_of(system_spec), trust_run)
@@ -225,11 +256,16 @@ def _verify_imported(run_dir: Path, delta: float | None, xi: str | None, time_li
                                    **compute)
     if time_limit is not None:
         settings = dataclasses.replace(settings, time_limit=time_limit)
-    result = verify_imported(run.info["pair"], str(run_dir), settings, xi=shift, delta=delta, roa=roa,
-                             above_level=above_level, roa_rate=roa_rate)
+    pair = run.info["pair"]
+    result = verify_imported(pair, str(run_dir), settings, xi=shift, delta=delta, roa=roa, above_level=above_level,
+                             roa_rate=roa_rate, band=band)
     try:
         recheck = command_hint("check", run_dir, source=recorded_source(run_dir, system_spec))
-        paths = record_imported_certificates(run_dir, run.info["pair"], result, settings.resolved(system))
+        if band is None:
+            paths = record_imported_certificates(run_dir, pair, result, settings.resolved(system))
+        else:
+            paths = record_band(run_dir, system, result.band, lambda at, rate: pair.true_condition(at[None], rate),
+                                [run_dir / "graphs.json", run_dir / "tensors.pt"], None)
         written = [f"  certificate: {p} (re-check it with `{recheck}`)" for p in paths]
         written += [line for line in [unwritten_region_line(result.roa, paths)] if line]
     except OSError as err:

@@ -62,7 +62,8 @@ class ImportedPair:
     with (``decay_rate`` gamma of ``gamma ||z||``, ``exp_rate`` alpha of ``alpha V``), the ``checks`` at x* and
     ``notes`` on how each file was read. ``level``, ``delta``: those of the run a drlyap export came from (its
     decrease is proved on ``{V <= level}`` minus the delta-ball, as the run's is; None: the whole region, the
-    system's delta)."""
+    system's delta). ``pinned``: V is least at x* and pinned there (:class:`PinnedLyapunov`); False: V as given,
+    whose claim can only be a band's (``verify --band``: convergence to a sublevel set, not to x*)."""
 
     loop: ClosedLoop
     certificate: str
@@ -72,6 +73,16 @@ class ImportedPair:
     notes: dict = field(default_factory=dict)
     level: float | None = None
     delta: float | None = None
+    pinned: bool = True
+
+    @property
+    def given_loop(self) -> ClosedLoop:
+        """The closed loop with V as the file gives it (not pinned at x*): what a band claim is about, its levels in
+        the V's own units."""
+        lyapunov = self.loop.lyapunov
+        if isinstance(lyapunov, PinnedLyapunov):
+            return ClosedLoop(self.loop.system, lyapunov.graph, self.loop.controller)
+        return self.loop
 
     def true_condition(self, xi: Tensor, exp_rate: float | None = None) -> TrueDecrease:
         """Decrease on the true model at the shifts ``xi (1, k)`` with the pair's decay, or with the decay ``exp_rate``
@@ -224,7 +235,17 @@ def import_pair(system: UncertainSystem, controller_path: str | os.PathLike,
         return ImportedPair(loop, "quadratic", 0.0, checks["exp_rate"], checks, all_notes)
     graph, all_notes["lyapunov"] = read_onnx(lyapunov_path, system, "lyapunov")
     offset = equilibrium_offset(system, controller)
-    lyapunov, checks = pinned_certificate(system, graph)
+    pinned = True
+    try:
+        lyapunov, checks = pinned_certificate(system, graph)
+    except ValueError as err:  # a V not least at x* (the field's sigmoid V): taken as given, for a band claim
+        pinned, lyapunov = False, graph
+        with torch.no_grad():
+            v0, g0 = graph.value_and_grad(torch.zeros(1, system.n, dtype=F64))
+        checks = {"V_at_equilibrium": float(v0[0]), "grad_V_at_equilibrium": g0[0].tolist()}
+        all_notes["lyapunov"].append(f"{err}: V is taken as given, not pinned at x*; what it can claim is decrease on "
+                                     "a band C1 <= V <= C2 (`drlyap verify RUN --band C1,C2`), convergence to "
+                                     "{V <= C1}, not to x*")
     checks["pi_minus_u_star"] = offset
     claim = exported_claim(lyapunov_path, system)
     if claim is None:  # plain decrease on the whole region: a decay with gamma ||z|| would depend on V's scale
@@ -237,7 +258,7 @@ def import_pair(system: UncertainSystem, controller_path: str | os.PathLike,
                                      f"{claim['decay_rate']:g}, alpha = {claim['exp_rate']:g} on {where} minus the "
                                      f"ball of radius {claim['delta']:g})")
     return ImportedPair(ClosedLoop(system, lyapunov, controller), "onnx", claim["decay_rate"], claim["exp_rate"],
-                        checks, all_notes, claim["level"], claim["delta"])
+                        checks, all_notes, claim["level"], claim["delta"], pinned)
 
 
 def load_onnx_pair(system: UncertainSystem, controller_path: str | os.PathLike,
@@ -321,7 +342,7 @@ def save_imported_run(out: str | os.PathLike, pair: ImportedPair, files: dict[st
         tensors["lyapunov"] = {"P": loop.lyapunov.P.detach().clone()}
     else:
         graph = loop.lyapunov.graph if isinstance(loop.lyapunov, PinnedLyapunov) else loop.lyapunov
-        graphs["lyapunov"] = {"kind": "graph", "pinned": "first order"} | graph.to_json()
+        graphs["lyapunov"] = {"kind": "graph", "pinned": "first order" if pair.pinned else "no"} | graph.to_json()
         tensors["lyapunov"] = _pack(graph.tensors())
     config = {"system": system.name, "certificate": pair.certificate, "decay_rate": pair.decay_rate,
               "exp_rate": pair.exp_rate, "level": pair.level, "delta": pair.delta,
@@ -377,11 +398,12 @@ def load_imported_run(path: str | os.PathLike, system: UncertainSystem | None = 
             lyapunov: nn.Module = QuadraticLyapunov(p)
         else:
             graph = Graph.from_json(spec, restore_infinite(tensors["lyapunov"]), f"{path}: lyapunov")
-            lyapunov = PinnedLyapunov(graph)  # always: a graph V is certified pinned at x* to first order
+            pinned = spec.get("pinned") != "no"  # a V least at x* is pinned there to first order; else as given
+            lyapunov = PinnedLyapunov(graph) if pinned else graph
         if controller.n != system.n or controller.out_shape != (system.m,):
             raise ValueError(f"the controller maps {controller.n} states to {controller.out_shape}, not "
                              f"{system.n} to ({system.m},)")
-        if isinstance(lyapunov, PinnedLyapunov):
+        if spec.get("kind") != "quadratic":
             if graph.n != system.n or graph.out_shape != ():
                 raise ValueError(f"V maps {graph.n} states to {graph.out_shape}, not {system.n} to ()")
         decay, exp_rate = float(config.get("decay_rate", 0.0)), float(config.get("exp_rate", 0.0))
@@ -391,7 +413,7 @@ def load_imported_run(path: str | os.PathLike, system: UncertainSystem | None = 
         raise RunDirError(f"{path}: graphs.json/tensors.pt do not describe a pair of {system.name} ({err})") from None
     loop = ClosedLoop(system, lyapunov, controller)
     pair = ImportedPair(loop, config["certificate"], decay, exp_rate, metrics.get("checks", {}), metrics.get("notes", {}),
-                        level, delta)
+                        level, delta, spec.get("kind") == "quadratic" or spec.get("pinned") != "no")
 
     @torch.no_grad()
     def act(x: Tensor) -> Tensor:

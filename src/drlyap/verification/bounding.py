@@ -56,8 +56,8 @@ class ConditionJob:
 
     Called on boxes ``lo, hi (B, n)`` it returns a dict of ``(B,)`` tensors: ``upper`` (the residual's upper bound,
     +inf where undefined), ``centre_lower`` (a lower bound of the residual at the centre), ``sensitivity (B, n)`` and,
-    with a level, ``value_lower`` (V's lower bound over the box) and ``centre_value_upper`` (V's upper bound at the
-    centre)."""
+    with a level, ``value_lower`` and ``value_upper`` (V's bounds over the box), ``centre_value_upper`` and
+    ``centre_value_lower`` (V's bounds at the centre)."""
 
     def __init__(self, loop, condition, level: float | None, enclosure: str, device: str = "cpu") -> None:
         self.loop, self.condition, self.level, self.enclosure, self.device = loop, condition, level, enclosure, device
@@ -90,6 +90,7 @@ def bound_condition(loop, condition, level: float | None, enclosure: str, lo: Te
     at_lo = at.lo
     if level is not None:  # the last component is V
         out["value_lower"], out["centre_value_upper"] = lb_c[:, -1], at.hi[:, -1]
+        out["value_upper"], out["centre_value_lower"] = ub_c[:, -1], at.lo[:, -1]
         ub_c, at_lo = ub_c[:, :-1], at_lo[:, :-1]
     upper = combine_upper(condition, ub_c)
     if level is not None and form is not None:  # the S-procedure where the plain bound proves nothing yet

@@ -46,7 +46,8 @@ def verify_condition(loop: ClosedLoop, condition: Condition, region: Region, bud
                      level: float | None = None, grid: Sequence[int] | None = None, keep_boxes: int = 50,
                      stop_at_counterexample: bool = False, violation_width: float = 1e-2,
                      start: Partition | None = None, standing: Tensor | None = None, give_up: bool = False,
-                     keep_partition: bool = False, core: tuple[Tensor, float] | None = None) -> ConditionProof:
+                     keep_partition: bool = False, core: tuple[Tensor, float] | None = None,
+                     floor: float | None = None) -> ConditionProof:
     """Prove ``residual(z) <= 0`` for the closed loop on the region X_delta by branch and bound, or find where it
     fails, within ``budget`` (boxes, seconds, minimum box width, enclosure, and where to bound them).
 
@@ -79,13 +80,20 @@ def verify_condition(loop: ClosedLoop, condition: Condition, region: Region, bud
     that reach it (a certified region of attraction): boxes inside it (every vertex, rounded up: the form is convex)
     need nothing more (``INSIDE_CORE`` in the partition), and a violation inside it is none of the claim's. Not with
     ``start``.
+
+    ``floor``: with ``level``, prove it only on the band ``{floor <= V <= level}``: a box on which V is provably
+    below ``floor`` needs nothing more (``BELOW_LEVEL``), and a counterexample must have ``V >= floor``. Not with
+    ``start``.
     """
     if not condition.per_state:
         raise ValueError("use uniform_margin for the uniform condition")
     if core is not None and start is not None:
         raise ValueError("a proof with a core does not start from another proof's partition")
+    if floor is not None and (level is None or start is not None or not floor < level):
+        raise ValueError(f"a band's floor goes with a level above it and no starting partition (floor {floor}, "
+                         f"level {level})")
     search = _Search(loop, condition, region, budget, level, list(grid or default_grid(loop.system.n)),
-                     stop_at_counterexample, violation_width, start, give_up, standing, core)
+                     stop_at_counterexample, violation_width, start, give_up, standing, core, floor)
     if not (search.finished and (search.stopped == "counterexample" or not search.lo.shape[0])):
         search.run()  # a finished search that ran out of budget goes on where a larger budget allows
     return search.result(keep_boxes, keep_partition)
@@ -110,8 +118,9 @@ class _Search:
     def __init__(self, loop: ClosedLoop, condition: Condition, region: Region, budget: Budget, level: float | None,
                  per_axis: list[int], stop_at_counterexample: bool, violation_width: float,
                  start: Partition | None = None, give_up: bool = False, standing: Tensor | None = None,
-                 core: tuple[Tensor, float] | None = None) -> None:
+                 core: tuple[Tensor, float] | None = None, floor: float | None = None) -> None:
         self.loop, self.condition, self.region, self.budget, self.level = loop, condition, region, budget, level
+        self.floor = None if floor is None else float(floor)
         self.core = None if core is None else (torch.as_tensor(core[0], dtype=F64), float(core[1]))
         self.core_form = None if core is None else QuadraticLyapunov(self.core[0])
         self.stop_at_cex, self.violation_width, self.give_up = stop_at_counterexample, violation_width, give_up
@@ -135,7 +144,8 @@ class _Search:
                                  min_width=float(budget.min_width), violation_width=float(violation_width),
                                  stop_at_counterexample=bool(stop_at_counterexample), give_up=bool(give_up),
                                  start=None if start is None else start.digest(standing),
-                                 core=None if core is None else [self.core[0].tolist(), self.core[1]])
+                                 core=None if core is None else [self.core[0].tolist(), self.core[1]],
+                                 **({} if floor is None else {"floor": self.floor}))
         saved = load_checkpoint(self.compute.checkpoint_dir, self.key) if self.key else None
         lo, hi = box_grid(region.lo, region.hi, per_axis)
         if saved is not None:
@@ -281,20 +291,25 @@ class _Search:
         ub, centre_lb, sens = bounds["upper"], bounds["centre_lower"], bounds["sensitivity"]
         centre = (clo + chi) / 2
         in_region = region.in_region(centre)
-        outside = torch.zeros(clo.shape[0], dtype=torch.bool)
+        outside = below = torch.zeros(clo.shape[0], dtype=torch.bool)
         if level is not None:  # boxes above the level are done, centres must lie in the set
             outside = bounds["value_lower"] > level
             in_region = in_region & (bounds["centre_value_upper"] <= level)
+        if self.floor is not None:  # and on a band, boxes below its floor
+            below = (bounds["value_upper"] < self.floor) & ~outside
+            in_region = in_region & (bounds["centre_value_lower"] >= self.floor)
         if in_region.any():
             self.sup_lo = max(self.sup_lo, float(centre_lb[in_region].max()))
-        ub = torch.where(outside, -torch.inf, ub)
+        ub = torch.where(outside | below, -torch.inf, ub)
         ok = ub <= 0
-        tree.proved(cids[ok & ~outside], ub[ok & ~outside])
+        tree.proved(cids[ok & ~outside & ~below], ub[ok & ~outside & ~below])
         if level is not None:
             tree.above_level(cids[ok & outside], bounds["value_lower"][ok & outside])
+        if self.floor is not None:
+            tree.below_level(cids[below], bounds["value_upper"][below])
         self.verified_count += int(ok.sum())
-        if (ok & ~outside).any():
-            self.sup_hi = max(self.sup_hi, float(ub[ok & ~outside].max()))
+        if (ok & ~outside & ~below).any():
+            self.sup_hi = max(self.sup_hi, float(ub[ok & ~outside & ~below].max()))
         bad = ~ok & in_region & (centre_lb > 0)
         if self.core is not None:  # a violation inside the core is not one of the claim's
             bad = bad & (self.core_form(centre) > self.core[1])

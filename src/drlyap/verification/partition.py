@@ -13,7 +13,8 @@ for a leaf, the verdict the proof reached on it, with the bound behind it:
   asked to, for a proof that starts from it);
 * ``INSIDE_CORE``: every vertex of the box has ``z^T P z <= c``, so the box lies in a proof's core, the ellipsoid
   ``{z^T P z <= c}`` (convex) around x* whose own certificate carries the trajectories that reach it (``bound``: the
-  largest vertex value, rounded up).
+  largest vertex value, rounded up);
+* ``BELOW_LEVEL``: V's upper bound over the box is ``bound < floor`` (a proof on a band ``{floor <= V <= level}``).
 
 The boxes themselves are not stored: they follow from the grid and the splits (halving at the midpoint), which is
 what makes a dropped or an extra box visible to a checker.
@@ -27,9 +28,9 @@ from dataclasses import dataclass
 import torch
 from torch import Tensor
 
-INTERNAL, PROVED, INSIDE_BALL, ABOVE_LEVEL, OPEN, INSIDE_CORE = 0, 1, 2, 3, 4, 5
+INTERNAL, PROVED, INSIDE_BALL, ABOVE_LEVEL, OPEN, INSIDE_CORE, BELOW_LEVEL = 0, 1, 2, 3, 4, 5, 6
 VERDICTS = {INTERNAL: "internal", PROVED: "proved", INSIDE_BALL: "inside ball", ABOVE_LEVEL: "above level",
-            OPEN: "open", INSIDE_CORE: "inside core"}
+            OPEN: "open", INSIDE_CORE: "inside core", BELOW_LEVEL: "below level"}
 
 
 @dataclass
@@ -54,8 +55,11 @@ class Partition:
         return int(self.parent.shape[0])
 
     def counts(self) -> dict[str, int]:
-        """How many nodes of each verdict."""
-        return {name: int((self.verdict == code).sum()) for code, name in VERDICTS.items()}
+        """How many nodes of each verdict (``below level`` only in a proof on a band, which has such leaves)."""
+        counts = {name: int((self.verdict == code).sum()) for code, name in VERDICTS.items()}
+        if not counts[VERDICTS[BELOW_LEVEL]]:
+            del counts[VERDICTS[BELOW_LEVEL]]
+        return counts
 
     def digest(self, standing: Tensor | None = None) -> str:
         """The sha256 (hex) of the tree and its verdicts, and of the leaves ``standing`` (see :meth:`state`): what a
@@ -153,6 +157,9 @@ class PartitionRecorder:
     def above_level(self, ids: Tensor, bound: Tensor) -> None:
         self._leaf.append((ids, ABOVE_LEVEL, bound))
 
+    def below_level(self, ids: Tensor, bound: Tensor) -> None:
+        self._leaf.append((ids, BELOW_LEVEL, bound))
+
     def split(self, ids: Tensor, parent_hi: Tensor, lower_hi: Tensor) -> Tensor:
         """Record the split of boxes ``ids (D,)`` (upper corners ``parent_hi (D, n)``) into the halves that
         :func:`~drlyap.regions.split` returned (upper corners ``lower_hi (2D, n)``, lower halves first); returns
@@ -188,7 +195,7 @@ class PartitionRecorder:
         self._axis = [(state["tree_axis_ids"].to(torch.int64), state["tree_axis"].to(torch.int8))]
         ids, codes, bound = state["tree_leaf_ids"].to(torch.int64), state["tree_leaf_code"], state["tree_leaf_bound"]
         self._leaf = []
-        for code in (PROVED, INSIDE_BALL, ABOVE_LEVEL, INSIDE_CORE):
+        for code in (PROVED, INSIDE_BALL, ABOVE_LEVEL, INSIDE_CORE, BELOW_LEVEL):
             mine = codes == code
             if bool(mine.any()):
                 self._leaf.append((ids[mine], code, None if code == INSIDE_BALL else bound[mine]))

@@ -454,12 +454,13 @@ class Certificate(Result):
 class RunVerification(Result):
     """Everything ``drlyap verify`` proves about a run: its trained condition (a :class:`ConditionProof`, or a
     :class:`UniformMargin` for the uniform DR condition), the uniform DR margin when asked, with a shift the decrease on the
-    true model there (``true_model``), the certified region (``roa``) and the robustness searches.
+    true model there (``true_model``), the certified region (``roa``), the robustness searches and a band claim
+    (``band``, :class:`~drlyap.verification.band_claim.BandProof`).
 
     ``main`` is what the run's status is about: the true model at the shift when one was given, else the trained
     condition."""
 
-    OPTIONAL: ClassVar[tuple[str, ...]] = ("uniform", "true_model", "robustness", "roa_rate")
+    OPTIONAL: ClassVar[tuple[str, ...]] = ("uniform", "true_model", "robustness", "roa_rate", "band")
     run_dir: str
     system: str
     method: str
@@ -472,10 +473,16 @@ class RunVerification(Result):
     roa: RegionOfAttraction | None = None
     robustness: RunRobustness | None = None
     roa_rate: float | None = None  # the decay alpha V asked at the shift where it is not the run's
+    band: Any = None
 
     @property
     def main(self):
-        return self.true_model if self.true_model is not None else self.trained
+        """The true model's decrease where it was proved, else the trained condition, else the band claim (an imported
+        pair asked only that)."""
+        for proof in (self.true_model, self.trained, self.band):
+            if proof is not None:
+                return proof
+        raise ValueError("a verification holds no proof")
 
     @property
     def status(self) -> str:
@@ -485,7 +492,7 @@ class RunVerification(Result):
         """The verdict on everything that was asked: ``verified`` where every condition proved holds and the region
         asked for (``roa``) is certified (V's, or the closed loop's own ellipsoid); ``violated`` where a condition has
         a counterexample; else ``unknown``. The robustness searches report values, not verdicts."""
-        proofs = [p for p in (self.trained, self.uniform, self.true_model) if p is not None]
+        proofs = [p for p in (self.trained, self.uniform, self.true_model, self.band) if p is not None]
         if any(p.status == Status.VIOLATED for p in proofs):
             return Status.VIOLATED
         region = self.roa is None or (self.roa.error is None and (self.roa.certified or self.roa.ellipsoid_certified))
@@ -506,10 +513,15 @@ class RunVerification(Result):
         proof = proof_from_dict
         roa = data.get("roa")
         rob = data.get("robustness")
+        band = None
+        if data.get("band") is not None:
+            from drlyap.verification.band_claim import BandProof
+
+            band = BandProof.from_dict(data["band"])
         return cls(data["run_dir"], data["system"], data["method"], data.get("loss"), data["delta"], data["enclosure"],
                    proof(data["trained"]), proof(data.get("uniform")), proof(data.get("true_model")),
                    None if roa is None else RegionOfAttraction.from_dict(roa),
-                   None if rob is None else RunRobustness.from_dict(rob), data.get("roa_rate"))
+                   None if rob is None else RunRobustness.from_dict(rob), data.get("roa_rate"), band)
 
 
 def proof_from_dict(data: dict | None) -> ConditionProof | UniformMargin | None:

@@ -1,7 +1,7 @@
 """What a verification leaves in a run directory: ``metrics.json``'s account of the true model and the region (one
 account, whatever sequence of ``verify`` calls made it) and the certificate files of every proof that ended verified,
 for ``drlyap check`` (:func:`record_region`, :func:`record_certificates`, :func:`record_roa`,
-:func:`record_robustness`; an imported pair's: :func:`record_imported_certificates`). The proofs are
+:func:`record_robustness`, :func:`record_band`; an imported pair's: :func:`record_imported_certificates`). The proofs are
 :mod:`drlyap.workflows.verify`'s."""
 
 from __future__ import annotations
@@ -26,6 +26,7 @@ from drlyap.verification import (
     shift_box_condition,
     verify_condition,
 )
+from drlyap.verification.band_claim import BandProof, band_region
 from drlyap.verification.roa import band_proof, ellipsoid_proof, linearisation_proofs
 
 REGION_CERTIFICATES = ("roa-ball", "roa", "ellipsoid", "practical")
@@ -357,3 +358,16 @@ def record_imported_certificates(run_dir: str | Path, pair, ver: RunVerification
         written += region_certificates(run_dir, pair.loop, condition, region, ver.roa, ("true-model", found), proof,
                                        files, None)
     return written
+
+
+def record_band(folder: Path, system, found: BandProof | None, true_condition, weights, alpha_hat: float | None) -> list[Path]:
+    """Write the ``band`` certificate of ``found`` where it is verified (``true_condition(xi, rate)`` rebuilds its
+    condition; ``weights`` and ``alpha_hat`` as :func:`~drlyap.runs.certificates.write_certificate` takes them). The
+    claim is its own (its shift, levels and decay are in the file), so nothing of ``metrics.json`` is touched, and a
+    band certificate of other levels stays until a verified one replaces it. Returns the header's path, if any."""
+    if found is None or not found.verified or found.decrease.partition is None:
+        return []
+    condition = true_condition(torch.tensor(found.xi, dtype=torch.float64), found.exp_rate)
+    region = band_region(Region.of(system, 0.0))
+    return [write_certificate(folder, "band", found.decrease, condition, region, system, weights, alpha_hat,
+                              extra={"band": {"low": found.low}, "faces": "inward"})]

@@ -32,7 +32,8 @@ from drlyap.verification import (
     shift_scale,
     uniform_margin,
 )
-from drlyap.verification.roa import region_rate
+from drlyap.verification.band_claim import BandProof, prove_band
+from drlyap.verification.roa import REGION_RATE, region_rate
 from drlyap.verification.robustness import SEARCH_BUDGET
 
 CHECKPOINTS = "checkpoints"
@@ -114,7 +115,8 @@ def confirmed_certificate(run: Run, name: str, condition, region: Region, level:
 
 def verify(run: Run, proof: ProofConfig | None = None, *, delta: float | None = None,
                xi: Sequence[float] | Tensor | None = None, roa: bool = False, uniform: bool = False,
-               reprove: bool = False, above_level: bool = True, roa_rate: float | None = None) -> RunVerification:
+               reprove: bool = False, above_level: bool = True, roa_rate: float | None = None,
+               band: tuple[float, float] | None = None) -> RunVerification:
     """Verify a loaded run (:func:`drlyap.runs.load_run`) on X_delta (``delta``: the run's by default).
 
     ``trained``: the run's own condition (pointwise / nominal by :func:`~drlyap.verification.prove_trained`, uniform by
@@ -129,9 +131,15 @@ def verify(run: Run, proof: ProofConfig | None = None, *, delta: float | None = 
     proved again (:func:`confirmed_certificate`), unless ``reprove``. ``roa_rate``: with ``xi``, the decay ``alpha`` of
     the true model's decrease ``Vdot + alpha V <= 0`` proved there and asked of its region (None: what a region of
     attraction needs, a strict decrease, :func:`~drlyap.verification.roa.region_rate`).
+
+    ``band``: ``(c1, c2)``, prove the band claim there instead (:func:`band_verification`) at ``xi`` (the system's test
+    shift where None) beside the trained condition; no true-model decrease on X_delta, no region.
     """
     cfg, system, loop = run.config, run.system, run.loop
-    roa_rate = _shift_rate(roa_rate, xi is not None, cfg)
+    if band is not None and roa:
+        raise ValueError("a band claim is proved alone (convergence to {V <= c1}); ask for a region of attraction "
+                         "in another verify")
+    roa_rate = _shift_rate(roa_rate, xi is not None or band is not None, cfg)
     proof = run_proof(run, proof)
     region = _region(run, delta)
     level = cfg.roa_level
@@ -150,6 +158,12 @@ def verify(run: Run, proof: ProofConfig | None = None, *, delta: float | None = 
             margin = uniform_margin(loop, run.sections.condition.build(run.xi_samples, Loss.UNIFORM), region,
                                     proof.budget(proof.uniform_time), keep_partition=True)
     true_model, main_condition = None, trained_condition
+    if band is not None:
+        found = band_verification(loop, run.true_condition, region, band, proof, xi, roa_rate)
+        return RunVerification(run_dir=str(run.path), system=system.name, method=cfg.method,
+                               loss=cfg.loss if cfg.method == Method.DR else None, delta=region.delta,
+                               enclosure=proof.enclosure, trained=trained, uniform=margin, band=found,
+                               roa_rate=found.exp_rate)
     if xi is not None:
         main_condition = run.true_condition(xi, roa_rate)
         true_model = None if reprove or float(region.delta) != float(cfg.delta) else \
@@ -176,6 +190,19 @@ def verify(run: Run, proof: ProofConfig | None = None, *, delta: float | None = 
                            roa=region_of_attraction, roa_rate=roa_rate)
 
 
+def band_verification(loop: ClosedLoop, true_condition, region: Region, band: tuple[float, float],
+                      proof: ProofConfig, xi: Sequence[float] | Tensor | None, rate: float | None) -> BandProof:
+    """The band claim ``band = (c1, c2)`` (:func:`~drlyap.verification.band_claim.prove_band`) on the true model at
+    ``xi`` (the system's test shift where None) with the decay ``rate V`` (:data:`REGION_RATE` where None),
+    ``true_condition(xi, rate)`` building the condition, within ``proof.budget()``."""
+    system = loop.system
+    if xi is None and system.test_xi is None:
+        raise ValueError(f"a band claim is about the true model at a shift: give --xi ({system.k} values)")
+    shift = system.check_xi(xi if xi is not None else list(system.test_xi))
+    condition = true_condition(shift, REGION_RATE if rate is None else float(rate))
+    return prove_band(loop, condition, region, *band, proof.budget())
+
+
 def _shift_rate(roa_rate: float | None, at_shift: bool, decay) -> float | None:
     """The decay alpha asked of the true model at a shift: ``roa_rate``, refused where it is not a finite number > 0 or
     comes without a shift (``at_shift`` False); None: :func:`~drlyap.verification.roa.region_rate` of ``decay``'s."""
@@ -196,7 +223,8 @@ def _region_of_attraction(loop: ClosedLoop, condition: Condition, region: Region
 
 
 def verify_imported(pair, run_dir: str, proof: ProofConfig | None = None, *, xi: Tensor, delta: float | None = None,
-                    roa: bool = False, above_level: bool = True, roa_rate: float | None = None) -> RunVerification:
+                    roa: bool = False, above_level: bool = True, roa_rate: float | None = None,
+                    band: tuple[float, float] | None = None) -> RunVerification:
     """Verify an imported pair (:class:`drlyap.runs.imported.ImportedPair`, ``drlyap import``): plain decrease on the
     true model at the shift ``xi (k,)`` with the pair's decay, on X_delta (``delta``: the pair's, from the export of a
     drlyap run, else the system's default), by the same proof as for a trained run's ``--xi``: on ``{V <= level}``
@@ -204,7 +232,15 @@ def verify_imported(pair, run_dir: str, proof: ProofConfig | None = None, *, xi:
     with ``roa`` its certified region of attraction there, above that level as for its run; ``above_level`` False: at
     most that level). An imported pair has no trained condition (``trained`` is None). ``roa_rate``: the decay
     ``alpha`` asked at the shift, of the decrease and of its region (None: :func:`~drlyap.verification.roa.region_rate`
-    of the pair's)."""
+    of the pair's). ``band``: ``(c1, c2)``, prove the band claim at ``xi`` instead (:func:`band_verification`), what
+    the field's pairs claim: no decrease down to x*, no region; about V as the file gives it (not pinned at x*: the
+    levels are in its own units)."""
+    if band is not None and roa:
+        raise ValueError("a band claim is proved alone (convergence to {V <= c1}); ask for a region of attraction "
+                         "in another verify")
+    if band is None and not pair.pinned:
+        raise ValueError("the pair's V is not least at x* (imported as given): it claims no decrease down to x* and no "
+                         "region of attraction of x*; prove the claim it can state, on a band: --band C1,C2")
     roa_rate = _shift_rate(roa_rate, True, pair)
     loop = pair.loop
     system = loop.system
@@ -214,6 +250,12 @@ def verify_imported(pair, run_dir: str, proof: ProofConfig | None = None, *, xi:
     region = Region.of(system, float(delta))
     level = pair.level
     budget = proof.budget()
+    if band is not None:
+        found = band_verification(pair.given_loop, lambda shift, rate: pair.true_condition(shift[None], rate), region,
+                                  band, proof, xi, roa_rate)
+        return RunVerification(run_dir=str(run_dir), system=system.name, method="imported", loss=None,
+                               delta=region.delta, enclosure=proof.enclosure, trained=None, band=found,
+                               roa_rate=found.exp_rate)
     condition = pair.true_condition(system.check_xi(xi)[None], roa_rate)
     true_model = prove_trained(loop, condition, region, budget, level, falsify_starts=proof.settle_starts)
     true_model.xi = condition.xi[0].tolist()

@@ -1,0 +1,126 @@
+"""The band claim, the form of practical stability the field's continuous-time verifiers state: on the true model at
+a shift, V decreases strictly on the band ``{c1 <= V <= c2}`` of the state box (``Vdot + alpha V <= 0`` there, with
+``alpha > 0`` and ``c1 > 0``, so ``Vdot <= -alpha c1``), and wherever ``V <= c2`` on the box's faces the flow points
+into the box. Then every trajectory that starts in ``{V <= c2}`` (in the box) stays there, reaches ``{V <= c1}``
+within ``(c2 - c1) / (alpha c1)`` time units and stays in it: convergence to ``{V <= c1}``, not to x*.
+
+It asks nothing of V below ``c1``: V need not be least at x* nor zero there (a sigmoid V, whose value at x* is about
+0.02, is proved as it is). :func:`prove_band` proves it by the branch and bound with a floor
+(:func:`~drlyap.verification.branch_and_bound.verify_condition`: boxes where V is provably below ``c1`` are leaves of
+their own) and :func:`~drlyap.verification.sublevel.exit_minimum` on the faces; the certificate file is ``band``,
+re-proved by :mod:`drlyap.checker.band`.
+"""
+
+from __future__ import annotations
+
+import dataclasses
+import math
+import time
+from dataclasses import dataclass, replace
+from typing import ClassVar
+
+from drlyap.closed_loop import ClosedLoop
+from drlyap.conditions import Condition
+from drlyap.config import Budget
+from drlyap.kinds import Model, Status
+from drlyap.regions import Region
+from drlyap.verification.branch_and_bound import verify_condition
+from drlyap.verification.results import ConditionProof, Result
+from drlyap.verification.sublevel import exit_minimum
+
+FACES_SHARE = 0.25
+"""The share of the proof's seconds given to the flow on the box's faces (with at most a million boxes)."""
+
+
+def band_levels(low: float, high: float) -> tuple[float, float]:
+    """``(c1, c2)`` as floats, or a ValueError naming what is wrong: both finite, ``0 < c1 < c2`` (``c1 > 0`` is what
+    makes ``Vdot + alpha V <= 0`` a strict decrease on the band)."""
+    c1, c2 = float(low), float(high)
+    if not (math.isfinite(c1) and math.isfinite(c2) and 0 < c1 < c2):
+        raise ValueError(f"a band needs 0 < C1 < C2, both finite, got {low!r}, {high!r}")
+    return c1, c2
+
+
+def band_region(region: Region) -> Region:
+    """The band claim's region: the whole state box (no ball around x* is left out; what lies below ``c1`` is)."""
+    return region.with_delta(0.0)
+
+
+@dataclass
+class BandProof(Result):
+    """The band claim's verdict. ``low``, ``high``: ``c1``, ``c2``; ``xi``: the shift of the true model; ``exp_rate``:
+    the ``alpha`` of the decrease asked on the band; ``decrease``: the branch and bound on the band (its ``partition``
+    is the certificate's); ``exit_min_lower`` / ``exit_min_upper``: V's least value where the flow may leave the box
+    through a face (lower bound, and a value at a face point where it does: ``inf`` where none), which must exceed
+    ``c2``. ``status``: ``verified`` where both hold, ``violated`` where a state of the band breaks the decrease or a
+    face point with ``V <= c2`` has the flow leaving or running along the face, else ``unknown`` (``reason``)."""
+
+    OPTIONAL: ClassVar[tuple[str, ...]] = ("xi",)
+    low: float
+    high: float
+    status: str
+    exp_rate: float
+    decrease: ConditionProof
+    exit_min_lower: float
+    exit_min_upper: float
+    time_s: float
+    reason: str = ""
+    xi: list[float] | None = None
+
+    @property
+    def verified(self) -> bool:
+        return self.status == Status.VERIFIED
+
+    @property
+    def condition(self) -> str:
+        return self.decrease.condition
+
+    @property
+    def verified_fraction(self) -> float:
+        """A lower bound of the share of the state box where the decrease, or V outside the band, is proved."""
+        return self.decrease.verified_fraction
+
+    @property
+    def counterexample(self) -> list[float] | None:
+        return self.decrease.counterexample
+
+    @property
+    def counterexample_value(self) -> float | None:
+        return self.decrease.counterexample_value
+
+    @classmethod
+    def from_dict(cls, data: dict) -> BandProof:
+        names = {f.name for f in dataclasses.fields(cls)}
+        known = {k: v for k, v in data.items() if k in names}
+        return cls(**known | {"decrease": ConditionProof.from_dict(data["decrease"])})
+
+
+def prove_band(loop: ClosedLoop, condition: Condition, region: Region, low: float, high: float,
+               budget: Budget = Budget()) -> BandProof:
+    """Prove the band claim (module docstring) for ``condition`` (decrease on the true model at one shift, with
+    ``alpha > 0`` and no ``gamma ||z||``) on the state box of ``region`` between the levels ``low < high``, within
+    ``budget`` (a quarter of its seconds, and up to a million boxes, for the faces)."""
+    c1, c2 = band_levels(low, high)
+    if condition.model != Model.TRUE or not float(condition.exp_rate or 0.0) > 0 or float(condition.decay_rate or 0.0):
+        raise ValueError("a band is proved for decrease Vdot + alpha V <= 0 on the true model, alpha > 0 (no gamma)")
+    start = time.perf_counter()
+    box = band_region(region)
+    enclosure = budget.enclosure_for(loop.n)
+    faces_budget = replace(budget, seconds=budget.seconds * FACES_SHARE, boxes=1_000_000, enclosure=enclosure)
+    exit_low, exit_high = exit_minimum(loop, condition, box, faces_budget, rel_tol=0.02)
+    left = max(1.0, budget.seconds - (time.perf_counter() - start))
+    decrease = verify_condition(loop, condition, box, replace(budget, seconds=left, enclosure=enclosure), level=c2,
+                                floor=c1)
+    status, reason = decrease.status, decrease.stopped if decrease.status != Status.VERIFIED else ""
+    if exit_high <= c2:
+        status, reason = Status.VIOLATED, (f"the flow leaves the box (or runs along its face) at a face point with "
+                                           f"V = {exit_high:.6g} <= {c2:g}")
+    elif exit_low <= c2 and status == Status.VERIFIED:
+        status, reason = Status.UNKNOWN, (f"the flow entering the box where V <= {c2:g} on its faces is not proved "
+                                          f"(V's bound there {exit_low:.6g})")
+    elif status == Status.VIOLATED:
+        reason = f"V rises at a state of the band (residual {decrease.counterexample_value:.4g})"
+    xi = condition.xi[0].tolist() if condition.xi is not None else None
+    return BandProof(low=c1, high=c2, status=status, exp_rate=float(condition.exp_rate), decrease=decrease,
+                     exit_min_lower=exit_low, exit_min_upper=exit_high, time_s=time.perf_counter() - start,
+                     reason=reason, xi=xi)
