@@ -42,6 +42,7 @@ def test_evaluate_json(run_dir):
     (["evaluate", "/nonexistent/run", "--xi", "0.1,0.05"], "does not exist"),
     (["train", "pendulum", "--eps", "2", "--iters", "1", "--out", "OUT"], "risk_level"),
     (["train", "pendulum", "--local-rate", "-1", "--iters", "1", "--out", "OUT"], "local_rate"),
+    (["train", "pendulum", "--lyapunov-hidden", "40,0", "--out", "OUT"], "--lyapunov-hidden takes widths"),
 ])
 def test_errors_name_the_problem(tmp_path, args, message):
     args = [str(tmp_path / "o") if a == "OUT" else a for a in args]
@@ -151,6 +152,17 @@ def test_train_with_the_local_term_saves_it_and_reports_the_rate(tmp_path):
     rates = metrics["acceptance"]["local_rates"]
     assert len(rates) == 5 and metrics["acceptance"]["local_rate_max"] == max(rates)
     assert not metrics["passed"] or max(rates) < 0
+
+
+def test_train_takes_the_networks_shapes(tmp_path):
+    out = tmp_path / "run"
+    result = CliRunner().invoke(main, ["train", "pendulum", "--iters", "2", "--quiet", "--no-verify", "--lyapunov-hidden",
+                                       "6,5", "--controller-hidden", "", "--controller-skip", "--no-lyapunov-skip",
+                                       "--json", "--out", str(out)])
+    assert result.exit_code == 0, result.output
+    config = json.loads((out / "config.json").read_text())
+    assert (config["lyapunov_hidden"], config["controller_hidden"]) == ([6, 5], [])
+    assert (config["controller_skip"], config["lyapunov_skip"]) == (True, False)
 
 
 @pytest.mark.parametrize("where", ["drlyap.training.train", "drlyap.runs.directory.write_json"])

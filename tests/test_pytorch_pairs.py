@@ -60,12 +60,23 @@ def test_the_pytorch_page_runs_as_written_and_prints_what_it_quotes(tmp_path, mo
     assert metrics["certificate"]["roa"]["exp_rate"] == 0.01 and metrics["certificate"]["roa"]["certified"]
     assert "roa: CHECKED" in printed and "roa-ball: CHECKED" in printed
     quoted = next(block for block in _blocks(text, "") if block.startswith("imported a pendulum pair"))
+    _same_lines(quoted, printed)
+    band = [line.split() for line in _blocks(text, "bash")[1].splitlines() if line.startswith("drlyap ")]
+    printed = "".join(_drlyap(*command[1:]) for command in band)  # the field's claim, on a band of V
+    assert "band: CHECKED" in printed
+    _same_lines(next(block for block in _blocks(text, "") if block.startswith("pendulum (imported pair)")), printed)
+
+
+def _same_lines(quoted: str, printed: str) -> None:
+    """Every line of the page's ``quoted`` output is one ``printed`` (what import reads from the files, and the
+    claims' sentences, exactly; the proofs' lines in their words)."""
     lines = [line.rstrip() for line in printed.splitlines()]
     for line in quoted.splitlines():
         if line == "...":
             continue
         line = line.removesuffix(" ...")
-        if line.startswith("imported") or line.startswith("    ") or "operations" in line or "at x*" in line:
+        if line.startswith("imported") or line.startswith("    ") or "operations" in line or "at x*" in line or (
+                "CHECKED - " in line):
             assert line in lines, line  # what import reads from the files: the same on any machine
         else:  # the proof's: its words
             assert any(words_only(here).startswith(words_only(line)) for here in lines), line

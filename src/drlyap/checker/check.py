@@ -32,6 +32,10 @@ An ``ellipsoid`` certificate is checked by :mod:`drlyap.checker.ellipsoid`; a cl
 that ellipsoid) has leaves inside it, each of whose vertices the checker places in the ellipsoid
 (:func:`~drlyap.checker.ellipsoid.inside_core`).
 
+A ``band`` claim (decrease on ``c1 <= V <= c2`` of the whole box) is checked as a claim on ``{V <= c2}`` with the flow
+entering on the faces, its leaves below the band by :mod:`drlyap.checker.band` (V < c1 by the checker's bisection),
+about V as the files give it; the claim must state what its conclusion needs (``c1 > 0``, ``alpha > 0``).
+
 A DR uniform claim is one inequality over all the leaves together (:mod:`drlyap.checker.uniform`): each component's
 supremum is bounded over every leaf, and the margin made of those bounds must be ``<= 0``.
 """

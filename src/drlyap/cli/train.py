@@ -56,6 +56,22 @@ def _check_numbers(**given: float | None) -> None:
             raise ValueError(f"--{option.replace('_', '-')}: {field} = {value} (must be {rule})")
 
 
+def _widths(text: str | None, option: str) -> list[int] | None:
+    """A network's hidden widths from ``W1,W2,...`` ('' or 'none': no hidden layer), or a ValueError naming the
+    option; None: the system's."""
+    if text is None:
+        return None
+    if text.strip().lower() in ("", "none"):
+        return []
+    try:
+        widths = [int(part) for part in text.split(",")]
+    except ValueError:
+        raise ValueError(f"{option} takes widths W1,W2,... (positive integers), got {text!r}") from None
+    if any(w < 1 for w in widths):
+        raise ValueError(f"{option} takes widths W1,W2,... (positive integers), got {text!r}")
+    return widths
+
+
 @click.command()
 @click.argument("system")
 @click.option("--method", type=click.Choice(["baseline", "dr"]), default=default(TrainConfig, "method"),
@@ -73,6 +89,14 @@ def _check_numbers(**given: float | None) -> None:
               help="Iteration cap [the system's: 3000; 9000 for quadrotor2d].")
 @click.option("--seed", type=int, default=default(TrainConfig, "seed"), show_default=True)
 @click.option("--device", default=default(TrainConfig, "device"), show_default=True, help="cpu or cuda.")
+@click.option("--lyapunov-hidden", default=None, metavar="W1,W2,...",
+              help="Widths of the hidden layers of V's network phi, comma-separated ('' for none) [the system's].")
+@click.option("--lyapunov-skip/--no-lyapunov-skip", default=None,
+              help="V as a quadratic form beside the network's term (a linear path to phi's output) [the system's].")
+@click.option("--controller-hidden", default=None, metavar="W1,W2,...",
+              help="Widths of the controller's hidden layers, comma-separated ('' for none) [the system's].")
+@click.option("--controller-skip/--no-controller-skip", default=None,
+              help="A linear gain beside the controller's network (its LQR warm start) [the system's].")
 @click.option("--warm-start", type=click.Path(path_type=Path), default=None,
               help="Start from the networks of this run directory (e.g. a baseline run).")
 @click.option("--out", type=click.Path(path_type=Path), required=True, help="Run directory to create.")
@@ -102,7 +126,9 @@ def _check_numbers(**given: float | None) -> None:
 @compute_options(with_device=False)
 @click.option("--json", "as_json", is_flag=True, help="Print one JSON object (run_dir, system, metrics) on stdout.")
 def train(system: str, method: str, loss: str, radius: float | None, eps: float | None, gamma: float | None,
-          exp_rate: float | None, xi_samples: str | None, iters: int, seed: int, device: str, warm_start: Path | None,
+          exp_rate: float | None, xi_samples: str | None, iters: int, seed: int, device: str,
+          lyapunov_hidden: str | None, lyapunov_skip: bool | None, controller_hidden: str | None,
+          controller_skip: bool | None, warm_start: Path | None,
           out: Path, quiet: bool, verify: bool, check: bool, verify_rounds: int, verify_boxes: int | None,
           verify_time: float | None, verify_budget: float | None, local_rate: float | None, workers: int, backend: str,
           address: str | None, as_json: bool) -> None:
@@ -125,6 +151,9 @@ def train(system: str, method: str, loss: str, radius: float | None, eps: float 
         _check_numbers(iters=iters, radius=radius, eps=eps, gamma=gamma, exp_rate=exp_rate, local_rate=local_rate)
         if verify_rounds < 0:
             raise ValueError(f"--verify-rounds must be >= 0, got {verify_rounds}")
+        shapes = {"lyapunov_hidden": _widths(lyapunov_hidden, "--lyapunov-hidden"),
+                  "controller_hidden": _widths(controller_hidden, "--controller-hidden"),
+                  "lyapunov_skip": lyapunov_skip, "controller_skip": controller_skip}
         samples = None
         if xi_samples is not None:
             samples = [floats(part, "--xi-samples") for part in xi_samples.split(";") if part.strip()]
@@ -149,7 +178,7 @@ def train(system: str, method: str, loss: str, radius: float | None, eps: float 
         source = system_source(system, sys_)
         cfg = TrainConfig(system=sys_.name, method=method, loss=loss, wasserstein_radius=radius, risk_level=eps,
                           decay_rate=gamma, exp_rate=exp_rate, xi_samples=samples, iters=iters, seed=seed,
-                          device=device, local_rate=local_rate).resolved(sys_)  # a bad config is refused here
+                          device=device, local_rate=local_rate, **shapes).resolved(sys_)  # a bad one is refused here
         if proof is not None:
             proof = proof.resolved(sys_)
         init = None

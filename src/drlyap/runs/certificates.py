@@ -19,7 +19,9 @@ A sublevel set of V certified through that ellipsoid (the linearisation route, t
 (inside the delta-ball) or ``roa`` (the whole box) whose claim names it as its ``core``: V's strict decrease on the set,
 boxes inside the ellipsoid being leaves of their own. Where only practical stability is proved (``verify --roa`` at a
 shift that moves the equilibrium), ``practical``: V at most ``c0`` on the delta-ball (no partition: the checker bisects
-the ball itself), naming as ``outer`` the certificate of the decrease outside it on ``{V <= c}``.
+the ball itself), naming as ``outer`` the certificate of the decrease outside it on ``{V <= c}``. ``band`` (``verify
+--band``): decrease on the true model on ``{c1 <= V <= c2}`` of the whole box, the flow entering the box where
+``V <= c2`` on its faces (:mod:`drlyap.verification.band_claim`).
 The header (format ``drlyap-certificate``, version 1) holds:
 
 * ``claim``: the condition (name, model, samples or shift ``xi`` or a box of shifts ``xi_box``, decay, Wasserstein

@@ -13,11 +13,9 @@ re-proved by :mod:`drlyap.checker.band`.
 
 from __future__ import annotations
 
-import dataclasses
 import math
 import time
-from dataclasses import dataclass, replace
-from typing import ClassVar
+from dataclasses import replace
 
 from drlyap.closed_loop import ClosedLoop
 from drlyap.conditions import Condition
@@ -25,7 +23,7 @@ from drlyap.config import Budget
 from drlyap.kinds import Model, Status
 from drlyap.regions import Region
 from drlyap.verification.branch_and_bound import verify_condition
-from drlyap.verification.results import ConditionProof, Result
+from drlyap.verification.results import BandProof
 from drlyap.verification.sublevel import exit_minimum
 
 FACES_SHARE = 0.25
@@ -44,55 +42,6 @@ def band_levels(low: float, high: float) -> tuple[float, float]:
 def band_region(region: Region) -> Region:
     """The band claim's region: the whole state box (no ball around x* is left out; what lies below ``c1`` is)."""
     return region.with_delta(0.0)
-
-
-@dataclass
-class BandProof(Result):
-    """The band claim's verdict. ``low``, ``high``: ``c1``, ``c2``; ``xi``: the shift of the true model; ``exp_rate``:
-    the ``alpha`` of the decrease asked on the band; ``decrease``: the branch and bound on the band (its ``partition``
-    is the certificate's); ``exit_min_lower`` / ``exit_min_upper``: V's least value where the flow may leave the box
-    through a face (lower bound, and a value at a face point where it does: ``inf`` where none), which must exceed
-    ``c2``. ``status``: ``verified`` where both hold, ``violated`` where a state of the band breaks the decrease or a
-    face point with ``V <= c2`` has the flow leaving or running along the face, else ``unknown`` (``reason``)."""
-
-    OPTIONAL: ClassVar[tuple[str, ...]] = ("xi",)
-    low: float
-    high: float
-    status: str
-    exp_rate: float
-    decrease: ConditionProof
-    exit_min_lower: float
-    exit_min_upper: float
-    time_s: float
-    reason: str = ""
-    xi: list[float] | None = None
-
-    @property
-    def verified(self) -> bool:
-        return self.status == Status.VERIFIED
-
-    @property
-    def condition(self) -> str:
-        return self.decrease.condition
-
-    @property
-    def verified_fraction(self) -> float:
-        """A lower bound of the share of the state box where the decrease, or V outside the band, is proved."""
-        return self.decrease.verified_fraction
-
-    @property
-    def counterexample(self) -> list[float] | None:
-        return self.decrease.counterexample
-
-    @property
-    def counterexample_value(self) -> float | None:
-        return self.decrease.counterexample_value
-
-    @classmethod
-    def from_dict(cls, data: dict) -> BandProof:
-        names = {f.name for f in dataclasses.fields(cls)}
-        known = {k: v for k, v in data.items() if k in names}
-        return cls(**known | {"decrease": ConditionProof.from_dict(data["decrease"])})
 
 
 def prove_band(loop: ClosedLoop, condition: Condition, region: Region, low: float, high: float,

@@ -11,6 +11,7 @@ proved.
 * :class:`UniformMargin` -- the uniform DR condition's left side bounded over X_delta;
 * :class:`RegionOfAttraction` -- a certified sublevel set of V (or only practical stability, or nothing), with the
   closed loop's own quadratic ellipsoid where V's sets are not certified;
+* :class:`BandProof` -- the band claim: decrease on ``c1 <= V <= c2`` with the flow entering the box on its faces;
 * :class:`CertifiedRadius`, :class:`CertifiedShiftBox` -- the largest proved Wasserstein radius and box of shifts;
 * :class:`Certificate` -- the verdict on a run's trained condition, as ``metrics["certificate"]`` records it;
 * :class:`RunRobustness`, :class:`RunVerification` -- everything ``drlyap verify`` proves about a run;
@@ -451,11 +452,59 @@ class Certificate(Result):
 
 
 @dataclass
+class BandProof(Result):
+    """The band claim's verdict (:mod:`~drlyap.verification.band_claim`). ``low``, ``high``: ``c1``, ``c2``; ``xi``:
+    the shift of the true model; ``exp_rate``: the ``alpha`` of the decrease asked on the band; ``decrease``: the
+    branch and bound on the band (its ``partition`` is the certificate's); ``exit_min_lower`` / ``exit_min_upper``: V's
+    least value where the flow may leave the box through a face (lower bound, and a value at a face point where it
+    does: ``inf`` where none), which must exceed ``c2``. ``status``: ``verified`` where both hold, ``violated`` where a
+    state of the band breaks the decrease or a face point with ``V <= c2`` has the flow leaving or running along the
+    face, else ``unknown`` (``reason``)."""
+
+    OPTIONAL: ClassVar[tuple[str, ...]] = ("xi",)
+    low: float
+    high: float
+    status: str
+    exp_rate: float
+    decrease: ConditionProof
+    exit_min_lower: float
+    exit_min_upper: float
+    time_s: float
+    reason: str = ""
+    xi: list[float] | None = None
+
+    @property
+    def verified(self) -> bool:
+        return self.status == Status.VERIFIED
+
+    @property
+    def condition(self) -> str:
+        return self.decrease.condition
+
+    @property
+    def verified_fraction(self) -> float:
+        """A lower bound of the share of the state box where the decrease, or V outside the band, is proved."""
+        return self.decrease.verified_fraction
+
+    @property
+    def counterexample(self) -> list[float] | None:
+        return self.decrease.counterexample
+
+    @property
+    def counterexample_value(self) -> float | None:
+        return self.decrease.counterexample_value
+
+    @classmethod
+    def from_dict(cls, data: dict) -> BandProof:
+        return cls(**_known(cls, data) | {"decrease": ConditionProof.from_dict(data["decrease"])})
+
+
+@dataclass
 class RunVerification(Result):
     """Everything ``drlyap verify`` proves about a run: its trained condition (a :class:`ConditionProof`, or a
     :class:`UniformMargin` for the uniform DR condition), the uniform DR margin when asked, with a shift the decrease on the
     true model there (``true_model``), the certified region (``roa``), the robustness searches and a band claim
-    (``band``, :class:`~drlyap.verification.band_claim.BandProof`).
+    (``band``, :class:`BandProof`).
 
     ``main`` is what the run's status is about: the true model at the shift when one was given, else the trained
     condition."""
@@ -473,7 +522,7 @@ class RunVerification(Result):
     roa: RegionOfAttraction | None = None
     robustness: RunRobustness | None = None
     roa_rate: float | None = None  # the decay alpha V asked at the shift where it is not the run's
-    band: Any = None
+    band: BandProof | None = None
 
     @property
     def main(self):
@@ -513,11 +562,7 @@ class RunVerification(Result):
         proof = proof_from_dict
         roa = data.get("roa")
         rob = data.get("robustness")
-        band = None
-        if data.get("band") is not None:
-            from drlyap.verification.band_claim import BandProof
-
-            band = BandProof.from_dict(data["band"])
+        band = None if data.get("band") is None else BandProof.from_dict(data["band"])
         return cls(data["run_dir"], data["system"], data["method"], data.get("loss"), data["delta"], data["enclosure"],
                    proof(data["trained"]), proof(data.get("uniform")), proof(data.get("true_model")),
                    None if roa is None else RegionOfAttraction.from_dict(roa),
