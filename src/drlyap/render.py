@@ -511,7 +511,9 @@ def check_lines(results) -> list[str]:
                              f"{r.ball_max:.6g}, {r.ball_boxes} boxes; {r.time_s:.2f} s)")
             elif r.boxes or r.cube_bound is None:
                 core = f", {r.inside_core} inside the core (every vertex)" if r.inside_core else ""
-                lines.append(f"  {r.proved} boxes re-proved by the checker{refined}, {r.inside_ball} inside the ball{core}; "
+                below = f" ({r.below_band} of them below the band: V < c1)" if r.below_band else ""
+                ball = f", {r.inside_ball} inside the ball" if r.inside_ball or not r.below_band else ""
+                lines.append(f"  {r.proved} boxes re-proved by the checker{below}{refined}{ball}{core}; "
                              f"the boxes cover the region ({r.time_s:.2f} s)")
         else:
             lines.append(f"{r.name}: FAILED - the certificate does not establish: {r.claim or 'its claim'}")

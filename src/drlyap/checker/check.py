@@ -80,6 +80,8 @@ class CheckResult:
     proved: int = 0
     inside_ball: int = 0
     inside_core: int = 0
+    below_band: int = 0
+    """For a band claim: its leaves below the band, ``V < c1`` by the checker's bisection (counted in ``proved``)."""
     ball_max: float | None = None
     ball_boxes: int = 0
     refined: int = 0
@@ -513,7 +515,8 @@ def check_certificate(run_dir: str | Path, name: str, header: dict, arrays: dict
     if floor is not None:  # a band's leaves below it: V < c1 there, by the checker's bisection
         failures, spent = below_failures(pair, blo[below], bhi[below], bound[below], floor, hi - lo)
         out.failures, out.pieces = out.failures + failures, out.pieces + spent
-        out.proved += int(below.numel()) if not failures else 0
+        out.below_band = int(below.numel()) if not failures else 0
+        out.proved += out.below_band
     if bool(false.any()):
         first = proved[false][0]
         out.failures.append(f"{int(false.sum())} recorded bounds lie below the residual at their box's centre (first: "

@@ -89,7 +89,7 @@ def _interrupted(run_dir: Path) -> None:
               help="At --xi: the decay alpha of the true model's decrease Vdot + alpha V <= 0 proved there and asked of "
                    "its region with --roa, in place of the run's decay terms [0.01, or the run's alpha where smaller: "
                    "a region of attraction needs only a strict decrease, any alpha > 0 (none with a decay gamma "
-                   "||z||: the run's)].")
+                   "||z||: the run's)]; with --band, the alpha asked on the band [0.01].")
 @click.option("--band", default=None, metavar="C1,C2",
               help="Prove the band claim instead of the decrease at --xi and a region: on the true model at --xi "
                    "(the system's test shift by default), V decreases (Vdot + alpha V <= 0, alpha from --roa-rate) on "
