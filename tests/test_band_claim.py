@@ -67,6 +67,23 @@ def test_the_band_proof_holds_on_dense_samples_of_the_band_and_below_it(loop):
     assert again.status == found.status and again.decrease.boxes_processed == found.decrease.boxes_processed
 
 
+def test_a_falsifier_finds_no_state_of_a_proved_band_where_v_rises_and_finds_one_where_it_was_refused(loop):
+    from drlyap.verification import falsify
+
+    region = Region.of(loop.system, 0.0)
+    z = _dense(loop.system, 20_000, seed=5)
+    with torch.no_grad():
+        v = loop.f64.lyapunov(z)
+    starts = z[(v >= C1) & (v <= C2)][:1024]
+    for rate, band_holds in ((0.01, True), (5.0, False)):
+        if rate == 0.01:
+            assert prove_band(loop, _condition(rate), region, C1, C2, Budget(seconds=30)).verified
+        found, residual = falsify(loop, _condition(rate), region, starts, steps=60)
+        with torch.no_grad():
+            on_band = (loop.f64.lyapunov(found) >= C1) & (loop.f64.lyapunov(found) <= C2)
+        assert bool((residual[on_band] <= 0).all()) == band_holds
+
+
 def test_a_band_where_v_rises_is_violated_at_a_state_of_the_band(loop):
     found = prove_band(loop, _condition(rate=5.0), Region.of(loop.system, 0.0), C1, 0.2, Budget(seconds=30))
     assert found.status == "violated" and found.counterexample is not None
