@@ -281,7 +281,8 @@ def unwritten_region_line(roa: RegionOfAttraction | None, written: list) -> str 
 
 def verification_lines(ver: RunVerification, system: str, method: str) -> list[str]:
     """Everything ``drlyap verify`` prints about a run."""
-    lines = [f"{system} ({method}), delta = {ver.delta:g}"]
+    alone = ver.band is not None and ver.trained is None  # the band claim has no delta-ball
+    lines = [f"{system} ({method})" + ("" if alone else f", delta = {ver.delta:g}")]
     if isinstance(ver.trained, ConditionProof):
         lines += condition_lines(ver.trained, f"  trained condition ({ver.trained.condition})")
     elif isinstance(ver.trained, UniformMargin):  # the run's own condition is the uniform one
