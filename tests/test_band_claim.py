@@ -94,6 +94,20 @@ def test_a_band_where_v_rises_is_violated_at_a_state_of_the_band(loop):
     assert C1 <= v <= 0.2
 
 
+def test_the_falsifier_of_an_unknown_band_confirms_only_rises_on_the_band(loop):
+    from drlyap.verification.falsifier import confirmed_violations
+
+    z = _dense(loop.system, 20_000, seed=6)
+    with torch.no_grad():
+        v, residual = loop.f64.lyapunov(z), loop.f64.exact(_condition(rate=5.0), z)
+    region = Region.of(loop.system, 0.0)
+    below, band = (v < C1) & (residual > 0), (v >= C1) & (v <= 0.2) & (residual > 0)
+    assert int(below.sum()) > 100 and int(band.sum()) > 100
+    assert bool(torch.isfinite(confirmed_violations(loop, _condition(5.0), region, z[below], 0.2)).all())
+    assert not bool(torch.isfinite(confirmed_violations(loop, _condition(5.0), region, z[below], 0.2, C1)).any())
+    assert bool(torch.isfinite(confirmed_violations(loop, _condition(5.0), region, z[band], 0.2, C1)).all())
+
+
 def test_a_band_whose_set_the_flow_leaves_is_violated_on_the_faces(loop):
     found = prove_band(loop, _condition(), Region.of(loop.system, 0.0), C1, 1.0, Budget(seconds=30))
     assert found.status == "violated" and "leaves the box" in found.reason and found.exit_min_upper <= 1.0

@@ -19,10 +19,11 @@ from dataclasses import replace
 
 from drlyap.closed_loop import ClosedLoop
 from drlyap.conditions import Condition
-from drlyap.config import Budget
+from drlyap.config import DEFAULT_SETTLE_STARTS, Budget
 from drlyap.kinds import Model, Status
 from drlyap.regions import Region
 from drlyap.verification.branch_and_bound import verify_condition
+from drlyap.verification.falsifier import settle_unknown
 from drlyap.verification.results import BandProof
 from drlyap.verification.sublevel import exit_minimum
 
@@ -45,10 +46,11 @@ def band_region(region: Region) -> Region:
 
 
 def prove_band(loop: ClosedLoop, condition: Condition, region: Region, low: float, high: float,
-               budget: Budget = Budget()) -> BandProof:
+               budget: Budget = Budget(), falsify_starts: int = DEFAULT_SETTLE_STARTS) -> BandProof:
     """Prove the band claim (module docstring) for ``condition`` (decrease on the true model at one shift, with
     ``alpha > 0`` and no ``gamma ||z||``) on the state box of ``region`` between the levels ``low < high``, within
-    ``budget`` (a quarter of its seconds, and up to a million boxes, for the faces)."""
+    ``budget`` (a quarter of its seconds, and up to a million boxes, for the faces). Where the decrease's proof runs
+    out, a falsifier from ``falsify_starts`` states looks for a certain rise on the band (0: none)."""
     c1, c2 = band_levels(low, high)
     if condition.model != Model.TRUE or not float(condition.exp_rate or 0.0) > 0 or float(condition.decay_rate or 0.0):
         raise ValueError("a band is proved for decrease Vdot + alpha V <= 0 on the true model, alpha > 0 (no gamma)")
@@ -60,6 +62,7 @@ def prove_band(loop: ClosedLoop, condition: Condition, region: Region, low: floa
     left = max(1.0, budget.seconds - (time.perf_counter() - start))
     decrease = verify_condition(loop, condition, box, replace(budget, seconds=left, enclosure=enclosure), level=c2,
                                 floor=c1)
+    decrease = settle_unknown(decrease, loop, condition, box, c2, starts=falsify_starts, floor=c1)
     status, reason = decrease.status, decrease.stopped if decrease.status != Status.VERIFIED else ""
     if exit_high <= c2:
         status, reason = Status.VIOLATED, (f"the flow leaves the box (or runs along its face) at a face point with "

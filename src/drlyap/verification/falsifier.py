@@ -91,9 +91,10 @@ def local_boxes(system: UncertainSystem, boxes: list[dict]) -> tuple[Tensor, Ten
 
 
 def confirmed_violations(loop: ClosedLoop, condition: Condition, region: Region, z: Tensor,
-                         level: float | None = None) -> Tensor:
+                         level: float | None = None, floor: float | None = None) -> Tensor:
     """``(B,)``: a sound lower bound of the residual at each local state of ``z (B, n)`` where a violation is
-    certain (X_delta, and ``V <= level`` proved when a level is given), ``-inf`` elsewhere."""
+    certain (X_delta, and ``V <= level`` proved when a level is given, ``V >= floor`` too with a band's floor),
+    ``-inf`` elsewhere."""
     z = torch.as_tensor(z, dtype=F64)
     if z.shape[0] == 0:
         return torch.empty(0, dtype=F64)
@@ -106,6 +107,8 @@ def confirmed_violations(loop: ClosedLoop, condition: Condition, region: Region,
         else:
             at = condition_and_value_objective(f64, condition)(point)
             inside = at.hi[:, -1] <= level
+            if floor is not None:
+                inside = inside & (at.lo[:, -1] >= floor)
             at = at[:, :-1]
     lower = combine_lower(condition, at.lo)
     in_box = ((z >= region.lo) & (z <= region.hi)).all(-1)
@@ -115,7 +118,7 @@ def confirmed_violations(loop: ClosedLoop, condition: Condition, region: Region,
 
 def settle_unknown(result: ConditionProof, loop: ClosedLoop, condition: Condition, region: Region,
                    level: float | None = None, starts: int = DEFAULT_SETTLE_STARTS, seed: int = 0,
-                   steps: int = 30) -> ConditionProof:
+                   steps: int = 30, floor: float | None = None) -> ConditionProof:
     """Search for a counterexample where a proof ``result`` came back ``unknown``.
 
     Starts: :func:`falsifier_starts` (``starts`` states, generator seeded with ``seed``) plus the centres of the
@@ -124,7 +127,8 @@ def settle_unknown(result: ConditionProof, loop: ClosedLoop, condition: Conditio
     ``counterexample_value`` (float64 residual), ``counterexample_value_float32``, ``counterexample_source``
     ``"falsifier"``); ``verified_fraction`` (what the branch and bound proved) stays. ``result.falsifier``
     records the search (starts, seconds, largest residual, confirmed states). Returns ``result`` (updated in
-    place); other statuses, non-per-state conditions and ``starts <= 0`` leave it as it was.
+    place); other statuses, non-per-state conditions and ``starts <= 0`` leave it as it was. ``floor``: a band's
+    (with ``level``): a violation must have ``V >= floor`` too.
     """
     if result.status != Status.UNKNOWN or not condition.per_state or starts <= 0:
         return result
@@ -133,7 +137,7 @@ def settle_unknown(result: ConditionProof, loop: ClosedLoop, condition: Conditio
     pool = [falsifier_starts(region, int(starts), torch.Generator().manual_seed(int(seed)))]
     pool.append(region.project(box_centres(system, result.unverified_boxes or [])))
     found, values = falsify(loop, condition, region, torch.cat(pool), steps=steps)
-    lower = confirmed_violations(loop, condition, region, found, level)
+    lower = confirmed_violations(loop, condition, region, found, level, floor)
     record = {"starts": int(found.shape[0]), "time_s": time.perf_counter() - tic,
               "max_residual": float(values.max()), "confirmed": int(torch.isfinite(lower).sum())}
     result.falsifier = record

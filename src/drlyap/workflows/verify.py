@@ -200,7 +200,7 @@ def band_verification(loop: ClosedLoop, true_condition, region: Region, band: tu
         raise ValueError(f"a band claim is about the true model at a shift: give --xi ({system.k} values)")
     shift = system.check_xi(xi if xi is not None else list(system.test_xi))
     condition = true_condition(shift, REGION_RATE if rate is None else float(rate))
-    return prove_band(loop, condition, region, *band, proof.budget())
+    return prove_band(loop, condition, region, *band, proof.budget(), falsify_starts=proof.settle_starts)
 
 
 def _shift_rate(roa_rate: float | None, at_shift: bool, decay) -> float | None:
