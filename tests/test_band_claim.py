@@ -226,3 +226,8 @@ def test_an_imported_v_not_least_at_x_star_is_taken_as_given_for_a_band(tmp_path
     assert found["band"]["status"] == "verified", found["band"]
     checked = check_cli(out, SPEC)
     assert checked.exit_code == 0 and "band: CHECKED" in checked.output, checked.output
+    header = json.loads((out / "certificates" / "band.json").read_text())
+    del header["claim"]["band"]  # the same boxes as a claim on {V <= c2}: nothing of it is checked for such a V
+    (out / "certificates" / "band.json").write_text(json.dumps(header))
+    refused = check_cli(out, SPEC)
+    assert refused.exit_code != 0 and "only a band claim is checked" in refused.output, refused.output
