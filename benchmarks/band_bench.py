@@ -67,8 +67,7 @@ def _row(run, imported, band: tuple[float, float], workers: int, boxes: int | No
     check = None
     if found.verified:
         files = [folder / "imported" / "graphs.json", folder / "imported" / "tensors.pt"]
-        record_band(folder / "imported", system, found, lambda at, rate: pair.true_condition(at[None], rate), files,
-                    None)
+        record_band(folder / "imported", system, found, files, None)
         header, arrays = read_certificate(folder / "imported", "band")
         import json
 

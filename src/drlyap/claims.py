@@ -59,8 +59,7 @@ def claim_sentence(claim: dict) -> str:
     try:
         c, r = claim["condition"], claim["region"]
         xi = c.get("xi") or []
-        decay = f"gamma = {float(c.get('decay_rate') or 0):g}" + (
-            f", alpha = {float(c['exp_rate']):g}" if c.get("exp_rate") else "")
+        decay = decay_words(float(c.get("decay_rate") or 0), float(c.get("exp_rate") or 0))
         if c.get("name") == "true" and c.get("xi_box"):
             low, high = c["xi_box"]["low"], c["xi_box"]["high"]
             shifts = "; ".join(f"[{a:.4g}, {b:.4g}]" for a, b in zip(low[0], high[0]))
@@ -118,6 +117,11 @@ def claim_sentence(claim: dict) -> str:
                 f"{of_region(condition_region(level, float(r['delta']), faces_rule(claim)))}")
     except (KeyError, TypeError, ValueError, IndexError):
         return "(an unreadable claim)"
+
+
+def decay_words(gamma: float, alpha: float) -> str:
+    """A decrease's decay terms as a claim states them: ``gamma = G`` and, where it is not 0, ``alpha = A``."""
+    return f"gamma = {gamma:g}" + (f", alpha = {alpha:g}" if alpha else "")
 
 
 def band_sentence(what: str, low: float, high: float) -> str:

@@ -11,7 +11,7 @@ from __future__ import annotations
 import math
 from pathlib import Path
 
-from drlyap.claims import band_sentence, level_text, of_region
+from drlyap.claims import band_sentence, decay_words, level_text, of_region
 from drlyap.io import proved_percent
 from drlyap.kinds import Status
 from drlyap.records import ProofRound, TrainingRecord
@@ -192,7 +192,7 @@ def band_lines(band) -> list[str]:
         f": {counts.get('proved', 0)} proved, {counts.get('below level', 0)} below the band, "
         f"{counts.get('above level', 0)} above it" if counts else ""))
     if band.status == Status.VERIFIED:
-        what = f"decrease on the true model at xi = {band.xi} (gamma = 0, alpha = {band.exp_rate:g})"
+        what = f"decrease on the true model at xi = {band.xi} ({decay_words(0.0, band.exp_rate)})"
         return [f"{title}: VERIFIED ({how})",
                 f"    {band_sentence(what, band.low, band.high)}",
                 f"    practical stability: convergence to {{V <= {c1}}}, not to x* (no region of attraction of x* is "

@@ -511,8 +511,8 @@ def check_certificate(run_dir: str | Path, name: str, header: dict, arrays: dict
                 what = "W" if claim.get("ellipsoid") is not None else "V"
                 out.failures.append(f"{what} > {level:g} is not established on the box's faces ({what}'s lower bound "
                                     f"there {out.faces_min:.6g}, {out.faces_boxes} face boxes)")
-    below = (verdict == BELOW_LEVEL).nonzero().squeeze(-1)
     if floor is not None:  # a band's leaves below it: V < c1 there, by the checker's bisection
+        below = (verdict == BELOW_LEVEL).nonzero().squeeze(-1)
         failures, spent = below_failures(pair, blo[below], bhi[below], bound[below], floor, hi - lo)
         out.failures, out.pieces = out.failures + failures, out.pieces + spent
         out.below_band = int(below.numel()) if not failures else 0

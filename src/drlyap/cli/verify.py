@@ -36,16 +36,14 @@ def _exit(result) -> None:
 
 
 def _band_levels(text: str, roa: bool) -> tuple[float, float]:
-    """``--band C1,C2`` read, or a ValueError naming what is wrong (``0 < C1 < C2``; not with ``--roa``)."""
-    from drlyap.verification.band_claim import band_levels
+    """``--band C1,C2`` read and checked before any work, or a ValueError naming what is wrong (``0 < C1 < C2``; not
+    with ``--roa``: :func:`~drlyap.verification.band_claim.band_request`)."""
+    from drlyap.verification.band_claim import band_request
 
     values = floats(text, "--band")
     if len(values) != 2:
         raise ValueError(f"--band takes two levels C1,C2, got {text!r}")
-    if roa:
-        raise ValueError("--band and --roa are proved apart: the band claim is convergence to {V <= C1}, a region of "
-                         "attraction convergence to x*")
-    return band_levels(*values)
+    return band_request((values[0], values[1]), roa)
 
 
 def _interrupted(run_dir: Path) -> None:
@@ -200,8 +198,7 @@ def verify(run_dir: Path, delta: float | None, xi: str | None, time_limit: float
         try:
             recheck = command_hint("check", run_dir, source=recorded_source(run_dir, system_spec))
             paths = record_certificates(run, result) + record_roa(run, result, settings) + record_band(
-                run.path, run.system, result.band, run.true_condition, run.path / "weights.pt",
-                float(run.config.alpha_hat))
+                run.path, run.system, result.band, run.path / "weights.pt", float(run.config.alpha_hat))
             written = [f"  certificate: {p} (re-check it with `{recheck}`)" for p in paths]
             unwritten = unwritten_region_line(result.roa, paths)
         except OSError as err:
@@ -264,8 +261,7 @@ def _verify_imported(run_dir: Path, delta: float | None, xi: str | None, time_li
         if band is None:
             paths = record_imported_certificates(run_dir, pair, result, settings.resolved(system))
         else:
-            paths = record_band(run_dir, system, result.band, lambda at, rate: pair.true_condition(at[None], rate),
-                                [run_dir / "graphs.json", run_dir / "tensors.pt"], None)
+            paths = record_band(run_dir, system, result.band, [run_dir / "graphs.json", run_dir / "tensors.pt"], None)
         written = [f"  certificate: {p} (re-check it with `{recheck}`)" for p in paths]
         written += [line for line in [unwritten_region_line(result.roa, paths)] if line]
     except OSError as err:

@@ -391,6 +391,7 @@ def load_imported_run(path: str | os.PathLike, system: UncertainSystem | None = 
     try:
         controller = Graph.from_json(graphs["controller"], restore_infinite(tensors["controller"]), f"{path}: controller")
         spec = graphs["lyapunov"]
+        pinned = spec.get("kind") == "quadratic" or spec.get("pinned") != "no"  # else a V as given (not least at x*)
         if spec.get("kind") == "quadratic":
             p = tensors["lyapunov"]["P"].to(F64)
             if p.shape != (system.n, system.n):
@@ -398,8 +399,7 @@ def load_imported_run(path: str | os.PathLike, system: UncertainSystem | None = 
             lyapunov: nn.Module = QuadraticLyapunov(p)
         else:
             graph = Graph.from_json(spec, restore_infinite(tensors["lyapunov"]), f"{path}: lyapunov")
-            pinned = spec.get("pinned") != "no"  # a V least at x* is pinned there to first order; else as given
-            lyapunov = PinnedLyapunov(graph) if pinned else graph
+            lyapunov = PinnedLyapunov(graph) if pinned else graph  # a V least at x* is pinned there to first order
         if controller.n != system.n or controller.out_shape != (system.m,):
             raise ValueError(f"the controller maps {controller.n} states to {controller.out_shape}, not "
                              f"{system.n} to ({system.m},)")
@@ -413,7 +413,7 @@ def load_imported_run(path: str | os.PathLike, system: UncertainSystem | None = 
         raise RunDirError(f"{path}: graphs.json/tensors.pt do not describe a pair of {system.name} ({err})") from None
     loop = ClosedLoop(system, lyapunov, controller)
     pair = ImportedPair(loop, config["certificate"], decay, exp_rate, metrics.get("checks", {}), metrics.get("notes", {}),
-                        level, delta, spec.get("kind") == "quadratic" or spec.get("pinned") != "no")
+                        level, delta, pinned)
 
     @torch.no_grad()
     def act(x: Tensor) -> Tensor:

@@ -15,7 +15,6 @@ from __future__ import annotations
 
 import math
 import time
-from dataclasses import replace
 
 from drlyap.closed_loop import ClosedLoop
 from drlyap.conditions import Condition
@@ -25,10 +24,7 @@ from drlyap.regions import Region
 from drlyap.verification.branch_and_bound import verify_condition
 from drlyap.verification.falsifier import settle_unknown
 from drlyap.verification.results import BandProof
-from drlyap.verification.sublevel import exit_minimum
-
-FACES_SHARE = 0.25
-"""The share of the proof's seconds given to the flow on the box's faces (with at most a million boxes)."""
+from drlyap.verification.sublevel import budget_left, exit_minimum, faces_budget
 
 
 def band_levels(low: float, high: float) -> tuple[float, float]:
@@ -38,6 +34,19 @@ def band_levels(low: float, high: float) -> tuple[float, float]:
     if not (math.isfinite(c1) and math.isfinite(c2) and 0 < c1 < c2):
         raise ValueError(f"a band needs 0 < C1 < C2, both finite, got {low!r}, {high!r}")
     return c1, c2
+
+
+def band_request(band: tuple[float, float] | None, roa: bool) -> tuple[float, float] | None:
+    """A band claim asked for (``band``: ``(c1, c2)``, None: none) beside a region of attraction (``roa``): its levels
+    (:func:`band_levels`), or a ValueError where they are wrong or a region is asked too (they are proved apart: the
+    band claim is convergence to ``{V <= c1}``, a region of attraction convergence to x*)."""
+    if band is None:
+        return None
+    levels = band_levels(*band)
+    if roa:
+        raise ValueError("a band claim and a region of attraction are proved apart: the band claim is convergence to "
+                         "{V <= C1}, a region of attraction convergence to x*")
+    return levels
 
 
 def band_region(region: Region) -> Region:
@@ -56,12 +65,8 @@ def prove_band(loop: ClosedLoop, condition: Condition, region: Region, low: floa
         raise ValueError("a band is proved for decrease Vdot + alpha V <= 0 on the true model, alpha > 0 (no gamma)")
     start = time.perf_counter()
     box = band_region(region)
-    enclosure = budget.enclosure_for(loop.n)
-    faces_budget = replace(budget, seconds=budget.seconds * FACES_SHARE, boxes=1_000_000, enclosure=enclosure)
-    exit_low, exit_high = exit_minimum(loop, condition, box, faces_budget, rel_tol=0.02)
-    left = max(1.0, budget.seconds - (time.perf_counter() - start))
-    decrease = verify_condition(loop, condition, box, replace(budget, seconds=left, enclosure=enclosure), level=c2,
-                                floor=c1)
+    exit_low, exit_high = exit_minimum(loop, condition, box, faces_budget(budget, loop.n), rel_tol=0.02)
+    decrease = verify_condition(loop, condition, box, budget_left(budget, loop.n, start), level=c2, floor=c1)
     decrease = settle_unknown(decrease, loop, condition, box, c2, starts=falsify_starts, floor=c1)
     status, reason = decrease.status, decrease.stopped if decrease.status != Status.VERIFIED else ""
     if exit_high <= c2:
@@ -75,4 +80,4 @@ def prove_band(loop: ClosedLoop, condition: Condition, region: Region, low: floa
     xi = condition.xi[0].tolist() if condition.xi is not None else None
     return BandProof(low=c1, high=c2, status=status, exp_rate=float(condition.exp_rate), decrease=decrease,
                      exit_min_lower=exit_low, exit_min_upper=exit_high, time_s=time.perf_counter() - start,
-                     reason=reason, xi=xi)
+                     reason=reason, xi=xi, asked=condition)

@@ -56,11 +56,13 @@ class ConditionJob:
 
     Called on boxes ``lo, hi (B, n)`` it returns a dict of ``(B,)`` tensors: ``upper`` (the residual's upper bound,
     +inf where undefined), ``centre_lower`` (a lower bound of the residual at the centre), ``sensitivity (B, n)`` and,
-    with a level, ``value_lower`` and ``value_upper`` (V's bounds over the box), ``centre_value_upper`` and
-    ``centre_value_lower`` (V's bounds at the centre)."""
+    with a level, ``value_lower`` (V's lower bound over the box) and ``centre_value_upper`` (V's upper bound at the
+    centre); with ``band`` too (a proof on a band under the level), ``value_upper`` and ``centre_value_lower``."""
 
-    def __init__(self, loop, condition, level: float | None, enclosure: str, device: str = "cpu") -> None:
+    def __init__(self, loop, condition, level: float | None, enclosure: str, device: str = "cpu",
+                 band: bool = False) -> None:
         self.loop, self.condition, self.level, self.enclosure, self.device = loop, condition, level, enclosure, device
+        self.band = band
 
     def on(self, device: str) -> ConditionJob:
         """The same job with the networks and the condition's samples on ``device``."""
@@ -75,11 +77,13 @@ class ConditionJob:
 
     def __call__(self, lo: Tensor, hi: Tensor) -> dict:
         device = torch.device(self.device)
-        out = bound_condition(self.loop, self.condition, self.level, self.enclosure, lo.to(device), hi.to(device))
+        out = bound_condition(self.loop, self.condition, self.level, self.enclosure, lo.to(device), hi.to(device),
+                              self.band)
         return {k: v.cpu() for k, v in out.items()}
 
 
-def bound_condition(loop, condition, level: float | None, enclosure: str, lo: Tensor, hi: Tensor) -> dict:
+def bound_condition(loop, condition, level: float | None, enclosure: str, lo: Tensor, hi: Tensor,
+                    band: bool = False) -> dict:
     """What a :class:`ConditionJob` returns for the boxes ``lo, hi (B, n)`` (local coordinates, on the networks'
     device), computed with ``loop``'s networks as they are: the verifier passes float64 copies; training passes its
     live networks within :func:`~drlyap.enclosures.weight_gradients`, and ``upper`` is then the verifier's bound,
@@ -90,7 +94,8 @@ def bound_condition(loop, condition, level: float | None, enclosure: str, lo: Te
     at_lo = at.lo
     if level is not None:  # the last component is V
         out["value_lower"], out["centre_value_upper"] = lb_c[:, -1], at.hi[:, -1]
-        out["value_upper"], out["centre_value_lower"] = ub_c[:, -1], at.lo[:, -1]
+        if band:  # only a band's proof reads them: nothing more to send back from the workers otherwise
+            out["value_upper"], out["centre_value_lower"] = ub_c[:, -1], at.lo[:, -1]
         ub_c, at_lo = ub_c[:, :-1], at_lo[:, :-1]
     upper = combine_upper(condition, ub_c)
     if level is not None and form is not None:  # the S-procedure where the plain bound proves nothing yet

@@ -250,7 +250,7 @@ class _Search:
             self.flight.append((clo, chi, cids))
             return clo, chi, cids
 
-        job = ConditionJob(self.loop, condition, level, self.enclosure)
+        job = ConditionJob(self.loop, condition, level, self.enclosure, band=self.floor is not None)
         sorting, spacing = False, self.compute.checkpoint_every
         try:
             for clo, chi, cids, bounds in run_batches(job, self.compute, take, lambda: self.lo.shape[0] >= batch):

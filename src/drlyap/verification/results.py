@@ -459,7 +459,8 @@ class BandProof(Result):
     least value where the flow may leave the box through a face (lower bound, and a value at a face point where it
     does: ``inf`` where none), which must exceed ``c2``. ``status``: ``verified`` where both hold, ``violated`` where a
     state of the band breaks the decrease or a face point with ``V <= c2`` has the flow leaving or running along the
-    face, else ``unknown`` (``reason``)."""
+    face, else ``unknown`` (``reason``). ``asked``: the condition proved on the band (:mod:`drlyap.conditions`; not part
+    of the JSON, written into the certificate)."""
 
     OPTIONAL: ClassVar[tuple[str, ...]] = ("xi",)
     low: float
@@ -472,6 +473,7 @@ class BandProof(Result):
     time_s: float
     reason: str = ""
     xi: list[float] | None = None
+    asked: Any = field(default=None, repr=False, compare=False, metadata={"json": False})
 
     @property
     def verified(self) -> bool:

@@ -136,6 +136,24 @@ def exit_minimum(loop: ClosedLoop, condition: Condition, region: Region,
     return float(-neg_up[0]), float(-best[0])
 
 
+FACES_SHARE = 0.25
+"""The share of a proof's seconds that a bound of V on the box's faces gets before the condition is proved (with at
+most a million boxes): :func:`verify_sublevel`, and the band claim's faces."""
+
+
+def faces_budget(budget: Budget, n: int) -> Budget:
+    """The budget of a bound of V on the faces of an ``n``-state box before a proof within ``budget``:
+    :data:`FACES_SHARE` of its seconds, a million boxes, its enclosure resolved for ``n`` states."""
+    return replace(budget, seconds=budget.seconds * FACES_SHARE, boxes=1_000_000, enclosure=budget.enclosure_for(n))
+
+
+def budget_left(budget: Budget, n: int, start: float) -> Budget:
+    """What ``budget`` leaves to the condition's proof after the faces' (begun at ``time.perf_counter()`` = ``start``):
+    the rest of its seconds (at least one), its enclosure resolved for ``n`` states."""
+    left = max(1.0, budget.seconds - (time.perf_counter() - start))
+    return replace(budget, seconds=left, enclosure=budget.enclosure_for(n))
+
+
 def verify_sublevel(loop: ClosedLoop, condition: Condition, region: Region, level: float, budget: Budget = Budget(),
                     **kwargs) -> ConditionProof:
     """Prove what region-of-attraction training asks (``TrainConfig.roa_level``): the condition on
@@ -148,12 +166,8 @@ def verify_sublevel(loop: ClosedLoop, condition: Condition, region: Region, leve
     the condition.
     """
     start = time.perf_counter()
-    enclosure = budget.enclosure_for(loop.n)
-    faces_budget = replace(budget, seconds=budget.seconds / 4, boxes=1_000_000, enclosure=enclosure)
-    low, high = boundary_minimum(loop.lyapunov, region, faces_budget, rel_tol=0.02)
-    left = max(1.0, budget.seconds - (time.perf_counter() - start))
-    out = verify_condition(loop, condition, region, replace(budget, seconds=left, enclosure=enclosure), level=level,
-                           **kwargs)
+    low, high = boundary_minimum(loop.lyapunov, region, faces_budget(budget, loop.n), rel_tol=0.02)
+    out = verify_condition(loop, condition, region, budget_left(budget, loop.n, start), level=level, **kwargs)
     out.boundary_min_lower, out.boundary_min_upper, out.time_s = low, high, time.perf_counter() - start
     if high <= level:
         out.status, out.stopped = Status.VIOLATED, f"V = {high:.6g} <= {level:g} at a point of the box's boundary"

@@ -360,14 +360,13 @@ def record_imported_certificates(run_dir: str | Path, pair, ver: RunVerification
     return written
 
 
-def record_band(folder: Path, system, found: BandProof | None, true_condition, weights, alpha_hat: float | None) -> list[Path]:
-    """Write the ``band`` certificate of ``found`` where it is verified (``true_condition(xi, rate)`` rebuilds its
-    condition; ``weights`` and ``alpha_hat`` as :func:`~drlyap.runs.certificates.write_certificate` takes them). The
+def record_band(folder: Path, system, found: BandProof | None, weights, alpha_hat: float | None) -> list[Path]:
+    """Write the ``band`` certificate of ``found`` (a proof made now: its ``asked`` condition is the claim's) where it
+    is verified (``weights`` and ``alpha_hat`` as :func:`~drlyap.runs.certificates.write_certificate` takes them). The
     claim is its own (its shift, levels and decay are in the file), so nothing of ``metrics.json`` is touched, and a
     band certificate of other levels stays until a verified one replaces it. Returns the header's path, if any."""
     if found is None or not found.verified or found.decrease.partition is None:
         return []
-    condition = true_condition(torch.tensor(found.xi, dtype=torch.float64), found.exp_rate)
     region = band_region(Region.of(system, 0.0))
-    return [write_certificate(folder, "band", found.decrease, condition, region, system, weights, alpha_hat,
+    return [write_certificate(folder, "band", found.decrease, found.asked, region, system, weights, alpha_hat,
                               extra={"band": {"low": found.low}, "faces": "inward"})]

@@ -32,7 +32,7 @@ from drlyap.verification import (
     shift_scale,
     uniform_margin,
 )
-from drlyap.verification.band_claim import BandProof, prove_band
+from drlyap.verification.band_claim import BandProof, band_request, prove_band
 from drlyap.verification.roa import REGION_RATE, region_rate
 from drlyap.verification.robustness import SEARCH_BUDGET
 
@@ -136,9 +136,7 @@ def verify(run: Run, proof: ProofConfig | None = None, *, delta: float | None = 
     shift where None) beside the trained condition; no true-model decrease on X_delta, no region.
     """
     cfg, system, loop = run.config, run.system, run.loop
-    if band is not None and roa:
-        raise ValueError("a band claim is proved alone (convergence to {V <= c1}); ask for a region of attraction "
-                         "in another verify")
+    band = band_request(band, roa)
     roa_rate = _shift_rate(roa_rate, xi is not None or band is not None, cfg)
     proof = run_proof(run, proof)
     region = _region(run, delta)
@@ -235,9 +233,7 @@ def verify_imported(pair, run_dir: str, proof: ProofConfig | None = None, *, xi:
     of the pair's). ``band``: ``(c1, c2)``, prove the band claim at ``xi`` instead (:func:`band_verification`), what
     the field's pairs claim: no decrease down to x*, no region; about V as the file gives it (not pinned at x*: the
     levels are in its own units)."""
-    if band is not None and roa:
-        raise ValueError("a band claim is proved alone (convergence to {V <= c1}); ask for a region of attraction "
-                         "in another verify")
+    band = band_request(band, roa)
     if band is None and not pair.pinned:
         raise ValueError("the pair's V is not least at x* (imported as given): it claims no decrease down to x* and no "
                          "region of attraction of x*; prove the claim it can state, on a band: --band C1,C2")
