@@ -235,11 +235,59 @@ def test_joint_bound_of_linear_and_quadratic_parts_is_sound_and_exact_for_convex
     vals = g @ e.T + torch.einsum("sk,bkl,sl->bs", e, convex, e)
     assert torch.allclose(quadratic_max(g, convex), vals.amax(-1), rtol=1e-9)
     lo, hi = quadratic_span(g, q)  # both sides at once: the negation's bound from the same eigendecomposition
-    assert torch.equal(hi, bound) and torch.allclose(lo, -quadratic_max(-g, -q), rtol=1e-12, atol=1e-12)
+    assert torch.equal(hi, bound) and bool((lo >= -quadratic_max(-g, -q)).all())  # and the convex minimum's
     form = Affine(torch.zeros(60, dtype=F64), g, None, q)
     tight, loose = form.tight_interval(), form.to_interval()
     assert bool((tight.lo <= values.amin(-1)).all() and (values.amax(-1) <= tight.hi).all())
     assert bool((tight.hi - tight.lo <= loose.hi - loose.lo).all())
+
+@pytest.mark.parametrize("k", [2, 4, 6])
+def test_the_minimum_of_a_convex_quadratic_on_a_face_of_the_cube_is_bounded_tightly(k):
+    """Where a box straddles a sublevel set's boundary, V's minimum over it sits on a face: the vertex and dual bounds
+    are loose there; the convexity bound is sound for any q (shifted by its least eigenvalue) and exact for a
+    semidefinite one."""
+    gen = torch.Generator().manual_seed(20 + k)
+    a = torch.randn(80, k, k, generator=gen, dtype=F64)
+    psd = a @ a.mT  # convex
+    indefinite = torch.randn(80, k, k, generator=gen, dtype=F64)
+    g = 6 * torch.randn(80, k, generator=gen, dtype=F64)  # the unconstrained minimiser mostly outside the cube
+    e = torch.cat([torch.cartesian_prod(*[torch.tensor([-1.0, 1.0], dtype=F64)] * k).reshape(-1, k),
+                   torch.rand(20000, k, generator=gen, dtype=F64) * 2 - 1])
+    for q in (psd, (indefinite + indefinite.mT) / 2):
+        lo, _ = quadratic_span(g, q)
+        values = g @ e.T + torch.einsum("sk,bkl,sl->bs", e, q, e)
+        assert bool((lo <= values.amin(-1)).all())
+    # exact for the convex one: the true minimum by projected gradient descent from many starts
+    x = torch.rand(80, 64, k, generator=gen, dtype=F64) * 2 - 1
+    step = 1 / (2 * torch.linalg.eigvalsh(psd)[:, -1])
+    for _ in range(3000):
+        x = (x - step[:, None, None] * (g[:, None] + 2 * x @ psd)).clamp(-1, 1)
+    best = ((g[:, None] * x).sum(-1) + torch.einsum("bsk,bkl,bsl->bs", x, psd, x)).amin(-1)
+    lo, _ = quadratic_span(g, psd)
+    assert bool((lo <= best).all())
+    exact = torch.isclose(lo, best, rtol=1e-8, atol=1e-8 * float(psd.abs().max()))  # where its search found the minimum
+    assert float(exact.double().mean()) >= 0.9
+    lo, _ = quadratic_span(g[:1], torch.full_like(psd[:1], math.nan))
+    assert not bool(torch.isfinite(lo).any())
+
+
+def test_a_joint_bound_asked_for_some_lower_ends_keeps_every_upper_end():
+    """The verifier reads the lower end of V alone (not of the condition's components): the entries whose lower end is
+    not asked keep the plain interval's, the asked ones and every upper end are the same bits as the full bound's."""
+    gen = torch.Generator().manual_seed(3)
+    g = torch.randn(40, 5, 6, generator=gen, dtype=F64)
+    q = torch.randn(40, 5, 6, 6, generator=gen, dtype=F64)
+    form = Affine(torch.randn(40, 5, generator=gen, dtype=F64), g, Interval.const(torch.zeros(40, 5, dtype=F64)),
+                  (q + q.transpose(-1, -2)) / 2)
+    full, plain = form.tight_interval(), form.to_interval()
+    for asked in (slice(-1, None), slice(0, 0), slice(1, 3)):
+        some = form.tight_interval(lower=asked)
+        assert torch.equal(some.hi, full.hi)
+        read = torch.zeros(5, dtype=torch.bool)
+        read[asked] = True
+        assert torch.equal(some.lo[:, read], full.lo[:, read])
+        assert torch.equal(some.lo[:, ~read], plain.lo[:, ~read])
+
 
 @pytest.mark.parametrize("name", ["tanh", "sin", "cos", "exp", "reciprocal"])
 def test_second_order_functions_leave_a_third_order_remainder(name):

@@ -9,7 +9,7 @@ from drlyap.checker.affine import Af
 from drlyap.checker.arith import Iv
 from drlyap.checker.check import _by_forms
 from drlyap.checker.model import Pair, Residual, affine_upper, form_upper, sublevel_form_upper
-from drlyap.checker.quadratic import _quick_span, _quick_spans, quad_max, quad_max_minus, quad_span
+from drlyap.checker.quadratic import _dual_max, _quick_span, _quick_spans, quad_max, quad_max_minus, quad_span
 from drlyap.conditions import DRPointwise
 from drlyap.runs.certificates import condition_claim
 from handmade import linear_pair, small_pendulum
@@ -109,6 +109,32 @@ def test_the_s_procedure_bound_is_never_below_the_brute_force_maximum(k):
         bound = quad_max_minus(lin, q, lin2, q2, lam, dual)
         assert bool((bound >= brute).all())
         assert torch.allclose(bound, quad_max(combined_l, combined_q, dual), rtol=1e-9, atol=1e-9)
+
+
+@pytest.mark.parametrize("k", [2, 4, 6])
+def test_a_concave_forms_maximum_on_a_face_of_the_cube_is_found(k):
+    """A concave form whose unconstrained maximiser lies outside the cube (V's minimum over a box that straddles a
+    sublevel set's boundary, negated): the corner and dual bounds are loose, the face bound is the maximum where its
+    search finds it, and never below it for any form."""
+    g = torch.Generator().manual_seed(30 + k)
+    a = torch.randn(80, k, k, generator=g, dtype=F64)
+    concave = -(a @ a.transpose(-1, -2))
+    lin = 6 * torch.randn(80, k, generator=g, dtype=F64)
+    x = torch.rand(80, 64, k, generator=g, dtype=F64) * 2 - 1  # the true maximum by projected gradient ascent
+    step = 1 / (2 * torch.linalg.eigvalsh(-concave)[:, -1])
+    for _ in range(3000):
+        x = (x + step[:, None, None] * (lin[:, None] + 2 * x @ concave)).clamp(-1, 1)
+    best = ((lin[:, None] * x).sum(-1) + torch.einsum("bsk,bkl,bsl->bs", x, concave, x)).amax(-1)
+    bound = quad_max(lin, concave, dual=True)
+    before = torch.minimum(quad_max(lin, concave), _dual_max(lin, concave))  # the corner and dual bounds alone
+    assert bool((bound >= best).all())
+    assert float(torch.isclose(bound, best, rtol=1e-8, atol=1e-8 * float(concave.abs().max())).double().mean()) >= 0.85
+    assert float((bound - best).median()) < 0.01 * float((before - best).median())  # what the face bound is for
+    q = torch.randn(80, k, k, generator=g, dtype=F64)  # any form: still above every sampled value
+    e = torch.cat([torch.cartesian_prod(*[torch.tensor([-1.0, 1.0], dtype=F64)] * k).reshape(-1, k),
+                   torch.rand(20000, k, generator=g, dtype=F64) * 2 - 1])
+    values = (lin[:, None] * e).sum(-1) + torch.einsum("pi,bij,pj->bp", e, q, e)
+    assert bool((quad_max(lin, q, dual=True) >= values.amax(-1)).all())
 
 
 def test_the_dual_bound_sees_curvature_along_mixed_directions():

@@ -66,7 +66,7 @@ def quad_max(lin: Tensor, q: Tensor, dual: bool = False) -> Tensor:
     if k > _MAX_VERTICES_K:
         return _quick_span(lin, q).hi
     corner = _corner_max(lin, *_corner_inputs(lin, q))
-    return torch.minimum(corner, _dual_max(lin, q)) if dual else corner
+    return torch.minimum(torch.minimum(corner, _dual_max(lin, q)), _face_max(lin, q)) if dual else corner
 
 
 def quad_max_minus(lin: Tensor, q: Tensor, lin2: Tensor, q2: Tensor, lam: Tensor, dual: bool = False,
@@ -93,7 +93,8 @@ def quad_max_minus(lin: Tensor, q: Tensor, lin2: Tensor, q2: Tensor, lam: Tensor
                          o1[:, :, None] - scaled * o2[:, None, None], base, mag)
     if not dual:
         return corner
-    return torch.minimum(corner, _dual_max(combined, q[:, :, None] - lam[..., None, None] * q2[:, None, None]))
+    joint = q[:, :, None] - lam[..., None, None] * q2[:, None, None]
+    return torch.minimum(torch.minimum(corner, _dual_max(combined, joint)), _face_max(combined, joint))
 
 
 def quad_span(lin: Tensor, q: Tensor, qabs: Tensor | None = None) -> Iv:
@@ -143,6 +144,15 @@ def _quick_spans(lin: Tensor, q: Tensor, qabs: Tensor | None = None,
     return q_only, Iv(_down(bottom - cross - pad), _up(top + cross + pad))
 
 
+def _finite_symmetric(lin: Tensor, q: Tensor) -> tuple[Tensor, Tensor, Tensor, Tensor]:
+    """Where ``lin`` and ``q`` are finite ``(...)``, both with zeros elsewhere, ``q``'s symmetric part ``q_s`` and the
+    rounding of its entries summed (``eps |q|_1``): what the dual and face bounds start from."""
+    finite = torch.isfinite(lin).all(-1) & torch.isfinite(q).flatten(-2).all(-1)
+    lin = torch.where(finite[..., None], lin, 0.0)
+    q = torch.where(finite[..., None, None], q, 0.0)
+    return finite, lin, (q + q.transpose(-1, -2)) / 2, EPS * q.abs().flatten(-2).sum(-1)
+
+
 def _dual_max(lin: Tensor, q: Tensor) -> Tensor:
     """A second upper bound of ``max over e in [-1, 1]^k of lin . e + e^T q e``, for ``q`` curved downward along
     directions that mix the coordinates (which the corner bound cannot see). For ``M = t I - q_s`` positive
@@ -152,11 +162,7 @@ def _dual_max(lin: Tensor, q: Tensor) -> Tensor:
     factorisation of ``M - p I`` with ``p`` above its backward error (``2 (k + 1)^2 eps max_i M_ii``).
     ``inf`` where that fails or an input is not finite."""
     k = lin.shape[-1]
-    finite = torch.isfinite(lin).all(-1) & torch.isfinite(q).flatten(-2).all(-1)
-    lin = torch.where(finite[..., None], lin, 0.0)
-    q = torch.where(finite[..., None, None], q, 0.0)
-    sym_pad = EPS * q.abs().flatten(-2).sum(-1)
-    qs = (q + q.transpose(-1, -2)) / 2
+    finite, lin, qs, sym_pad = _finite_symmetric(lin, q)
     lam, vec = torch.linalg.eigh(qs)
     lv = (vec.transpose(-1, -2) @ lin[..., None])[..., 0]
     scale = (lin.norm(dim=-1, keepdim=True) / (2 * math.sqrt(k))).clamp(min=TINY)
@@ -174,6 +180,50 @@ def _dual_max(lin: Tensor, q: Tensor) -> Tensor:
     pad = 8 * (k + 2) * EPS * (lin.abs().sum(-1) + 2 * mag_my.sum(-1) + (y.abs() * mag_my).sum(-1) + t.abs() * k)
     value = _up(value + pad + 4 * k * k * sym_pad + 2 * EPS * m.abs().flatten(-2).sum(-1) + TINY)
     return torch.where(finite & semidefinite & torch.isfinite(value), value, INF)
+
+
+def _face_max(lin: Tensor, q: Tensor, rounds: int = 4) -> Tensor:
+    """A third upper bound of ``max over e in [-1, 1]^k of lin . e + e^T q e``, for a maximum on a face of the cube
+    (a concave form whose unconstrained maximiser lies outside it, which the dual bound takes for the maximum). With
+    ``s`` at least ``q_s``'s largest eigenvalue, ``M = s I - q_s`` is positive semidefinite and
+    ``h(e) = lin . e - e^T M e`` concave, so for any ``p`` in the cube ``h(e) <= h(p) + grad h(p) . (e - p)
+    <= p^T M p + |lin - 2 M p|_1``, and the form is ``h(e) + s |e|^2 <= h(e) + s k``. Any ``p`` gives a bound; the
+    least over a few rounds is taken, each round: ``h``'s maximiser over the coordinates not held at an end of the
+    cube (an end where ``h`` rises outward holds its coordinate), clipped, then one pass of exact maximisation along
+    each coordinate in turn. ``M`` checked semidefinite by a Cholesky factorisation (:func:`surely_semidefinite`),
+    the sums padded. ``inf`` where that fails or an input is not finite."""
+    k = lin.shape[-1]
+    finite, lin, qs, sym_pad = _finite_symmetric(lin, q)
+    top = torch.linalg.eigvalsh(qs)[..., -1]
+    s = top.clamp(min=0.0) * (1 + 1e-9) + 1e-12 * qs.abs().flatten(-2).sum(-1) + TINY
+    eye = torch.eye(k, dtype=F64, device=lin.device)
+    m = s[..., None, None] * eye - qs
+    mii = torch.diagonal(m, dim1=-2, dim2=-1)
+    p = torch.zeros_like(lin)
+    held = torch.zeros_like(lin, dtype=torch.bool)
+    best = torch.full_like(s, INF)
+
+    def bound(p: Tensor) -> Tensor:
+        mp = (m @ p[..., None])[..., 0]
+        mag_mp = (m.abs() @ p.abs()[..., None])[..., 0]
+        value = (p * mp).sum(-1) + (lin - 2 * mp).abs().sum(-1) + s * k
+        pad = 8 * (k + 2) * EPS * ((p.abs() * mag_mp).sum(-1) + lin.abs().sum(-1) + 2 * mag_mp.sum(-1) + s * k)
+        value = _up(value + pad + 4 * k * k * sym_pad + 2 * EPS * m.abs().flatten(-2).sum(-1) + TINY)
+        return torch.where(torch.isfinite(value), value, INF)
+
+    for _ in range(rounds):
+        free = ~held
+        system = torch.where(free[..., None] & free[..., None, :], m, 0.0) + torch.diag_embed(held.to(F64))
+        right = torch.where(free, 0.5 * lin - ((m * held[..., None, :]) @ p[..., None])[..., 0], p)
+        p = torch.linalg.solve_ex(system, right[..., None])[0][..., 0]
+        p = torch.where(torch.isfinite(p), p, 0.0).clamp(-1.0, 1.0)
+        for i in range(k):  # h's maximiser along coordinate i, the others held
+            others = lin[..., i] - 2 * ((m[..., i, :] * p).sum(-1) - mii[..., i] * p[..., i])
+            p[..., i] = torch.where(mii[..., i] > 0, others / (2 * mii[..., i]), p[..., i]).clamp(-1.0, 1.0)
+        best = torch.minimum(best, bound(p))
+        rise = lin - 2 * (m @ p[..., None])[..., 0]
+        held = ((p >= 1.0) & (rise >= 0)) | ((p <= -1.0) & (rise <= 0))
+    return torch.where(finite & surely_semidefinite(m), best, INF)
 
 
 def surely_semidefinite(m: Tensor) -> Tensor:

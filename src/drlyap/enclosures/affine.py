@@ -154,13 +154,20 @@ class Affine(AffineFunctions, Enclosure, kind="affine"):
         """The interval enclosure ``(B, ...)`` of the forms."""
         return Interval.const(self.c) + self._dev()
 
-    def tight_interval(self, max_symbols: int = 8) -> Interval:
+    def tight_interval(self, max_symbols: int = 8, lower: slice | None = None) -> Interval:
         """:meth:`to_interval` with the linear and quadratic parts bounded jointly over the cube's vertices
         (:func:`quadratic_max`; the cross terms then cancel where they can) when there are at most
-        ``max_symbols`` symbols: ``2^K`` evaluations per entry, for final results rather than every step."""
+        ``max_symbols`` symbols: ``2^K`` evaluations per entry, for final results rather than every step.
+
+        ``lower``: the entries of the forms' last axis whose lower end is read (None: all); the others' lower end
+        is :meth:`to_interval`'s (their upper ends are the same either way)."""
         if self.q is None or self.g is None or self.n_symbols > max_symbols:
             return self.to_interval()
-        lo, hi = quadratic_span(self.g, self.q)
+        read = True
+        if lower is not None:
+            read = torch.zeros(self.shape[-1], dtype=torch.bool, device=self.device)
+            read[lower] = True
+        lo, hi = quadratic_span(self.g, self.q, read)
         dev = Interval(round_down(lo + self.r.lo, REL1), round_up(hi + self.r.hi, REL1))
         tight, plain = Interval.const(self.c) + dev, self.to_interval()
         return Interval(torch.maximum(tight.lo, plain.lo), torch.minimum(tight.hi, plain.hi))

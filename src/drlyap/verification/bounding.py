@@ -89,7 +89,9 @@ def bound_condition(loop, condition, level: float | None, enclosure: str, lo: Te
     live networks within :func:`~drlyap.enclosures.weight_gradients`, and ``upper`` is then the verifier's bound,
     differentiable in the weights."""
     make = condition_objective if level is None else condition_and_value_objective
-    lb_c, ub_c, at, sens, form = box_bounds(make(loop, condition), lo, hi, enclosure, sensitivity=True, keep_form=True)
+    read = slice(0, 0) if level is None else slice(-1, None)  # of the lower bounds, V's alone is read (with a level)
+    lb_c, ub_c, at, sens, form = box_bounds(make(loop, condition), lo, hi, enclosure, sensitivity=True,
+                                            keep_form=True, lower=read)
     out = {"sensitivity": sens}
     at_lo = at.lo
     if level is not None:  # the last component is V
