@@ -67,6 +67,16 @@ def _lower(g: Tensor, q: Tensor, diag: Tensor, base: Tensor, verts: Tensor, pad:
     return torch.maximum(lo, _convex_min(g, q, lam))
 
 
+def _finite_symmetric(g: Tensor, q: Tensor) -> tuple[Tensor, Tensor, Tensor, Tensor]:
+    """Where ``g`` and ``q`` are finite ``(...)``, both with zeros elsewhere, ``q``'s symmetric part and the rounding
+    of its entries summed (``eps |q|_1``: ``e'qe = e'q_sym e`` in real arithmetic): what the dual and convexity bounds
+    start from."""
+    finite = torch.isfinite(g).all(-1) & torch.isfinite(q).flatten(-2).all(-1)
+    g = torch.where(finite[..., None], g, 0.0)
+    q = torch.where(finite[..., None, None], q, 0.0)
+    return finite, g, (q + q.mT) * 0.5, EPS * q.abs().sum((-2, -1))
+
+
 def _convex_min(g: Tensor, q: Tensor, lam: Tensor, steps: int = 2) -> Tensor:
     """A lower bound ``(...)`` of ``min over e in [-1, 1]^K of g . e + e^T q e``, exact (up to rounding) where ``q``
     is positive semidefinite and the search below finds the minimiser: the minimum of a convex quadratic over the
@@ -82,12 +92,9 @@ def _convex_min(g: Tensor, q: Tensor, lam: Tensor, steps: int = 2) -> Tensor:
     factorisation (:func:`surely_semidefinite`) and the sums are padded for rounding. ``-inf`` where the check fails
     or an input is not finite."""
     k = g.shape[-1]
-    finite = torch.isfinite(g).all(-1) & torch.isfinite(q).flatten(-2).all(-1) & torch.isfinite(lam).all(-1)
-    g = torch.where(finite[..., None], g, 0.0)
-    q = torch.where(finite[..., None, None], q, 0.0)
-    asym = EPS * q.abs().sum((-2, -1))  # e'qe = e'q_sym e; rounding of the symmetrised entries
+    finite, g, q, asym = _finite_symmetric(g, q)
+    finite = finite & torch.isfinite(lam).all(-1)
     eye = torch.eye(k, dtype=F64, device=g.device)
-    q = (q + q.mT) * 0.5
     shift = (torch.where(finite, (-lam[..., 0]).clamp_min(0.0), 0.0) * (1 + 1e-9) + 1e-12 * q.abs().sum((-2, -1))
              + 1e-300)
     m = q + shift[..., None, None] * eye
@@ -141,11 +148,7 @@ def _dual_max(g: Tensor, q: Tensor, eig: tuple[Tensor, Tensor] | None = None) ->
     few sums are padded for rounding. ``inf`` where the check fails or an input is not finite.
     """
     k = g.shape[-1]
-    finite = torch.isfinite(g).all(-1) & torch.isfinite(q).flatten(-2).all(-1)
-    g = torch.where(finite[..., None], g, 0.0)
-    q = torch.where(finite[..., None, None], q, 0.0)
-    asym = EPS * q.abs().sum((-2, -1))  # e'qe = e'q_sym e; rounding of the symmetrised entries
-    q = (q + q.mT) * 0.5
+    finite, g, q, asym = _finite_symmetric(g, q)
     if eig is None:
         lam, u = torch.linalg.eigh(q)
     else:

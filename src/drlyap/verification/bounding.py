@@ -91,7 +91,7 @@ def bound_condition(loop, condition, level: float | None, enclosure: str, lo: Te
     make = condition_objective if level is None else condition_and_value_objective
     read = slice(0, 0) if level is None else slice(-1, None)  # of the lower bounds, V's alone is read (with a level)
     lb_c, ub_c, at, sens, form = box_bounds(make(loop, condition), lo, hi, enclosure, sensitivity=True,
-                                            keep_form=True, lower=read)
+                                            keep_form=True, read_lower=read)
     out = {"sensitivity": sens}
     at_lo = at.lo
     if level is not None:  # the last component is V

@@ -81,7 +81,7 @@ def condition_and_value_objective(loop, condition: Condition) -> Objective:
 
 
 def box_bounds(objective: Objective, lo: Tensor, hi: Tensor, enclosure: Enclosure = Enclosure.MEAN_VALUE,
-               sensitivity: bool = False, keep_form: bool = False, lower: slice | None = None) -> tuple:
+               sensitivity: bool = False, keep_form: bool = False, read_lower: slice | None = None) -> tuple:
     """Lower and upper bounds ``(B, Q)`` of ``objective`` over the boxes ``[lo, hi] (B, n)``.
 
     ``enclosure``: ``mean-value`` (the tighter of the plain interval bound and the mean-value form) or
@@ -91,7 +91,7 @@ def box_bounds(objective: Objective, lo: Tensor, hi: Tensor, enclosure: Enclosur
     components (``|slope| * radius`` of the mean-value form; ``|coefficient|`` of the affine form plus half of
     each ``|q_kl|`` of its quadratic part for each of the entry's two symbols): the coordinate worth splitting.
     With ``keep_form``, last: the objective's :class:`Affine` form ``(B, Q)`` over the boxes (``affine`` only;
-    None for ``mean-value``), for :func:`sublevel_upper`. ``lower``: the components whose lower bounds
+    None for ``mean-value``), for :func:`sublevel_upper`. ``read_lower``: the components whose lower bounds
     the caller reads (None: all); the others' are the plain interval's, looser and cheaper (``affine``: the joint
     bound of the lower end is half of the bounding's last step), their upper bounds the same bits either way.
     """
@@ -100,7 +100,7 @@ def box_bounds(objective: Objective, lo: Tensor, hi: Tensor, enclosure: Enclosur
     at = objective(Interval(centre, centre))
     if check_enclosure(enclosure) == Enclosure.AFFINE:
         form = objective(Affine.box(lo, hi))
-        over = form.tight_interval(lower=lower)
+        over = form.tight_interval(lower=read_lower)
         upper, lower = over.hi, over.lo
         if sensitivity:
             sens = torch.zeros_like(lo) if form.g is None else form.g.abs().sum(1)
