@@ -497,7 +497,7 @@ def test_maximize_stopped_early_keeps_a_sound_finite_bound():
     first = maximize(objective, lo, hi, scale, Budget(seconds=2.0, boxes=1, batch=1, enclosure="mean-value"))[1]
     lower, upper, info = maximize(objective, lo, hi, scale, Budget(seconds=2.0, boxes=60, batch=2, enclosure="mean-value"),
                                   rel_tol=1e-9)
-    assert info["stopped"] == "box budget"
+    assert info.stopped == "box budget"
     z = lo + (hi - lo) * torch.rand(50000, 2, generator=torch.Generator().manual_seed(1), dtype=F64)
     assert float(objective(z).max()) <= float(upper[0]) < float(first[0]) < math.inf
     assert float(lower[0]) <= float(upper[0])
@@ -513,7 +513,7 @@ def test_maximize_refines_until_a_centre_is_accepted():
     scale = torch.tensor([1.0, 2.0], dtype=F64)
     lower, upper, info = maximize(objective, lo, hi, scale, Budget(seconds=30.0, boxes=4000, enclosure="mean-value"),
                                   centre_ok=lambda z: z[:, 0] > 0.7, rel_tol=1e-9, abs_tol=1e-4)
-    assert info["attained_at"] is not None and float(info["attained_at"][0, 0]) > 0.7
+    assert info.attained_at is not None and float(info.attained_at[0, 0]) > 0.7
     assert float(lower[0]) <= 0.0 <= float(upper[0]) and float(upper[0]) - float(lower[0]) < 1e-3
 
 

@@ -354,7 +354,7 @@ def test_a_sublevel_set_certificate_is_checked_with_its_faces(proved, tmp_path):
     from drlyap.verification.sublevel import boundary_minimum, verify_sublevel
 
     loop, region, system, condition = proved["loop"], proved["region"], proved["system"], proved["condition"]
-    faces_low, _ = boundary_minimum(loop.f64.lyapunov, region)
+    faces_low = boundary_minimum(loop.f64.lyapunov, region).lower
     level = 0.5 * faces_low
     proof = verify_sublevel(loop, condition, region, level, Budget(seconds=1e9, boxes=200_000, enclosure="mean-value"))
     assert proof.verified and proof.partition is not None and proof.partition.counts()["above level"] > 0

@@ -20,6 +20,7 @@ from drlyap.regions import Region
 from drlyap.runs import load_run
 from drlyap.runs.certificates import write_certificate
 from drlyap.verification.roa import ellipsoid_proof
+from drlyap.verification.roa_steps import QuadraticRegion
 from handmade import linear_run_dir, recheck, run_weights, small_pendulum, verify_cli
 
 SPEC = f"{os.path.dirname(__file__)}/handmade.py:small_pendulum"
@@ -73,11 +74,11 @@ def test_an_ellipsoid_inside_its_jacobian_box_needs_no_partition_and_a_larger_on
     run, found = wrong_run
     system = small_pendulum()
     loaded = load_run(run, system=system)
-    quad = dict(found["roa"]["quadratic"])
-    quad["q_level"] = quad["box_level"]
+    ellipsoid = QuadraticRegion.from_dict(found["roa"]["quadratic"]).ellipsoid()
+    ellipsoid.q_level = ellipsoid.box_level
     condition = loaded.true_condition([0.1, 0.05])
     region = Region.of(system, float(loaded.config.delta))
-    proof = ellipsoid_proof(loaded.loop, condition, region, quad, Budget(seconds=5))
+    proof = ellipsoid_proof(loaded.loop, condition, region, ellipsoid, Budget(seconds=5))
     assert proof is not None and proof.ring is None
     folder = tmp_path / "copy"
     folder.mkdir()

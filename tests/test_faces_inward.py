@@ -55,7 +55,8 @@ def _face_points(system, per_face: int, seed: int) -> tuple[torch.Tensor, torch.
 
 def test_exit_minimum_bounds_v_where_the_sampled_flow_leaves(loop):
     region = Region.of(loop.system, 0.2)
-    lower, upper = exit_minimum(loop, _condition(), region)
+    found = exit_minimum(loop, _condition(), region)
+    lower, upper = found.lower, found.upper
     z, out = _face_points(loop.system, 50_000, seed=1)
     f64 = loop.f64
     with torch.no_grad():
@@ -64,7 +65,7 @@ def test_exit_minimum_bounds_v_where_the_sampled_flow_leaves(loop):
     sampled = float(v[leaving].min())
     assert lower <= sampled <= upper * (1 + 1e-6) + 1e-12
     assert upper - lower <= 1e-3 * upper + 1e-9
-    assert lower > boundary_minimum(loop.lyapunov, region)[1]  # where the flow enters, V is lower: the rule adds
+    assert lower > boundary_minimum(loop.lyapunov, region).upper  # where the flow enters, V is lower: the rule adds
 
 
 def test_outward_bounds_hold_the_sampled_flow(loop):
@@ -108,7 +109,7 @@ def test_above_the_exit_minimum_a_trajectory_leaves_the_box(loop):
     """Falsifier of the rule's need: from face states with V just above the exit minimum, where the flow points out,
     trajectories leave the box at once."""
     region = Region.of(loop.system, 0.2)
-    lower, upper = exit_minimum(loop, _condition(), region)
+    upper = exit_minimum(loop, _condition(), region).upper
     z, out = _face_points(loop.system, 50_000, seed=1)
     with torch.no_grad():
         flow = (loop.f64.rhs(z, torch.tensor(XI, dtype=F64)) * out).sum(-1)
@@ -127,7 +128,8 @@ def _residual(loop, model="true"):
 
 def test_the_checker_refutes_the_rule_above_the_exit_minimum(loop):
     region = Region.of(loop.system, 0.2)
-    lower, upper = exit_minimum(loop, _condition(), region)
+    found = exit_minimum(loop, _condition(), region)
+    lower, upper = found.lower, found.upper
     residual = _residual(loop)
     holds, _, boxes = faces_inward(residual, region.lo, region.hi, 0.999 * lower)
     assert holds and boxes > 0

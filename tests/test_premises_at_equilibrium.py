@@ -100,7 +100,7 @@ def test_a_linear_term_left_in_v_breaks_the_second_order_proof_and_the_pin_mends
     assert torch.equal(pinned.value_and_grad(zero)[1], zero)
     assert float(_vdot(pinned, z)[0]) < 0
     out = local_decrease(pair.loop, TrueDecrease(torch.zeros(1, 1, dtype=F64)), Region.of(system, 0.1))
-    assert out["proved"], out
+    assert out.proved, out
     # and on samples of the cube the pinned V moves from the graph by no more than its slope allows
     states = 0.05 * (2 * torch.rand(500, 2, generator=torch.Generator().manual_seed(0), dtype=F64) - 1)
     assert float((pinned(states) - pinned.graph(states)).abs().max()) <= float((G.abs() * 0.05).sum()) * 1.01
@@ -136,7 +136,7 @@ def test_a_rest_point_moved_off_x_star_by_1e_12_gets_no_region_of_attraction(fil
     assert moved.checks["pi_minus_u_star"] == [1e-12]
     roa = certified_roa(moved.loop, condition, region, Budget(seconds=20.0))
     assert not roa.certified and roa.kind == "practical stability", roa
-    assert "F(x*) proved nonzero" in roa.local["reason"]
+    assert "F(x*) proved nonzero" in roa.local.reason
 
 
 @pytest.mark.parametrize("name", ["pendulum", "pendulum-u9", "cartpole", "mountain-car", "quadrotor2d"])

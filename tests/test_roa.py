@@ -1,7 +1,9 @@
 """Regions of attraction that reach x*, checked independently by simulation on the true model; and the case
 where only practical stability is proved (the equilibrium moves with xi)."""
 
+import json
 import math
+from dataclasses import replace
 
 import torch
 
@@ -26,6 +28,7 @@ from drlyap.verification.linearisation import (
 from drlyap.verification.roa import band_roa, linearisation_local, quadratic_roa, share_of_box
 from drlyap.verification.roa.levels import outside_lower, vertex_max
 from drlyap.verification.roa.sublevel import TRAINED_LEVEL
+from drlyap.verification.roa_steps import BandRegion, LinearisationProof, LocalProof, QuadraticRegion
 from handmade import bump_pair, linear_pair, small_pendulum
 
 F64 = torch.float64
@@ -61,7 +64,7 @@ def test_every_certified_set_converges_to_x_star_on_the_true_model():
         condition = TrueDecrease(torch.tensor([xi], dtype=F64), 0.05)
         roa = certified_roa(ClosedLoop(system, lyap, ctrl), condition, Region.of(system, 0.2), Budget(seconds=10),
                             samples_per_axis=100)
-        assert roa.kind == "region of attraction" and roa.certified and roa.local["proved"], roa
+        assert roa.kind == "region of attraction" and roa.certified and roa.local.proved, roa
         level = roa.level
         z0 = _inside(system, l64, level, 200, seed=len(xi))
         assert z0.shape[0] >= 100
@@ -73,11 +76,11 @@ def test_design_model_roa_for_the_dr_condition_proves_the_ball_too():
     lyap, ctrl = linear_pair(system)
     local = local_decrease(ClosedLoop(system, lyap, ctrl), DRPointwise(1e-3, 0.1, XI, 0.05),
                            Region.of(system, 0.2))
-    assert local["proved"] and local["hessian_bound"] < 0
+    assert local.proved and local.hessian_bound < 0
     # with eps N > 1 the CVaR is not a max over samples: no per-sample trajectory claim
     local = local_decrease(ClosedLoop(system, lyap, ctrl), DRPointwise(1e-3, 0.5, XI, 0.05),
                            Region.of(system, 0.2))
-    assert not local["proved"] and "per-sample" in local["reason"]
+    assert not local.proved and "per-sample" in local.reason
 
 
 def _offset_integrator() -> UncertainSystem:
@@ -110,7 +113,7 @@ def test_a_moved_equilibrium_is_practical_stability_not_a_region_of_attraction()
                         samples_per_axis=100)
     assert roa.level > roa.ball_max_upper > 0  # the annulus-only certificate exists...
     assert roa.kind == "practical stability" and not roa.certified  # ...and is not called an ROA
-    assert "not an equilibrium" in roa.local["reason"]
+    assert "not an equilibrium" in roa.local.reason
     # and indeed the true closed loop settles away from x*, inside {V <= practical_level}
     z0 = _inside(system, lyap, roa.level, 50, seed=3)
     traj = simulate(system, lambda x: ctrl(system.to_local(x)), system.to_user(z0), torch.tensor([0.05], dtype=F64),
@@ -167,12 +170,13 @@ def test_the_linearisation_proves_the_ball_where_the_hessian_of_v_cannot():
     xi = [0.1, 0.05]
     condition = TrueDecrease(torch.tensor([xi], dtype=F64), 0.05)
     region = Region.of(system, 0.2)
-    assert not local_decrease(ClosedLoop(system, lyap, ctrl), condition, region)["proved"]
+    assert not local_decrease(ClosedLoop(system, lyap, ctrl), condition, region).proved
     roa = certified_roa(ClosedLoop(system, lyap, ctrl), condition, region, Budget(seconds=10), samples_per_axis=100)
     local = roa.local
     assert roa.kind == "region of attraction" and roa.certified, roa
-    assert local["method"] == "linearisation" and local["proved"] and not local["second_order"]["proved"]
-    assert 0 < local["inner_level"] < roa.level and local["q_level"] > 0 and roa.share_of_box > 0.3
+    assert local.method == "linearisation" and local.proved and not local.second_order.proved
+    assert 0 < local.inner_level < roa.level and local.q_level > 0 and roa.share_of_box > 0.3
+    _assert_reads_back(roa, LinearisationProof)
     level = roa.level
     l64, c64 = lyap.double(), ctrl.double()
     z0 = _inside(system, l64, level, 300, seed=11)
@@ -188,7 +192,7 @@ def test_no_region_of_attraction_when_the_linearisation_is_not_hurwitz():
     condition = TrueDecrease(torch.tensor([[0.1, 0.05]], dtype=F64), 0.05)
     region = Region.of(system, 0.2)
     local = linearisation_local(ClosedLoop(system, lyap, flipped), condition, region, 1.0, Budget(seconds=5))
-    assert not local["proved"] and "not Hurwitz" in local["reason"]
+    assert not local.proved and "not Hurwitz" in local.reason
     roa = certified_roa(ClosedLoop(system, lyap, flipped), condition, region, Budget(seconds=5), samples_per_axis=50)
     assert roa.kind != "region of attraction" and not roa.certified
 
@@ -240,8 +244,8 @@ def test_quadratic_region_of_the_quadrotor_decreases_and_converges():
     condition = TrueDecrease(torch.tensor(shifts, dtype=F64), 0.05)
     out = quadratic_roa(ClosedLoop(system, None, ctrl), condition, Region.of(system, 0.1),
                         Budget(seconds=15, enclosure="affine"))
-    assert out["proved"] and out["q_level"] > 0 and out["cube_level"] <= out["q_level"], out["reason"]
-    p, level = torch.tensor(out["P"], dtype=F64), out["q_level"]
+    assert out.proved and out.q_level > 0 and out.cube_level <= out.q_level, out.reason
+    p, level = torch.tensor(out.P, dtype=F64), out.q_level
     g = torch.Generator().manual_seed(1)
     u = torch.randn(4000, 6, generator=g, dtype=F64)
     u = u / u.norm(dim=-1, keepdim=True) * torch.rand(4000, 1, generator=g, dtype=F64) ** (1 / 6)
@@ -270,13 +274,13 @@ def test_the_closed_loops_quadratic_region_is_reported_where_no_sublevel_set_of_
                         samples_per_axis=50, band_time=0)
     assert not roa.certified and roa.band is None
     quad = roa.quadratic
-    assert quad["proved"] and quad["q_level"] > 0 and quad["share_of_box"] > 0, quad
+    assert quad.proved and quad.q_level > 0 and quad.share_of_box > 0, quad
     line = roa_line(roa, true_model=True)
     assert "region of attraction: NOT CERTIFIED" in line and "CERTIFIED region of attraction {z'Pz <=" in line
-    w = QuadraticLyapunov(torch.tensor(quad["P"], dtype=F64))
-    z0 = _inside(system, w.double(), quad["q_level"], 100, seed=5)
+    w = QuadraticLyapunov(torch.tensor(quad.P, dtype=F64))
+    z0 = _inside(system, w.double(), quad.q_level, 100, seed=5)
     assert z0.shape[0] >= 20
-    _assert_stays_and_converges(system, w.double(), ctrl.double(), z0, [0.1, 0.05], quad["q_level"], horizon=12.0)
+    _assert_stays_and_converges(system, w.double(), ctrl.double(), z0, [0.1, 0.05], quad.q_level, horizon=12.0)
 
 
 def _outside_points(lyap, p, c_q, level, system, count, seed):
@@ -296,11 +300,11 @@ def test_band_proof_extends_the_closed_loops_ellipsoid_to_a_sublevel_set_of_v():
     condition = TrueDecrease(torch.tensor([xi], dtype=F64), 0.05)
     region = Region.of(system, 0.2)
     quad = quadratic_roa(ClosedLoop(system, None, ctrl), condition, region, Budget(seconds=5, enclosure="affine"))
-    assert quad["proved"]
+    assert quad.proved
     band = band_roa(ClosedLoop(system, lyap, ctrl), condition, region, quad, top=1.0, budget=Budget(seconds=10))
-    assert band["proved"] and band["level"] > band["v_on_ellipsoid"][0] and band["beyond_ellipsoid"], band
-    p = torch.tensor(quad["P"], dtype=F64)
-    z = _outside_points(l64, p, quad["q_level"], band["level"], system, 300, seed=7)
+    assert band.proved and band.level > band.v_on_ellipsoid[0] and band.beyond_ellipsoid, band
+    p = torch.tensor(quad.P, dtype=F64)
+    z = _outside_points(l64, p, quad.q_level, band.level, system, 300, seed=7)
     assert z.shape[0] >= 100
     assert float(ClosedLoop(system, l64, ctrl.double()).exact(TrueDecrease(torch.tensor([xi], dtype=F64), 0.0), z)
                  .max()) < 0
@@ -320,15 +324,15 @@ def test_band_proof_never_certifies_where_v_rises_outside_the_ellipsoid():
     region = Region.of(system, 0.2)
     quad = quadratic_roa(ClosedLoop(system, None, ctrl), condition, region, Budget(seconds=5, enclosure="affine"))
     band = band_roa(ClosedLoop(system, wrong, ctrl), condition, region, quad, top=0.3, budget=Budget(seconds=5))
-    if band["proved"]:
-        p = torch.tensor(quad["P"], dtype=F64)
-        z = _outside_points(wrong, p, quad["q_level"], band["level"], system, 2000, seed=8)
+    if band.proved:
+        p = torch.tensor(quad.P, dtype=F64)
+        z = _outside_points(wrong, p, quad.q_level, band.level, system, 2000, seed=8)
         if z.shape[0]:
             plain = TrueDecrease(torch.tensor([[0.1, 0.05]], dtype=F64), 0.0)
             values = ClosedLoop(system, wrong, ctrl.double()).exact(plain, z)
             assert float(values.max()) < 0
     # and V does rise just outside L somewhere below V = 0.3: the proof stopped short of 0.3
-    assert band["level"] is None or band["level"] < 0.3
+    assert band.level is None or band.level < 0.3
 
 
 def test_lower_bound_of_v_outside_an_ellipsoid_is_sound_on_random_boxes():
@@ -388,8 +392,9 @@ def test_certified_roa_falls_back_to_the_band_proof_and_names_it():
     condition = TrueDecrease(torch.tensor([xi], dtype=F64), 0.05)
     roa = certified_roa(ClosedLoop(system, wrong, ctrl), condition, Region.of(system, 0.2), Budget(seconds=10),
                         samples_per_axis=50)
-    assert roa.certified and roa.local["method"] == "band" and roa.quadratic["proved"], roa
-    assert roa.level == roa.band["level"] > 0
+    assert roa.certified and roa.local.method == "band" and roa.quadratic.proved, roa
+    assert roa.level == roa.band.level > 0
+    _assert_reads_back(roa, BandRegion)
     line = roa_line(roa, true_model=True)
     assert "CERTIFIED {V <=" in line and "outside the closed loop's certified ellipsoid" in line
     z0 = _inside(system, wrong.double(), roa.level, 100, seed=9)
@@ -400,11 +405,19 @@ def test_certified_roa_falls_back_to_the_band_proof_and_names_it():
     assert float(system.to_local(traj.x[-1]).norm(dim=-1).max()) < 1e-3
 
 
+def _assert_reads_back(roa: RegionOfAttraction, local_kind: type) -> None:
+    """The region's JSON reads back as the same typed steps (the proof near x* by its method)."""
+    back = RegionOfAttraction.from_dict(json.loads(json.dumps(roa.to_dict())))
+    assert isinstance(back.local, local_kind) and back.to_dict() == json.loads(json.dumps(roa.to_dict()))
+    assert back.quadratic is None or isinstance(back.quadratic, QuadraticRegion)
+
+
 def test_report_cell_says_whether_the_band_set_reaches_beyond_the_ellipsoid():
-    band = {"method": "band", "v_on_ellipsoid": [0.0165, 0.27], "beyond_ellipsoid": True}
+    band = BandRegion(v_on_ellipsoid=[0.0165, 0.27], beyond_ellipsoid=True)
     roa = RegionOfAttraction(level=0.0185, kind="region of attraction", share_of_box=4.1e-9, local=band)
     assert roa_cell(roa) == "4.1e-09 of box (V, band)"
-    inside = band | {"beyond_ellipsoid": False}
+    inside = replace(band, beyond_ellipsoid=False)
     assert roa_cell(RegionOfAttraction(level=0.0119, kind="region of attraction", share_of_box=4.1e-9,
                                        local=inside)) == "4.1e-09 of box (V, within z'Pz)"
-    assert roa_cell(RegionOfAttraction(level=1.0, kind="region of attraction", share_of_box=0.35, local={})) == "35.0%"
+    assert roa_cell(RegionOfAttraction(level=1.0, kind="region of attraction", share_of_box=0.35,
+                                       local=LocalProof("second order", proved=True))) == "35.0%"

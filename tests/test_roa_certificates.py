@@ -137,8 +137,9 @@ def test_every_claim_of_one_verify_on_a_user_system_has_a_certificate_the_checke
 def test_a_certified_region_without_a_certificate_file_says_so():
     from drlyap.render import unwritten_region_line
     from drlyap.verification import RegionOfAttraction
+    from drlyap.verification.roa_steps import BandRegion
 
-    band = RegionOfAttraction(level=0.04, kind="region of attraction", certified=True, local={"method": "band"})
+    band = RegionOfAttraction(level=0.04, kind="region of attraction", certified=True, local=BandRegion(proved=True))
     assert "(band route) did not all hold again" in unwritten_region_line(band, [])
     assert "(band route)" in unwritten_region_line(band, ["RUN/certificates/roa-ball.json"])  # band writes roa
     assert unwritten_region_line(band, ["RUN/certificates/roa.json"]) is None

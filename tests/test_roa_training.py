@@ -142,8 +142,8 @@ def test_boundary_minimum_brackets_the_sampled_minimum_for_quadratic_and_network
     _, lyap_q, _ = saturated_pair()
     net, _ = linear_pair(system)
     for v in (QuadraticLyapunov(lyap_q.P), net.double()):
-        low, high = boundary_minimum(v, region, Budget(seconds=10, boxes=1_000_000, enclosure="mean-value"),
-                                     rel_tol=1e-3)
+        found = boundary_minimum(v, region, Budget(seconds=10, boxes=1_000_000, enclosure="mean-value"), rel_tol=1e-3)
+        low, high = found.lower, found.upper
         with torch.no_grad():
             sampled = float(v(faces).min())
         assert low <= sampled + 1e-12 and high >= low and high <= sampled * 1.01 + 1e-12
@@ -153,7 +153,8 @@ def test_verify_sublevel_needs_the_set_inside_the_box():
     system, lyap, ctrl = saturated_pair()
     cond = PlainDecrease(torch.zeros(1, 2, dtype=F64), 0.0, 0.05)
     region = Region.of(system, 0.05)
-    low, high = boundary_minimum(lyap, region, Budget(seconds=5, boxes=1_000_000, enclosure="mean-value"))
+    found = boundary_minimum(lyap, region, Budget(seconds=5, boxes=1_000_000, enclosure="mean-value"))
+    low, high = found.lower, found.upper
     ok = verify_sublevel(ClosedLoop(system, lyap, ctrl), cond, region, 0.002, Budget(seconds=20, enclosure="mean-value"))
     assert ok.status == "verified" and ok.boundary_min_lower == pytest.approx(low)
     out = verify_sublevel(ClosedLoop(system, lyap, ctrl), cond, region, 1.5 * high, Budget(seconds=5, enclosure="mean-value"))

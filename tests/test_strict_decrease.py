@@ -75,7 +75,7 @@ def test_a_v_below_zero_at_another_rest_point_gets_no_region_though_its_decrease
     condition = TrueDecrease(torch.zeros(1, 1, dtype=F64), 0.0, 0.05)
     roa = certified_roa(loop, condition, Region.of(system, 0.1), Budget(seconds=30), samples_per_axis=50)
     assert 0 < roa.outer_level < 1 / 16  # the decrease is proved on {V <= c} outside the ball, both wells
-    assert roa.strict["strict"] is False and roa.strict["lower"] < 0 and "V > 0" in roa.strict["reason"]
+    assert roa.strict.strict is False and roa.strict.lower < 0 and "V > 0" in roa.strict.reason
     assert roa.kind is None and not roa.certified
     traj = simulate(system, lambda x: torch.zeros(x.shape[0], 1, dtype=F64), torch.tensor([[WELL, 0.0]], dtype=F64),
                     torch.tensor([4.0], dtype=F64), dt=0.01, horizon=5.0)
@@ -101,7 +101,7 @@ def test_positivity_bounds_hold_below_every_sampled_value_outside_the_ball():
     z = lo + (hi - lo) * torch.rand(20_000, 2, generator=torch.Generator().manual_seed(0), dtype=F64)
     z = z[z.norm(dim=-1) >= 0.1]
     sampled = float(lyap(z).min())
-    assert 0 < lower <= sampled and info["stopped"] == "finished"
+    assert 0 < lower <= sampled and info.stopped == "finished"
     circle = torch.linspace(0, 6.3, 2000, dtype=F64)
     rim = 0.1 * torch.stack([circle.cos(), circle.sin()], -1)
     assert lower <= float(lyap(rim).min())  # V's least value outside the ball is on its rim
@@ -117,13 +117,13 @@ def test_strictness_by_decay_by_form_or_not_at_all():
                                                      system.equilibrium_input))
     region, budget = Region.of(system, 0.1), Budget(seconds=5)
     xi = torch.zeros(1, 1, dtype=F64)
-    assert outer_strictness(loop, TrueDecrease(xi, 0.01, 0.0), region, budget) == {"strict": True, "by": "decay"}
+    assert outer_strictness(loop, TrueDecrease(xi, 0.01, 0.0), region, budget).to_dict() == {"strict": True, "by": "decay"}
     none = outer_strictness(loop, TrueDecrease(xi, 0.0, 0.0), region, budget)
-    assert none["strict"] is False and "not strict" in none["reason"]
-    assert outer_strictness(loop, TrueDecrease(xi, 0.0, 0.1), region, budget) == {"strict": True, "by": "form"}
+    assert none.strict is False and "not strict" in none.reason
+    assert outer_strictness(loop, TrueDecrease(xi, 0.0, 0.1), region, budget).to_dict() == {"strict": True, "by": "form"}
     saddle = loop.with_lyapunov(QuadraticLyapunov(torch.tensor([[1.0, 0.0], [0.0, -0.01]], dtype=F64)))
     refused = outer_strictness(saddle, TrueDecrease(xi, 0.0, 0.1), region, budget)  # not by form: bounded, and false
-    assert refused["strict"] is False and refused["lower"] < 0 and "V > 0 outside the ball not proved" in refused["reason"]
+    assert refused.strict is False and refused.lower < 0 and "V > 0 outside the ball not proved" in refused.reason
 
 
 def test_an_exported_pair_with_alpha_v_and_no_decay_is_certified_and_checked(tmp_path):

@@ -286,7 +286,7 @@ def test_certified_roa_is_a_sublevel_set_inside_the_box_where_the_condition_hold
     loop = ClosedLoop(system, lyap, ctrl)
     roa = certified_roa(loop, spec, Region.of(system, 0.2), Budget(seconds=10), samples_per_axis=100)
     assert roa.certified and roa.kind == "region of attraction" and 0 < roa.share_of_box < 1
-    assert roa.local["proved"]
+    assert roa.local.proved
     l64 = copy.deepcopy(lyap).double()
     lo, hi = system.local_box()
     t = torch.linspace(0, 1, 400, dtype=F64)

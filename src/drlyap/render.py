@@ -234,34 +234,34 @@ def roa_line(r: RegionOfAttraction, true_model: bool) -> str:
         how = ""
         if r.method == "linearisation":
             how = (f"; near x* by the closed-loop linearisation's z'Pz, proved decreasing on {{z'Pz <= "
-                   f"{level_text(local['q_level'])}}} which contains {{V <= {level_text(local['inner_level'])}}}")
+                   f"{level_text(local.q_level)}}} which contains {{V <= {level_text(local.inner_level)}}}")
         elif r.method == "band":
-            low = local["v_on_ellipsoid"][0]
+            low = local.v_on_ellipsoid[0]
             how = (f"; V proved decreasing on it outside the closed loop's certified ellipsoid {{z'Pz <= "
-                   f"{level_text(local['q_level'])}}} (--json: roa.band.P), on whose boundary V is as low as {low:.3g} "
+                   f"{level_text(local.q_level)}}} (--json: roa.band.P), on whose boundary V is as low as {low:.3g} "
                    f"(sampled): " + ("the set reaches beyond the ellipsoid" if r.beyond_ellipsoid else
                                      "the set may lie inside the ellipsoid"))
-        elif (r.strict or {}).get("by") == "proof":
-            how = (f"; V > 0 outside the ball proved (V >= {r.strict['lower']:.3g} there), which makes its decrease "
+        elif r.strict is not None and r.strict.by == "proof":
+            how = (f"; V > 0 outside the ball proved (V >= {r.strict.lower:.3g} there), which makes its decrease "
                    "alpha V strict")
         return (f"region of attraction: CERTIFIED {_sublevel(r)} ({size}): every trajectory of {model} "
                 f"that starts there converges to x*{how}{_faces(r)}")
     if r.kind == "practical stability":
-        line = (f"region of attraction: NOT CERTIFIED ({r.local['reason']}); practical stability instead: "
+        line = (f"region of attraction: NOT CERTIFIED ({r.local.reason}); practical stability instead: "
                 f"trajectories of {model} from {_sublevel(r)} ({size}) end up in "
                 f"{{V <= {level_text(r.practical_level, up=True)}}}{_faces(r)}")
     else:
         proved = "none" if r.level is None or not math.isfinite(r.level) else level_text(r.level)
         line = (f"region of attraction: NOT CERTIFIED (largest proved level {proved}, limited by "
-                f"{r.limited_by}; inside the ball: {r.local.get('reason') or 'proved'})")
+                f"{r.limited_by}; inside the ball: {r.local.reason or 'proved'})")
     quad = r.quadratic
     if r.ellipsoid_certified:
         line += (f"\n  the closed loop's own quadratic Lyapunov function: CERTIFIED region of attraction {{z'Pz <= "
-                 f"{level_text(quad['q_level'])}}} ({quad['share_of_box']:.3g} of the box, |x_i - x*_i| up to "
-                 f"{[float(f'{e:.3g}') for e in quad['extent']]}; P chosen from the closed-loop linearisation, --json: "
+                 f"{level_text(quad.q_level)}}} ({quad.share_of_box:.3g} of the box, |x_i - x*_i| up to "
+                 f"{[float(f'{e:.3g}') for e in quad.extent]}; P chosen from the closed-loop linearisation, --json: "
                  f"roa.quadratic.P): every trajectory of {model} that starts there converges to x*")
     elif quad:
-        line += f"\n  the closed loop's own quadratic Lyapunov function: none ({quad['reason']})"
+        line += f"\n  the closed loop's own quadratic Lyapunov function: none ({quad.reason})"
     return line
 
 
@@ -387,7 +387,7 @@ def roa_cell(roa: RegionOfAttraction | None) -> str | None:
             return text
         return text + (" (V, band)" if roa.beyond_ellipsoid else " (V, within z'Pz)")
     if roa.ellipsoid_certified:  # V's sublevel sets are not certified; the closed loop's quadratic one is
-        return f"z'Pz only, {roa.quadratic['share_of_box']:.2g} of box"
+        return f"z'Pz only, {roa.quadratic.share_of_box:.2g} of box"
     return roa.kind or "none"
 
 

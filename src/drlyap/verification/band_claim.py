@@ -65,7 +65,8 @@ def prove_band(loop: ClosedLoop, condition: Condition, region: Region, low: floa
         raise ValueError("a band is proved for decrease Vdot + alpha V <= 0 on the true model, alpha > 0 (no gamma)")
     start = time.perf_counter()
     box = band_region(region)
-    exit_low, exit_high = exit_minimum(loop, condition, box, faces_budget(budget, loop.n), rel_tol=0.02)
+    exits = exit_minimum(loop, condition, box, faces_budget(budget, loop.n), rel_tol=0.02)
+    exit_low, exit_high = exits.lower, exits.upper
     decrease = verify_condition(loop, condition, box, budget_left(budget, loop.n, start), level=c2, floor=c1)
     decrease = settle_unknown(decrease, loop, condition, box, c2, starts=falsify_starts, floor=c1)
     status, reason = decrease.status, decrease.stopped if decrease.status != Status.VERIFIED else ""

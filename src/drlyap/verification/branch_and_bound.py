@@ -23,6 +23,7 @@ import math
 import time
 import warnings
 from collections.abc import Callable, Sequence
+from dataclasses import dataclass
 
 import torch
 from torch import Tensor
@@ -407,10 +408,22 @@ class _Search:
 
 
 # =========================================================================== suprema
+@dataclass
+class SearchInfo:
+    """How a :func:`maximize` search went: boxes bounded, seconds, why it stopped (``finished``, ``time limit`` or
+    ``box budget``) and ``attained_at (Q, n)``, where each component's lower bound was found (None: no centre
+    accepted)."""
+
+    boxes_processed: int
+    time_s: float
+    stopped: str
+    attained_at: Tensor | None
+
+
 def maximize(objective: Callable, lo: Tensor, hi: Tensor, scale: Tensor, budget: Budget, *,
              centre_ok: Callable | None = None, box_ok: Callable | None = None, rel_tol: float = 1e-3,
              abs_tol: float = 1e-9, tree: PartitionRecorder | None = None,
-             leaf_bound: Callable | None = None, label: str | None = None) -> tuple[Tensor, Tensor, dict]:
+             leaf_bound: Callable | None = None, label: str | None = None) -> tuple[Tensor, Tensor, SearchInfo]:
     """Bounds ``lower <= sup <= upper`` (each ``(Q,)``) of every component of ``objective`` over a union of boxes
     ``[lo, hi] (B, n)`` (``scale (n,)``: the widths that box sides are measured against).
 
@@ -420,9 +433,9 @@ def maximize(objective: Callable, lo: Tensor, hi: Tensor, scale: Tensor, budget:
     ``budget.enclosure``: as for :func:`verify_condition` (None: by the boxes' dimension). ``tree``: records the
     boxes (``lo, hi`` are then its grid's cells, in order): those ``box_ok`` drops as inside the ball, the splits, and
     every other leaf as proved with ``leaf_bound(upper (L, Q)) -> (L,)`` of its components' upper bounds.
-    The third result also holds ``attained_at`` ``(Q, n)``: the centre at which each component's lower bound was
-    found (None where no centre was accepted). ``label``: what a progress line of its boxes calls the search (where
-    ``budget.compute.progress``; None: none).
+    The third result (:class:`SearchInfo`) says how the search went and holds ``attained_at`` ``(Q, n)``: the centre
+    at which each component's lower bound was found (None where no centre was accepted). ``label``: what a progress
+    line of its boxes calls the search (where ``budget.compute.progress``; None: none).
     """
     enclosure = budget.enclosure_for(lo.shape[-1])
     time_limit, max_boxes, min_width, batch = budget.seconds, budget.boxes, budget.min_width, budget.batch
@@ -499,8 +512,7 @@ def maximize(objective: Callable, lo: Tensor, hi: Tensor, scale: Tensor, budget:
         raise ValueError("the set to maximise over is empty")
     if best is None:
         best = torch.full_like(closed, -torch.inf)
-    return best, closed, {"boxes_processed": processed, "time_s": time.perf_counter() - start, "stopped": stopped,
-                          "attained_at": best_at}
+    return best, closed, SearchInfo(processed, time.perf_counter() - start, stopped, best_at)
 
 
 def uniform_margin(loop: ClosedLoop, condition: DRUniform, region: Region, budget: Budget = Budget(seconds=3.0), *,
@@ -522,15 +534,15 @@ def uniform_margin(loop: ClosedLoop, condition: DRUniform, region: Region, budge
         condition_objective(loop, condition), lo, hi, region.scale, budget,
         centre_ok=region.in_region, box_ok=lambda a, b: ~inside_ball(a, b, delta), rel_tol=rel_tol, tree=tree,
         leaf_bound=margin_up, label="proof of the uniform margin")
-    attained = info.pop("attained_at")
     m_up = float(margin_up(upper))
     m_lo = float(round_down(condition.margin(lower), 64 * EPS, lower.abs().amax() * (1 + coef)))
     status = Status.VERIFIED if m_up <= 0 else (Status.VIOLATED if m_lo > 0 else Status.UNKNOWN)
     return UniformMargin(condition="DR uniform", status=status, margin_upper=m_up, margin_lower=m_lo,
                          lipschitz_sup=[float(lower[0]), float(upper[0])],
                          h_sup=[[float(a), float(b)] for a, b in zip(lower[1:], upper[1:])],
-                         lipschitz_term=[coef * float(lower[0]), coef * float(upper[0])], delta=float(delta), **info,
+                         lipschitz_term=[coef * float(lower[0]), coef * float(upper[0])], delta=float(delta),
+                         boxes_processed=info.boxes_processed, time_s=info.time_s, stopped=info.stopped,
                          partition=tree.finish() if tree is not None and status == Status.VERIFIED else None,
-                         attained_at=None if attained is None else attained.tolist())
+                         attained_at=None if info.attained_at is None else info.attained_at.tolist())
 
 

@@ -21,43 +21,17 @@ proved.
 
 from __future__ import annotations
 
-import dataclasses
 import math
 from dataclasses import dataclass, field
 from typing import Any, ClassVar
 
 from drlyap.claims import condition_region
 from drlyap.kinds import Status
+from drlyap.verification.result_base import Result
+from drlyap.verification.result_base import known as _known
+from drlyap.verification.roa_steps import BandRegion, NearProof, QuadraticRegion, Strictness, near_proof_from_dict
 
 STATUSES = (Status.VERIFIED, Status.VIOLATED, Status.UNKNOWN)
-
-
-def _known(cls, data: dict) -> dict:
-    names = {f.name for f in dataclasses.fields(cls)}
-    return {k: v for k, v in data.items() if k in names}
-
-
-class Result:
-    """``to_dict`` / ``from_dict`` of the result dataclasses; fields listed in ``OPTIONAL`` are left out of the
-    JSON while they are None."""
-
-    OPTIONAL: ClassVar[tuple[str, ...]] = ()
-
-    def to_dict(self) -> dict:
-        out = {}
-        for f in dataclasses.fields(self):
-            value = getattr(self, f.name)
-            if f.metadata.get("json") is False:
-                continue
-            if f.name in self.OPTIONAL and value is None:
-                continue
-            out[f.name] = value.to_dict() if isinstance(value, Result) else value
-        return out
-
-    @classmethod
-    def from_dict(cls, data: dict):
-        """The result stored as ``data`` (keys it does not know are ignored: older or newer records load)."""
-        return cls(**_known(cls, data))
 
 
 # --------------------------------------------------------------------------- the condition on a region
@@ -188,16 +162,17 @@ class RegionOfAttraction(Result):
 
     ``kind``: ``"region of attraction"`` (every trajectory of the condition's model from S converges to x*:
     ``certified``), ``"practical stability"`` (trajectories from S end up in ``{V <= practical_level}``) or None.
-    ``local``: the proof near x* (``local["method"]``: ``second order``, ``mean-value Jacobian``,
-    ``linearisation`` or ``band``), ``outer_level`` the level proved outside the delta-ball, ``share_of_box`` the
-    share of the state box in S (estimated), ``limited_by`` what stopped the level, ``counterexample`` one that
-    did. ``quadratic``: where no sublevel set of V is certified, the closed loop's own certified ellipsoid
-    ``{z^T P z <= q_level}`` (not V's); ``band``: the band proof's search; ``strict``: how the decrease outside the
-    ball is strict (:func:`~drlyap.verification.roa.sublevel.outer_strictness`; None where no level was found).
-    ``xi``: the true model's shift the region is about (None: the condition's own model). ``error``: why no search
-    ran (then nothing else is set). ``faces``: how S keeps off the state box's faces: ``"above"`` (V above the level
-    there) or ``"inward"`` (S is ``{V <= c}`` cut by the box, and wherever it meets a face the flow enters the box;
-    ``exit_min_lower``: V's lower bound where the flow may leave, :func:`~drlyap.verification.sublevel.exit_minimum`).
+    ``local``: the proof near x* (:mod:`~drlyap.verification.roa_steps`; its ``method``: ``second order``,
+    ``mean-value Jacobian``, ``linearisation`` or ``band``), ``outer_level`` the level proved outside the
+    delta-ball, ``share_of_box`` the share of the state box in S (estimated), ``limited_by`` what stopped the level,
+    ``counterexample`` one that did. ``quadratic``: where no sublevel set of V is certified, the closed loop's own
+    certified ellipsoid ``{z^T P z <= q_level}`` (not V's); ``band``: the band proof's search; ``strict``: how the
+    decrease outside the ball is strict (:func:`~drlyap.verification.roa.sublevel.outer_strictness`; None where no
+    level was found). ``xi``: the true model's shift the region is about (None: the condition's own model).
+    ``error``: why no search ran (then nothing else is set). ``faces``: how S keeps off the state box's faces:
+    ``"above"`` (V above the level there) or ``"inward"`` (S is ``{V <= c}`` cut by the box, and wherever it meets a
+    face the flow enters the box; ``exit_min_lower``: V's lower bound where the flow may leave,
+    :func:`~drlyap.verification.sublevel.exit_minimum`).
     """
 
     OPTIONAL: ClassVar[tuple[str, ...]] = ("xi", "error", "exit_min_lower")
@@ -208,7 +183,7 @@ class RegionOfAttraction(Result):
     outer_level: float | None = None
     contains_ball: bool = False
     limited_by: str | None = None
-    local: dict = field(default_factory=dict)
+    local: NearProof | None = None
     boundary_min_lower: float | None = None
     ball_max_upper: float | None = None
     share_of_box: float = 0.0
@@ -217,9 +192,9 @@ class RegionOfAttraction(Result):
     time_s: float = 0.0
     delta: float | None = None
     condition: str | None = None
-    quadratic: dict | None = None
-    band: dict | None = None
-    strict: dict | None = None
+    quadratic: QuadraticRegion | None = None
+    band: BandRegion | None = None
+    strict: Strictness | None = None
     xi: list[float] | None = None
     error: str | None = None
     faces: str = "above"
@@ -233,23 +208,31 @@ class RegionOfAttraction(Result):
         """No search was possible (e.g. the uniform DR condition has no per-state residual)."""
         return cls(error=reason)
 
+    NESTED: ClassVar[dict[str, type]] = {"quadratic": QuadraticRegion, "band": BandRegion, "strict": Strictness}
+
     def to_dict(self) -> dict:
         return {"error": self.error} if self.error is not None else super().to_dict()
 
+    @classmethod
+    def from_dict(cls, data: dict) -> RegionOfAttraction:
+        found = super().from_dict(data)
+        found.local = near_proof_from_dict(data.get("local"))
+        return found
+
     @property
     def method(self) -> str | None:
-        """How the set was proved near x* (``local["method"]``)."""
-        return (self.local or {}).get("method")
+        """How the set was proved near x* (``local.method``)."""
+        return None if self.local is None else self.local.method
 
     @property
     def beyond_ellipsoid(self) -> bool | None:
         """For a band proof: whether the set reaches beyond the closed loop's ellipsoid (sampled); else None."""
-        return (self.local or {}).get("beyond_ellipsoid") if self.method == "band" else None
+        return self.local.beyond_ellipsoid if isinstance(self.local, BandRegion) else None
 
     @property
     def ellipsoid_certified(self) -> bool:
         """Whether the closed loop's own quadratic region (``quadratic``) is certified."""
-        return bool(self.quadratic and self.quadratic.get("proved"))
+        return self.quadratic is not None and self.quadratic.proved
 
 
 # --------------------------------------------------------------------------- the covering check

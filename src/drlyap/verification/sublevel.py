@@ -7,7 +7,7 @@ verdict with the falsifier."""
 from __future__ import annotations
 
 import time
-from dataclasses import replace
+from dataclasses import dataclass, replace
 
 import torch
 from torch import Tensor
@@ -40,15 +40,24 @@ def box_faces(lo: Tensor, hi: Tensor, per_axis: list[int]) -> tuple[Tensor, Tens
     return torch.cat(out_lo), torch.cat(out_hi)
 
 
+@dataclass
+class FaceMinimum:
+    """V's least value over (a part of) the state box's faces: ``lower`` a sound lower bound, ``upper`` V at a point
+    there (``lower <= min <= upper``); the branch and bound's ``boxes_processed`` and ``stopped`` (``finished``,
+    ``box budget`` or ``time limit``)."""
+
+    lower: float
+    upper: float
+    boxes_processed: int = 0
+    stopped: str = "finished"
+
+
 def boundary_minimum(lyapunov, region: Region, budget: Budget = Budget(seconds=5.0, boxes=1_000_000),
-                     rel_tol: float = 1e-3, info: dict | None = None) -> tuple[float, float]:
-    """``(lower, upper)``: a sound lower bound of the minimum of V over the boundary of the state box, and a value
-    of V taken at a point of the boundary (so ``lower <= min <= upper``); boxes are refined until ``lower`` is
-    within ``rel_tol`` of ``upper`` (or the budget runs out: ``lower`` is then ``-inf``). ``lyapunov``: V (a
-    network, or a quadratic form, whose minimum on the faces is computed exactly). ``info``: a dict that receives
-    the branch and bound's ``boxes_processed`` and ``stopped`` (``finished``, ``box budget`` or ``time limit``)."""
-    if info is not None:
-        info.update(boxes_processed=0, stopped="finished")
+                     rel_tol: float = 1e-3) -> FaceMinimum:
+    """A sound lower bound of the minimum of V over the boundary of the state box, and a value of V taken at a point
+    of the boundary (so ``lower <= min <= upper``); boxes are refined until ``lower`` is within ``rel_tol`` of
+    ``upper`` (or the budget runs out: ``lower`` is then ``-inf``). ``lyapunov``: V (a network, or a quadratic form,
+    whose minimum on the faces is computed exactly)."""
     if isinstance(lyapunov, QuadraticLyapunov):  # min of z'Pz on the hyperplane z_i = b is b^2 / (P^-1)_ii
         p = lyapunov.P.to(F64)
         inv_diag = torch.linalg.inv(p).diagonal()
@@ -59,14 +68,12 @@ def boundary_minimum(lyapunov, region: Region, budget: Budget = Budget(seconds=5
         point = torch.clamp(torch.linalg.solve(p, torch.eye(region.n, dtype=F64)[i]) * (sides[i, j] / inv_diag[i]),
                             region.lo, region.hi)
         point[i] = sides[i, j]
-        return low, float(lyapunov(point[None])[0])
+        return FaceMinimum(low, float(lyapunov(point[None])[0]))
     vobj = value_objective(lyapunov)
     flo, fhi = box_faces(region.lo, region.hi, default_grid(region.n))
     best, neg_up, found = maximize(lambda z: -vobj(z), flo, fhi, region.scale, budget, rel_tol=rel_tol,
                                    label="V's least value on the box's faces")
-    if info is not None:
-        info.update(boxes_processed=found["boxes_processed"], stopped=found["stopped"])
-    return float(-neg_up[0]), float(-best[0])
+    return FaceMinimum(float(-neg_up[0]), float(-best[0]), found.boxes_processed, found.stopped)
 
 
 def face_sides(lo: Tensor, hi: Tensor, region: Region) -> tuple[Tensor, Tensor]:
@@ -105,17 +112,14 @@ def outward_bounds(loop: ClosedLoop, condition: Condition, region: Region, lo: T
 
 
 def exit_minimum(loop: ClosedLoop, condition: Condition, region: Region,
-                 budget: Budget = Budget(seconds=5.0, boxes=1_000_000), rel_tol: float = 1e-3,
-                 info: dict | None = None) -> tuple[float, float]:
-    """``(lower, upper)``: a sound lower bound of V's minimum over the points of the box's faces where the flow of a
+                 budget: Budget = Budget(seconds=5.0, boxes=1_000_000), rel_tol: float = 1e-3) -> FaceMinimum:
+    """A sound lower bound of V's minimum over the points of the box's faces where the flow of a
     model of ``condition`` (the true model, :func:`outward_bounds`) is not proved to point strictly into the box,
     and V at a face point where some model's flow points out of it or along the face (``inf`` where none was
     found). Below ``lower``, wherever ``{V <= c}`` meets a face every model's flow enters the box there, so no
     trajectory leaves ``{z in box : V(z) <= c}`` through a face. Face boxes whose flow is proved inward are dropped;
     the rest are refined as in :func:`boundary_minimum` (``lower`` is ``-inf`` where the budget runs out first,
-    ``inf`` where every face box is dropped; ``info`` as there)."""
-    if info is not None:
-        info.update(boxes_processed=0, stopped="finished")
+    ``inf`` where every face box is dropped)."""
     enclosure = budget.enclosure_for(region.n)
     vobj = value_objective(loop.lyapunov)
     flo, fhi = box_faces(region.lo, region.hi, default_grid(region.n))
@@ -127,13 +131,11 @@ def exit_minimum(loop: ClosedLoop, condition: Condition, region: Region,
         return (outward_bounds(loop, condition, region, centre, centre, enclosure)[0] >= 0).any(-1)
 
     if not bool(may_leave(flo, fhi).any()):
-        return float("inf"), float("inf")
+        return FaceMinimum(float("inf"), float("inf"))
     best, neg_up, found = maximize(lambda z: -vobj(z), flo, fhi, region.scale, budget, box_ok=may_leave,
                                    centre_ok=leaves, rel_tol=rel_tol,
                                    label="V's least value where the flow may leave the box")
-    if info is not None:
-        info.update(boxes_processed=found["boxes_processed"], stopped=found["stopped"])
-    return float(-neg_up[0]), float(-best[0])
+    return FaceMinimum(float(-neg_up[0]), float(-best[0]), found.boxes_processed, found.stopped)
 
 
 FACES_SHARE = 0.25
@@ -166,7 +168,8 @@ def verify_sublevel(loop: ClosedLoop, condition: Condition, region: Region, leve
     the condition.
     """
     start = time.perf_counter()
-    low, high = boundary_minimum(loop.lyapunov, region, faces_budget(budget, loop.n), rel_tol=0.02)
+    faces = boundary_minimum(loop.lyapunov, region, faces_budget(budget, loop.n), rel_tol=0.02)
+    low, high = faces.lower, faces.upper
     out = verify_condition(loop, condition, region, budget_left(budget, loop.n, start), level=level, **kwargs)
     out.boundary_min_lower, out.boundary_min_upper, out.time_s = low, high, time.perf_counter() - start
     if high <= level:

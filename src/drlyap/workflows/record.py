@@ -252,7 +252,7 @@ def region_certificates(folder: Path, loop: ClosedLoop, condition: Condition, re
         write("ellipsoid", found.ring, found.condition, found.region, found.level, found.claim())
 
     if roa.ellipsoid_certified:
-        found = ellipsoid_proof(loop, condition, region, roa.quadratic, proof.budget())
+        found = ellipsoid_proof(loop, condition, region, roa.quadratic.ellipsoid(), proof.budget())
         if found is not None:
             write_ellipsoid(found)
     if (roa.kind == "practical stability" and roa.level is not None and roa.practical_level is not None

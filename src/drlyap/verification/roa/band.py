@@ -34,10 +34,11 @@ from drlyap.verification.branch_and_bound import verify_condition
 from drlyap.verification.roa.levels import BOX_BUDGET, TIME_LIMIT, below, level_search, time_capped
 from drlyap.verification.roa.local import resolving_ellipsoid
 from drlyap.verification.roa.quadratic import CoredProof
+from drlyap.verification.roa_steps import BandRegion, LevelTry, QuadraticRegion
 
 
-def band_roa(loop: ClosedLoop, condition: Condition, region: Region, quadratic: dict, top: float,
-             limited_by: str = "box boundary", budget: Budget = Budget(seconds=10.0)) -> dict:
+def band_roa(loop: ClosedLoop, condition: Condition, region: Region, quadratic: QuadraticRegion | None, top: float,
+             limited_by: str = "box boundary", budget: Budget = Budget(seconds=10.0)) -> BandRegion:
     """The band proof (module docstring): the largest level ``c <= top`` (up to the search's resolution) such that
     V decreases strictly (``Vdot + 1e-9 ||z|| <= 0``, every sample's model of ``condition``) on ``{V <= c}``
     outside ``L = {z^T P z <= c_q}``, the closed loop's certified ellipsoid of
@@ -55,24 +56,24 @@ def band_roa(loop: ClosedLoop, condition: Condition, region: Region, quadratic: 
     otherwise the set may lie inside L)."""
     start = time.perf_counter()
     system, time_limit, min_width = loop.system, budget.seconds, budget.min_width
-    out: dict = {"method": "band", "proved": False, "level": None, "limited_by": None, "reason": ""}
+    out = BandRegion()
     plain = condition.per_sample()
     if plain is None:
-        out["reason"] = "the condition implies no per-sample decrease (a CVaR over several samples)"
+        out.reason = "the condition implies no per-sample decrease (a CVaR over several samples)"
         return out
-    if not quadratic or not quadratic.get("proved"):
-        out["reason"] = "no certified ellipsoid of the closed loop to start from"
+    if quadratic is None or not quadratic.proved:
+        out.reason = "no certified ellipsoid of the closed loop to start from"
         return out
     if not (top > 0 and math.isfinite(top)):
-        out["reason"] = f"V's lower bound on the box's faces is {top:.3g}: no positive level fits in the box"
+        out.reason = f"V's lower bound on the box's faces is {top:.3g}: no positive level fits in the box"
         return out
-    p, c_q = torch.tensor(quadratic["P"], dtype=F64), float(quadratic["q_level"])
+    p, c_q = torch.tensor(quadratic.P, dtype=F64), float(quadratic.q_level)
     if not c_q > 0:
-        out["reason"] = f"the ellipsoid's level is {c_q:.3g}: no ellipsoid to start from"
+        out.reason = f"the ellipsoid's level is {c_q:.3g}: no ellipsoid to start from"
         return out
-    out.update(P=p.tolist(), q_level=c_q, v_on_ellipsoid=_on_ellipsoid(loop.f64.lyapunov, p, c_q))
-    if not out["v_on_ellipsoid"][0] > 0:
-        out["reason"] = "V is not positive on the ellipsoid's boundary"
+    out.P, out.q_level, out.v_on_ellipsoid = p.tolist(), c_q, _on_ellipsoid(loop.f64.lyapunov, p, c_q)
+    if not out.v_on_ellipsoid[0] > 0:
+        out.reason = "V is not positive on the ellipsoid's boundary"
         return out
     strict = PlainDecrease(plain.xi, 1e-9, 0.0, plain.model)
     lo, hi = box_grid(region.lo, region.hi, default_grid(system.n))
@@ -85,7 +86,7 @@ def band_roa(loop: ClosedLoop, condition: Condition, region: Region, quadratic: 
     # levels from just above V's sampled minimum on L's boundary up, 1.3x apart: a search with a fixed level drops
     # the boxes above it at once and bounds the rest on {V <= level} only; one with the top level would spend the
     # time on the sets far above the level it reaches
-    target = min(top, 1.1 * out["v_on_ellipsoid"][0])
+    target = min(top, 1.1 * out.v_on_ellipsoid[0])
     reached, boxes, cex, targets = -math.inf, 0, None, []
     while True:
         level, why, cex, count = level_search(
@@ -95,8 +96,7 @@ def band_roa(loop: ClosedLoop, condition: Condition, region: Region, quadratic: 
             enclosure=Enclosure.AFFINE, ellipsoid=(p, c_q), max_boxes=max(1, budget.boxes - boxes),
             progress=budget.compute.progress)
         boxes += count
-        targets.append({"level": target, "reached": level >= target, "boxes": count,
-                        "time_s": time.perf_counter() - start})
+        targets.append(LevelTry(target, level >= target, count, time.perf_counter() - start))
         if level >= target and target < top:
             reached = target
             if boxes >= budget.boxes:
@@ -113,13 +113,13 @@ def band_roa(loop: ClosedLoop, condition: Condition, region: Region, quadratic: 
         break
     c = below(reached)
     if time_capped(limited_by):
-        out["capped"] = ["the band proof"]
-    out.update(proved=c > 0, level=c, limited_by=limited_by, boxes=boxes, decay_rate=strict.decay_rate, levels=targets,
-               beyond_ellipsoid=c > out["v_on_ellipsoid"][0],
-               counterexample=None if cex is None else system.to_user(cex[None])[0].tolist(),
-               time_s=time.perf_counter() - start)
+        out.capped = ["the band proof"]
+    out = replace(out, proved=c > 0, level=c, limited_by=limited_by, boxes=boxes, decay_rate=strict.decay_rate,
+                  levels=targets, beyond_ellipsoid=c > out.v_on_ellipsoid[0],
+                  counterexample=None if cex is None else system.to_user(cex[None])[0].tolist(),
+                  time_s=time.perf_counter() - start)
     if not c > 0:
-        out["reason"] = f"V's decrease outside the ellipsoid not proved on any sublevel set ({limited_by})"
+        out.reason = f"V's decrease outside the ellipsoid not proved on any sublevel set ({limited_by})"
     return out
 
 
@@ -137,7 +137,7 @@ def _on_ellipsoid(lyapunov, p: Tensor, c_q: float, count: int = 20_000) -> list[
 
 
 
-def band_proof(loop: ClosedLoop, condition: Condition, region: Region, band: dict,
+def band_proof(loop: ClosedLoop, condition: Condition, region: Region, band: BandRegion,
                budget: Budget) -> CoredProof | None:
     """The proof behind a sublevel set ``{V <= c}`` that :func:`band_roa` certified (``band``, its result), as a
     certificate states it: V's strict decrease (the band's decay) on ``{V <= c}`` over the whole box except where a box
@@ -146,12 +146,12 @@ def band_proof(loop: ClosedLoop, condition: Condition, region: Region, band: dic
     until it lies in L, above the level by V's own bound, or is proved (the search bounded V on its part outside L
     instead, so this proof may need more boxes, or not finish: None then)."""
     plain = condition.per_sample()
-    if plain is None or not band.get("proved"):
+    if plain is None or not band.proved:
         return None
-    p, c_q = torch.tensor(band["P"], dtype=F64), float(band["q_level"])
-    strict = PlainDecrease(plain.xi, float(band["decay_rate"]), 0.0, plain.model)
+    p, c_q = torch.tensor(band.P, dtype=F64), float(band.q_level)
+    strict = PlainDecrease(plain.xi, float(band.decay_rate), 0.0, plain.model)
     fine = resolving_ellipsoid(budget.min_width, p, c_q, region)
     whole = region.with_delta(0.0)
     proof = verify_condition(loop, strict, whole, replace(budget, min_width=fine, enclosure=Enclosure.AFFINE),
-                             level=float(band["level"]), core=(p, c_q), keep_partition=True)
+                             level=float(band.level), core=(p, c_q), keep_partition=True)
     return CoredProof(strict, whole, proof, p, c_q) if proof.verified else None

@@ -29,7 +29,7 @@ from drlyap.config import Budget
 from drlyap.regions import Region
 from drlyap.verification.results import ConditionProof, RegionOfAttraction
 from drlyap.verification.roa.band import band_roa
-from drlyap.verification.roa.local import local_decrease
+from drlyap.verification.roa.local import BallKeeper, local_decrease
 from drlyap.verification.roa.quadratic import linearisation_local, quadratic_roa
 from drlyap.verification.roa.sublevel import (
     finish,
@@ -39,6 +39,7 @@ from drlyap.verification.roa.sublevel import (
     proof_fits,
     proved_outer,
 )
+from drlyap.verification.roa_steps import LinearisationProof, LocalProof
 
 REGION_RATE = 0.01
 """The decay ``alpha`` of ``Vdot + alpha V <= 0`` that a region of attraction at a shift asks of the true model by
@@ -85,27 +86,27 @@ def certified_roa(loop: ClosedLoop, condition: Condition, region: Region, budget
         outer = outer_search(loop, condition, region, budget, max_level)
     c = outer.level
     strict = outer_strictness(loop, condition, region, budget) if c > 0 else None
-    keep: dict = {}
-    local = local_decrease(loop, condition, region, near_budget(budget, outer, fraction=0.5),
-                           level=c if c > 0 else None, keep=keep)
-    spent = local["boxes"]  # by the proofs near x*
-    own_failed = not local["proved"] or not (strict is None or strict["strict"])
-    if own_failed and local.get("equilibrium") and c > 0:  # the linearisation's chain needs no strictness outside
+    keep = BallKeeper()
+    local: LocalProof | LinearisationProof = local_decrease(
+        loop, condition, region, near_budget(budget, outer, fraction=0.5), level=c if c > 0 else None, keep=keep)
+    spent = local.boxes  # by the proofs near x*
+    own_failed = not local.proved or not (strict is None or strict.strict)
+    if own_failed and local.equilibrium and c > 0:  # the linearisation's chain needs no strictness outside
         second = local
         local = linearisation_local(loop, condition, region, c, near_budget(budget, outer, spent, least_seconds=3.0))
-        spent += local["boxes"]
-        capped = [*second.get("capped", ()), *local.get("capped", ())]
-        local |= {"second_order": second} | ({"capped": capped} if capped else {})
+        spent += local.boxes
+        local.second_order = second
+        local.capped = [*(second.capped or ()), *(local.capped or ())] or None
     quadratic = None  # the closed loop's own quadratic Lyapunov function, reported where V's sublevel sets are not certified
-    if not (c > 0 and local["proved"] and (not own_failed or local["method"] == "linearisation")):
-        quadratic = local.get("quadratic") or quadratic_roa(
+    if not (c > 0 and local.proved and (not own_failed or isinstance(local, LinearisationProof))):
+        quadratic = (local.quadratic if isinstance(local, LinearisationProof) else None) or quadratic_roa(
             loop, condition, region, near_budget(budget, outer, spent, least_seconds=3.0))
-        quadratic = {k: v for k, v in quadratic.items() if k not in ("jacobians", "eigenvalues")}
+        quadratic = quadratic.reported()
     band = None
-    if quadratic is not None and quadratic.get("proved") and (band_time is None or band_time > 0):
+    if quadratic is not None and quadratic.proved and (band_time is None or band_time > 0):
         band = band_roa(loop, condition, region, quadratic, *outer.inside,
                         replace(budget, seconds=budget.seconds if band_time is None else band_time))
     found = finish(loop, condition, region, outer, local, samples_per_axis, quadratic, band, strict)
     if found.certified and found.local is local and found.level == c:  # V's own proofs, the level not lowered
-        found.ball = keep.get("ball")
+        found.ball = keep.ball
     return found

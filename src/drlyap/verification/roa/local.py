@@ -16,7 +16,7 @@ from __future__ import annotations
 
 import math
 import time
-from dataclasses import replace
+from dataclasses import dataclass, replace
 
 import torch
 from torch import Tensor
@@ -32,6 +32,7 @@ from drlyap.verification.branch_and_bound import verify_condition
 from drlyap.verification.linearisation import jacobian_negative
 from drlyap.verification.results import BallProof
 from drlyap.verification.roa.levels import time_capped
+from drlyap.verification.roa_steps import LocalProof, RingProof
 
 
 def _hessian_negative(loop: ClosedLoop, plain: PlainDecrease, half_width: Tensor) -> tuple[bool, float, str]:
@@ -126,50 +127,49 @@ def not_equilibrium(loop: ClosedLoop, plain: PlainDecrease, region: Region) -> s
 
 def local_decrease(loop: ClosedLoop, condition: Condition, region: Region,
                    budget: Budget = Budget(seconds=10.0, enclosure=Enclosure.MEAN_VALUE), level: float | None = None,
-                   keep: dict | None = None) -> dict:
+                   keep: BallKeeper | None = None) -> LocalProof:
     """Prove ``Vdot < 0`` on the delta-ball minus x* (with ``level``: on its part in ``{V <= level}``) for every
     sample of ``condition``'s model (see the module docstring). Returns ``proved``, the cube half-width ``cube``
     of the second-order proof, its bound ``hessian_bound``, the ring verification's status and ``reason`` when
     it fails, and ``boxes``: the ring's boxes (its proof: ``budget``, boxes and seconds; ``capped`` names it where
-    it stopped at its time cap). ``keep``: where a proof that holds is put, as ``keep["ball"]`` (a
+    it stopped at its time cap). ``keep``: where a proof that holds is put, as ``keep.ball`` (a
     :class:`~drlyap.verification.results.BallProof`, the ring's partition kept), for a certificate to write down."""
     start = time.perf_counter()
     time_limit, min_width = budget.seconds, budget.min_width
     method = "mean-value Jacobian" if isinstance(loop.lyapunov, QuadraticLyapunov) else "second order"
-    out: dict = {"method": method, "proved": False, "cube": None, "hessian_bound": None, "ring": None, "reason": "",
-                 "boxes": 0}
+    out = LocalProof(method)
     plain = condition.per_sample()
     if plain is None:
-        out["reason"] = "the condition implies no per-sample decrease (a CVaR over several samples)"
+        out.reason = "the condition implies no per-sample decrease (a CVaR over several samples)"
         return out
     delta = region.delta
     if delta <= 0:
-        out.update(proved=True, reason="no ball to cover (delta = 0)")
+        out.proved, out.reason = True, "no ball to cover (delta = 0)"
         return out
     reason = not_equilibrium(loop, plain, region)
     if reason:
-        out["reason"] = reason
+        out.reason = reason
         return out
-    out["equilibrium"] = True  # the preconditions hold: a failure below is one of the second-order proof
+    out.equilibrium = True  # the preconditions hold: a failure below is one of the second-order proof
     half = torch.minimum(torch.minimum(-region.lo, region.hi), torch.full_like(region.lo, delta))
     half, bound, reason = proved_cube(loop, plain, half, 1e-7 * delta, region.scale / 2)
     if half is None:
-        out["reason"] = reason
+        out.reason = reason
         if not isinstance(loop.lyapunov, QuadraticLyapunov):  # why: is V a Lyapunov function of the linearisation?
             with torch.enable_grad():
                 rate = float(local_rates(plain, loop).detach().max())
-            out["local_rate"] = rate
-            out["reason"] += f"; V's second-order rate at x*: Vdot <= {rate:+.3g} V" + (
+            out.local_rate = rate
+            out.reason += f"; V's second-order rate at x*: Vdot <= {rate:+.3g} V" + (
                 " (V rises along some direction arbitrarily close to x*: no cube can prove its decrease)"
                 if rate > 0 else "")
         return out
-    out["cube"] = half.tolist()
-    out["hessian_bound"] = bound
+    out.cube = half.tolist()
+    out.hessian_bound = bound
     r_in = float(half.min())
     if bool((half >= delta).all()):  # the cube covers the ball
-        out.update(proved=True, time_s=time.perf_counter() - start)
+        out.proved, out.time_s = True, time.perf_counter() - start
         if keep is not None:
-            keep["ball"] = BallProof(cube=half.tolist())
+            keep.ball = BallProof(cube=half.tolist())
         return out
     # the rest of the ball: strict decrease Vdot + gamma_in ||z|| <= 0 on (ball-box) minus the r_in-ball
     gamma_in = 0.25 * abs(bound) / 2 * r_in
@@ -179,15 +179,21 @@ def local_decrease(loop: ClosedLoop, condition: Condition, region: Region,
     res = verify_condition(loop, ring_plain, ring, replace(budget, seconds=left,
                                                            min_width=resolving(min_width, r_in, region)),
                            stop_at_counterexample=True, level=level, keep_partition=keep is not None)
-    out["ring"] = {"status": res.status, "decay_rate": gamma_in, "inner_radius": r_in, "boxes": res.boxes_processed,
-                   "verified_fraction": res.verified_fraction, "stopped": res.stopped}
-    out["boxes"] = res.boxes_processed
+    out.ring = RingProof(res.status, gamma_in, r_in, res.boxes_processed, res.verified_fraction, res.stopped)
+    out.boxes = res.boxes_processed
     if time_capped(res.stopped):
-        out["capped"] = ["the proof between the cube and the delta-ball"]
-    out["proved"] = res.status == Status.VERIFIED
-    if out["proved"] and keep is not None:
-        keep["ball"] = BallProof(cube=half.tolist(), condition=ring_plain, region=ring, ring=res)
-    if not out["proved"]:
-        out["reason"] = f"decrease between the cube and the delta-ball: {res.status} ({res.stopped})"
-    out["time_s"] = time.perf_counter() - start
+        out.capped = ["the proof between the cube and the delta-ball"]
+    out.proved = res.status == Status.VERIFIED
+    if out.proved and keep is not None:
+        keep.ball = BallProof(cube=half.tolist(), condition=ring_plain, region=ring, ring=res)
+    if not out.proved:
+        out.reason = f"decrease between the cube and the delta-ball: {res.status} ({res.stopped})"
+    out.time_s = time.perf_counter() - start
     return out
+
+
+@dataclass
+class BallKeeper:
+    """Where :func:`local_decrease` puts a proof that holds (``ball``), for a certificate to write down."""
+
+    ball: BallProof | None = None

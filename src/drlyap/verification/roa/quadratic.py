@@ -63,10 +63,17 @@ from drlyap.verification.results import ConditionProof
 from drlyap.verification.roa.levels import below, level_search, share, time_capped
 from drlyap.verification.roa.local import not_equilibrium, proved_cube, resolving, resolving_ellipsoid
 from drlyap.verification.roa.sublevel import sublevel_roa
+from drlyap.verification.roa_steps import (
+    Annulus,
+    EllipsoidCandidate,
+    EllipsoidSearch,
+    LinearisationProof,
+    QuadraticRegion,
+)
 
 
 def quadratic_roa(loop: ClosedLoop, condition: Condition, region: Region,
-                  budget: Budget = Budget(seconds=10.0, enclosure=Enclosure.AFFINE)) -> dict:
+                  budget: Budget = Budget(seconds=10.0, enclosure=Enclosure.AFFINE)) -> QuadraticRegion:
     """A certified region of attraction ``{z^T P z <= c_q}`` of the closed loop of every sample's model of
     ``condition`` (the controller's, whatever V is), from its linearisation (module docstring, steps a and b).
 
@@ -85,32 +92,31 @@ def quadratic_roa(loop: ClosedLoop, condition: Condition, region: Region,
     start = time.perf_counter()
     time_limit = budget.seconds
     deadline = start + time_limit
-    out: dict = {"method": "linearisation", "proved": False, "q_level": None, "share_of_box": 0.0, "reason": "",
-                 "boxes": 0}
+    out = QuadraticRegion()
     plain = condition.per_sample()
     if plain is None:
-        out["reason"] = "the condition implies no per-sample decrease (a CVaR over several samples)"
+        out.reason = "the condition implies no per-sample decrease (a CVaR over several samples)"
         return out
-    out["reason"] = not_equilibrium(loop, plain, region)
-    if out["reason"]:
+    out.reason = not_equilibrium(loop, plain, region)
+    if out.reason:
         return out
     # 1. the linearisation (this only chooses W = z^T P z; everything after is proved)
     jacobians = closed_loop_jacobians(loop, plain)
-    out["jacobians"] = [a.tolist() for a in jacobians]
+    out.jacobians = [a.tolist() for a in jacobians]
     eigenvalues = []
     for a in jacobians:
         ok, ev = is_hurwitz(a)
         eigenvalues.append([[e.real, e.imag] for e in ev])
         if not ok:
-            out["eigenvalues"] = eigenvalues
-            out["reason"] = f"the closed-loop linearisation at x* is not Hurwitz (eigenvalues {[str(e) for e in ev]})"
+            out.eigenvalues = eigenvalues
+            out.reason = f"the closed-loop linearisation at x* is not Hurwitz (eigenvalues {[str(e) for e in ev]})"
             return out
-    out["eigenvalues"] = eigenvalues
+    out.eigenvalues = eigenvalues
     s = region.scale / 2
     half_box = torch.minimum(-region.lo, region.hi)
     p_mean = common_lyapunov_matrix(jacobians, s)
     if not bool(torch.isfinite(p_mean).all()) or float(torch.linalg.eigvalsh(p_mean).min()) <= 0:
-        out["reason"] = "the Lyapunov matrix P is not positive definite"
+        out.reason = "the Lyapunov matrix P is not positive definite"
         return out
     # 2. two candidates for W and its cube: the samples' Lyapunov-equation P on the widest cube where it is
     # proved, and a P fitted to the widest cube it can be proved on; each W's region then searched beyond it
@@ -125,22 +131,23 @@ def quadratic_roa(loop: ClosedLoop, condition: Condition, region: Region,
     if fitted is not None:
         candidates.append(("fitted", *fitted))
     if not candidates:
-        out["reason"] = f"W = z'Pz: Wdot < 0 not proved on any cube around x* ({reason})"
-        out.update({"capped": capped} if capped else {})
+        out.reason = f"W = z'Pz: Wdot < 0 not proved on any cube around x* ({reason})"
+        out.capped = capped or None
         return out
     results, spent = [], 0
     for i, (name, p, half, bound) in enumerate(candidates):
         left = (deadline - time.perf_counter()) / (len(candidates) - i)
         boxes = share(max(budget.boxes - spent, budget.boxes // 10), 1 / (len(candidates) - i))
-        found = _quadratic_level(loop, plain, region, p, half, bound, replace(budget, seconds=left, boxes=boxes))
-        spent += found["boxes"]
-        capped += found.pop("capped", [])
-        results.append(found | {"P_choice": name})
-    best = max(results, key=lambda r: r["share_of_box"])
-    out.update(best)
-    out["candidates"] = results  # each with its P: linearisation_local tries every one
-    out.update(proved=True, time_s=time.perf_counter() - start, boxes=spent, **({"capped": capped} if capped else {}))
-    return out
+        found, found_capped = _quadratic_level(loop, plain, region, p, half, bound,
+                                               replace(budget, seconds=left, boxes=boxes))
+        found.P_choice = name
+        spent += found.boxes
+        capped += found_capped
+        results.append(found)
+    best = max(results, key=lambda r: r.share_of_box)
+    # candidates: each with its P, linearisation_local tries every one
+    return replace(out.choose(best), candidates=results, time_s=time.perf_counter() - start, boxes=spent,
+                   capped=capped or None)
 
 
 def _fitted_cube(loop: ClosedLoop, plain: PlainDecrease, p_mean: Tensor, half_box: Tensor, s: Tensor,
@@ -200,7 +207,7 @@ def _fitted_cube(loop: ClosedLoop, plain: PlainDecrease, p_mean: Tensor, half_bo
 
 
 def _quadratic_level(loop: ClosedLoop, plain: PlainDecrease, region: Region, p: Tensor, half: Tensor, bound: float,
-                     budget: Budget) -> dict:
+                     budget: Budget) -> tuple[EllipsoidCandidate, list[str]]:
     """The certified level ``q_level`` of ``W = z^T P z`` whose decrease is proved on the cube ``half``: the
     largest ellipsoid inside the cube (``cube_level``), grown while
     :func:`~drlyap.verification.linearisation.jacobian_negative` proves the decrease on the ellipsoid's bounding box
@@ -208,7 +215,7 @@ def _quadratic_level(loop: ClosedLoop, plain: PlainDecrease, region: Region, p: 
     W proves it (the budget's boxes; the doubling and bisection are a bounded number of tests, up to 30% of the
     seconds as a cap, named in ``capped`` where reached); with ``P``, the cube, ``share_of_box`` (the ellipsoid's
     exact volume over the box's), ``extent`` (the largest ``|z_i|`` in it, per state), ``boxes`` and the search's
-    details."""
+    details; and the steps that stopped at their time cap."""
     start = time.perf_counter()
     time_limit = budget.seconds
     inv_diag = torch.linalg.inv(p).diagonal()
@@ -258,17 +265,19 @@ def _quadratic_level(loop: ClosedLoop, plain: PlainDecrease, region: Region, p: 
         capped.append("the search of the closed loop's ellipsoid W")
     n = loop.n
     volume = math.pi ** (n / 2) / math.gamma(n / 2 + 1) * c_q ** (n / 2) / math.sqrt(float(torch.linalg.det(p)))
-    return {"P": p.tolist(), "q_level": c_q, "share_of_box": volume / float(region.scale.prod()),
-            "extent": (c_q * inv_diag).sqrt().tolist(),  # the largest |z_i| in the ellipsoid, per state
-            "cube": half.tolist(), "cube_fraction": float((half / torch.minimum(-region.lo, region.hi)).max()),
-            "hessian_bound": bound, "cube_level": c_cube, "box_level": c_box, "box": proved_on.tolist(),
-            "q_roa": {k: getattr(w_roa, k) for k in ("level", "kind", "limited_by", "boxes_processed", "time_s")} | {
-                "decay_rate": ring.decay_rate, "inner_radius": r_in, "enclosure": budget.enclosure},
-            "boxes": w_roa.boxes_processed + w_roa.local.get("boxes", 0), "capped": capped}
+    search = EllipsoidSearch(w_roa.level, w_roa.kind, w_roa.limited_by, w_roa.boxes_processed, w_roa.time_s,
+                             ring.decay_rate, r_in, budget.enclosure)
+    found = EllipsoidCandidate(
+        P=p.tolist(), q_level=c_q, share_of_box=volume / float(region.scale.prod()),
+        extent=(c_q * inv_diag).sqrt().tolist(),  # the largest |z_i| in the ellipsoid, per state
+        cube=half.tolist(), cube_fraction=float((half / torch.minimum(-region.lo, region.hi)).max()),
+        hessian_bound=bound, cube_level=c_cube, box_level=c_box, box=proved_on.tolist(), q_roa=search,
+        boxes=w_roa.boxes_processed + (w_roa.local.boxes if w_roa.local is not None else 0))
+    return found, capped
 
 
 def linearisation_local(loop: ClosedLoop, condition: Condition, region: Region, level: float,
-                        budget: Budget = Budget(seconds=10.0, enclosure=Enclosure.MEAN_VALUE)) -> dict:
+                        budget: Budget = Budget(seconds=10.0, enclosure=Enclosure.MEAN_VALUE)) -> LinearisationProof:
     """The local proof from the closed-loop linearisation, for when V's own second-order proof fails (module
     docstring, "The linearisation proof"). ``level``: the level ``c`` up to which ``condition`` is proved on
     ``{V <= c}`` outside the delta-ball. Returns ``proved``, ``level`` (the largest ``c' <= c`` for which the
@@ -280,18 +289,18 @@ def linearisation_local(loop: ClosedLoop, condition: Condition, region: Region, 
     system, lyapunov = loop.system, loop.lyapunov
     time_limit, min_width, enclosure = budget.seconds, budget.min_width, budget.enclosure_for(loop.n)
     deadline = start + time_limit
-    out: dict = {"method": "linearisation", "proved": False, "level": None, "reason": "", "boxes": 0}
     quad = quadratic_roa(loop, condition, region, replace(budget, seconds=0.4 * time_limit,
                                                           boxes=share(budget.boxes, 0.4), enclosure=enclosure))
-    out["quadratic"] = {k: v for k, v in quad.items() if k not in ("jacobians", "eigenvalues")}
-    out.update({k: quad[k] for k in ("jacobians", "eigenvalues", "P", "q_level", "cube") if k in quad})
-    capped, spent = list(quad.get("capped", ())), quad["boxes"]
+    out = LinearisationProof(quadratic=quad.reported(), jacobians=quad.jacobians, eigenvalues=quad.eigenvalues,
+                             P=quad.P, q_level=quad.q_level, cube=quad.cube)
+    capped, spent = list(quad.capped or ()), quad.boxes
 
-    def done() -> dict:
-        return out | {"boxes": spent} | ({"capped": capped} if capped else {})
+    def done() -> LinearisationProof:
+        out.boxes, out.capped = spent, capped or None
+        return out
 
-    if not quad["proved"]:
-        out["reason"] = quad["reason"]
+    if not quad.proved:
+        out.reason = quad.reason
         return done()
     plain = condition.per_sample()
     # 3. c_1 <= min of V over {W >= c_q} in the box, so that {V <= c_1} lies inside {W <= c_q}; of the candidate
@@ -299,9 +308,9 @@ def linearisation_local(loop: ClosedLoop, condition: Condition, region: Region, 
     vobj = value_objective(lyapunov)
     blo, bhi = box_grid(region.lo, region.hi, default_grid(system.n))
     c_1, chosen = -math.inf, None
-    candidates = quad["candidates"]
+    candidates = quad.candidates
     for i, cand in enumerate(candidates):
-        p_i, c_qi = torch.tensor(cand["P"], dtype=F64), cand["q_level"]
+        p_i, c_qi = torch.tensor(cand.P, dtype=F64), cand.q_level
         w_i = QuadraticLyapunov(p_i)
         wobj = value_objective(w_i)
 
@@ -314,22 +323,22 @@ def linearisation_local(loop: ClosedLoop, condition: Condition, region: Region, 
                                            enclosure=enclosure), box_ok=outside,
                                    centre_ok=lambda z, w_i=w_i, c_qi=c_qi: w_i(z) >= c_qi,
                                    label="V's least value outside the closed loop's ellipsoid")
-        capped += ["V's minimum outside the closed loop's ellipsoid"] if time_capped(info["stopped"]) else []
+        capped += ["V's minimum outside the closed loop's ellipsoid"] if time_capped(info.stopped) else []
         c_1i = float(round_down(round_down(-neg_up[0], REL1), 1e-9))
-        cand["inner_level"] = c_1i
+        cand.inner_level = c_1i
         if c_1i > c_1:
             c_1, chosen = c_1i, cand
-    out["inner_level"] = c_1
+    out.inner_level = c_1
     if chosen is not None:  # the W the chain below rests on, with its level and cube
-        out.update({k: chosen[k] for k in ("P", "q_level", "cube")})
+        out.P, out.q_level, out.cube = chosen.P, chosen.q_level, chosen.cube
     if not c_1 > 0:
-        out["reason"] = "no sublevel set of V provably inside {W <= c_q}"
+        out.reason = "no sublevel set of V provably inside {W <= c_q}"
         return done()
-    p, c_q = torch.tensor(chosen["P"], dtype=F64), chosen["q_level"]
+    p, c_q = torch.tensor(chosen.P, dtype=F64), chosen.q_level
     # any smaller c_1 will do ({V <= c_1} only shrinks): keep it below the outer level, so that the annulus
     # {c_1 <= V <= c} is not empty and {V <= c} is forward invariant
     c_1 = min(c_1, level / 2)
-    out["inner_level"] = c_1
+    out.inner_level = c_1
     # 4. V decreases strictly on {c_1 <= V <= c} inside the ball (outside it the condition's decay already does);
     # with no decay in the condition, on the whole box
     strict = condition.decay_rate > 0 or condition.exp_rate > 0
@@ -354,15 +363,15 @@ def linearisation_local(loop: ClosedLoop, condition: Condition, region: Region, 
     spent += boxes
     capped += ["the annulus inside the ball"] if time_capped(limited_by) else []
     c_2 = below(c_2)
-    out["annulus"] = {"level": c_2, "limited_by": limited_by, "boxes": boxes, "decay_rate": inner.decay_rate,
-                      "exp_rate": inner.exp_rate, "region": "delta-ball" if strict else "box", "min_width": fine,
-                      "counterexample": None if cex is None else system.to_user(cex[None])[0].tolist()}
-    out["time_s"] = time.perf_counter() - start
+    out.annulus = Annulus(c_2, limited_by, boxes, inner.decay_rate, inner.exp_rate,
+                          "delta-ball" if strict else "box", fine,
+                          None if cex is None else system.to_user(cex[None])[0].tolist())
+    out.time_s = time.perf_counter() - start
     if not c_2 > c_1:
-        out["reason"] = (f"decrease of V on {{{c_1:.4g} <= V <= c}} inside the ball fails below the inner level "
-                         f"({limited_by})")
+        out.reason = (f"decrease of V on {{{c_1:.4g} <= V <= c}} inside the ball fails below the inner level "
+                      f"({limited_by})")
         return done()
-    out.update(proved=True, level=c_2)
+    out.proved, out.level = True, c_2
     return done()
 
 
@@ -387,29 +396,29 @@ class EllipsoidProof:
                               "tau": self.tau.tolist(), "ring": self.ring is not None}}
 
 
-def ellipsoid_proof(loop: ClosedLoop, condition: Condition, region: Region, quadratic: dict,
+def ellipsoid_proof(loop: ClosedLoop, condition: Condition, region: Region, ellipsoid: EllipsoidCandidate,
                     budget: Budget) -> EllipsoidProof | None:
-    """The proofs behind :func:`quadratic_roa`'s certified ``{z^T P z <= q_level}`` (``quadratic``, its result) as a
-    certificate states them: the Jacobian test's weights on the box it proved (:func:`decrease_weights`), and beyond
-    that box W's decrease proved again on ``{W <= q_level}`` outside the inner ball with its partition kept (``budget``,
-    with the enclosure and minimum width of the search that found the level). None where either is not proved
-    again."""
+    """The proofs behind a certified ``{z^T P z <= q_level}`` of :func:`quadratic_roa` (``ellipsoid``: the one it
+    chose, :meth:`QuadraticRegion.ellipsoid`, or another of its candidates) as a certificate states them: the Jacobian
+    test's weights on the box it proved (:func:`decrease_weights`), and beyond that box W's decrease proved again on
+    ``{W <= q_level}`` outside the inner ball with its partition kept (``budget``, with the enclosure and minimum
+    width of the search that found the level). None where either is not proved again."""
     plain = condition.per_sample()
-    if plain is None or not quadratic.get("proved"):
+    if plain is None:
         return None
-    p, level, box = (torch.as_tensor(quadratic[k], dtype=F64) for k in ("P", "q_level", "box"))
+    p, level, box = (torch.as_tensor(v, dtype=F64) for v in (ellipsoid.P, ellipsoid.q_level, ellipsoid.box))
     tau = decrease_weights(loop, plain, p, box, region.scale / 2)
     if tau is None:
         return None
     level = float(level)
     r_in = float(box.min())
     ring_region = Region(region.lo, region.hi, r_in)
-    if level <= float(quadratic["box_level"]):
+    if level <= float(ellipsoid.box_level):
         return EllipsoidProof(p, level, box, tau, PlainDecrease(plain.xi, 0.0, 0.0, plain.model), ring_region, None)
-    ring_condition = PlainDecrease(plain.xi, float(quadratic["q_roa"]["decay_rate"]), 0.0, plain.model)
+    ring_condition = PlainDecrease(plain.xi, float(ellipsoid.q_roa.decay_rate), 0.0, plain.model)
     ring = verify_condition(loop.with_lyapunov(QuadraticLyapunov(p)), ring_condition, ring_region,
                             replace(budget, min_width=resolving(budget.min_width, r_in, region),
-                                    enclosure=quadratic["q_roa"].get("enclosure") or budget.enclosure),
+                                    enclosure=ellipsoid.q_roa.enclosure or budget.enclosure),
                             level=level, keep_partition=True)
     if not ring.verified:
         return None
@@ -434,7 +443,7 @@ class CoredProof:
         return {"core": {"P": self.p.tolist(), "level": self.q_level, "certificate": certificate}}
 
 
-def linearisation_proofs(loop: ClosedLoop, condition: Condition, region: Region, local: dict,
+def linearisation_proofs(loop: ClosedLoop, condition: Condition, region: Region, local: LinearisationProof,
                          budget: Budget) -> tuple[EllipsoidProof, CoredProof] | None:
     """The proofs behind a region of attraction ``{V <= c}`` that :func:`linearisation_local` certified (``local``,
     its result; ``c`` its ``level``) as certificates state them: the ellipsoid ``L = {z^T P z <= c_q}`` it rests on
@@ -445,22 +454,22 @@ def linearisation_proofs(loop: ClosedLoop, condition: Condition, region: Region,
     :mod:`~drlyap.verification.roa.band`): this needs no inner level. None where the annulus's decay is not > 0 (its
     proof then ran over the whole box) or either proof does not hold again."""
     plain = condition.per_sample()
-    annulus = local.get("annulus") or {}
-    if (plain is None or not local.get("proved") or annulus.get("region") != "delta-ball" or region.delta <= 0
-            or not annulus.get("decay_rate", 0.0) > 0):
+    annulus = local.annulus
+    if (plain is None or not local.proved or annulus is None or annulus.region != "delta-ball" or region.delta <= 0
+            or not annulus.decay_rate > 0):
         return None
-    chosen = next((cand for cand in local["quadratic"]["candidates"]
-                   if cand["P"] == local["P"] and cand["q_level"] == local["q_level"]), None)
+    chosen = next((cand for cand in local.quadratic.candidates or ()
+                   if cand.P == local.P and cand.q_level == local.q_level), None)
     if chosen is None:
         return None
-    ellipsoid = ellipsoid_proof(loop, condition, region, chosen | {"proved": True}, budget)
+    ellipsoid = ellipsoid_proof(loop, condition, region, chosen, budget)
     if ellipsoid is None:
         return None
-    strict = PlainDecrease(plain.xi, float(annulus["decay_rate"]), 0.0, plain.model)
+    strict = PlainDecrease(plain.xi, float(annulus.decay_rate), 0.0, plain.model)
     ball = region.ball_box(0.0)
-    fine = float(annulus["min_width"]) * float((region.scale / ball.scale).min())
+    fine = float(annulus.min_width) * float((region.scale / ball.scale).min())
     ring = verify_condition(loop, strict, ball, replace(budget, min_width=min(budget.min_width, fine)),
-                            level=float(local["level"]), core=(ellipsoid.p, ellipsoid.level), keep_partition=True)
+                            level=float(local.level), core=(ellipsoid.p, ellipsoid.level), keep_partition=True)
     if not ring.verified:
         return None
     return ellipsoid, CoredProof(strict, ball, ring, ellipsoid.p, ellipsoid.level)

@@ -43,11 +43,12 @@ from drlyap.kinds import Model
 from drlyap.networks import Lyapunov, QuadraticLyapunov
 from drlyap.regions import Region, box_grid, default_grid, near_dist
 from drlyap.verification.bounds import value_objective
-from drlyap.verification.branch_and_bound import maximize
+from drlyap.verification.branch_and_bound import SearchInfo, maximize
 from drlyap.verification.results import ConditionProof, RegionOfAttraction
 from drlyap.verification.roa.levels import BOX_BUDGET, TIME_LIMIT, below, level_search, time_capped
 from drlyap.verification.roa.levels import share as box_share
 from drlyap.verification.roa.local import local_decrease
+from drlyap.verification.roa_steps import BandRegion, LinearisationProof, NearProof, QuadraticRegion, Strictness
 from drlyap.verification.sublevel import boundary_minimum, exit_minimum
 
 EXIT_ROOM = 0.01
@@ -127,12 +128,12 @@ def outer_search(loop: ClosedLoop, condition: Condition, region: Region, budget:
     quarter = replace(bound_budget(budget), enclosure=enclosure)
     capped = []
     # 1. min of V on the boundary of the box
-    info: dict = {}
-    boundary_min_lower = boundary_minimum(lyapunov, region, quarter, info=info)[0]
+    on_faces = boundary_minimum(lyapunov, region, quarter)
+    boundary_min_lower = on_faces.lower
     faces, face_why = boundary_min_lower, "box boundary"
-    if not math.isfinite(boundary_min_lower) and info["stopped"] != "finished":  # no level fits: say why
-        face_why = TIME_LIMIT if time_capped(info["stopped"]) else BOX_BUDGET
-    capped += ["V's minimum on the faces"] if time_capped(info["stopped"]) else []
+    if not math.isfinite(boundary_min_lower) and on_faces.stopped != "finished":  # no level fits: say why
+        face_why = TIME_LIMIT if time_capped(on_faces.stopped) else BOX_BUDGET
+    capped += ["V's minimum on the faces"] if time_capped(on_faces.stopped) else []
     # 2. max of V on the delta-ball
     ball_max_upper, stopped = _ball_max(lyapunov, region, quarter)
     capped += ["V's maximum on the ball"] if time_capped(stopped) else []
@@ -140,8 +141,9 @@ def outer_search(loop: ClosedLoop, condition: Condition, region: Region, budget:
     lo, hi = region.boxes(grid)
     exit_min_lower = None
     if cut_by_box and condition.model == Model.TRUE and boundary_min_lower < max_level:
-        found = exit_minimum(loop, condition, region, quarter, info=info)[0]
-        capped += ["V's minimum where the flow may leave"] if time_capped(info["stopped"]) else []
+        exits = exit_minimum(loop, condition, region, quarter)
+        found = exits.lower
+        capped += ["V's minimum where the flow may leave"] if time_capped(exits.stopped) else []
         exit_min_lower = found if math.isfinite(found) else None  # inf: no face box may leave; -inf: out of budget
         widened = exit_top(exit_min_lower, boundary_min_lower)
         if widened is not None:
@@ -165,7 +167,7 @@ def _ball_max(lyapunov, region: Region, budget: Budget) -> tuple[float, str]:
     glo, ghi = box_grid(ball.lo, ball.hi, default_grid(region.lo.shape[0]))
     _, up, info = maximize(value_objective(lyapunov), glo, ghi, region.scale, budget,
                            box_ok=lambda a, b: near_dist(a, b) < delta, label="V's largest value on the delta-ball")
-    return float(up[0]), info["stopped"]
+    return float(up[0]), info.stopped
 
 
 def near_budget(budget: Budget, outer: OuterSearch, spent: int = 0, fraction: float = 1.0,
@@ -179,25 +181,25 @@ def near_budget(budget: Budget, outer: OuterSearch, spent: int = 0, fraction: fl
                    seconds=max(least_seconds, fraction * (outer.deadline - time.perf_counter())))
 
 
-def outer_strictness(loop: ClosedLoop, condition: Condition, region: Region, budget: Budget) -> dict:
+def outer_strictness(loop: ClosedLoop, condition: Condition, region: Region, budget: Budget) -> Strictness:
     """Whether ``condition``'s decrease outside the delta-ball is strict, ``Vdot < 0`` (module docstring): ``strict``
     and ``by`` (``"decay"``: gamma > 0; ``"form"``: alpha > 0 and drlyap's V; ``"proof"``: alpha > 0 and V > 0 on
     X_delta proved, ``lower`` its bound; None), with the proof's ``boxes``, ``time_s``, ``stopped`` and a ``reason`` where
     it is not. The proof runs on a quarter of the budget's boxes and seconds (:func:`bound_budget`)."""
     if condition.decay_rate > 0:
-        return {"strict": True, "by": "decay"}
+        return Strictness(True, "decay")
     if not condition.exp_rate > 0:
-        return {"strict": False, "by": None, "reason": "the decrease has no decay (gamma = alpha = 0): it is not strict"}
+        return Strictness(False, None, reason="the decrease has no decay (gamma = alpha = 0): it is not strict")
     if positive_by_form(loop.lyapunov):
-        return {"strict": True, "by": "form"}
+        return Strictness(True, "form")
     lower, info = positive_lower(loop.lyapunov, region, replace(bound_budget(budget),
                                                                 enclosure=budget.enclosure_for(loop.n)))
-    out = {"strict": lower > 0, "by": "proof" if lower > 0 else None, "lower": lower,
-           "boxes": info["boxes_processed"], "time_s": info["time_s"], "stopped": info["stopped"]}
+    out = Strictness(lower > 0, "proof" if lower > 0 else None, lower=lower, boxes=info.boxes_processed,
+                     time_s=info.time_s, stopped=info.stopped)
     if not lower > 0:
-        out["reason"] = (f"V > 0 outside the ball not proved (V's lower bound there {lower:.3g}, "
-                         f"{info['boxes_processed']} boxes, {info['stopped']}): with no decay gamma ||z||, alpha V "
-                         "makes the decrease strict only where V > 0")
+        out.reason = (f"V > 0 outside the ball not proved (V's lower bound there {lower:.3g}, "
+                      f"{info.boxes_processed} boxes, {info.stopped}): with no decay gamma ||z||, alpha V "
+                      "makes the decrease strict only where V > 0")
     return out
 
 
@@ -213,7 +215,7 @@ def positive_by_form(lyapunov) -> bool:
     return bool(torch.equal(p, p.T)) and bool(surely_semidefinite(p))
 
 
-def positive_lower(lyapunov, region: Region, budget: Budget) -> tuple[float, dict]:
+def positive_lower(lyapunov, region: Region, budget: Budget) -> tuple[float, SearchInfo]:
     """A sound lower bound of V on X_delta (the box minus the open delta-ball), refined until it is at least half of
     V's least value at the boxes' centres, or the budget is spent (``maximize``'s info as the second result)."""
     vobj = value_objective(lyapunov)
@@ -246,9 +248,9 @@ def proved_outer(loop: ClosedLoop, proof: ConditionProof, region: Region, budget
                        capped=("V's maximum on the ball",) if time_capped(stopped) else ())
 
 
-def finish(loop: ClosedLoop, condition: Condition, region: Region, outer: OuterSearch, local: dict,
-           samples_per_axis: int = 400, quadratic: dict | None = None, band: dict | None = None,
-           strict: dict | None = None) -> RegionOfAttraction:
+def finish(loop: ClosedLoop, condition: Condition, region: Region, outer: OuterSearch, local: NearProof,
+           samples_per_axis: int = 400, quadratic: QuadraticRegion | None = None, band: BandRegion | None = None,
+           strict: Strictness | None = None) -> RegionOfAttraction:
     """The region the proofs add up to: a region of attraction where the band proof certified a level (``band``), or
     where the outer level is positive, its decrease strict (``strict``: :func:`outer_strictness`; the linearisation
     proof needs no more than its own annulus, where V >= c_1 > 0) and the proof near x* (``local``) holds (the
@@ -257,29 +259,29 @@ def finish(loop: ClosedLoop, condition: Condition, region: Region, outer: OuterS
     ``capped``), ``limited_by`` says so (:data:`~drlyap.verification.roa.levels.TIME_LIMIT`)."""
     system = loop.system
     c, limited_by = outer.level, outer.limited_by
-    is_strict = strict is None or strict["strict"]
+    is_strict = strict is None or strict.strict
     counterexample = None if outer.counterexample is None else system.to_user(outer.counterexample[None])[0].tolist()
-    if band is not None and band["proved"]:  # V's sublevel set from the band proof (the outer search's stays)
-        kind, c, limited_by, local = "region of attraction", band["level"], band["limited_by"], band
-        counterexample = band["counterexample"]
-    elif c > 0 and local["proved"] and (is_strict or local.get("method") == "linearisation"):
+    if band is not None and band.proved:  # V's sublevel set from the band proof (the outer search's stays)
+        kind, c, limited_by, local = "region of attraction", band.level, band.limited_by, band
+        counterexample = band.counterexample
+    elif c > 0 and local.proved and (is_strict or isinstance(local, LinearisationProof)):
         kind = "region of attraction"
-        if local.get("level") is not None and local["level"] < c:  # the annulus inside the ball may lower it
-            c = local["level"]
-            if local["annulus"]["limited_by"] != "outer proof":
-                limited_by = f"inside the ball: {local['annulus']['limited_by']}"
+        if isinstance(local, LinearisationProof) and local.level is not None and local.level < c:
+            c = local.level  # the annulus inside the ball may lower it
+            if local.annulus.limited_by != "outer proof":
+                limited_by = f"inside the ball: {local.annulus.limited_by}"
     elif c > 0 and c > outer.ball_max_upper and is_strict:
         kind = "practical stability"
     else:
         kind = None
         if c > 0 and not is_strict:
-            limited_by = strict["reason"]
-    capped = [*outer.capped, *(["V > 0 outside the ball"] if time_capped((strict or {}).get("stopped")) else []),
-              *local.get("capped", ()), *(quadratic or {}).get("capped", ()), *(band or {}).get("capped", ())]
+            limited_by = strict.reason
+    capped = [*outer.capped, *(["V > 0 outside the ball"] if strict is not None and time_capped(strict.stopped) else []),
+              *(name for step in (local, quadratic, band) if step is not None for name in step.capped or ())]
     if capped and not time_capped(limited_by):
         limited_by = f"{limited_by}; {TIME_LIMIT} (reached by {', '.join(dict.fromkeys(capped))})"
     share = share_of_box(loop.f64.lyapunov, region, c, samples_per_axis) if c > 0 else 0.0
-    by_band = band is not None and band["proved"]
+    by_band = band is not None and band.proved
     faces = "inward" if outer.faces == "inward" and kind and not by_band and c >= outer.boundary_min_lower else "above"
     return RegionOfAttraction(
         level=c, kind=kind, certified=kind == "region of attraction",
