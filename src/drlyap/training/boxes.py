@@ -61,7 +61,7 @@ class OpenBoxes:
         the weights of ``loop``'s networks."""
         lo, hi = (self.lo, self.hi) if index is None else (self.lo[index], self.hi[index])
         with weight_gradients():
-            return bound_condition(loop, condition, self.level, self.enclosure, lo, hi)["upper"]
+            return bound_condition(loop, condition, self.level, self.enclosure, lo, hi).upper
 
     def loss(self, loop, condition, generator: torch.Generator) -> Tensor:
         """``weight`` times the mean of ``(upper + margin)_+`` over ``batch`` boxes drawn without replacement."""

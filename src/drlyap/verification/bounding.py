@@ -14,6 +14,7 @@ from __future__ import annotations
 import copy
 from collections import deque
 from collections.abc import Callable, Iterator
+from dataclasses import dataclass, fields
 
 import torch
 from torch import Tensor
@@ -50,14 +51,33 @@ def chunk_sizes(boxes: int) -> list[int]:
     return [size + 1] * extra + [size] * (parts - extra)
 
 
+@dataclass
+class ConditionBounds:
+    """What bounding a batch of boxes ``(B, n)`` gives a branch and bound, ``(B,)`` tensors: ``upper`` (the residual's
+    upper bound, +inf where undefined), ``centre_lower`` (a lower bound of the residual at the centre),
+    ``sensitivity (B, n)`` (how much each side adds to the bounds) and, with a level, ``value_lower`` (V's lower bound
+    over the box) and ``centre_value_upper`` (V's upper bound at the centre); on a band under the level also
+    ``value_upper`` and ``centre_value_lower`` (None where not asked). Workers send it as :meth:`as_dict`."""
+
+    upper: Tensor
+    centre_lower: Tensor
+    sensitivity: Tensor
+    value_lower: Tensor | None = None
+    centre_value_upper: Tensor | None = None
+    value_upper: Tensor | None = None
+    centre_value_lower: Tensor | None = None
+
+    def as_dict(self) -> dict[str, Tensor]:
+        """The tensors that are set, on the CPU (what a worker sends back; chunks join entry by entry)."""
+        return {f.name: getattr(self, f.name).cpu() for f in fields(self) if getattr(self, f.name) is not None}
+
+
 class ConditionJob:
     """Bounds of ``condition``'s residual for the closed loop ``loop`` (its float64 view) over boxes; with ``level``,
     on the part of each box where ``V <= level``, with V's bounds beside.
 
-    Called on boxes ``lo, hi (B, n)`` it returns a dict of ``(B,)`` tensors: ``upper`` (the residual's upper bound,
-    +inf where undefined), ``centre_lower`` (a lower bound of the residual at the centre), ``sensitivity (B, n)`` and,
-    with a level, ``value_lower`` (V's lower bound over the box) and ``centre_value_upper`` (V's upper bound at the
-    centre); with ``band`` too (a proof on a band under the level), ``value_upper`` and ``centre_value_lower``."""
+    Called on boxes ``lo, hi (B, n)`` it returns :class:`ConditionBounds` as a dict (:meth:`ConditionBounds.as_dict`);
+    with ``band`` (a proof on a band under the level) V's upper bounds too."""
 
     def __init__(self, loop, condition, level: float | None, enclosure: str, device: str = "cpu",
                  band: bool = False) -> None:
@@ -75,15 +95,14 @@ class ConditionJob:
         job.device = device
         return job
 
-    def __call__(self, lo: Tensor, hi: Tensor) -> dict:
+    def __call__(self, lo: Tensor, hi: Tensor) -> dict[str, Tensor]:
         device = torch.device(self.device)
-        out = bound_condition(self.loop, self.condition, self.level, self.enclosure, lo.to(device), hi.to(device),
-                              self.band)
-        return {k: v.cpu() for k, v in out.items()}
+        return bound_condition(self.loop, self.condition, self.level, self.enclosure, lo.to(device), hi.to(device),
+                               self.band).as_dict()
 
 
 def bound_condition(loop, condition, level: float | None, enclosure: str, lo: Tensor, hi: Tensor,
-                    band: bool = False) -> dict:
+                    band: bool = False) -> ConditionBounds:
     """What a :class:`ConditionJob` returns for the boxes ``lo, hi (B, n)`` (local coordinates, on the networks'
     device), computed with ``loop``'s networks as they are: the verifier passes float64 copies; training passes its
     live networks within :func:`~drlyap.enclosures.weight_gradients`, and ``upper`` is then the verifier's bound,
@@ -92,21 +111,19 @@ def bound_condition(loop, condition, level: float | None, enclosure: str, lo: Te
     read = slice(0, 0) if level is None else slice(-1, None)  # of the lower bounds, V's alone is read (with a level)
     lb_c, ub_c, at, sens, form = box_bounds(make(loop, condition), lo, hi, enclosure, sensitivity=True,
                                             keep_form=True, read_lower=read)
-    out = {"sensitivity": sens}
+    value: dict[str, Tensor] = {}
     at_lo = at.lo
     if level is not None:  # the last component is V
-        out["value_lower"], out["centre_value_upper"] = lb_c[:, -1], at.hi[:, -1]
+        value.update(value_lower=lb_c[:, -1], centre_value_upper=at.hi[:, -1])
         if band:  # only a band's proof reads them: nothing more to send back from the workers otherwise
-            out["value_upper"], out["centre_value_lower"] = ub_c[:, -1], at.lo[:, -1]
+            value.update(value_upper=ub_c[:, -1], centre_value_lower=at.lo[:, -1])
         ub_c, at_lo = ub_c[:, :-1], at_lo[:, :-1]
     upper = combine_upper(condition, ub_c)
     if level is not None and form is not None:  # the S-procedure where the plain bound proves nothing yet
-        need = ((upper > 0) & (out["value_lower"] <= level)).nonzero().squeeze(-1)
+        need = ((upper > 0) & (value["value_lower"] <= level)).nonzero().squeeze(-1)
         if need.numel():
             upper = upper.index_put((need,), torch.minimum(upper[need], sublevel_upper(condition, form[need], level)))
-    out["upper"] = upper
-    out["centre_lower"] = combine_lower(condition, at_lo)
-    return out
+    return ConditionBounds(upper, combine_lower(condition, at_lo), sens, **value)
 
 
 def _loop_on(loop, device: str):

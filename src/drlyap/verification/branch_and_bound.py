@@ -36,7 +36,7 @@ from drlyap.kinds import Status
 from drlyap.networks import QuadraticLyapunov
 from drlyap.progress import progress as show_progress
 from drlyap.regions import Region, box_grid, default_grid, inside_ball, split
-from drlyap.verification.bounding import ConditionJob, run_batches
+from drlyap.verification.bounding import ConditionBounds, ConditionJob, run_batches
 from drlyap.verification.bounds import box_bounds, condition_objective, vertex_max
 from drlyap.verification.checkpoints import SAVE_SPACING, load_checkpoint, proof_key, save_checkpoint
 from drlyap.verification.partition import INSIDE_CORE, OPEN, PROVED, Partition, PartitionRecorder
@@ -259,7 +259,7 @@ class _Search:
                 self.flight.pop(0)
                 self.processed += clo.shape[0]
                 bar.update(clo.shape[0])
-                if self._sort(clo, chi, cids, bounds, scale):
+                if self._sort(clo, chi, cids, ConditionBounds(**bounds), scale):
                     break
                 sorting = False
                 if self.key is not None and time.perf_counter() - saved_at >= spacing:
@@ -286,28 +286,28 @@ class _Search:
         self.finished = True
         self._save()
 
-    def _sort(self, clo: Tensor, chi: Tensor, cids: Tensor, bounds: dict, scale: Tensor) -> bool:
+    def _sort(self, clo: Tensor, chi: Tensor, cids: Tensor, bounds: ConditionBounds, scale: Tensor) -> bool:
         """Take one batch's bounds: record proved boxes, confirm counterexamples, split the rest. True: stop."""
         region, condition, level, tree = self.region, self.condition, self.level, self.tree
-        ub, centre_lb, sens = bounds["upper"], bounds["centre_lower"], bounds["sensitivity"]
+        ub, centre_lb, sens = bounds.upper, bounds.centre_lower, bounds.sensitivity
         centre = (clo + chi) / 2
         in_region = region.in_region(centre)
         outside = below = torch.zeros(clo.shape[0], dtype=torch.bool)
         if level is not None:  # boxes above the level are done, centres must lie in the set
-            outside = bounds["value_lower"] > level
-            in_region = in_region & (bounds["centre_value_upper"] <= level)
+            outside = bounds.value_lower > level
+            in_region = in_region & (bounds.centre_value_upper <= level)
         if self.floor is not None:  # and on a band, boxes below its floor
-            below = (bounds["value_upper"] < self.floor) & ~outside
-            in_region = in_region & (bounds["centre_value_lower"] >= self.floor)
+            below = (bounds.value_upper < self.floor) & ~outside
+            in_region = in_region & (bounds.centre_value_lower >= self.floor)
         if in_region.any():
             self.sup_lo = max(self.sup_lo, float(centre_lb[in_region].max()))
         ub = torch.where(outside | below, -torch.inf, ub)
         ok = ub <= 0
         tree.proved(cids[ok & ~outside & ~below], ub[ok & ~outside & ~below])
         if level is not None:
-            tree.above_level(cids[ok & outside], bounds["value_lower"][ok & outside])
+            tree.above_level(cids[ok & outside], bounds.value_lower[ok & outside])
         if self.floor is not None:
-            tree.below_level(cids[below], bounds["value_upper"][below])
+            tree.below_level(cids[below], bounds.value_upper[below])
         self.verified_count += int(ok.sum())
         if (ok & ~outside & ~below).any():
             self.sup_hi = max(self.sup_hi, float(ub[ok & ~outside & ~below].max()))
