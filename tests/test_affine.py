@@ -16,7 +16,7 @@ from drlyap.config import Budget
 from drlyap.enclosures import Affine, Dual, Interval, is_enclosure, quadratic_max
 from drlyap.enclosures.quadratic import quadratic_span
 from drlyap.networks import Controller, Lyapunov, TanhMLP
-from drlyap.regions import Region
+from drlyap.regions import Domain, Region
 from drlyap.systems import get_system
 from drlyap.training import TrainConfig, TrainSections
 from drlyap.verification import maximize, verify_condition
@@ -478,8 +478,9 @@ def test_maximize_with_affine_forms_bounds_sampled_values_at_4_states():
     spec = Nominal(torch.zeros(1, system.k, dtype=F64), 0.1)
     lo, hi = system.local_box()
     lo, hi = lo * 0.3, hi * 0.3
-    lower, upper, info = maximize(condition_objective(ClosedLoop(system, lyap, ctrl), spec), lo[None], hi[None],
-                                  (hi - lo) / 2, Budget(seconds=3.0, boxes=1_000_000, enclosure="affine"))
+    lower, upper, info = maximize(condition_objective(ClosedLoop(system, lyap, ctrl), spec),
+                                  Domain(lo[None], hi[None], (hi - lo) / 2),
+                                  Budget(seconds=3.0, boxes=1_000_000, enclosure="affine"))
     z = lo + (hi - lo) * torch.rand(20000, system.n, generator=torch.Generator().manual_seed(0), dtype=F64)
     sampled = float(ClosedLoop(system, lyap, ctrl).exact(spec, z).max())
     assert float(lower[0]) <= float(upper[0])
@@ -494,8 +495,9 @@ def test_maximize_stopped_early_keeps_a_sound_finite_bound():
 
     lo, hi = torch.tensor([[-1.0, -1.0]], dtype=F64), torch.tensor([[1.0, 1.0]], dtype=F64)
     scale = torch.tensor([2.0, 2.0], dtype=F64)
-    first = maximize(objective, lo, hi, scale, Budget(seconds=2.0, boxes=1, batch=1, enclosure="mean-value"))[1]
-    lower, upper, info = maximize(objective, lo, hi, scale, Budget(seconds=2.0, boxes=60, batch=2, enclosure="mean-value"),
+    first = maximize(objective, Domain(lo, hi, scale), Budget(seconds=2.0, boxes=1, batch=1, enclosure="mean-value"))[1]
+    lower, upper, info = maximize(objective, Domain(lo, hi, scale),
+                                  Budget(seconds=2.0, boxes=60, batch=2, enclosure="mean-value"),
                                   rel_tol=1e-9)
     assert info.stopped == "box budget"
     z = lo + (hi - lo) * torch.rand(50000, 2, generator=torch.Generator().manual_seed(1), dtype=F64)
@@ -511,8 +513,8 @@ def test_maximize_refines_until_a_centre_is_accepted():
 
     lo, hi = torch.tensor([[0.0, -1.0]], dtype=F64), torch.tensor([[1.0, 1.0]], dtype=F64)
     scale = torch.tensor([1.0, 2.0], dtype=F64)
-    lower, upper, info = maximize(objective, lo, hi, scale, Budget(seconds=30.0, boxes=4000, enclosure="mean-value"),
-                                  centre_ok=lambda z: z[:, 0] > 0.7, rel_tol=1e-9, abs_tol=1e-4)
+    lower, upper, info = maximize(objective, Domain(lo, hi, scale, contains=lambda z: z[:, 0] > 0.7),
+                                  Budget(seconds=30.0, boxes=4000, enclosure="mean-value"), rel_tol=1e-9, abs_tol=1e-4)
     assert info.attained_at is not None and float(info.attained_at[0, 0]) > 0.7
     assert float(lower[0]) <= 0.0 <= float(upper[0]) and float(upper[0]) - float(lower[0]) < 1e-3
 

@@ -9,7 +9,8 @@ its starting boxes, its ball test and its volume from it. Everything is in local
 from __future__ import annotations
 
 import math
-from collections.abc import Sequence
+from collections.abc import Callable, Sequence
+from dataclasses import dataclass
 
 import torch
 from torch import Tensor
@@ -70,6 +71,30 @@ def split(lo: Tensor, hi: Tensor, scale: Tensor, sensitivity: Tensor | None = No
     hi1[rows, dim] = mid
     lo2[rows, dim] = mid
     return torch.cat([lo, lo2]), torch.cat([hi1, hi])
+
+
+@dataclass
+class Domain:
+    """A set a branch and bound searches, as a union of boxes: the starting boxes ``lo, hi (B, n)``, ``scale (n,)``
+    (the widths box sides are measured against), ``meets(lo, hi) -> (B,)`` the boxes that may hold points of the set
+    (None: every box; the others are dropped when split) and ``contains(z) -> (B,)`` the points that lie in it (None:
+    every point)."""
+
+    lo: Tensor
+    hi: Tensor
+    scale: Tensor
+    meets: Callable[[Tensor, Tensor], Tensor] | None = None
+    contains: Callable[[Tensor], Tensor] | None = None
+
+    def boxes_meeting(self, lo: Tensor, hi: Tensor) -> Tensor:
+        """The boxes ``(B,)`` that may hold points of the set."""
+        return self.meets(lo, hi) if self.meets is not None else torch.ones(lo.shape[0], dtype=torch.bool,
+                                                                             device=lo.device)
+
+    def points_in(self, z: Tensor) -> Tensor:
+        """The points ``(B,)`` of ``z (B, n)`` that lie in the set."""
+        return self.contains(z) if self.contains is not None else torch.ones(z.shape[0], dtype=torch.bool,
+                                                                              device=z.device)
 
 
 def ball_volume(radius: float, n: int) -> float:

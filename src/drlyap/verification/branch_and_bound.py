@@ -35,7 +35,7 @@ from drlyap.enclosures import EPS, F64, Interval, round_down, round_up
 from drlyap.kinds import Status
 from drlyap.networks import QuadraticLyapunov
 from drlyap.progress import progress as show_progress
-from drlyap.regions import Region, box_grid, default_grid, inside_ball, split
+from drlyap.regions import Domain, Region, box_grid, default_grid, inside_ball, split
 from drlyap.verification.bounding import ConditionBounds, ConditionJob, run_batches
 from drlyap.verification.bounds import box_bounds, condition_objective, vertex_max
 from drlyap.verification.checkpoints import SAVE_SPACING, load_checkpoint, proof_key, save_checkpoint
@@ -420,23 +420,24 @@ class SearchInfo:
     attained_at: Tensor | None
 
 
-def maximize(objective: Callable, lo: Tensor, hi: Tensor, scale: Tensor, budget: Budget, *,
-             centre_ok: Callable | None = None, box_ok: Callable | None = None, rel_tol: float = 1e-3,
-             abs_tol: float = 1e-9, tree: PartitionRecorder | None = None,
-             leaf_bound: Callable | None = None, label: str | None = None) -> tuple[Tensor, Tensor, SearchInfo]:
-    """Bounds ``lower <= sup <= upper`` (each ``(Q,)``) of every component of ``objective`` over a union of boxes
-    ``[lo, hi] (B, n)`` (``scale (n,)``: the widths that box sides are measured against).
+def maximize(objective: Callable, domain: Domain, budget: Budget, *, rel_tol: float = 1e-3, abs_tol: float = 1e-9,
+             tree: PartitionRecorder | None = None, leaf_bound: Callable | None = None,
+             label: str | None = None) -> tuple[Tensor, Tensor, SearchInfo]:
+    """Bounds ``lower <= sup <= upper`` (each ``(Q,)``) of every component of ``objective`` over the set ``domain``
+    (its starting boxes, and the parts of them it ``meets``).
 
-    The upper bound is sound over the boxes (kept by ``box_ok``); the lower bound comes from box centres
-    accepted by ``centre_ok`` (points of the set). Boxes that may still raise some component's supremum
+    The upper bound is sound over the boxes (kept by ``domain.meets``); the lower bound comes from box centres
+    the domain ``contains`` (points of the set). Boxes that may still raise some component's supremum
     by more than the tolerance are split, widest side first, until the budget's time or boxes or minimum size.
     ``budget.enclosure``: as for :func:`verify_condition` (None: by the boxes' dimension). ``tree``: records the
-    boxes (``lo, hi`` are then its grid's cells, in order): those ``box_ok`` drops as inside the ball, the splits, and
-    every other leaf as proved with ``leaf_bound(upper (L, Q)) -> (L,)`` of its components' upper bounds.
-    The third result (:class:`SearchInfo`) says how the search went and holds ``attained_at`` ``(Q, n)``: the centre
-    at which each component's lower bound was found (None where no centre was accepted). ``label``: what a progress
-    line of its boxes calls the search (where ``budget.compute.progress``; None: none).
+    boxes (the domain's starting boxes are then its grid's cells, in order): those ``meets`` drops as inside the ball,
+    the splits, and every other leaf as proved with ``leaf_bound(upper (L, Q)) -> (L,)`` of its components' upper
+    bounds. The third result (:class:`SearchInfo`) says how the search went and holds ``attained_at`` ``(Q, n)``: the
+    centre at which each component's lower bound was found (None where no centre was accepted). ``label``: what a
+    progress line of its boxes calls the search (where ``budget.compute.progress``; None: none).
     """
+    lo, hi, scale = domain.lo, domain.hi, domain.scale
+    box_ok, centre_ok = domain.meets, domain.contains
     enclosure = budget.enclosure_for(lo.shape[-1])
     time_limit, max_boxes, min_width, batch = budget.seconds, budget.boxes, budget.min_width, budget.batch
     start = time.perf_counter()
@@ -531,9 +532,9 @@ def uniform_margin(loop: ClosedLoop, condition: DRUniform, region: Region, budge
         return round_up(condition.margin(suprema), 64 * EPS, suprema.abs().amax(-1) * (1 + coef))
 
     lower, upper, info = maximize(
-        condition_objective(loop, condition), lo, hi, region.scale, budget,
-        centre_ok=region.in_region, box_ok=lambda a, b: ~inside_ball(a, b, delta), rel_tol=rel_tol, tree=tree,
-        leaf_bound=margin_up, label="proof of the uniform margin")
+        condition_objective(loop, condition),
+        Domain(lo, hi, region.scale, lambda a, b: ~inside_ball(a, b, delta), region.in_region), budget,
+        rel_tol=rel_tol, tree=tree, leaf_bound=margin_up, label="proof of the uniform margin")
     m_up = float(margin_up(upper))
     m_lo = float(round_down(condition.margin(lower), 64 * EPS, lower.abs().amax() * (1 + coef)))
     status = Status.VERIFIED if m_up <= 0 else (Status.VIOLATED if m_lo > 0 else Status.UNKNOWN)

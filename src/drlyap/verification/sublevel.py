@@ -18,7 +18,7 @@ from drlyap.config import DEFAULT_SETTLE_STARTS, Budget
 from drlyap.enclosures import F64, round_down
 from drlyap.kinds import Model, Status
 from drlyap.networks import QuadraticLyapunov
-from drlyap.regions import Region, box_grid, default_grid
+from drlyap.regions import Domain, Region, box_grid, default_grid
 from drlyap.verification.bounds import box_bounds, value_objective
 from drlyap.verification.branch_and_bound import maximize, verify_condition
 from drlyap.verification.falsifier import settle_unknown
@@ -71,7 +71,7 @@ def boundary_minimum(lyapunov, region: Region, budget: Budget = Budget(seconds=5
         return FaceMinimum(low, float(lyapunov(point[None])[0]))
     vobj = value_objective(lyapunov)
     flo, fhi = box_faces(region.lo, region.hi, default_grid(region.n))
-    best, neg_up, found = maximize(lambda z: -vobj(z), flo, fhi, region.scale, budget, rel_tol=rel_tol,
+    best, neg_up, found = maximize(lambda z: -vobj(z), Domain(flo, fhi, region.scale), budget, rel_tol=rel_tol,
                                    label="V's least value on the box's faces")
     return FaceMinimum(float(-neg_up[0]), float(-best[0]), found.boxes_processed, found.stopped)
 
@@ -132,9 +132,8 @@ def exit_minimum(loop: ClosedLoop, condition: Condition, region: Region,
 
     if not bool(may_leave(flo, fhi).any()):
         return FaceMinimum(float("inf"), float("inf"))
-    best, neg_up, found = maximize(lambda z: -vobj(z), flo, fhi, region.scale, budget, box_ok=may_leave,
-                                   centre_ok=leaves, rel_tol=rel_tol,
-                                   label="V's least value where the flow may leave the box")
+    best, neg_up, found = maximize(lambda z: -vobj(z), Domain(flo, fhi, region.scale, may_leave, leaves), budget,
+                                   rel_tol=rel_tol, label="V's least value where the flow may leave the box")
     return FaceMinimum(float(-neg_up[0]), float(-best[0]), found.boxes_processed, found.stopped)
 
 

@@ -29,7 +29,7 @@ from drlyap.conditions import Condition, PlainDecrease
 from drlyap.config import Budget
 from drlyap.enclosures import F64
 from drlyap.kinds import Enclosure
-from drlyap.regions import Region, box_grid, default_grid
+from drlyap.regions import Domain, Region, box_grid, default_grid
 from drlyap.verification.branch_and_bound import verify_condition
 from drlyap.verification.roa.levels import BOX_BUDGET, TIME_LIMIT, below, level_search, time_capped
 from drlyap.verification.roa.local import resolving_ellipsoid
@@ -80,9 +80,6 @@ def band_roa(loop: ClosedLoop, condition: Condition, region: Region, quadratic: 
     # boxes must resolve a set as small as L (the box holding x* has to fit inside it)
     fine = resolving_ellipsoid(min_width, p, c_q, region)
 
-    def everywhere(a, b):
-        return torch.ones(a.shape[0], dtype=torch.bool, device=a.device)
-
     # levels from just above V's sampled minimum on L's boundary up, 1.3x apart: a search with a fixed level drops
     # the boxes above it at once and bounds the rest on {V <= level} only; one with the top level would spend the
     # time on the sets far above the level it reaches
@@ -90,11 +87,10 @@ def band_roa(loop: ClosedLoop, condition: Condition, region: Region, quadratic: 
     reached, boxes, cex, targets = -math.inf, 0, None, []
     while True:
         level, why, cex, count = level_search(
-            loop, strict, lo, hi, region.scale, target,
-            limited_by if target >= top else "next level not reached", start + time_limit, meets=everywhere,
-            in_region=lambda centre, v: everywhere(centre, centre), min_width=fine, batch=budget.batch,
-            enclosure=Enclosure.AFFINE, ellipsoid=(p, c_q), max_boxes=max(1, budget.boxes - boxes),
-            progress=budget.compute.progress)
+            loop, strict, Domain(lo, hi, region.scale), target,
+            limited_by if target >= top else "next level not reached",
+            replace(budget, seconds=start + time_limit - time.perf_counter(), boxes=max(1, budget.boxes - boxes),
+                    min_width=fine, enclosure=Enclosure.AFFINE), ellipsoid=(p, c_q))
         boxes += count
         targets.append(LevelTry(target, level >= target, count, time.perf_counter() - start))
         if level >= target and target < top:

@@ -11,17 +11,19 @@ from __future__ import annotations
 
 import math
 import time
+from typing import NamedTuple
 
 import torch
 from torch import Tensor
 
 from drlyap.closed_loop import ClosedLoop
 from drlyap.conditions import Condition
+from drlyap.config import Budget
 from drlyap.enclosures import F64, REL1, round_down
 from drlyap.kinds import Enclosure
 from drlyap.networks import QuadraticLyapunov
 from drlyap.progress import progress as show_progress
-from drlyap.regions import split
+from drlyap.regions import Domain, split
 from drlyap.verification.bounds import (
     box_bounds,
     combine_lower,
@@ -56,29 +58,41 @@ def below(level: float) -> float:
     return float(round_down(torch.tensor(level, dtype=F64), REL1)) if math.isfinite(level) else level
 
 
-def level_search(loop: ClosedLoop, condition: Condition, lo: Tensor, hi: Tensor, scale: Tensor, level: float,
-                 limited_by: str, deadline: float, *, meets, in_region, floor: float = -math.inf,
-                 min_width: float = 1e-4, batch: int = 4096, enclosure: Enclosure = Enclosure.MEAN_VALUE,
-                 ellipsoid: tuple[Tensor, float] | None = None, max_boxes: int | None = None,
-                 progress: bool = False) -> tuple[float, str, Tensor | None, int]:
-    """The largest level (at most ``level``) such that ``condition`` holds on every state of the boxes
-    ``[lo, hi]`` (and of their parts where ``meets(lo, hi)``, a ``(B,)`` mask) with ``floor <= V <= level``
-    (with ``ellipsoid = (P, c_q)``: and ``z^T P z >= c_q``, outside the ellipsoid ``L``).
+class LevelFound(NamedTuple):
+    """What :func:`level_search` found: the level, what limited it, the counterexample that did (local coordinates,
+    or None) and the boxes it bounded."""
+
+    level: float
+    limited_by: str
+    counterexample: Tensor | None
+    boxes: int
+
+
+def level_search(loop: ClosedLoop, condition: Condition, domain: Domain, level: float, limited_by: str,
+                 budget: Budget, *, floor: float = -math.inf,
+                 ellipsoid: tuple[Tensor, float] | None = None) -> LevelFound:
+    """The largest level (at most ``level``) such that ``condition`` holds on every state of ``domain`` (its starting
+    boxes, and their parts it ``meets``) with ``floor <= V <= level`` (with ``ellipsoid = (P, c_q)``: and
+    ``z^T P z >= c_q``, outside the ellipsoid ``L``).
 
     Boxes with V's lower bound above the level, or V's upper bound below ``floor``, need no proof; the rest are
     proved or split, those with the lowest bound on V first (a box's parts inherit its bound), so that the
     sets ``{V <= c}`` are settled from small ``c`` up and a budget that runs out costs the least level. A box that
     cannot be proved lowers the level to (a lower bound of) V on it: to V at its centre when that centre is a
-    confirmed violation in the region (``in_region(centre, V enclosure)``), else to V's lower bound on it once
-    it reaches the minimum size, or once ``max_boxes`` boxes are processed (None: no limit; ``limited_by``
-    :data:`BOX_BUDGET`) or the clock passes ``deadline`` (:data:`TIME_LIMIT`), whichever comes first.
+    confirmed violation the domain ``contains``, else to V's lower bound on it once it reaches ``budget.min_width``,
+    or once ``budget.boxes`` boxes are processed (``limited_by`` :data:`BOX_BUDGET`) or ``budget.seconds`` have
+    passed (:data:`TIME_LIMIT`, a cap), whichever comes first. Boxes are bounded ``budget.batch`` at a time with
+    ``budget.enclosure``.
 
     With ``ellipsoid`` (the affine enclosure only): boxes inside ``L`` (every vertex; ``L`` is convex) need no proof,
     V's lower bound is taken on each box's part outside ``L`` (:func:`outside_lower`), and boxes are split on the side
     that adds most to the bounds (``split``'s sensitivity): the search behind
-    :func:`~drlyap.verification.roa.band.band_roa`. Returns the level, what limited it, the counterexample (local, or
-    None) and the number of boxes processed. ``progress``: a line on stderr of the boxes processed, the level so far
-    and the boxes queued."""
+    :func:`~drlyap.verification.roa.band.band_roa`. ``budget.compute.progress``: a line on stderr of the boxes
+    processed, the level so far and the boxes queued."""
+    deadline = time.perf_counter() + budget.seconds
+    lo, hi, scale, meets = domain.lo, domain.hi, domain.scale, domain.boxes_meeting
+    min_width, batch, max_boxes = budget.min_width, budget.batch, budget.boxes
+    enclosure = budget.enclosure_for(lo.shape[-1])
     base = condition_and_value_objective(loop, condition)
     if ellipsoid is None:
         objective = base
@@ -95,9 +109,9 @@ def level_search(loop: ClosedLoop, condition: Condition, lo: Tensor, hi: Tensor,
     processed = 0
     cex = None
     known = torch.full((lo.shape[0],), -math.inf, dtype=lo.dtype)  # a lower bound of V on each queued box
-    bar = show_progress(max_boxes, "region of attraction: level search, boxes", progress)
+    bar = show_progress(max_boxes, "region of attraction: level search, boxes", budget.compute.progress)
     while lo.shape[0]:
-        spent = max_boxes is not None and processed >= max_boxes
+        spent = processed >= max_boxes
         if spent or time.perf_counter() > deadline:
             order = known.argsort()
             first = order[:16 * batch]  # tighten the lowest inherited bounds, the rest stand as they are
@@ -137,7 +151,7 @@ def level_search(loop: ClosedLoop, condition: Condition, lo: Tensor, hi: Tensor,
             res_ub = torch.minimum(res_ub, sublevel_upper(condition, form, level))
         centre = (clo + chi) / 2
         open_ = active & (res_ub > 0)
-        bad = (open_ & in_region(centre, at[:, -1]) & (at.hi[:, -1] >= floor)
+        bad = (open_ & domain.points_in(centre) & (at.hi[:, -1] >= floor)
                & (combine_lower(condition, at.lo[:, :-1]) > 0))
         if ellipsoid is not None:  # a violation inside L does not count against the band
             bad = bad & (w(centre) > c_q)
@@ -163,7 +177,7 @@ def level_search(loop: ClosedLoop, condition: Condition, lo: Tensor, hi: Tensor,
             lo, hi, known = lo[~above], hi[~above], known[~above]
         bar.set_postfix(level=f"{level:.6g}", queued=lo.shape[0])
     bar.close()
-    return level, limited_by, cex, processed
+    return LevelFound(level, limited_by, cex, processed)
 
 
 def outside_lower(v_form, w_form, v_centre: Tensor, w_centre: Tensor, c_q: float, level: float) -> Tensor:

@@ -46,7 +46,7 @@ from drlyap.config import Budget
 from drlyap.enclosures import F64, REL1, round_down, round_up
 from drlyap.kinds import Enclosure
 from drlyap.networks import QuadraticLyapunov
-from drlyap.regions import Region, box_grid, default_grid, near_dist
+from drlyap.regions import Domain, Region, box_grid, default_grid, near_dist
 from drlyap.verification.bounds import box_bounds, value_objective
 from drlyap.verification.branch_and_bound import maximize, verify_condition
 from drlyap.verification.linearisation import (
@@ -318,10 +318,10 @@ def linearisation_local(loop: ClosedLoop, condition: Condition, region: Region, 
             return box_bounds(wobj, a, b, enclosure)[1][:, 0] >= c_qi
 
         seconds = max(1.0, 0.3 * (deadline - time.perf_counter()) / (len(candidates) - i))
-        _, neg_up, info = maximize(lambda z: -vobj(z), blo, bhi, region.scale,
+        outside_ellipsoid = Domain(blo, bhi, region.scale, outside, lambda z, w_i=w_i, c_qi=c_qi: w_i(z) >= c_qi)
+        _, neg_up, info = maximize(lambda z: -vobj(z), outside_ellipsoid,
                                    replace(budget, seconds=seconds, boxes=share(budget.boxes, 0.3 / len(candidates)),
-                                           enclosure=enclosure), box_ok=outside,
-                                   centre_ok=lambda z, w_i=w_i, c_qi=c_qi: w_i(z) >= c_qi,
+                                           enclosure=enclosure),
                                    label="V's least value outside the closed loop's ellipsoid")
         capped += ["V's minimum outside the closed loop's ellipsoid"] if time_capped(info.stopped) else []
         c_1i = float(round_down(round_down(-neg_up[0], REL1), 1e-9))
@@ -356,10 +356,10 @@ def linearisation_local(loop: ClosedLoop, condition: Condition, region: Region, 
     # boxes near {V = c_1} must resolve a set as small as {W <= c_q}: a minimum width relative to it
     fine = resolving_ellipsoid(min_width, p, c_q, region)
     c_2, limited_by, cex, boxes = level_search(
-        loop, inner, alo, ahi, region.scale, level, "outer proof", max(deadline, time.perf_counter() + 1.0),
-        meets=meets, in_region=lambda centre, v: centre.norm(dim=-1) < delta, floor=c_1, min_width=fine,
-        batch=budget.batch, enclosure=enclosure, max_boxes=share(max(budget.boxes - spent, budget.boxes // 10), 1.0),
-        progress=budget.compute.progress)
+        loop, inner, Domain(alo, ahi, region.scale, meets, lambda centre: centre.norm(dim=-1) < delta), level,
+        "outer proof", replace(budget, seconds=max(deadline - time.perf_counter(), 1.0), min_width=fine,
+                               enclosure=enclosure, boxes=share(max(budget.boxes - spent, budget.boxes // 10), 1.0)),
+        floor=c_1)
     spent += boxes
     capped += ["the annulus inside the ball"] if time_capped(limited_by) else []
     c_2 = below(c_2)

@@ -41,7 +41,7 @@ from drlyap.enclosures import F64
 from drlyap.enclosures.quadratic import surely_semidefinite
 from drlyap.kinds import Model
 from drlyap.networks import Lyapunov, QuadraticLyapunov
-from drlyap.regions import Region, box_grid, default_grid, near_dist
+from drlyap.regions import Domain, Region, box_grid, default_grid, near_dist
 from drlyap.verification.bounds import value_objective
 from drlyap.verification.branch_and_bound import SearchInfo, maximize
 from drlyap.verification.results import ConditionProof, RegionOfAttraction
@@ -151,9 +151,9 @@ def outer_search(loop: ClosedLoop, condition: Condition, region: Region, budget:
     top, why = (faces, face_why) if faces <= max_level else (max_level, TRAINED_LEVEL)
     whole = 0.6 if delta > 0 else 1.0  # 40% kept for the ball
     level, limited_by, cex, processed = level_search(
-        loop, condition, lo, hi, scale, top, why, start + whole * time_limit, meets=region.meets,
-        in_region=lambda centre, v: region.in_region(centre), min_width=min_width, batch=budget.batch,
-        enclosure=enclosure, max_boxes=box_share(budget.boxes, whole), progress=budget.compute.progress)
+        loop, condition, Domain(lo, hi, scale, region.meets, region.in_region), top, why,
+        replace(budget, seconds=start + whole * time_limit - time.perf_counter(), boxes=box_share(budget.boxes, whole),
+                min_width=min_width, enclosure=enclosure))
     return OuterSearch(boundary_min_lower, ball_max_upper, below(level), limited_by, cex, processed, top, why, start,
                        start + time_limit, exit_min_lower, tuple(capped), processed)
 
@@ -165,8 +165,8 @@ def _ball_max(lyapunov, region: Region, budget: Budget) -> tuple[float, str]:
         return 0.0, "finished"
     ball = region.ball_box(delta)
     glo, ghi = box_grid(ball.lo, ball.hi, default_grid(region.lo.shape[0]))
-    _, up, info = maximize(value_objective(lyapunov), glo, ghi, region.scale, budget,
-                           box_ok=lambda a, b: near_dist(a, b) < delta, label="V's largest value on the delta-ball")
+    _, up, info = maximize(value_objective(lyapunov), Domain(glo, ghi, region.scale, lambda a, b: near_dist(a, b) < delta),
+                           budget, label="V's largest value on the delta-ball")
     return float(up[0]), info.stopped
 
 
@@ -220,8 +220,8 @@ def positive_lower(lyapunov, region: Region, budget: Budget) -> tuple[float, Sea
     V's least value at the boxes' centres, or the budget is spent (``maximize``'s info as the second result)."""
     vobj = value_objective(lyapunov)
     lo, hi = region.boxes(default_grid(region.n))
-    _, neg_up, info = maximize(lambda z: -vobj(z), lo, hi, region.scale, budget, box_ok=region.meets,
-                               centre_ok=region.in_region, rel_tol=0.5, label="V's least value outside the delta-ball")
+    _, neg_up, info = maximize(lambda z: -vobj(z), Domain(lo, hi, region.scale, region.meets, region.in_region), budget,
+                               rel_tol=0.5, label="V's least value outside the delta-ball")
     return float(-neg_up[0]), info
 
 
