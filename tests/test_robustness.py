@@ -11,7 +11,13 @@ from drlyap.conditions import DRPointwise, Nominal, TrueDecrease, decrease_terms
 from drlyap.config import Budget
 from drlyap.enclosures import Interval
 from drlyap.regions import Region
-from drlyap.verification import certified_radius, certified_shift_box, shift_box_condition, verify_condition
+from drlyap.verification import (
+    SearchLimits,
+    certified_radius,
+    certified_shift_box,
+    shift_box_condition,
+    verify_condition,
+)
 from handmade import linear_pair, small_pendulum, verified_json
 
 F64 = torch.float64
@@ -55,7 +61,7 @@ def test_certified_radius_is_proved_there_and_fails_just_above(eps):
     lyap, ctrl = linear_pair(system)
     loop, region = ClosedLoop(system, lyap, ctrl), Region.of(system, DELTA)
     condition = DRPointwise(1e-3, eps, XI, 0.05)
-    out = certified_radius(loop, condition, region, TEN, tol=TOL)
+    out = certified_radius(loop, condition, region, TEN, limits=SearchLimits(tol=TOL))
     r = out.radius
     assert r is not None and r > 0 and out.stopped == "tolerance"
     assert out.unproved <= r * (1 + TOL) and out.unproved_status in ("violated", "unknown")
@@ -98,7 +104,7 @@ def test_certified_shift_box_is_proved_there_and_fails_just_above():
     lyap, ctrl = linear_pair(system)
     loop, region = ClosedLoop(system, lyap, ctrl), Region.of(system, DELTA)
     scale = torch.tensor([0.1, 0.05], dtype=F64)
-    out = certified_shift_box(loop, 0.05, 0.0, region, scale, TEN, tol=TOL)
+    out = certified_shift_box(loop, region, scale, TEN, decay=(0.05, 0.0), limits=SearchLimits(tol=TOL))
     s = out.s
     assert s is not None and s > 0 and out.unproved <= s * (1 + TOL)
     assert out.box["mass"] == pytest.approx([-0.1 * s, 0.1 * s])
@@ -112,10 +118,11 @@ def test_certified_shift_box_is_proved_there_and_fails_just_above():
     assert worst > 0 or status != "verified"
     # from the tree of another condition's proof: the same bracket
     tree = verify_condition(loop, DRPointwise(1e-3, 0.1, XI, 0.05), region, TEN).partition
-    warm = certified_shift_box(loop, 0.05, 0.0, region, scale, TEN, tol=TOL, start=tree)
+    warm = certified_shift_box(loop, region, scale, TEN, decay=(0.05, 0.0), limits=SearchLimits(tol=TOL),
+                               start=tree)
     assert warm.s == pytest.approx(s, rel=TOL) and warm.unproved <= warm.s * (1 + TOL)
     with pytest.raises(ValueError, match="scale must be 2"):
-        certified_shift_box(loop, 0.05, 0.0, region, torch.tensor([0.1]), TEN)
+        certified_shift_box(loop, region, torch.tensor([0.1]), TEN, decay=(0.05, 0.0))
     with pytest.raises(ValueError, match="DRPointwise"):
         certified_radius(loop, Nominal(XI[:1], 0.05), region, TEN)
 
@@ -144,11 +151,11 @@ def test_the_radius_on_a_sublevel_set_is_proved_there_and_at_least_the_whole_reg
     """Over ``{V <= level}`` the claim asks less than over X_delta: its r* is at least as large, it is proved on
     that set, and sampled refutations come only from states inside it."""
     system, lyap, ctrl, loop, region, condition = _linear_loop()
-    whole = certified_radius(loop, condition, region, TEN, tol=TOL)
+    whole = certified_radius(loop, condition, region, TEN, limits=SearchLimits(tol=TOL))
     z = _dense(system)
     with torch.no_grad():
         level = float(loop.f64.lyapunov(z).quantile(0.3))  # a set that leaves out most of the box
-    sub = certified_radius(loop, condition, region, TEN, tol=TOL, level=level)
+    sub = certified_radius(loop, condition, region, TEN, limits=SearchLimits(tol=TOL), level=level)
     assert sub.level == level and whole.level is None
     assert sub.radius is not None and sub.radius >= whole.radius * (1 - TOL)
     assert verify_condition(loop, condition.with_radius(sub.radius), region, TEN, level=level).status == "verified"
@@ -159,10 +166,10 @@ def test_the_radius_on_a_sublevel_set_is_proved_there_and_at_least_the_whole_reg
 
 def test_the_radius_search_starts_at_a_radius_already_proved():
     system, lyap, ctrl, loop, region, condition = _linear_loop()
-    plain = certified_radius(loop, condition, region, TEN, tol=TOL)
+    plain = certified_radius(loop, condition, region, TEN, limits=SearchLimits(tol=TOL))
     known = 0.5 * plain.radius
     assert verify_condition(loop, condition.with_radius(known), region, TEN).status == "verified"
-    started = certified_radius(loop, condition, region, TEN, tol=TOL, proved=known)
+    started = certified_radius(loop, condition, region, TEN, limits=SearchLimits(tol=TOL), proved=known)
     assert started.probes[0] == {"value": known, "status": "verified", "by": "an earlier proof", "time_s": None}
     assert all(p["value"] > 0 for p in started.probes)  # r = 0 was not proved again
     assert started.radius >= known and started.unproved <= started.radius * (1 + TOL)
@@ -171,7 +178,7 @@ def test_the_radius_search_starts_at_a_radius_already_proved():
 
 def test_a_proof_starts_from_the_partition_of_a_weaker_one_and_its_tree_is_checked(tmp_path):
     system, lyap, ctrl, loop, region, condition = _linear_loop()
-    radius = certified_radius(loop, condition, region, TEN, tol=TOL).radius
+    radius = certified_radius(loop, condition, region, TEN, limits=SearchLimits(tol=TOL)).radius
     weak = verify_condition(loop, condition.with_radius(0.3 * radius), region, TEN)
     fresh = verify_condition(loop, condition.with_radius(0.9 * radius), region, TEN)
     warm = verify_condition(loop, condition.with_radius(0.9 * radius), region, TEN, start=weak.partition)
@@ -194,10 +201,11 @@ def test_a_proof_that_cannot_finish_within_its_budget_gives_up_early():
 
 def test_the_radius_search_from_a_proved_partition_brackets_the_same_radius():
     system, lyap, ctrl, loop, region, condition = _linear_loop()
-    plain = certified_radius(loop, condition, region, TEN, tol=TOL)
+    plain = certified_radius(loop, condition, region, TEN, limits=SearchLimits(tol=TOL))
     known = 0.5 * plain.radius
     proof = verify_condition(loop, condition.with_radius(known), region, TEN)
-    warm = certified_radius(loop, condition, region, TEN, tol=TOL, proved=known, start=proof.partition)
+    warm = certified_radius(loop, condition, region, TEN, limits=SearchLimits(tol=TOL), proved=known,
+                            start=proof.partition)
     assert abs(warm.radius - plain.radius) <= TOL * plain.radius
     assert verify_condition(loop, condition.with_radius(warm.radius), region, TEN).status == "verified"
 
@@ -206,7 +214,7 @@ def test_a_proof_keeps_the_leaves_a_stronger_proof_left_proved_and_its_tree_is_c
     from drlyap.verification.partition import OPEN, PROVED
 
     system, lyap, ctrl, loop, region, condition = _linear_loop()
-    radius = certified_radius(loop, condition, region, TEN, tol=TOL).radius
+    radius = certified_radius(loop, condition, region, TEN, limits=SearchLimits(tol=TOL)).radius
     strong = verify_condition(loop, condition.with_radius(1.5 * radius), region, TEN, stop_at_counterexample=True,
                               keep_partition=True)  # fails, but proves much of the region at the larger radius
     assert strong.status == "violated" and strong.partition is not None
@@ -262,7 +270,7 @@ def test_a_narrow_bracket_is_closed_by_one_proof_just_below_its_unproved_end(mon
             tried.append(v)
             return {"status": "verified" if v <= edge else "unknown", "time_s": 1.0}
 
-        found = _largest_proved(prove, lambda v: None, guess, 1.0, 0.01, 1e6, 40, 1e9, None, proved)
+        found = _largest_proved(prove, lambda v: None, guess, 1.0, SearchLimits(total_time=1e9), 1e6, None, proved)
         return found, tried
 
     found, tried = search(0.0884, 0.05, 0.2355)

@@ -46,14 +46,20 @@ from drlyap.verification.results import (
     UniformMargin,
 )
 from drlyap.verification.roa import certified_roa, local_decrease
-from drlyap.verification.robustness import certified_radius, certified_shift_box, shift_box_condition, shift_scale
+from drlyap.verification.robustness import (
+    SearchLimits,
+    certified_radius,
+    certified_shift_box,
+    shift_box_condition,
+    shift_scale,
+)
 from drlyap.verification.sublevel import boundary_minimum, prove_trained, verify_sublevel
 
 __all__ = [
-    "ENCLOSURES", "Budget", "Certificate", "CertifiedRadius", "CertifiedShiftBox", "ConditionProof", "CoveringCheck",
-    "ProofAttempt", "ProofConfig", "RegionOfAttraction", "RunRobustness", "RunVerification", "UniformMargin", "boundary_minimum",
-    "box_bounds", "certified_radius", "certified_roa", "certified_shift_box", "combine_lower", "combine_upper",
-    "condition_objective", "default_enclosure", "falsify", "lipschitz_covering", "local_decrease", "maximize",
-    "prove_trained", "settle_unknown", "shift_box_condition", "shift_scale", "uniform_margin", "verify_condition",
-    "verify_sublevel",
+    "ENCLOSURES", "Budget", "Certificate", "CertifiedRadius", "CertifiedShiftBox", "ConditionProof",
+    "CoveringCheck", "ProofAttempt", "ProofConfig", "RegionOfAttraction", "SearchLimits", "RunRobustness",
+    "RunVerification", "UniformMargin", "boundary_minimum", "box_bounds", "certified_radius", "certified_roa",
+    "certified_shift_box", "combine_lower", "combine_upper", "condition_objective", "default_enclosure", "falsify",
+    "lipschitz_covering", "local_decrease", "maximize", "prove_trained", "settle_unknown", "shift_box_condition",
+    "shift_scale", "uniform_margin", "verify_condition", "verify_sublevel",
 ]

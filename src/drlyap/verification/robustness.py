@@ -28,6 +28,7 @@ from __future__ import annotations
 import math
 import time
 from collections.abc import Callable
+from dataclasses import dataclass
 
 import torch
 from torch import Tensor
@@ -45,6 +46,32 @@ from drlyap.verification.results import CertifiedRadius, CertifiedShiftBox
 
 SEARCH_BUDGET = Budget(seconds=10.0, enclosure=Enclosure.MEAN_VALUE)
 """The default budget of each proof of a search."""
+
+
+@dataclass(frozen=True)
+class SearchLimits:
+    """How far a robustness search goes: ``tol`` the relative width of its final bracket ``[v*, v_unproved)``,
+    ``total_time`` seconds (a cap) and ``max_proofs`` proofs of the whole search (the bracket found so far is returned,
+    with ``stopped`` saying why), ``cap`` the largest value tried (None: the search's own, :data:`RADIUS_CAP` or
+    :data:`SHIFT_CAP`)."""
+
+    tol: float = 0.01
+    total_time: float = 120.0
+    max_proofs: int = 40
+    cap: float | None = None
+
+    def __post_init__(self) -> None:
+        if not self.tol > 0:
+            raise ValueError(f"tol must be > 0, got {self.tol}")
+
+    def capped(self, default: float) -> float:
+        return default if self.cap is None else float(self.cap)
+
+
+RADIUS_CAP = 1e6
+"""The largest Wasserstein radius a search tries, unless its limits say otherwise."""
+SHIFT_CAP = 1e3
+"""The largest shift box (in multiples of its scale) a search tries, unless its limits say otherwise."""
 
 NEAR = 16
 """Within this many tolerances of the proved end, after a proof that held, a search probes the lowest value whose proof
@@ -104,9 +131,10 @@ def _residuals_and_lip(loop: ClosedLoop, condition, z: Tensor, batch: int = 8192
 
 # --------------------------------------------------------------------------- the search
 def _largest_proved(prove: Callable[[float], dict], refute: Callable[[float], dict | None], guess: float | None,
-                    start: float, tol: float, cap: float, max_proofs: int, total_time: float,
+                    start: float, limits: SearchLimits, cap: float,
                     reguess: Callable[[dict], float | None] | None = None, proved: float | None = None) -> dict:
-    """Largest v in ``[0, cap]`` with ``prove(v)['status'] == 'verified'``, for a property monotone in v.
+    """Largest v in ``[0, cap]`` with ``prove(v)['status'] == 'verified'``, for a property monotone in v, within
+    ``limits`` (its tolerance, seconds and proofs).
 
     ``refute(v)``: a cheap witness that v fails (a real evaluation), or None. ``guess``: a sampled upper end
     (the property fails just above it), or None (then grow geometrically from ``start``). ``reguess(res)``: a
@@ -117,6 +145,7 @@ def _largest_proved(prove: Callable[[float], dict], refute: Callable[[float], di
     clock = time.perf_counter()
     probes: list[dict] = []
     proofs = 0
+    tol, max_proofs, total_time = limits.tol, limits.max_proofs, limits.total_time
 
     def probe(v: float) -> dict:
         nonlocal proofs
@@ -261,17 +290,15 @@ def _prover(loop: ClosedLoop, region: Region, budget: Budget, make, level: float
 
 # --------------------------------------------------------------------------- radius
 def certified_radius(loop: ClosedLoop, condition: DRPointwise, region: Region, budget: Budget = SEARCH_BUDGET, *,
-                     tol: float = 0.01, total_time: float = 120.0, max_proofs: int = 40,
-                     cap: float = 1e6, level: float | None = None, proved: float | None = None,
+                     limits: SearchLimits = SearchLimits(), level: float | None = None, proved: float | None = None,
                      start: Partition | None = None) -> CertifiedRadius:
     """The largest Wasserstein radius r for which the pointwise DR condition (at the condition's risk level
     eps, samples and decay) is proved over the region X_delta (``level``: over its sublevel set ``{V <= level}``,
     the set a region-of-attraction run is trained and proved on; sampled refutations are then taken there too).
 
     ``condition``: a :class:`DRPointwise` (its own radius is only reported; the search sets r with
-    :meth:`~DRPointwise.with_radius`). ``tol``: relative width of the final bracket ``[r*, r_unproved)``.
-    ``budget``: of each proof; ``total_time``/``max_proofs``: budget of the whole search (the bracket
-    found so far is returned, with ``stopped`` saying why). ``cap``: largest radius tried. ``proved``: a radius at
+    :meth:`~DRPointwise.with_radius`). ``budget``: of each proof; ``limits``: of the whole search (:class:`SearchLimits`:
+    the final bracket's relative width, seconds, proofs, the largest radius tried). ``proved``: a radius at
     which this very condition (risk level, samples, decay, region, level) is already proved, e.g. by the run's trained
     condition: the search starts there (its first probe, ``by`` ``an earlier proof``) instead of proving r = 0;
     ``start``: that proof's partition, which the search's proofs start from instead of the grid (see :func:`_prover`:
@@ -286,8 +313,6 @@ def certified_radius(loop: ClosedLoop, condition: DRPointwise, region: Region, b
     search's own proof at r*, with its partition (None where r* is ``proved``'s). """
     if not isinstance(condition, DRPointwise):
         raise ValueError(f"certified_radius needs a DRPointwise condition, got {type(condition).__name__}")
-    if not tol > 0:
-        raise ValueError(f"tol must be > 0, got {tol}")
     system = loop.system
     clock = time.perf_counter()
     z = _in_sublevel(loop, dense_states(region), level)
@@ -327,7 +352,7 @@ def certified_radius(loop: ClosedLoop, condition: DRPointwise, region: Region, b
     prove, best_proof = _prover(loop, region, budget, condition.with_radius, level,
                                 None if proved is None or start is None else (proved, start))
     first = condition.r if condition.r > 0 else 1e-3
-    found = _largest_proved(prove, refute, first_guess, first, tol, cap, max_proofs, total_time, reguess, proved)
+    found = _largest_proved(prove, refute, first_guess, first, limits, limits.capped(RADIUS_CAP), reguess, proved)
     found["time_s"] = time.perf_counter() - clock
     radius = found.pop("certified")
     sampled = best["sampled"]
@@ -369,12 +394,12 @@ def shift_box_condition(scale: Tensor, s: float, decay_rate: float, exp_rate: fl
     return TrueDecrease(Interval(-half, half), decay_rate, exp_rate)
 
 
-def certified_shift_box(loop: ClosedLoop, decay_rate: float, exp_rate: float, region: Region, scale: Tensor,
-                        budget: Budget = SEARCH_BUDGET, *, tol: float = 0.01, total_time: float = 120.0,
-                        max_proofs: int = 40, cap: float = 1e3, level: float | None = None,
-                        start: Partition | None = None) -> CertifiedShiftBox:
+def certified_shift_box(loop: ClosedLoop, region: Region, scale: Tensor, budget: Budget = SEARCH_BUDGET, *,
+                        decay: tuple[float, float] = (0.0, 0.0), limits: SearchLimits = SearchLimits(),
+                        level: float | None = None, start: Partition | None = None) -> CertifiedShiftBox:
     """The largest s such that decrease on the TRUE model, ``grad V . F(x, pi(x), p0 + xi) + decay_rate ||z||
-    + exp_rate V <= 0``, is proved over X_delta for every shift xi in the box ``[-s scale, s scale]``.
+    + exp_rate V <= 0`` (``decay = (decay_rate, exp_rate)``), is proved over X_delta for every shift xi in the box
+    ``[-s scale, s scale]``.
 
     ``scale (k,)``: the box's half-widths at s = 1, in the uncertain parameters' units (see
     :func:`shift_scale`). ``start``: the partition of a proof of another condition on this region and level (e.g. the
@@ -392,8 +417,8 @@ def certified_shift_box(loop: ClosedLoop, decay_rate: float, exp_rate: float, re
     if scale.shape[0] != system.k or not bool((scale > 0).all() and torch.isfinite(scale).all()):
         raise ValueError(f"scale must be {system.k} finite positive value(s) ({', '.join(system.uncertain)}), "
                          f"got {scale.tolist()}")
-    if not tol > 0:
-        raise ValueError(f"tol must be > 0, got {tol}")
+    decay_rate, exp_rate = (float(v) for v in decay)
+    cap, tol = limits.capped(SHIFT_CAP), limits.tol
     clock = time.perf_counter()
     states = {"z": _in_sublevel(loop, dense_states(region), level)}
 
@@ -418,7 +443,7 @@ def certified_shift_box(loop: ClosedLoop, decay_rate: float, exp_rate: float, re
 
     sampled = _sampled_threshold(refute, cap, tol / 8)
     prove, best = _prover(loop, region, budget, make, level, None if start is None else (-math.inf, start))
-    found = _largest_proved(prove, refute, sampled, 1.0, tol, cap, max_proofs, total_time, reguess)
+    found = _largest_proved(prove, refute, sampled, 1.0, limits, cap, reguess)
     found["time_s"] = time.perf_counter() - clock
     s = found.pop("certified")
     box = None if s is None else {name: [-s * float(w), s * float(w)] for name, w in zip(system.uncertain, scale)}

@@ -38,6 +38,7 @@ from drlyap.verification import (
     CertifiedRadius,
     CertifiedShiftBox,
     ProofAttempt,
+    SearchLimits,
     certified_roa,
     certified_shift_box,
     shift_scale,
@@ -162,8 +163,8 @@ def certify_loop(loop: ClosedLoop, xi: Tensor, time_limit: float, decay_rate: fl
     region = Region.of(system, system.defaults.delta)
     result = verify_condition(loop, condition, region, search)
     roa = certified_roa(loop, condition, region, checks.roa_budget(), band_time=checks.band_time)
-    box = certified_shift_box(loop, decay_rate, exp_rate, region, shift_scale(system), search,
-                              total_time=4 * time_limit)
+    box = certified_shift_box(loop, region, shift_scale(system), search, decay=(decay_rate, exp_rate),
+                              limits=SearchLimits(total_time=4 * time_limit))
     return ProofAttempt(status=result.status, verified_fraction=result.verified_fraction,
                         counterexample=result.counterexample, time_s=result.time_s, roa_certified=roa.certified,
                         roa_kind=roa.kind, roa_share=roa.share_of_box, decay_rate=decay_rate,

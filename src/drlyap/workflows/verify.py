@@ -24,6 +24,7 @@ from drlyap.verification import (
     RegionOfAttraction,
     RunRobustness,
     RunVerification,
+    SearchLimits,
     certified_radius,
     certified_roa,
     certified_shift_box,
@@ -286,15 +287,16 @@ def run_robustness(run: Run, delta: float | None = None, tol: float = 0.01, budg
     start = None
     if same:  # the trained proof's partition: the search's proofs above the run's radius start from it
         start = trained.partition if trained.partition is not None else certificate_partition(run.path, "trained")
-    radius = certified_radius(loop, condition, region, budget, tol=tol, total_time=total_time, level=level,
+    limits = SearchLimits(tol=tol, total_time=total_time)
+    radius = certified_radius(loop, condition, region, budget, limits=limits, level=level,
                               proved=cfg.wasserstein_radius if same else None, start=start)
     scale = shift_scale(system, run.xi_samples) if scale is None else scale
-    box = certified_shift_box(loop, cfg.decay_rate, cfg.exp_rate, region, scale, budget, tol=tol,
-                              total_time=total_time, level=level, start=start)
+    box = certified_shift_box(loop, region, scale, budget, decay=(cfg.decay_rate, cfg.exp_rate), limits=limits,
+                              level=level, start=start)
     own = None
     if cfg.method == Method.BASELINE:  # also around the one sample it trained on (the mean: a ball around a point mass)
-        own = certified_radius(loop, run.sections.condition.build(run.xi_train, Loss.POINTWISE), region, budget, tol=tol,
-                               total_time=total_time, level=level)
+        own = certified_radius(loop, run.sections.condition.build(run.xi_train, Loss.POINTWISE), region, budget,
+                               limits=limits, level=level)
     return RunRobustness(method=cfg.method, trained_radius=cfg.wasserstein_radius if cfg.method == Method.DR else None,
                          delta=region.delta, radius=radius, shift_box=box, radius_training_sample=own)
 
