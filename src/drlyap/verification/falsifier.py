@@ -116,10 +116,14 @@ def confirmed_violations(loop: ClosedLoop, condition: Condition, region: Region,
     return torch.where(certain, lower, -torch.inf)
 
 
+SETTLE_STEPS = 30
+"""The ascent steps of the falsifier that settles an unknown proof (:func:`settle_unknown`)."""
+
+
 def settle_unknown(result: ConditionProof, loop: ClosedLoop, condition: Condition, region: Region,
                    level: float | None = None, starts: int = DEFAULT_SETTLE_STARTS, seed: int = 0,
-                   steps: int = 30, floor: float | None = None) -> ConditionProof:
-    """Search for a counterexample where a proof ``result`` came back ``unknown``.
+                   floor: float | None = None) -> ConditionProof:
+    """Search for a counterexample where a proof ``result`` came back ``unknown`` (:data:`SETTLE_STEPS` ascent steps).
 
     Starts: :func:`falsifier_starts` (``starts`` states, generator seeded with ``seed``) plus the centres of the
     unverified boxes the result kept. When :func:`confirmed_violations` finds one, ``result`` becomes
@@ -136,7 +140,7 @@ def settle_unknown(result: ConditionProof, loop: ClosedLoop, condition: Conditio
     tic = time.perf_counter()
     pool = [falsifier_starts(region, int(starts), torch.Generator().manual_seed(int(seed)))]
     pool.append(region.project(box_centres(system, result.unverified_boxes or [])))
-    found, values = falsify(loop, condition, region, torch.cat(pool), steps=steps)
+    found, values = falsify(loop, condition, region, torch.cat(pool), steps=SETTLE_STEPS)
     lower = confirmed_violations(loop, condition, region, found, level, floor)
     record = {"starts": int(found.shape[0]), "time_s": time.perf_counter() - tic,
               "max_residual": float(values.max()), "confirmed": int(torch.isfinite(lower).sum())}

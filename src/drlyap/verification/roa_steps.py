@@ -264,6 +264,18 @@ NearProof = LocalProof | LinearisationProof | BandRegion
 """What ``RegionOfAttraction.local`` holds: how the set was proved near x*."""
 
 
+@dataclass
+class RouteSteps:
+    """The steps of the route that :func:`~drlyap.verification.roa.sublevel.finish` adds up: the proof near x*
+    (``local``), and where they ran the closed loop's ellipsoid, the band proof and the strictness of the decrease
+    outside the ball."""
+
+    local: NearProof
+    quadratic: QuadraticRegion | None = None
+    band: BandRegion | None = None
+    strict: Strictness | None = None
+
+
 def near_proof_from_dict(data: dict | None) -> NearProof | None:
     """The proof near x* as its ``to_dict`` wrote it, by its ``method``."""
     if data is None:
@@ -273,4 +285,4 @@ def near_proof_from_dict(data: dict | None) -> NearProof | None:
 
 
 __all__ = ["Annulus", "BandRegion", "EllipsoidCandidate", "EllipsoidSearch", "LevelTry", "LinearisationProof",
-           "LocalProof", "NearProof", "QuadraticRegion", "RingProof", "Strictness", "near_proof_from_dict"]
+           "LocalProof", "NearProof", "QuadraticRegion", "RingProof", "RouteSteps", "Strictness", "near_proof_from_dict"]

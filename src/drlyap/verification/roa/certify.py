@@ -39,7 +39,7 @@ from drlyap.verification.roa.sublevel import (
     proof_fits,
     proved_outer,
 )
-from drlyap.verification.roa_steps import LinearisationProof, LocalProof
+from drlyap.verification.roa_steps import LinearisationProof, LocalProof, RouteSteps
 
 REGION_RATE = 0.01
 """The decay ``alpha`` of ``Vdot + alpha V <= 0`` that a region of attraction at a shift asks of the true model by
@@ -106,7 +106,7 @@ def certified_roa(loop: ClosedLoop, condition: Condition, region: Region, budget
     if quadratic is not None and quadratic.proved and (band_time is None or band_time > 0):
         band = band_roa(loop, condition, region, quadratic, *outer.inside,
                         replace(budget, seconds=budget.seconds if band_time is None else band_time))
-    found = finish(loop, condition, region, outer, local, samples_per_axis, quadratic, band, strict)
+    found = finish(loop, condition, region, outer, RouteSteps(local, quadratic, band, strict), samples_per_axis)
     if found.certified and found.local is local and found.level == c:  # V's own proofs, the level not lowered
         found.ball = keep.ball
     return found

@@ -48,7 +48,7 @@ from drlyap.verification.results import ConditionProof, RegionOfAttraction
 from drlyap.verification.roa.levels import BOX_BUDGET, TIME_LIMIT, below, level_search, time_capped
 from drlyap.verification.roa.levels import share as box_share
 from drlyap.verification.roa.local import local_decrease
-from drlyap.verification.roa_steps import BandRegion, LinearisationProof, NearProof, QuadraticRegion, Strictness
+from drlyap.verification.roa_steps import LinearisationProof, RouteSteps, Strictness
 from drlyap.verification.sublevel import boundary_minimum, exit_minimum
 
 EXIT_ROOM = 0.01
@@ -248,16 +248,16 @@ def proved_outer(loop: ClosedLoop, proof: ConditionProof, region: Region, budget
                        capped=("V's maximum on the ball",) if time_capped(stopped) else ())
 
 
-def finish(loop: ClosedLoop, condition: Condition, region: Region, outer: OuterSearch, local: NearProof,
-           samples_per_axis: int = 400, quadratic: QuadraticRegion | None = None, band: BandRegion | None = None,
-           strict: Strictness | None = None) -> RegionOfAttraction:
-    """The region the proofs add up to: a region of attraction where the band proof certified a level (``band``), or
-    where the outer level is positive, its decrease strict (``strict``: :func:`outer_strictness`; the linearisation
-    proof needs no more than its own annulus, where V >= c_1 > 0) and the proof near x* (``local``) holds (the
-    annulus inside the ball may lower the level); practical stability where the outer level only exceeds V's bound
+def finish(loop: ClosedLoop, condition: Condition, region: Region, outer: OuterSearch, steps: RouteSteps,
+           samples_per_axis: int = 400) -> RegionOfAttraction:
+    """The region the proofs add up to (``steps``): a region of attraction where the band proof certified a level
+    (``band``), or where the outer level is positive, its decrease strict (``strict``: :func:`outer_strictness`; the
+    linearisation proof needs no more than its own annulus, where V >= c_1 > 0) and the proof near x* (``local``) holds
+    (the annulus inside the ball may lower the level); practical stability where the outer level only exceeds V's bound
     on the ball and its decrease is strict; else none. Where a step of the search stopped at its time cap (its
     ``capped``), ``limited_by`` says so (:data:`~drlyap.verification.roa.levels.TIME_LIMIT`)."""
     system = loop.system
+    local, quadratic, band, strict = steps.local, steps.quadratic, steps.band, steps.strict
     c, limited_by = outer.level, outer.limited_by
     is_strict = strict is None or strict.strict
     counterexample = None if outer.counterexample is None else system.to_user(outer.counterexample[None])[0].tolist()
@@ -305,7 +305,7 @@ def sublevel_roa(loop: ClosedLoop, condition: Condition, region: Region, budget:
     local = local_decrease(loop, condition, region, replace(near_budget(budget, outer),
                                                             enclosure=budget.enclosure_for(loop.n)),
                            level=c if c > 0 else None)
-    return finish(loop, condition, region, outer, local, samples_per_axis, strict=strict)
+    return finish(loop, condition, region, outer, RouteSteps(local, strict=strict), samples_per_axis)
 
 
 def share_of_box(lyapunov, region: Region, level: float, samples_per_axis: int) -> float:
