@@ -3,6 +3,7 @@ module over 600 lines, the verifier never imports the trainer, checking a run lo
 --help loads no numerical code."""
 
 import ast
+import re
 import subprocess
 import sys
 from pathlib import Path
@@ -208,3 +209,65 @@ def test_the_names_checked_without_imports_are_the_registry_s():
             "print(sorted(BUILT_IN) == system_names())")
     out = subprocess.run([sys.executable, "-c", code], capture_output=True, text=True, check=True)
     assert out.stdout.strip() == "True"
+
+
+def _table(page: str, header: str) -> list[list[str]]:
+    """The rows of the markdown table whose header row starts with ``header`` (cells stripped)."""
+    lines = page.splitlines()
+    start = next(i for i, line in enumerate(lines) if line.startswith(f"| {header} |"))
+    joined: list[str] = []
+    for line in lines[start + 2:]:
+        if not line.strip():
+            break
+        if line.startswith("|"):
+            joined.append(line)
+        else:  # a row written over two lines
+            joined[-1] += " " + line
+    return [[cell.strip() for cell in row.strip().strip("|").split(" | ")] for row in joined]
+
+
+def _names(cell: str) -> list[str]:
+    return re.findall(r"`([^`]+)`", cell)
+
+
+def _defined() -> set[str]:
+    """Every class and function defined in drlyap, and every module-level assigned name."""
+    names = set()
+    for path in SRC.rglob("*.py"):
+        for node in ast.walk(ast.parse(path.read_text())):
+            if isinstance(node, (ast.ClassDef, ast.FunctionDef)):
+                names.add(node.name)
+            elif isinstance(node, (ast.Assign, ast.AnnAssign)):
+                targets = node.targets if isinstance(node, ast.Assign) else [node.target]
+                names.update(t.id for t in targets if isinstance(t, ast.Name))
+    return names
+
+
+def test_the_architecture_page_names_what_exists_and_every_module():
+    """The page's layer table lists every top-level module and package of drlyap and names only modules that exist
+    (its parenthesised module names too); its objects live where it says; the classes its words table names exist."""
+    page = (ROOT / "docs" / "architecture.md").read_text()
+    modules = {p.stem for p in SRC.rglob("*.py")} | {p.name for p in SRC.rglob("*") if p.is_dir()}
+    defined = _defined()
+    listed = set()
+    for _, cell, what in _table(page, "layer"):
+        for name in _names(cell):
+            path = SRC / name.rstrip("/")
+            assert path.with_suffix(".py").exists() or path.is_dir(), f"the layer table names {name}, not in drlyap"
+            listed.add(name.rstrip("/"))
+        for name in _names(what):
+            if re.fullmatch(r"[a-z_]+/?", name):  # a module, or a function the row names
+                assert name.rstrip("/") in modules | defined, f"the layer table names {name}, not in drlyap"
+    top = {p.stem for p in SRC.glob("*.py") if p.stem != "__init__"} | {
+        p.name for p in SRC.iterdir() if p.is_dir() and (p / "__init__.py").exists()}
+    assert top <= listed, f"modules the layer table does not list: {sorted(top - listed)}"
+    for objects, where, _ in _table(page, "object"):
+        files = [f for w in _names(where) for f in ((SRC / w).rglob("*.py") if (SRC / w).is_dir() else [SRC / w])]
+        sources = "\n".join(f.read_text() for f in files)
+        for name in _names(objects):
+            assert re.search(rf"^class {name}\b", sources, re.M), f"{name} is not defined in {where}"
+    for row in _table(page, "word"):
+        for name in _names(" ".join(row[1:])):
+            for part in name.split("."):
+                if re.fullmatch(r"[A-Z][A-Za-z]+", part):
+                    assert part in defined, f"the words table names {name}, not defined in drlyap"
