@@ -271,3 +271,21 @@ def test_the_architecture_page_names_what_exists_and_every_module():
             for part in name.split("."):
                 if re.fullmatch(r"[A-Z][A-Za-z]+", part):
                     assert part in defined, f"the words table names {name}, not defined in drlyap"
+
+
+def test_a_built_in_system_holds_physics_and_takes_its_recipe_from_recipes():
+    """The built-in systems' training recipes live in drlyap.recipes (which loads no torch, so --help quotes them);
+    the systems take them from there."""
+    from drlyap.recipes import RECIPES, defaults_text
+    from drlyap.specs import BUILT_IN
+    from drlyap.systems import get_system
+
+    assert set(RECIPES) == set(BUILT_IN)
+    for name in BUILT_IN:
+        assert get_system(name).defaults is RECIPES[name]
+    assert "exit_margin" not in (SRC / "systems" / "library.py").read_text()
+    assert defaults_text("iters") == "3000; 9000 for quadrotor2d"
+    assert defaults_text("roa_boxes", unset="verify_boxes").endswith("8,000,000 for quadrotor2d")
+    done = subprocess.run([sys.executable, "-c", "import sys, drlyap.recipes; print('torch' in sys.modules)"],
+                          capture_output=True, text=True, check=True)
+    assert done.stdout.strip() == "False"

@@ -20,6 +20,7 @@ from drlyap.cli.common import (
     refuse_early,
 )
 from drlyap.config import ProofConfig, TrainConfig
+from drlyap.recipes import defaults_text
 
 
 @click.command()
@@ -86,7 +87,7 @@ def _widths(text: str | None, option: str) -> list[int] | None:
 @click.option("--xi-samples", default=None,
               help="Explicit xi samples 'a,b;c,d;...' (one sample per ';'); default: drawn from the system.")
 @click.option("--iters", type=int, default=None,
-              help="Iteration cap [the system's: 3000; 9000 for quadrotor2d].")
+              help=f"Iteration cap [the system's: {defaults_text('iters')}].")
 @click.option("--seed", type=int, default=default(TrainConfig, "seed"), show_default=True)
 @click.option("--device", default=default(TrainConfig, "device"), show_default=True, help="cpu or cuda.")
 @click.option("--lyapunov-hidden", default=None, metavar="W1,W2,...",
@@ -113,10 +114,10 @@ def _widths(text: str | None, option: str) -> list[int] | None:
               help="Retraining rounds at most.")
 @click.option("--verify-boxes", type=int, default=None,
               help="Boxes per proof round: the work budget that makes the same command give the same pair on any "
-                   "machine [the system's: 200,000; 1,500,000 for cartpole, 6,000,000 for quadrotor2d].")
+                   f"machine [the system's: {defaults_text('verify_boxes')}].")
 @click.option("--verify-time", type=float, default=None,
-              help="Outer cap in seconds of each proof round, reported when hit [the system's: 300; 1800 for cartpole, "
-                   "3600 for quadrotor2d].")
+              help=f"Outer cap in seconds of each proof round, reported when hit [the system's: "
+                   f"{defaults_text('round_time')}].")
 @click.option("--verify-budget", type=float, default=None,
               help="Total seconds for the retraining rounds [no limit; a limit makes the pair depend on the machine's "
                    "speed].")

@@ -23,6 +23,7 @@ from drlyap.cli.common import (
     run_system_of,
 )
 from drlyap.config import ENCLOSURES, ProofConfig
+from drlyap.recipes import defaults_text
 
 EXIT_CODES = {"verified": 0, "violated": 3, "unknown": 4}
 """``drlyap verify``'s exit status by the outcome of what it was asked (``RunVerification.outcome``); 1: an error, 2: a
@@ -65,8 +66,7 @@ def _interrupted(run_dir: Path) -> None:
               help="Also verify plain decrease on the true model at this shift (comma-separated), with the decay of "
                    "--roa-rate.")
 @click.option("--time-limit", type=float, default=None,
-              help="Seconds per branch and bound, besides its box budget [the system's: 30; 900 for cartpole, "
-                   "3600 for quadrotor2d].")
+              help=f"Seconds per branch and bound, besides its box budget [the system's: {defaults_text('verify_time')}].")
 @click.option("--roa/--no-roa", default=False, show_default=True,
               help="Certify a sublevel set of V as region of attraction (at --xi it may be cut by the box where "
                    "the flow enters it there).")
@@ -75,7 +75,7 @@ def _interrupted(run_dir: Path) -> None:
                    "(what that leaves), each bound of V up to a quarter; where that certifies no sublevel set of V but "
                    "the closed loop's own ellipsoid {z'Pz <= c}, as many boxes again for V's decrease outside that "
                    "ellipsoid (the band proof). Budgeted by boxes, the region does not depend on the machine's speed "
-                   "[the system's: 200,000; 1,500,000 for cartpole, 8,000,000 for quadrotor2d].")
+                   f"[the system's: {defaults_text('roa_boxes', unset='verify_boxes')}].")
 @click.option("--roa-time", type=float, default=None,
               help="A cap on the seconds of --roa's search (and again of its band proof); a search that reaches it "
                    "says so: its region may differ on a faster machine [10x --time-limit].")

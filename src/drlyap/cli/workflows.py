@@ -19,6 +19,7 @@ from drlyap.cli.common import (
     run_system_of,
 )
 from drlyap.config import ProofConfig, TrainConfig
+from drlyap.recipes import defaults_text
 
 
 def seed_values(text: str) -> list[int]:
@@ -37,16 +38,16 @@ def seed_values(text: str) -> list[int]:
 @click.option("--out", type=click.Path(path_type=Path), default=None,
               help="Output directory [first free runs/reproduce-SYSTEM, -2, -3, ...].")
 @click.option("--iters", type=int, default=None,
-              help="Iteration cap per training run [the system's: 3000; 9000 for quadrotor2d].")
+              help=f"Iteration cap per training run [the system's: {defaults_text('iters')}].")
 @click.option("--device", default=default(TrainConfig, "device"), show_default=True)
 @click.option("--verify/--no-verify", default=True, show_default=True,
               help="Prove each pair's trained condition, retraining on counterexamples until proved (as `train`).")
 @click.option("--verify-rounds", type=int, default=default(ProofConfig, "rounds"), show_default=True,
               help="Retraining rounds at most.")
 @click.option("--verify-time", type=float, default=None,
-              help="Seconds per proof at the test shift [the system's: 30; 900 for cartpole, 3600 for quadrotor2d], "
-                   "also the cap of each proof round in training [the system's cap: 300 s; 1800 s, 3600 s; the "
-                   "rounds are budgeted by boxes].")
+              help=f"Seconds per proof at the test shift [the system's: {defaults_text('verify_time')}], also the "
+                   f"cap of each proof round in training [the system's cap: {defaults_text('round_time')}; the rounds "
+                   "are budgeted by boxes].")
 @click.option("--horizon", type=float, default=None, help="Simulated time of the evaluations [system default].")
 @compute_options(with_device=False)
 @click.option("--json", "as_json", is_flag=True, help="Print one JSON object with both methods' results.")
@@ -161,7 +162,7 @@ def compare(run_dirs: tuple[Path, ...], xi: str, n_init: int, seed: int, horizon
               help="Concurrent combinations (local processes, or CPUs of a local Ray), one torch thread each.")
 @click.option("--address", default=None, help="Ray cluster to join ('auto', 'ray://HOST:10001'); default: start Ray here.")
 @click.option("--iters", type=int, default=None,
-              help="Iteration cap per training run [the system's: 3000; 9000 for quadrotor2d].")
+              help=f"Iteration cap per training run [the system's: {defaults_text('iters')}].")
 @click.option("--verify/--no-verify", default=True, show_default=True,
               help="Prove each trained pair with counterexample-guided rounds, as `train` does.")
 @click.option("--verify-rounds", type=int, default=default(ProofConfig, "rounds"), show_default=True,
@@ -171,8 +172,8 @@ def compare(run_dirs: tuple[Path, ...], xi: str, n_init: int, seed: int, horizon
 @click.option("--shifts", default="1,2,3,4,5", show_default=True, help="Evaluate at these multiples of the test shift.")
 @click.option("--n-init", type=int, default=200, show_default=True, help="Evaluation initial states per seed.")
 @click.option("--verify-time-limit", type=float, default=None,
-              help="Seconds per branch and bound [the system's: 30 s per check, 900 for cartpole, 3600 for quadrotor2d; the "
-                   "proof rounds are budgeted by boxes, with this as their cap].")
+              help=f"Seconds per branch and bound [the system's: {defaults_text('verify_time')}; the proof rounds are "
+                   "budgeted by boxes, with this as their cap].")
 @click.option("--json", "as_json", is_flag=True, help="Print one JSON object (progress goes to stderr).")
 def sweep(system: str, seeds: str, radius: str | None, eps: str | None, method: str, out: Path | None, backend: str,
           workers: int, address: str | None, iters: int | None, verify: bool, verify_rounds: int, device: str,

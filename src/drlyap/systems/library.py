@@ -1,7 +1,8 @@
 """The built-in systems: the paper's inverted pendulum and mountain car, a cart-pole and a planar quadrotor.
 
 Each is a factory returning an :class:`~drlyap.systems.model.UncertainSystem` with its true parametric dynamics,
-its training distribution of xi, the paper's (or a chosen) test shift and its training defaults.
+its training distribution of xi and the paper's (or a chosen) test shift; its training recipe (the defaults its
+training and proofs take) is in :mod:`drlyap.recipes`.
 """
 
 from __future__ import annotations
@@ -11,8 +12,8 @@ import math
 import torch
 from torch import Tensor
 
-from drlyap.config import PAPER_CONDITION
-from drlyap.systems.model import SystemDefaults, UncertainSystem
+from drlyap import recipes
+from drlyap.systems.model import UncertainSystem
 
 
 def _pendulum(x: Tensor, u: Tensor, p: Tensor) -> Tensor:
@@ -88,9 +89,7 @@ def pendulum(u_max: float = 15.0) -> UncertainSystem:
         equilibrium=(0.0, 0.0), angle_dims=(0,), test_box=((-math.pi, -6.0), (math.pi, 6.0)),
         xi_sampler=_pendulum_xi, test_xi=(0.1, 0.05), reference_states=((math.pi, 0.0), (-math.pi / 2, 5.5)),
         rl_timing=(0.05, 10.0), rl_reward_weights=((1.0, 0.1), (0.001,)),  # the paper's RL cost, 200-step episodes
-        defaults=SystemDefaults(n_states=3600, wasserstein_radius=0.01, risk_level=0.1, n_xi=5,
-                                alpha_hat=1.0, delta=0.5, margin=0.1, lyapunov_hidden=(16, 16),
-                                controller_hidden=(16, 16), **PAPER_CONDITION),
+        defaults=recipes.PENDULUM,
         sim_dt=0.01, horizon=20.0, state_units=("rad", "rad/s"), input_units=("N m",), time_unit="s",
         description="Inverted pendulum (paper Sec. VII-A): m=1, l=1, b=0.13, g=9.81; xi = (mass, damping) shift.",
     )
@@ -105,18 +104,7 @@ def mountain_car() -> UncertainSystem:
         equilibrium=(math.pi / 6, 0.0), test_box=((-1.0, -0.1), (1.0, 0.1)),
         xi_sampler=_mountain_car_xi, test_xi=(-0.0003,), reference_states=((-math.pi / 6, 0.0),),
         rl_timing=(1.0, 500.0),  # the gym mountain car's step
-        # r = 5e-5, half the paper's 1e-4: at 1e-4 the DR term 0.001 |u dV/dv| cancels two thirds of the
-        # control authority and DR seeds 1, 2 stabilised 0 and 155 of 200 at the test shift; at 5e-5,
-        # 200/200 on seeds 0-2 (docs/tuning.md). `--radius 1e-4` runs the paper's setting.
-        # Region-of-attraction training (docs/tuning.md "Mountain car"): the paper's condition on the whole box was
-        # never proved (where gravity exceeds the DR condition's control force no V decreases), so the condition is
-        # asked of {V <= 0.2} with the scale-free decay alpha V, the rest of the box at weight 0.3 (the controller
-        # still brings the far states in), violating states pushed out of the set, V's quadratic floor steep
-        # enough (alpha_hat 4) that {V <= 0.2} stays inside the band of positions the DR control force holds
-        defaults=SystemDefaults(n_states=1600, wasserstein_radius=5e-5, risk_level=0.1, n_xi=3,
-                                decay_rate=0.0, exp_rate=0.003, alpha_hat=4.0, delta=0.1, margin=0.0005,
-                                roa_level=0.2, margin_rate=0.01, outside_weight=0.3, exclude_weight=0.01,
-                                grow_weight=0.0, local_rate=0.0, warm_start=None),
+        defaults=recipes.MOUNTAIN_CAR,
         sim_dt=0.5, horizon=1500.0, state_units=("u.", "u./step"), input_units=("u.",), time_unit="step",
         description=("Mountain car (paper Sec. VII-B): p=0.0015, |u|<=2, goal (pi/6, 0); xi = power shift. "
                      "Units are those of the model (u.), time in steps of the gym environment (1 step = 1 time unit)."),
@@ -162,18 +150,7 @@ def cartpole() -> UncertainSystem:
         xi_sampler=_cartpole_xi, test_xi=(0.04, 0.04),
         reference_states=((0.5, 0.25, 0.0, 0.0), (-0.5, -0.25, 0.5, 0.5)),
         rl_timing=(0.02, 10.0),
-        # region-of-attraction training (docs/tuning.md "Cart-pole"): decrease on {V <= 1}, V > 1 on the faces,
-        # an LQR warm start, the scale-free decay alpha V plus a training margin 0.3 V; the paper's condition on
-        # the whole box was never met (no setting stabilised any test state). The set grows from the LQR's
-        # ellipsoid (growth 0.1) with V's decay near x* asked at rate 0.3 (without it growth makes x* unstable):
-        # about 5% of the box, four times the ellipsoid's 1.35%. One hidden layer each (V 64, pi 16): the same set
-        # as 2x32 networks, proved in a tenth of the boxes (every layer multiplies the bound's remainder)
-        defaults=SystemDefaults(n_states=4096, wasserstein_radius=0.005, risk_level=0.1, n_xi=5,
-                                lyapunov_hidden=(64,), controller_hidden=(16,),
-                                decay_rate=0.0, exp_rate=0.3, delta=0.1, near_share=0.25, roa_level=1.0,
-                                margin_rate=0.3, warm_start="lqr", lqr_weights=((0.1, 1.0, 0.02, 0.2), (0.01,)),
-                                verify_time=900.0, verify_boxes=1_500_000, round_time=1800.0, outside_weight=0.0,
-                                exclude_weight=0.0, grow_weight=0.1, local_rate=0.3),
+        defaults=recipes.CARTPOLE,
         sim_dt=0.01, horizon=10.0, state_units=("m", "rad", "m/s", "rad/s"), input_units=("N",), time_unit="s",
         plot_dims=(1, 3),  # (theta, theta_dot): the pole's phase plane
         description=("Cart-pole (Tedrake, Underactuated Robotics), theta=0 upright: m_c=1, m_p=0.1, l=1, g=9.81, "
@@ -219,23 +196,7 @@ def quadrotor2d() -> UncertainSystem:
         angle_dims=(2,), xi_sampler=_quadrotor2d_xi, test_xi=(0.8, -2.5),
         reference_states=((0.5, 0.5, 0.5, 0.0, 0.0, 0.0), (-0.75, -0.75, -1.0, 2.0, 2.0, 2.0)),
         rl_timing=(0.02, 10.0),
-        # a quadratic V and a saturated controller that is a linear gain plus a 16-unit tanh layer's correction, set to
-        # an LQR pair (the correction starting at 0), trained with adversarial states and a growing set (6,000 of 9,000
-        # iterations, growth weight 0.06) for {V <= 1.6} in the box (level_margin), V held above that only on
-        # the faces where the flow may leave (exit_faces), and above 2.4 there (exit_margin); claimed on {V <= 1}: the
-        # retraining round on the open boxes proves it (docs/tuning.md steps 23-27); the set cut by the box is searched
-        # above it at the test shift; V's decay near x* at rate 0.5 keeps the controller fast for the test states
-        defaults=SystemDefaults(n_states=4096, wasserstein_radius=0.05, risk_level=0.1, n_xi=5,
-                                decay_rate=0.0, exp_rate=0.1, delta=0.1, near_share=0.25, roa_level=1.0,
-                                margin_rate=0.1, warm_start="lqr",
-                                lqr_weights=((1.0,) * 6, (10.0, 10.0)), lr=0.003, iters=9000,
-                                lyapunov_hidden=(), controller_hidden=(16,), controller_skip=True, verify_time=3600.0,
-                                verify_boxes=6_000_000, round_time=3600.0, stop_at_counterexample=True,
-                                # the default pair's region search at the test shift ends by itself (a box of the
-                                # minimum size) after 4.2M boxes of its level search, its 60%
-                                roa_boxes=8_000_000,
-                                local_rate=0.5, outside_weight=0.05, exclude_weight=0.1, grow_weight=0.06,
-                                adversarial_share=0.5, level_margin=0.6, exit_faces=True, exit_margin=0.5),
+        defaults=recipes.QUADROTOR2D,
         sim_dt=0.01, horizon=10.0, state_units=("m", "m", "rad", "m/s", "m/s", "rad/s"), input_units=("N", "N"),
         time_unit="s",
         description=("Planar quadrotor (Yang et al. 2024): m=0.486 kg, I=3.83 g m^2, l=25 cm, thrusts in [0, 5.96] N, "
