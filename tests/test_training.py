@@ -5,11 +5,12 @@ import pytest
 import torch
 
 from drlyap.closed_loop import ClosedLoop
+from drlyap.records import AcceptanceCheck
 from drlyap.regions import Region
 from drlyap.runs import RunDirError, load_run, save_run
 from drlyap.systems import cartpole, mountain_car, pendulum
 from drlyap.training import TrainConfig, TrainSections
-from drlyap.training.acceptance import find_equilibria, jacobian_check
+from drlyap.training.acceptance import acceptance_check, find_equilibria, jacobian_check
 from handmade import plain_train
 
 
@@ -208,3 +209,30 @@ def test_the_acceptance_check_is_a_typed_record_that_reads_back_as_it_was_writte
     assert not record.proved_in_rounds and record.rounds == () and record.acceptance == check
     assert (record.total_iterations, record.total_time_s) == (record.iterations, record.train_time_s)
     assert record.iterations == result.metrics["iterations"] and record.status == result.metrics["status"]
+
+
+def test_an_equilibrium_outside_the_trained_set_does_not_count_against_the_pair():
+    """A zero controller leaves the pendulum its hanging equilibria (theta = +-pi). For a pair trained for
+    {V <= level} only the equilibria inside the set count against it (each found one recorded with V there); without
+    a level every one does, as before."""
+    p = pendulum()
+    lyapunov, controller = TrainSections.of(TrainConfig(lyapunov_hidden=[4], controller_hidden=[4]).resolved(p)
+                                            ).networks.build(p)
+    with torch.no_grad():
+        for param in controller.parameters():
+            param.zero_()
+    loop, xi = ClosedLoop(p, lyapunov, controller), torch.zeros(1, 2)
+    condition = TrainSections.of(TrainConfig().resolved(p)).condition.build(xi)
+    region = Region.of(p, 0.5)
+    found = find_equilibria(loop, xi, delta=0.5)
+    assert found and all(abs(abs(e["state"][0]) - math.pi) < 1e-3 for e in found)
+    values = loop.value(torch.tensor([e["local"] for e in found]))
+    below, above = 0.5 * float(values.min()), 2.0 * float(values.max())
+    outside = acceptance_check(loop, condition, xi, region, level=below)
+    inside = acceptance_check(loop, condition, xi, region, level=above)
+    whole = acceptance_check(loop, condition, xi, region)
+    assert len(outside.other_equilibria) == len(found) and outside.blocking_equilibria == []
+    assert all(e["in_set"] is False and e["value"] > below for e in outside.other_equilibria)
+    assert outside.stability()[2] and not inside.stability()[2] and not whole.stability()[2]
+    assert len(inside.blocking_equilibria) == len(whole.blocking_equilibria) == len(found)
+    assert AcceptanceCheck.from_dict(outside.to_dict()).blocking_equilibria == []

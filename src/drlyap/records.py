@@ -17,7 +17,9 @@ class AcceptanceCheck:
     (with a ``level``: asked only where ``V <= level``, and ``boundary_min``, V's least value on the box's faces, must
     exceed it). ``jacobian``: the true closed-loop Jacobian at x* for each xi sample and their mean
     (``max_real_eigenvalue``, ``hurwitz``, ``labels``). ``other_equilibria``: closed-loop equilibria found in X_delta
-    other than x* (each with its local and user state, which xi, the residual norm). ``local_rates``: V's second-order
+    other than x* (each with its local and user state, which xi, the residual norm, and with a ``level`` V there and
+    ``in_set``: whether it lies in ``{V <= level}``; only those count against a pair trained for that set:
+    :attr:`blocking_equilibria`). ``local_rates``: V's second-order
     decay rate at x* on each of the condition's samples, ``local_rate_max`` the largest (NaN where one is; None in runs
     written before the rates were kept). ``iteration``: the training iteration it was made at (None outside
     training)."""
@@ -40,9 +42,16 @@ class AcceptanceCheck:
         """Whether the closed-loop Jacobian at x* is Hurwitz at every xi sample and their mean."""
         return bool(self.jacobian["hurwitz"])
 
+    @property
+    def blocking_equilibria(self) -> list[dict]:
+        """The other equilibria that fail the check: those in the trained set ``{V <= level}``, all of them without a
+        level (or in a record written before ``in_set`` was kept)."""
+        return [e for e in self.other_equilibria if e.get("in_set", True)]
+
     def stability(self) -> tuple[bool, bool, bool]:
-        """How the check ranks a pair before anything else: passed, Hurwitz at x*, no other equilibrium."""
-        return bool(self.passed), self.hurwitz, not self.other_equilibria
+        """How the check ranks a pair before anything else: passed, Hurwitz at x*, no other equilibrium (in the
+        trained set)."""
+        return bool(self.passed), self.hurwitz, not self.blocking_equilibria
 
     def summary(self) -> dict:
         """The line a training's ``checks`` list keeps for it."""

@@ -84,7 +84,9 @@ def training_lines(system: str, method: str, record: TrainingRecord) -> list[str
     lines.append(f"  acceptance check: {'PASSED' if acc.passed else 'NOT PASSED'}; the trained condition's max "
                  f"violation {acc.max_violation:.3g} on {100 * acc.violating_fraction:.2f}% of "
                  f"{acc.validation_states} validation states; closed-loop Jacobian at x* Hurwitz at every xi "
-                 f"sample: {acc.hurwitz}; other closed-loop equilibria found: {len(acc.other_equilibria)}")
+                 f"sample: {acc.hurwitz}; other closed-loop equilibria found: {len(acc.other_equilibria)}"
+                 + (f" ({len(acc.blocking_equilibria)} in the trained set)"
+                    if len(acc.blocking_equilibria) != len(acc.other_equilibria) else ""))
     if acc.local_rate_max is not None:
         rate = acc.local_rate_max
         lines.append(f"  V near x*: Vdot <= {rate:+.3g} V to second order at the worst training sample "

@@ -10,7 +10,8 @@ controller that failed every test state. Three cheap checks separated good runs 
    decrease condition must fail around them).
 
 A run passes when the condition holds at every validation state, every Jacobian is Hurwitz and no
-other equilibrium is found.
+other equilibrium is found (for a pair trained for a set ``{V <= level}``, none in that set: an equilibrium
+outside it, e.g. where a saturated input cannot hold the system, contradicts nothing the pair is trained for).
 """
 
 from __future__ import annotations
@@ -146,9 +147,15 @@ def acceptance_check(loop: ClosedLoop, condition: Condition, xi_samples: Tensor,
     max_violation = float(residual.max()) if residual.numel() else -math.inf
     jac = jacobian_check(loop, xi_samples)
     equilibria = find_equilibria(loop, xi_samples, region.delta)
+    if level is not None and equilibria:
+        ref = next(loop.controller.parameters())
+        values = loop.value(torch.tensor([e["local"] for e in equilibria], dtype=ref.dtype, device=ref.device))
+        for e, v in zip(equilibria, values.tolist()):
+            e.update(value=v, in_set=bool(v <= level))
+    blocking = [e for e in equilibria if e.get("in_set", True)]
     with torch.enable_grad():
         rates = [float(r) for r in local_rates(condition, loop).detach().cpu()]
-    passed = (max_violation <= 0) and jac["hurwitz"] and not equilibria
+    passed = (max_violation <= 0) and jac["hurwitz"] and not blocking
     if local:
         passed = passed and all(r < 0 for r in rates)  # NaN fails
     if level is not None:
