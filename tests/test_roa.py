@@ -421,3 +421,19 @@ def test_report_cell_says_whether_the_band_set_reaches_beyond_the_ellipsoid():
                                        local=inside)) == "4.1e-09 of box (V, within z'Pz)"
     assert roa_cell(RegionOfAttraction(level=1.0, kind="region of attraction", share_of_box=0.35,
                                        local=LocalProof("second order", proved=True))) == "35.0%"
+
+
+def test_a_region_recorded_with_fewer_fields_reads_back():
+    """A region as an older metrics.json may hold it (steps without fields added since) reads back as typed steps."""
+    stored = {"level": 0.2, "kind": "region of attraction", "certified": True,
+              "local": {"method": "linearisation", "proved": True, "level": 0.2, "annulus": {"level": 0.2},
+                        "quadratic": {"proved": True, "candidates": [{"P": [[1.0, 0.0], [0.0, 1.0]], "q_level": 0.1,
+                                                                       "q_roa": {"level": 0.1}}]}},
+              "quadratic": {"proved": True, "q_level": 0.1, "P": [[1.0, 0.0], [0.0, 1.0]]},
+              "band": {"method": "band", "proved": False, "levels": [{"level": 1.0}]},
+              "strict": {"strict": True, "by": "decay"}}
+    roa = RegionOfAttraction.from_dict(stored)
+    assert isinstance(roa.local, LinearisationProof) and roa.local.annulus.level == 0.2
+    assert roa.local.quadratic.candidates[0].q_roa.level == 0.1 and roa.ellipsoid_certified
+    assert roa.band.levels[0].level == 1.0 and roa.strict.by == "decay" and roa.method == "linearisation"
+    assert RegionOfAttraction.from_dict({"error": "no search"}).local is None

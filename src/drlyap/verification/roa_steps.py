@@ -46,12 +46,12 @@ class RingProof(Result):
     """The decrease ``Vdot + decay_rate ||z|| <= 0`` proved between the second-order cube and the delta-ball (outside
     the ball of radius ``inner_radius``): the branch and bound's status, boxes, proved share and why it stopped."""
 
-    status: str
-    decay_rate: float
-    inner_radius: float
-    boxes: int
-    verified_fraction: float
-    stopped: str
+    status: str = ""
+    decay_rate: float = 0.0
+    inner_radius: float = 0.0
+    boxes: int = 0
+    verified_fraction: float = 0.0
+    stopped: str = ""
 
 
 @dataclass
@@ -82,14 +82,14 @@ class EllipsoidSearch(Result):
     """The search of ``W = z^T P z``'s sublevel sets beyond its proved box (``sublevel_roa`` on W): its level, kind,
     what limited it, boxes and seconds, with the ring's decay, inner radius and enclosure."""
 
-    level: float | None
-    kind: str | None
-    limited_by: str | None
-    boxes_processed: int
-    time_s: float
-    decay_rate: float
-    inner_radius: float
-    enclosure: str | None
+    level: float | None = None
+    kind: str | None = None
+    limited_by: str | None = None
+    boxes_processed: int = 0
+    time_s: float = 0.0
+    decay_rate: float = 0.0
+    inner_radius: float = 0.0
+    enclosure: str | None = None
 
 
 @dataclass
@@ -103,18 +103,18 @@ class EllipsoidCandidate(Result):
 
     OPTIONAL: ClassVar[tuple[str, ...]] = ("inner_level",)
     NESTED: ClassVar[dict[str, type]] = {"q_roa": EllipsoidSearch}
-    P: list[list[float]]
-    q_level: float
-    share_of_box: float
-    extent: list[float]
-    cube: list[float]
-    cube_fraction: float
-    hessian_bound: float
-    cube_level: float
-    box_level: float
-    box: list[float]
-    q_roa: EllipsoidSearch
-    boxes: int
+    P: list[list[float]] | None = None
+    q_level: float | None = None
+    share_of_box: float | None = None
+    extent: list[float] | None = None
+    cube: list[float] | None = None
+    cube_fraction: float | None = None
+    hessian_bound: float | None = None
+    cube_level: float | None = None
+    box_level: float | None = None
+    box: list[float] | None = None
+    q_roa: EllipsoidSearch | None = None
+    boxes: int = 0
     P_choice: str = ""
     inner_level: float | None = None
 
@@ -178,13 +178,13 @@ class Annulus(Result):
     (``region`` ``"delta-ball"``, or ``"box"`` where the condition has no decay): the level it holds to, what limited
     it, boxes, the boxes' minimum width and a counterexample (user coordinates) where one stopped it."""
 
-    level: float
-    limited_by: str
-    boxes: int
-    decay_rate: float
-    exp_rate: float
-    region: str
-    min_width: float
+    level: float = 0.0
+    limited_by: str = ""
+    boxes: int = 0
+    decay_rate: float = 0.0
+    exp_rate: float = 0.0
+    region: str = ""
+    min_width: float = 0.0
     counterexample: list[float] | None = None
 
 
@@ -221,10 +221,10 @@ class LinearisationProof(Result):
 class LevelTry(Result):
     """One level the band proof tried: whether its search reached it, its boxes and the seconds since the start."""
 
-    level: float
-    reached: bool
-    boxes: int
-    time_s: float
+    level: float = 0.0
+    reached: bool = False
+    boxes: int = 0
+    time_s: float = 0.0
 
 
 @dataclass
@@ -278,7 +278,7 @@ class RouteSteps:
 
 def near_proof_from_dict(data: dict | None) -> NearProof | None:
     """The proof near x* as its ``to_dict`` wrote it, by its ``method``."""
-    if data is None:
+    if not data:
         return None
     kind = {"linearisation": LinearisationProof, "band": BandRegion}.get(data.get("method"), LocalProof)
     return kind.from_dict(data)
