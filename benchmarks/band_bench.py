@@ -52,7 +52,7 @@ def _imported(run_dir: Path, folder: Path, system=None):
 
 def _row(run, imported, band: tuple[float, float], workers: int, boxes: int | None, folder: Path) -> dict:
     from drlyap.checker.check import check_certificate
-    from drlyap.config import ProofConfig
+    from drlyap.proof_settings import ProofConfig
     from drlyap.runs.certificates import networks_digest, read_certificate, system_digest
     from drlyap.runs.validate import load_weights
     from drlyap.workflows.record import record_band

@@ -48,7 +48,7 @@ def _prove(run, boxes: int, compute, batch: int | None = None, keep_partition: b
     clock starts; the workers' start is in both."""
     import dataclasses
 
-    from drlyap.config import Budget
+    from drlyap.proof_settings import Budget
     from drlyap.regions import Region
     from drlyap.verification import verify_condition
 

@@ -42,7 +42,7 @@ def main(argv: list[str] | None = None) -> int:
     args = parser.parse_args(argv)
     torch.set_num_threads(args.threads)
 
-    from drlyap.config import Budget
+    from drlyap.proof_settings import Budget
     from drlyap.regions import Region
     from drlyap.simulation import evaluate, initial_states
     from drlyap.systems import get_system

@@ -12,10 +12,10 @@ import torch
 
 from drlyap.closed_loop import ClosedLoop
 from drlyap.conditions import DRPointwise, Nominal, TrueDecrease
-from drlyap.config import Budget
 from drlyap.enclosures import Affine, Dual, Interval, is_enclosure, quadratic_max
 from drlyap.enclosures.quadratic import quadratic_span
 from drlyap.networks import Controller, Lyapunov, TanhMLP
+from drlyap.proof_settings import Budget
 from drlyap.regions import Domain, Region
 from drlyap.systems import get_system
 from drlyap.training import TrainConfig, TrainSections

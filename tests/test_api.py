@@ -93,8 +93,9 @@ def test_xi_samples_may_be_a_tensor_or_an_array(tmp_path, tiny_config):
 def test_the_words_of_settings_and_results_are_string_enums_that_read_and_write_as_strings():
     import json
 
-    from drlyap.config import Budget, ProofConfig, TrainConfig
+    from drlyap.config import TrainConfig
     from drlyap.kinds import Enclosure, Loss, Method, Status, choice
+    from drlyap.proof_settings import Budget, ProofConfig
     from drlyap.systems import get_system
 
     system = get_system("pendulum")

@@ -15,7 +15,7 @@ from torch import nn
 from drlyap.cli import main
 from drlyap.closed_loop import ClosedLoop
 from drlyap.conditions import TrueDecrease
-from drlyap.config import Budget
+from drlyap.proof_settings import Budget
 from drlyap.regions import Region
 from drlyap.verification.band_claim import BandProof, prove_band
 from drlyap.verification.partition import BELOW_LEVEL, PROVED

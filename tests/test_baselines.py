@@ -12,8 +12,8 @@ from click.testing import CliRunner
 
 from drlyap.cli import main
 from drlyap.closed_loop import ClosedLoop
-from drlyap.config import Budget
 from drlyap.lqr import default_weights, linearize, lqr_design
+from drlyap.proof_settings import Budget
 from drlyap.regions import Region
 from drlyap.runs import RunDirError, save_lqr_run, save_run, train_lqr
 from drlyap.simulation import evaluate, initial_states

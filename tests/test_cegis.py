@@ -6,7 +6,7 @@ import pytest
 import torch
 from click.testing import CliRunner
 
-from drlyap.config import Budget, ProofConfig
+from drlyap.proof_settings import Budget, ProofConfig
 from drlyap.records import ProofRound
 from drlyap.regions import Region
 from drlyap.systems import get_system

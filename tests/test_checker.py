@@ -14,7 +14,7 @@ from drlyap.checker.arith import Du, Iv
 from drlyap.checker.check import CertificateError, check_certificate, check_tree, rebuild_boxes
 from drlyap.checker.model import Pair, Residual
 from drlyap.conditions import DRPointwise, TrueDecrease
-from drlyap.config import Budget
+from drlyap.proof_settings import Budget
 from drlyap.regions import Region
 from drlyap.runs.certificates import condition_claim, read_certificate, sha256_file, system_digest, write_certificate
 from drlyap.verification import verify_condition

@@ -15,8 +15,8 @@ from drlyap.checker.model import Pair, Residual
 from drlyap.closed_loop import ClosedLoop
 from drlyap.compute import Compute
 from drlyap.conditions import DRPointwise, TrueDecrease
-from drlyap.config import Budget
 from drlyap.enclosures import Interval
+from drlyap.proof_settings import Budget
 from drlyap.regions import Region
 from drlyap.runs.certificates import read_certificate, sha256_file, system_digest, write_certificate
 from drlyap.systems import get_system

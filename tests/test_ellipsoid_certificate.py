@@ -15,7 +15,7 @@ from drlyap.checker.arith import F64, Du, Iv
 from drlyap.checker.ellipsoid import QuadraticPair, inside_box
 from drlyap.checker.model import Pair, Residual
 from drlyap.cli import main
-from drlyap.config import Budget
+from drlyap.proof_settings import Budget
 from drlyap.regions import Region
 from drlyap.runs import load_run
 from drlyap.runs.certificates import write_certificate

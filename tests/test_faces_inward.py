@@ -14,7 +14,7 @@ from drlyap.checker.model import Pair, Residual
 from drlyap.claims import claim_sentence
 from drlyap.closed_loop import ClosedLoop
 from drlyap.conditions import TrueDecrease
-from drlyap.config import Budget
+from drlyap.proof_settings import Budget
 from drlyap.regions import Region
 from drlyap.simulation import simulate
 from drlyap.verification import certified_roa

@@ -6,7 +6,7 @@ import math
 import pytest
 import torch
 
-from drlyap.config import Budget, ProofConfig
+from drlyap.proof_settings import Budget, ProofConfig
 from drlyap.regions import Region
 from drlyap.systems import get_system
 from drlyap.verification import Certificate, ConditionProof, prove_trained, verify_condition

@@ -12,9 +12,9 @@ from torch import nn
 
 from drlyap.cli import main
 from drlyap.conditions import TrueDecrease
-from drlyap.config import Budget, ProofConfig
 from drlyap.enclosures import Affine, Dual, Interval
 from drlyap.graph import read_onnx
+from drlyap.proof_settings import Budget, ProofConfig
 from drlyap.regions import Region
 from drlyap.runs import load_run, save_run
 from drlyap.runs.imported import import_pair, import_run, load_onnx_pair, quadratic_loop, rl_actor_graph

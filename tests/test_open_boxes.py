@@ -8,9 +8,10 @@ import torch
 
 from drlyap.closed_loop import ClosedLoop
 from drlyap.conditions import DRPointwise
-from drlyap.config import ProofConfig, TrainConfig
+from drlyap.config import TrainConfig
 from drlyap.kinds import Enclosure
 from drlyap.networks import Controller, Lyapunov
+from drlyap.proof_settings import ProofConfig
 from drlyap.training.boxes import OpenBoxes
 from drlyap.training.trainer import fit
 from drlyap.verification.bounding import ConditionJob

@@ -15,9 +15,9 @@ import torch
 from drlyap.checker.check import check_certificate
 from drlyap.compute import Compute
 from drlyap.conditions import DRPointwise
-from drlyap.config import Budget, ProofConfig
 from drlyap.networks import Controller, Lyapunov
 from drlyap.parallel import WorkerError, close_pools, pool_for
+from drlyap.proof_settings import Budget, ProofConfig
 from drlyap.regions import Region
 from drlyap.runs.certificates import read_certificate, sha256_file, system_digest, write_certificate
 from drlyap.systems import resolve_system
@@ -230,7 +230,7 @@ from handmade import linear_pair, small_pendulum
 from drlyap.closed_loop import ClosedLoop
 from drlyap.conditions import DRPointwise
 from drlyap.compute import Compute
-from drlyap.config import Budget
+from drlyap.proof_settings import Budget
 from drlyap.regions import Region
 from drlyap.verification import verify_condition
 system = small_pendulum()

@@ -17,9 +17,9 @@ from drlyap.checker.arith import Du, Iv
 from drlyap.checker.graphs import GraphPair
 from drlyap.closed_loop import ClosedLoop
 from drlyap.conditions import PlainDecrease, TrueDecrease
-from drlyap.config import Budget
 from drlyap.kinds import Model
 from drlyap.networks import Controller, QuadraticLyapunov
+from drlyap.proof_settings import Budget
 from drlyap.regions import Region
 from drlyap.runs.imported import PinnedLyapunov, import_pair, import_run
 from drlyap.systems import UncertainSystem, get_system

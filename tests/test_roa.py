@@ -9,10 +9,10 @@ import torch
 
 from drlyap.closed_loop import ClosedLoop
 from drlyap.conditions import DRPointwise, TrueDecrease
-from drlyap.config import Budget
 from drlyap.enclosures import Affine
 from drlyap.lqr import lqr_design
 from drlyap.networks import LinearController, QuadraticLyapunov
+from drlyap.proof_settings import Budget
 from drlyap.regions import Region
 from drlyap.render import roa_cell, roa_line
 from drlyap.simulation import simulate

@@ -12,8 +12,8 @@ from click.testing import CliRunner
 from drlyap.cli import main
 from drlyap.closed_loop import ClosedLoop
 from drlyap.conditions import TrueDecrease
-from drlyap.config import ROA_TIME_CAP, Budget, ProofConfig
 from drlyap.io import jsonable
+from drlyap.proof_settings import ROA_TIME_CAP, Budget, ProofConfig
 from drlyap.regions import Region
 from drlyap.runs import load_run
 from drlyap.verification import certified_roa

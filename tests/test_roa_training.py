@@ -9,9 +9,9 @@ import torch
 
 from drlyap.closed_loop import ClosedLoop
 from drlyap.conditions import DecreaseTerms, PlainDecrease
-from drlyap.config import Budget, ProofConfig
 from drlyap.lqr import lqr_design
 from drlyap.networks import LinearController, QuadraticLyapunov
+from drlyap.proof_settings import Budget, ProofConfig
 from drlyap.regions import Region, split
 from drlyap.systems import cartpole, get_system
 from drlyap.training import TrainConfig, train

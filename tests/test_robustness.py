@@ -8,8 +8,8 @@ from click.testing import CliRunner
 
 from drlyap.closed_loop import ClosedLoop
 from drlyap.conditions import DRPointwise, Nominal, TrueDecrease, decrease_terms
-from drlyap.config import Budget
 from drlyap.enclosures import Interval
+from drlyap.proof_settings import Budget
 from drlyap.regions import Region
 from drlyap.verification import (
     SearchLimits,

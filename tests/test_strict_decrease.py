@@ -15,8 +15,8 @@ from drlyap.checker.graphs import GraphPair
 from drlyap.checker.levels import outside_positive
 from drlyap.cli import main
 from drlyap.conditions import TrueDecrease
-from drlyap.config import Budget
 from drlyap.networks import QuadraticLyapunov
+from drlyap.proof_settings import Budget
 from drlyap.regions import Region
 from drlyap.runs.imported import import_pair, import_run
 from drlyap.simulation import simulate

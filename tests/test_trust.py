@@ -141,7 +141,7 @@ def _emptied(path: Path) -> tuple[dict, dict]:
 
 def test_an_edited_checkpoint_is_refused_and_no_proof_verifies_with_an_open_leaf(pendulum_loop, tmp_path):
     from drlyap.compute import Compute
-    from drlyap.config import Budget
+    from drlyap.proof_settings import Budget
     from drlyap.verification import verify_condition
     from drlyap.verification.checkpoints import save_checkpoint
 

@@ -159,7 +159,7 @@ def test_training_on_the_uniform_condition_has_proof_rounds_on_its_suprema(tiny_
     """A uniform run's rounds bound its margin and retrain on the states where the suprema lie; the returned pair's
     verdict is its round's margin, and every round's line reads."""
     import drlyap
-    from drlyap.config import ProofConfig
+    from drlyap.proof_settings import ProofConfig
     from drlyap.records import TrainingRecord
     from drlyap.render import proof_round_line
 

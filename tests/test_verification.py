@@ -13,9 +13,9 @@ from hypothesis import strategies as st
 from drlyap import systems
 from drlyap.closed_loop import ClosedLoop
 from drlyap.conditions import DRPointwise, DRUniform, Nominal, TrueDecrease, decrease_terms
-from drlyap.config import Budget
 from drlyap.enclosures import Dual, Interval
 from drlyap.networks import TanhMLP
+from drlyap.proof_settings import Budget
 from drlyap.regions import Region
 from drlyap.systems import UncertainSystem
 from drlyap.training import TrainConfig, TrainSections

@@ -26,7 +26,7 @@ import os
 
 _API = {
     "train": "drlyap.training", "fit": "drlyap.training", "TrainResult": "drlyap.training",
-    "TrainConfig": "drlyap.config", "ProofConfig": "drlyap.config", "Budget": "drlyap.config", "Compute": "drlyap.compute",
+    "TrainConfig": "drlyap.config", "ProofConfig": "drlyap.proof_settings", "Budget": "drlyap.proof_settings", "Compute": "drlyap.compute",
     "SystemDefaults": "drlyap.config",
     "ClosedLoop": "drlyap.closed_loop",
     "UncertainSystem": "drlyap.systems", "get_system": "drlyap.systems", "register_system": "drlyap.systems",

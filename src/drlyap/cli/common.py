@@ -127,7 +127,7 @@ def compute_options(with_device: bool = True):
 
 
 def compute_settings(workers: int, backend: str, address: str | None, device: str = "cpu") -> dict:
-    """The :class:`~drlyap.config.ProofConfig` fields of ``--workers``, ``--backend``, ``--address``, ``--device``
+    """The :class:`~drlyap.proof_settings.ProofConfig` fields of ``--workers``, ``--backend``, ``--address``, ``--device``
     (checked: a usage error names what is wrong), with progress on stderr."""
     from drlyap.compute import compute_problems
 

@@ -19,7 +19,8 @@ from drlyap.cli.common import (
     floats,
     refuse_early,
 )
-from drlyap.config import ProofConfig, TrainConfig
+from drlyap.config import TrainConfig
+from drlyap.proof_settings import ProofConfig
 from drlyap.recipes import defaults_text
 
 

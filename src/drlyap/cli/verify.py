@@ -22,7 +22,7 @@ from drlyap.cli.common import (
     run_source_options,
     run_system_of,
 )
-from drlyap.config import ENCLOSURES, ProofConfig
+from drlyap.proof_settings import ENCLOSURES, ProofConfig
 from drlyap.recipes import defaults_text
 
 EXIT_CODES = {"verified": 0, "violated": 3, "unknown": 4}

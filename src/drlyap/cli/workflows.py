@@ -18,7 +18,8 @@ from drlyap.cli.common import (
     run_source_options,
     run_system_of,
 )
-from drlyap.config import ProofConfig, TrainConfig
+from drlyap.config import TrainConfig
+from drlyap.proof_settings import ProofConfig
 from drlyap.recipes import defaults_text
 
 

@@ -31,9 +31,10 @@ from torch import Tensor
 
 from drlyap.closed_loop import ClosedLoop
 from drlyap.conditions import Condition, decay_at_shift
-from drlyap.config import ProofConfig, TrainConfig, legacy_proof
+from drlyap.config import TrainConfig
 from drlyap.io import write_json, write_json_atomic
 from drlyap.networks import Controller, Lyapunov
+from drlyap.proof_settings import ProofConfig, legacy_proof
 from drlyap.records import AcceptanceCheck, TrainingRecord
 from drlyap.regions import Region
 from drlyap.runs.certificates import write_certificate

@@ -51,9 +51,10 @@ from torch import Tensor
 
 from drlyap.closed_loop import ClosedLoop
 from drlyap.conditions import Condition
-from drlyap.config import ProofConfig, TrainConfig
+from drlyap.config import TrainConfig
 from drlyap.io import jsonable
 from drlyap.networks import Controller, Lyapunov
+from drlyap.proof_settings import ProofConfig
 from drlyap.records import ProofRound
 from drlyap.regions import Region
 from drlyap.render import proof_round_line, unverified_warning

@@ -11,8 +11,8 @@ Every public function takes ``(loop, condition, region, budget)`` and returns a 
 
 Modules:
 
-* :class:`~drlyap.config.Budget` (one proof's work) and :class:`~drlyap.config.ProofConfig` (every proof setting of
-  a run) live in :mod:`drlyap.config`;
+* :class:`~drlyap.proof_settings.Budget` (one proof's work) and :class:`~drlyap.proof_settings.ProofConfig` (every
+  proof setting of a run) live in :mod:`drlyap.proof_settings`;
 * :mod:`~drlyap.verification.results` -- the typed results;
 * :mod:`~drlyap.verification.bounds` -- bounds of a function over boxes (interval, mean-value and affine forms);
 * :mod:`~drlyap.verification.branch_and_bound` -- :func:`verify_condition`, :func:`maximize`, :func:`uniform_margin`;
@@ -28,7 +28,7 @@ Modules:
 * :mod:`~drlyap.verification.covering` -- the paper's Lipschitz covering check.
 """
 
-from drlyap.config import ENCLOSURES, Budget, ProofConfig, default_enclosure
+from drlyap.proof_settings import ENCLOSURES, Budget, ProofConfig, default_enclosure
 from drlyap.verification.bounds import box_bounds, combine_lower, combine_upper, condition_objective
 from drlyap.verification.branch_and_bound import maximize, uniform_margin, verify_condition
 from drlyap.verification.covering import lipschitz_covering

@@ -18,8 +18,8 @@ import time
 
 from drlyap.closed_loop import ClosedLoop
 from drlyap.conditions import Condition
-from drlyap.config import DEFAULT_SETTLE_STARTS, Budget
 from drlyap.kinds import Model, Status
+from drlyap.proof_settings import DEFAULT_SETTLE_STARTS, Budget
 from drlyap.regions import Region
 from drlyap.verification.branch_and_bound import verify_condition
 from drlyap.verification.falsifier import settle_unknown

@@ -26,7 +26,6 @@ import torch
 from torch import Tensor
 
 from drlyap.conditions import Condition
-from drlyap.config import check_enclosure
 from drlyap.enclosures import (
     EPS,
     F64,
@@ -43,6 +42,7 @@ from drlyap.enclosures import (
 )
 from drlyap.kinds import Enclosure
 from drlyap.networks import QuadraticLyapunov
+from drlyap.proof_settings import check_enclosure
 
 Objective = Callable[[object], object]
 """``objective(z)``: ``z`` an enclosure of local states ``(B, n)`` -> an enclosure ``(B, Q)``."""

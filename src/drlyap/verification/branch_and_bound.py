@@ -30,11 +30,11 @@ from torch import Tensor
 
 from drlyap.closed_loop import ClosedLoop
 from drlyap.conditions import Condition, DRUniform
-from drlyap.config import Budget
 from drlyap.enclosures import EPS, F64, Interval, round_down, round_up
 from drlyap.kinds import Status
 from drlyap.networks import QuadraticLyapunov
 from drlyap.progress import progress as show_progress
+from drlyap.proof_settings import Budget
 from drlyap.regions import Domain, Region, box_grid, default_grid, inside_ball, split
 from drlyap.verification.bounding import ConditionBounds, ConditionJob, run_batches
 from drlyap.verification.bounds import box_bounds, condition_objective, vertex_max

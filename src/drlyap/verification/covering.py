@@ -13,8 +13,8 @@ import torch
 
 from drlyap.closed_loop import ClosedLoop
 from drlyap.conditions import Condition
-from drlyap.config import Budget
 from drlyap.enclosures import F64, Dual, Interval
+from drlyap.proof_settings import Budget
 from drlyap.regions import Region
 from drlyap.verification.bounds import combine_upper, condition_objective
 from drlyap.verification.branch_and_bound import verify_condition

@@ -24,9 +24,9 @@ from torch import Tensor
 
 from drlyap.closed_loop import ClosedLoop
 from drlyap.conditions import Condition
-from drlyap.config import DEFAULT_SETTLE_STARTS
 from drlyap.enclosures import Interval
 from drlyap.kinds import Status
+from drlyap.proof_settings import DEFAULT_SETTLE_STARTS
 from drlyap.regions import Region
 from drlyap.systems import UncertainSystem
 from drlyap.verification.bounds import combine_lower, condition_and_value_objective, condition_objective

@@ -35,9 +35,9 @@ from torch import Tensor
 
 from drlyap.closed_loop import ClosedLoop
 from drlyap.conditions import DRPointwise, TrueDecrease
-from drlyap.config import Budget
 from drlyap.enclosures import F64, Interval
 from drlyap.kinds import Enclosure, Status
+from drlyap.proof_settings import Budget
 from drlyap.regions import Region
 from drlyap.systems import UncertainSystem
 from drlyap.verification.branch_and_bound import verify_condition

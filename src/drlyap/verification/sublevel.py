@@ -14,10 +14,10 @@ from torch import Tensor
 
 from drlyap.closed_loop import ClosedLoop
 from drlyap.conditions import Condition
-from drlyap.config import DEFAULT_SETTLE_STARTS, Budget
 from drlyap.enclosures import F64, round_down
 from drlyap.kinds import Model, Status
 from drlyap.networks import QuadraticLyapunov
+from drlyap.proof_settings import DEFAULT_SETTLE_STARTS, Budget
 from drlyap.regions import Domain, Region, box_grid, default_grid
 from drlyap.verification.bounds import box_bounds, value_objective
 from drlyap.verification.branch_and_bound import maximize, verify_condition

@@ -22,11 +22,11 @@ from drlyap import plotting
 from drlyap.closed_loop import ClosedLoop
 from drlyap.compute import Compute
 from drlyap.conditions import TrueDecrease
-from drlyap.config import ProofConfig
 from drlyap.io import jsonable
 from drlyap.kinds import Enclosure
 from drlyap.networks import LinearController, QuadraticLyapunov
 from drlyap.progress import progress as show_progress
+from drlyap.proof_settings import ProofConfig
 from drlyap.regions import Region
 from drlyap.render import COMPARE_LEGEND, attempt_cells
 from drlyap.runs import PolicyRun, atomic_dir, check_writable, read_run_kind

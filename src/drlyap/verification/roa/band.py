@@ -26,9 +26,9 @@ from torch import Tensor
 
 from drlyap.closed_loop import ClosedLoop
 from drlyap.conditions import Condition, PlainDecrease
-from drlyap.config import Budget
 from drlyap.enclosures import F64
 from drlyap.kinds import Enclosure
+from drlyap.proof_settings import Budget
 from drlyap.regions import Domain, Region, box_grid, default_grid
 from drlyap.verification.branch_and_bound import verify_condition
 from drlyap.verification.roa.levels import BOX_BUDGET, TIME_LIMIT, below, level_search, time_capped

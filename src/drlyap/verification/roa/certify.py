@@ -25,7 +25,7 @@ from dataclasses import replace
 
 from drlyap.closed_loop import ClosedLoop
 from drlyap.conditions import Condition
-from drlyap.config import Budget
+from drlyap.proof_settings import Budget
 from drlyap.regions import Region
 from drlyap.verification.results import ConditionProof, RegionOfAttraction
 from drlyap.verification.roa.band import band_roa

@@ -18,11 +18,11 @@ from torch import Tensor
 
 from drlyap.closed_loop import ClosedLoop
 from drlyap.conditions import Condition
-from drlyap.config import Budget
 from drlyap.enclosures import F64, REL1, round_down
 from drlyap.kinds import Enclosure
 from drlyap.networks import QuadraticLyapunov
 from drlyap.progress import progress as show_progress
+from drlyap.proof_settings import Budget
 from drlyap.regions import Domain, split
 from drlyap.verification.bounds import (
     box_bounds,

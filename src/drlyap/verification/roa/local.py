@@ -23,10 +23,10 @@ from torch import Tensor
 
 from drlyap.closed_loop import ClosedLoop
 from drlyap.conditions import Condition, PlainDecrease, local_rates
-from drlyap.config import Budget
 from drlyap.enclosures import F64, Dual, Interval
 from drlyap.kinds import Enclosure, Model, Status
 from drlyap.networks import QuadraticLyapunov
+from drlyap.proof_settings import Budget
 from drlyap.regions import Region
 from drlyap.verification.branch_and_bound import verify_condition
 from drlyap.verification.linearisation import jacobian_negative

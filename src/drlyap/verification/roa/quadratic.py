@@ -42,10 +42,10 @@ from torch import Tensor
 
 from drlyap.closed_loop import ClosedLoop
 from drlyap.conditions import Condition, PlainDecrease
-from drlyap.config import Budget
 from drlyap.enclosures import F64, REL1, round_down, round_up
 from drlyap.kinds import Enclosure
 from drlyap.networks import QuadraticLyapunov
+from drlyap.proof_settings import Budget
 from drlyap.regions import Domain, Region, box_grid, default_grid, near_dist
 from drlyap.verification.bounds import box_bounds, value_objective
 from drlyap.verification.branch_and_bound import maximize, verify_condition

@@ -36,11 +36,11 @@ from torch import Tensor
 
 from drlyap.closed_loop import ClosedLoop
 from drlyap.conditions import Condition
-from drlyap.config import Budget
 from drlyap.enclosures import F64
 from drlyap.enclosures.quadratic import surely_semidefinite
 from drlyap.kinds import Model
 from drlyap.networks import Lyapunov, QuadraticLyapunov
+from drlyap.proof_settings import Budget
 from drlyap.regions import Domain, Region, box_grid, default_grid, near_dist
 from drlyap.verification.bounds import value_objective
 from drlyap.verification.branch_and_bound import SearchInfo, maximize

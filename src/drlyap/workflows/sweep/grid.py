@@ -6,9 +6,10 @@ import dataclasses
 import math
 from dataclasses import dataclass, field
 
-from drlyap.config import ProofConfig, TrainConfig
+from drlyap.config import TrainConfig
 from drlyap.io import from_fields
 from drlyap.kinds import Method
+from drlyap.proof_settings import ProofConfig
 from drlyap.systems import UncertainSystem, resolve_system
 
 METHODS = (Method.BASELINE, Method.DR)
