@@ -12,6 +12,7 @@
 * :class:`LinearisationProof` -- V's sublevel sets inside that ellipsoid (``linearisation_local``), with its
   :class:`Annulus`;
 * :class:`BandRegion` -- V's decrease outside the ellipsoid (``band_roa``), one :class:`LevelTry` per level tried.
+* :class:`RouteSteps` -- the steps that ran, as ``finish`` takes them.
 
 Each ``to_dict()`` is the JSON the route has always written; ``from_dict()`` reads it back. Fields in ``OPTIONAL`` are
 left out while they are None (a step that stopped early writes only what it found).
