@@ -26,8 +26,8 @@ import os
 
 _API = {
     "train": "drlyap.training", "fit": "drlyap.training", "TrainResult": "drlyap.training",
-    "TrainConfig": "drlyap.config", "ProofConfig": "drlyap.proof_settings", "Budget": "drlyap.proof_settings", "Compute": "drlyap.compute",
-    "SystemDefaults": "drlyap.config",
+    "TrainConfig": "drlyap.config", "SystemDefaults": "drlyap.config",
+    "ProofConfig": "drlyap.proof_settings", "Budget": "drlyap.proof_settings", "Compute": "drlyap.compute",
     "ClosedLoop": "drlyap.closed_loop",
     "UncertainSystem": "drlyap.systems", "get_system": "drlyap.systems", "register_system": "drlyap.systems",
     "resolve_system": "drlyap.systems", "system_names": "drlyap.systems",
