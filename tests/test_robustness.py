@@ -270,7 +270,7 @@ def test_a_narrow_bracket_is_closed_by_one_proof_just_below_its_unproved_end(mon
             tried.append(v)
             return {"status": "verified" if v <= edge else "unknown", "time_s": 1.0}
 
-        found = _largest_proved(prove, lambda v: None, guess, 1.0, SearchLimits(total_time=1e9), 1e6, None, proved)
+        found = _largest_proved(prove, lambda v: None, guess, 1.0, SearchLimits(total_time=1e9, cap=1e6), None, proved)
         return found, tried
 
     found, tried = search(0.0884, 0.05, 0.2355)

@@ -148,8 +148,7 @@ def acceptance_check(loop: ClosedLoop, condition: Condition, xi_samples: Tensor,
     jac = jacobian_check(loop, xi_samples)
     equilibria = find_equilibria(loop, xi_samples, region.delta)
     if level is not None and equilibria:
-        ref = next(loop.controller.parameters())
-        values = loop.value(torch.tensor([e["local"] for e in equilibria], dtype=ref.dtype, device=ref.device))
+        values = loop.value(torch.tensor([e["local"] for e in equilibria]))  # in V's dtype and device
         for e, v in zip(equilibria, values.tolist()):
             e.update(value=v, in_set=bool(v <= level))
     blocking = [e for e in equilibria if e.get("in_set", True)]

@@ -437,7 +437,7 @@ def maximize(objective: Callable, domain: Domain, budget: Budget, *, rel_tol: fl
     progress line of its boxes calls the search (where ``budget.compute.progress``; None: none).
     """
     lo, hi, scale = domain.lo, domain.hi, domain.scale
-    box_ok, centre_ok = domain.meets, domain.contains
+    box_ok = domain.meets
     enclosure = budget.enclosure_for(lo.shape[-1])
     time_limit, max_boxes, min_width, batch = budget.seconds, budget.boxes, budget.min_width, budget.batch
     start = time.perf_counter()
@@ -465,7 +465,7 @@ def maximize(objective: Callable, domain: Domain, budget: Budget, *, rel_tol: fl
         processed += clo.shape[0]
         bar.update(clo.shape[0])
         centre = (clo + chi) / 2
-        good = centre_ok(centre) if centre_ok is not None else torch.ones(clo.shape[0], dtype=torch.bool)
+        good = domain.points_in(centre)
         if good.any():
             cand, where = at.lo[good].max(0)
             found = centre[good][where]  # (Q, n): where each component's new value was attained

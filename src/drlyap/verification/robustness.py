@@ -28,7 +28,7 @@ from __future__ import annotations
 import math
 import time
 from collections.abc import Callable
-from dataclasses import dataclass
+from dataclasses import dataclass, replace
 
 import torch
 from torch import Tensor
@@ -131,10 +131,10 @@ def _residuals_and_lip(loop: ClosedLoop, condition, z: Tensor, batch: int = 8192
 
 # --------------------------------------------------------------------------- the search
 def _largest_proved(prove: Callable[[float], dict], refute: Callable[[float], dict | None], guess: float | None,
-                    start: float, limits: SearchLimits, cap: float,
+                    start: float, limits: SearchLimits,
                     reguess: Callable[[dict], float | None] | None = None, proved: float | None = None) -> dict:
     """Largest v in ``[0, cap]`` with ``prove(v)['status'] == 'verified'``, for a property monotone in v, within
-    ``limits`` (its tolerance, seconds and proofs).
+    ``limits`` (its tolerance, seconds, proofs and ``cap``, which must be set).
 
     ``refute(v)``: a cheap witness that v fails (a real evaluation), or None. ``guess``: a sampled upper end
     (the property fails just above it), or None (then grow geometrically from ``start``). ``reguess(res)``: a
@@ -145,7 +145,7 @@ def _largest_proved(prove: Callable[[float], dict], refute: Callable[[float], di
     clock = time.perf_counter()
     probes: list[dict] = []
     proofs = 0
-    tol, max_proofs, total_time = limits.tol, limits.max_proofs, limits.total_time
+    tol, max_proofs, total_time, cap = limits.tol, limits.max_proofs, limits.total_time, float(limits.cap)
 
     def probe(v: float) -> dict:
         nonlocal proofs
@@ -352,7 +352,8 @@ def certified_radius(loop: ClosedLoop, condition: DRPointwise, region: Region, b
     prove, best_proof = _prover(loop, region, budget, condition.with_radius, level,
                                 None if proved is None or start is None else (proved, start))
     first = condition.r if condition.r > 0 else 1e-3
-    found = _largest_proved(prove, refute, first_guess, first, limits, limits.capped(RADIUS_CAP), reguess, proved)
+    found = _largest_proved(prove, refute, first_guess, first, replace(limits, cap=limits.capped(RADIUS_CAP)), reguess,
+                            proved)
     found["time_s"] = time.perf_counter() - clock
     radius = found.pop("certified")
     sampled = best["sampled"]
@@ -418,7 +419,8 @@ def certified_shift_box(loop: ClosedLoop, region: Region, scale: Tensor, budget:
         raise ValueError(f"scale must be {system.k} finite positive value(s) ({', '.join(system.uncertain)}), "
                          f"got {scale.tolist()}")
     decay_rate, exp_rate = (float(v) for v in decay)
-    cap, tol = limits.capped(SHIFT_CAP), limits.tol
+    limits = replace(limits, cap=limits.capped(SHIFT_CAP))
+    cap, tol = limits.cap, limits.tol
     clock = time.perf_counter()
     states = {"z": _in_sublevel(loop, dense_states(region), level)}
 
@@ -443,7 +445,7 @@ def certified_shift_box(loop: ClosedLoop, region: Region, scale: Tensor, budget:
 
     sampled = _sampled_threshold(refute, cap, tol / 8)
     prove, best = _prover(loop, region, budget, make, level, None if start is None else (-math.inf, start))
-    found = _largest_proved(prove, refute, sampled, 1.0, limits, cap, reguess)
+    found = _largest_proved(prove, refute, sampled, 1.0, limits, reguess)
     found["time_s"] = time.perf_counter() - clock
     s = found.pop("certified")
     box = None if s is None else {name: [-s * float(w), s * float(w)] for name, w in zip(system.uncertain, scale)}
