@@ -30,6 +30,7 @@ from drlyap.verification.bounds import (
     condition_objective,
     sublevel_upper,
 )
+from drlyap.verification.search import Boxes
 
 CHUNK = 1024
 """Boxes of a batch bounded in one call of the job, in this process (on the CPU) or on a worker. A chunk's bounds are
@@ -145,26 +146,26 @@ def _condition_on(condition, device: str):
     return moved
 
 
-def run_batches(job: Callable, compute: Compute, take: Callable[[], tuple | None],
-                can_prefetch: Callable[[], bool]) -> Iterator[tuple]:
-    """Bound the batches a branch and bound takes, in the order it takes them: yields ``(lo, hi, *rest, bounds)``.
+def run_batches(job: Callable, compute: Compute, take: Callable[[], Boxes | None],
+                can_prefetch: Callable[[], bool]) -> Iterator[tuple[Boxes, dict[str, Tensor]]]:
+    """Bound the batches a branch and bound takes, in the order it takes them: yields ``(batch, bounds)``, a
+    :data:`~drlyap.verification.search.Bound` for a job that workers may run.
 
-    ``take()`` returns the next batch ``(lo, hi, *rest)`` (``rest``: what the caller keeps beside it, e.g. the boxes'
-    ids; None: no more); ``can_prefetch()`` says whether the next batch is already fixed before the bounds of the
-    batches in flight come back (its boxes are in the queue, not among their children), so that workers may start on
-    it while this process sorts the last one out. In this process (``compute`` without workers) each batch is bounded
-    when it is taken, on ``compute.device``. Each batch is bounded in the chunks :func:`chunk_sizes` gives (each a call
-    of ``job``), the same chunks in this process and on any number of workers, so that the bounds are the same bits; on
-    a GPU (one process only) in one call.
+    ``take()`` returns the next batch (:class:`~drlyap.verification.search.Boxes`; None: no more); ``can_prefetch()``
+    says whether the next batch is already fixed before the bounds of the batches in flight come back (its boxes are in
+    the queue, not among their children), so that workers may start on it while this process sorts the last one out. In
+    this process (``compute`` without workers) each batch is bounded when it is taken, on ``compute.device``. Each batch
+    is bounded in the chunks :func:`chunk_sizes` gives (each a call of ``job``), the same chunks in this process and on
+    any number of workers, so that the bounds are the same bits; on a GPU (one process only) in one call.
     """
     pool = pool_for(compute)
     if pool is None:
         local = job.on(compute.device) if hasattr(job, "on") else job
         whole = compute.device != "cpu"  # a GPU bounds a whole batch at once: no workers' bits to agree with
         while (batch := take()) is not None:
-            bounds = (local(batch[0], batch[1]) if whole else
-                      run_in_chunks(local, (batch[0], batch[1]), chunk_sizes(int(batch[0].shape[0]))))
-            yield (*batch, bounds)
+            bounds = (local(batch.lo, batch.hi) if whole else
+                      run_in_chunks(local, (batch.lo, batch.hi), chunk_sizes(len(batch))))
+            yield batch, bounds
         return
     flight: deque = deque()
     try:
@@ -173,11 +174,11 @@ def run_batches(job: Callable, compute: Compute, take: Callable[[], tuple | None
                 batch = take()
                 if batch is None:
                     break
-                flight.append((batch, pool.submit(job, batch[0], batch[1], chunk=chunk_sizes(int(batch[0].shape[0])))))
+                flight.append((batch, pool.submit(job, batch.lo, batch.hi, chunk=chunk_sizes(len(batch)))))
             if not flight:
                 return
             batch, pending = flight.popleft()
-            yield (*batch, pending.result())
+            yield batch, pending.result()
     except GeneratorExit:  # the caller stopped early (a counterexample): collect what is still in flight
         for _, pending in flight:
             pending.result()

@@ -41,6 +41,7 @@ from drlyap.verification.bounds import box_bounds, condition_objective, vertex_m
 from drlyap.verification.checkpoints import SAVE_SPACING, load_checkpoint, proof_key, save_checkpoint
 from drlyap.verification.partition import INSIDE_CORE, OPEN, PROVED, Partition, PartitionRecorder
 from drlyap.verification.results import ConditionProof, UniformMargin
+from drlyap.verification.search import Boxes, Checkpointing, DomainQueue, Stopping, branch_and_bound, in_process
 
 
 def verify_condition(loop: ClosedLoop, condition: Condition, region: Region, budget: Budget = Budget(), *,
@@ -95,7 +96,7 @@ def verify_condition(loop: ClosedLoop, condition: Condition, region: Region, bud
                          f"level {level})")
     search = _Search(loop, condition, region, budget, level, list(grid or default_grid(loop.system.n)),
                      stop_at_counterexample, violation_width, start, give_up, standing, core, floor)
-    if not (search.finished and (search.stopped == "counterexample" or not search.lo.shape[0])):
+    if not (search.finished and (search.stopped == "counterexample" or not len(search.queue))):
         search.run()  # a finished search that ran out of budget goes on where a larger budget allows
     return search.result(keep_boxes, keep_partition)
 
@@ -137,7 +138,6 @@ class _Search:
         self.sup_lo, self.sup_hi = -math.inf, -math.inf
         self.cex: tuple[float, Tensor] | None = None
         self.stopped, self.finished = "finished", False
-        self.flight: list[tuple[Tensor, Tensor, Tensor]] = []  # batches taken from the queue, their bounds not yet sorted
         self.key = None
         if self.compute.checkpoint_dir is not None:
             self.key = proof_key(loop, condition, region, level=level,
@@ -164,30 +164,29 @@ class _Search:
             if standing is not None:
                 opened = opened & ~standing.to(torch.bool)
             opened = opened.nonzero().squeeze(-1)
-            self.lo, self.hi, self.ids = blo[opened], bhi[opened], opened
+            self.queue = DomainQueue(Boxes(blo[opened], bhi[opened], opened))
         else:
             keep = region.meets(lo, hi)
             self.tree.inside_ball(self.tree.roots[~keep])
-            self.lo, self.hi, self.ids = self._outside_core(lo[keep], hi[keep], self.tree.roots[keep])
+            self.queue = DomainQueue(self._outside_core(Boxes(lo[keep], hi[keep], self.tree.roots[keep])))
 
-    def _outside_core(self, lo: Tensor, hi: Tensor, ids: Tensor) -> tuple[Tensor, Tensor, Tensor]:
+    def _outside_core(self, boxes: Boxes) -> Boxes:
         """The boxes not inside the core (those inside are recorded as such)."""
-        if self.core is None or not lo.shape[0]:
-            return lo, hi, ids
-        top = vertex_max(self.core[0], lo, hi)
+        if self.core is None or not len(boxes):
+            return boxes
+        top = vertex_max(self.core[0], boxes.lo, boxes.hi)
         inside = top <= self.core[1]
-        self.tree.inside_core(ids[inside], top[inside])
-        return lo[~inside], hi[~inside], ids[~inside]
+        self.tree.inside_core(boxes.ids[inside], top[inside])
+        return boxes.select(~inside)
 
     # ------------------------------------------------------------------ checkpoints
     def _arrays(self) -> dict[str, Tensor]:
         leaves_lo = torch.cat(self.leaves_lo) if self.leaves_lo else torch.empty(0, self.n, dtype=F64)
         leaves_hi = torch.cat(self.leaves_hi) if self.leaves_hi else torch.empty(0, self.n, dtype=F64)
         cex = self.cex[1] if self.cex is not None else torch.empty(0, dtype=F64)
-        queue = [*self.flight, (self.lo, self.hi, self.ids)]  # the batches in flight go first again, as taken
-        return {"queue_lo": torch.cat([q[0] for q in queue]), "queue_hi": torch.cat([q[1] for q in queue]),
-                "queue_ids": torch.cat([q[2] for q in queue]), "leaves_lo": leaves_lo, "leaves_hi": leaves_hi,
-                "cex": cex, **self.tree.state()}
+        queue = self.queue.everything()  # the batches in flight go first again, as taken
+        return {"queue_lo": queue.lo, "queue_hi": queue.hi, "queue_ids": queue.ids, "leaves_lo": leaves_lo,
+                "leaves_hi": leaves_hi, "cex": cex, **self.tree.state()}
 
     def _meta(self) -> dict:
         return {"processed": self.processed, "verified_count": self.verified_count, "n_cex_boxes": self.n_cex_boxes,
@@ -196,7 +195,7 @@ class _Search:
                 "finished": self.finished}
 
     def _restore(self, arrays: dict[str, Tensor], meta: dict) -> None:
-        self.lo, self.hi, self.ids = arrays["queue_lo"], arrays["queue_hi"], arrays["queue_ids"].to(torch.int64)
+        self.queue = DomainQueue(Boxes(arrays["queue_lo"], arrays["queue_hi"], arrays["queue_ids"].to(torch.int64)))
         self.tree.restore(arrays)
         self.leaves_lo = [arrays["leaves_lo"]] if arrays["leaves_lo"].shape[0] else []
         self.leaves_hi = [arrays["leaves_hi"]] if arrays["leaves_hi"].shape[0] else []
@@ -220,75 +219,34 @@ class _Search:
 
     # ------------------------------------------------------------------ the search
     def run(self) -> None:
-        budget, region, condition, level = self.budget, self.region, self.condition, self.level
-        scale, batch = region.scale, int(budget.batch)
-        start, saved_at = time.perf_counter(), time.perf_counter()
-        before = self.elapsed
-        taken = self.processed
+        budget, condition, level = self.budget, self.condition, self.level
         resumed = f" (resumed from its checkpoint after {self.resumed} boxes)" if self.resumed else ""
         bar = show_progress(int(budget.boxes), f"proof ({proof_label(condition, level)}){resumed}: boxes",
                             self.compute.progress)
         if self.resumed:
             bar.update(min(self.resumed, int(budget.boxes)))
-
-        def take():
-            nonlocal taken
-            if not self.lo.shape[0]:
-                self.stopped = "finished"
-                return None
-            if before + time.perf_counter() - start > budget.seconds:
-                self.stopped = "time limit"
-                return None
-            if taken >= budget.boxes:
-                self.stopped = "box budget"
-                return None
-            if self.give_up and self.lo.shape[0] > budget.boxes - taken:
-                self.stopped = "more boxes queued than the budget has left"
-                return None
-            clo, chi, cids = self.lo[:batch], self.hi[:batch], self.ids[:batch]
-            self.lo, self.hi, self.ids = self.lo[batch:], self.hi[batch:], self.ids[batch:]
-            taken += clo.shape[0]
-            self.flight.append((clo, chi, cids))
-            return clo, chi, cids
-
         job = ConditionJob(self.loop, condition, level, self.enclosure, band=self.floor is not None)
-        sorting, spacing = False, self.compute.checkpoint_every
+        checkpoint = None if self.key is None else Checkpointing(self._save_at, self.compute.checkpoint_every,
+                                                                  SAVE_SPACING)
         try:
-            for clo, chi, cids, bounds in run_batches(job, self.compute, take, lambda: self.lo.shape[0] >= batch):
-                sorting = True
-                self.flight.pop(0)
-                self.processed += clo.shape[0]
-                bar.update(clo.shape[0])
-                if self._sort(clo, chi, cids, ConditionBounds(**bounds), scale):
-                    break
-                sorting = False
-                if self.key is not None and time.perf_counter() - saved_at >= spacing:
-                    self.elapsed = before + time.perf_counter() - start
-                    tic = time.perf_counter()
-                    self._save()
-                    saved_at = time.perf_counter()
-                    spacing = max(self.compute.checkpoint_every, SAVE_SPACING * (saved_at - tic))
-                bar.set_postfix(queued=int(self.lo.shape[0]))
-        except KeyboardInterrupt:
-            if not sorting:  # between batches the state is whole: keep it, so that the same proof resumes here
-                self.elapsed = before + time.perf_counter() - start
-                self._save()
-            raise
+            outcome = branch_and_bound(
+                self.queue, lambda take, can_prefetch: run_batches(job, self.compute, take, can_prefetch), self._sort,
+                Stopping(int(budget.boxes), budget.seconds, self.give_up, self.processed, self.elapsed),
+                batch=int(budget.batch), bar=bar, checkpoint=checkpoint)
         finally:
             bar.close()
-        if self.flight:  # a batch prefetched when the search stopped at a counterexample: queued, as one process has it
-            queue = [*self.flight, (self.lo, self.hi, self.ids)]
-            self.lo, self.hi, self.ids = (torch.cat([q[i] for q in queue]) for i in range(3))
-            self.flight = []
-        self.elapsed = before + time.perf_counter() - start
-        if self.lo.shape[0] and self.stopped == "finished":  # a search that stopped on its own has none queued
-            self.stopped = "box budget"
-        self.finished = True
+        self.elapsed, self.stopped, self.finished = outcome.seconds, outcome.stopped, True
         self._save()
 
-    def _sort(self, clo: Tensor, chi: Tensor, cids: Tensor, bounds: ConditionBounds, scale: Tensor) -> bool:
-        """Take one batch's bounds: record proved boxes, confirm counterexamples, split the rest. True: stop."""
+    def _save_at(self, seconds: float) -> None:
+        self.elapsed = seconds
+        self._save()
+
+    def _sort(self, boxes: Boxes, found: dict[str, Tensor]) -> str | None:
+        """Take one batch's bounds: record proved boxes, confirm counterexamples, split the rest. A reason: stop."""
         region, condition, level, tree = self.region, self.condition, self.level, self.tree
+        clo, chi, cids, scale, bounds = boxes.lo, boxes.hi, boxes.ids, region.scale, ConditionBounds(**found)
+        self.processed += len(boxes)
         ub, centre_lb, sens = bounds.upper, bounds.centre_lower, bounds.sensitivity
         centre = (clo + chi) / 2
         in_region = region.in_region(centre)
@@ -328,12 +286,11 @@ class _Search:
             else:
                 bad = torch.zeros_like(bad)
         if bad.any() and self.stop_at_cex:
-            self.stopped = "counterexample"
             self.unverified_vol += float((chi[~ok] - clo[~ok]).prod(-1).sum())
             self.leaves_lo.append(clo[~ok])
             self.leaves_hi.append(chi[~ok])
             self.sup_hi = math.inf
-            return True
+            return "counterexample"
         rel_width = ((chi - clo) / scale).amax(-1)
         bad = bad & (rel_width < self.violation_width)  # violating boxes still wide enough are split like the rest
         if bad.any():
@@ -354,18 +311,17 @@ class _Search:
             children = tree.split(cids[divide], chi[divide], nhi)
             keep = region.meets(nlo, nhi)
             tree.inside_ball(children[~keep])
-            nlo, nhi, nids = self._outside_core(nlo[keep], nhi[keep], children[keep])
-            self.lo, self.hi, self.ids = torch.cat([self.lo, nlo]), torch.cat([self.hi, nhi]), torch.cat([self.ids, nids])
-        return False
+            self.queue.push(self._outside_core(Boxes(nlo[keep], nhi[keep], children[keep])))
+        return None
 
     def result(self, keep_boxes: int, keep_partition: bool = False) -> ConditionProof:
         system, n = self.loop.system, self.n
         leaves_lo, leaves_hi = list(self.leaves_lo), list(self.leaves_hi)
-        unverified_vol, sup_hi = self.unverified_vol, self.sup_hi
-        if self.lo.shape[0]:
-            unverified_vol += float((self.hi - self.lo).prod(-1).sum())
-            leaves_lo.append(self.lo)
-            leaves_hi.append(self.hi)
+        unverified_vol, sup_hi, queued = self.unverified_vol, self.sup_hi, self.queue.queued
+        if len(queued):
+            unverified_vol += float((queued.hi - queued.lo).prod(-1).sum())
+            leaves_lo.append(queued.lo)
+            leaves_hi.append(queued.hi)
             sup_hi = math.inf
         left_lo = torch.cat(leaves_lo) if leaves_lo else torch.empty(0, n, dtype=F64)
         left_hi = torch.cat(leaves_hi) if leaves_hi else torch.empty(0, n, dtype=F64)
@@ -436,34 +392,25 @@ def maximize(objective: Callable, domain: Domain, budget: Budget, *, rel_tol: fl
     centre at which each component's lower bound was found (None where no centre was accepted). ``label``: what a
     progress line of its boxes calls the search (where ``budget.compute.progress``; None: none).
     """
-    lo, hi, scale = domain.lo, domain.hi, domain.scale
-    box_ok = domain.meets
-    enclosure = budget.enclosure_for(lo.shape[-1])
-    time_limit, max_boxes, min_width, batch = budget.seconds, budget.boxes, budget.min_width, budget.batch
+    scale, box_ok = domain.scale, domain.meets
+    enclosure = budget.enclosure_for(domain.lo.shape[-1])
     start = time.perf_counter()
     closed: Tensor | None = None
     best: Tensor | None = None
     best_at: Tensor | None = None
-    processed = 0
-    stopped = "finished"
-    ids = tree.roots if tree is not None else torch.zeros(lo.shape[0], dtype=torch.int64)
+    ids = tree.roots if tree is not None else torch.zeros(domain.lo.shape[0], dtype=torch.int64)
+    boxes = Boxes(domain.lo, domain.hi, ids)
     if box_ok is not None:
-        keep = box_ok(lo, hi)
+        keep = box_ok(boxes.lo, boxes.hi)
         if tree is not None:
             tree.inside_ball(ids[~keep])
-        lo, hi, ids = lo[keep], hi[keep], ids[keep]
-    known: Tensor | None = None  # (B, Q): an upper bound on each queued box (its parent's), once one is split
-    bar = show_progress(int(max_boxes), f"{label}: boxes", budget.compute.progress and label is not None)
-    while lo.shape[0]:
-        if time.perf_counter() - start > time_limit or processed >= max_boxes:
-            stopped = "time limit" if processed < max_boxes else "box budget"
-            break
-        clo, chi, cids, lo, hi, ids = lo[:batch], hi[:batch], ids[:batch], lo[batch:], hi[batch:], ids[batch:]
-        if known is not None:
-            known = known[clo.shape[0]:]
-        _, ub, at = box_bounds(objective, clo, chi, enclosure)
-        processed += clo.shape[0]
-        bar.update(clo.shape[0])
+        boxes = boxes.select(keep)
+    queue = DomainQueue(boxes)  # known (B, Q): an upper bound on each queued box (its parent's), once one is split
+
+    def sort(taken: Boxes, bounds: tuple) -> None:
+        nonlocal closed, best, best_at
+        clo, chi, cids = taken.lo, taken.hi, taken.ids
+        _, ub, at = bounds
         centre = (clo + chi) / 2
         good = domain.points_in(centre)
         if good.any():
@@ -475,7 +422,7 @@ def maximize(objective: Callable, domain: Domain, budget: Budget, *, rel_tol: fl
         ref = best if best is not None else torch.full_like(ub[0], -torch.inf)
         # no centre accepted yet (ref = -inf): every box that may hold one is split, not closed at its first bound
         tol = torch.where(ref.isfinite(), torch.clamp(rel_tol * ref.abs(), min=abs_tol), abs_tol)
-        refine = (ub > ref + tol).any(-1) & (((chi - clo) / scale).amax(-1) >= min_width)
+        refine = (ub > ref + tol).any(-1) & (((chi - clo) / scale).amax(-1) >= budget.min_width)
         done = ~refine
         if done.any():
             cand = ub[done].amax(0)
@@ -487,33 +434,37 @@ def maximize(objective: Callable, domain: Domain, budget: Budget, *, rel_tol: fl
             inherited = ub[refine].repeat(2, 1)  # split() returns the lower halves, then the upper halves
             nids = tree.split(cids[refine], chi[refine], nhi) if tree is not None else nlo.new_zeros(nlo.shape[0],
                                                                                                     dtype=torch.int64)
+            children = Boxes(nlo, nhi, nids, inherited)
             if box_ok is not None:
                 keep = box_ok(nlo, nhi)
                 if tree is not None:
                     tree.inside_ball(nids[~keep])
-                nlo, nhi, inherited, nids = nlo[keep], nhi[keep], inherited[keep], nids[keep]
-            if known is None:
-                known = torch.full((lo.shape[0], ub.shape[1]), torch.inf, dtype=ub.dtype, device=ub.device)
-            lo, hi, known = torch.cat([lo, nlo]), torch.cat([hi, nhi]), torch.cat([known, inherited])
-            ids = torch.cat([ids, nids])
-    bar.close()
-    if lo.shape[0]:
-        if lo.shape[0] <= 4 * batch:
-            leftover = box_bounds(objective, lo, hi, enclosure)[1]
-        elif known is not None:  # too many to bound again in time: their parents' bounds hold for them
-            leftover = known
-        else:
-            leftover = None
+                children = children.select(keep)
+            queue.push(children)
+        return None
+
+    bar = show_progress(int(budget.boxes), f"{label}: boxes", budget.compute.progress and label is not None)
+    try:
+        outcome = branch_and_bound(queue, in_process(lambda b: box_bounds(objective, b.lo, b.hi, enclosure)), sort,
+                                   Stopping(int(budget.boxes), budget.seconds), batch=int(budget.batch), bar=bar)
+    finally:
+        bar.close()
+    left = queue.queued
+    if len(left):
+        if len(left) <= 4 * budget.batch:
+            leftover = box_bounds(objective, left.lo, left.hi, enclosure)[1]
+        else:  # too many to bound again in time: their parents' bounds hold for them (None: never split, none known)
+            leftover = left.known
         rest = leftover.amax(0) if leftover is not None else \
             torch.full_like(closed if closed is not None else best, torch.inf)
         if tree is not None and leftover is not None:
-            tree.proved(ids, leaf_bound(leftover))
+            tree.proved(left.ids, leaf_bound(leftover))
         closed = rest if closed is None else torch.maximum(closed, rest)
     if closed is None:
         raise ValueError("the set to maximise over is empty")
     if best is None:
         best = torch.full_like(closed, -torch.inf)
-    return best, closed, SearchInfo(processed, time.perf_counter() - start, stopped, best_at)
+    return best, closed, SearchInfo(outcome.taken, time.perf_counter() - start, outcome.stopped, best_at)
 
 
 def uniform_margin(loop: ClosedLoop, condition: DRUniform, region: Region, budget: Budget = Budget(seconds=3.0), *,

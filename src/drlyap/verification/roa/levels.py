@@ -10,7 +10,6 @@ step that reaches it says so (:data:`TIME_LIMIT`, :func:`time_capped`): its resu
 from __future__ import annotations
 
 import math
-import time
 from typing import NamedTuple
 
 import torch
@@ -33,6 +32,9 @@ from drlyap.verification.bounds import (
     value_objective,
     vertex_max,
 )
+from drlyap.verification.search import BOX_BUDGET as BOX_BUDGET_STOP
+from drlyap.verification.search import TIME_LIMIT as TIME_LIMIT_STOP
+from drlyap.verification.search import Boxes, DomainQueue, Stopping, branch_and_bound, in_process
 
 BOX_BUDGET = "box budget (--roa-boxes)"
 """``limited_by`` of a level search that spent its box budget (the level is V's least lower bound on the boxes it left
@@ -89,11 +91,10 @@ def level_search(loop: ClosedLoop, condition: Condition, domain: Domain, level: 
     that adds most to the bounds (``split``'s sensitivity): the search behind
     :func:`~drlyap.verification.roa.band.band_roa`. ``budget.compute.progress``: a line on stderr of the boxes
     processed, the level so far and the boxes queued."""
-    deadline = time.perf_counter() + budget.seconds
-    lo, hi, scale, meets = domain.lo, domain.hi, domain.scale, domain.boxes_meeting
-    min_width, batch, max_boxes = budget.min_width, budget.batch, budget.boxes
-    enclosure = budget.enclosure_for(lo.shape[-1])
+    scale, meets = domain.scale, domain.boxes_meeting
+    enclosure = budget.enclosure_for(domain.lo.shape[-1])
     base = condition_and_value_objective(loop, condition)
+    prune = None
     if ellipsoid is None:
         objective = base
     else:
@@ -105,41 +106,22 @@ def level_search(loop: ClosedLoop, condition: Condition, domain: Domain, level: 
         def objective(z):  # the condition's components, W, then V (W's form shares the box's symbols)
             out = base(z)
             return torch.cat([out[..., :-1], w(z).unsqueeze(-1), out[..., -1:]], -1)
-    vobj = value_objective(loop.lyapunov)
-    processed = 0
+
+        def prune(boxes: Boxes) -> Boxes:  # boxes inside L need no proof
+            return boxes.select(~(vertex_max(w.P, boxes.lo, boxes.hi) <= c_q))
     cex = None
-    known = torch.full((lo.shape[0],), -math.inf, dtype=lo.dtype)  # a lower bound of V on each queued box
-    bar = show_progress(max_boxes, "region of attraction: level search, boxes", budget.compute.progress)
-    while lo.shape[0]:
-        spent = processed >= max_boxes
-        if spent or time.perf_counter() > deadline:
-            order = known.argsort()
-            first = order[:16 * batch]  # tighten the lowest inherited bounds, the rest stand as they are
-            v_min = float(known[order[16 * batch:]].min()) if order.shape[0] > first.shape[0] else math.inf
-            for i in range(0, first.shape[0], batch):
-                rows = first[i:i + batch]
-                fresh = box_bounds(vobj, lo[rows], hi[rows], enclosure)[0][:, 0]
-                v_min = min(v_min, float(torch.maximum(fresh, known[rows]).min()))  # both are lower bounds
-            if v_min < level:
-                level, limited_by = v_min, BOX_BUDGET if spent else TIME_LIMIT
-            break
-        if lo.shape[0] > batch:
-            take = torch.zeros(lo.shape[0], dtype=torch.bool)
-            take[torch.topk(known, batch, largest=False).indices] = True
-        else:
-            take = torch.ones(lo.shape[0], dtype=torch.bool)
-        clo, chi = lo[take], hi[take]
-        lo, hi, known = lo[~take], hi[~take], known[~take]
-        if ellipsoid is not None:
-            inside = vertex_max(w.P, clo, chi) <= c_q
-            clo, chi = clo[~inside], chi[~inside]
-            if not clo.shape[0]:
-                continue
-        bounds = box_bounds(objective, clo, chi, enclosure, sensitivity=ellipsoid is not None, keep_form=True)
+    # known (B,): a lower bound of V on each queued box (its parent's)
+    queue = DomainQueue(Boxes(domain.lo, domain.hi, torch.zeros(domain.lo.shape[0], dtype=torch.int64),
+                              torch.full((domain.lo.shape[0],), -math.inf, dtype=domain.lo.dtype)))
+
+    def bound(boxes: Boxes) -> tuple:
+        return box_bounds(objective, boxes.lo, boxes.hi, enclosure, sensitivity=ellipsoid is not None, keep_form=True)
+
+    def sort(boxes: Boxes, bounds: tuple) -> None:
+        nonlocal level, limited_by, cex
+        clo, chi = boxes.lo, boxes.hi
         lb, ub, at, form = bounds[0], bounds[1], bounds[2], bounds[-1]
         sens = bounds[3] if ellipsoid is not None else None
-        processed += clo.shape[0]
-        bar.update(clo.shape[0])
         v_lb = lb[:, -1]
         if ellipsoid is not None:
             v_lb = torch.maximum(v_lb, outside_lower(form[:, -1], form[:, -2], at.mid[:, -1], at.mid[:, -2], c_q, level))
@@ -163,21 +145,50 @@ def level_search(loop: ClosedLoop, condition: Condition, domain: Domain, level: 
                 if float(v_at[j]) < level:
                     level, limited_by = float(v_at[j]), "counterexample"
                     cex = centre[bad][values > 0][j]
-        small = open_ & (((chi - clo) / scale).amax(-1) < min_width)
+        small = open_ & (((chi - clo) / scale).amax(-1) < budget.min_width)
         if small.any() and float(v_lb[small].min()) < level:
             level, limited_by = float(v_lb[small].min()), "unverified box at minimum size"
         divide = open_ & ~small & (v_lb <= level)
         if divide.any():
             nlo, nhi = split(clo[divide], chi[divide], scale, None if sens is None else sens[divide])
-            nknown = v_lb[divide].repeat(2)
             fits = meets(nlo, nhi)
-            lo, hi, known = torch.cat([lo, nlo[fits]]), torch.cat([hi, nhi[fits]]), torch.cat([known, nknown[fits]])
-        above = known > level  # queued boxes the lowered level no longer asks about
-        if above.any():
-            lo, hi, known = lo[~above], hi[~above], known[~above]
-        bar.set_postfix(level=f"{level:.6g}", queued=lo.shape[0])
-    bar.close()
-    return LevelFound(level, limited_by, cex, processed)
+            children = Boxes(nlo, nhi, torch.zeros(nlo.shape[0], dtype=torch.int64), v_lb[divide].repeat(2))
+            queue.push(children.select(fits))
+        queue.keep(~(queue.queued.known > level))  # queued boxes the lowered level no longer asks about
+        bar.set_postfix(level=f"{level:.6g}", queued=len(queue))
+        return None
+
+    bar = show_progress(budget.boxes, "region of attraction: level search, boxes", budget.compute.progress)
+    try:
+        outcome = branch_and_bound(queue, in_process(bound), sort, Stopping(int(budget.boxes), budget.seconds),
+                                   batch=int(budget.batch), lowest_first=True, prune=prune, bar=bar)
+    finally:
+        bar.close()
+    if outcome.stopped in (BOX_BUDGET_STOP, TIME_LIMIT_STOP):
+        level, limited_by = _settle_open(queue.queued, _value_lower(loop, enclosure), level, limited_by,
+                                         BOX_BUDGET if outcome.stopped == BOX_BUDGET_STOP else TIME_LIMIT, budget.batch)
+    return LevelFound(level, limited_by, cex, outcome.taken)
+
+
+def _value_lower(loop: ClosedLoop, enclosure: str):
+    """V's lower bounds ``(B,)`` over boxes ``lo, hi (B, n)`` with ``enclosure``."""
+    vobj = value_objective(loop.lyapunov)
+    return lambda lo, hi: box_bounds(vobj, lo, hi, enclosure)[0][:, 0]
+
+
+def _settle_open(left: Boxes, value_lower, level: float, limited_by: str, why: str, batch: int) -> tuple[float, str]:
+    """The level a search that stopped with boxes ``left`` queued may claim: at most V's least lower bound on them
+    (the lowest inherited bounds tightened, ``16 * batch`` boxes of them, the rest standing as they are)."""
+    order = left.known.argsort()
+    first = order[:16 * batch]
+    v_min = float(left.known[order[16 * batch:]].min()) if order.shape[0] > first.shape[0] else math.inf
+    for i in range(0, first.shape[0], batch):
+        rows = first[i:i + batch]
+        fresh = value_lower(left.lo[rows], left.hi[rows])
+        v_min = min(v_min, float(torch.maximum(fresh, left.known[rows]).min()))  # both are lower bounds
+    if v_min < level:
+        return v_min, why
+    return level, limited_by
 
 
 def outside_lower(v_form, w_form, v_centre: Tensor, w_centre: Tensor, c_q: float, level: float) -> Tensor:
