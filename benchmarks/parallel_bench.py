@@ -50,7 +50,7 @@ def _prove(run, boxes: int, compute, batch: int | None = None, keep_partition: b
 
     from drlyap.proof_settings import Budget
     from drlyap.regions import Region
-    from drlyap.verification import verify_condition
+    from drlyap.verification import ProofRules, verify_condition
 
     budget = Budget(seconds=1e9, boxes=boxes, enclosure=run.proof.enclosure if run.proof else None, compute=compute)
     budget = budget if batch is None else dataclasses.replace(budget, batch=batch)
@@ -59,7 +59,7 @@ def _prove(run, boxes: int, compute, batch: int | None = None, keep_partition: b
         torch.cuda.synchronize()
     tic, cpu = time.perf_counter(), cpu_seconds()
     proof = verify_condition(run.loop, run.condition, region, budget, level=run.config.roa_level,
-                             keep_partition=keep_partition)
+                             rules=ProofRules(keep_partition=keep_partition))
     return proof, time.perf_counter() - tic, cpu_seconds() - cpu
 
 

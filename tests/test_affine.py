@@ -19,7 +19,7 @@ from drlyap.proof_settings import Budget
 from drlyap.regions import Domain, Region
 from drlyap.systems import get_system
 from drlyap.training import TrainConfig, TrainSections
-from drlyap.verification import maximize, verify_condition
+from drlyap.verification import ProofRules, maximize, verify_condition
 from drlyap.verification.bounds import condition_objective
 from handmade import linear_pair, small_pendulum
 
@@ -461,7 +461,7 @@ def test_branch_and_bound_with_affine_forms_leaves_every_violation_unverified():
     lyap, ctrl = linear_pair(system)
     spec = DRPointwise(1e-3, 0.1, XI, 0.05)
     result = verify_condition(ClosedLoop(system, lyap, ctrl), spec, Region.of(system, 0.2),
-                              Budget(seconds=20, min_width=1e-2, enclosure="affine"), keep_boxes=10**6)
+                              Budget(seconds=20, min_width=1e-2, enclosure="affine"), rules=ProofRules(keep_boxes=10**6))
     z = _pendulum_region_points(system, 0.2, per=150)
     bad = z[ClosedLoop(system, lyap, ctrl).exact(spec, z) > 0]
     assert bad.shape[0] and result.status == "violated" and 0 < result.verified_fraction < 1

@@ -11,7 +11,7 @@ from drlyap.records import ProofRound
 from drlyap.regions import Region
 from drlyap.systems import get_system
 from drlyap.training.certified import collect_counterexamples, train_cegis
-from drlyap.verification import falsify, verify_condition
+from drlyap.verification import ProofRules, falsify, verify_condition
 from handmade import plain_train
 
 
@@ -35,7 +35,7 @@ def test_falsifier_and_collected_states_really_violate(tiny_config):
     assert bool((values >= before - 1e-12).all())  # never worse than the start
     assert torch.allclose(values, loop.exact(cond, found))
     assert bool((found.norm(dim=-1) >= cfg.delta).all())
-    ver = verify_condition(loop, cond, region, Budget(seconds=1.0), keep_boxes=50)
+    ver = verify_condition(loop, cond, region, Budget(seconds=1.0), rules=ProofRules(keep_boxes=50))
     assert ver.status != "verified"
     got = collect_counterexamples(loop, cond, region, ver, torch.Generator().manual_seed(0), n_random=64, steps=5)
     cex = got["counterexamples"]

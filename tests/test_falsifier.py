@@ -9,7 +9,7 @@ import torch
 from drlyap.proof_settings import Budget, ProofConfig
 from drlyap.regions import Region
 from drlyap.systems import get_system
-from drlyap.verification import Certificate, ConditionProof, prove_trained, verify_condition
+from drlyap.verification import Certificate, ConditionProof, ProofRules, prove_trained, verify_condition
 from drlyap.verification.falsifier import confirmed_violations, falsifier_starts, falsify, settle_unknown
 from handmade import plain_train
 
@@ -57,7 +57,7 @@ def test_confirmed_violations_are_sound_lower_bounds(violating_pair):
 def test_settle_unknown_only_changes_unknown_proofs(violating_pair):
     result, region = violating_pair
     system, loop, cond = result.system, result.loop, result.condition
-    ver = verify_condition(loop, cond, region, Budget(seconds=0.3), keep_boxes=20)
+    ver = verify_condition(loop, cond, region, Budget(seconds=0.3), rules=ProofRules(keep_boxes=20))
     for status in ("verified", "violated"):
         same = dataclasses.replace(ver, status=status)
         assert settle_unknown(dataclasses.replace(same), loop, cond, region) == same

@@ -21,7 +21,7 @@ from drlyap.proof_settings import Budget, ProofConfig
 from drlyap.regions import Region
 from drlyap.runs.certificates import read_certificate, sha256_file, system_digest, write_certificate
 from drlyap.systems import resolve_system
-from drlyap.verification import verify_condition
+from drlyap.verification import ProofRules, verify_condition
 from handmade import linear_pair, small_pendulum
 
 F64 = torch.float64
@@ -102,7 +102,7 @@ def test_two_workers_prove_the_same_partition_as_one(pendulum_loop):
 def test_a_violation_stops_the_workers_and_they_go_on_with_the_next_proof(pendulum_loop):
     loop, _, region = pendulum_loop
     strict = DRPointwise(0.01, 0.3, XI, decay_rate=50.0)  # far more decay than the pair has
-    kwargs = dict(stop_at_counterexample=True)
+    kwargs = dict(rules=ProofRules(stop_at_counterexample=True))
     one = verify_condition(loop, strict, region, Budget(seconds=600, batch=64), **kwargs)
     two = verify_condition(loop, strict, region, Budget(seconds=600, batch=64, compute=_up(2)), **kwargs)
     assert one.status == two.status == "violated"

@@ -12,7 +12,9 @@ from drlyap.enclosures import Interval
 from drlyap.proof_settings import Budget
 from drlyap.regions import Region
 from drlyap.verification import (
+    ProofRules,
     SearchLimits,
+    StartFrom,
     certified_radius,
     certified_shift_box,
     shift_box_condition,
@@ -181,20 +183,20 @@ def test_a_proof_starts_from_the_partition_of_a_weaker_one_and_its_tree_is_check
     radius = certified_radius(loop, condition, region, TEN, limits=SearchLimits(tol=TOL)).radius
     weak = verify_condition(loop, condition.with_radius(0.3 * radius), region, TEN)
     fresh = verify_condition(loop, condition.with_radius(0.9 * radius), region, TEN)
-    warm = verify_condition(loop, condition.with_radius(0.9 * radius), region, TEN, start=weak.partition)
+    warm = verify_condition(loop, condition.with_radius(0.9 * radius), region, TEN, start=StartFrom(weak.partition))
     assert weak.verified and fresh.verified and warm.verified
     assert warm.boxes_processed < fresh.boxes_processed  # the weaker proof's splits are not bounded again
     assert warm.partition.size >= weak.partition.size
     _checker_confirms(tmp_path, warm, condition.with_radius(0.9 * radius), region, system, lyap, ctrl)
     with pytest.raises(ValueError, match="its own grid and enclosure"):
-        verify_condition(loop, condition, region, Budget(seconds=10, enclosure="affine"), start=weak.partition)
+        verify_condition(loop, condition, region, Budget(seconds=10, enclosure="affine"), start=StartFrom(weak.partition))
 
 
 def test_a_proof_that_cannot_finish_within_its_budget_gives_up_early():
     system, lyap, ctrl, loop, region, condition = _linear_loop()
     full = verify_condition(loop, condition, region, TEN)
     small = Budget(seconds=10, boxes=full.boxes_processed // 2, enclosure="mean-value", batch=64)
-    out = verify_condition(loop, condition, region, small, give_up=True)
+    out = verify_condition(loop, condition, region, small, rules=ProofRules(give_up=True))
     assert out.status == "unknown" and out.stopped == "more boxes queued than the budget has left"
     assert out.boxes_processed < full.boxes_processed // 2
 
@@ -215,20 +217,21 @@ def test_a_proof_keeps_the_leaves_a_stronger_proof_left_proved_and_its_tree_is_c
 
     system, lyap, ctrl, loop, region, condition = _linear_loop()
     radius = certified_radius(loop, condition, region, TEN, limits=SearchLimits(tol=TOL)).radius
-    strong = verify_condition(loop, condition.with_radius(1.5 * radius), region, TEN, stop_at_counterexample=True,
-                              keep_partition=True)  # fails, but proves much of the region at the larger radius
+    # fails, but proves much of the region at the larger radius
+    strong = verify_condition(loop, condition.with_radius(1.5 * radius), region, TEN,
+                              rules=ProofRules(stop_at_counterexample=True, keep_partition=True))
     assert strong.status == "violated" and strong.partition is not None
     tree = strong.partition
     assert int((tree.verdict == PROVED).sum()) > 0 and int((tree.verdict == OPEN).sum()) > 0
     weaker = condition.with_radius(0.9 * radius)
     fresh = verify_condition(loop, weaker, region, TEN)
-    warm = verify_condition(loop, weaker, region, TEN, start=tree, standing=tree.verdict == PROVED)
+    warm = verify_condition(loop, weaker, region, TEN, start=StartFrom(tree, tree.verdict == PROVED))
     assert fresh.verified and warm.verified
     assert warm.boxes_processed < fresh.boxes_processed  # what stood was not bounded again
     # every leaf that stood is proved at the smaller radius by the checker's own bounds
     _checker_confirms(tmp_path, warm, weaker, region, system, lyap, ctrl)
     with pytest.raises(ValueError, match="standing must mark"):
-        verify_condition(loop, weaker, region, TEN, start=tree, standing=torch.ones(3, dtype=torch.bool))
+        verify_condition(loop, weaker, region, TEN, start=StartFrom(tree, torch.ones(3, dtype=torch.bool)))
 
 
 def test_a_node_inherits_the_largest_value_of_its_ancestors():

@@ -15,6 +15,7 @@ from drlyap.verification.search import (
     Checkpointing,
     DomainQueue,
     Stopping,
+    Taking,
     branch_and_bound,
     in_process,
 )
@@ -59,7 +60,7 @@ def bisect_until(width):
 
 def test_a_search_runs_until_its_queue_is_empty_and_counts_every_box_it_took():
     queue, sort, proved, bound = bisect_until(1 / 8)
-    outcome = branch_and_bound(queue, bound, sort, Stopping(boxes=100, seconds=math.inf), batch=3)
+    outcome = branch_and_bound(queue, bound, sort, Stopping(boxes=100, seconds=math.inf), Taking(3))
     assert outcome.stopped == FINISHED
     assert sorted(proved) == [i / 8 for i in range(8)]
     assert outcome.taken == 1 + 2 + 4 + 8  # the tree's nodes, each bounded once
@@ -68,18 +69,18 @@ def test_a_search_runs_until_its_queue_is_empty_and_counts_every_box_it_took():
 
 def test_the_box_budget_is_checked_before_the_time_cap_and_counts_earlier_runs():
     queue, sort, _, bound = bisect_until(1 / 64)
-    outcome = branch_and_bound(queue, bound, sort, Stopping(boxes=10, seconds=-1.0, taken=10), batch=4)
+    outcome = branch_and_bound(queue, bound, sort, Stopping(boxes=10, seconds=-1.0, taken=10), Taking(4))
     assert outcome.stopped == BOX_BUDGET and outcome.taken == 10  # spent before: nothing taken now
-    outcome = branch_and_bound(queue, bound, sort, Stopping(boxes=10, seconds=-1.0), batch=4)
+    outcome = branch_and_bound(queue, bound, sort, Stopping(boxes=10, seconds=-1.0), Taking(4))
     assert outcome.stopped == TIME_LIMIT and outcome.taken == 0
-    outcome = branch_and_bound(queue, bound, sort, Stopping(boxes=5, seconds=math.inf), batch=4)
+    outcome = branch_and_bound(queue, bound, sort, Stopping(boxes=5, seconds=math.inf), Taking(4))
     assert outcome.stopped == BOX_BUDGET and outcome.taken == 7  # 1 box, its 2 halves, their 4: 7 >= 5, no more
     assert len(queue) > 0
 
 
 def test_a_search_gives_up_when_more_boxes_are_queued_than_its_budget_has_left():
     queue, sort, _, bound = bisect_until(1 / 1024)
-    outcome = branch_and_bound(queue, bound, sort, Stopping(boxes=8, seconds=math.inf, give_up=True), batch=1)
+    outcome = branch_and_bound(queue, bound, sort, Stopping(boxes=8, seconds=math.inf, give_up=True), Taking(1))
     assert outcome.stopped == GAVE_UP
     assert len(queue) > 8 - outcome.taken
 
@@ -87,7 +88,7 @@ def test_a_search_gives_up_when_more_boxes_are_queued_than_its_budget_has_left()
 def test_a_sort_that_returns_a_reason_stops_the_search_with_it():
     queue = DomainQueue(boxes([0, 1, 2, 3]))
     outcome = branch_and_bound(queue, in_process(lambda b: None), lambda b, _: "counterexample",
-                               Stopping(boxes=100, seconds=math.inf), batch=2)
+                               Stopping(boxes=100, seconds=math.inf), Taking(2))
     assert outcome.stopped == "counterexample" and outcome.taken == 2
     assert queue.queued.ids.tolist() == [2]
 
@@ -96,8 +97,8 @@ def test_pruned_boxes_are_neither_bounded_nor_counted():
     queue = DomainQueue(boxes([0, 1, 2, 3, 4, 5]))
     seen = []
     outcome = branch_and_bound(queue, in_process(lambda b: seen.extend(b.ids.tolist())), lambda b, _: None,
-                               Stopping(boxes=100, seconds=math.inf), batch=2,
-                               prune=lambda b: b.select(b.ids % 2 == 0))
+                               Stopping(boxes=100, seconds=math.inf),
+                               Taking(2, prune=lambda b: b.select(b.ids % 2 == 0)))
     assert seen == [0, 2, 4] and outcome.taken == 3 and outcome.stopped == FINISHED
 
 
@@ -111,7 +112,7 @@ def test_prefetched_batches_go_back_to_the_front_of_the_queue_when_the_search_st
         if second is not None:
             yield second, None
 
-    outcome = branch_and_bound(queue, ahead, lambda b, _: "stop", Stopping(boxes=100, seconds=math.inf), batch=2)
+    outcome = branch_and_bound(queue, ahead, lambda b, _: "stop", Stopping(boxes=100, seconds=math.inf), Taking(2))
     assert outcome.stopped == "stop"
     assert queue.queued.ids.tolist() == [2, 3, 4, 5] and not queue.flight
 
@@ -132,7 +133,7 @@ def test_an_interrupted_search_saves_its_checkpoint_between_batches_and_raises_a
 
     checkpoint = Checkpointing(lambda seconds: saved.append(len(queue.everything())), every=math.inf)
     with pytest.raises(KeyboardInterrupt):
-        branch_and_bound(queue, interrupt_after_first, sort, Stopping(boxes=100, seconds=math.inf), batch=2,
+        branch_and_bound(queue, interrupt_after_first, sort, Stopping(boxes=100, seconds=math.inf), Taking(2),
                          checkpoint=checkpoint)
     assert saved == []  # interrupted while sorting: the state is not whole, nothing saved
 
@@ -144,7 +145,7 @@ def test_an_interrupted_search_saves_its_checkpoint_between_batches_and_raises_a
 
     checkpoint = Checkpointing(lambda seconds: saved.append(len(queue.everything())), every=math.inf)
     with pytest.raises(KeyboardInterrupt):
-        branch_and_bound(queue, interrupted, lambda b, _: None, Stopping(boxes=100, seconds=math.inf), batch=2,
+        branch_and_bound(queue, interrupted, lambda b, _: None, Stopping(boxes=100, seconds=math.inf), Taking(2),
                          checkpoint=checkpoint)
     assert saved == [2]  # between batches: saved, with the boxes not yet sorted
 
@@ -152,6 +153,6 @@ def test_an_interrupted_search_saves_its_checkpoint_between_batches_and_raises_a
 def test_a_checkpoint_is_saved_every_so_often():
     queue, sort, _, bound = bisect_until(1 / 16)
     times = []
-    branch_and_bound(queue, bound, sort, Stopping(boxes=100, seconds=math.inf), batch=1,
+    branch_and_bound(queue, bound, sort, Stopping(boxes=100, seconds=math.inf), Taking(1),
                      checkpoint=Checkpointing(times.append, every=0.0))
     assert len(times) == 31 and times == sorted(times)  # after every batch (every 0 s), the seconds growing

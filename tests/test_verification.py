@@ -20,6 +20,7 @@ from drlyap.regions import Region
 from drlyap.systems import UncertainSystem
 from drlyap.training import TrainConfig, TrainSections
 from drlyap.verification import (
+    ProofRules,
     box_bounds,
     certified_roa,
     combine_lower,
@@ -227,7 +228,8 @@ def test_dense_violations_lie_in_unverified_boxes_of_a_mixed_case():
     lyap, ctrl = linear_pair(system)
     spec = DRPointwise(1e-3, 0.1, XI, 0.05)
     loop = ClosedLoop(system, lyap, ctrl)
-    result = verify_condition(loop, spec, Region.of(system, 0.2), Budget(seconds=20, min_width=1e-2), keep_boxes=10**6)
+    result = verify_condition(loop, spec, Region.of(system, 0.2), Budget(seconds=20, min_width=1e-2),
+                              rules=ProofRules(keep_boxes=10**6))
     z = _dense_region(system, 0.2, per=150)
     res = loop.exact(spec, z)
     bad = z[res > 0]
@@ -260,7 +262,7 @@ def test_budget_exhaustion_is_unknown_not_verified():
     lyap, ctrl = linear_pair(system)
     spec = Nominal(XI[:1], 0.05)
     result = verify_condition(ClosedLoop(system, lyap, ctrl), spec, Region.of(system, 0.2), Budget(boxes=10),
-                              grid=[2, 2])
+                              rules=ProofRules(grid=[2, 2]))
     assert result.status == "unknown" and result.stopped == "box budget" and result.verified_fraction < 1
 
 

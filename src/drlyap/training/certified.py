@@ -63,7 +63,15 @@ from drlyap.systems import UncertainSystem, get_system
 from drlyap.training.boxes import OpenBoxes
 from drlyap.training.resume import fit_or_resume
 from drlyap.training.trainer import TrainResult, fit
-from drlyap.verification import Budget, Certificate, ConditionProof, UniformMargin, prove_trained, uniform_margin
+from drlyap.verification import (
+    Budget,
+    Certificate,
+    ConditionProof,
+    ProofRules,
+    UniformMargin,
+    prove_trained,
+    uniform_margin,
+)
 from drlyap.verification.falsifier import box_centres, falsifier_starts, falsify, local_boxes, settle_unknown
 
 F64 = torch.float64
@@ -156,8 +164,9 @@ class _Counterexamples:
     def prove(self, loop: ClosedLoop) -> ConditionProof:
         keep = max(self.proof.keep_boxes, self.proof.train_boxes if self.proof.box_weight else 0)
         return prove_trained(loop, self.condition, self.region, self.budget, self.level,
-                             keep_boxes=keep, falsify_starts=0,  # its own falsifier below
-                             stop_at_counterexample=bool(self.proof.stop_at_counterexample))
+                             falsify_starts=0,  # its own falsifier below
+                             rules=ProofRules(keep_boxes=keep,
+                                              stop_at_counterexample=bool(self.proof.stop_at_counterexample)))
 
     def summary(self, verdict: ConditionProof) -> dict:
         return verdict.summary()

@@ -30,7 +30,14 @@ Modules:
 
 from drlyap.proof_settings import ENCLOSURES, Budget, ProofConfig, default_enclosure
 from drlyap.verification.bounds import box_bounds, combine_lower, combine_upper, condition_objective
-from drlyap.verification.branch_and_bound import maximize, uniform_margin, verify_condition
+from drlyap.verification.branch_and_bound import (
+    Exempt,
+    ProofRules,
+    StartFrom,
+    maximize,
+    uniform_margin,
+    verify_condition,
+)
 from drlyap.verification.covering import lipschitz_covering
 from drlyap.verification.falsifier import falsify, settle_unknown
 from drlyap.verification.results import (
@@ -56,8 +63,9 @@ from drlyap.verification.robustness import (
 from drlyap.verification.sublevel import boundary_minimum, prove_trained, verify_sublevel
 
 __all__ = [
-    "ENCLOSURES", "Budget", "Certificate", "CertifiedRadius", "CertifiedShiftBox", "ConditionProof",
-    "CoveringCheck", "ProofAttempt", "ProofConfig", "RegionOfAttraction", "SearchLimits", "RunRobustness",
+    "ENCLOSURES", "Budget", "Certificate", "CertifiedRadius", "CertifiedShiftBox", "ConditionProof", "Exempt",
+    "CoveringCheck", "ProofAttempt", "ProofConfig", "ProofRules", "RegionOfAttraction", "SearchLimits", "StartFrom",
+    "RunRobustness",
     "RunVerification", "UniformMargin", "boundary_minimum", "box_bounds", "certified_radius", "certified_roa",
     "certified_shift_box", "combine_lower", "combine_upper", "condition_objective", "default_enclosure", "falsify",
     "lipschitz_covering", "local_decrease", "maximize", "prove_trained", "settle_unknown", "shift_box_condition",

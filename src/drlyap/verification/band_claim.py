@@ -21,7 +21,7 @@ from drlyap.conditions import Condition
 from drlyap.kinds import Model, Status
 from drlyap.proof_settings import DEFAULT_SETTLE_STARTS, Budget
 from drlyap.regions import Region
-from drlyap.verification.branch_and_bound import verify_condition
+from drlyap.verification.branch_and_bound import Exempt, verify_condition
 from drlyap.verification.falsifier import settle_unknown
 from drlyap.verification.results import BandProof
 from drlyap.verification.sublevel import budget_left, exit_minimum, faces_budget
@@ -67,7 +67,7 @@ def prove_band(loop: ClosedLoop, condition: Condition, region: Region, low: floa
     box = band_region(region)
     exits = exit_minimum(loop, condition, box, faces_budget(budget, loop.n), rel_tol=0.02)
     exit_low, exit_high = exits.lower, exits.upper
-    decrease = verify_condition(loop, condition, box, budget_left(budget, loop.n, start), level=c2, floor=c1)
+    decrease = verify_condition(loop, condition, box, budget_left(budget, loop.n, start), level=c2, exempt=Exempt(floor=c1))
     decrease = settle_unknown(decrease, loop, condition, box, c2, starts=falsify_starts, floor=c1)
     status, reason = decrease.status, decrease.stopped if decrease.status != Status.VERIFIED else ""
     if exit_high <= c2:

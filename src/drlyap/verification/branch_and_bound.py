@@ -41,64 +41,96 @@ from drlyap.verification.bounds import box_bounds, condition_objective, vertex_m
 from drlyap.verification.checkpoints import SAVE_SPACING, load_checkpoint, proof_key, save_checkpoint
 from drlyap.verification.partition import INSIDE_CORE, OPEN, PROVED, Partition, PartitionRecorder
 from drlyap.verification.results import ConditionProof, UniformMargin
-from drlyap.verification.search import Boxes, Checkpointing, DomainQueue, Stopping, branch_and_bound, in_process
+from drlyap.verification.search import (
+    Boxes,
+    Checkpointing,
+    DomainQueue,
+    Stopping,
+    Taking,
+    branch_and_bound,
+    in_process,
+)
+
+
+@dataclass(frozen=True)
+class Exempt:
+    """Parts of a sublevel set ``{V <= level}`` that a condition's proof need not cover (each needs the level).
+
+    ``floor``: the proof is on the band ``{floor <= V <= level}``: a box on which V is provably below ``floor`` needs
+    nothing more (``BELOW_LEVEL`` in the partition), and a counterexample must have ``V >= floor``. ``core``: ``(P (n,
+    n), c)``, an ellipsoid ``{z^T P z <= c}`` around x* whose own proof carries the trajectories that reach it (a
+    certified region of attraction): boxes inside it (every vertex, rounded up: the form is convex) need nothing more
+    (``INSIDE_CORE``), and a violation inside it is none of the claim's. Neither goes with a :class:`StartFrom`."""
+
+    floor: float | None = None
+    core: tuple[Tensor, float] | None = None
+
+
+@dataclass(frozen=True)
+class StartFrom:
+    """A proof that starts from the ``partition`` of a proof, on the same region, level, grid and enclosure, of another
+    condition of the closed loop (e.g. the same condition at a smaller Wasserstein radius): its tree is kept, its leaves
+    in the ball and above the level stand (they do not depend on the condition), and its proved and open leaves are the
+    starting queue, bounded again for this condition (split further where they must be), but for those marked
+    ``standing`` (``(N,)`` bool over its nodes): leaves already proved for this condition (e.g. by a proof of the same
+    condition at a larger radius, which implies it), kept as proved."""
+
+    partition: Partition
+    standing: Tensor | None = None
+
+
+@dataclass(frozen=True)
+class ProofRules:
+    """How a condition's branch and bound runs and what it keeps.
+
+    ``grid``: boxes per axis at the start (None: :func:`~drlyap.regions.default_grid`). ``stop_at_counterexample``:
+    return at the first confirmed one (the fraction then counts every box not yet verified as unverified).
+    ``give_up``: stop, ``unknown``, as soon as more boxes are queued than the budget has left (the proof cannot finish
+    within it). ``violation_width``: a box whose centre is a confirmed counterexample is still split (to sharpen the
+    verified fraction) until its widest relative side is below this. ``keep_boxes``: how many unverified boxes to
+    list. ``keep_partition``: keep the partition of a proof that is not verified too (its leaves not proved ``OPEN``),
+    for a proof that starts from it."""
+
+    grid: Sequence[int] | None = None
+    stop_at_counterexample: bool = False
+    give_up: bool = False
+    violation_width: float = 1e-2
+    keep_boxes: int = 50
+    keep_partition: bool = False
 
 
 def verify_condition(loop: ClosedLoop, condition: Condition, region: Region, budget: Budget = Budget(), *,
-                     level: float | None = None, grid: Sequence[int] | None = None, keep_boxes: int = 50,
-                     stop_at_counterexample: bool = False, violation_width: float = 1e-2,
-                     start: Partition | None = None, standing: Tensor | None = None, give_up: bool = False,
-                     keep_partition: bool = False, core: tuple[Tensor, float] | None = None,
-                     floor: float | None = None) -> ConditionProof:
+                     level: float | None = None, exempt: Exempt = Exempt(), start: StartFrom | None = None,
+                     rules: ProofRules = ProofRules()) -> ConditionProof:
     """Prove ``residual(z) <= 0`` for the closed loop on the region X_delta by branch and bound, or find where it
     fails, within ``budget`` (boxes, seconds, minimum box width, enclosure, and where to bound them).
 
     ``level``: prove it only on the sublevel set ``{V <= level}`` of X_delta (a box on which V provably exceeds
     the level needs nothing more; a counterexample must have ``V <= level``); the verified fraction is then
-    the share of X_delta where the condition or ``V > level`` is proved.
+    the share of X_delta where the condition or ``V > level`` is proved. ``exempt``: parts of that set the proof need
+    not cover (:class:`Exempt`: below a band's floor, inside a core ellipsoid). ``start``: a partition to start from
+    (:class:`StartFrom`). ``rules``: how the search runs and what it keeps (:class:`ProofRules`).
 
     ``budget.min_width``: boxes whose widest side (relative to the state box) is below it are not split further.
-    ``violation_width``: a box whose centre is a confirmed counterexample is still split (to sharpen the
-    verified fraction) until its widest relative side is below this. ``budget.boxes``: processed boxes at most.
-    ``grid``: boxes per axis at the start. ``keep_boxes``: how many unverified boxes to list.
-    ``stop_at_counterexample``: return at the first confirmed one (the fraction then counts every box not
-    yet verified as unverified). ``budget.enclosure``: how boxes are bounded
+    ``budget.boxes``: processed boxes at most. ``budget.enclosure``: how boxes are bounded
     (:func:`~drlyap.verification.bounds.box_bounds`: ``mean-value`` or ``affine``; None: by the dimension).
     ``budget.compute``: where (:class:`~drlyap.compute.Compute`): batches go to worker processes in the order a single
     process takes them, so the result, and the partition a verified proof keeps, are the same for any number of
     workers; with a ``checkpoint_dir`` the search is saved there every ``checkpoint_every`` seconds and when it ends,
     and the same proof (:func:`~drlyap.verification.checkpoints.proof_key`) started again continues from it.
-
-    ``start``: the partition of a proof, on this region, level, grid and enclosure, of another condition of the closed
-    loop (e.g. the same condition at a smaller Wasserstein radius): its tree is kept, its leaves in the ball and above
-    the level stand (they do not depend on the condition), and its proved and open leaves are the starting queue,
-    bounded again for this condition (split further where they must be), but for those marked ``standing`` (``(N,)``
-    bool over its nodes): leaves already proved for this condition (e.g. by a proof of the same condition at a larger
-    radius, which implies it), kept as proved. ``give_up``: stop, ``unknown``, as soon as more boxes are queued than
-    the budget has left (the proof cannot finish within it). ``keep_partition``: keep the partition of a proof that is
-    not verified too (its leaves not proved ``OPEN``), for a proof that starts from it.
-
-    ``core``: ``(P (n, n), c)``, an ellipsoid ``{z^T P z <= c}`` around x* whose own proof carries the trajectories
-    that reach it (a certified region of attraction): boxes inside it (every vertex, rounded up: the form is convex)
-    need nothing more (``INSIDE_CORE`` in the partition), and a violation inside it is none of the claim's. Not with
-    ``start``.
-
-    ``floor``: with ``level``, prove it only on the band ``{floor <= V <= level}``: a box on which V is provably
-    below ``floor`` needs nothing more (``BELOW_LEVEL``), and a counterexample must have ``V >= floor``. Not with
-    ``start``.
     """
     if not condition.per_state:
         raise ValueError("use uniform_margin for the uniform condition")
-    if core is not None and start is not None:
+    if exempt.core is not None and start is not None:
         raise ValueError("a proof with a core does not start from another proof's partition")
+    floor = exempt.floor
     if floor is not None and (level is None or start is not None or not floor < level):
         raise ValueError(f"a band's floor goes with a level above it and no starting partition (floor {floor}, "
                          f"level {level})")
-    search = _Search(loop, condition, region, budget, level, list(grid or default_grid(loop.system.n)),
-                     stop_at_counterexample, violation_width, start, give_up, standing, core, floor)
+    search = _Search(loop, condition, region, budget, level, exempt, start, rules)
     if not (search.finished and (search.stopped == "counterexample" or not len(search.queue))):
         search.run()  # a finished search that ran out of budget goes on where a larger budget allows
-    return search.result(keep_boxes, keep_partition)
+    return search.result(rules.keep_boxes, rules.keep_partition)
 
 
 def proof_label(condition: Condition, level: float | None = None) -> str:
@@ -118,10 +150,14 @@ class _Search:
     holds."""
 
     def __init__(self, loop: ClosedLoop, condition: Condition, region: Region, budget: Budget, level: float | None,
-                 per_axis: list[int], stop_at_counterexample: bool, violation_width: float,
-                 start: Partition | None = None, give_up: bool = False, standing: Tensor | None = None,
-                 core: tuple[Tensor, float] | None = None, floor: float | None = None) -> None:
+                 exempt: Exempt, start: StartFrom | None, rules: ProofRules) -> None:
         self.loop, self.condition, self.region, self.budget, self.level = loop, condition, region, budget, level
+        floor, core = exempt.floor, exempt.core
+        per_axis = list(rules.grid or default_grid(loop.system.n))
+        stop_at_counterexample, violation_width, give_up = (rules.stop_at_counterexample, rules.violation_width,
+                                                            rules.give_up)
+        standing = None if start is None else start.standing
+        start = None if start is None else start.partition
         self.floor = None if floor is None else float(floor)
         self.core = None if core is None else (torch.as_tensor(core[0], dtype=F64), float(core[1]))
         self.core_form = None if core is None else QuadraticLyapunov(self.core[0])
@@ -232,7 +268,7 @@ class _Search:
             outcome = branch_and_bound(
                 self.queue, lambda take, can_prefetch: run_batches(job, self.compute, take, can_prefetch), self._sort,
                 Stopping(int(budget.boxes), budget.seconds, self.give_up, self.processed, self.elapsed),
-                batch=int(budget.batch), bar=bar, checkpoint=checkpoint)
+                Taking(int(budget.batch)), bar=bar, checkpoint=checkpoint)
         finally:
             bar.close()
         self.elapsed, self.stopped, self.finished = outcome.seconds, outcome.stopped, True
@@ -392,64 +428,17 @@ def maximize(objective: Callable, domain: Domain, budget: Budget, *, rel_tol: fl
     centre at which each component's lower bound was found (None where no centre was accepted). ``label``: what a
     progress line of its boxes calls the search (where ``budget.compute.progress``; None: none).
     """
-    scale, box_ok = domain.scale, domain.meets
     enclosure = budget.enclosure_for(domain.lo.shape[-1])
     start = time.perf_counter()
-    closed: Tensor | None = None
-    best: Tensor | None = None
-    best_at: Tensor | None = None
-    ids = tree.roots if tree is not None else torch.zeros(domain.lo.shape[0], dtype=torch.int64)
-    boxes = Boxes(domain.lo, domain.hi, ids)
-    if box_ok is not None:
-        keep = box_ok(boxes.lo, boxes.hi)
-        if tree is not None:
-            tree.inside_ball(ids[~keep])
-        boxes = boxes.select(keep)
-    queue = DomainQueue(boxes)  # known (B, Q): an upper bound on each queued box (its parent's), once one is split
-
-    def sort(taken: Boxes, bounds: tuple) -> None:
-        nonlocal closed, best, best_at
-        clo, chi, cids = taken.lo, taken.hi, taken.ids
-        _, ub, at = bounds
-        centre = (clo + chi) / 2
-        good = domain.points_in(centre)
-        if good.any():
-            cand, where = at.lo[good].max(0)
-            found = centre[good][where]  # (Q, n): where each component's new value was attained
-            better = torch.ones_like(cand, dtype=torch.bool) if best is None else cand > best
-            best_at = found if best_at is None else torch.where(better[:, None], found, best_at)
-            best = cand if best is None else torch.maximum(best, cand)
-        ref = best if best is not None else torch.full_like(ub[0], -torch.inf)
-        # no centre accepted yet (ref = -inf): every box that may hold one is split, not closed at its first bound
-        tol = torch.where(ref.isfinite(), torch.clamp(rel_tol * ref.abs(), min=abs_tol), abs_tol)
-        refine = (ub > ref + tol).any(-1) & (((chi - clo) / scale).amax(-1) >= budget.min_width)
-        done = ~refine
-        if done.any():
-            cand = ub[done].amax(0)
-            closed = cand if closed is None else torch.maximum(closed, cand)
-            if tree is not None:
-                tree.proved(cids[done], leaf_bound(ub[done]))
-        if refine.any():
-            nlo, nhi = split(clo[refine], chi[refine], scale)
-            inherited = ub[refine].repeat(2, 1)  # split() returns the lower halves, then the upper halves
-            nids = tree.split(cids[refine], chi[refine], nhi) if tree is not None else nlo.new_zeros(nlo.shape[0],
-                                                                                                    dtype=torch.int64)
-            children = Boxes(nlo, nhi, nids, inherited)
-            if box_ok is not None:
-                keep = box_ok(nlo, nhi)
-                if tree is not None:
-                    tree.inside_ball(nids[~keep])
-                children = children.select(keep)
-            queue.push(children)
-        return None
-
+    rule = _Suprema(domain, budget.min_width, rel_tol, abs_tol, tree, leaf_bound)
     bar = show_progress(int(budget.boxes), f"{label}: boxes", budget.compute.progress and label is not None)
     try:
-        outcome = branch_and_bound(queue, in_process(lambda b: box_bounds(objective, b.lo, b.hi, enclosure)), sort,
-                                   Stopping(int(budget.boxes), budget.seconds), batch=int(budget.batch), bar=bar)
+        outcome = branch_and_bound(rule.queue, in_process(lambda b: box_bounds(objective, b.lo, b.hi, enclosure)),
+                                   rule.sort, Stopping(int(budget.boxes), budget.seconds), Taking(int(budget.batch)),
+                                   bar=bar)
     finally:
         bar.close()
-    left = queue.queued
+    closed, best, left = rule.closed, rule.best, rule.queue.queued
     if len(left):
         if len(left) <= 4 * budget.batch:
             leftover = box_bounds(objective, left.lo, left.hi, enclosure)[1]
@@ -464,7 +453,61 @@ def maximize(objective: Callable, domain: Domain, budget: Budget, *, rel_tol: fl
         raise ValueError("the set to maximise over is empty")
     if best is None:
         best = torch.full_like(closed, -torch.inf)
-    return best, closed, SearchInfo(outcome.taken, time.perf_counter() - start, outcome.stopped, best_at)
+    return best, closed, SearchInfo(outcome.taken, time.perf_counter() - start, outcome.stopped, rule.best_at)
+
+
+class _Suprema:
+    """The rule of :func:`maximize` for a batch's bounds: the best lower bounds at the centres the domain contains, the
+    upper bounds of the boxes closed (no longer able to raise a supremum by more than the tolerance), the rest split
+    with their bound inherited (``known``)."""
+
+    def __init__(self, domain: Domain, min_width: float, rel_tol: float, abs_tol: float,
+                 tree: PartitionRecorder | None, leaf_bound: Callable | None) -> None:
+        self.domain, self.min_width, self.rel_tol, self.abs_tol = domain, min_width, rel_tol, abs_tol
+        self.tree, self.leaf_bound = tree, leaf_bound
+        self.closed: Tensor | None = None
+        self.best: Tensor | None = None
+        self.best_at: Tensor | None = None
+        ids = tree.roots if tree is not None else torch.zeros(domain.lo.shape[0], dtype=torch.int64)
+        self.queue = DomainQueue(self._kept(Boxes(domain.lo, domain.hi, ids)))  # known (B, Q), once one is split
+
+    def _kept(self, boxes: Boxes) -> Boxes:
+        """The boxes that meet the domain (those that do not are recorded as inside the ball)."""
+        if self.domain.meets is None:
+            return boxes
+        keep = self.domain.meets(boxes.lo, boxes.hi)
+        if self.tree is not None:
+            self.tree.inside_ball(boxes.ids[~keep])
+        return boxes.select(keep)
+
+    def sort(self, taken: Boxes, bounds: tuple) -> None:
+        clo, chi, cids, scale = taken.lo, taken.hi, taken.ids, self.domain.scale
+        _, ub, at = bounds
+        centre = (clo + chi) / 2
+        good = self.domain.points_in(centre)
+        if good.any():
+            cand, where = at.lo[good].max(0)
+            found = centre[good][where]  # (Q, n): where each component's new value was attained
+            better = torch.ones_like(cand, dtype=torch.bool) if self.best is None else cand > self.best
+            self.best_at = found if self.best_at is None else torch.where(better[:, None], found, self.best_at)
+            self.best = cand if self.best is None else torch.maximum(self.best, cand)
+        ref = self.best if self.best is not None else torch.full_like(ub[0], -torch.inf)
+        # no centre accepted yet (ref = -inf): every box that may hold one is split, not closed at its first bound
+        tol = torch.where(ref.isfinite(), torch.clamp(self.rel_tol * ref.abs(), min=self.abs_tol), self.abs_tol)
+        refine = (ub > ref + tol).any(-1) & (((chi - clo) / scale).amax(-1) >= self.min_width)
+        done = ~refine
+        if done.any():
+            cand = ub[done].amax(0)
+            self.closed = cand if self.closed is None else torch.maximum(self.closed, cand)
+            if self.tree is not None:
+                self.tree.proved(cids[done], self.leaf_bound(ub[done]))
+        if refine.any():
+            nlo, nhi = split(clo[refine], chi[refine], scale)
+            inherited = ub[refine].repeat(2, 1)  # split() returns the lower halves, then the upper halves
+            nids = (self.tree.split(cids[refine], chi[refine], nhi) if self.tree is not None else
+                    nlo.new_zeros(nlo.shape[0], dtype=torch.int64))
+            self.queue.push(self._kept(Boxes(nlo, nhi, nids, inherited)))
+        return None
 
 
 def uniform_margin(loop: ClosedLoop, condition: DRUniform, region: Region, budget: Budget = Budget(seconds=3.0), *,

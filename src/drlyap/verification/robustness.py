@@ -40,7 +40,7 @@ from drlyap.kinds import Enclosure, Status
 from drlyap.proof_settings import Budget
 from drlyap.regions import Region
 from drlyap.systems import UncertainSystem
-from drlyap.verification.branch_and_bound import verify_condition
+from drlyap.verification.branch_and_bound import ProofRules, StartFrom, verify_condition
 from drlyap.verification.partition import PROVED, Partition
 from drlyap.verification.results import CertifiedRadius, CertifiedShiftBox
 
@@ -266,8 +266,9 @@ def _prover(loop: ClosedLoop, region: Region, budget: Budget, make, level: float
         part, grade = base["partition"], base["grade"]
         standing = None if part is None else grade >= v
         try:
-            r = verify_condition(loop, make(v), region, budget, level=level, stop_at_counterexample=True,
-                                 start=part, standing=standing, give_up=True, keep_partition=True)
+            r = verify_condition(loop, make(v), region, budget, level=level,
+                                 start=None if part is None else StartFrom(part, standing),
+                                 rules=ProofRules(stop_at_counterexample=True, give_up=True, keep_partition=True))
         except ValueError as err:  # e.g. the dynamics are undefined for some shift in the box (a zero mass)
             return {"status": "error", "error": str(err), "time_s": None}
         res = {"status": r.status, "time_s": r.time_s, "verified_fraction": r.verified_fraction,

@@ -113,6 +113,16 @@ class Stopping:
 
 
 @dataclass
+class Taking:
+    """How a search takes its boxes: ``batch`` at a time, the first queued or with ``lowest_first`` those of the lowest
+    inherited bound, and without those ``prune`` removes (boxes that need no bounds; None: none)."""
+
+    batch: int
+    lowest_first: bool = False
+    prune: Callable[[Boxes], Boxes] | None = None
+
+
+@dataclass
 class Checkpointing:
     """How a search keeps its progress: ``save(seconds)`` writes the caller's state (its queue included) and the
     seconds the search has spent, at least ``every`` seconds apart, and more apart where saving takes long (``spacing``
@@ -151,11 +161,8 @@ def in_process(bound_batch: Callable[[Boxes], object]) -> Bound:
 
 
 def branch_and_bound(queue: DomainQueue, bound: Bound, sort: Callable[[Boxes, object], str | None],
-                     stopping: Stopping, *, batch: int, lowest_first: bool = False,
-                     prune: Callable[[Boxes], Boxes] | None = None, bar=None,
-                     checkpoint: Checkpointing | None = None) -> Outcome:
-    """Take batches of ``batch`` boxes from ``queue`` (the first queued, or with ``lowest_first`` those of the lowest
-    inherited bound), drop what ``prune`` removes (boxes that need no bounds; a batch left empty is not counted), bound
+                     stopping: Stopping, taking: Taking, *, bar=None, checkpoint: Checkpointing | None = None) -> Outcome:
+    """Take batches of boxes from ``queue`` as ``taking`` says (a batch its pruning leaves empty is not counted), bound
     them with ``bound`` and hand each batch with its bounds to ``sort``, which records what it decides and pushes the
     boxes to split back into ``queue``; a ``sort`` that returns a reason stops the search with it.
 
@@ -185,9 +192,9 @@ def branch_and_bound(queue: DomainQueue, bound: Bound, sort: Callable[[Boxes, ob
             if stopping.give_up and len(queue) > stopping.boxes - state.taken:
                 state.stopped = GAVE_UP
                 return None
-            taken = queue.take(batch, lowest_first)
-            if prune is not None:
-                taken = prune(taken)
+            taken = queue.take(taking.batch, taking.lowest_first)
+            if taking.prune is not None:
+                taken = taking.prune(taken)
             if len(taken):
                 state.taken += len(taken)
                 queue.flight.append(taken)
@@ -195,7 +202,7 @@ def branch_and_bound(queue: DomainQueue, bound: Bound, sort: Callable[[Boxes, ob
 
     sorting = False
     try:
-        for taken, bounds in bound(take, lambda: len(queue) >= batch):
+        for taken, bounds in bound(take, lambda: len(queue) >= taking.batch):
             sorting = True
             queue.flight.pop(0)
             if bar is not None:

@@ -35,7 +35,7 @@ from drlyap.regions import Region
 from drlyap.runs import Run
 from drlyap.sections import ConditionSection
 from drlyap.systems import UncertainSystem
-from drlyap.verification import Budget, verify_condition
+from drlyap.verification import Budget, ProofRules, verify_condition
 
 F64 = torch.float64
 Sampler = Callable[[int, torch.Generator], Tensor]
@@ -179,7 +179,8 @@ def guarantee(run: Run, dist: str, n: int, method: str = "sampling", seed: int =
         region = Region.of(system, delta)
         for d in distinct:
             res = verify_condition(run.loop, run.true_condition(d), region,
-                                   Budget(seconds=time_limit, enclosure=Enclosure.MEAN_VALUE), stop_at_counterexample=True)
+                                   Budget(seconds=time_limit, enclosure=Enclosure.MEAN_VALUE),
+                                   rules=ProofRules(stop_at_counterexample=True))
             flags.append(res.status == Status.VERIFIED)
             unknown += res.status == Status.UNKNOWN
             sups.append(res.sup_bounds[0] if res.sup_bounds else math.nan)

@@ -20,6 +20,7 @@ from drlyap.runs.certificates import remove_certificate, write_certificate
 from drlyap.verification import (
     ConditionProof,
     ProofConfig,
+    ProofRules,
     RegionOfAttraction,
     RunRobustness,
     RunVerification,
@@ -306,7 +307,7 @@ def _outer_certificate(write, loop: ClosedLoop, condition: Condition, region: Re
     if (isinstance(found, ConditionProof) and found.verified and found.level is not None and found.level >= level
             and (found.partition is not None or found.source == "certificate")):
         return outer_name
-    found = verify_condition(loop, condition, region, proof.budget(), level=level, keep_partition=True)
+    found = verify_condition(loop, condition, region, proof.budget(), level=level, rules=ProofRules(keep_partition=True))
     if not found.verified:
         return None
     write("roa", found, condition, region, extra=_faces_claim(faces) or None)

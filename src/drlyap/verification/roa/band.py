@@ -30,7 +30,7 @@ from drlyap.enclosures import F64
 from drlyap.kinds import Enclosure
 from drlyap.proof_settings import Budget
 from drlyap.regions import Domain, Region, box_grid, default_grid
-from drlyap.verification.branch_and_bound import verify_condition
+from drlyap.verification.branch_and_bound import Exempt, ProofRules, verify_condition
 from drlyap.verification.roa.levels import BOX_BUDGET, TIME_LIMIT, below, level_search, time_capped
 from drlyap.verification.roa.local import resolving_ellipsoid
 from drlyap.verification.roa.quadratic import CoredProof
@@ -149,5 +149,5 @@ def band_proof(loop: ClosedLoop, condition: Condition, region: Region, band: Ban
     fine = resolving_ellipsoid(budget.min_width, p, c_q, region)
     whole = region.with_delta(0.0)
     proof = verify_condition(loop, strict, whole, replace(budget, min_width=fine, enclosure=Enclosure.AFFINE),
-                             level=float(band.level), core=(p, c_q), keep_partition=True)
+                             level=float(band.level), exempt=Exempt(core=(p, c_q)), rules=ProofRules(keep_partition=True))
     return CoredProof(strict, whole, proof, p, c_q) if proof.verified else None

@@ -34,7 +34,7 @@ from drlyap.verification.bounds import (
 )
 from drlyap.verification.search import BOX_BUDGET as BOX_BUDGET_STOP
 from drlyap.verification.search import TIME_LIMIT as TIME_LIMIT_STOP
-from drlyap.verification.search import Boxes, DomainQueue, Stopping, branch_and_bound, in_process
+from drlyap.verification.search import Boxes, DomainQueue, Stopping, Taking, branch_and_bound, in_process
 
 BOX_BUDGET = "box budget (--roa-boxes)"
 """``limited_by`` of a level search that spent its box budget (the level is V's least lower bound on the boxes it left
@@ -91,83 +91,97 @@ def level_search(loop: ClosedLoop, condition: Condition, domain: Domain, level: 
     that adds most to the bounds (``split``'s sensitivity): the search behind
     :func:`~drlyap.verification.roa.band.band_roa`. ``budget.compute.progress``: a line on stderr of the boxes
     processed, the level so far and the boxes queued."""
-    scale, meets = domain.scale, domain.boxes_meeting
     enclosure = budget.enclosure_for(domain.lo.shape[-1])
-    base = condition_and_value_objective(loop, condition)
-    prune = None
-    if ellipsoid is None:
-        objective = base
-    else:
-        if enclosure != Enclosure.AFFINE:
-            raise ValueError("the search outside an ellipsoid needs the affine enclosure")
-        w = QuadraticLyapunov(ellipsoid[0])
-        c_q = float(ellipsoid[1])
+    if ellipsoid is not None and enclosure != Enclosure.AFFINE:
+        raise ValueError("the search outside an ellipsoid needs the affine enclosure")
+    rule = _LevelRule(loop, condition, domain, level, limited_by, floor, ellipsoid, budget.min_width)
+    bar = show_progress(budget.boxes, "region of attraction: level search, boxes", budget.compute.progress)
+    rule.bar = bar
+    try:
+        outcome = branch_and_bound(
+            rule.queue, in_process(lambda b: box_bounds(rule.objective, b.lo, b.hi, enclosure,
+                                                        sensitivity=ellipsoid is not None, keep_form=True)),
+            rule.sort, Stopping(int(budget.boxes), budget.seconds),
+            Taking(int(budget.batch), lowest_first=True, prune=None if ellipsoid is None else rule.outside_ellipsoid),
+            bar=bar)
+    finally:
+        bar.close()
+    level, limited_by = rule.level, rule.limited_by
+    if outcome.stopped in (BOX_BUDGET_STOP, TIME_LIMIT_STOP):
+        level, limited_by = _settle_open(rule.queue.queued, _value_lower(loop, enclosure), level, limited_by,
+                                         BOX_BUDGET if outcome.stopped == BOX_BUDGET_STOP else TIME_LIMIT, budget.batch)
+    return LevelFound(level, limited_by, rule.cex, outcome.taken)
 
-        def objective(z):  # the condition's components, W, then V (W's form shares the box's symbols)
-            out = base(z)
-            return torch.cat([out[..., :-1], w(z).unsqueeze(-1), out[..., -1:]], -1)
 
-        def prune(boxes: Boxes) -> Boxes:  # boxes inside L need no proof
-            return boxes.select(~(vertex_max(w.P, boxes.lo, boxes.hi) <= c_q))
-    cex = None
-    # known (B,): a lower bound of V on each queued box (its parent's)
-    queue = DomainQueue(Boxes(domain.lo, domain.hi, torch.zeros(domain.lo.shape[0], dtype=torch.int64),
-                              torch.full((domain.lo.shape[0],), -math.inf, dtype=domain.lo.dtype)))
+class _LevelRule:
+    """The rule of :func:`level_search` for a batch's bounds: the level lowered to V where the condition fails (a
+    confirmed violation, or an open box at the minimum size), the boxes still open under the level split (their parts
+    inheriting V's lower bound, ``known``), and queued boxes the lowered level no longer asks about dropped."""
 
-    def bound(boxes: Boxes) -> tuple:
-        return box_bounds(objective, boxes.lo, boxes.hi, enclosure, sensitivity=ellipsoid is not None, keep_form=True)
-
-    def sort(boxes: Boxes, bounds: tuple) -> None:
-        nonlocal level, limited_by, cex
-        clo, chi = boxes.lo, boxes.hi
-        lb, ub, at, form = bounds[0], bounds[1], bounds[2], bounds[-1]
-        sens = bounds[3] if ellipsoid is not None else None
-        v_lb = lb[:, -1]
+    def __init__(self, loop: ClosedLoop, condition: Condition, domain: Domain, level: float, limited_by: str,
+                 floor: float, ellipsoid: tuple[Tensor, float] | None, min_width: float) -> None:
+        self.loop, self.condition, self.domain, self.floor, self.min_width = loop, condition, domain, floor, min_width
+        self.level, self.limited_by = level, limited_by
+        self.cex: Tensor | None = None
+        self.bar = None
+        base = condition_and_value_objective(loop, condition)
+        self.ellipsoid = ellipsoid
+        self.objective = base
         if ellipsoid is not None:
-            v_lb = torch.maximum(v_lb, outside_lower(form[:, -1], form[:, -2], at.mid[:, -1], at.mid[:, -2], c_q, level))
+            self.w, self.c_q = QuadraticLyapunov(ellipsoid[0]), float(ellipsoid[1])
+
+            def objective(z):  # the condition's components, W, then V (W's form shares the box's symbols)
+                out = base(z)
+                return torch.cat([out[..., :-1], self.w(z).unsqueeze(-1), out[..., -1:]], -1)
+            self.objective = objective
+        self.queue = DomainQueue(Boxes(domain.lo, domain.hi, torch.zeros(domain.lo.shape[0], dtype=torch.int64),
+                                       torch.full((domain.lo.shape[0],), -math.inf, dtype=domain.lo.dtype)))
+
+    def outside_ellipsoid(self, boxes: Boxes) -> Boxes:
+        """The boxes not inside L (every vertex; L is convex): those inside need no proof."""
+        return boxes.select(~(vertex_max(self.w.P, boxes.lo, boxes.hi) <= self.c_q))
+
+    def sort(self, boxes: Boxes, bounds: tuple) -> None:
+        condition, floor, clo, chi = self.condition, self.floor, boxes.lo, boxes.hi
+        lb, ub, at, form = bounds[0], bounds[1], bounds[2], bounds[-1]
+        sens = bounds[3] if self.ellipsoid is not None else None
+        v_lb = lb[:, -1]
+        if self.ellipsoid is not None:
+            v_lb = torch.maximum(v_lb, outside_lower(form[:, -1], form[:, -2], at.mid[:, -1], at.mid[:, -2], self.c_q,
+                                                     self.level))
             keep = [*range(lb.shape[1] - 2), lb.shape[1] - 1]
             lb, ub, at, form = lb[:, keep], ub[:, keep], at[:, keep], form[:, keep]
-        active = (v_lb <= level) & (ub[:, -1] >= floor)
+        active = (v_lb <= self.level) & (ub[:, -1] >= floor)
         res_ub = combine_upper(condition, ub[:, :-1])
         if form is not None:  # a box proved on {V <= level} is proved on every smaller sublevel set
-            res_ub = torch.minimum(res_ub, sublevel_upper(condition, form, level))
+            res_ub = torch.minimum(res_ub, sublevel_upper(condition, form, self.level))
         centre = (clo + chi) / 2
         open_ = active & (res_ub > 0)
-        bad = (open_ & domain.points_in(centre) & (at.hi[:, -1] >= floor)
+        bad = (open_ & self.domain.points_in(centre) & (at.hi[:, -1] >= floor)
                & (combine_lower(condition, at.lo[:, :-1]) > 0))
-        if ellipsoid is not None:  # a violation inside L does not count against the band
-            bad = bad & (w(centre) > c_q)
+        if self.ellipsoid is not None:  # a violation inside L does not count against the band
+            bad = bad & (self.w(centre) > self.c_q)
         if bad.any():
-            values = loop.exact(condition, centre[bad])
+            values = self.loop.exact(condition, centre[bad])
             if (values > 0).any():
                 v_at = at.hi[:, -1][bad][values > 0]
                 j = int(v_at.argmin())
-                if float(v_at[j]) < level:
-                    level, limited_by = float(v_at[j]), "counterexample"
-                    cex = centre[bad][values > 0][j]
-        small = open_ & (((chi - clo) / scale).amax(-1) < budget.min_width)
-        if small.any() and float(v_lb[small].min()) < level:
-            level, limited_by = float(v_lb[small].min()), "unverified box at minimum size"
-        divide = open_ & ~small & (v_lb <= level)
+                if float(v_at[j]) < self.level:
+                    self.level, self.limited_by = float(v_at[j]), "counterexample"
+                    self.cex = centre[bad][values > 0][j]
+        small = open_ & (((chi - clo) / self.domain.scale).amax(-1) < self.min_width)
+        if small.any() and float(v_lb[small].min()) < self.level:
+            self.level, self.limited_by = float(v_lb[small].min()), "unverified box at minimum size"
+        divide = open_ & ~small & (v_lb <= self.level)
         if divide.any():
-            nlo, nhi = split(clo[divide], chi[divide], scale, None if sens is None else sens[divide])
-            fits = meets(nlo, nhi)
+            nlo, nhi = split(clo[divide], chi[divide], self.domain.scale, None if sens is None else sens[divide])
+            fits = self.domain.boxes_meeting(nlo, nhi)
             children = Boxes(nlo, nhi, torch.zeros(nlo.shape[0], dtype=torch.int64), v_lb[divide].repeat(2))
-            queue.push(children.select(fits))
-        queue.keep(~(queue.queued.known > level))  # queued boxes the lowered level no longer asks about
-        bar.set_postfix(level=f"{level:.6g}", queued=len(queue))
+            self.queue.push(children.select(fits))
+        self.queue.keep(~(self.queue.queued.known > self.level))  # queued boxes the lowered level no longer asks about
+        if self.bar is not None:
+            self.bar.set_postfix(level=f"{self.level:.6g}", queued=len(self.queue))
         return None
-
-    bar = show_progress(budget.boxes, "region of attraction: level search, boxes", budget.compute.progress)
-    try:
-        outcome = branch_and_bound(queue, in_process(bound), sort, Stopping(int(budget.boxes), budget.seconds),
-                                   batch=int(budget.batch), lowest_first=True, prune=prune, bar=bar)
-    finally:
-        bar.close()
-    if outcome.stopped in (BOX_BUDGET_STOP, TIME_LIMIT_STOP):
-        level, limited_by = _settle_open(queue.queued, _value_lower(loop, enclosure), level, limited_by,
-                                         BOX_BUDGET if outcome.stopped == BOX_BUDGET_STOP else TIME_LIMIT, budget.batch)
-    return LevelFound(level, limited_by, cex, outcome.taken)
 
 
 def _value_lower(loop: ClosedLoop, enclosure: str):

@@ -28,7 +28,7 @@ from drlyap.kinds import Enclosure, Model, Status
 from drlyap.networks import QuadraticLyapunov
 from drlyap.proof_settings import Budget
 from drlyap.regions import Region
-from drlyap.verification.branch_and_bound import verify_condition
+from drlyap.verification.branch_and_bound import ProofRules, verify_condition
 from drlyap.verification.linearisation import jacobian_negative
 from drlyap.verification.results import BallProof
 from drlyap.verification.roa.levels import time_capped
@@ -178,7 +178,7 @@ def local_decrease(loop: ClosedLoop, condition: Condition, region: Region,
     left = max(0.5, time_limit - (time.perf_counter() - start))
     res = verify_condition(loop, ring_plain, ring, replace(budget, seconds=left,
                                                            min_width=resolving(min_width, r_in, region)),
-                           stop_at_counterexample=True, level=level, keep_partition=keep is not None)
+                           level=level, rules=ProofRules(stop_at_counterexample=True, keep_partition=keep is not None))
     out.ring = RingProof(res.status, gamma_in, r_in, res.boxes_processed, res.verified_fraction, res.stopped)
     out.boxes = res.boxes_processed
     if time_capped(res.stopped):

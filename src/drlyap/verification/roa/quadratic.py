@@ -48,7 +48,7 @@ from drlyap.networks import QuadraticLyapunov
 from drlyap.proof_settings import Budget
 from drlyap.regions import Domain, Region, box_grid, default_grid, near_dist
 from drlyap.verification.bounds import box_bounds, value_objective
-from drlyap.verification.branch_and_bound import maximize, verify_condition
+from drlyap.verification.branch_and_bound import Exempt, ProofRules, maximize, verify_condition
 from drlyap.verification.linearisation import (
     closed_loop_jacobians,
     common_lyapunov_matrix,
@@ -419,7 +419,7 @@ def ellipsoid_proof(loop: ClosedLoop, condition: Condition, region: Region, elli
     ring = verify_condition(loop.with_lyapunov(QuadraticLyapunov(p)), ring_condition, ring_region,
                             replace(budget, min_width=resolving(budget.min_width, r_in, region),
                                     enclosure=ellipsoid.q_roa.enclosure or budget.enclosure),
-                            level=level, keep_partition=True)
+                            level=level, rules=ProofRules(keep_partition=True))
     if not ring.verified:
         return None
     return EllipsoidProof(p, level, box, tau, ring_condition, ring_region, ring)
@@ -469,7 +469,8 @@ def linearisation_proofs(loop: ClosedLoop, condition: Condition, region: Region,
     ball = region.ball_box(0.0)
     fine = float(annulus.min_width) * float((region.scale / ball.scale).min())
     ring = verify_condition(loop, strict, ball, replace(budget, min_width=min(budget.min_width, fine)),
-                            level=float(local.level), core=(ellipsoid.p, ellipsoid.level), keep_partition=True)
+                            level=float(local.level), exempt=Exempt(core=(ellipsoid.p, ellipsoid.level)),
+                            rules=ProofRules(keep_partition=True))
     if not ring.verified:
         return None
     return ellipsoid, CoredProof(strict, ball, ring, ellipsoid.p, ellipsoid.level)
