@@ -23,7 +23,6 @@ The pairs of the field's published sizes, as measured in docs/results/band.md, a
 from __future__ import annotations
 
 import argparse
-import dataclasses
 import sys
 import tempfile
 import time
@@ -52,6 +51,7 @@ def _imported(run_dir: Path, folder: Path, system=None):
 
 def _row(run, imported, band: tuple[float, float], workers: int, boxes: int | None, folder: Path) -> dict:
     from drlyap.checker.check import check_certificate
+    from drlyap.compute import Compute
     from drlyap.proof_settings import ProofConfig
     from drlyap.runs.certificates import networks_digest, read_certificate, system_digest
     from drlyap.runs.validate import load_weights
@@ -59,7 +59,7 @@ def _row(run, imported, band: tuple[float, float], workers: int, boxes: int | No
     from drlyap.workflows.verify import verify_imported
 
     system, pair = run.system, imported.info["pair"]
-    proof = dataclasses.replace(ProofConfig(max_boxes=boxes, time_limit=3600.0), workers=workers, progress=False)
+    proof = ProofConfig(max_boxes=boxes, time_limit=3600.0, compute=Compute(workers=workers))
     tic, cpu = time.perf_counter(), cpu_seconds()
     found = verify_imported(pair, str(folder), proof, xi=torch.as_tensor(system.test_xi, dtype=torch.float64),
                             band=band).band

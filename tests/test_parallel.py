@@ -211,11 +211,11 @@ def test_compute_settings_are_checked_and_not_recorded_in_a_run():
         Compute(backend="mpi")
     with pytest.raises(ValueError, match="workers = 1 and the local backend"):
         Compute(workers=2, device="cuda")
-    with pytest.raises(ValueError, match="address is for the ray backend"):
-        ProofConfig(address="ray://x:10001").validate()
-    record = ProofConfig(workers=4, checkpoint_dir="/tmp/x").to_dict()
-    assert "workers" not in record and "checkpoint_dir" not in record
-    assert ProofConfig.from_dict(record).workers == 1
+    with pytest.raises(ValueError, match="compute must be a Compute"):
+        ProofConfig(compute={"workers": 2}).validate()
+    record = ProofConfig(compute=Compute(workers=4, checkpoint_dir="/tmp/x")).to_dict()
+    assert "compute" not in record and "workers" not in record  # where proofs ran is not recorded
+    assert ProofConfig.from_dict(record).compute == Compute()
 
 
 # --------------------------------------------------------------------------- checkpoints
@@ -421,11 +421,11 @@ def test_train_rechecks_the_certificate_it_saved_so_that_verify_takes_it_as_it_s
 
     run, spec = linear_run
     runner = CliRunner()
-    assert _check_saved(run, resolve_system(spec), {"workers": 1}, None) is None  # no certificate yet: nothing to check
+    assert _check_saved(run, resolve_system(spec), Compute(), None) is None  # no certificate yet: nothing to check
     first = runner.invoke(main, ["verify", str(run), "--system", spec, "--json"])  # proves it, writes its certificate
     assert json.loads(first.output)["trained"].get("source") is None
     assert not (run / "certificates" / "trained.check.json").exists()
-    results = _check_saved(run, resolve_system(spec), {"workers": 1}, None)  # what train does once the run is saved
+    results = _check_saved(run, resolve_system(spec), Compute(), None)  # what train does once the run is saved
     assert [r.name for r in results] == ["trained"] and results[0].ok and results[0].proved > 0
     assert (run / "certificates" / "trained.check.json").is_file()
     again = json.loads(runner.invoke(main, ["verify", str(run), "--system", spec, "--json"]).output)

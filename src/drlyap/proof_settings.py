@@ -12,7 +12,7 @@ import dataclasses
 import math
 from dataclasses import dataclass
 
-from drlyap.compute import Compute, compute_problems
+from drlyap.compute import Compute
 from drlyap.io import from_fields
 from drlyap.kinds import Enclosure, choice
 
@@ -108,9 +108,8 @@ class ProofConfig:
     not depend on the machine's speed, and stops after ``roa_time`` seconds at most (None: :data:`ROA_TIME_CAP` x
     ``time_limit``, an outer cap whose hitting the result reports); ``band_time`` caps its band proof's seconds (None:
     ``roa_time`` again; 0: off), which gets ``roa_boxes`` boxes again.
-    Where the boxes are bounded (:class:`Compute`; how fast, never what is proved, so a run does not record them):
-    ``workers``, ``backend``, ``address``, ``device``, ``checkpoint_dir`` and ``checkpoint_every`` for proofs that
-    resume, ``progress``.
+    ``compute``: where the boxes are bounded (:class:`Compute`: workers, backend, device, checkpoints, progress; how
+    fast, never what is proved, so a run does not record it).
     """
 
     rounds: int = 5
@@ -136,17 +135,12 @@ class ProofConfig:
     roa_time: float | None = None
     roa_boxes: int | None = None
     band_time: float | None = None
-    workers: int = 1
-    backend: str = "local"
-    address: str | None = None
-    device: str = "cpu"
-    checkpoint_dir: str | None = None
-    checkpoint_every: float = 2.0
-    progress: bool = False
+    compute: Compute = Compute()
 
     def validate(self) -> None:
         """A ValueError naming every setting out of range."""
-        problems = compute_problems(self.workers, self.backend, self.address, self.device)
+        problems = [] if isinstance(self.compute, Compute) else [
+            f"compute must be a Compute, got {type(self.compute).__name__}"]
         if int(self.rounds) < 0:
             problems.append(f"rounds = {self.rounds} (must be >= 0)")
         for name in ("time_limit", "total_time", "roa_time", "round_time"):
@@ -209,16 +203,7 @@ class ProofConfig:
 
     def with_compute(self, compute: Compute) -> ProofConfig:
         """The same settings, bounding their boxes where ``compute`` says."""
-        return dataclasses.replace(self, workers=compute.workers, backend=compute.backend, address=compute.address,
-                                   device=compute.device, checkpoint_dir=compute.checkpoint_dir,
-                                   checkpoint_every=compute.checkpoint_every, progress=compute.progress)
-
-    @property
-    def compute(self) -> Compute:
-        """Where the boxes of these proofs are bounded (:class:`Compute`)."""
-        return Compute(workers=int(self.workers), backend=self.backend, address=self.address, device=self.device,
-                       checkpoint_dir=None if self.checkpoint_dir is None else str(self.checkpoint_dir),
-                       checkpoint_every=float(self.checkpoint_every), progress=bool(self.progress))
+        return dataclasses.replace(self, compute=compute)
 
     def roa_budget(self) -> Budget:
         """The :class:`Budget` of the region-of-attraction search of ``verify --roa``: ``roa_boxes`` boxes, and
@@ -232,9 +217,8 @@ class ProofConfig:
         return self.budget(self.round_time)
 
     def to_dict(self) -> dict:
-        """The settings a run records: what its proofs were asked, not where they ran (:data:`COMPUTE_FIELDS` are
-        left out)."""
-        return {k: v for k, v in dataclasses.asdict(self).items() if k not in COMPUTE_FIELDS}
+        """The settings a run records: what its proofs were asked, not where they ran (``compute`` is left out)."""
+        return {f.name: getattr(self, f.name) for f in dataclasses.fields(self) if f.name != "compute"}
 
     @classmethod
     def from_dict(cls, data: dict) -> ProofConfig:
@@ -243,9 +227,6 @@ class ProofConfig:
 
 RETRAIN = ("pair", "controller")
 """What the retraining rounds of :class:`ProofConfig` may train."""
-
-COMPUTE_FIELDS = ("workers", "backend", "address", "device", "checkpoint_dir", "checkpoint_every", "progress")
-"""The fields of :class:`ProofConfig` that say where its proofs run (:class:`Compute`), not what they prove."""
 
 
 def legacy_proof(data: dict) -> ProofConfig | None:

@@ -59,12 +59,11 @@ def check(run_dir: Path, names: tuple[str, ...], refine: int, pieces_per_leaf: f
     refuse_early(runs=[run_dir], systems=[system_spec])
 
     from drlyap.checker import check_run
-    from drlyap.compute import Compute
     from drlyap.render import check_lines
 
     try:
         results = check_run(run_dir, run_system_of(system_spec, verifier=False), trust_run, list(names) or None, refine,
-                            Compute(**settings), pieces_per_leaf)
+                            settings, pieces_per_leaf)
     except ValueError as err:
         fail(err)
     except KeyboardInterrupt:

@@ -126,9 +126,9 @@ def compute_options(with_device: bool = True):
     return decorate
 
 
-def compute_settings(workers: int, backend: str, address: str | None, device: str = "cpu") -> dict:
-    """The :class:`~drlyap.proof_settings.ProofConfig` fields of ``--workers``, ``--backend``, ``--address``, ``--device``
-    (checked: a usage error names what is wrong), with progress on stderr."""
+def compute_settings(workers: int, backend: str, address: str | None, device: str = "cpu"):
+    """The :class:`~drlyap.compute.Compute` of ``--workers``, ``--backend``, ``--address``, ``--device`` (checked: a usage
+    error names what is wrong), with progress on stderr."""
     from drlyap.compute import compute_problems
 
     problems = compute_problems(workers, backend, address, device)
@@ -145,7 +145,9 @@ def compute_settings(workers: int, backend: str, address: str | None, device: st
         from drlyap.lifeline import start_fork_server
 
         start_fork_server()
-    return {"workers": workers, "backend": backend, "address": address, "device": device, "progress": True}
+    from drlyap.compute import Compute
+
+    return Compute(workers=workers, backend=backend, address=address, device=device, progress=True)
 
 
 def recorded_source(run_dir: Path, system_spec: str | None = None) -> dict | None:

@@ -2,6 +2,7 @@
 
 from __future__ import annotations
 
+import dataclasses
 import json
 import math
 import shutil
@@ -19,6 +20,7 @@ from drlyap.cli.common import (
     floats,
     refuse_early,
 )
+from drlyap.compute import Compute
 from drlyap.config import TrainConfig
 from drlyap.proof_settings import ProofConfig
 from drlyap.recipes import defaults_text
@@ -163,7 +165,8 @@ def train(system: str, method: str, loss: str, radius: float | None, eps: float 
         compute = compute_settings(workers, backend, address, device)
         if verify:
             proof = ProofConfig(rounds=verify_rounds, max_boxes=verify_boxes, round_time=verify_time,
-                                total_time=verify_budget, **compute, checkpoint_dir=str(proof_checkpoints(out)))
+                                total_time=verify_budget,
+                                compute=dataclasses.replace(compute, checkpoint_dir=str(proof_checkpoints(out))))
             proof.validate()
         check_writable(out)
     except ValueError as err:
@@ -231,16 +234,15 @@ def train(system: str, method: str, loss: str, radius: float | None, eps: float 
         sys.exit(1)
 
 
-def _check_saved(out: Path, system, compute: dict, source: dict | None) -> list | None:
+def _check_saved(out: Path, system, compute: Compute, source: dict | None) -> list | None:
     """The checker's results on the saved run's trained certificate (None where the proof wrote none); the run stays
     saved whatever happens here."""
     if not (out / "certificates" / "trained.json").is_file():
         return None
     from drlyap.checker import check_run
-    from drlyap.compute import Compute
 
     try:
-        return check_run(out, system, names=["trained"], compute=Compute(**compute))
+        return check_run(out, system, names=["trained"], compute=compute)
     except KeyboardInterrupt:
         click.echo(f"drlyap: interrupted while checking; {out} is saved, its certificate not yet re-checked "
                    f"({command_hint('check', out, source=source)} does it)", err=True)

@@ -179,7 +179,8 @@ def verify(run_dir: Path, delta: float | None, xi: str | None, time_limit: float
             return
         run = load_run(run_dir, run_system_of(system_spec), trust_run)
         settings = dataclasses.replace(run.proof or ProofConfig(), roa_time=roa_time, roa_boxes=roa_boxes,
-                                       enclosure=enclosure, **compute, checkpoint_dir=run_checkpoints(run))
+                                       enclosure=enclosure,
+                                       compute=dataclasses.replace(compute, checkpoint_dir=run_checkpoints(run)))
         if time_limit is not None:
             settings = dataclasses.replace(settings, time_limit=time_limit)
         settings = run_proof(run, settings)
@@ -233,7 +234,7 @@ def verify(run_dir: Path, delta: float | None, xi: str | None, time_limit: float
 
 def _verify_imported(run_dir: Path, delta: float | None, xi: str | None, time_limit: float | None, roa: bool,
                      roa_time: float | None, enclosure: str | None, as_json: bool, system_spec: str | None,
-                     trust_run: bool, compute: dict, above_level: bool = True, roa_rate: float | None = None,
+                     trust_run: bool, compute, above_level: bool = True, roa_rate: float | None = None,
                      roa_boxes: int | None = None, band: tuple[float, float] | None = None) -> None:
     """``drlyap verify`` on an imported pair: decrease on the true model at --xi (the system's test shift by default)
     and with --roa its region of attraction, or with ``band`` the band claim there; what is verified is written as
@@ -250,7 +251,7 @@ def _verify_imported(run_dir: Path, delta: float | None, xi: str | None, time_li
         raise ValueError(f"an imported pair has no trained condition: give --xi ({system.k} values)")
     shift = system.check_xi(floats(xi, "--xi") if xi is not None else list(system.test_xi))
     settings = dataclasses.replace(ProofConfig(), roa_time=roa_time, roa_boxes=roa_boxes, enclosure=enclosure,
-                                   **compute)
+                                   compute=compute)
     if time_limit is not None:
         settings = dataclasses.replace(settings, time_limit=time_limit)
     pair = run.info["pair"]

@@ -61,13 +61,12 @@ def reproduce(system: str, seeds: str, out: Path | None, iters: int | None, devi
     it must declare a test shift (test_xi) and a training distribution (xi_sampler)."""
     refuse_early(systems=[system])
 
-    from drlyap.compute import Compute
     from drlyap.systems import resolve_system, system_source
     from drlyap.workflows.reproduce import format_table
     from drlyap.workflows.reproduce import reproduce as run_reproduce
 
     seed_list = seed_values(seeds)
-    compute = Compute(**compute_settings(workers, backend, address, device))
+    compute = compute_settings(workers, backend, address, device)
     log = (lambda s: click.echo(s, err=True)) if as_json else click.echo
     try:
         sys_ = resolve_system(system)
@@ -126,10 +125,9 @@ def compare(run_dirs: tuple[Path, ...], xi: str, n_init: int, seed: int, horizon
     """
     refuse_early(runs=run_dirs, systems=[system_spec])
 
-    from drlyap.compute import Compute
     from drlyap.workflows.compare import compare_runs, format_comparison
 
-    compute = Compute(**compute_settings(workers, backend, address, device))
+    compute = compute_settings(workers, backend, address, device)
     try:
         if horizon is not None and horizon <= 0:
             raise ValueError(f"--horizon must be > 0, got {horizon}")

@@ -263,7 +263,7 @@ def _proof_rounds(cfg: TrainConfig, system: UncertainSystem, proof: ProofConfig,
     for r in range(rounds + 1):
         tic = time.perf_counter()
         warm = init if result is None else (result.lyapunov, result.controller)
-        result = fit_or_resume(proof.checkpoint_dir, round_cfg, system, progress, warm,
+        result = fit_or_resume(proof.compute.checkpoint_dir, round_cfg, system, progress, warm,
                                extra.repeat(int(proof.replicate), 1) if r else None, not r, boxes,
                                not r or proof.retrain == "pair")
         train_time = time.perf_counter() - (tic if r else start)
