@@ -13,6 +13,7 @@ from torch import Tensor
 from drlyap.checker.arith import Du, Iv
 from drlyap.checker.check import CertificateError, check_certificate, check_tree, rebuild_boxes
 from drlyap.checker.model import Pair, Residual
+from drlyap.claims import claim_kind, claim_sentence
 from drlyap.conditions import DRPointwise, TrueDecrease
 from drlyap.proof_settings import Budget
 from drlyap.regions import Region
@@ -272,6 +273,41 @@ def test_a_box_moved_into_the_ball_is_rejected(proved):
     assert not result.ok and "open ball" in result.failures[0]
 
 
+def test_a_claim_proved_on_the_balls_box_alone_is_not_confirmed_for_the_whole_box(proved, tmp_path):
+    """A plain claim whose region names the delta-ball's box (``ball_of``, which only a ``roa-ball`` or ``practical``
+    claim states) was checked on that box while its sentence claimed the state box minus the ball."""
+    system, loop, condition = proved["system"], proved["loop"], proved["condition"]
+    ball = 0.3
+    lo, hi = system.local_box()
+    inside = Region(torch.clamp(lo, min=-ball), torch.clamp(hi, max=ball), proved["region"].delta)
+    proof = verify_condition(loop, condition, inside, Budget(seconds=1e9, boxes=200_000, enclosure="mean-value"))
+    assert proof.verified
+    folder = tmp_path / "run"
+    folder.mkdir()
+    shutil.copy(proved["folder"] / "weights.pt", folder / "weights.pt")
+    write_certificate(folder, "trained", proof, condition, inside, system, folder / "weights.pt",
+                      loop.lyapunov.alpha_hat, extra={"ball_of": ball})
+    result = recheck(folder, "trained", system, proved["weights"])
+    assert not result.ok and result.claim == "(an unreadable claim)"
+    assert any("make no kind of claim" in f for f in result.failures), result.failures
+
+
+@pytest.mark.parametrize("parts, ball, kind", [
+    ({}, False, "condition"), ({"ellipsoid": {}}, False, "ellipsoid"), ({"practical": {}}, True, "practical"),
+    ({"band": {}}, False, "band"), ({"cube": {}}, True, "roa-ball"), ({"core": {}}, True, "roa-ball"),
+    ({"core": {}}, False, "core"), ({}, True, None), ({"cube": {}}, False, None), ({"band": {}, "core": {}}, False, None),
+    ({"ellipsoid": {}, "practical": {}}, True, None)])
+def test_a_claims_parts_make_one_kind_or_none(parts, ball, kind):
+    claim = {"condition": {"name": "true"}, "region": {"delta": 0.1, **({"ball_of": 0.1} if ball else {})}, **parts}
+    if kind is None:
+        with pytest.raises(ValueError, match="no kind of claim"):
+            claim_kind(claim)
+        assert claim_sentence(claim) == "(an unreadable claim)"
+    else:
+        assert claim_kind(claim) == kind
+    assert claim_kind({"condition": {"name": "uniform"}, "region": {}}) == "uniform"
+
+
 def test_tree_checks_name_the_problem():
     arrays = {"parent": np.array([-1, -1, 0]), "side": np.zeros(3, np.int8), "axis": np.array([0, -1, -1], np.int8),
               "verdict": np.array([0, 1, 1], np.int8), "bound": np.zeros(3)}
@@ -373,7 +409,7 @@ def test_a_sublevel_set_certificate_is_checked_with_its_faces(proved, tmp_path):
 
 
 def test_refining_a_false_certificate_costs_at_most_about_as_many_pieces_as_it_has_boxes(proved):
-    from drlyap.checker.check import MIN_PIECES
+    from drlyap.checker.leaves import MIN_PIECES
 
     def stricter(header):
         header["claim"]["condition"]["decay_rate"] = 5.0  # far more decay than the pair has: most boxes fail
@@ -384,7 +420,7 @@ def test_refining_a_false_certificate_costs_at_most_about_as_many_pieces_as_it_h
 
 
 def test_leaves_a_crowded_chunk_left_unproved_get_the_pieces_the_others_did_not_spend(monkeypatch):
-    import drlyap.checker.check as check
+    import drlyap.checker.leaves as leaves
 
     class Job:  # a hard leaf (lo < 0) is proved by 4 pieces of bisection, where its chunk's budget allows them all
         def on(self, device):
@@ -398,19 +434,19 @@ def test_leaves_a_crowded_chunk_left_unproved_get_the_pieces_the_others_did_not_
             return {"ok": ok, "centre_low": torch.zeros(len(lo), dtype=torch.float64),
                     "refined": torch.tensor([int(hard.sum())]), "pieces": torch.tensor([pieces])}
 
-    monkeypatch.setattr(check, "LEAF_CHUNK", 8)
+    monkeypatch.setattr(leaves, "LEAF_CHUNK", 8)
     lo = torch.ones(64, 1, dtype=torch.float64)
     lo[:8] = -1.0  # every hard leaf in the first chunk: its own budget of 8 pieces cannot prove them
-    ok, _, _, pieces = check.prove_leaves(Job(), lo, lo + 1, torch.zeros(64, dtype=torch.bool))
+    ok, _, _, pieces = leaves.prove_leaves(Job(), lo, lo + 1, torch.zeros(64, dtype=torch.bool))
     assert bool(ok.all()) and pieces <= 64
     lo[:40] = -1.0  # too many hard leaves for one piece per leaf in all: refused, within the same budget
-    ok, _, _, pieces = check.prove_leaves(Job(), lo, lo + 1, torch.zeros(64, dtype=torch.bool))
+    ok, _, _, pieces = leaves.prove_leaves(Job(), lo, lo + 1, torch.zeros(64, dtype=torch.bool))
     assert not bool(ok[:40].any()) and bool(ok[40:].all()) and pieces <= 64
     # with 6 pieces per leaf (`drlyap check --pieces 6`) every chunk affords its hard leaves' 4 pieces each
-    ok, _, _, pieces = check.prove_leaves(Job(), lo, lo + 1, torch.zeros(64, dtype=torch.bool), pieces_per_leaf=6.0)
+    ok, _, _, pieces = leaves.prove_leaves(Job(), lo, lo + 1, torch.zeros(64, dtype=torch.bool), pieces_per_leaf=6.0)
     assert bool(ok.all()) and pieces == 4 * 40 <= 7 * 64
     with pytest.raises(ValueError, match="pieces per leaf must be >= 1"):
-        check.prove_leaves(Job(), lo, lo + 1, torch.zeros(64, dtype=torch.bool), pieces_per_leaf=0.5)
+        leaves.prove_leaves(Job(), lo, lo + 1, torch.zeros(64, dtype=torch.bool), pieces_per_leaf=0.5)
 
 
 @pytest.mark.parametrize("value, says", [("0.5", "0.5 is not in the range x>=1.0"),
@@ -426,7 +462,7 @@ def test_check_refuses_a_piece_budget_below_one_per_leaf_before_reading_the_run(
 
 def test_the_check_command_bisects_as_deep_as_the_checker_by_default():
     """`drlyap check`'s --refine (written out there: its help loads no torch) is the checker's own default."""
-    from drlyap.checker.check import REFINE
+    from drlyap.checker.leaves import REFINE
     from drlyap.cli.check import check
 
     refine = next(p for p in check.params if p.name == "refine")

@@ -7,7 +7,7 @@ import torch
 
 from drlyap.checker.affine import Af
 from drlyap.checker.arith import Iv
-from drlyap.checker.check import _by_forms
+from drlyap.checker.leaves import _by_forms
 from drlyap.checker.model import Pair, Residual, affine_upper, form_upper, sublevel_form_upper
 from drlyap.checker.quadratic import _dual_max, _quick_span, _quick_spans, quad_max, quad_max_minus, quad_span
 from drlyap.conditions import DRPointwise

@@ -116,9 +116,9 @@ def test_a_violation_stops_the_workers_and_they_go_on_with_the_next_proof(pendul
 
 def test_the_checker_accepts_a_certificate_proved_by_workers_and_checks_with_workers(pendulum_loop, tmp_path,
                                                                                    monkeypatch):
-    import drlyap.checker.check as check
+    import drlyap.checker.leaves as leaves
 
-    monkeypatch.setattr(check, "LEAF_CHUNK", 256)  # several chunks, each with its own bisection budget
+    monkeypatch.setattr(leaves, "LEAF_CHUNK", 256)  # several chunks, each with its own bisection budget
     loop, condition, region = pendulum_loop
     proof = verify_condition(loop, condition, region, Budget(seconds=600, batch=64, compute=_up(2)))
     torch.save({"lyapunov": loop.lyapunov.state_dict(), "controller": loop.controller.state_dict()},

@@ -52,71 +52,132 @@ def of_region(region: str) -> str:
     return region if region.startswith("{") or region == "X_delta" else f"the {region}"
 
 
+CLAIM_KINDS = ("condition", "uniform", "ellipsoid", "practical", "band", "roa-ball", "core")
+"""The kinds of claim a certificate states, each read from its parts by :func:`claim_kind`: a decrease ``condition``
+on X_delta or a sublevel set; the DR ``uniform`` condition (one inequality); the closed loop's own quadratic region
+(``ellipsoid``); ``practical`` stability (V's bound on the delta-ball, the decrease outside it resting on an ``outer``
+certificate); the decrease on a ``band`` c1 <= V <= c2; V's decrease inside the delta-ball (``roa-ball``: by second
+order on a ``cube``, or outside a ``core`` ellipsoid, resting on an ``outer`` certificate); and V's set resting on a
+``core`` ellipsoid over the box."""
+
+_MARKS = ("ellipsoid", "practical", "band", "cube", "core")
+"""The parts of a claim that mark its kind."""
+
+
+def claim_kind(claim: dict) -> str:
+    """The kind (:data:`CLAIM_KINDS`) of a certificate's claim, from the parts that mark it and whether its region is
+    the delta-ball's box (``ball_of``); a ValueError where they make no kind drlyap states (two kinds at once, or a
+    region in the ball's box for a claim whose words are about the whole box), so that a claim is never checked on less
+    than its sentence says."""
+    marks = [k for k in _MARKS if claim.get(k) is not None]
+    ball = claim["region"].get("ball_of") is not None
+    kinds = {((), False): "condition", (("ellipsoid",), False): "ellipsoid", (("practical",), True): "practical",
+             (("band",), False): "band", (("cube",), True): "roa-ball", (("core",), True): "roa-ball",
+             (("core",), False): "core"}
+    kind = kinds.get((tuple(marks), ball))
+    if kind is None:
+        raise ValueError(f"the claim's parts ({', '.join(marks) or 'none'}) and its region "
+                         f"({'the delta-ball' if ball else 'the state'}'s box) make no kind of claim drlyap states")
+    if kind == "condition" and claim["condition"].get("name") == "uniform":
+        return "uniform"
+    return kind
+
+
 def claim_sentence(claim: dict) -> str:
     """A certificate file's claim (``claim`` of its header: ``condition`` and ``region`` as written by
-    :mod:`drlyap.runs.certificates`) in words, from its fields: what the file states and what ``drlyap check``
-    re-proves."""
+    :mod:`drlyap.runs.certificates`) in words, from its fields and its kind (:func:`claim_kind`): what the file states
+    and what ``drlyap check`` re-proves."""
     try:
-        c, r = claim["condition"], claim["region"]
-        xi = c.get("xi") or []
-        decay = decay_words(float(c.get("decay_rate") or 0), float(c.get("exp_rate") or 0))
-        if c.get("name") == "true" and c.get("xi_box"):
-            low, high = c["xi_box"]["low"], c["xi_box"]["high"]
-            shifts = "; ".join(f"[{a:.4g}, {b:.4g}]" for a, b in zip(low[0], high[0]))
-            what = f"decrease on the true model for every shift xi in {shifts} ({decay})"
-        elif c.get("name") == "true":
-            what = f"decrease on the true model at xi = {xi[0] if len(xi) == 1 else xi} ({decay})"
-        elif c.get("name") == "pointwise":
-            what = (f"the DR pointwise condition (r = {float(c['wasserstein_radius']):g}, eps = "
-                    f"{float(c['risk_level']):g}, {len(xi)} samples of xi, {decay})")
-        elif c.get("name") == "uniform":
-            return (f"the DR uniform condition (r = {float(c['wasserstein_radius']):g}, eps = "
-                    f"{float(c['risk_level']):g}, {len(xi)} samples of xi, {decay}) holds over "
-                    f"{of_region(condition_region(r.get('level'), float(r['delta'])))} as one inequality: (r/eps) sup "
-                    "||W^T grad V|| + CVaR_eps over the samples of sup (Vdot + decay) <= 0")
-        elif c.get("name") == "plain":
-            model = "the true model at xi = " + str(xi[0] if len(xi) == 1 else xi) if c.get("model") == "true" else \
-                f"the design model at each of {len(xi)} sample(s) of xi"
-            what = f"decrease on {model} ({decay})"
-        else:
-            what = f"the {c.get('label', c.get('name'))} condition ({len(xi)} sample(s) of xi, {decay})"
-        level = r.get("level")
-        if claim.get("ellipsoid") is not None:  # the closed loop's own quadratic region
-            half = ", ".join(f"{float(h):.3g}" for h in claim["ellipsoid"]["box"])
-            ring = "" if not claim["ellipsoid"].get("ring") else (
-                f"; outside ||x - x*|| < {float(r['delta']):g}, {what.replace('decrease', 'decrease of W', 1)} on it")
-            return (f"{{z'Pz <= {level_text(level)}}} (W = z'Pz, P in the file) is a region of attraction: W decreases on "
-                    f"it except at x*, on the box |x_i - x*_i| <= [{half}] by the Jacobian's enclosure{ring}")
-        if claim.get("practical") is not None:  # practical stability: V's bound on the ball, the decrease outside
-            model = what.split(" (")[0].replace("decrease on ", "")
-            cut = " in the state box" if faces_rule(claim) == "inward" else ""
-            return (f"trajectories of {model} from {{V <= {level_text(level)}}}{cut} stay in it and end up in "
-                    f"{{V <= {level_text(float(claim['practical']['level']), up=True)}}}: V is at most that on the ball "
-                    f"||x - x*|| < {float(r['ball_of']):g}, and decreases outside it by the certificate "
-                    f"{claim.get('outer')!r}")
-        if claim.get("band") is not None:  # practical stability on a band c1 <= V <= c2 (the field's form)
-            return band_sentence(what, float(claim["band"]["low"]), float(level))
-        core = claim.get("core")
-        if core is not None:  # V's region resting on the closed loop's ellipsoid (linearisation route, band proof)
-            ellipsoid = (f"{{z'Pz <= {level_text(float(core['level']))}}} (P in the file; a region of attraction by "
-                         f"the certificate {core.get('certificate')!r})")
-            if r.get("ball_of") is not None:
-                return (f"V decreases on {{V <= {level_text(level)}}} inside the ball ||x - x*|| < "
-                        f"{float(r['ball_of']):g}: {what} on the ball's box outside the ellipsoid {ellipsoid}; outside "
-                        f"the ball by the certificate {claim.get('outer')!r}")
-            return (f"{what} holds at every state of {{V <= {level_text(level)}}} outside the ellipsoid {ellipsoid}, "
-                    f"with V > {level_text(level)} on the box's faces")
-        if claim.get("cube") is not None:  # roa-ball: V's decrease inside the delta-ball
-            half = ", ".join(f"{float(h):.3g}" for h in claim["cube"]["half"])
-            rest = "" if float(r["delta"]) >= float(r["ball_of"]) else (  # no ring: the cube covers the ball
-                f"; {what} on the rest of the ball's box outside ||x - x*|| < {float(r['delta']):g}")
-            return (f"V decreases on {{V <= {level_text(level)}}} inside the ball ||x - x*|| < {float(r['ball_of']):g}: "
-                    f"Vdot < 0 on the cube |x_i - x*_i| <= [{half}] except at x* (second order){rest}; outside "
-                    f"the ball by the certificate {claim.get('outer')!r}")
-        return (f"{what} holds at every state of "
-                f"{of_region(condition_region(level, float(r['delta']), faces_rule(claim)))}")
-    except (KeyError, TypeError, ValueError, IndexError):
+        return _SENTENCES[claim_kind(claim)](claim, condition_words(claim["condition"]))
+    except (KeyError, TypeError, ValueError, IndexError, AttributeError):
         return "(an unreadable claim)"
+
+
+def condition_words(c: dict) -> str:
+    """A claim's condition (``claim["condition"]``) in words, with its shift or samples and its decay."""
+    xi = c.get("xi") or []
+    decay = decay_words(float(c.get("decay_rate") or 0), float(c.get("exp_rate") or 0))
+    if c.get("name") == "true" and c.get("xi_box"):
+        low, high = c["xi_box"]["low"], c["xi_box"]["high"]
+        shifts = "; ".join(f"[{a:.4g}, {b:.4g}]" for a, b in zip(low[0], high[0]))
+        return f"decrease on the true model for every shift xi in {shifts} ({decay})"
+    if c.get("name") == "true":
+        return f"decrease on the true model at xi = {xi[0] if len(xi) == 1 else xi} ({decay})"
+    if c.get("name") in ("pointwise", "uniform"):
+        return (f"the DR {c['name']} condition (r = {float(c['wasserstein_radius']):g}, eps = "
+                f"{float(c['risk_level']):g}, {len(xi)} samples of xi, {decay})")
+    if c.get("name") == "plain":
+        model = "the true model at xi = " + str(xi[0] if len(xi) == 1 else xi) if c.get("model") == "true" else \
+            f"the design model at each of {len(xi)} sample(s) of xi"
+        return f"decrease on {model} ({decay})"
+    return f"the {c.get('label', c.get('name'))} condition ({len(xi)} sample(s) of xi, {decay})"
+
+
+def _condition_sentence(claim: dict, what: str) -> str:
+    r = claim["region"]
+    return (f"{what} holds at every state of "
+            f"{of_region(condition_region(r.get('level'), float(r['delta']), faces_rule(claim)))}")
+
+
+def _uniform_sentence(claim: dict, what: str) -> str:
+    r = claim["region"]
+    return (f"{what} holds over {of_region(condition_region(r.get('level'), float(r['delta'])))} as one inequality: "
+            "(r/eps) sup ||W^T grad V|| + CVaR_eps over the samples of sup (Vdot + decay) <= 0")
+
+
+def _ellipsoid_sentence(claim: dict, what: str) -> str:  # the closed loop's own quadratic region
+    r = claim["region"]
+    half = ", ".join(f"{float(h):.3g}" for h in claim["ellipsoid"]["box"])
+    ring = "" if not claim["ellipsoid"].get("ring") else (
+        f"; outside ||x - x*|| < {float(r['delta']):g}, {what.replace('decrease', 'decrease of W', 1)} on it")
+    return (f"{{z'Pz <= {level_text(r.get('level'))}}} (W = z'Pz, P in the file) is a region of attraction: W decreases "
+            f"on it except at x*, on the box |x_i - x*_i| <= [{half}] by the Jacobian's enclosure{ring}")
+
+
+def _practical_sentence(claim: dict, what: str) -> str:  # V's bound on the ball, the decrease outside it
+    r = claim["region"]
+    model = what.split(" (")[0].replace("decrease on ", "")
+    cut = " in the state box" if faces_rule(claim) == "inward" else ""
+    return (f"trajectories of {model} from {{V <= {level_text(r.get('level'))}}}{cut} stay in it and end up in "
+            f"{{V <= {level_text(float(claim['practical']['level']), up=True)}}}: V is at most that on the ball "
+            f"||x - x*|| < {float(r['ball_of']):g}, and decreases outside it by the certificate {claim.get('outer')!r}")
+
+
+def _band_claim_sentence(claim: dict, what: str) -> str:  # practical stability on a band c1 <= V <= c2 (the field's)
+    return band_sentence(what, float(claim["band"]["low"]), float(claim["region"]["level"]))
+
+
+def _core_words(claim: dict) -> str:
+    core = claim["core"]
+    return (f"{{z'Pz <= {level_text(float(core['level']))}}} (P in the file; a region of attraction by the certificate "
+            f"{core.get('certificate')!r})")
+
+
+def _roa_ball_sentence(claim: dict, what: str) -> str:  # V's decrease inside the delta-ball
+    r = claim["region"]
+    level = level_text(r.get("level"))
+    if claim.get("core") is not None:
+        return (f"V decreases on {{V <= {level}}} inside the ball ||x - x*|| < {float(r['ball_of']):g}: {what} on the "
+                f"ball's box outside the ellipsoid {_core_words(claim)}; outside the ball by the certificate "
+                f"{claim.get('outer')!r}")
+    half = ", ".join(f"{float(h):.3g}" for h in claim["cube"]["half"])
+    rest = "" if float(r["delta"]) >= float(r["ball_of"]) else (  # no ring: the cube covers the ball
+        f"; {what} on the rest of the ball's box outside ||x - x*|| < {float(r['delta']):g}")
+    return (f"V decreases on {{V <= {level}}} inside the ball ||x - x*|| < {float(r['ball_of']):g}: Vdot < 0 on the "
+            f"cube |x_i - x*_i| <= [{half}] except at x* (second order){rest}; outside the ball by the certificate "
+            f"{claim.get('outer')!r}")
+
+
+def _core_sentence(claim: dict, what: str) -> str:  # V's set resting on the closed loop's ellipsoid (the band route)
+    level = level_text(claim["region"].get("level"))
+    return (f"{what} holds at every state of {{V <= {level}}} outside the ellipsoid {_core_words(claim)}, with V > "
+            f"{level} on the box's faces")
+
+
+_SENTENCES = {"condition": _condition_sentence, "uniform": _uniform_sentence, "ellipsoid": _ellipsoid_sentence,
+              "practical": _practical_sentence, "band": _band_claim_sentence, "roa-ball": _roa_ball_sentence,
+              "core": _core_sentence}
+"""Each kind of claim's sentence, from the claim and its condition's words."""
 
 
 def decay_words(gamma: float, alpha: float) -> str:

@@ -51,19 +51,17 @@ import numpy as np
 import torch
 from torch import Tensor
 
-from drlyap.checker.affine import Af
 from drlyap.checker.arith import EPS, F64, Iv
 from drlyap.checker.ball import ball_failures
 from drlyap.checker.band import band_floor, below_failures, statement_failures
 from drlyap.checker.ellipsoid import QuadraticPair, ellipsoid_failures, inside_core, read_core
 from drlyap.checker.graphs import GraphPair
-from drlyap.checker.levels import ball_below, faces_above, faces_inward, grid_cells, widest_split
-from drlyap.checker.model import Pair, Residual, centre_lower, form_upper, upper_bounds, value_lower
+from drlyap.checker.leaves import MIN_PIECES, REFINE, LeafJob, prove_leaves
+from drlyap.checker.levels import ball_below, faces_above, faces_inward, grid_cells
+from drlyap.checker.model import Pair, Residual, centre_lower
 from drlyap.checker.uniform import uniform_margin_bound
-from drlyap.claims import claim_sentence, faces_rule
+from drlyap.claims import claim_kind, claim_sentence, faces_rule
 from drlyap.compute import Compute
-from drlyap.parallel import check_device, pool_for
-from drlyap.progress import progress as show_progress
 
 INTERNAL, PROVED, INSIDE_BALL, ABOVE_LEVEL, INSIDE_CORE, BELOW_LEVEL = 0, 1, 2, 3, 5, 6
 
@@ -180,186 +178,6 @@ def inside_open_ball(lo: Tensor, hi: Tensor, delta: float) -> Tensor:
     return far < d2
 
 
-def _by_forms(residual: Residual, lo: Tensor, hi: Tensor, level: float | None) -> Tensor:
-    """``(B,)``: boxes proved by the second-order forms of the residual and V, together; where the DR norm's own
-    form does not prove a box, the interval norm is tried in its place (either is an enclosure)."""
-    comps, value = residual.terms(Af.seed(lo, hi))
-    good = form_upper(residual, comps, value, level) <= 0
-    if level is not None:
-        good = good | (value.interval(dual=True).lo > level)
-    rest = (~good).nonzero().squeeze(-1)
-    if rest.numel() and residual.has_norm:
-        comps, value = residual.terms(Af.seed(lo[rest], hi[rest]), flat_norm=True)
-        good[rest] = form_upper(residual, comps, value, level) <= 0
-    return good
-
-
-def _by_mean_value(residual: Residual, lo: Tensor, hi: Tensor, level: float | None) -> Tensor:
-    """``(B,)``: boxes proved by the interval and mean-value bounds (with a level, V's lower bound is asked only of
-    the boxes the residual's bound leaves)."""
-    good = upper_bounds(residual, lo, hi) <= 0
-    rest = (~good).nonzero().squeeze(-1)
-    if level is not None and rest.numel():
-        good[rest] = value_lower(residual.pair, lo[rest], hi[rest]) > level
-    return good
-
-
-def _holds(residual: Residual, lo: Tensor, hi: Tensor, level: float | None, batch: int,
-           above: Tensor, cheap_first: bool = False) -> tuple[Tensor, Tensor]:
-    """``(B,)``: boxes on which the residual is proved ``<= 0`` (or, with a level, V is proved ``> level``), and lower
-    bounds of the residual at the centres ``(B,)`` (``-inf`` where V may exceed the level there). ``above (B,)``:
-    where to try V alone first; ``cheap_first``: the mean-value bounds before the forms (the other order otherwise;
-    each box not proved by the first is tried by the second)."""
-    steps = (_by_mean_value, _by_forms) if cheap_first else (_by_forms, _by_mean_value)
-    ok, low = [torch.zeros(0, dtype=torch.bool, device=lo.device)], [torch.zeros(0, dtype=F64, device=lo.device)]
-    for i in range(0, lo.shape[0], batch):
-        a, b = lo[i:i + batch], hi[i:i + batch]
-        good = torch.zeros(a.shape[0], dtype=torch.bool, device=a.device)
-        first = (above[i:i + batch] & (level is not None)).nonzero().squeeze(-1)
-        if first.numel():  # V alone: above the level, nothing is claimed
-            good[first] = residual.pair.value(Af.seed(a[first], b[first])).interval(dual=True).lo > level
-        for step in steps:
-            rest = (~good).nonzero().squeeze(-1)
-            if rest.numel():
-                good[rest] = step(residual, a[rest], b[rest], level)
-        centre_low = centre_lower(residual, a, b)
-        if level is not None:
-            v_centre = residual.pair.value_and_grad(Iv.point((a + b) / 2))[0].hi
-            centre_low = torch.where(v_centre <= level, centre_low, -math.inf)
-        ok.append(good)
-        low.append(centre_low)
-    return torch.cat(ok), torch.cat(low)
-
-
-MIN_PIECES = 4096  # pieces the refinement of prove_boxes may always bound, however few the boxes
-
-
-def prove_boxes(residual: Residual, lo: Tensor, hi: Tensor, scale: Tensor, refine: int, level: float | None = None,
-                batch: int = 4096, above: Tensor | None = None, cheap_first: bool = False,
-                budget: int | None = None) -> tuple[Tensor, Tensor, int, int]:
-    """Re-prove ``residual <= 0`` on boxes ``(B, n)`` (with ``level``: at the boxes' states where ``V <= level``):
-    ``ok (B,)``, lower bounds of the residual at the centres ``(B,)``, and how many boxes needed bisection and into
-    how many pieces in all. ``above (B,)``: boxes to try ``V > level`` on first (the certificate's word, a hint
-    only: each box is proved one way or the other whatever it says); ``cheap_first``: try the mean-value bounds
-    before the second-order forms (an order, not a shortcut: see :func:`_holds`).
-
-    A box the checker's bounds do not prove is bisected, ``refine`` times at most, and at most as many pieces are
-    bounded in all as there are boxes (at least :data:`MIN_PIECES`; ``budget``: that many instead): a true certificate
-    whose few boxes the verifier's tighter bounds proved is confirmed, and a false one costs at most about twice its
-    boxes."""
-    above = torch.zeros(lo.shape[0], dtype=torch.bool, device=lo.device) if above is None else above
-    order = torch.argsort(above.to(torch.int8), stable=True)  # the hinted boxes together, so that batches share a path
-    ok, centre_low = torch.empty_like(above), torch.empty(lo.shape[0], dtype=F64, device=lo.device)
-    ok[order], centre_low[order] = _holds(residual, lo[order], hi[order], level, batch, above[order],
-                                          cheap_first)
-    todo = (~ok).nonzero().squeeze(-1)
-    refined, pieces = int(todo.numel()), 0
-    owner, plo, phi = todo, lo[todo], hi[todo]
-    budget = max(MIN_PIECES, int(lo.shape[0])) if budget is None else budget
-    for _ in range(refine if todo.numel() else 0):
-        if pieces + 2 * plo.shape[0] > budget:
-            break
-        plo, phi = widest_split(plo, phi, scale)
-        owner = owner.repeat(2)
-        pieces += int(plo.shape[0])
-        failed = ~_holds(residual, plo, phi, level, batch, above[owner], cheap_first)[0]
-        plo, phi, owner = plo[failed], phi[failed], owner[failed]
-        if not owner.numel():
-            break
-    ok[todo] = True
-    ok[owner.unique()] = False
-    return ok, centre_low, refined, pieces
-
-
-class LeafJob:
-    """:func:`prove_boxes` as a job for workers (:mod:`drlyap.parallel`) or a device: on leaves ``lo, hi (B, n)``, ``above
-    (B,)`` and the pieces allowed per leaf, ``ok``, ``centre_low`` ``(B,)``, ``refined``, ``pieces`` ``(1,)`` on the CPU."""
-
-    def __init__(self, residual: Residual, scale: Tensor, refine: int, level: float | None, cheap_first: bool,
-                 device: str = "cpu") -> None:
-        self.residual, self.scale, self.refine, self.level, self.cheap_first = residual, scale, refine, level, cheap_first
-        self.device = device
-
-    def on(self, device: str) -> LeafJob:
-        """The same job with the pair and the claim's constants on ``device`` (float64 there too)."""
-        if device == self.device:
-            return self
-        check_device(device)
-        return LeafJob(self.residual.to(device), self.scale.to(device), self.refine, self.level, self.cheap_first,
-                       device)
-
-    def __call__(self, lo: Tensor, hi: Tensor, above: Tensor, allowance: Tensor | None = None) -> dict:
-        device = torch.device(self.device)
-        budget = None if allowance is None else max(MIN_PIECES, int(allowance.sum()))
-        ok, low, refined, pieces = prove_boxes(self.residual, lo.to(device), hi.to(device), self.scale, self.refine,
-                                               self.level, above=above.to(device), cheap_first=self.cheap_first,
-                                               budget=budget)
-        return {"ok": ok.cpu(), "centre_low": low.cpu(), "refined": torch.tensor([refined]),
-                "pieces": torch.tensor([pieces])}
-
-
-REFINE = 30
-"""Times the checker may bisect a leaf its own bounds do not prove, by default: in 6 states 12 halved each side only
-twice, and the quadrotor's default region certificate at its test shift kept 2 of 302,883 leaves unproved at depth 12
-(another pair's, 12 of 318,528 at depth 20) that depth 30 proves within the default pieces. The cost is capped by
-the pieces a chunk may bound (:func:`prove_leaves`), not by the depth."""
-
-LEAF_CHUNK = 16_384
-"""Leaves bounded per job (each its own piece budget for bisection, :func:`prove_boxes`): the same chunks here and on
-any number of workers, so the verdict never depends on where they are bounded."""
-
-
-def prove_leaves(job: LeafJob, lo: Tensor, hi: Tensor, above: Tensor, compute: Compute = Compute(),
-                 desc: str = "check: leaves", pieces_per_leaf: float = 1.0) -> tuple[Tensor, Tensor, int, int]:
-    """:func:`prove_boxes` of ``job`` on every leaf in chunks of :data:`LEAF_CHUNK`, here or on ``compute``'s workers
-    (two chunks each in flight); the same four results; progress as ``desc``. Each chunk may bound
-    ``pieces_per_leaf`` pieces per leaf; the leaves a chunk's budget left unproved (hard leaves crowd into a few
-    chunks) are tried once more with the pieces the first pass left, shared out by count: at most about ``1 +
-    pieces_per_leaf`` times the leaves bounded in all, the same chunks on any number of workers."""
-    if not (math.isfinite(pieces_per_leaf) and pieces_per_leaf >= 1):
-        raise ValueError(f"pieces per leaf must be >= 1, got {pieces_per_leaf}")
-    ok, low, refined, pieces = _prove_chunks(job, lo, hi, above, torch.full((len(lo),), pieces_per_leaf, dtype=F64),
-                                             compute, desc)
-    failed = (~ok).nonzero().squeeze(-1)
-    spare = int(pieces_per_leaf * lo.shape[0]) - pieces
-    if failed.numel() and spare > 2 * failed.numel():
-        allowance = torch.full((failed.numel(),), spare / failed.numel(), dtype=F64)
-        again, _, refined_again, pieces_again = _prove_chunks(job, lo[failed], hi[failed], above[failed], allowance,
-                                                              compute, f"{desc} (again)")
-        ok[failed[again]] = True
-        refined, pieces = refined + refined_again, pieces + pieces_again
-    return ok, low, refined, pieces
-
-
-def _prove_chunks(job: LeafJob, lo: Tensor, hi: Tensor, above: Tensor, allowance: Tensor, compute: Compute,
-                  desc: str) -> tuple[Tensor, Tensor, int, int]:
-    """One pass of :func:`prove_leaves`, each chunk bisecting within the pieces its leaves are allowed."""
-    pool = pool_for(compute)
-    starts = list(range(0, lo.shape[0], LEAF_CHUNK))
-    bar = show_progress(int(lo.shape[0]), desc, compute.progress)
-    parts, flight = [], []
-    local = job.on(compute.device) if pool is None else None
-    for i in starts:
-        part = (lo[i:i + LEAF_CHUNK], hi[i:i + LEAF_CHUNK], above[i:i + LEAF_CHUNK], allowance[i:i + LEAF_CHUNK])
-        if pool is None:
-            parts.append(local(*part))
-            bar.update(int(part[0].shape[0]))
-            continue
-        flight.append((pool.submit(job, *part, chunk=LEAF_CHUNK), int(part[0].shape[0])))  # whole, as here
-        if len(flight) > 2 * pool.workers:
-            future, count = flight.pop(0)
-            parts.append(future.result())
-            bar.update(count)
-    for future, count in flight:
-        parts.append(future.result())
-        bar.update(count)
-    bar.close()
-    if not parts:
-        return torch.zeros(0, dtype=torch.bool), torch.zeros(0, dtype=F64), 0, 0
-    out = {k: torch.cat([p[k] for p in parts]) for k in parts[0]}
-    return out["ok"], out["centre_low"], int(out["refined"].sum()), int(out["pieces"].sum())
-
-
 def _pair(weights: dict, header: dict, n: int) -> Pair | GraphPair:
     """The checker's V and pi from the run's weights: an imported pair's graphs, or drlyap's networks (with the
     header's ``alpha_hat``)."""
@@ -415,6 +233,85 @@ def _placed_leaves(out: CheckResult, verdict: Tensor, lo: Tensor, hi: Tensor, de
             out.failures.append(f"{int((~held).sum())} boxes said to lie in the core {{z'Pz <= {core[1]:g}}} do not")
 
 
+@dataclass
+class _Reading:
+    """A certificate as the checker reads it before any bound: its ``claim``, the region's box ``lo, hi`` (local
+    coordinates), ``delta``, ``level`` (None: X_delta), a band's ``floor``, the ``pair`` the claim is about (V and pi,
+    or W = z'Pz for an ``ellipsoid``), the claim's ``residual`` and a ``core`` ellipsoid ``(P, c)``."""
+
+    claim: dict
+    lo: Tensor
+    hi: Tensor
+    delta: float
+    level: float | None
+    floor: float | None
+    pair: Pair | GraphPair | QuadraticPair
+    residual: Residual
+    core: tuple[Tensor, float] | None
+
+
+def _read(out: CheckResult, header: dict, system, weights: dict, weights_sha256: str,
+          system_sha256: str) -> _Reading:
+    """The certificate's claim read against the run (its weights' and system's sha256, its box the system's), and what
+    its statement alone must say (a band's premises, into ``out``); a CertificateError (or KeyError, TypeError,
+    ValueError) where it cannot be read."""
+    if header["networks"]["weights_sha256"] != weights_sha256:
+        raise CertificateError("weights.pt is not the file the certificate was proved for (sha256 differs)")
+    if header["system"]["description_sha256"] != system_sha256:
+        raise CertificateError(f"the system {system.name!r} is not the one the certificate was proved for "
+                               "(its description's sha256 differs)")
+    claim = header.get("claim") or {}
+    region = claim["region"]
+    lo, hi = _claim_box(region, system)
+    delta, level = float(region["delta"]), region.get("level")
+    level = None if level is None else float(level)
+    pair = _pair(weights, header, system.n)
+    floor = band_floor(claim)
+    if floor is not None:  # about V as the files give it (an imported V is not pinned at x* for it)
+        out.failures += statement_failures(claim)
+        pair = pair.as_given() if isinstance(pair, GraphPair) else pair
+    elif not getattr(pair, "pinned", True):
+        raise CertificateError("V is not pinned at x* (graphs.json: imported as given): only a band claim is "
+                               "checked for it")
+    if claim.get("ellipsoid") is not None:  # the closed loop's own W = z'Pz: its claims are about W, not V
+        pair = QuadraticPair(pair, torch.as_tensor(claim["ellipsoid"]["P"], dtype=F64))
+    residual = Residual(claim["condition"], pair, system)
+    core = None if claim.get("core") is None else read_core(claim, system.n)
+    return _Reading(claim, lo, hi, delta, level, floor, pair, residual, core)
+
+
+def _practical(out: CheckResult, cert: _Reading, header: dict, system) -> bool:
+    """A ``practical`` claim: V's bound on the delta-ball (the decrease outside it is its ``outer`` certificate's); no
+    partition."""
+    out.failures += _practical_failures(out, cert.claim, cert.pair, cert.lo, cert.hi)
+    return False
+
+
+def _near_x_star(out: CheckResult, cert: _Reading, header: dict, system) -> bool:
+    """A decrease near x*: a ``roa-ball``'s cube by second order, an ``ellipsoid`` by its Jacobian; True where a ring of
+    boxes around it (a partition) is to be checked too (a ``roa-ball`` resting on a core has its partition only)."""
+    ring = header["partition"] is not None
+    if cert.claim.get("cube") is None and cert.claim.get("ellipsoid") is None:
+        return True
+    if cert.claim.get("cube") is not None:
+        failures, out.cube_bound = ball_failures(cert.claim, cert.pair, system, cert.lo, cert.hi, cert.delta, ring)
+    else:
+        failures, out.cube_bound = ellipsoid_failures(cert.claim, cert.residual, cert.lo, cert.hi, cert.delta, ring)
+    out.failures += failures
+    return ring  # without one the cube covers the ball, or the ellipsoid lies in its box
+
+
+def _partition_only(out: CheckResult, cert: _Reading, header: dict, system) -> bool:
+    """A claim proved on a partition alone (a condition on X_delta or a sublevel set, with a core, on a band; the DR
+    uniform condition)."""
+    return True
+
+
+BEFORE_PARTITION = {"practical": _practical, "roa-ball": _near_x_star, "ellipsoid": _near_x_star}
+"""Per kind of claim (:func:`~drlyap.claims.claim_kind`), what the checker establishes before (or instead of) the
+partition's leaves, and whether a partition follows; the other kinds have only their partition."""
+
+
 def check_certificate(run_dir: str | Path, name: str, header: dict, arrays: dict[str, np.ndarray], system,
                       weights: dict, weights_sha256: str, system_sha256: str, refine: int = REFINE,
                       compute: Compute = Compute(), pieces_per_leaf: float = 1.0) -> CheckResult:
@@ -424,61 +321,55 @@ def check_certificate(run_dir: str | Path, name: str, header: dict, arrays: dict
     claim = header.get("claim") or {}
     out = CheckResult(name=name, ok=False, claim=claim_sentence(claim))
     try:
-        if header["networks"]["weights_sha256"] != weights_sha256:
-            raise CertificateError("weights.pt is not the file the certificate was proved for (sha256 differs)")
-        if header["system"]["description_sha256"] != system_sha256:
-            raise CertificateError(f"the system {system.name!r} is not the one the certificate was proved for "
-                                   "(its description's sha256 differs)")
-        region = claim["region"]
-        lo, hi = _claim_box(region, system)
-        delta, level = float(region["delta"]), region.get("level")
-        level = None if level is None else float(level)
-        pair = _pair(weights, header, system.n)
-        floor = band_floor(claim)
-        if floor is not None:  # about V as the files give it (an imported V is not pinned at x* for it)
-            out.failures += statement_failures(claim)
-            pair = pair.as_given() if isinstance(pair, GraphPair) else pair
-        elif not getattr(pair, "pinned", True):
-            raise CertificateError("V is not pinned at x* (graphs.json: imported as given): only a band claim is "
-                                   "checked for it")
-        if claim.get("ellipsoid") is not None:  # the closed loop's own W = z'Pz: its claims are about W, not V
-            pair = QuadraticPair(pair, torch.as_tensor(claim["ellipsoid"]["P"], dtype=F64))
-        residual = Residual(claim["condition"], pair, system)
-        core = None if claim.get("core") is None else read_core(claim, system.n)
-        if claim.get("practical") is not None:  # V's bound on the ball; the decrease outside it is outer's
-            out.failures += _practical_failures(out, claim, pair, lo, hi)
-            out.ok, out.time_s = not out.failures, time.perf_counter() - start
-            return out
-        if claim.get("cube") is not None or claim.get("ellipsoid") is not None:  # a decrease near x* (roa-ball, ellipsoid)
-            ring = header["partition"] is not None
-            failures, out.cube_bound = ball_failures(claim, pair, system, lo, hi, delta, ring) \
-                if claim.get("cube") is not None else ellipsoid_failures(claim, residual, lo, hi, delta, ring)
-            out.failures += failures
-            if not ring:  # the cube covers the ball, or the ellipsoid lies in its box: no ring to prove
-                out.ok, out.time_s = not out.failures, time.perf_counter() - start
-                return out
-        grid = [int(k) for k in header["partition"]["grid"]]
-        if len(grid) != system.n or min(grid) < 1:
-            raise CertificateError(f"the starting grid {grid} does not fit {system.n} states")
-        check_tree(arrays, int(np.prod(grid)), system.n, level, core is not None, floor is not None)
+        kind = claim_kind(claim)  # a claim of no kind is checked on nothing
+        cert = _read(out, header, system, weights, weights_sha256, system_sha256)
+        partition = BEFORE_PARTITION.get(kind, _partition_only)(out, cert, header, system)
+        if partition:
+            grid = [int(k) for k in header["partition"]["grid"]]
+            if len(grid) != system.n or min(grid) < 1:
+                raise CertificateError(f"the starting grid {grid} does not fit {system.n} states")
+            check_tree(arrays, int(np.prod(grid)), system.n, cert.level, cert.core is not None,
+                       cert.floor is not None)
     except (CertificateError, KeyError, TypeError, ValueError) as err:
         out.failures.append(str(err) if not isinstance(err, KeyError) else f"the header lacks {err}")
         out.time_s = time.perf_counter() - start
         return out
+    if partition:
+        _check_partition(out, cert, header, arrays, grid, LeafSettings(refine, compute, pieces_per_leaf))
+    out.ok, out.time_s = not out.failures, time.perf_counter() - start
+    return out
+
+
+@dataclass
+class LeafSettings:
+    """How the checker bounds a partition's leaves: bisected up to ``refine`` times where a bound does not prove one,
+    at most ``pieces_per_leaf`` pieces a leaf on average, where ``compute`` says."""
+
+    refine: int = REFINE
+    compute: Compute = Compute()
+    pieces_per_leaf: float = 1.0
+
+
+def _check_partition(out: CheckResult, cert: _Reading, header: dict, arrays: dict[str, np.ndarray], grid: list[int],
+                     settings: LeafSettings) -> None:
+    """The partition's leaves: placed where they say (in the ball, in the core), proved by the checker's bounds (the
+    DR uniform condition: one margin over them all), V above the level on the box's faces (or the flow entering it),
+    a band's leaves below it, and no recorded bound below the value at its box's centre; into ``out``."""
+    residual, pair, lo, hi, level = cert.residual, cert.pair, cert.lo, cert.hi, cert.level
     blo, bhi = rebuild_boxes(lo, hi, grid, arrays)
     verdict = torch.as_tensor(arrays["verdict"].astype(np.int64))
     bound = torch.as_tensor(arrays["bound"].astype(np.float64))
     out.boxes = int((verdict != INTERNAL).sum())
-    _placed_leaves(out, verdict, blo, bhi, delta, core)
+    _placed_leaves(out, verdict, blo, bhi, cert.delta, cert.core)
     proved = ((verdict == PROVED) | (verdict == ABOVE_LEVEL)).nonzero().squeeze(-1)
     if residual.name == "uniform":
-        _check_uniform(out, residual, blo[proved], bhi[proved], bound[proved], hi - lo, refine)
-        out.ok, out.time_s = not out.failures, time.perf_counter() - start
-        return out
+        _check_uniform(out, residual, blo[proved], bhi[proved], bound[proved], hi - lo, settings.refine)
+        return
     cheap_first = header["partition"].get("enclosure") in ("interval", "mean-value")  # an order, as for ``above``
-    job = LeafJob(residual, hi - lo, refine, level, cheap_first)
+    job = LeafJob(residual, hi - lo, settings.refine, level, cheap_first)
     ok, centre_low, out.refined, out.pieces = prove_leaves(job, blo[proved], bhi[proved], verdict[proved] == ABOVE_LEVEL,
-                                                           compute, f"check ({name}): leaves", pieces_per_leaf)
+                                                           settings.compute, f"check ({out.name}): leaves",
+                                                           settings.pieces_per_leaf)
     out.proved = int(ok.sum())
     if not bool(ok.all()):
         first = proved[~ok][0]
@@ -493,27 +384,10 @@ def check_certificate(run_dir: str | Path, name: str, header: dict, arrays: dict
         above = kind == ABOVE_LEVEL
         v_centre = pair.value_and_grad(Iv.point((blo[proved] + bhi[proved]) / 2))[0].lo
         false = false | (above & (bound[proved] > v_centre + 4 * EPS * v_centre.abs()))
-        holds = True
-        faces = faces_rule(claim)
-        if faces not in ("above", "inward") or (faces == "inward" and (residual.model != "true"
-                                                                       or claim.get("ellipsoid") is not None)):
-            holds = False
-            out.failures.append(f"the claim's rule for the box's faces {faces!r} is not one the checker takes "
-                                "('above'; 'inward' for V's sets on the true model)")
-        elif region.get("ball_of") is None and faces == "inward":
-            holds, out.faces_min, out.faces_boxes = faces_inward(residual, lo, hi, level, max_boxes=1_000_000)
-            if not holds:
-                out.failures.append(f"the flow entering the box wherever V <= {level:g} on its faces is not established "
-                                    f"({out.faces_boxes} face boxes)")
-        elif region.get("ball_of") is None:  # inside the delta-ball the set's boundary is the outer proof's
-            holds, out.faces_min, out.faces_boxes = faces_above(pair, lo, hi, level)
-            if not holds:
-                what = "W" if claim.get("ellipsoid") is not None else "V"
-                out.failures.append(f"{what} > {level:g} is not established on the box's faces ({what}'s lower bound "
-                                    f"there {out.faces_min:.6g}, {out.faces_boxes} face boxes)")
-    if floor is not None:  # a band's leaves below it: V < c1 there, by the checker's bisection
+        _check_faces(out, cert)
+    if cert.floor is not None:  # a band's leaves below it: V < c1 there, by the checker's bisection
         below = (verdict == BELOW_LEVEL).nonzero().squeeze(-1)
-        failures, spent = below_failures(pair, blo[below], bhi[below], bound[below], floor, hi - lo)
+        failures, spent = below_failures(pair, blo[below], bhi[below], bound[below], cert.floor, hi - lo)
         out.failures, out.pieces = out.failures + failures, out.pieces + spent
         out.below_band = int(below.numel()) if not failures else 0
         out.proved += out.below_band
@@ -521,9 +395,29 @@ def check_certificate(run_dir: str | Path, name: str, header: dict, arrays: dict
         first = proved[false][0]
         out.failures.append(f"{int(false.sum())} recorded bounds lie below the residual at their box's centre (first: "
                             f"node {int(first)}, recorded {float(bound[first]):.6g})")
-    out.ok = not out.failures
-    out.time_s = time.perf_counter() - start
-    return out
+
+
+def _check_faces(out: CheckResult, cert: _Reading) -> None:
+    """A sublevel set's rule on the box's faces (:func:`~drlyap.claims.faces_rule`): V (W) above the level there, or the
+    flow entering the box wherever the set meets a face; inside the delta-ball the set's boundary is the outer proof's.
+    Its failures and counts into ``out``."""
+    claim, residual, level = cert.claim, cert.residual, cert.level
+    faces = faces_rule(claim)
+    if faces not in ("above", "inward") or (faces == "inward" and (residual.model != "true"
+                                                                   or claim.get("ellipsoid") is not None)):
+        out.failures.append(f"the claim's rule for the box's faces {faces!r} is not one the checker takes "
+                            "('above'; 'inward' for V's sets on the true model)")
+    elif claim["region"].get("ball_of") is None and faces == "inward":
+        holds, out.faces_min, out.faces_boxes = faces_inward(residual, cert.lo, cert.hi, level, max_boxes=1_000_000)
+        if not holds:
+            out.failures.append(f"the flow entering the box wherever V <= {level:g} on its faces is not established "
+                                f"({out.faces_boxes} face boxes)")
+    elif claim["region"].get("ball_of") is None:
+        holds, out.faces_min, out.faces_boxes = faces_above(cert.pair, cert.lo, cert.hi, level)
+        if not holds:
+            what = "W" if claim.get("ellipsoid") is not None else "V"
+            out.failures.append(f"{what} > {level:g} is not established on the box's faces ({what}'s lower bound "
+                                f"there {out.faces_min:.6g}, {out.faces_boxes} face boxes)")
 
 
 def _check_uniform(out: CheckResult, residual: Residual, lo: Tensor, hi: Tensor, bound: Tensor, scale: Tensor,
