@@ -306,6 +306,17 @@ def test_a_claims_parts_make_one_kind_or_none(parts, ball, kind):
     else:
         assert claim_kind(claim) == kind
     assert claim_kind({"condition": {"name": "uniform"}, "region": {}}) == "uniform"
+    with pytest.raises(ValueError, match="no level"):  # its sentence would state V > c on the faces, never checked
+        claim_kind({"condition": {"name": "uniform"}, "region": {"level": 1.0}})
+
+
+def test_a_dr_condition_stated_on_the_true_model_is_not_checked_as_a_plain_decrease(proved):
+    def true_model(header):  # the checker's residual would drop the Wasserstein term; the sentence would not say so
+        header["claim"]["condition"]["model"] = "true"
+
+    result = run_check(proved, header_change=true_model)
+    assert not result.ok
+    assert any("on the 'true' model is not one drlyap states" in f for f in result.failures), result.failures
 
 
 def test_tree_checks_name_the_problem():

@@ -79,6 +79,8 @@ def claim_kind(claim: dict) -> str:
         raise ValueError(f"the claim's parts ({', '.join(marks) or 'none'}) and its region "
                          f"({'the delta-ball' if ball else 'the state'}'s box) make no kind of claim drlyap states")
     if kind == "condition" and claim["condition"].get("name") == "uniform":
+        if claim["region"].get("level") is not None:
+            raise ValueError("the DR uniform condition is one inequality over X_delta: its claim states no level")
         return "uniform"
     return kind
 

@@ -125,6 +125,9 @@ class Residual:
         if self.name not in CONDITIONS:
             raise ValueError(f"the checker does not know the condition {self.name!r} (known: {', '.join(CONDITIONS)})")
         self.model = "true" if self.name == "true" else claim.get("model", "design")
+        if self.model not in ("true", "design") or (self.model == "true" and self.name not in ("true", "plain")):
+            raise ValueError(f"the {self.name!r} condition on the {self.model!r} model is not one drlyap states (the DR "
+                             "and nominal conditions are on the design model)")
         box = claim.get("xi_box")
         if box is not None:  # every shift in a box (true model only): each row a pair (low, high)
             if self.model != "true":
