@@ -230,4 +230,7 @@ def test_an_imported_v_not_least_at_x_star_is_taken_as_given_for_a_band(tmp_path
     del header["claim"]["band"]  # the same boxes as a claim on {V <= c2}: nothing of it is checked for such a V
     (out / "certificates" / "band.json").write_text(json.dumps(header))
     refused = check_cli(out, SPEC)
+    assert refused.exit_code != 0 and "a 'band' certificate does not state a condition claim" in refused.output
+    (out / "certificates" / "band.json").rename(out / "certificates" / "true-model.json")  # named as such a claim
+    refused = check_cli(out, SPEC, "true-model")
     assert refused.exit_code != 0 and "only a band claim is checked" in refused.output, refused.output

@@ -310,6 +310,41 @@ def test_a_claims_parts_make_one_kind_or_none(parts, ball, kind):
         claim_kind({"condition": {"name": "uniform"}, "region": {"level": 1.0}})
 
 
+def test_what_the_checker_reads_of_a_claim_is_what_its_sentence_says(proved):
+    """Hand-edited headers whose sentence would state more than the checker re-proves are refused."""
+    def edit(change):
+        return run_check(proved, header_change=change)
+
+    cases = [
+        (lambda h: h["claim"].update(band={"low": 0.1}), "a 'trained' certificate does not state a band claim"),
+        (lambda h: h["claim"]["region"].update(delta=-0.1), "not a finite number"),
+        (lambda h: h["claim"]["region"].update(level=float("nan")), "not a finite number"),
+        (lambda h: h["claim"]["condition"].update(xi=[0.02, 0.01, -0.03]), "is not (N, 2)"),  # flat: read as 3 rows
+        (lambda h: h["claim"]["condition"].update(xi_box={"low": [[0.0, 0.0]], "high": [[0.0, 0.0]]}),
+         "box of shifts is stated by the true model's condition alone"),
+        (lambda h: h["claim"]["condition"].update(risk_level=0.0), "risk level"),
+        (lambda h: h["claim"]["condition"].pop("wasserstein_radius"), "cannot be put in words"),
+    ]
+    for change, says in cases:
+        result = edit(change)
+        assert not result.ok and any(says in f for f in result.failures), (says, result.failures)
+
+
+def test_a_claims_sentence_never_prints_the_files_own_words_and_rounds_towards_less():
+    claim = {"condition": {"name": "nominal", "label": "DR pointwise (r = 1, eps = 0.01)", "xi": [[0.1, 0.0]],
+                           "decay_rate": 0.05},
+             "region": {"delta": 0.1 + 1e-12, "level": None}}
+    words = claim_sentence(claim)
+    assert "DR pointwise" not in words and "the nominal (baseline) condition" in words
+    assert repr(0.1 + 1e-12) in words  # a ball printed as 0.1 would claim the states between
+    cube = {"condition": {"name": "plain", "model": "true", "xi": [[0.0]]}, "cube": {"half": [0.00390625, 0.0573999]},
+            "outer": "roa", "region": {"delta": 0.1, "ball_of": 0.1, "level": 1.0}}
+    assert "[0.0039, 0.0573]" in claim_sentence(cube)  # rounded down: a smaller cube is proved too
+    shifts = {"condition": {"name": "true", "xi": None, "xi_box": {"low": [[-0.123456]], "high": [[0.123456]]}},
+              "region": {"delta": 0.1, "level": None}}
+    assert "[-0.1234, 0.1234]" in claim_sentence(shifts)  # a narrower box of shifts than proved
+
+
 def test_a_dr_condition_stated_on_the_true_model_is_not_checked_as_a_plain_decrease(proved):
     def true_model(header):  # the checker's residual would drop the Wasserstein term; the sentence would not say so
         header["claim"]["condition"]["model"] = "true"

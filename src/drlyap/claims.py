@@ -25,6 +25,13 @@ def level_text(level: float, digits: int = 6, up: bool = False) -> str:
     return f"{float(exact.quantize(step, rounding=ROUND_CEILING if up else ROUND_FLOOR)):.{digits}g}"
 
 
+def exact_text(value: float) -> str:
+    """A radius as a claim prints it: in at most 6 significant digits where that reads back as the number itself, else
+    in full (a ball printed smaller or larger than the one proved would claim more on one side of it)."""
+    text = f"{value:g}"
+    return text if float(text) == value else repr(float(value))
+
+
 def faces_rule(entry: dict) -> str:
     """The rule for the box's faces a region claim, or ``metrics.json``'s report of a region, states: ``"above"`` (V
     above the level there; the default, written as nothing) or ``"inward"`` (the set cut by the box, the flow entering
@@ -36,12 +43,13 @@ def condition_region(level: float | None, delta: float, faces: str = "above") ->
     """The region a trained condition is proved on: X_delta, or with a level its sublevel set, which V keeps off the
     box's faces (``faces`` ``"above"``) or which the box cuts, the flow entering the box wherever the set meets a face
     (``"inward"``)."""
-    region = f"state box minus the open ball ||x - x*|| < {delta:g}"
+    region = f"state box minus the open ball ||x - x*|| < {exact_text(delta)}"
     if level is not None:
         c = level_text(level)
-        region = f"{{V <= {c}}} minus the open ball ||x - x*|| < {delta:g}, with V > {c} on the box's faces"
+        region = f"{{V <= {c}}} minus the open ball ||x - x*|| < {exact_text(delta)}, with V > {c} on the box's faces"
         if faces == "inward":
-            region = (f"{{V <= {c}}} in the state box minus the open ball ||x - x*|| < {delta:g}, the flow entering the "
+            region = (f"{{V <= {c}}} in the state box minus the open ball ||x - x*|| < {exact_text(delta)}, the flow "
+                      "entering the "
                       f"box at every point of its faces with V <= {c}")
     return region
 
@@ -59,6 +67,16 @@ on X_delta or a sublevel set; the DR ``uniform`` condition (one inequality); the
 certificate); the decrease on a ``band`` c1 <= V <= c2; V's decrease inside the delta-ball (``roa-ball``: by second
 order on a ``cube``, or outside a ``core`` ellipsoid, resting on an ``outer`` certificate); and V's set resting on a
 ``core`` ellipsoid over the box."""
+
+KINDS_OF = {"trained": ("condition", "uniform"), "true-model": ("condition",), "radius": ("condition",),
+            "shift-box": ("condition",), "uniform": ("uniform",), "roa": ("condition", "core"), "roa-ball": ("roa-ball",),
+            "ellipsoid": ("ellipsoid",), "practical": ("practical",), "band": ("band",)}
+"""The kinds of claim each certificate file (:data:`CERTIFICATES`) may state: what its name means, and what the checks
+that go by the name (the run's agreement, a claim's premises) are written for."""
+
+PREMISES = {"outer": ("roa", "trained", "true-model"), "core": ("ellipsoid",)}
+"""The certificates a claim may rest on: for the decrease outside the delta-ball (``outer``), and for its ``core``
+ellipsoid."""
 
 _MARKS = ("ellipsoid", "practical", "band", "cube", "core")
 """The parts of a claim that mark its kind."""
@@ -91,8 +109,12 @@ def claim_sentence(claim: dict) -> str:
     and what ``drlyap check`` re-proves."""
     try:
         return _SENTENCES[claim_kind(claim)](claim, condition_words(claim["condition"]))
-    except (KeyError, TypeError, ValueError, IndexError, AttributeError):
-        return "(an unreadable claim)"
+    except (KeyError, TypeError, ValueError, IndexError, AttributeError, ArithmeticError):
+        return UNREADABLE
+
+
+UNREADABLE = "(an unreadable claim)"
+"""What :func:`claim_sentence` says of a claim it cannot put in words (the checker confirms nothing of it)."""
 
 
 def condition_words(c: dict) -> str:
@@ -101,18 +123,20 @@ def condition_words(c: dict) -> str:
     decay = decay_words(float(c.get("decay_rate") or 0), float(c.get("exp_rate") or 0))
     if c.get("name") == "true" and c.get("xi_box"):
         low, high = c["xi_box"]["low"], c["xi_box"]["high"]
-        shifts = "; ".join(f"[{a:.4g}, {b:.4g}]" for a, b in zip(low[0], high[0]))
+        shifts = "; ".join(f"[{level_text(a, 4, up=True)}, {level_text(b, 4)}]" for a, b in zip(low[0], high[0]))
         return f"decrease on the true model for every shift xi in {shifts} ({decay})"
     if c.get("name") == "true":
         return f"decrease on the true model at xi = {xi[0] if len(xi) == 1 else xi} ({decay})"
     if c.get("name") in ("pointwise", "uniform"):
-        return (f"the DR {c['name']} condition (r = {float(c['wasserstein_radius']):g}, eps = "
-                f"{float(c['risk_level']):g}, {len(xi)} samples of xi, {decay})")
+        return (f"the DR {c['name']} condition (r = {level_text(float(c['wasserstein_radius']))}, eps = "
+                f"{level_text(float(c['risk_level']), up=True)}, {len(xi)} samples of xi, {decay})")
     if c.get("name") == "plain":
         model = "the true model at xi = " + str(xi[0] if len(xi) == 1 else xi) if c.get("model") == "true" else \
             f"the design model at each of {len(xi)} sample(s) of xi"
         return f"decrease on {model} ({decay})"
-    return f"the {c.get('label', c.get('name'))} condition ({len(xi)} sample(s) of xi, {decay})"
+    if c.get("name") == "nominal":  # fixed words: a file's own text (its label) is never printed as its claim
+        return f"the nominal (baseline) condition ({len(xi)} sample(s) of xi, {decay})"
+    return f"the {c.get('name')!r} condition ({len(xi)} sample(s) of xi, {decay})"
 
 
 def _condition_sentence(claim: dict, what: str) -> str:
@@ -129,9 +153,9 @@ def _uniform_sentence(claim: dict, what: str) -> str:
 
 def _ellipsoid_sentence(claim: dict, what: str) -> str:  # the closed loop's own quadratic region
     r = claim["region"]
-    half = ", ".join(f"{float(h):.3g}" for h in claim["ellipsoid"]["box"])
+    half = ", ".join(level_text(float(h), 3) for h in claim["ellipsoid"]["box"])
     ring = "" if not claim["ellipsoid"].get("ring") else (
-        f"; outside ||x - x*|| < {float(r['delta']):g}, {what.replace('decrease', 'decrease of W', 1)} on it")
+        f"; outside ||x - x*|| < {exact_text(float(r['delta']))}, {what.replace('decrease', 'decrease of W', 1)} on it")
     return (f"{{z'Pz <= {level_text(r.get('level'))}}} (W = z'Pz, P in the file) is a region of attraction: W decreases "
             f"on it except at x*, on the box |x_i - x*_i| <= [{half}] by the Jacobian's enclosure{ring}")
 
@@ -142,7 +166,8 @@ def _practical_sentence(claim: dict, what: str) -> str:  # V's bound on the ball
     cut = " in the state box" if faces_rule(claim) == "inward" else ""
     return (f"trajectories of {model} from {{V <= {level_text(r.get('level'))}}}{cut} stay in it and end up in "
             f"{{V <= {level_text(float(claim['practical']['level']), up=True)}}}: V is at most that on the ball "
-            f"||x - x*|| < {float(r['ball_of']):g}, and decreases outside it by the certificate {claim.get('outer')!r}")
+            f"||x - x*|| < {exact_text(float(r['ball_of']))}, and decreases outside it by the certificate "
+            f"{claim.get('outer')!r}")
 
 
 def _band_claim_sentence(claim: dict, what: str) -> str:  # practical stability on a band c1 <= V <= c2 (the field's)
@@ -159,13 +184,15 @@ def _roa_ball_sentence(claim: dict, what: str) -> str:  # V's decrease inside th
     r = claim["region"]
     level = level_text(r.get("level"))
     if claim.get("core") is not None:
-        return (f"V decreases on {{V <= {level}}} inside the ball ||x - x*|| < {float(r['ball_of']):g}: {what} on the "
+        return (f"V decreases on {{V <= {level}}} inside the ball ||x - x*|| < {exact_text(float(r['ball_of']))}: {what} "
+                f"on the "
                 f"ball's box outside the ellipsoid {_core_words(claim)}; outside the ball by the certificate "
                 f"{claim.get('outer')!r}")
-    half = ", ".join(f"{float(h):.3g}" for h in claim["cube"]["half"])
+    half = ", ".join(level_text(float(h), 3) for h in claim["cube"]["half"])
     rest = "" if float(r["delta"]) >= float(r["ball_of"]) else (  # no ring: the cube covers the ball
-        f"; {what} on the rest of the ball's box outside ||x - x*|| < {float(r['delta']):g}")
-    return (f"V decreases on {{V <= {level}}} inside the ball ||x - x*|| < {float(r['ball_of']):g}: Vdot < 0 on the "
+        f"; {what} on the rest of the ball's box outside ||x - x*|| < {exact_text(float(r['delta']))}")
+    return (f"V decreases on {{V <= {level}}} inside the ball ||x - x*|| < {exact_text(float(r['ball_of']))}: Vdot < 0 "
+            f"on the "
             f"cube |x_i - x*_i| <= [{half}] except at x* (second order){rest}; outside the ball by the certificate "
             f"{claim.get('outer')!r}")
 
@@ -184,7 +211,7 @@ _SENTENCES = {"condition": _condition_sentence, "uniform": _uniform_sentence, "e
 
 def decay_words(gamma: float, alpha: float) -> str:
     """A decrease's decay terms as a claim states them: ``gamma = G`` and, where it is not 0, ``alpha = A``."""
-    return f"gamma = {gamma:g}" + (f", alpha = {alpha:g}" if alpha else "")
+    return f"gamma = {level_text(gamma)}" + (f", alpha = {level_text(alpha)}" if alpha else "")
 
 
 def band_sentence(what: str, low: float, high: float) -> str:

@@ -11,7 +11,7 @@ import math
 from collections.abc import Callable
 from pathlib import Path
 
-from drlyap.claims import faces_rule
+from drlyap.claims import PREMISES, faces_rule
 
 
 def outer_missing(run_dir: Path, header: dict, positive: Callable[[dict], str] | None = None) -> list[str]:
@@ -23,6 +23,9 @@ def outer_missing(run_dir: Path, header: dict, positive: Callable[[dict], str] |
     it does, else why not (None: nothing establishes it)."""
 
     region = header["claim"]["region"]
+    if header["claim"].get("outer") not in PREMISES["outer"]:
+        return [f"the certificate it names for the decrease outside the ball ({header['claim'].get('outer')!r}) is not "
+                f"one of {', '.join(PREMISES['outer'])}"]
     path = run_dir / "certificates" / f"{header['claim'].get('outer')}.json"
     try:
         outer_header = json.loads(path.read_text())
@@ -33,7 +36,8 @@ def outer_missing(run_dir: Path, header: dict, positive: Callable[[dict], str] |
     level, theirs = region.get("level"), outer.get("level")
     if outer.get("delta") != region.get("ball_of") or level is None or theirs is None or not theirs >= level:
         return [f"{path.name} does not prove the decrease outside the ball on {{V <= {level}}}"]
-    if samples != header["claim"]["condition"].get("xi"):
+    if samples != header["claim"]["condition"].get("xi") or \
+            claim["condition"].get("xi_box") != header["claim"]["condition"].get("xi_box"):
         return [f"{path.name} is about other samples or another shift than the decrease inside the ball"]
     mine = header["claim"]  # a roa-ball's sentence leaves the set's faces to its outer; a practical one states them
     if ("faces" in mine or "practical" in mine) and faces_rule(mine) != faces_rule(claim):
@@ -54,6 +58,9 @@ def core_missing(run_dir: Path, header: dict) -> list[str]:
     or another model (that certificate is checked on its own)."""
     claim = header["claim"]
     core = claim.get("core") or {}
+    if core.get("certificate") not in PREMISES["core"]:
+        return [f"the certificate it names for its core ({core.get('certificate')!r}) is not one of "
+                f"{', '.join(PREMISES['core'])}"]
     path = run_dir / "certificates" / f"{core.get('certificate')}.json"
     try:
         theirs = json.loads(path.read_text())["claim"]
@@ -63,7 +70,7 @@ def core_missing(run_dir: Path, header: dict) -> list[str]:
     if ellipsoid.get("P") != core.get("P") or ellipsoid.get("level") != core.get("level"):
         return [f"{path.name} is about another ellipsoid than the core"]
     mine = claim["condition"]
-    if any(condition.get(k) != mine.get(k) for k in ("xi", "model")):
+    if any(condition.get(k) != mine.get(k) for k in ("xi", "xi_box", "model")):
         return [f"{path.name} is about other samples or another model than the decrease around its core"]
     return []
 

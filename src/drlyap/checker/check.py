@@ -60,7 +60,7 @@ from drlyap.checker.leaves import MIN_PIECES, REFINE, LeafJob, prove_leaves
 from drlyap.checker.levels import ball_below, faces_above, faces_inward, grid_cells
 from drlyap.checker.model import Pair, Residual, centre_lower
 from drlyap.checker.uniform import uniform_margin_bound
-from drlyap.claims import claim_kind, claim_sentence, faces_rule
+from drlyap.claims import KINDS_OF, UNREADABLE, claim_kind, claim_sentence, faces_rule
 from drlyap.compute import Compute
 
 INTERNAL, PROVED, INSIDE_BALL, ABOVE_LEVEL, INSIDE_CORE, BELOW_LEVEL = 0, 1, 2, 3, 5, 6
@@ -208,6 +208,8 @@ def _claim_box(region: dict, system) -> tuple[Tensor, Tensor]:
                       for b in system.state_box)
     if region.get("ball_of") is not None:  # the box of the delta-ball inside the state box (roa-ball)
         ball = float(region["ball_of"])
+        if not (math.isfinite(ball) and ball > 0):
+            raise CertificateError(f"the claim's ball (ball_of = {ball}) is not a finite radius > 0")
         box_lo, box_hi = torch.maximum(box_lo, torch.full_like(box_lo, -ball)), \
             torch.minimum(box_hi, torch.full_like(box_hi, ball))
     if not (torch.equal(lo, box_lo) and torch.equal(hi, box_hi)):
@@ -265,6 +267,8 @@ def _read(out: CheckResult, header: dict, system, weights: dict, weights_sha256:
     lo, hi = _claim_box(region, system)
     delta, level = float(region["delta"]), region.get("level")
     level = None if level is None else float(level)
+    if not (math.isfinite(delta) and delta >= 0) or (level is not None and not math.isfinite(level)):
+        raise CertificateError(f"the claim's delta ({delta}) or level ({level}) is not a finite number (delta >= 0)")
     pair = _pair(weights, header, system.n)
     floor = band_floor(claim)
     if floor is not None:  # about V as the files give it (an imported V is not pinned at x* for it)
@@ -322,6 +326,10 @@ def check_certificate(run_dir: str | Path, name: str, header: dict, arrays: dict
     out = CheckResult(name=name, ok=False, claim=claim_sentence(claim))
     try:
         kind = claim_kind(claim)  # a claim of no kind is checked on nothing
+        if kind not in KINDS_OF.get(name, ()):
+            raise CertificateError(f"a {name!r} certificate does not state a {kind} claim")
+        if out.claim == UNREADABLE:
+            raise CertificateError("its claim cannot be put in words: nothing is confirmed of it")
         cert = _read(out, header, system, weights, weights_sha256, system_sha256)
         partition = BEFORE_PARTITION.get(kind, _partition_only)(out, cert, header, system)
         if partition:

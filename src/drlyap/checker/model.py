@@ -128,20 +128,29 @@ class Residual:
         if self.model not in ("true", "design") or (self.model == "true" and self.name not in ("true", "plain")):
             raise ValueError(f"the {self.name!r} condition on the {self.model!r} model is not one drlyap states (the DR "
                              "and nominal conditions are on the design model)")
+        k = len(system.uncertain_index)
         box = claim.get("xi_box")
-        if box is not None:  # every shift in a box (true model only): each row a pair (low, high)
-            if self.model != "true":
-                raise ValueError("the checker takes a box of shifts on the true model only")
-            low, high = (torch.as_tensor(box[k], dtype=F64) for k in ("low", "high"))
-            if low.shape != high.shape or low.ndim != 2 or not bool((low <= high).all()):
-                raise ValueError("the claim's box of shifts is not (N, k) lows below highs")
+        if box is not None:  # every shift in a box (the true model's condition only): each row a pair (low, high)
+            if self.name != "true" or claim.get("xi") is not None:
+                raise ValueError("a box of shifts is stated by the true model's condition alone, in place of xi")
+            low, high = (torch.as_tensor(box[key], dtype=F64) for key in ("low", "high"))
+            if low.shape != high.shape or low.ndim != 2 or low.shape[1] != k or not bool((low <= high).all()):
+                raise ValueError(f"the claim's box of shifts is not (N, {k}) lows below highs")
             self.xi = torch.stack([low, high], 1)  # (N, 2, k)
         else:
-            self.xi = torch.as_tensor(claim["xi"], dtype=F64).reshape(len(claim["xi"]), -1)
+            self.xi = torch.as_tensor(claim["xi"], dtype=F64)
+            if self.xi.ndim != 2 or self.xi.shape[1] != k or self.xi.shape[0] < 1:
+                raise ValueError(f"the claim's xi is not (N, {k}): one row of the {k} uncertain parameters per sample")
+            if self.name == "nominal" and self.xi.shape[0] != 1:
+                raise ValueError("the nominal condition takes exactly one xi (the sample mean)")
+        if not bool(torch.isfinite(self.xi).all()):
+            raise ValueError("the claim's shifts are not finite")
         self.xi_box = box is not None
         self.gamma, self.alpha = float(claim.get("decay_rate") or 0.0), float(claim.get("exp_rate") or 0.0)
         self.r = float(claim.get("wasserstein_radius") or 0.0)
-        self.eps = float(claim.get("risk_level") or 1.0)
+        self.eps = 1.0 if claim.get("risk_level") is None else float(claim["risk_level"])  # 0 is stated, not absent
+        if not all(math.isfinite(v) for v in (self.gamma, self.alpha, self.r)) or self.r < 0 or not 0 < self.eps <= 1:
+            raise ValueError("the claim's decay, Wasserstein radius (>= 0) or risk level (in (0, 1]) is out of range")
         self.pair, self.system = pair, system
         self.x_star = torch.as_tensor(system.equilibrium, dtype=F64)
         self.p0 = torch.as_tensor(system.nominal_params, dtype=F64)

@@ -63,7 +63,7 @@ def check_run(run_dir: str | Path, system=None, trust: bool = False, names: list
         result = check_certificate(run_dir, name, header, arrays, system, weights, digest, system_sha, refine,
                                    compute, pieces_per_leaf)
         result.failures += claim_mismatch(name, header, config, metrics)
-        if name in ("roa-ball", "practical"):
+        if name in ("roa-ball", "practical") or (header.get("claim") or {}).get("outer") is not None:
             result.failures += outer_missing(run_dir, header, _positive_outside(result, weights, header, system))
         if (header.get("claim") or {}).get("core") is not None:
             result.failures += core_missing(run_dir, header)
@@ -71,7 +71,7 @@ def check_run(run_dir: str | Path, system=None, trust: bool = False, names: list
     for name in names:  # a claim holds only where the certificates it rests on are confirmed too
         result = results[name]
         result.failures += [f"it rests on {theirs}, which the checker did not confirm"
-                            for theirs in _premises(headers[name]) if theirs in results and not results[theirs].ok]
+                            for theirs in _premises(headers[name]) if theirs not in results or not results[theirs].ok]
         result.ok = not result.failures
         if result.ok:
             write_record(run_dir, name, fingerprint(run_dir, name, headers[name], digest, system_sha), result.proved,
