@@ -73,7 +73,7 @@ def _row(run, imported, band: tuple[float, float], workers: int, boxes: int | No
 
         weights = {"graphs": json.loads(files[0].read_text()), "tensors": load_weights(files[1])}
         tic = time.perf_counter()
-        result = check_certificate(folder / "imported", "band", header, arrays, system, weights,
+        result = check_certificate("band", header, arrays, system, weights,
                                    networks_digest([f.read_bytes() for f in files]), system_digest(system))
         check = ("CHECKED" if result.ok else "NOT CONFIRMED", time.perf_counter() - tic)
     cfg = run.config

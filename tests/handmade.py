@@ -140,7 +140,7 @@ def recheck(folder, name, system, weights, header_change=None, arrays_change=Non
     if arrays_change is not None:
         arrays = {k: v.copy() for k, v in arrays.items()}
         arrays = arrays_change(arrays) or arrays
-    return check_certificate(folder, name, header, arrays, system, weights, sha256_file(folder / "weights.pt"),
+    return check_certificate(name, header, arrays, system, weights, sha256_file(folder / "weights.pt"),
                              system_digest(system))
 
 

@@ -391,7 +391,7 @@ def test_true_model_certificate_of_a_shift(proved, tmp_path):
     shutil.copytree(proved["folder"], folder)
     write_certificate(folder, "true-model", proof, condition, region, system, folder / "weights.pt", 1e-3)
     header, arrays = read_certificate(folder, "true-model")
-    result = check_certificate(folder, "true-model", header, arrays, system, proved["weights"],
+    result = check_certificate("true-model", header, arrays, system, proved["weights"],
                                sha256_file(folder / "weights.pt"), system_digest(system))
     assert result.ok, result.failures
     assert "true model at xi = [0.1, 0.05]" in result.claim

@@ -162,12 +162,12 @@ def test_proofs_and_checks_on_the_gpu_agree_with_the_cpu(certificate):
     values = loop.exact(condition, z).reshape(64, -1)
     assert bool((values <= bounds["upper"][None] + 1e-12).all())
     folder = certificate["folder"]
-    from drlyap.checker.check import check_certificate
+    from drlyap.checker.check import LeafSettings, check_certificate
 
     header, arrays = read_certificate(folder, "trained")
-    res = check_certificate(folder, "trained", header, arrays, certificate["system"],
+    res = check_certificate("trained", header, arrays, certificate["system"],
                             torch.load(folder / "weights.pt", weights_only=True), sha256_file(folder / "weights.pt"),
-                            system_digest(certificate["system"]), compute=Compute(device="cuda"))
+                            system_digest(certificate["system"]), LeafSettings(compute=Compute(device="cuda")))
     assert res.ok, res.failures
 
 

@@ -12,7 +12,7 @@ import time
 import pytest
 import torch
 
-from drlyap.checker.check import check_certificate
+from drlyap.checker.check import LeafSettings, check_certificate
 from drlyap.compute import Compute
 from drlyap.conditions import DRPointwise
 from drlyap.networks import Controller, Lyapunov
@@ -129,8 +129,8 @@ def test_the_checker_accepts_a_certificate_proved_by_workers_and_checks_with_wor
     weights = torch.load(tmp_path / "weights.pt", weights_only=True)
     results = []
     for compute in (Compute(), _up(2)):
-        res = check_certificate(tmp_path, "trained", header, arrays, loop.system, weights,
-                                sha256_file(tmp_path / "weights.pt"), system_digest(loop.system), compute=compute)
+        res = check_certificate("trained", header, arrays, loop.system, weights,
+                                sha256_file(tmp_path / "weights.pt"), system_digest(loop.system), LeafSettings(compute=compute))
         assert res.ok, res.failures
         assert res.proved == int((torch.as_tensor(arrays["verdict"]) == 1).sum())
         results.append((res.proved, res.refined, res.pieces))
@@ -332,7 +332,7 @@ def test_ray_backend_on_two_local_workers_proves_the_same_and_the_checker_accept
     write_certificate(tmp_path, "trained", two, condition, region, loop.system, tmp_path / "weights.pt",
                       loop.lyapunov.alpha_hat)
     header, arrays = read_certificate(tmp_path, "trained")
-    res = check_certificate(tmp_path, "trained", header, arrays, loop.system,
+    res = check_certificate("trained", header, arrays, loop.system,
                             torch.load(tmp_path / "weights.pt", weights_only=True), sha256_file(tmp_path / "weights.pt"),
                             system_digest(loop.system))
     assert res.ok, res.failures

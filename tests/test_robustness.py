@@ -45,7 +45,7 @@ def _checker_confirms(folder, proof, condition, region, system, lyap, ctrl) -> N
     torch.save(weights, folder / "weights.pt")
     write_certificate(folder, "trained", proof, condition, region, system, folder / "weights.pt", lyap.alpha_hat)
     header, arrays = read_certificate(folder, "trained")
-    res = check_certificate(folder, "trained", header, arrays, system, weights, sha256_file(folder / "weights.pt"),
+    res = check_certificate("trained", header, arrays, system, weights, sha256_file(folder / "weights.pt"),
                             system_digest(system))
     assert res.ok, res.failures
 

@@ -45,7 +45,6 @@ from __future__ import annotations
 import math
 import time
 from dataclasses import dataclass, field
-from pathlib import Path
 
 import numpy as np
 import torch
@@ -316,11 +315,21 @@ BEFORE_PARTITION = {"practical": _practical, "roa-ball": _near_x_star, "ellipsoi
 partition's leaves, and whether a partition follows; the other kinds have only their partition."""
 
 
-def check_certificate(run_dir: str | Path, name: str, header: dict, arrays: dict[str, np.ndarray], system,
-                      weights: dict, weights_sha256: str, system_sha256: str, refine: int = REFINE,
-                      compute: Compute = Compute(), pieces_per_leaf: float = 1.0) -> CheckResult:
-    """Re-check one certificate of ``run_dir`` against the run's own weights (``weights``, from the file with
-    ``weights_sha256``) and system (``system_sha256``); leaves bounded as :func:`prove_leaves`, where ``compute`` says."""
+@dataclass(frozen=True)
+class LeafSettings:
+    """How the checker bounds a partition's leaves: bisected up to ``refine`` times where a bound does not prove one,
+    at most ``pieces_per_leaf`` pieces a leaf on average, where ``compute`` says."""
+
+    refine: int = REFINE
+    compute: Compute = Compute()
+    pieces_per_leaf: float = 1.0
+
+
+def check_certificate(name: str, header: dict, arrays: dict[str, np.ndarray], system, weights: dict,
+                      weights_sha256: str, system_sha256: str, leaves: LeafSettings = LeafSettings()) -> CheckResult:
+    """Re-check the certificate ``name`` of a run (its ``header`` and partition ``arrays``) against the run's own weights
+    (``weights``, from the file with ``weights_sha256``) and system (``system_sha256``); leaves bounded as
+    :func:`~drlyap.checker.leaves.prove_leaves`, as ``leaves`` says (refinement, pieces, where)."""
     start = time.perf_counter()
     claim = header.get("claim") or {}
     out = CheckResult(name=name, ok=False, claim=claim_sentence(claim))
@@ -343,19 +352,9 @@ def check_certificate(run_dir: str | Path, name: str, header: dict, arrays: dict
         out.time_s = time.perf_counter() - start
         return out
     if partition:
-        _check_partition(out, cert, header, arrays, grid, LeafSettings(refine, compute, pieces_per_leaf))
+        _check_partition(out, cert, header, arrays, grid, leaves)
     out.ok, out.time_s = not out.failures, time.perf_counter() - start
     return out
-
-
-@dataclass
-class LeafSettings:
-    """How the checker bounds a partition's leaves: bisected up to ``refine`` times where a bound does not prove one,
-    at most ``pieces_per_leaf`` pieces a leaf on average, where ``compute`` says."""
-
-    refine: int = REFINE
-    compute: Compute = Compute()
-    pieces_per_leaf: float = 1.0
 
 
 def _check_partition(out: CheckResult, cert: _Reading, header: dict, arrays: dict[str, np.ndarray], grid: list[int],

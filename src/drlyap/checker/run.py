@@ -15,7 +15,15 @@ from pathlib import Path
 import torch
 
 from drlyap.checker.agreement import claim_mismatch, core_missing, outer_missing
-from drlyap.checker.check import REFINE, CertificateError, CheckResult, _claim_box, _pair, check_certificate
+from drlyap.checker.check import (
+    REFINE,
+    CertificateError,
+    CheckResult,
+    LeafSettings,
+    _claim_box,
+    _pair,
+    check_certificate,
+)
 from drlyap.checker.levels import outside_positive
 from drlyap.checker.quadratic import surely_semidefinite
 from drlyap.checker.record import drop_record, fingerprint, write_record
@@ -60,8 +68,8 @@ def check_run(run_dir: str | Path, system=None, trust: bool = False, names: list
     headers: dict[str, dict] = {}
     for name in names:
         header, arrays = read_certificate(run_dir, name)
-        result = check_certificate(run_dir, name, header, arrays, system, weights, digest, system_sha, refine,
-                                   compute, pieces_per_leaf)
+        result = check_certificate(name, header, arrays, system, weights, digest, system_sha,
+                                   LeafSettings(refine, compute, pieces_per_leaf))
         result.failures += claim_mismatch(name, header, config, metrics)
         if name in ("roa-ball", "practical") or (header.get("claim") or {}).get("outer") is not None:
             result.failures += outer_missing(run_dir, header, _positive_outside(result, weights, header, system))

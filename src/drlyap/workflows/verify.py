@@ -78,7 +78,7 @@ def confirmed_certificate(run: Run, name: str, condition, region: Region, level:
     ``certificate``; None otherwise (the caller then proves it anew)."""
     import hashlib
 
-    from drlyap.checker.check import check_certificate
+    from drlyap.checker.check import LeafSettings, check_certificate
     from drlyap.checker.record import fingerprint, recorded, write_record
     from drlyap.runs.certificates import FOLDER, certificate_claim, read_certificate, system_digest
     from drlyap.runs.validate import load_weights
@@ -100,8 +100,8 @@ def confirmed_certificate(run: Run, name: str, condition, region: Region, level:
     if record is not None:
         leaves, seconds, when = int(record["leaves"]), 0.0, str(record.get("date"))
     else:
-        result = check_certificate(run.path, name, header, arrays, run.system, load_weights(run.path / "weights.pt", data),
-                                   weights_sha, system_sha, compute=proof.compute)
+        result = check_certificate(name, header, arrays, run.system, load_weights(run.path / "weights.pt", data),
+                                   weights_sha, system_sha, LeafSettings(compute=proof.compute))
         if not result.ok:
             return None
         write_record(run.path, name, prints, result.proved, result.time_s)
