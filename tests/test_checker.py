@@ -323,6 +323,7 @@ def test_what_the_checker_reads_of_a_claim_is_what_its_sentence_says(proved):
         (lambda h: h["claim"]["condition"].update(xi_box={"low": [[0.0, 0.0]], "high": [[0.0, 0.0]]}),
          "box of shifts is stated by the true model's condition alone"),
         (lambda h: h["claim"]["condition"].update(risk_level=0.0), "risk level"),
+        (lambda h: h["claim"]["condition"].update(exp_rate=-1000.0), "decay (gamma, alpha >= 0)"),  # no decrease
         (lambda h: h["claim"]["condition"].pop("wasserstein_radius"), "cannot be put in words"),
     ]
     for change, says in cases:
@@ -340,6 +341,10 @@ def test_a_claims_sentence_never_prints_the_files_own_words_and_rounds_towards_l
     cube = {"condition": {"name": "plain", "model": "true", "xi": [[0.0]]}, "cube": {"half": [0.00390625, 0.0573999]},
             "outer": "roa", "region": {"delta": 0.1, "ball_of": 0.1, "level": 1.0}}
     assert "[0.0039, 0.0573]" in claim_sentence(cube)  # rounded down: a smaller cube is proved too
+    core = {"condition": {"name": "true", "xi": [[0.2, 0.0]]}, "core": {"P": [[1.0]], "level": 0.5,
+            "certificate": "ellipsoid"}, "faces": "inward", "region": {"delta": 0.0, "level": 2.0}}
+    assert "V > 2 on the box's faces" not in claim_sentence(core)  # the rule checked is the flow entering the box
+    assert "the flow entering the box at every point of its faces with V <= 2" in claim_sentence(core)
     shifts = {"condition": {"name": "true", "xi": None, "xi_box": {"low": [[-0.123456]], "high": [[0.123456]]}},
               "region": {"delta": 0.1, "level": None}}
     assert "[-0.1234, 0.1234]" in claim_sentence(shifts)  # a narrower box of shifts than proved

@@ -199,8 +199,9 @@ def _roa_ball_sentence(claim: dict, what: str) -> str:  # V's decrease inside th
 
 def _core_sentence(claim: dict, what: str) -> str:  # V's set resting on the closed loop's ellipsoid (the band route)
     level = level_text(claim["region"].get("level"))
-    return (f"{what} holds at every state of {{V <= {level}}} outside the ellipsoid {_core_words(claim)}, with V > "
-            f"{level} on the box's faces")
+    faces = (f"the flow entering the box at every point of its faces with V <= {level}"
+             if faces_rule(claim) == "inward" else f"with V > {level} on the box's faces")
+    return f"{what} holds at every state of {{V <= {level}}} outside the ellipsoid {_core_words(claim)}, {faces}"
 
 
 _SENTENCES = {"condition": _condition_sentence, "uniform": _uniform_sentence, "ellipsoid": _ellipsoid_sentence,

@@ -82,6 +82,8 @@ def _strict(condition: dict, networks: dict) -> str:
     imported V), or "" (nothing)."""
     gamma, alpha = float(condition.get("decay_rate") or 0.0), float(condition.get("exp_rate") or 0.0)
     alpha_hat = networks.get("alpha_hat")
+    if not (gamma >= 0 and alpha >= 0):  # a negative term weakens the decrease below Vdot <= 0
+        return ""
     if gamma > 0:
         return "decay"
     if not alpha > 0:

@@ -149,8 +149,9 @@ class Residual:
         self.gamma, self.alpha = float(claim.get("decay_rate") or 0.0), float(claim.get("exp_rate") or 0.0)
         self.r = float(claim.get("wasserstein_radius") or 0.0)
         self.eps = 1.0 if claim.get("risk_level") is None else float(claim["risk_level"])  # 0 is stated, not absent
-        if not all(math.isfinite(v) for v in (self.gamma, self.alpha, self.r)) or self.r < 0 or not 0 < self.eps <= 1:
-            raise ValueError("the claim's decay, Wasserstein radius (>= 0) or risk level (in (0, 1]) is out of range")
+        if not all(math.isfinite(v) and v >= 0 for v in (self.gamma, self.alpha, self.r)) or not 0 < self.eps <= 1:
+            raise ValueError("the claim's decay (gamma, alpha >= 0), Wasserstein radius (>= 0) or risk level (in (0, 1]) "
+                             "is out of range")
         self.pair, self.system = pair, system
         self.x_star = torch.as_tensor(system.equilibrium, dtype=F64)
         self.p0 = torch.as_tensor(system.nominal_params, dtype=F64)

@@ -12,6 +12,7 @@ from __future__ import annotations
 
 import hashlib
 import json
+import math
 import os
 import time
 from importlib.metadata import PackageNotFoundError, version
@@ -43,12 +44,15 @@ def fingerprint(run_dir: str | os.PathLike, name: str, header: dict, weights_sha
             "weights_sha256": weights_sha256, "system_sha256": system_sha256, "checker": checker_version()}
 
 
-def write_record(run_dir: str | os.PathLike, name: str, prints: dict, leaves: int, seconds: float) -> Path | None:
-    """Record that the checker confirmed certificate ``name`` (atomically, sealed); None where the folder cannot be
-    written or there is no key to seal it with (nothing is lost: the next ``verify`` checks again)."""
+def write_record(run_dir: str | os.PathLike, name: str, prints: dict, leaves: int, seconds: float,
+                 faces_min: float | None = None) -> Path | None:
+    """Record that the checker confirmed certificate ``name`` (atomically, sealed), with ``faces_min``, its own lower
+    bound of V on the box's faces where it established one; None where the folder cannot be written or there is no key
+    to seal it with (nothing is lost: the next ``verify`` checks again)."""
     path = _path(run_dir, name)
     data = {"format": FORMAT, "version": VERSION, "confirmed": True, **prints, "leaves": int(leaves),
-            "time_s": float(seconds), "date": time.strftime("%Y-%m-%dT%H:%M:%S%z")}
+            "time_s": float(seconds), "date": time.strftime("%Y-%m-%dT%H:%M:%S%z"),
+            "faces_min": None if faces_min is None or not math.isfinite(faces_min) else float(faces_min)}
     mark = seal(canonical(data))
     if mark is None:
         return None

@@ -83,7 +83,7 @@ def check_run(run_dir: str | Path, system=None, trust: bool = False, names: list
         result.ok = not result.failures
         if result.ok:
             write_record(run_dir, name, fingerprint(run_dir, name, headers[name], digest, system_sha), result.proved,
-                         result.time_s)
+                         result.time_s, result.faces_min)
         else:
             drop_record(run_dir, name)
     return [results[name] for name in names]

@@ -97,20 +97,21 @@ def confirmed_certificate(run: Run, name: str, condition, region: Region, level:
     weights_sha, system_sha = hashlib.sha256(data).hexdigest(), system_digest(run.system)
     prints = fingerprint(run.path, name, header, weights_sha, system_sha)
     record = recorded(run.path, name, prints)
-    if record is not None:
-        leaves, seconds, when = int(record["leaves"]), 0.0, str(record.get("date"))
+    faces = None  # V's least value on the faces, as the checker bounded it (never the header's own number)
+    if record is not None and (level is None or isinstance(record.get("faces_min"), (int, float))):
+        leaves, seconds, when, faces = int(record["leaves"]), 0.0, str(record.get("date")), record.get("faces_min")
     else:
         result = check_certificate(name, header, arrays, run.system, load_weights(run.path / "weights.pt", data),
                                    weights_sha, system_sha, LeafSettings(compute=proof.compute))
         if not result.ok:
             return None
-        write_record(run.path, name, prints, result.proved, result.time_s)
-        leaves, seconds, when = result.proved, result.time_s, None
+        write_record(run.path, name, prints, result.proved, result.time_s, result.faces_min)
+        leaves, seconds, when, faces = result.proved, result.time_s, None, result.faces_min
     counts = (header.get("proof") or {})
     return ConditionProof(condition=condition.label, status=Status.VERIFIED, verified_fraction=1.0, delta=region.delta,
                           boxes_processed=int(counts.get("boxes_processed") or 0), boxes_verified=leaves,
                           time_s=seconds, stopped="finished", level=level,
-                          boundary_min_lower=counts.get("faces_min_lower") if level is not None else None,
+                          boundary_min_lower=faces if level is not None else None,
                           source="certificate", checked_at=when)
 
 
