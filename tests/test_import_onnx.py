@@ -477,3 +477,35 @@ def test_a_users_system_pair_exported_and_imported_again_certifies_the_same_regi
     assert claim["exp_rate"] == 0.05
     checked = runner.invoke(main, ["check", str(out), "--system", spec])
     assert checked.exit_code == 0 and "FAILED" not in checked.output, checked.output
+
+
+def test_a_graph_whose_reverse_mode_or_clamp_would_read_otherwise_is_refused():
+    """Hand-made graphs the interpreter's reverse mode or the enclosures would read unlike plain torch: a squeeze of
+    a last axis wider than 1 (its cotangent went to every column), a state-dependent input widened by broadcasting,
+    and a clamp whose lower bound lies above its upper one (torch and the enclosures then disagree)."""
+    import torch
+
+    from drlyap.graph.interpreter import Graph, Node
+
+    w = torch.tensor([[1.0, -1.0], [1.0, -1.0]], dtype=torch.float64)
+    wide = [Node("linear", ("z", "w"), "a", {}), Node("square", ("a",), "b", {}), Node("squeeze", ("b",), "v", {})]
+    with pytest.raises(ValueError, match="squeezes a last axis of 1 only"):
+        Graph(wide, {"w": w}, "v", 2)
+    row = torch.tensor([[1.0, 0.0]], dtype=torch.float64)
+    widened = [Node("linear", ("z", "r"), "a", {}), Node("mul", ("a", "z"), "b", {}), Node("sum", ("b",), "v", {})]
+    with pytest.raises(ValueError, match="broadcasts an input that depends on the state"):
+        Graph(widened, {"r": row}, "v", 2)
+    low, high = torch.tensor([5.0], dtype=torch.float64), torch.tensor([0.0], dtype=torch.float64)
+    swapped = [Node("linear", ("z", "r"), "a", {}), Node("clamp", ("a", "lo", "hi"), "u", {})]
+    with pytest.raises(ValueError, match="lower bounds must not exceed"):
+        Graph(swapped, {"r": row, "lo": low, "hi": high}, "u", 2)
+    from drlyap.checker.graphs import GraphNet  # the checker's own reading refuses the same clamp, and a pow of 2.5
+
+    spec = {"input": "z", "output": "u", "constants": ["r", "lo", "hi"],
+            "nodes": [{"op": "linear", "inputs": ["z", "r"], "output": "a"},
+                      {"op": "clamp", "inputs": ["a", "lo", "hi"], "output": "u"}]}
+    with pytest.raises(ValueError, match="lower bounds above its upper ones"):
+        GraphNet(spec, {"r": row, "lo": low, "hi": high})
+    spec["nodes"][1] = {"op": "pow", "inputs": ["a"], "output": "u", "attrs": {"n": 2.5}}
+    with pytest.raises(ValueError, match="integer exponent"):
+        GraphNet(spec, {"r": row, "lo": low, "hi": high})

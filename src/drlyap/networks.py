@@ -47,7 +47,7 @@ def clamp(v, low: Tensor, high: Tensor):
     """``min(max(v, low), high)`` elementwise for ``v (B, m)`` (a tensor or an enclosure)."""
     if is_enclosure(v):
         return v.clamp(low, high)
-    return torch.maximum(torch.minimum(v, high), low)
+    return torch.minimum(torch.maximum(v, low), high)  # the enclosures' order (the same wherever low <= high)
 
 
 class TanhMLP(nn.Module):

@@ -87,6 +87,27 @@ class GraphNet:
             raise ValueError(f"the checker does not read the operations {unknown}")
         restored = restore_infinite(dict(tensors))
         self.constants = {name: restored[name].to(F64) for name in spec["constants"]}
+        self._check()
+
+    def _check(self) -> None:
+        """What the checker's reading needs of the nodes (the library's interpreter refuses the same): real constants
+        without NaN, each name defined once, an integer exponent ``n >= 0``, a clamp's bounds constant and in order."""
+        for name, value in self.constants.items():
+            if bool(torch.isnan(value).any()):
+                raise ValueError(f"the graph's constant {name!r} contains NaN")
+        defined = {"z", *self.constants}
+        for op, inputs, output, attrs in self.nodes:
+            if output in defined:
+                raise ValueError(f"the graph redefines {output!r}")
+            defined.add(output)
+            if op == "pow" and not (isinstance(attrs.get("n"), int) and not isinstance(attrs.get("n"), bool)
+                                    and attrs["n"] >= 0):
+                raise ValueError("the graph's pow needs an integer exponent n >= 0")
+            if op == "clamp":
+                if len(inputs) != 3 or any(name not in self.constants for name in inputs[1:]):
+                    raise ValueError("the graph's clamp needs constant bounds")
+                if not bool((self.constants[inputs[1]] <= self.constants[inputs[2]]).all()):
+                    raise ValueError("the graph's clamp has lower bounds above its upper ones")
 
     def __call__(self, z):
         env: dict = {"z": z}

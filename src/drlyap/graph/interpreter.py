@@ -322,14 +322,34 @@ class Graph(nn.Module):
         z = torch.linspace(-1, 1, 2 * self.n, dtype=F64).reshape(2, self.n)
         try:
             with torch.no_grad():
-                out = self(z)
+                env = self._run(z)
+                out = env[self.output]
         except (RuntimeError, ValueError, IndexError, TypeError) as err:
             first = str(err).strip().splitlines()[0] if str(err).strip() else type(err).__name__
             raise ValueError(f"{self.source}: does not run on states of dimension {self.n} ({first})") from None
+        self._check_shapes(env)
         if not isinstance(out, Tensor) or out.ndim not in (1, 2) or out.shape[0] != 2:
             raise ValueError(f"{self.source}: its output must be (batch,) or (batch, m), got "
                              f"{tuple(getattr(out, 'shape', ()))} for a batch of 2")
         return tuple(out.shape[1:])
+
+    def _check_shapes(self, env: dict) -> None:
+        """What reverse mode and the enclosures need of each node at the example states: a clamp's bounds in order,
+        ``squeeze`` of a last axis of 1 and ``unsqueeze`` of ``(B,)``, and no state-dependent input widened by
+        broadcasting (its cotangent would not be summed back to its shape)."""
+        for i, (node, flags) in enumerate(zip(self.nodes, self._dynamic)):
+            where = f"{self.source}: node {i} ({node.op})"
+            args = [env[name] if name in env else self.const(name) for name in node.inputs]
+            if node.op == "clamp" and not bool((torch.as_tensor(args[1]) <= torch.as_tensor(args[2])).all()):
+                raise ValueError(f"{where}: its lower bounds must not exceed its upper ones")
+            if node.op == "squeeze" and not (args[0].ndim == 2 and args[0].shape[-1] == 1):
+                raise ValueError(f"{where}: squeezes a last axis of 1 only, got {tuple(args[0].shape)}")
+            if node.op == "unsqueeze" and args[0].ndim != 1:
+                raise ValueError(f"{where}: takes (batch,), got {tuple(args[0].shape)}")
+            shape = tuple(env[node.output].shape)
+            if node.op in ("add", "sub", "mul", "div") and any(
+                    flag and tuple(torch.as_tensor(a).shape) != shape for flag, a in zip(flags, args)):
+                raise ValueError(f"{where}: broadcasts an input that depends on the state to {shape}")
 
     def const(self, name: str) -> Tensor:
         return getattr(self, self._buffer[name])

@@ -106,6 +106,8 @@ def load_weights(path: Path, data: bytes | None = None) -> dict:
         for key, value in state.items():
             if not isinstance(value, torch.Tensor):
                 raise RunDirError(f"{path} is damaged: {group}.{key} is not a tensor")
+            if value.is_complex() or value.dtype == torch.bool:
+                raise RunDirError(f"{path} is damaged: {group}.{key} is not a real tensor ({value.dtype})")
             if value.is_floating_point() and not bool(torch.isfinite(value).all()):
                 raise RunDirError(f"{path} holds NaN or inf in {group}.{key}: the run's networks are not usable")
     return weights
