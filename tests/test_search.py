@@ -156,3 +156,15 @@ def test_a_checkpoint_is_saved_every_so_often():
     branch_and_bound(queue, bound, sort, Stopping(boxes=100, seconds=math.inf), Taking(1),
                      checkpoint=Checkpointing(times.append, every=0.0))
     assert len(times) == 31 and times == sorted(times)  # after every batch (every 0 s), the seconds growing
+
+
+def test_joining_boxes_with_and_without_inherited_bounds_keeps_both():
+    """A batch taken before any bound was known, put back in front of a queue that holds bounds, keeps them (+inf for
+    its own): a prefetched batch landing after the first split must not drop the queue's bounds."""
+    queue = DomainQueue(boxes([0, 1, 2, 3]))
+    first = queue.take(1)
+    queue.push(Boxes(torch.zeros(1, 1), torch.ones(1, 1), torch.tensor([9]), torch.tensor([[0.5]])))
+    queue.flight.append(first)
+    queue.land()
+    assert queue.queued.ids.tolist() == [0, 1, 2, 9]
+    assert queue.queued.known[:, 0].tolist() == [math.inf, math.inf, math.inf, 0.5]

@@ -81,6 +81,11 @@ ellipsoid."""
 _MARKS = ("ellipsoid", "practical", "band", "cube", "core")
 """The parts of a claim that mark its kind."""
 
+_KIND_OF_PARTS = {((), False): "condition", (("ellipsoid",), False): "ellipsoid", (("practical",), True): "practical",
+                  (("band",), False): "band", (("cube",), True): "roa-ball", (("core",), True): "roa-ball",
+                  (("core",), False): "core"}
+"""A claim's kind by the parts that mark it and whether its region is the delta-ball's box (``ball_of``)."""
+
 
 def claim_kind(claim: dict) -> str:
     """The kind (:data:`CLAIM_KINDS`) of a certificate's claim, from the parts that mark it and whether its region is
@@ -89,10 +94,7 @@ def claim_kind(claim: dict) -> str:
     than its sentence says."""
     marks = [k for k in _MARKS if claim.get(k) is not None]
     ball = claim["region"].get("ball_of") is not None
-    kinds = {((), False): "condition", (("ellipsoid",), False): "ellipsoid", (("practical",), True): "practical",
-             (("band",), False): "band", (("cube",), True): "roa-ball", (("core",), True): "roa-ball",
-             (("core",), False): "core"}
-    kind = kinds.get((tuple(marks), ball))
+    kind = _KIND_OF_PARTS.get((tuple(marks), ball))
     if kind is None:
         raise ValueError(f"the claim's parts ({', '.join(marks) or 'none'}) and its region "
                          f"({'the delta-ball' if ball else 'the state'}'s box) make no kind of claim drlyap states")

@@ -264,9 +264,15 @@ class _Search:
         job = ConditionJob(self.loop, condition, level, self.enclosure, band=self.floor is not None)
         checkpoint = None if self.key is None else Checkpointing(self._save_at, self.compute.checkpoint_every,
                                                                   SAVE_SPACING)
+
+        def sort(boxes: Boxes, found: dict[str, Tensor]) -> str | None:
+            reason = self._sort(boxes, found)
+            bar.set_postfix(queued=len(self.queue))
+            return reason
+
         try:
             outcome = branch_and_bound(
-                self.queue, lambda take, can_prefetch: run_batches(job, self.compute, take, can_prefetch), self._sort,
+                self.queue, lambda take, can_prefetch: run_batches(job, self.compute, take, can_prefetch), sort,
                 Stopping(int(budget.boxes), budget.seconds, self.give_up, self.processed, self.elapsed),
                 Taking(int(budget.batch)), bar=bar, checkpoint=checkpoint)
         finally:

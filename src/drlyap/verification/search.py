@@ -48,10 +48,14 @@ class Boxes:
 
     @staticmethod
     def join(parts: list[Boxes]) -> Boxes:
-        """The boxes of ``parts``, one after the other (their ``known`` only where every part has one)."""
-        known = [p.known for p in parts]
+        """The boxes of ``parts``, one after the other. Where some parts bring a ``known`` bound and others none, those
+        without get ``+inf`` (no bound known); ``known`` is None only where no part has one."""
+        ref = next((p.known for p in parts if p.known is not None), None)
+        known = None if ref is None else torch.cat([
+            p.known if p.known is not None else torch.full((len(p), *ref.shape[1:]), torch.inf, dtype=ref.dtype,
+                                                           device=ref.device) for p in parts])
         return Boxes(torch.cat([p.lo for p in parts]), torch.cat([p.hi for p in parts]), torch.cat([p.ids for p in parts]),
-                     torch.cat(known) if all(k is not None for k in known) else None)
+                     known)
 
 
 class DomainQueue:
@@ -77,12 +81,8 @@ class DomainQueue:
         return batch
 
     def push(self, boxes: Boxes) -> None:
-        """Queue ``boxes`` behind the others. Boxes that bring a ``known`` bound where the queue holds none give the
-        queued ones ``+inf`` (no bound known)."""
-        if boxes.known is not None and self.queued.known is None:
-            width = tuple(boxes.known.shape[1:])
-            self.queued.known = torch.full((len(self), *width), torch.inf, dtype=boxes.known.dtype,
-                                           device=boxes.known.device)
+        """Queue ``boxes`` behind the others (:meth:`Boxes.join`: boxes that bring a ``known`` bound where the queue
+        holds none give the queued ones ``+inf``)."""
         self.queued = Boxes.join([self.queued, boxes])
 
     def keep(self, which: Tensor) -> None:

@@ -52,7 +52,7 @@ def share(boxes: int, fraction: float) -> int:
 
 def time_capped(stopped: str | None) -> bool:
     """Whether a step's ``stopped`` (a branch and bound's) or ``limited_by`` (a level search's) is its time cap."""
-    return stopped is not None and (stopped == "time limit" or TIME_LIMIT in stopped)
+    return stopped is not None and (stopped == TIME_LIMIT_STOP or TIME_LIMIT in stopped)
 
 
 def below(level: float) -> float:
