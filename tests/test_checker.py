@@ -13,7 +13,7 @@ from torch import Tensor
 from drlyap.checker.arith import Du, Iv
 from drlyap.checker.check import CertificateError, check_certificate, check_tree, rebuild_boxes
 from drlyap.checker.model import Pair, Residual
-from drlyap.claims import claim_kind, claim_sentence
+from drlyap.claims.registry import claim_kind, claim_sentence
 from drlyap.conditions import DRPointwise, TrueDecrease
 from drlyap.proof_settings import Budget
 from drlyap.regions import Region

@@ -11,7 +11,7 @@ import torch
 from drlyap.checker.agreement import outer_missing
 from drlyap.checker.levels import faces_inward
 from drlyap.checker.model import Pair, Residual
-from drlyap.claims import claim_sentence
+from drlyap.claims.registry import claim_sentence
 from drlyap.closed_loop import ClosedLoop
 from drlyap.conditions import TrueDecrease
 from drlyap.proof_settings import Budget

@@ -11,7 +11,8 @@ from __future__ import annotations
 import math
 from pathlib import Path
 
-from drlyap.claims import band_sentence, decay_words, level_text, of_region
+from drlyap.claims.band import band_sentence
+from drlyap.claims.words import decay_words, level_text, of_region
 from drlyap.io import proved_percent
 from drlyap.kinds import Status
 from drlyap.records import ProofRound, TrainingRecord

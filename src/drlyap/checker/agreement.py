@@ -11,7 +11,8 @@ import math
 from collections.abc import Callable
 from pathlib import Path
 
-from drlyap.claims import PREMISES, faces_rule
+from drlyap.claims.kind import PREMISES
+from drlyap.claims.words import faces_rule
 
 
 def outer_missing(run_dir: Path, header: dict, positive: Callable[[dict], str] | None = None) -> list[str]:

@@ -44,63 +44,35 @@ from __future__ import annotations
 
 import math
 import time
-from dataclasses import dataclass, field
+from dataclasses import dataclass
 
 import numpy as np
 import torch
 from torch import Tensor
 
 from drlyap.checker.arith import EPS, F64, Iv
-from drlyap.checker.ball import ball_failures
-from drlyap.checker.band import band_floor, below_failures, statement_failures
-from drlyap.checker.ellipsoid import QuadraticPair, ellipsoid_failures, inside_core, read_core
-from drlyap.checker.graphs import GraphPair
-from drlyap.checker.leaves import MIN_PIECES, REFINE, LeafJob, prove_leaves
-from drlyap.checker.levels import ball_below, faces_above, faces_inward, grid_cells
-from drlyap.checker.model import Pair, Residual, centre_lower
-from drlyap.checker.uniform import uniform_margin_bound
-from drlyap.claims import KINDS_OF, UNREADABLE, claim_kind, claim_sentence, faces_rule
+from drlyap.checker.ellipsoid import inside_core
+from drlyap.checker.leaves import REFINE, LeafJob, prove_leaves
+from drlyap.checker.levels import faces_above, faces_inward, grid_cells
+from drlyap.checker.reading import (
+    ABOVE_LEVEL,
+    BELOW_LEVEL,
+    INSIDE_BALL,
+    INSIDE_CORE,
+    INTERNAL,
+    PROVED,
+    CertificateError,
+    CheckResult,
+    Leaves,
+    Reading,
+    RunFiles,
+    read,
+    vector_text,
+)
+from drlyap.claims.kind import ClaimKind
+from drlyap.claims.registry import KINDS_OF, claim_sentence, kind_of
+from drlyap.claims.words import UNREADABLE, faces_rule
 from drlyap.compute import Compute
-
-INTERNAL, PROVED, INSIDE_BALL, ABOVE_LEVEL, INSIDE_CORE, BELOW_LEVEL = 0, 1, 2, 3, 5, 6
-
-
-@dataclass
-class CheckResult:
-    """The outcome of re-checking one certificate: ``ok`` when every box holds and the boxes cover the region."""
-
-    name: str
-    ok: bool
-    claim: str
-    failures: list[str] = field(default_factory=list)
-    boxes: int = 0
-    proved: int = 0
-    inside_ball: int = 0
-    inside_core: int = 0
-    below_band: int = 0
-    """For a band claim: its leaves below the band, ``V < c1`` by the checker's bisection (counted in ``proved``)."""
-    ball_max: float | None = None
-    ball_boxes: int = 0
-    refined: int = 0
-    pieces: int = 0
-    faces_min: float | None = None
-    faces_boxes: int = 0
-    positive_min: float | None = None
-    """Where the decrease outside the ball is strict only where V > 0 (an imported V with ``alpha V``): V's smallest
-    lower bound on the box outside the ball by the checker's bisection, over ``positive_boxes`` boxes."""
-    positive_boxes: int = 0
-    cube_bound: float | None = None
-    """For V's second-order decrease near x* (``roa-ball``): ``lambda_max`` of the Hessian enclosure's centre plus its
-    spread, the largest over the samples (< 0 proves the cube); for an ``ellipsoid``, the same of its Jacobian test's
-    scaled matrices."""
-    time_s: float = 0.0
-
-    def to_dict(self) -> dict:
-        return dict(self.__dict__)
-
-
-class CertificateError(ValueError):
-    """The certificate is inconsistent with itself or with the run (a structural failure, found before any bound)."""
 
 
 def check_tree(arrays: dict[str, np.ndarray], cells: int, n: int, level: float | None, core: bool = False,
@@ -177,46 +149,6 @@ def inside_open_ball(lo: Tensor, hi: Tensor, delta: float) -> Tensor:
     return far < d2
 
 
-def _pair(weights: dict, header: dict, n: int) -> Pair | GraphPair:
-    """The checker's V and pi from the run's weights: an imported pair's graphs, or drlyap's networks (with the
-    header's ``alpha_hat``)."""
-    if "graphs" in weights:
-        return GraphPair(weights["graphs"], weights["tensors"], n)
-    return Pair(weights, float(header["networks"]["alpha_hat"]), n)
-
-
-def _practical_failures(out: CheckResult, claim: dict, pair, lo: Tensor, hi: Tensor) -> list[str]:
-    """What keeps a ``practical`` claim from following: its level ``c0`` (``claim["practical"]["level"]``) below the
-    set's level ``c``, and ``V <= c0`` on the open delta-ball (``region.ball_of``; ``[lo, hi]`` its box) by the
-    checker's bisection (:func:`~drlyap.checker.levels.ball_below`, recorded in ``out``)."""
-    c0, c = float(claim["practical"]["level"]), float(claim["region"]["level"])
-    if not (math.isfinite(c0) and c0 < c):
-        return [f"the level trajectories end up in ({c0:g}) is not below the set's ({c:g})"]
-    holds, out.ball_max, out.ball_boxes = ball_below(pair, lo, hi, float(claim["region"]["ball_of"]), c0)
-    if holds:
-        return []
-    return [f"V <= {c0:g} is not established on the ball (V's upper bound there {out.ball_max:.6g}, {out.ball_boxes} "
-            "boxes)"]
-
-
-def _claim_box(region: dict, system) -> tuple[Tensor, Tensor]:
-    """The claim's box ``(lo, hi)`` (local coordinates), which must be the system's state box, or with ``ball_of`` the
-    delta-ball's box inside it; a CertificateError where it is not."""
-    lo, hi = (torch.as_tensor(region[k], dtype=F64) for k in ("box_lo", "box_hi"))
-    box_lo, box_hi = (torch.as_tensor(b, dtype=F64) - torch.as_tensor(system.equilibrium, dtype=F64)
-                      for b in system.state_box)
-    if region.get("ball_of") is not None:  # the box of the delta-ball inside the state box (roa-ball)
-        ball = float(region["ball_of"])
-        if not (math.isfinite(ball) and ball > 0):
-            raise CertificateError(f"the claim's ball (ball_of = {ball}) is not a finite radius > 0")
-        box_lo, box_hi = torch.maximum(box_lo, torch.full_like(box_lo, -ball)), \
-            torch.minimum(box_hi, torch.full_like(box_hi, ball))
-    if not (torch.equal(lo, box_lo) and torch.equal(hi, box_hi)):
-        raise CertificateError("the certificate's state box is not the system's" + (
-            "" if region.get("ball_of") is None else " inside the delta-ball's box"))
-    return lo, hi
-
-
 def _placed_leaves(out: CheckResult, verdict: Tensor, lo: Tensor, hi: Tensor, delta: float,
                    core: tuple[Tensor, float] | None) -> None:
     """Whether the leaves said to lie in the open delta-ball, and in the core ``(P, c)`` where there is one, do (boxes
@@ -234,87 +166,6 @@ def _placed_leaves(out: CheckResult, verdict: Tensor, lo: Tensor, hi: Tensor, de
             out.failures.append(f"{int((~held).sum())} boxes said to lie in the core {{z'Pz <= {core[1]:g}}} do not")
 
 
-@dataclass
-class _Reading:
-    """A certificate as the checker reads it before any bound: its ``claim``, the region's box ``lo, hi`` (local
-    coordinates), ``delta``, ``level`` (None: X_delta), a band's ``floor``, the ``pair`` the claim is about (V and pi,
-    or W = z'Pz for an ``ellipsoid``), the claim's ``residual`` and a ``core`` ellipsoid ``(P, c)``."""
-
-    claim: dict
-    lo: Tensor
-    hi: Tensor
-    delta: float
-    level: float | None
-    floor: float | None
-    pair: Pair | GraphPair | QuadraticPair
-    residual: Residual
-    core: tuple[Tensor, float] | None
-
-
-def _read(out: CheckResult, header: dict, system, weights: dict, weights_sha256: str,
-          system_sha256: str) -> _Reading:
-    """The certificate's claim read against the run (its weights' and system's sha256, its box the system's), and what
-    its statement alone must say (a band's premises, into ``out``); a CertificateError (or KeyError, TypeError,
-    ValueError) where it cannot be read."""
-    if header["networks"]["weights_sha256"] != weights_sha256:
-        raise CertificateError("weights.pt is not the file the certificate was proved for (sha256 differs)")
-    if header["system"]["description_sha256"] != system_sha256:
-        raise CertificateError(f"the system {system.name!r} is not the one the certificate was proved for "
-                               "(its description's sha256 differs)")
-    claim = header.get("claim") or {}
-    region = claim["region"]
-    lo, hi = _claim_box(region, system)
-    delta, level = float(region["delta"]), region.get("level")
-    level = None if level is None else float(level)
-    if not (math.isfinite(delta) and delta >= 0) or (level is not None and not math.isfinite(level)):
-        raise CertificateError(f"the claim's delta ({delta}) or level ({level}) is not a finite number (delta >= 0)")
-    pair = _pair(weights, header, system.n)
-    floor = band_floor(claim)
-    if floor is not None:  # about V as the files give it (an imported V is not pinned at x* for it)
-        out.failures += statement_failures(claim)
-        pair = pair.as_given() if isinstance(pair, GraphPair) else pair
-    elif not getattr(pair, "pinned", True):
-        raise CertificateError("V is not pinned at x* (graphs.json: imported as given): only a band claim is "
-                               "checked for it")
-    if claim.get("ellipsoid") is not None:  # the closed loop's own W = z'Pz: its claims are about W, not V
-        pair = QuadraticPair(pair, torch.as_tensor(claim["ellipsoid"]["P"], dtype=F64))
-    residual = Residual(claim["condition"], pair, system)
-    core = None if claim.get("core") is None else read_core(claim, system.n)
-    return _Reading(claim, lo, hi, delta, level, floor, pair, residual, core)
-
-
-def _practical(out: CheckResult, cert: _Reading, header: dict, system) -> bool:
-    """A ``practical`` claim: V's bound on the delta-ball (the decrease outside it is its ``outer`` certificate's); no
-    partition."""
-    out.failures += _practical_failures(out, cert.claim, cert.pair, cert.lo, cert.hi)
-    return False
-
-
-def _near_x_star(out: CheckResult, cert: _Reading, header: dict, system) -> bool:
-    """A decrease near x*: a ``roa-ball``'s cube by second order, an ``ellipsoid`` by its Jacobian; True where a ring of
-    boxes around it (a partition) is to be checked too (a ``roa-ball`` resting on a core has its partition only)."""
-    ring = header["partition"] is not None
-    if cert.claim.get("cube") is None and cert.claim.get("ellipsoid") is None:
-        return True
-    if cert.claim.get("cube") is not None:
-        failures, out.cube_bound = ball_failures(cert.claim, cert.pair, system, cert.lo, cert.hi, cert.delta, ring)
-    else:
-        failures, out.cube_bound = ellipsoid_failures(cert.claim, cert.residual, cert.lo, cert.hi, cert.delta, ring)
-    out.failures += failures
-    return ring  # without one the cube covers the ball, or the ellipsoid lies in its box
-
-
-def _partition_only(out: CheckResult, cert: _Reading, header: dict, system) -> bool:
-    """A claim proved on a partition alone (a condition on X_delta or a sublevel set, with a core, on a band; the DR
-    uniform condition)."""
-    return True
-
-
-BEFORE_PARTITION = {"practical": _practical, "roa-ball": _near_x_star, "ellipsoid": _near_x_star}
-"""Per kind of claim (:func:`~drlyap.claims.claim_kind`), what the checker establishes before (or instead of) the
-partition's leaves, and whether a partition follows; the other kinds have only their partition."""
-
-
 @dataclass(frozen=True)
 class LeafSettings:
     """How the checker bounds a partition's leaves: bisected up to ``refine`` times where a bound does not prove one,
@@ -328,55 +179,63 @@ class LeafSettings:
 def check_certificate(name: str, header: dict, arrays: dict[str, np.ndarray], system, weights: dict,
                       weights_sha256: str, system_sha256: str, leaves: LeafSettings = LeafSettings()) -> CheckResult:
     """Re-check the certificate ``name`` of a run (its ``header`` and partition ``arrays``) against the run's own weights
-    (``weights``, from the file with ``weights_sha256``) and system (``system_sha256``); leaves bounded as
-    :func:`~drlyap.checker.leaves.prove_leaves`, as ``leaves`` says (refinement, pieces, where)."""
+    (``weights``, from the file with ``weights_sha256``) and system (``system_sha256``), as its kind of claim
+    (:mod:`drlyap.claims`) says; leaves bounded as :func:`~drlyap.checker.leaves.prove_leaves`, as ``leaves`` says
+    (refinement, pieces, where)."""
     start = time.perf_counter()
+    run = RunFiles(system, weights, weights_sha256, system_sha256)
     claim = header.get("claim") or {}
     out = CheckResult(name=name, ok=False, claim=claim_sentence(claim))
     try:
-        kind = claim_kind(claim)  # a claim of no kind is checked on nothing
-        if kind not in KINDS_OF.get(name, ()):
-            raise CertificateError(f"a {name!r} certificate does not state a {kind} claim")
+        kind = kind_of(claim)  # a claim of no kind is checked on nothing
+        if kind.name not in KINDS_OF.get(name, ()):
+            raise CertificateError(f"a {name!r} certificate does not state a {kind.name} claim")
         if out.claim == UNREADABLE:
             raise CertificateError("its claim cannot be put in words: nothing is confirmed of it")
-        cert = _read(out, header, system, weights, weights_sha256, system_sha256)
-        partition = BEFORE_PARTITION.get(kind, _partition_only)(out, cert, header, system)
+        cert = read(out, header, kind, run)
+        partition = kind.before_partition(out, cert, header, run.system)
         if partition:
             grid = [int(k) for k in header["partition"]["grid"]]
-            if len(grid) != system.n or min(grid) < 1:
-                raise CertificateError(f"the starting grid {grid} does not fit {system.n} states")
-            check_tree(arrays, int(np.prod(grid)), system.n, cert.level, cert.core is not None,
+            if len(grid) != run.system.n or min(grid) < 1:
+                raise CertificateError(f"the starting grid {grid} does not fit {run.system.n} states")
+            check_tree(arrays, int(np.prod(grid)), run.system.n, cert.level, cert.core is not None,
                        cert.floor is not None)
     except (CertificateError, KeyError, TypeError, ValueError) as err:
         out.failures.append(str(err) if not isinstance(err, KeyError) else f"the header lacks {err}")
         out.time_s = time.perf_counter() - start
         return out
     if partition:
-        _check_partition(out, cert, header, arrays, grid, leaves)
+        _check_partition(out, cert, kind, header, arrays, grid, leaves)
     out.ok, out.time_s = not out.failures, time.perf_counter() - start
     return out
 
 
-def _check_partition(out: CheckResult, cert: _Reading, header: dict, arrays: dict[str, np.ndarray], grid: list[int],
-                     settings: LeafSettings) -> None:
-    """The partition's leaves: placed where they say (in the ball, in the core), proved by the checker's bounds (the
-    DR uniform condition: one margin over them all), V above the level on the box's faces (or the flow entering it),
-    a band's leaves below it, and no recorded bound below the value at its box's centre; into ``out``."""
-    residual, pair, lo, hi, level = cert.residual, cert.pair, cert.lo, cert.hi, cert.level
-    blo, bhi = rebuild_boxes(lo, hi, grid, arrays)
+def _check_partition(out: CheckResult, cert: Reading, kind: ClaimKind, header: dict, arrays: dict[str, np.ndarray],
+                     grid: list[int], settings: LeafSettings) -> None:
+    """The partition's leaves: placed where they say (in the ball, in the core), then proved as the claim's kind says
+    (:meth:`~drlyap.claims.kind.ClaimKind.leaves`); into ``out``."""
+    blo, bhi = rebuild_boxes(cert.lo, cert.hi, grid, arrays)
     verdict = torch.as_tensor(arrays["verdict"].astype(np.int64))
     bound = torch.as_tensor(arrays["bound"].astype(np.float64))
     out.boxes = int((verdict != INTERNAL).sum())
     _placed_leaves(out, verdict, blo, bhi, cert.delta, cert.core)
     proved = ((verdict == PROVED) | (verdict == ABOVE_LEVEL)).nonzero().squeeze(-1)
-    if residual.name == "uniform":
-        _check_uniform(out, residual, blo[proved], bhi[proved], bound[proved], hi - lo, settings.refine)
-        return
+    leaves = Leaves(blo, bhi, verdict, bound, proved, settings.refine)
+    kind.leaves(out, cert, leaves, lambda: _prove_leaves(out, cert, kind, header, leaves, settings))
+
+
+def _prove_leaves(out: CheckResult, cert: Reading, kind: ClaimKind, header: dict, leaves: Leaves,
+                  settings: LeafSettings) -> None:
+    """The proved leaves by the checker's bounds, V above the level on the box's faces (or the flow entering it), what
+    the kind establishes beside them (a band's leaves below it), and no recorded bound below the value at its box's
+    centre; into ``out``."""
+    pair, level, proved = cert.pair, cert.level, leaves.proved
+    blo, bhi, bound = leaves.lo, leaves.hi, leaves.bound
     cheap_first = header["partition"].get("enclosure") in ("interval", "mean-value")  # an order, as for ``above``
-    job = LeafJob(residual, hi - lo, settings.refine, level, cheap_first)
-    ok, centre_low, out.refined, out.pieces = prove_leaves(job, blo[proved], bhi[proved], verdict[proved] == ABOVE_LEVEL,
-                                                           settings.compute, f"check ({out.name}): leaves",
-                                                           settings.pieces_per_leaf)
+    job = LeafJob(cert.residual, cert.hi - cert.lo, settings.refine, level, cheap_first)
+    ok, centre_low, out.refined, out.pieces = prove_leaves(job, blo[proved], bhi[proved],
+                                                           leaves.verdict[proved] == ABOVE_LEVEL, settings.compute,
+                                                           f"check ({out.name}): leaves", settings.pieces_per_leaf)
     out.proved = int(ok.sum())
     if not bool(ok.all()):
         first = proved[~ok][0]
@@ -384,30 +243,26 @@ def _check_partition(out: CheckResult, cert: _Reading, header: dict, arrays: dic
                "; the verifier bounded them with its own second-order forms, and this checker's do not reach its "
                "bounds there: the certificate is not confirmed, which does not show it false")
         out.failures.append(f"{int((~ok).sum())} of {proved.numel()} boxes are not proved by the checker's bounds "
-                            f"(first: node {int(first)}, [{_fmt(blo[first])}] to [{_fmt(bhi[first])}]){why}")
-    kind = verdict[proved]
-    false = (kind == PROVED) & (bound[proved] < centre_low - 4 * EPS * centre_low.abs())
+                            f"(first: node {int(first)}, [{vector_text(blo[first])}] to [{vector_text(bhi[first])}])"
+                            f"{why}")
+    verdict = leaves.verdict[proved]
+    false = (verdict == PROVED) & (bound[proved] < centre_low - 4 * EPS * centre_low.abs())
     if level is not None:  # V's recorded lower bound must not exceed V at the box's centre
-        above = kind == ABOVE_LEVEL
+        above = verdict == ABOVE_LEVEL
         v_centre = pair.value_and_grad(Iv.point((blo[proved] + bhi[proved]) / 2))[0].lo
         false = false | (above & (bound[proved] > v_centre + 4 * EPS * v_centre.abs()))
         _check_faces(out, cert)
-    if cert.floor is not None:  # a band's leaves below it: V < c1 there, by the checker's bisection
-        below = (verdict == BELOW_LEVEL).nonzero().squeeze(-1)
-        failures, spent = below_failures(pair, blo[below], bhi[below], bound[below], cert.floor, hi - lo)
-        out.failures, out.pieces = out.failures + failures, out.pieces + spent
-        out.below_band = int(below.numel()) if not failures else 0
-        out.proved += out.below_band
+    kind.after_leaves(out, cert, leaves)
     if bool(false.any()):
         first = proved[false][0]
         out.failures.append(f"{int(false.sum())} recorded bounds lie below the residual at their box's centre (first: "
                             f"node {int(first)}, recorded {float(bound[first]):.6g})")
 
 
-def _check_faces(out: CheckResult, cert: _Reading) -> None:
-    """A sublevel set's rule on the box's faces (:func:`~drlyap.claims.faces_rule`): V (W) above the level there, or the
-    flow entering the box wherever the set meets a face; inside the delta-ball the set's boundary is the outer proof's.
-    Its failures and counts into ``out``."""
+def _check_faces(out: CheckResult, cert: Reading) -> None:
+    """A sublevel set's rule on the box's faces (:func:`~drlyap.claims.words.faces_rule`): V (W) above the level
+    there, or the flow entering the box wherever the set meets a face; inside the delta-ball the set's boundary is the
+    outer proof's. Its failures and counts into ``out``."""
     claim, residual, level = cert.claim, cert.residual, cert.level
     faces = faces_rule(claim)
     if faces not in ("above", "inward") or (faces == "inward" and (residual.model != "true"
@@ -425,24 +280,3 @@ def _check_faces(out: CheckResult, cert: _Reading) -> None:
             what = "W" if claim.get("ellipsoid") is not None else "V"
             out.failures.append(f"{what} > {level:g} is not established on the box's faces ({what}'s lower bound "
                                 f"there {out.faces_min:.6g}, {out.faces_boxes} face boxes)")
-
-
-def _check_uniform(out: CheckResult, residual: Residual, lo: Tensor, hi: Tensor, bound: Tensor, scale: Tensor,
-                   refine: int) -> None:
-    """The DR uniform claim on the leaves ``[lo, hi] (B, n)`` (recorded bounds ``bound (B,)``: each leaf's own
-    margin, which may not lie below the margin at its centre): the margin's bound from every leaf's components
-    (:func:`~drlyap.checker.uniform.uniform_margin_bound`) must be ``<= 0``; its outcome goes into ``out``."""
-    margin, suprema, out.refined, out.pieces = uniform_margin_bound(residual, lo, hi, scale, refine,
-                                                                    max(MIN_PIECES, int(lo.shape[0])))
-    out.proved = int(lo.shape[0]) if margin <= 0 else 0
-    if margin > 0:
-        out.failures.append(f"the checker's bound of the uniform margin over the {lo.shape[0]} leaves is {margin:.6g} "
-                            f"> 0 (suprema of ||W^T grad V||, Vdot_j + decay: {_fmt(suprema)})")
-    centre_low = centre_lower(residual, lo, hi)
-    false = bound < centre_low - 4 * EPS * centre_low.abs()
-    if bool(false.any()):
-        out.failures.append(f"{int(false.sum())} recorded bounds lie below the margin at their box's centre")
-
-
-def _fmt(v: Tensor) -> str:
-    return ", ".join(f"{float(a):.6g}" for a in v)

@@ -15,17 +15,10 @@ from pathlib import Path
 import torch
 
 from drlyap.checker.agreement import claim_mismatch, core_missing, outer_missing
-from drlyap.checker.check import (
-    REFINE,
-    CertificateError,
-    CheckResult,
-    LeafSettings,
-    _claim_box,
-    _pair,
-    check_certificate,
-)
+from drlyap.checker.check import REFINE, LeafSettings, check_certificate
 from drlyap.checker.levels import outside_positive
 from drlyap.checker.quadratic import surely_semidefinite
+from drlyap.checker.reading import CertificateError, CheckResult, claim_box, pair_of
 from drlyap.checker.record import drop_record, fingerprint, write_record
 from drlyap.compute import Compute
 
@@ -128,8 +121,8 @@ def _positive_outside(out: CheckResult, weights: dict, header: dict, system) -> 
     def positive(region: dict) -> str:
         start = time.perf_counter()
         try:
-            lo, hi = _claim_box(region, system)
-            pair, delta = _pair(weights, header, system.n), float(region["delta"])
+            lo, hi = claim_box(region, system)
+            pair, delta = pair_of(weights, header, system.n), float(region["delta"])
         except (CertificateError, KeyError, TypeError, ValueError) as err:
             return f"V > 0 outside the ball cannot be checked ({err})"
         p = getattr(pair, "p", None)  # the quadratic V of a controller imported alone: positive definite by its P

@@ -9,7 +9,7 @@ from pathlib import Path
 
 import click
 
-from drlyap.claims import CERTIFICATES
+from drlyap.claims.registry import CERTIFICATES
 from drlyap.cli.common import compute_options, compute_settings, fail, refuse_early, run_source_options, run_system_of
 
 

@@ -48,7 +48,7 @@ from typing import TYPE_CHECKING
 import numpy as np
 import torch
 
-from drlyap.claims import CERTIFICATES, claim_sentence
+from drlyap.claims.registry import CERTIFICATES, claim_sentence
 from drlyap.io import jsonable
 
 if TYPE_CHECKING:  # the writing side's types; reading a certificate (the checker) loads nothing of the verifier

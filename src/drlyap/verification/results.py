@@ -25,7 +25,7 @@ import math
 from dataclasses import dataclass, field
 from typing import Any, ClassVar
 
-from drlyap.claims import condition_region
+from drlyap.claims.words import condition_region
 from drlyap.kinds import Status
 from drlyap.verification.result_base import Result
 from drlyap.verification.result_base import known as _known

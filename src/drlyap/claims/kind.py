@@ -1,0 +1,77 @@
+"""What every kind of claim is: the interface one module per kind (``drlyap/claims/<kind>.py``, its ``KIND``)
+fills in, and :mod:`drlyap.claims.registry` gathers.
+
+A kind says which parts of a certificate's claim mark it, which certificate files may state it, which certificates it
+may rest on, the sentence it is printed as, and how the checker re-proves it: which pair it is about, what is
+established before (or instead of) the partition's leaves, how the leaves are proved and what follows them. The
+checker's own arithmetic is imported inside those methods, so that reading a claim's words loads no numerical code
+(``drlyap --help`` lists the certificate names)."""
+
+from __future__ import annotations
+
+from collections.abc import Callable
+from typing import TYPE_CHECKING
+
+if TYPE_CHECKING:  # the checker's side of a claim: loaded only where a certificate is re-proved
+    from drlyap.checker.reading import CheckResult, Leaves, Reading
+
+PREMISES = {"outer": ("roa", "trained", "true-model"), "core": ("ellipsoid",)}
+"""The certificates a claim may rest on, by the part of the claim that names them: the decrease outside the
+delta-ball (``outer``) and the ellipsoid of its ``core`` (``core.certificate``)."""
+
+MARKS = ("ellipsoid", "practical", "band", "cube", "core")
+"""The parts of a claim that mark its kind (a claim with none of them states a decrease condition)."""
+
+
+class ClaimKind:
+    """One kind of claim. ``name``: as :func:`~drlyap.claims.registry.claim_kind` returns it; ``files``: the
+    certificate files that may state it (the checks that go by a file's name, its agreement with the run and its
+    premises, are written for these); ``rank``: its place among the kinds (certificate files are listed in the order
+    of the first kind that names them); ``rests_on``: the parts of its claim that name certificates it rests on
+    (:data:`PREMISES`)."""
+
+    name: str = ""
+    files: tuple[str, ...] = ()
+    rank: int = 0
+    rests_on: tuple[str, ...] = ()
+
+    def states(self, marks: frozenset[str], ball: bool, claim: dict) -> bool:
+        """Whether a claim with the parts ``marks`` (of :data:`MARKS`), on the delta-ball's box (``ball``: its region
+        has ``ball_of``) or the state box, is of this kind."""
+        raise NotImplementedError
+
+    def refusal(self, claim: dict) -> str | None:
+        """Why a claim of this kind states nothing drlyap claims (None: it states this kind's claim)."""
+        return None
+
+    def sentence(self, claim: dict, what: str) -> str:
+        """The claim in words, ``what`` being its condition's (:func:`~drlyap.claims.words.condition_words`)."""
+        raise NotImplementedError
+
+    def about(self, out: CheckResult, claim: dict, pair):
+        """The pair (V and pi, as the checker reads them) the claim is about; what its statement alone must say goes
+        into ``out``. A V not pinned at x* (an imported V taken as given) is refused: only a claim about V as given
+        may take it."""
+        from drlyap.checker.reading import CertificateError
+
+        if not getattr(pair, "pinned", True):
+            raise CertificateError("V is not pinned at x* (graphs.json: imported as given): only a band claim is "
+                                   "checked for it")
+        return pair
+
+    def floor(self, claim: dict) -> float | None:
+        """A level below which the partition's leaves may lie instead of being proved (a band's ``c1``); None: none."""
+        return None
+
+    def before_partition(self, out: CheckResult, cert: Reading, header: dict, system) -> bool:
+        """What the checker establishes before (or instead of) the partition's leaves, into ``out``; whether a
+        partition follows."""
+        return True
+
+    def leaves(self, out: CheckResult, cert: Reading, leaves: Leaves, prove: Callable[[], None]) -> None:
+        """The partition's proved leaves, re-proved: by ``prove`` (the checker's leaf by leaf proof) unless the kind
+        proves them otherwise."""
+        prove()
+
+    def after_leaves(self, out: CheckResult, cert: Reading, leaves: Leaves) -> None:
+        """What the kind establishes on the partition beside its proved leaves (a band's leaves below it)."""
