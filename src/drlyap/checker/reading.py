@@ -64,7 +64,8 @@ class CertificateError(ValueError):
 class Reading:
     """A certificate as the checker reads it before any bound: its ``claim``, the region's box ``lo, hi`` (local
     coordinates), ``delta``, ``level`` (None: X_delta), a band's ``floor``, the ``pair`` the claim is about (V and pi,
-    or W = z'Pz for an ``ellipsoid``), the claim's ``residual`` and a ``core`` ellipsoid ``(P, c)``."""
+    or W = z'Pz for an ``ellipsoid``), the claim's ``residual`` (None for a claim about no condition) and a ``core``
+    ellipsoid ``(P, c)``."""
 
     claim: dict
     lo: Tensor
@@ -73,7 +74,7 @@ class Reading:
     level: float | None
     floor: float | None
     pair: Pair | GraphPair | QuadraticPair
-    residual: Residual
+    residual: Residual | None
     core: tuple[Tensor, float] | None
 
 
@@ -154,7 +155,7 @@ def read(out: CheckResult, header: dict, kind, run: RunFiles) -> Reading:
     if not (math.isfinite(delta) and delta >= 0) or (level is not None and not math.isfinite(level)):
         raise CertificateError(f"the claim's delta ({delta}) or level ({level}) is not a finite number (delta >= 0)")
     pair = kind.about(out, claim, pair_of(run.weights, header, system.n))
-    residual = Residual(claim["condition"], pair, system)
+    residual = Residual(claim["condition"], pair, system) if kind.condition else None
     core = None if claim.get("core") is None else read_core(claim, system.n)
     return Reading(claim, lo, hi, delta, level, kind.floor(claim), pair, residual, core)
 

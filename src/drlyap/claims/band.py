@@ -30,6 +30,8 @@ class Band(ClaimKind):
     name = "band"
     files = ("band",)
     rank = 6
+    parts = ("band",)
+    own_claim = True
 
     def states(self, marks: frozenset[str], ball: bool, claim: dict) -> bool:
         return marks == {"band"} and not ball

@@ -15,7 +15,7 @@ class Condition(ClaimKind):
     rank = 0
 
     def states(self, marks: frozenset[str], ball: bool, claim: dict) -> bool:
-        return not marks and not ball and claim["condition"].get("name") != "uniform"
+        return not marks and not ball and (claim.get("condition") or {}).get("name") != "uniform"
 
     def sentence(self, claim: dict, what: str) -> str:
         r = claim["region"]

@@ -20,6 +20,7 @@ class Core(ClaimKind):
     name = "core"
     files = ("roa",)
     rank = 2
+    parts = ("core",)
     rests_on = ("core",)
 
     def states(self, marks: frozenset[str], ball: bool, claim: dict) -> bool:

@@ -18,6 +18,8 @@ class Ellipsoid(ClaimKind):
     name = "ellipsoid"
     files = ("ellipsoid",)
     rank = 4
+    parts = ("ellipsoid",)
+    without_partition = True
 
     def states(self, marks: frozenset[str], ball: bool, claim: dict) -> bool:
         return marks == {"ellipsoid"} and not ball

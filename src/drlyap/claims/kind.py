@@ -10,6 +10,7 @@ checker's own arithmetic is imported inside those methods, so that reading a cla
 from __future__ import annotations
 
 from collections.abc import Callable
+from dataclasses import dataclass, field
 from typing import TYPE_CHECKING
 
 if TYPE_CHECKING:  # the checker's side of a claim: loaded only where a certificate is re-proved
@@ -19,8 +20,33 @@ PREMISES = {"outer": ("roa", "trained", "true-model"), "core": ("ellipsoid",)}
 """The certificates a claim may rest on, by the part of the claim that names them: the decrease outside the
 delta-ball (``outer``) and the ellipsoid of its ``core`` (``core.certificate``)."""
 
-MARKS = ("ellipsoid", "practical", "band", "cube", "core")
-"""The parts of a claim that mark its kind (a claim with none of them states a decrease condition)."""
+
+@dataclass(frozen=True)
+class ClaimRequest:
+    """What a kind's proof is asked on: a loaded run (:class:`~drlyap.runs.Run`), its proof settings
+    (:class:`~drlyap.proof_settings.ProofConfig`, resolved for the run) and a shift ``xi`` ``(k,)`` of the uncertain
+    parameters where the claim is about the true model at one (None: the kind's default)."""
+
+    run: object
+    proof: object
+    xi: tuple[float, ...] | None = None
+
+
+@dataclass
+class ClaimOutcome:
+    """How a kind's proof ended: ``status`` (``verified``, ``violated``, ``unknown``), the claim's ``sentence`` as its
+    certificate states it (where one was written: ``certificate``, the header's path), ``time_s`` and the numbers
+    behind it (``numbers``, JSON-ready)."""
+
+    name: str
+    status: str
+    sentence: str
+    time_s: float
+    certificate: str | None = None
+    numbers: dict = field(default_factory=dict)
+
+    def to_dict(self) -> dict:
+        return dict(self.__dict__)
 
 
 class ClaimKind:
@@ -28,17 +54,35 @@ class ClaimKind:
     certificate files that may state it (the checks that go by a file's name, its agreement with the run and its
     premises, are written for these); ``rank``: its place among the kinds (certificate files are listed in the order
     of the first kind that names them); ``rests_on``: the parts of its claim that name certificates it rests on
-    (:data:`PREMISES`)."""
+    (:data:`PREMISES`); ``parts``: the parts of a claim that mark this kind (the registry reads a claim's kind from
+    every kind's parts); ``condition``: whether the claim is about a decrease condition (``claim["condition"]``);
+    ``own_claim``: whether the claim states what it is about itself (its levels, shift, delta), so that nothing of
+    the run's ``config.json`` or ``metrics.json`` is asked of it beside V's ``alpha_hat``; ``without_partition``:
+    whether a certificate of it may have no partition (the checker proves it from the claim alone)."""
 
     name: str = ""
     files: tuple[str, ...] = ()
     rank: int = 0
     rests_on: tuple[str, ...] = ()
+    parts: tuple[str, ...] = ()
+    condition: bool = True
+    own_claim: bool = False
+    without_partition: bool = False
 
     def states(self, marks: frozenset[str], ball: bool, claim: dict) -> bool:
-        """Whether a claim with the parts ``marks`` (of :data:`MARKS`), on the delta-ball's box (``ball``: its region
-        has ``ball_of``) or the state box, is of this kind."""
+        """Whether a claim with the parts ``marks`` (of every kind's ``parts``), on the delta-ball's box (``ball``: its
+        region has ``ball_of``) or the state box, is of this kind."""
         raise NotImplementedError
+
+    @property
+    def provable(self) -> bool:
+        """Whether :meth:`prove` proves the claim here (the other kinds are proved by their own routes: ``verify``,
+        ``verify --roa``, ``--band``, ``--max-radius``)."""
+        return type(self).prove is not ClaimKind.prove
+
+    def prove(self, request: ClaimRequest) -> ClaimOutcome:
+        """Prove the claim of this kind for ``request``'s run and write its certificate where it is verified."""
+        raise NotImplementedError(f"a {self.name} claim is proved by its own route, not by name")
 
     def refusal(self, claim: dict) -> str | None:
         """Why a claim of this kind states nothing drlyap claims (None: it states this kind's claim)."""

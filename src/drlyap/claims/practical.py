@@ -18,6 +18,8 @@ class Practical(ClaimKind):
     name = "practical"
     files = ("practical",)
     rank = 5
+    parts = ("practical",)
+    without_partition = True
     rests_on = ("outer",)
 
     def states(self, marks: frozenset[str], ball: bool, claim: dict) -> bool:

@@ -8,7 +8,7 @@ import importlib
 import pkgutil
 
 import drlyap.claims as _package
-from drlyap.claims.kind import MARKS, ClaimKind
+from drlyap.claims.kind import ClaimKind
 from drlyap.claims.words import UNREADABLE, condition_words
 
 
@@ -32,16 +32,20 @@ inequality); V's set resting on a ``core`` ellipsoid; V's decrease inside the de
 loop's own quadratic region (``ellipsoid``); ``practical`` stability; the decrease on a ``band`` c1 <= V <= c2."""
 
 CERTIFICATES: tuple[str, ...] = tuple(dict.fromkeys(f for k in KINDS for f in k.files))
-"""The names of a run's certificate files (:mod:`drlyap.runs.certificates` says what each claims)."""
+"""The names of a run's certificate files, from every kind's ``files`` (each kind's module says what it claims)."""
 
 KINDS_OF: dict[str, tuple[str, ...]] = {f: tuple(k.name for k in KINDS if f in k.files) for f in CERTIFICATES}
 """The kinds of claim each certificate file may state: what its name means, and what the checks that go by the name
 (the run's agreement, a claim's premises) are written for."""
 
 
-def kind_of(claim: dict) -> ClaimKind:
-    """The kind of a certificate's claim, from the parts that mark it (:data:`~drlyap.claims.kind.MARKS`) and whether
-    its region is the delta-ball's box (``ball_of``); a ValueError where they make no kind drlyap states (two kinds at
+MARKS: tuple[str, ...] = tuple(dict.fromkeys(p for k in KINDS for p in k.parts))
+"""The parts of a claim that mark its kind (a claim with none of them states a decrease condition)."""
+
+
+def stated_kind(claim: dict) -> ClaimKind:
+    """The kind a certificate's claim is stated as, from the parts that mark it (:data:`MARKS`) and whether its
+    region is the delta-ball's box (``ball_of``); a ValueError where they make no kind drlyap states (two kinds at
     once, or a region in the ball's box for a claim whose words are about the whole box), so that a claim is never
     checked on less than its sentence says."""
     marks = frozenset(k for k in MARKS if claim.get(k) is not None)
@@ -51,10 +55,17 @@ def kind_of(claim: dict) -> ClaimKind:
         named = ", ".join(m for m in MARKS if m in marks) or "none"
         raise ValueError(f"the claim's parts ({named}) and its region "
                          f"({'the delta-ball' if ball else 'the state'}'s box) make no kind of claim drlyap states")
-    why = kinds[0].refusal(claim)
+    return kinds[0]
+
+
+def kind_of(claim: dict) -> ClaimKind:
+    """The kind of a certificate's claim (:func:`stated_kind`), or a ValueError where its kind refuses what it states
+    (:meth:`~drlyap.claims.kind.ClaimKind.refusal`)."""
+    kind = stated_kind(claim)
+    why = kind.refusal(claim)
     if why is not None:
         raise ValueError(why)
-    return kinds[0]
+    return kind
 
 
 def claim_kind(claim: dict) -> str:
@@ -67,6 +78,7 @@ def claim_sentence(claim: dict) -> str:
     :mod:`drlyap.runs.certificates`) in words, by its kind: what the file states and what ``drlyap check``
     re-proves."""
     try:
-        return kind_of(claim).sentence(claim, condition_words(claim["condition"]))
+        kind = kind_of(claim)
+        return kind.sentence(claim, condition_words(claim["condition"]) if kind.condition else "")
     except (KeyError, TypeError, ValueError, IndexError, AttributeError, ArithmeticError):
         return UNREADABLE

@@ -19,6 +19,8 @@ class RoaBall(ClaimKind):
     name = "roa-ball"
     files = ("roa-ball",)
     rank = 3
+    parts = ("cube", "core")
+    without_partition = True
     rests_on = ("outer", "core")
 
     def states(self, marks: frozenset[str], ball: bool, claim: dict) -> bool:

@@ -19,7 +19,7 @@ class Uniform(ClaimKind):
     rank = 1
 
     def states(self, marks: frozenset[str], ball: bool, claim: dict) -> bool:
-        return not marks and not ball and claim["condition"].get("name") == "uniform"
+        return not marks and not ball and (claim.get("condition") or {}).get("name") == "uniform"
 
     def refusal(self, claim: dict) -> str | None:
         if claim["region"].get("level") is not None:

@@ -21,7 +21,9 @@ boxes inside the ellipsoid being leaves of their own. Where only practical stabi
 shift that moves the equilibrium), ``practical``: V at most ``c0`` on the delta-ball (no partition: the checker bisects
 the ball itself), naming as ``outer`` the certificate of the decrease outside it on ``{V <= c}``. ``band`` (``verify
 --band``): decrease on the true model on ``{c1 <= V <= c2}`` of the whole box, the flow entering the box where
-``V <= c2`` on its faces (:mod:`drlyap.verification.band_claim`).
+``V <= c2`` on its faces (:mod:`drlyap.verification.band_claim`). Each kind of claim is a module of
+:mod:`drlyap.claims`, which names the files that may state it; a kind proved by name (``verify --claim NAME``) writes
+its own file (:data:`drlyap.claims.registry.CERTIFICATES` lists them all).
 The header (format ``drlyap-certificate``, version 1) holds:
 
 * ``claim``: the condition (name, model, samples or shift ``xi`` or a box of shifts ``xi_box``, decay, Wasserstein
@@ -48,7 +50,7 @@ from typing import TYPE_CHECKING
 import numpy as np
 import torch
 
-from drlyap.claims.registry import CERTIFICATES, claim_sentence
+from drlyap.claims.registry import BY_NAME, CERTIFICATES, KINDS, KINDS_OF, MARKS, claim_sentence, stated_kind
 from drlyap.io import jsonable
 
 if TYPE_CHECKING:  # the writing side's types; reading a certificate (the checker) loads nothing of the verifier
@@ -98,15 +100,15 @@ def condition_claim(condition: Condition) -> dict:
     return jsonable(claim if box is None else claim | {"xi_box": box})
 
 
-def certificate_claim(condition: Condition, region: Region, level: float | None) -> dict:
-    """What a certificate claims, as its header states it (without the sentence): the condition and the region
-    (the state box in local coordinates, delta, the level of a sublevel set or None)."""
-    return jsonable({"condition": condition_claim(condition),
+def certificate_claim(condition: Condition | None, region: Region, level: float | None) -> dict:
+    """What a certificate claims, as its header states it (without the sentence): the condition (None: a claim about
+    no condition) and the region (the state box in local coordinates, delta, the level of a sublevel set or None)."""
+    return jsonable({"condition": None if condition is None else condition_claim(condition),
                      "region": {"box_lo": region.lo.tolist(), "box_hi": region.hi.tolist(), "delta": region.delta,
                                 "level": level, "coordinates": "local (z = x - x*)"}})
 
 
-def certificate_header(proof: ConditionProof | UniformMargin | None, condition: Condition, region: Region,
+def certificate_header(proof: ConditionProof | UniformMargin | None, condition: Condition | None, region: Region,
                        system: UncertainSystem, weights_sha256: str, alpha_hat: float | None,
                        arrays_file: str | None, arrays_sha256: str | None, level: float | None = None,
                        extra: dict | None = None) -> dict:
@@ -134,7 +136,7 @@ def certificate_header(proof: ConditionProof | UniformMargin | None, condition: 
 
 
 def write_certificate(folder: str | os.PathLike, name: str, proof: ConditionProof | UniformMargin | None,
-                      condition: Condition,
+                      condition: Condition | None,
                       region: Region, system: UncertainSystem, weights: str | os.PathLike | list,
                       alpha_hat: float | None, level: float | None = None, extra: dict | None = None) -> Path:
     """Write ``folder/certificates/NAME.json`` and ``.npz`` for a verified proof that kept its partition (``proof``
@@ -144,8 +146,9 @@ def write_certificate(folder: str | os.PathLike, name: str, proof: ConditionProo
     header's path."""
     if name not in NAMES:
         raise ValueError(f"unknown certificate name {name!r}; valid: {', '.join(NAMES)}")
-    if proof is None and name not in ("roa-ball", "ellipsoid", "practical"):
-        raise ValueError("only a roa-ball, ellipsoid or practical certificate can be written without a proof")
+    if proof is None and not any(BY_NAME[k].without_partition for k in KINDS_OF[name]):
+        raise ValueError(f"a {name} certificate cannot be written without a proof: "
+                         f"only {', '.join(n for n in NAMES if any(BY_NAME[k].without_partition for k in KINDS_OF[n]))}")
     if proof is not None and (proof.partition is None or not proof.verified):
         raise ValueError("only a verified proof that kept its partition can be written as a certificate")
     target = Path(folder) / FOLDER
@@ -198,9 +201,8 @@ def read_certificate(run_dir: str | os.PathLike, name: str) -> tuple[dict, dict[
         raise ValueError(f"{path} is not a drlyap certificate")
     if header.get("version") != VERSION:
         raise ValueError(f"{path} has certificate version {header.get('version')!r}; this drlyap reads {VERSION}")
-    claim = header.get("claim") or {}
-    if header.get("partition", False) is None and any(claim.get(k) is not None for k in ("cube", "ellipsoid", "practical")):
-        return header, {}  # a claim near x* that the checker proves without boxes (a cube, an ellipsoid, V on the ball)
+    if header.get("partition", False) is None and _without_partition(header.get("claim")):
+        return header, {}  # a claim the checker proves without boxes (a cube, an ellipsoid, V on the ball)
     try:
         part = header["partition"]
         arrays_path = folder / Path(str(part["file"])).name
@@ -217,6 +219,18 @@ def read_certificate(run_dir: str | os.PathLike, name: str) -> tuple[dict, dict[
     except (KeyError, ValueError, OSError) as err:
         raise ValueError(f"{arrays_path} is damaged: {err}") from None
     return header, arrays
+
+
+def _without_partition(claim) -> bool:
+    """Whether ``claim`` is stated as a kind whose certificate may have no partition, or has a part only such kinds
+    have (what else it states, the checker judges)."""
+    try:
+        return stated_kind(claim).without_partition
+    except ValueError:  # parts of several kinds: the checker names what is wrong
+        only = set(MARKS) - {p for k in KINDS if not k.without_partition for p in k.parts}
+        return any(claim.get(p) is not None for p in only)
+    except (KeyError, TypeError, AttributeError):
+        return False
 
 
 def certificate_partition(run_dir: str | os.PathLike, name: str) -> Partition | None:
