@@ -26,6 +26,12 @@ def band_sentence(what: str, low: float, high: float) -> str:
             "files give it)")
 
 
+def band_parts(low: float) -> dict:
+    """A band claim's parts as its certificate writes them: ``c1`` (the level is its region's ``c2``) and the flow
+    entering the box on its faces."""
+    return {"band": {"low": float(low)}, "faces": "inward"}
+
+
 class Band(ClaimKind):
     name = "band"
     files = ("band",)

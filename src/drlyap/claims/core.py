@@ -9,6 +9,12 @@ from drlyap.claims.kind import ClaimKind
 from drlyap.claims.words import faces_rule, level_text
 
 
+def core_parts(p: list, level: float, certificate: str = "ellipsoid") -> dict:
+    """A claim's ``core`` as its certificate writes it: the ellipsoid ``{z'Pz <= level}`` (``p``: P's rows) and the
+    certificate that states it a region of attraction."""
+    return {"core": {"P": p, "level": level, "certificate": certificate}}
+
+
 def core_words(claim: dict) -> str:
     """The claim's core ellipsoid in words, with the certificate it is a region of attraction by."""
     core = claim["core"]

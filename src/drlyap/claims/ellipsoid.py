@@ -14,6 +14,12 @@ if TYPE_CHECKING:
     from drlyap.checker.reading import CheckResult, Reading
 
 
+def ellipsoid_parts(p: list, level: float, box: list, tau: list, ring: bool) -> dict:
+    """An ellipsoid claim's part as its certificate writes it: ``P`` (rows), its level, the box the Jacobian's test
+    proved, that test's weights ``tau`` and whether a ring of boxes beyond it is proved."""
+    return {"ellipsoid": {"P": p, "level": level, "box": box, "tau": tau, "ring": ring}}
+
+
 class Ellipsoid(ClaimKind):
     name = "ellipsoid"
     files = ("ellipsoid",)

@@ -8,10 +8,17 @@ import math
 from typing import TYPE_CHECKING
 
 from drlyap.claims.kind import ClaimKind
-from drlyap.claims.words import exact_text, faces_rule, level_text
+from drlyap.claims.words import exact_text, faces_part, faces_rule, level_text
 
 if TYPE_CHECKING:
     from drlyap.checker.reading import CheckResult, Reading
+
+
+def practical_parts(ball_of: float, outer: str, level: float, faces: str) -> dict:
+    """A practical claim's parts as its certificate writes them: the delta-ball (``ball_of``) its region is the box of,
+    the certificate of the decrease outside it (``outer``), the level trajectories end up in and the rule for the
+    box's faces of the set they start in."""
+    return {"ball_of": float(ball_of), "outer": outer, "practical": {"level": float(level)}} | faces_part(faces)
 
 
 class Practical(ClaimKind):

@@ -15,6 +15,18 @@ if TYPE_CHECKING:
     from drlyap.checker.reading import CheckResult, Reading
 
 
+def cube_parts(ball_of: float, half: list[float], outer: str) -> dict:
+    """A roa-ball claim by second order as its certificate writes it: the delta-ball (``ball_of``) its region is the
+    box of, the cube's half-widths and the certificate of the decrease outside the ball (``outer``)."""
+    return {"ball_of": float(ball_of), "cube": {"half": half}, "outer": outer}
+
+
+def cored_parts(ball_of: float, outer: str, core: dict) -> dict:
+    """A roa-ball claim resting on a core ellipsoid (``core``: :func:`~drlyap.claims.core.core_parts`) as its
+    certificate writes it."""
+    return {"ball_of": float(ball_of), "outer": outer} | core
+
+
 class RoaBall(ClaimKind):
     name = "roa-ball"
     files = ("roa-ball",)

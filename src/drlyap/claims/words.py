@@ -86,3 +86,9 @@ def condition_words(c: dict) -> str:
 def decay_words(gamma: float, alpha: float) -> str:
     """A decrease's decay terms as a claim states them: ``gamma = G`` and, where it is not 0, ``alpha = A``."""
     return f"gamma = {level_text(gamma)}" + (f", alpha = {level_text(alpha)}" if alpha else "")
+
+
+def faces_part(faces: str) -> dict:
+    """A region claim's rule for the box's faces as its certificate writes it: nothing for V above the level there
+    (the default, :func:`faces_rule`), else ``{"faces": faces}``."""
+    return {} if faces == "above" else {"faces": faces}

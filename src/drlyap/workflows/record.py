@@ -10,6 +10,10 @@ from pathlib import Path
 
 import torch
 
+from drlyap.claims.band import band_parts
+from drlyap.claims.practical import practical_parts
+from drlyap.claims.roa_ball import cored_parts, cube_parts
+from drlyap.claims.words import faces_part
 from drlyap.closed_loop import ClosedLoop
 from drlyap.conditions import Condition, decay_at_shift
 from drlyap.io import jsonable
@@ -261,8 +265,7 @@ def region_certificates(folder: Path, loop: ClosedLoop, condition: Condition, re
         outer_name = _outer_certificate(write, loop, condition, region, float(roa.level), outer, proof, roa.faces)
         if outer_name is not None:  # V at most c0 on the ball: the checker bisects the ball itself
             write("practical", None, condition.per_sample(), region.ball_box(region.delta), float(roa.level),
-                  {"ball_of": float(region.delta), "outer": outer_name,
-                   "practical": {"level": float(roa.practical_level)}} | _faces_claim(roa.faces))
+                  practical_parts(region.delta, outer_name, float(roa.practical_level), roa.faces))
         return written
     if not roa.certified or roa.level is None:
         return written
@@ -281,7 +284,7 @@ def region_certificates(folder: Path, loop: ClosedLoop, condition: Condition, re
         if outer_name is not None:
             write_ellipsoid(ellipsoid)
             write("roa-ball", cored.proof, cored.condition, cored.region,
-                  extra={"ball_of": float(region.delta), "outer": outer_name} | cored.claim())
+                  extra=cored_parts(region.delta, outer_name, cored.claim()))
         return written
     if roa.ball is None:
         return written
@@ -289,7 +292,7 @@ def region_certificates(folder: Path, loop: ClosedLoop, condition: Condition, re
     if outer_name is None:
         return written
     ball = roa.ball
-    extra = {"ball_of": float(region.delta), "cube": {"half": ball.cube}, "outer": outer_name}
+    extra = cube_parts(region.delta, ball.cube, outer_name)
     if ball.ring is None:  # the cube covers the ball: the claim is the cube's alone
         write("roa-ball", None, condition.per_sample(), region.ball_box(region.delta), c, extra)
     else:
@@ -310,13 +313,8 @@ def _outer_certificate(write, loop: ClosedLoop, condition: Condition, region: Re
     found = verify_condition(loop, condition, region, proof.budget(), level=level, rules=ProofRules(keep_partition=True))
     if not found.verified:
         return None
-    write("roa", found, condition, region, extra=_faces_claim(faces) or None)
+    write("roa", found, condition, region, extra=faces_part(faces) or None)
     return "roa"
-
-
-def _faces_claim(faces: str) -> dict:
-    """A region claim's rule for the box's faces: nothing for V above the level there (the default), else ``faces``."""
-    return {} if faces == "above" else {"faces": faces}
 
 
 def record_imported_certificates(run_dir: str | Path, pair, ver: RunVerification, proof: ProofConfig) -> list[Path]:
@@ -370,4 +368,4 @@ def record_band(folder: Path, system, found: BandProof | None, weights, alpha_ha
         return []
     region = band_region(Region.of(system, 0.0))
     return [write_certificate(folder, "band", found.decrease, found.asked, region, system, weights, alpha_hat,
-                              extra={"band": {"low": found.low}, "faces": "inward"})]
+                              extra=band_parts(found.low))]

@@ -40,6 +40,8 @@ from dataclasses import dataclass, replace
 import torch
 from torch import Tensor
 
+from drlyap.claims.core import core_parts
+from drlyap.claims.ellipsoid import ellipsoid_parts
 from drlyap.closed_loop import ClosedLoop
 from drlyap.conditions import Condition, PlainDecrease
 from drlyap.enclosures import F64, REL1, round_down, round_up
@@ -392,8 +394,7 @@ class EllipsoidProof:
 
     def claim(self) -> dict:
         """The claim's ``ellipsoid`` entry."""
-        return {"ellipsoid": {"P": self.p.tolist(), "level": self.level, "box": self.box.tolist(),
-                              "tau": self.tau.tolist(), "ring": self.ring is not None}}
+        return ellipsoid_parts(self.p.tolist(), self.level, self.box.tolist(), self.tau.tolist(), self.ring is not None)
 
 
 def ellipsoid_proof(loop: ClosedLoop, condition: Condition, region: Region, ellipsoid: EllipsoidCandidate,
@@ -440,7 +441,7 @@ class CoredProof:
 
     def claim(self, certificate: str = "ellipsoid") -> dict:
         """The claim's ``core`` entry, naming the certificate of the ellipsoid."""
-        return {"core": {"P": self.p.tolist(), "level": self.q_level, "certificate": certificate}}
+        return core_parts(self.p.tolist(), self.q_level, certificate)
 
 
 def linearisation_proofs(loop: ClosedLoop, condition: Condition, region: Region, local: LinearisationProof,
