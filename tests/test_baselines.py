@@ -174,7 +174,7 @@ def test_compare_and_evaluate_cli(tmp_path):
     res = runner.invoke(main, ["evaluate", str(tmp_path / "lqr"), "--xi", "0.1,0.05", "--n-init", "4",
                                "--horizon", "3", "--json"])
     assert res.exit_code == 0, res.output
-    assert json.loads(res.output)["n"] == 4
+    assert json.loads(res.stdout)["n"] == 4
     res = runner.invoke(main, ["evaluate", str(tmp_path / "lyap"), "--xi", "0.1,0.05", "--n-init", "2", "--horizon", "1"])
     assert res.exit_code == 0, res.output
     out = tmp_path / "cmp"

@@ -58,7 +58,7 @@ def test_default_pendulum_dr_training_ends_verified(tmp_path):
     assert any(line.startswith("certificate: VERIFIED") for line in lines)
     assert any(line.strip().startswith("trained: CHECKED") for line in lines)
     verified = CliRunner().invoke(main, ["verify", str(tmp_path / "dr0"), "--json"])
-    assert json.loads(verified.output)["trained"]["status"] == "verified"
+    assert json.loads(verified.stdout)["trained"]["status"] == "verified"
 
 
 @pytest.mark.slow

@@ -130,7 +130,7 @@ def test_cli_guarantee_and_lipschitz(tmp_path, tiny_config):
     out = runner.invoke(main, ["guarantee", str(tmp_path / "run"), "--dist", "normal:0.1,0.05;0.02,0.01", "--n", "20",
                                "--radius-constants", "2,1,2", "--json"])
     assert out.exit_code == 0, out.output
-    data = json.loads(out.output)
+    data = json.loads(out.stdout)
     assert data["n"] == 20 and 0 <= data["fraction"] <= 1 and "radius_guarantee" in data
     text = runner.invoke(main, ["guarantee", str(tmp_path / "run"), "--dist", "train", "--n", "10"])
     assert text.exit_code == 0 and "lemma bound" in text.output and "r = r_N(eps_bar)" in text.output
@@ -138,7 +138,7 @@ def test_cli_guarantee_and_lipschitz(tmp_path, tiny_config):
     assert bad.exit_code != 0 and "needs 2 value" in bad.output
     lip = runner.invoke(main, ["lipschitz", str(tmp_path / "run"), "--spacing", "0.2", "--verify-time", "1", "--json"])
     assert lip.exit_code == 0, lip.output
-    data = json.loads(lip.output)
+    data = json.loads(lip.stdout)
     assert data["verifier"] is not None and not (data["certified"] and data["verifier"]["status"] == "violated")
     text = runner.invoke(main, ["lipschitz", str(tmp_path / "run"), "--spacing", "0.2", "--verify-time", "0"])
     assert text.exit_code == 0 and "covering certificate" in text.output

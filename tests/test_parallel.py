@@ -384,7 +384,7 @@ def test_verify_rechecks_a_certificate_instead_of_proving_it_again(linear_run):
     def verify(*args):
         out = runner.invoke(main, ["verify", str(run), "--system", spec, "--xi", "0.1,0.05", "--json", *args])
         assert out.exit_code == 0, out.output
-        return json.loads(out.output)
+        return json.loads(out.stdout)
 
     first = verify()  # proves both and writes their certificates
     assert first["trained"].get("source") is None and first["true_model"].get("source") is None
@@ -423,12 +423,12 @@ def test_train_rechecks_the_certificate_it_saved_so_that_verify_takes_it_as_it_s
     runner = CliRunner()
     assert _check_saved(run, resolve_system(spec), Compute(), None) is None  # no certificate yet: nothing to check
     first = runner.invoke(main, ["verify", str(run), "--system", spec, "--json"])  # proves it, writes its certificate
-    assert json.loads(first.output)["trained"].get("source") is None
+    assert json.loads(first.stdout)["trained"].get("source") is None
     assert not (run / "certificates" / "trained.check.json").exists()
     results = _check_saved(run, resolve_system(spec), Compute(), None)  # what train does once the run is saved
     assert [r.name for r in results] == ["trained"] and results[0].ok and results[0].proved > 0
     assert (run / "certificates" / "trained.check.json").is_file()
-    again = json.loads(runner.invoke(main, ["verify", str(run), "--system", spec, "--json"]).output)
+    again = json.loads(runner.invoke(main, ["verify", str(run), "--system", spec, "--json"]).stdout)
     assert again["trained"]["source"] == "certificate" and again["trained"]["checked_at"]
     usage = runner.invoke(main, ["train", "--help"])
     assert "--check / --no-check" in usage.output
@@ -443,7 +443,7 @@ def test_the_certified_radius_and_shift_box_are_written_as_certificates_the_chec
     runner = CliRunner()
     out = runner.invoke(main, ["verify", str(run), "--system", spec, "--max-radius", "--time-limit", "10", "--json"])
     assert out.exit_code == 0, out.output
-    found = json.loads(out.output)["robustness"]["radius"]
+    found = json.loads(out.stdout)["robustness"]["radius"]
     assert found["radius"] > 0.01 and found["unproved"] <= found["radius"] * 1.01  # above the trained radius
     metrics = json.loads((run / "metrics.json").read_text())
     assert metrics["certificate"]["radius"]["radius"] == found["radius"]
@@ -452,7 +452,7 @@ def test_the_certified_radius_and_shift_box_are_written_as_certificates_the_chec
     assert header["claim"]["condition"]["name"] == "pointwise" and len(header["claim"]["condition"]["xi"]) == 3
     checked = runner.invoke(main, ["check", str(run), "--system", spec, "--name", "radius"])
     assert checked.exit_code == 0 and "radius: CHECKED" in checked.output, checked.output
-    box = json.loads(out.output)["robustness"]["shift_box"]
+    box = json.loads(out.stdout)["robustness"]["shift_box"]
     assert box["s"] > 0 and metrics["certificate"]["shift_box"]["s"] == box["s"]
     header = json.loads((run / "certificates" / "shift-box.json").read_text())
     condition = header["claim"]["condition"]

@@ -95,7 +95,7 @@ def test_plot_command_writes_figures(run_dir, tmp_path):
     out = tmp_path / "figs"
     result = CliRunner().invoke(main, ["plot", str(run_dir), "--n-init", "3", "--horizon", "2", "--out", str(out), "--json"])
     assert result.exit_code == 0, result.output
-    data = json.loads(result.output)
+    data = json.loads(result.stdout)
     assert data["xi"] == [0.1, 0.05] and data["region"] is None and len(data["figures"]) == 4
     assert any(path.endswith("states.png") for path in data["figures"])
     for path in data["figures"]:
@@ -127,7 +127,7 @@ def test_plot_roa_computes_the_set_now(run_dir, tmp_path):
     result = CliRunner().invoke(main, ["plot", str(run_dir), "--n-init", "1", "--horizon", "1", "--roa", "--time-limit", "2",
                                        "--out", str(tmp_path), "--json"])
     assert result.exit_code == 0, result.output
-    region = json.loads(result.output)["region"]
+    region = json.loads(result.stdout)["region"]
     if region is not None:  # a 10-iteration pair may certify nothing
         assert ("region of attraction" in region["label"]) == region["certified"]
 

@@ -110,7 +110,7 @@ def test_forged_check_records_do_not_make_verify_print_verified(tmp_path):
     assert out.exit_code == 3, out.output
     assert "VERIFIED (recorded" not in out.output and "certificate: VERIFIED" not in out.output
     assert "violated" in out.output.lower()
-    data = json.loads(_verify(run, "--xi", "0.1,0.05", "--json").output)
+    data = json.loads(_verify(run, "--xi", "0.1,0.05", "--json").stdout)
     assert data["trained"]["status"] == "violated" and data["outcome"] == "violated"
     assert data["trained"].get("source") != "certificate"
 
@@ -189,7 +189,7 @@ def test_a_region_is_not_checked_when_the_certificate_it_rests_on_fails(tmp_path
     (run / "certificates" / f"{outer}.json").write_text(json.dumps(outer_header))
     checked = CliRunner().invoke(main, ["check", str(run), "--system", SPEC, "--name", "roa-ball", "--json"])
     assert checked.exit_code == 1, checked.output
-    results = {r["name"]: r for r in json.loads(checked.output)["certificates"]}
+    results = {r["name"]: r for r in json.loads(checked.stdout)["certificates"]}
     assert set(results) == {"roa-ball", outer} and not results[outer]["ok"] and not results["roa-ball"]["ok"]
     assert any(f"rests on {outer}" in f for f in results["roa-ball"]["failures"])
     assert not (run / "certificates" / "roa-ball.check.json").exists()
@@ -200,7 +200,7 @@ def test_verify_exits_non_zero_on_a_violated_or_unknown_claim(tmp_path):
     run = linear_run_dir(tmp_path / "run")
     _destabilise(run)
     violated = _verify(run, "--json")
-    assert violated.exit_code == 3 and json.loads(violated.output)["outcome"] == "violated"
+    assert violated.exit_code == 3 and json.loads(violated.stdout)["outcome"] == "violated"
     good = linear_run_dir(tmp_path / "good")
     unknown = _verify(good, "--reprove", "--time-limit", "1e-9")
     assert unknown.exit_code == 4, unknown.output
