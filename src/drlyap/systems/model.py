@@ -133,6 +133,19 @@ class UncertainSystem:
     plot_dims: tuple[int, int] = (0, 1)
 
     def __post_init__(self) -> None:
+        """Normalise the user's fields to tuples of floats and refuse a system the rest of drlyap cannot use: each
+        check names the bad field and what would be valid, in the order the fields are checked here."""
+        self._normalise_labels()
+        self._normalise_boxes_and_values()
+        self._normalise_rl()
+        self._check_equilibrium()
+        self._check_coordinates()
+        self._check_dynamics_at_equilibrium()
+        if self.xi_sampler is not None:
+            self._check_sampler()
+
+    def _normalise_labels(self) -> None:
+        """The defaults as :class:`SystemDefaults`; the units, one string per coordinate or none; the time unit."""
         n, m = len(self.state_names), len(self.input_names)
         set_ = object.__setattr__
         set_(self, "defaults", SystemDefaults.of(self.defaults, f"{self.name}: defaults"))
@@ -143,8 +156,14 @@ class UncertainSystem:
             set_(self, what, tuple(units))
         if not isinstance(self.time_unit, str):
             raise ValueError(f"{self.name}: time_unit must be a string such as 's', got {self.time_unit!r}")
+
+    def _normalise_boxes_and_values(self) -> None:
+        """The boxes as ``(low, high)`` pairs of the right length; parameters, equilibrium, test shift and reference
+        states as finite floats."""
+        n = len(self.state_names)
+        set_ = object.__setattr__
         set_(self, "state_box", _as_pair(self.state_box, f"{self.name}: state_box", n))
-        set_(self, "input_box", _as_pair(self.input_box, f"{self.name}: input_box", m))
+        set_(self, "input_box", _as_pair(self.input_box, f"{self.name}: input_box", len(self.input_names)))
         set_(self, "test_box", _as_pair(self.test_box or self.state_box, f"{self.name}: test_box", n))
         if len(self.nominal_params) != len(self.param_names):
             raise ValueError(f"{self.name}: {len(self.param_names)} parameter names but "
@@ -156,6 +175,11 @@ class UncertainSystem:
                                                     self.input_names))
         if self.test_xi is not None:
             set_(self, "test_xi", _finite(self.test_xi, f"{self.name}: test_xi", self.uncertain))
+        set_(self, "reference_states", self._reference_states())
+
+    def _reference_states(self) -> tuple[tuple[float, ...], ...]:
+        """``reference_states`` as finite states of length n."""
+        n = len(self.state_names)
         try:
             refs = tuple(_finite(r, f"{self.name}: reference_states[{i}]", self.state_names)
                          for i, r in enumerate(self.reference_states))
@@ -166,7 +190,12 @@ class UncertainSystem:
             if len(r) != n:
                 raise ValueError(f"{self.name}: reference_states[{i}] has {len(r)} entries, state has {n} "
                                  f"({', '.join(self.state_names)})")
-        set_(self, "reference_states", refs)
+        return refs
+
+    def _normalise_rl(self) -> None:
+        """The RL environment's timing ``(dt, episode_time)`` and reward weights, where given."""
+        n, m = len(self.state_names), len(self.input_names)
+        set_ = object.__setattr__
         if self.rl_timing is not None:
             timing = _finite(self.rl_timing, f"{self.name}: rl_timing", ("dt", "episode_time"))
             if len(timing) != 2 or not 0 < timing[0] <= timing[1]:
@@ -184,6 +213,11 @@ class UncertainSystem:
                 raise ValueError(f"{self.name}: rl_reward_weights needs {n} state and {m} input weights >= 0, "
                                  f"got {self.rl_reward_weights}")
             set_(self, "rl_reward_weights", (wx, wu))
+
+    def _check_equilibrium(self) -> None:
+        """The uncertain parameters among the parameters; ``x*`` and ``u*`` (0 by default) of the right length and
+        strictly inside the state and input boxes."""
+        n, m = len(self.state_names), len(self.input_names)
         unknown = [u for u in self.uncertain if u not in self.param_names]
         if unknown or not self.uncertain:
             raise ValueError(f"{self.name}: uncertain parameters {unknown or '()'} must be a non-empty "
@@ -193,22 +227,31 @@ class UncertainSystem:
         u_star = self.equilibrium_input if self.equilibrium_input is not None else (0.0,) * m
         if len(u_star) != m:
             raise ValueError(f"{self.name}: equilibrium_input has {len(u_star)} entries, input has {m}")
-        set_(self, "equilibrium_input", tuple(float(v) for v in u_star))
+        object.__setattr__(self, "equilibrium_input", tuple(float(v) for v in u_star))
         lo, hi = self.input_box
         if not all(a < b < c for a, b, c in zip(lo, u_star, hi)):
             raise ValueError(f"{self.name}: equilibrium input {u_star} must lie strictly inside U = [{lo}, {hi}]")
         slo, shi = self.state_box
         if not all(a < b < c for a, b, c in zip(slo, self.equilibrium, shi)):
             raise ValueError(f"{self.name}: equilibrium {self.equilibrium} must lie strictly inside X")
+
+    def _check_coordinates(self) -> None:
+        """Angle and plot coordinates that index the state; a test shift with one value per uncertain parameter."""
+        n = len(self.state_names)
         if any(not 0 <= d < n for d in self.angle_dims):
             raise ValueError(f"{self.name}: angle_dims {self.angle_dims} must index state coordinates 0..{n - 1}")
         dims = tuple(self.plot_dims)
         if n >= 2 and (len(dims) != 2 or dims[0] == dims[1] or any(not (isinstance(d, int) and 0 <= d < n) for d in dims)):
             raise ValueError(f"{self.name}: plot_dims {self.plot_dims} must be two different state coordinates "
                              f"0..{n - 1}")
-        set_(self, "plot_dims", dims)
+        object.__setattr__(self, "plot_dims", dims)
         if self.test_xi is not None and len(self.test_xi) != self.k:
             raise ValueError(f"{self.name}: test_xi needs {self.k} values ({', '.join(self.uncertain)})")
+
+    def _check_dynamics_at_equilibrium(self) -> None:
+        """The user's dynamics (and perturbation W, where given) run at ``(x*, u*)`` with the shapes asked, and
+        ``F(x*, u*, p0) = 0``."""
+        n, u_star = len(self.state_names), self.equilibrium_input
         x_star = torch.tensor([self.equilibrium], dtype=torch.float64)
         try:
             residual = self.true_dynamics(x_star, torch.tensor([u_star], dtype=torch.float64))
@@ -219,18 +262,21 @@ class UncertainSystem:
             got = tuple(residual.shape) if isinstance(residual, Tensor) else f"a {type(residual).__name__}"
             raise ValueError(f"{self.name}: dynamics must return shape (B, {n}) for B states, got {got} for B = 1")
         if self.perturbation is not None:
-            try:
-                w = self.perturbation(x_star, torch.tensor([u_star], dtype=torch.float64))
-            except Exception as err:  # noqa: BLE001 - as the dynamics' above
-                raise dynamics_error(self, err, f"the perturbation W at x* = {list(self.equilibrium)} (B = 1)") from None
-            if not isinstance(w, Tensor) or tuple(w.shape) != (1, n, self.k):
-                got = tuple(w.shape) if isinstance(w, Tensor) else f"a {type(w).__name__}"
-                raise ValueError(f"{self.name}: perturbation must return shape (B, {n}, {self.k}), got {got}")
+            self._check_perturbation(x_star)
         if not torch.isfinite(residual).all() or residual.abs().max() > 1e-9:
             raise ValueError(f"{self.name}: F(x*, u*, p0) = {residual.tolist()[0]} is not zero; "
                              "the equilibrium must be an equilibrium of the nominal system")
-        if self.xi_sampler is not None:
-            self._check_sampler()
+
+    def _check_perturbation(self, x_star: Tensor) -> None:
+        """The hand-given W runs at ``(x*, u*)`` (``x_star (1, n)``) and returns shape ``(1, n, k)``."""
+        n = len(self.state_names)
+        try:
+            w = self.perturbation(x_star, torch.tensor([self.equilibrium_input], dtype=torch.float64))
+        except Exception as err:  # noqa: BLE001 - as the dynamics' above
+            raise dynamics_error(self, err, f"the perturbation W at x* = {list(self.equilibrium)} (B = 1)") from None
+        if not isinstance(w, Tensor) or tuple(w.shape) != (1, n, self.k):
+            got = tuple(w.shape) if isinstance(w, Tensor) else f"a {type(w).__name__}"
+            raise ValueError(f"{self.name}: perturbation must return shape (B, {n}, {self.k}), got {got}")
 
     def _check_sampler(self, count: int = 4) -> None:
         """Call ``xi_sampler`` once with a seeded generator: it must give ``count`` finite rows of width k."""
