@@ -130,82 +130,114 @@ def _residuals_and_lip(loop: ClosedLoop, condition, z: Tensor, batch: int = 8192
 
 
 # --------------------------------------------------------------------------- the search
-def _largest_proved(prove: Callable[[float], dict], refute: Callable[[float], dict | None], guess: float | None,
-                    start: float, limits: SearchLimits,
-                    reguess: Callable[[dict], float | None] | None = None, proved: float | None = None) -> dict:
-    """Largest v in ``[0, cap]`` with ``prove(v)['status'] == 'verified'``, for a property monotone in v, within
-    ``limits`` (its tolerance, seconds, proofs and ``cap``, which must be set).
+class _Search:
+    """One bisection on proofs: its probes so far, the proofs they cost, its clock, and the bracket ``[lo, hi_res)``
+    (``lo`` proved, ``hi_res`` the probe above it that failed, None until one fails)."""
 
-    ``refute(v)``: a cheap witness that v fails (a real evaluation), or None. ``guess``: a sampled upper end
-    (the property fails just above it), or None (then grow geometrically from ``start``). ``reguess(res)``: a
-    new sampled upper end from the witness of a failed proof (the verifier's counterexample), or None; the
-    next probe is then just below it. ``proved``: a value already proved (the search starts there instead of
-    proving 0). Returns the bracket ``proved <= v* < unproved``, what decided the upper end, and the probes made.
-    """
-    clock = time.perf_counter()
-    probes: list[dict] = []
-    proofs = 0
-    tol, max_proofs, total_time, cap = limits.tol, limits.max_proofs, limits.total_time, float(limits.cap)
+    def __init__(self, prove: Callable[[float], dict], refute: Callable[[float], dict | None],
+                 limits: SearchLimits) -> None:
+        self.prove, self.refute, self.limits = prove, refute, limits
+        self.clock = time.perf_counter()
+        self.probes: list[dict] = []
+        self.proofs = 0
+        self.lo: float | None = None
+        self.hi_res: dict | None = None
 
-    def probe(v: float) -> dict:
-        nonlocal proofs
-        res = refute(v)
+    def probe(self, v: float) -> dict:
+        """``refute(v)``, else the proof at v, recorded with what decided it."""
+        res = self.refute(v)
         if res is None:
-            res = prove(v)
-            proofs += 1
+            res = self.prove(v)
+            self.proofs += 1
             res["by"] = "verifier"
         else:
             res["by"] = "sampled state"
         res["value"] = v
-        probes.append({"value": v, "status": res["status"], "by": res["by"], "time_s": res.get("time_s")})
+        self.probes.append({"value": v, "status": res["status"], "by": res["by"], "time_s": res.get("time_s")})
         return res
 
-    def out(lo, hi_res, stopped, reason=None) -> dict:
-        return _bracket(lo, hi_res, stopped, reason) | {"proofs": proofs, "probes": probes,
-                                                        "time_s": time.perf_counter() - clock}
+    def over_budget(self) -> bool:
+        return self.proofs >= self.limits.max_proofs or time.perf_counter() - self.clock > self.limits.total_time
 
-    if proved is not None and proved > 0:
-        probes.append({"value": proved, "status": Status.VERIFIED, "by": "an earlier proof", "time_s": None})
-        lo, hi_res = float(proved), None
-    else:
-        first = probe(0.0)
+    def out(self, stopped: str, reason: str | None = None) -> dict:
+        """The search's outcome with the bracket it holds now."""
+        return _bracket(self.lo, self.hi_res, stopped, reason) | {"proofs": self.proofs, "probes": self.probes,
+                                                                  "time_s": time.perf_counter() - self.clock}
+
+    def begin(self, proved: float | None) -> bool:
+        """Start from ``proved`` (a value proved already), else from a proof at 0; False where 0 is not proved."""
+        if proved is not None and proved > 0:
+            self.probes.append({"value": proved, "status": Status.VERIFIED, "by": "an earlier proof", "time_s": None})
+            self.lo = float(proved)
+            return True
+        first = self.probe(0.0)
         if first["status"] != Status.VERIFIED:
-            return out(None, first, "not provable at 0",
-                       f"the condition is {first['status']} already at 0 ({first['by']})")
-        lo, hi_res = 0.0, None
+            self.hi_res = first
+            return False
+        self.lo = 0.0
+        return True
 
-    def over_budget() -> bool:
-        return proofs >= max_proofs or time.perf_counter() - clock > total_time
-
-    if guess is not None and math.isfinite(guess) and guess > 0:
+    def try_guess(self, guess: float | None) -> None:
+        """Probe just below, then just above, a sampled upper end (the property fails just above it)."""
+        if guess is None or not math.isfinite(guess) or not guess > 0:
+            return
+        tol, cap = self.limits.tol, float(self.limits.cap)
         for v in (min(guess * (1 - tol / 2), cap), min(guess * (1 + tol / 4), cap)):
-            if v <= lo:
+            if v <= self.lo:
                 continue
-            res = probe(v)
+            res = self.probe(v)
             if res["status"] == Status.VERIFIED:
-                lo = v
+                self.lo = v
             else:
-                hi_res = res
+                self.hi_res = res
                 break
-    v = start
-    while hi_res is None:  # grow until a probe fails or the cap
-        if lo > 0:
-            v = lo * 4
-        if lo >= cap:
-            return out(lo, None, "cap", f"proved up to the cap {cap:g}")
-        v = min(v, cap)
-        if over_budget():
-            return out(lo, None, "budget", "time or proof budget ran out while growing")
-        res = probe(v)
-        if res["status"] == Status.VERIFIED:
-            lo = v
-        else:
-            hi_res = res
-    guessed = False  # whether the last probe was placed just below a witness's value (and failed)
-    rose = False  # whether the last probe was proved (the edge is then likelier near the upper end)
-    while lo == 0 or hi_res["value"] / lo - 1 > tol:
-        if over_budget():
-            return out(lo, hi_res, "budget")
+
+    def grow(self, start: float) -> dict | None:
+        """Grow by 4x (from ``start`` where nothing above 0 is proved) until a probe fails; the outcome where the cap or
+        the budget comes first, else None."""
+        cap = float(self.limits.cap)
+        v = start
+        while self.hi_res is None:
+            if self.lo > 0:
+                v = self.lo * 4
+            if self.lo >= cap:
+                return self.out("cap", f"proved up to the cap {cap:g}")
+            v = min(v, cap)
+            if self.over_budget():
+                return self.out("budget", "time or proof budget ran out while growing")
+            res = self.probe(v)
+            if res["status"] == Status.VERIFIED:
+                self.lo = v
+            else:
+                self.hi_res = res
+        return None
+
+    def narrow(self, reguess: Callable[[dict], float | None] | None) -> dict:
+        """Bisect the bracket until it is within the tolerance (or the budget runs out)."""
+        tol = self.limits.tol
+        guessed = False  # whether the last probe was placed just below a witness's value (and failed)
+        rose = False  # whether the last probe was proved (the edge is then likelier near the upper end)
+        while self.lo == 0 or self.hi_res["value"] / self.lo - 1 > tol:
+            if self.over_budget():
+                return self.out("budget")
+            mid, guessed, top = self._next_value(reguess, guessed, rose)
+            if mid <= 1e-300:
+                return self.out("vanishing", "unproved at every value tried above 0")
+            res = self.probe(mid)
+            rose = res["status"] == Status.VERIFIED
+            if rose:
+                self.lo, guessed = mid, False
+            else:
+                self.hi_res = res
+                self.hi_res["topped"] = top  # where the top failed, the search bisects below it
+        return self.out("tolerance")
+
+    def _next_value(self, reguess: Callable[[dict], float | None] | None, guessed: bool,
+                    rose: bool) -> tuple[float, bool, bool]:
+        """The next value to probe inside the bracket, whether it sits just below a witness's value, and whether it is
+        the top (the lowest value whose proof ends the search): the geometric midpoint, else just below a new sampled
+        upper end (never twice in a row), else, after a proof that held near the upper end, the top (:data:`NEAR`)."""
+        lo, hi_res, tol = self.lo, self.hi_res, self.limits.tol
         hi = hi_res["value"]
         mid = math.sqrt(lo * hi) if lo > 0 else hi / 4
         again = None
@@ -218,16 +250,30 @@ def _largest_proved(prove: Callable[[float], dict], refute: Callable[[float], di
         top = rose and not guessed and hi / lo - 1 <= NEAR * tol and not hi_res.get("topped")
         if top:
             mid = hi / (1 + 0.999 * tol)  # the lowest value whose proof ends the search, where it holds
-        if mid <= 1e-300:
-            return out(lo, hi_res, "vanishing", "unproved at every value tried above 0")
-        res = probe(mid)
-        rose = res["status"] == Status.VERIFIED
-        if rose:
-            lo, guessed = mid, False
-        else:
-            hi_res = res
-            hi_res["topped"] = top  # where the top failed, the search bisects below it
-    return out(lo, hi_res, "tolerance")
+        return mid, guessed, top
+
+
+def _largest_proved(prove: Callable[[float], dict], refute: Callable[[float], dict | None], guess: float | None,
+                    start: float, limits: SearchLimits,
+                    reguess: Callable[[dict], float | None] | None = None, proved: float | None = None) -> dict:
+    """Largest v in ``[0, cap]`` with ``prove(v)['status'] == 'verified'``, for a property monotone in v, within
+    ``limits`` (its tolerance, seconds, proofs and ``cap``, which must be set).
+
+    ``refute(v)``: a cheap witness that v fails (a real evaluation), or None. ``guess``: a sampled upper end
+    (the property fails just above it), or None (then grow geometrically from ``start``). ``reguess(res)``: a
+    new sampled upper end from the witness of a failed proof (the verifier's counterexample), or None; the
+    next probe is then just below it. ``proved``: a value already proved (the search starts there instead of
+    proving 0). Returns the bracket ``proved <= v* < unproved``, what decided the upper end, and the probes made.
+    """
+    search = _Search(prove, refute, limits)
+    if not search.begin(proved):
+        return search.out("not provable at 0",
+                          f"the condition is {search.hi_res['status']} already at 0 ({search.hi_res['by']})")
+    search.try_guess(guess)
+    ended = search.grow(start)
+    if ended is not None:
+        return ended
+    return search.narrow(reguess)
 
 
 def _bracket(lo: float | None, hi_res: dict | None, stopped: str, reason: str | None) -> dict:
