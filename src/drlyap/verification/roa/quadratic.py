@@ -288,8 +288,7 @@ def linearisation_local(loop: ClosedLoop, condition: Condition, region: Region, 
     fails. ``budget``: :func:`quadratic_roa` gets 40% of its boxes and seconds, V's bound outside each candidate
     ellipsoid 30% (shared between them), the annulus the rest; ``capped`` names a step that stopped at its time cap."""
     start = time.perf_counter()
-    system, lyapunov = loop.system, loop.lyapunov
-    time_limit, min_width, enclosure = budget.seconds, budget.min_width, budget.enclosure_for(loop.n)
+    time_limit, enclosure = budget.seconds, budget.enclosure_for(loop.n)
     deadline = start + time_limit
     quad = quadratic_roa(loop, condition, region, replace(budget, seconds=0.4 * time_limit,
                                                           boxes=share(budget.boxes, 0.4), enclosure=enclosure))
@@ -304,48 +303,73 @@ def linearisation_local(loop: ClosedLoop, condition: Condition, region: Region, 
     if not quad.proved:
         out.reason = quad.reason
         return done()
-    plain = condition.per_sample()
-    # 3. c_1 <= min of V over {W >= c_q} in the box, so that {V <= c_1} lies inside {W <= c_q}; of the candidate
-    # W's (quadratic_roa), the one that holds the largest sublevel set of V
-    vobj = value_objective(lyapunov)
-    blo, bhi = box_grid(region.lo, region.hi, default_grid(system.n))
-    c_1, chosen = -math.inf, None
-    candidates = quad.candidates
-    for i, cand in enumerate(candidates):
-        p_i, c_qi = torch.tensor(cand.P, dtype=F64), cand.q_level
-        w_i = QuadraticLyapunov(p_i)
-        wobj = value_objective(w_i)
-
-        def outside(a, b, wobj=wobj, c_qi=c_qi):
-            return box_bounds(wobj, a, b, enclosure)[1][:, 0] >= c_qi
-
-        seconds = max(1.0, 0.3 * (deadline - time.perf_counter()) / (len(candidates) - i))
-        outside_ellipsoid = Domain(blo, bhi, region.scale, outside, lambda z, w_i=w_i, c_qi=c_qi: w_i(z) >= c_qi)
-        _, neg_up, info = maximize(lambda z: -vobj(z), outside_ellipsoid,
-                                   replace(budget, seconds=seconds, boxes=share(budget.boxes, 0.3 / len(candidates)),
-                                           enclosure=enclosure),
-                                   label="V's least value outside the closed loop's ellipsoid")
-        capped += ["V's minimum outside the closed loop's ellipsoid"] if time_capped(info.stopped) else []
-        c_1i = float(round_down(round_down(-neg_up[0], REL1), 1e-9))
-        cand.inner_level = c_1i
-        if c_1i > c_1:
-            c_1, chosen = c_1i, cand
+    c_1, chosen, inner_capped = _inner_level(loop, quad.candidates, region, replace(budget, enclosure=enclosure),
+                                             deadline)
+    capped += inner_capped
     out.inner_level = c_1
     if chosen is not None:  # the W the chain below rests on, with its level and cube
         out.P, out.q_level, out.cube = chosen.P, chosen.q_level, chosen.cube
     if not c_1 > 0:
         out.reason = "no sublevel set of V provably inside {W <= c_q}"
         return done()
-    p, c_q = torch.tensor(chosen.P, dtype=F64), chosen.q_level
     # any smaller c_1 will do ({V <= c_1} only shrinks): keep it below the outer level, so that the annulus
     # {c_1 <= V <= c} is not empty and {V <= c} is forward invariant
     c_1 = min(c_1, level / 2)
     out.inner_level = c_1
-    # 4. V decreases strictly on {c_1 <= V <= c} inside the ball (outside it the condition's decay already does);
-    # with no decay in the condition, on the whole box
+    annulus = _annulus(loop, condition, region, level, c_1, chosen, deadline,
+                       replace(budget, enclosure=enclosure, boxes=share(max(budget.boxes - spent, budget.boxes // 10), 1.0)))
+    spent += annulus.boxes
+    capped += ["the annulus inside the ball"] if time_capped(annulus.limited_by) else []
+    out.annulus = annulus
+    out.time_s = time.perf_counter() - start
+    if not annulus.level > c_1:
+        out.reason = (f"decrease of V on {{{c_1:.4g} <= V <= c}} inside the ball fails below the inner level "
+                      f"({annulus.limited_by})")
+        return done()
+    out.proved, out.level = True, annulus.level
+    return done()
+
+
+def _inner_level(loop: ClosedLoop, candidates: list[EllipsoidCandidate], region: Region, budget: Budget,
+                 deadline: float) -> tuple[float, EllipsoidCandidate | None, list[str]]:
+    """Step c: ``c_1 <=`` the least V over ``{W >= c_q}`` in the box, so that ``{V <= c_1}`` lies inside
+    ``{W <= c_q}``; of the candidate W's (:func:`quadratic_roa`), the one that holds the largest sublevel set of V.
+    Each candidate's ``inner_level`` is set; returns ``(c_1, that candidate or None, the steps that stopped at their
+    time cap)``. ``budget``: its enclosure, and 30% of its boxes shared between the candidates, by ``deadline``."""
+    vobj = value_objective(loop.lyapunov)
+    blo, bhi = box_grid(region.lo, region.hi, default_grid(loop.system.n))
+    c_1, chosen, capped = -math.inf, None, []
+    for i, cand in enumerate(candidates):
+        p_i, c_qi = torch.tensor(cand.P, dtype=F64), cand.q_level
+        w_i = QuadraticLyapunov(p_i)
+        wobj = value_objective(w_i)
+
+        def outside(a, b, wobj=wobj, c_qi=c_qi):
+            return box_bounds(wobj, a, b, budget.enclosure)[1][:, 0] >= c_qi
+
+        seconds = max(1.0, 0.3 * (deadline - time.perf_counter()) / (len(candidates) - i))
+        outside_ellipsoid = Domain(blo, bhi, region.scale, outside, lambda z, w_i=w_i, c_qi=c_qi: w_i(z) >= c_qi)
+        _, neg_up, info = maximize(lambda z: -vobj(z), outside_ellipsoid,
+                                   replace(budget, seconds=seconds, boxes=share(budget.boxes, 0.3 / len(candidates))),
+                                   label="V's least value outside the closed loop's ellipsoid")
+        capped += ["V's minimum outside the closed loop's ellipsoid"] if time_capped(info.stopped) else []
+        c_1i = float(round_down(round_down(-neg_up[0], REL1), 1e-9))
+        cand.inner_level = c_1i
+        if c_1i > c_1:
+            c_1, chosen = c_1i, cand
+    return c_1, chosen, capped
+
+
+def _annulus(loop: ClosedLoop, condition: Condition, region: Region, level: float, c_1: float,
+             chosen: EllipsoidCandidate, deadline: float, budget: Budget) -> Annulus:
+    """Step d: V's strict decrease (plain, decay ``1e-3`` of the condition's) on ``{c_1 <= V <= c}`` inside the
+    delta-ball (outside it the condition's decay already gives it; with no decay in the condition, on the whole box),
+    with boxes near ``{V = c_1}`` fine enough to resolve the ellipsoid ``{W <= c_q}`` of ``chosen``. ``budget``: its
+    enclosure and boxes, by ``deadline``. The :class:`Annulus` holds the level it reached (rounded below)."""
+    system, plain = loop.system, condition.per_sample()
     strict = condition.decay_rate > 0 or condition.exp_rate > 0
     inner = PlainDecrease(plain.xi, 1e-3 * condition.decay_rate if strict else 1e-9,
-                   1e-3 * condition.exp_rate if strict else 0.0, plain.model)
+                          1e-3 * condition.exp_rate if strict else 0.0, plain.model)
     delta = region.delta if strict else math.inf
     alo, ahi = box_grid(torch.maximum(region.lo, torch.full_like(region.lo, -delta)),
                         torch.minimum(region.hi, torch.full_like(region.hi, delta)), default_grid(system.n))
@@ -356,25 +380,14 @@ def linearisation_local(loop: ClosedLoop, condition: Condition, region: Region, 
     fits = meets(alo, ahi)
     alo, ahi = alo[fits], ahi[fits]
     # boxes near {V = c_1} must resolve a set as small as {W <= c_q}: a minimum width relative to it
-    fine = resolving_ellipsoid(min_width, p, c_q, region)
+    fine = resolving_ellipsoid(budget.min_width, torch.tensor(chosen.P, dtype=F64), chosen.q_level, region)
     c_2, limited_by, cex, boxes = level_search(
         loop, inner, Domain(alo, ahi, region.scale, meets, lambda centre: centre.norm(dim=-1) < delta), level,
-        "outer proof", replace(budget, seconds=max(deadline - time.perf_counter(), 1.0), min_width=fine,
-                               enclosure=enclosure, boxes=share(max(budget.boxes - spent, budget.boxes // 10), 1.0)),
+        "outer proof", replace(budget, seconds=max(deadline - time.perf_counter(), 1.0), min_width=fine),
         floor=c_1)
-    spent += boxes
-    capped += ["the annulus inside the ball"] if time_capped(limited_by) else []
-    c_2 = below(c_2)
-    out.annulus = Annulus(c_2, limited_by, boxes, inner.decay_rate, inner.exp_rate,
-                          "delta-ball" if strict else "box", fine,
-                          None if cex is None else system.to_user(cex[None])[0].tolist())
-    out.time_s = time.perf_counter() - start
-    if not c_2 > c_1:
-        out.reason = (f"decrease of V on {{{c_1:.4g} <= V <= c}} inside the ball fails below the inner level "
-                      f"({limited_by})")
-        return done()
-    out.proved, out.level = True, c_2
-    return done()
+    return Annulus(below(c_2), limited_by, boxes, inner.decay_rate, inner.exp_rate,
+                   "delta-ball" if strict else "box", fine,
+                   None if cex is None else system.to_user(cex[None])[0].tolist())
 
 
 @dataclass
