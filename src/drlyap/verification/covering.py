@@ -10,6 +10,7 @@ import math
 import time
 
 import torch
+from torch import Tensor
 
 from drlyap.closed_loop import ClosedLoop
 from drlyap.conditions import Condition
@@ -46,13 +47,35 @@ def lipschitz_covering(loop: ClosedLoop, condition: Condition, region: Region, s
     With a ``compare`` budget the branch and bound runs on the same condition for comparison.
     """
     start = time.perf_counter()
-    system = loop.system
     if not condition.per_state:
         raise ValueError("the uniform DR condition has no per-state residual; the covering check needs one")
-    delta = region.delta
-    lo, hi = region.lo, region.hi
-    width = hi - lo
-    n = system.n
+    n, width = loop.system.n, region.hi - region.lo
+    spacing, per_axis = _cells_per_axis(width, n, spacing, n_samples)
+    glo, ghi = Region(region.lo, region.hi, region.delta).boxes(per_axis)
+    rho = float(((ghi - glo) / 2).norm(dim=-1).max()) * (1 + 1e-12)
+    max_res, l_sound = _sound_bounds(loop, condition, glo, ghi, batch)
+    l_sampled, exact_max, region_max = _sampled_bounds(loop, condition, (glo + ghi) / 2, region.delta)
+    needed = -l_sound * rho
+    out = {
+        "condition": condition.label, "delta": region.delta, "spacing": spacing, "per_axis": per_axis,
+        "cells": int(glo.shape[0]), "covering_radius": rho, "max_residual": max_res, "max_residual_float64": exact_max,
+        "max_residual_in_x_delta": region_max,
+        "lipschitz_sound": l_sound, "lipschitz_sampled": l_sampled, "safety": safety,
+        "required_max_residual": needed, "certified": bool(max_res <= needed),
+        "certified_estimate": bool(max_res <= -safety * l_sampled * rho),
+    }
+    if max_res < 0 and l_sound > 0:
+        h_needed = 2 * (-max_res) / (l_sound * math.sqrt(n))  # rho = h sqrt(n) / 2 for equal sides
+        out["spacing_needed"] = h_needed
+        out["samples_needed"] = float(math.prod(math.ceil(float(w) / h_needed) for w in width))
+    if compare is not None:
+        out["verifier"] = verify_condition(loop, condition, region, compare)
+    return CoveringCheck(**out, time_s=time.perf_counter() - start)
+
+
+def _cells_per_axis(width: Tensor, n: int, spacing: float | None, n_samples: int) -> tuple[float, list[int]]:
+    """The spacing (default: about ``n_samples`` cells over the box of side lengths ``width (n,)``) and the cells per
+    axis it gives; a spacing that is not > 0 or gives over 2,000,000 cells is refused."""
     if spacing is None:
         if n_samples < 1:
             raise ValueError(f"n_samples must be >= 1, got {n_samples}")
@@ -63,8 +86,13 @@ def lipschitz_covering(loop: ClosedLoop, condition: Condition, region: Region, s
     cells = math.prod(per_axis)
     if cells > 2_000_000:
         raise ValueError(f"spacing {spacing} gives {cells} cells; choose a larger spacing")
-    glo, ghi = Region(lo, hi, delta).boxes(per_axis)
-    rho = float(((ghi - glo) / 2).norm(dim=-1).max()) * (1 + 1e-12)
+    return spacing, per_axis
+
+
+def _sound_bounds(loop: ClosedLoop, condition: Condition, glo: Tensor, ghi: Tensor, batch: int) -> tuple[float, float]:
+    """Over the cells ``[glo, ghi] (C, n)``: a sound upper bound of the residual at their centres, and a sound
+    Lipschitz constant of it (the largest norm of the interval enclosure of its components' gradients on a cell)."""
+    n = glo.shape[1]
     objective = condition_objective(loop, condition)
     max_res, l_sound = -math.inf, 0.0
     for i in range(0, glo.shape[0], batch):
@@ -79,8 +107,13 @@ def lipschitz_covering(loop: ClosedLoop, condition: Condition, region: Region, s
         centre = (clo + chi) / 2
         at = objective(Interval(centre, centre))
         max_res = max(max_res, float(combine_upper(condition, at.hi).max()))
-    # sampled gradient norms at the centres (float64 autograd through the ordinary code path)
-    centres = (glo + ghi) / 2
+    return max_res, l_sound
+
+
+def _sampled_bounds(loop: ClosedLoop, condition: Condition, centres: Tensor, delta: float) -> tuple[float, float, float]:
+    """At the cell ``centres (C, n)``, by float64 autograd through the ordinary code path: the largest gradient norm
+    of the residual (an estimate of its Lipschitz constant from below), its largest value, and its largest value at
+    centres in X_delta (``||z|| >= delta``; ``-inf`` where none is)."""
     f64 = loop.f64
     l_sampled, exact_max, region_max = 0.0, -math.inf, -math.inf
     for i in range(0, centres.shape[0], 20000):
@@ -93,19 +126,4 @@ def lipschitz_covering(loop: ClosedLoop, condition: Condition, region: Region, s
         inside = zc.detach().norm(dim=-1) >= delta
         if bool(inside.any()):
             region_max = max(region_max, float(res.detach()[inside].max()))
-    needed = -l_sound * rho
-    out = {
-        "condition": condition.label, "delta": delta, "spacing": spacing, "per_axis": per_axis, "cells": int(glo.shape[0]),
-        "covering_radius": rho, "max_residual": max_res, "max_residual_float64": exact_max,
-        "max_residual_in_x_delta": region_max,
-        "lipschitz_sound": l_sound, "lipschitz_sampled": l_sampled, "safety": safety,
-        "required_max_residual": needed, "certified": bool(max_res <= needed),
-        "certified_estimate": bool(max_res <= -safety * l_sampled * rho),
-    }
-    if max_res < 0 and l_sound > 0:
-        h_needed = 2 * (-max_res) / (l_sound * math.sqrt(n))  # rho = h sqrt(n) / 2 for equal sides
-        out["spacing_needed"] = h_needed
-        out["samples_needed"] = float(math.prod(math.ceil(float(w) / h_needed) for w in width))
-    if compare is not None:
-        out["verifier"] = verify_condition(loop, condition, region, compare)
-    return CoveringCheck(**out, time_s=time.perf_counter() - start)
+    return l_sampled, exact_max, region_max
