@@ -8,6 +8,8 @@ the certificate file."""
 from __future__ import annotations
 
 import math
+from collections.abc import Callable
+from dataclasses import dataclass
 
 import torch
 from torch import Tensor
@@ -40,12 +42,26 @@ def widest_split(lo: Tensor, hi: Tensor, scale: Tensor) -> tuple[Tensor, Tensor]
     return torch.cat([lo, lo2]), torch.cat([hi1, hi])
 
 
-def _bisect(pair: Pair, qlo: Tensor, qhi: Tensor, scale: Tensor, level: float, above: bool, max_boxes: int,
-            batch: int, keep=None, member=None, settled=None) -> tuple[bool, float, int]:
-    """Bisect the boxes ``[qlo, qhi]`` (those ``keep(lo, hi)`` says meet the set; None: all) until V's lower bound is
-    ``> level`` on each (``above``; else its upper bound ``<= level``) or ``settled(lo, hi)`` (a ``(B,)`` mask; None:
-    never) holds on it, a centre in the set (``member(z)``; None: every centre) breaks it (the claim is then false)
-    or ``max_boxes`` are spent. Returns (holds, the bound closest to the level kept, boxes bounded)."""
+@dataclass(frozen=True)
+class _ValueClaim:
+    """What a bisection proves of V on a set of boxes: its lower bound ``> level`` (``above``; else its upper bound
+    ``<= level``) on every box that ``keep(lo, hi)`` says meets the set (None: all) and that ``settled(lo, hi)`` (a
+    ``(B,)`` mask; None: never) does not settle otherwise; a centre in the set (``member(z)``; None: every centre)
+    where V breaks the bound refutes it."""
+
+    level: float
+    above: bool
+    keep: Callable[[Tensor, Tensor], Tensor] | None = None
+    member: Callable[[Tensor], Tensor] | None = None
+    settled: Callable[[Tensor, Tensor], Tensor] | None = None
+
+
+def _bisect(pair: Pair, qlo: Tensor, qhi: Tensor, scale: Tensor, claim: _ValueClaim, max_boxes: int,
+            batch: int) -> tuple[bool, float, int]:
+    """Bisect the boxes ``[qlo, qhi]`` (along their widest side relative to ``scale``) until ``claim`` holds on each,
+    a centre breaks it (the claim is then false) or ``max_boxes`` are spent. Returns (holds, the bound closest to the
+    level kept, boxes bounded)."""
+    level, above, keep, member, settled = claim.level, claim.above, claim.keep, claim.member, claim.settled
     sign = 1.0 if above else -1.0
     closest, spent = math.inf, 0
     while qlo.shape[0]:
@@ -81,7 +97,7 @@ def faces_above(pair: Pair, lo: Tensor, hi: Tensor, level: float, max_boxes: int
     then false) or ``max_boxes`` are spent. Returns (holds, the smallest lower bound of V kept, boxes bounded)."""
     flo, fhi = _face_boxes(lo, hi)
     scale = torch.where(hi > lo, hi - lo, 1.0)
-    return _bisect(pair, flo, fhi, scale, level, True, max_boxes, batch)
+    return _bisect(pair, flo, fhi, scale, _ValueClaim(level, above=True), max_boxes, batch)
 
 
 def _face_boxes(lo: Tensor, hi: Tensor) -> tuple[Tensor, Tensor]:
@@ -129,7 +145,8 @@ def faces_inward(residual: Residual, lo: Tensor, hi: Tensor, level: float, max_b
 
     flo, fhi = _face_boxes(lo, hi)
     scale = torch.where(hi > lo, hi - lo, 1.0)
-    return _bisect(residual.pair, flo, fhi, scale, level, True, max_boxes, batch, member=leaves, settled=enters)
+    return _bisect(residual.pair, flo, fhi, scale, _ValueClaim(level, above=True, member=leaves, settled=enters),
+                   max_boxes, batch)
 
 
 def ball_below(pair: Pair, lo: Tensor, hi: Tensor, delta: float, level: float, max_boxes: int = 200_000,
@@ -148,7 +165,7 @@ def ball_below(pair: Pair, lo: Tensor, hi: Tensor, delta: float, level: float, m
         return Iv(z, z).square().sum(-1).hi < d2.lo
 
     a, b = grid_cells(lo, hi, [4] * lo.shape[0])
-    return _bisect(pair, a, b, hi - lo, level, False, max_boxes, batch, keep=meets, member=inside)
+    return _bisect(pair, a, b, hi - lo, _ValueClaim(level, above=False, keep=meets, member=inside), max_boxes, batch)
 
 
 def outside_positive(pair: Pair, lo: Tensor, hi: Tensor, delta: float, max_boxes: int = 1_000_000,
@@ -167,7 +184,7 @@ def outside_positive(pair: Pair, lo: Tensor, hi: Tensor, delta: float, max_boxes
         return Iv(z, z).square().sum(-1).lo >= d2.hi
 
     a, b = grid_cells(lo, hi, [4] * lo.shape[0])
-    return _bisect(pair, a, b, hi - lo, 0.0, True, max_boxes, batch, keep=reaches, member=outside)
+    return _bisect(pair, a, b, hi - lo, _ValueClaim(0.0, above=True, keep=reaches, member=outside), max_boxes, batch)
 
 
 def boxes_below(pair: Pair, lo: Tensor, hi: Tensor, scale: Tensor, level: float, max_boxes: int,
@@ -175,4 +192,4 @@ def boxes_below(pair: Pair, lo: Tensor, hi: Tensor, scale: Tensor, level: float,
     """Whether ``V < level`` at every state of the boxes ``[lo, hi] (B, n)``, by bisecting each (along its widest side
     relative to ``scale``) until V's upper bound is below the level on every piece, a centre has ``V >= level`` or
     ``max_boxes`` are spent. Returns (holds, the largest upper bound of V kept, boxes bounded)."""
-    return _bisect(pair, lo, hi, scale, level, False, max_boxes, batch)
+    return _bisect(pair, lo, hi, scale, _ValueClaim(level, above=False), max_boxes, batch)
