@@ -75,19 +75,19 @@ def _holds(residual: Residual, lo: Tensor, hi: Tensor, level: float | None, batc
 MIN_PIECES = 4096  # pieces the refinement of prove_boxes may always bound, however few the boxes
 
 
-def prove_boxes(residual: Residual, lo: Tensor, hi: Tensor, scale: Tensor, refine: int, level: float | None = None,
-                batch: int = 4096, above: Tensor | None = None, cheap_first: bool = False,
-                budget: int | None = None) -> tuple[Tensor, Tensor, int, int]:
-    """Re-prove ``residual <= 0`` on boxes ``(B, n)`` (with ``level``: at the boxes' states where ``V <= level``):
-    ``ok (B,)``, lower bounds of the residual at the centres ``(B,)``, and how many boxes needed bisection and into
-    how many pieces in all. ``above (B,)``: boxes to try ``V > level`` on first (the certificate's word, a hint
-    only: each box is proved one way or the other whatever it says); ``cheap_first``: try the mean-value bounds
-    before the second-order forms (an order, not a shortcut: see :func:`_holds`).
+def prove_boxes(job: LeafJob, lo: Tensor, hi: Tensor, above: Tensor | None = None, budget: int | None = None,
+                batch: int = 4096) -> tuple[Tensor, Tensor, int, int]:
+    """Re-prove ``job``'s residual ``<= 0`` on boxes ``(B, n)`` (with its ``level``: at the boxes' states where
+    ``V <= level``): ``ok (B,)``, lower bounds of the residual at the centres ``(B,)``, and how many boxes needed
+    bisection and into how many pieces in all. ``above (B,)``: boxes to try ``V > level`` on first (the certificate's
+    word, a hint only: each box is proved one way or the other whatever it says); the job's ``cheap_first``: try the
+    mean-value bounds before the second-order forms (an order, not a shortcut: see :func:`_holds`).
 
-    A box the checker's bounds do not prove is bisected, ``refine`` times at most, and at most as many pieces are
-    bounded in all as there are boxes (at least :data:`MIN_PIECES`; ``budget``: that many instead): a true certificate
-    whose few boxes the verifier's tighter bounds proved is confirmed, and a false one costs at most about twice its
-    boxes."""
+    A box the checker's bounds do not prove is bisected (along its widest side relative to the job's ``scale``), the
+    job's ``refine`` times at most, and at most as many pieces are bounded in all as there are boxes (at least
+    :data:`MIN_PIECES`; ``budget``: that many instead): a true certificate whose few boxes the verifier's tighter
+    bounds proved is confirmed, and a false one costs at most about twice its boxes."""
+    residual, level, cheap_first = job.residual, job.level, job.cheap_first
     above = torch.zeros(lo.shape[0], dtype=torch.bool, device=lo.device) if above is None else above
     order = torch.argsort(above.to(torch.int8), stable=True)  # the hinted boxes together, so that batches share a path
     ok, centre_low = torch.empty_like(above), torch.empty(lo.shape[0], dtype=F64, device=lo.device)
@@ -97,10 +97,10 @@ def prove_boxes(residual: Residual, lo: Tensor, hi: Tensor, scale: Tensor, refin
     refined, pieces = int(todo.numel()), 0
     owner, plo, phi = todo, lo[todo], hi[todo]
     budget = max(MIN_PIECES, int(lo.shape[0])) if budget is None else budget
-    for _ in range(refine if todo.numel() else 0):
+    for _ in range(job.refine if todo.numel() else 0):
         if pieces + 2 * plo.shape[0] > budget:
             break
-        plo, phi = widest_split(plo, phi, scale)
+        plo, phi = widest_split(plo, phi, job.scale)
         owner = owner.repeat(2)
         pieces += int(plo.shape[0])
         failed = ~_holds(residual, plo, phi, level, batch, above[owner], cheap_first)[0]
@@ -132,9 +132,7 @@ class LeafJob:
     def __call__(self, lo: Tensor, hi: Tensor, above: Tensor, allowance: Tensor | None = None) -> dict:
         device = torch.device(self.device)
         budget = None if allowance is None else max(MIN_PIECES, int(allowance.sum()))
-        ok, low, refined, pieces = prove_boxes(self.residual, lo.to(device), hi.to(device), self.scale, self.refine,
-                                               self.level, above=above.to(device), cheap_first=self.cheap_first,
-                                               budget=budget)
+        ok, low, refined, pieces = prove_boxes(self, lo.to(device), hi.to(device), above.to(device), budget)
         return {"ok": ok.cpu(), "centre_low": low.cpu(), "refined": torch.tensor([refined]),
                 "pieces": torch.tensor([pieces])}
 
