@@ -11,6 +11,7 @@ from __future__ import annotations
 
 from collections.abc import Callable
 from dataclasses import dataclass, field
+from pathlib import Path
 from typing import TYPE_CHECKING
 
 if TYPE_CHECKING:  # the checker's side of a claim: loaded only where a certificate is re-proved
@@ -23,13 +24,21 @@ delta-ball (``outer``) and the ellipsoid of its ``core`` (``core.certificate``).
 
 @dataclass(frozen=True)
 class ClaimRequest:
-    """What a kind's proof is asked on: a loaded run (:class:`~drlyap.runs.Run`), its proof settings
-    (:class:`~drlyap.proof_settings.ProofConfig`, resolved for the run) and a shift ``xi`` ``(k,)`` of the uncertain
-    parameters where the claim is about the true model at one (None: the kind's default)."""
+    """What a kind's proof is asked on: the pair's closed loop (:class:`~drlyap.closed_loop.ClosedLoop`; ``pinned``:
+    whether its V is least at x*, False for an imported V taken as given), the run directory its certificate goes to
+    (``folder``) with the files that hold the pair (``weights``: ``weights.pt``, or an imported pair's
+    ``[graphs.json, tensors.pt]``) and V's ``alpha_hat`` (None for an imported pair), the pair's ``delta``, its proof
+    settings (:class:`~drlyap.proof_settings.ProofConfig`, resolved for the system) and a shift ``xi`` ``(k,)`` of the
+    uncertain parameters where the claim is about the true model at one (None: the kind's default)."""
 
-    run: object
+    loop: object
+    folder: Path
+    weights: Path | list[Path]
+    alpha_hat: float | None
+    delta: float
     proof: object
     xi: tuple[float, ...] | None = None
+    pinned: bool = True
 
 
 @dataclass

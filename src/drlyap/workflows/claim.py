@@ -1,6 +1,7 @@
 """Prove a claim by its kind's name (``drlyap verify RUN --claim NAME``): the kinds of :mod:`drlyap.claims` that
-prove themselves (:attr:`~drlyap.claims.kind.ClaimKind.provable`) are asked here, on a loaded run and its proof
-settings; each writes its own certificate where it is verified, which ``drlyap check`` re-proves by the same kind."""
+prove themselves (:attr:`~drlyap.claims.kind.ClaimKind.provable`) are asked here, on a loaded run or imported pair
+and its proof settings; each writes its own certificate where it is verified, which ``drlyap check`` re-proves by
+the same kind."""
 
 from __future__ import annotations
 
@@ -9,7 +10,7 @@ from collections.abc import Sequence
 from drlyap.claims.kind import ClaimOutcome, ClaimRequest
 from drlyap.claims.registry import BY_NAME, KINDS
 from drlyap.proof_settings import ProofConfig
-from drlyap.runs import Run
+from drlyap.runs import PolicyRun, Run
 from drlyap.workflows.verify import run_proof
 
 
@@ -18,13 +19,31 @@ def provable_claims() -> tuple[str, ...]:
     return tuple(k.name for k in KINDS if k.provable)
 
 
-def prove_claim(run: Run, name: str, proof: ProofConfig | None = None,
+def claim_request(run: Run | PolicyRun, proof: ProofConfig | None = None,
+                  xi: Sequence[float] | None = None) -> ClaimRequest:
+    """What a kind's proof is asked on, for a loaded run (:func:`drlyap.runs.load_run`: its networks, delta and proof
+    settings, :func:`~drlyap.workflows.verify.run_proof`) or an imported pair
+    (:func:`drlyap.runs.load_imported_run`: its graphs, its export's delta or the system's, ``proof`` or the
+    defaults)."""
+    shift = None if xi is None else tuple(float(v) for v in xi)
+    if isinstance(run, Run):
+        return ClaimRequest(run.loop, run.path, run.path / "weights.pt", float(run.config.alpha_hat),
+                            float(run.config.delta), run_proof(run, proof), shift)
+    pair = run.info.get("pair")
+    if pair is None:
+        raise ValueError(f"{run.path} holds no pair drlyap proves claims of (a policy without V)")
+    system = pair.loop.system
+    delta = system.defaults.delta if pair.delta is None else pair.delta
+    return ClaimRequest(pair.loop, run.path, [run.path / "graphs.json", run.path / "tensors.pt"], None, float(delta),
+                        (proof or ProofConfig()).resolved(system), shift, pair.pinned)
+
+
+def prove_claim(run: Run | PolicyRun, name: str, proof: ProofConfig | None = None,
                 xi: Sequence[float] | None = None) -> ClaimOutcome:
-    """Prove the claim of the kind ``name`` for a loaded run (:func:`drlyap.runs.load_run`) with ``proof``'s settings
-    (:func:`~drlyap.workflows.verify.run_proof`), at the shift ``xi`` where the kind is about one; its certificate is
-    written into the run directory where it is verified. A ValueError names the kinds proved by name."""
+    """Prove the claim of the kind ``name`` for a loaded run or imported pair (:func:`claim_request`), at the shift
+    ``xi`` where the kind is about one; its certificate is written into the run directory where it is verified. A
+    ValueError names the kinds proved by name."""
     kind = BY_NAME.get(name)
     if kind is None or not kind.provable:
         raise ValueError(f"no claim {name!r} is proved by name; valid: {', '.join(provable_claims()) or 'none'}")
-    shift = None if xi is None else tuple(float(v) for v in xi)
-    return kind.prove(ClaimRequest(run, run_proof(run, proof), shift))
+    return kind.prove(claim_request(run, proof, xi))
