@@ -9,7 +9,7 @@ from drlyap.conditions import PlainDecrease
 from drlyap.regions import Region
 from drlyap.sections import TrainSections
 from drlyap.training import TrainConfig
-from drlyap.training.acceptance import acceptance_check
+from drlyap.training.acceptance import SetAsked, acceptance_check
 from drlyap.training.states import EXIT_MARGIN, descend_on_exits, exit_speed, may_leave
 from handmade import linear_pair, plain_train, small_pendulum
 
@@ -61,7 +61,7 @@ def test_the_acceptance_check_asks_each_face_state_its_own_level():
     condition = PlainDecrease(XI)
 
     def passed_faces(levels):
-        check = acceptance_check(loop, condition, XI, region, level=middle, faces=faces, face_levels=levels)
+        check = acceptance_check(loop, condition, XI, region, asked=SetAsked(middle, faces, levels))
         return check.boundary_min == pytest.approx(float(values.min()), rel=1e-6), check
 
     same, check = passed_faces(None)  # one level for all: V's least value on the faces is below it

@@ -10,7 +10,7 @@ from drlyap.regions import Region
 from drlyap.runs import RunDirError, load_run, save_run
 from drlyap.systems import cartpole, mountain_car, pendulum
 from drlyap.training import TrainConfig, TrainSections
-from drlyap.training.acceptance import acceptance_check, find_equilibria, jacobian_check
+from drlyap.training.acceptance import SetAsked, acceptance_check, find_equilibria, jacobian_check
 from handmade import plain_train
 
 
@@ -228,8 +228,8 @@ def test_an_equilibrium_outside_the_trained_set_does_not_count_against_the_pair(
     assert found and all(abs(abs(e["state"][0]) - math.pi) < 1e-3 for e in found)
     values = loop.value(torch.tensor([e["local"] for e in found]))
     below, above = 0.5 * float(values.min()), 2.0 * float(values.max())
-    outside = acceptance_check(loop, condition, xi, region, level=below)
-    inside = acceptance_check(loop, condition, xi, region, level=above)
+    outside = acceptance_check(loop, condition, xi, region, asked=SetAsked(below))
+    inside = acceptance_check(loop, condition, xi, region, asked=SetAsked(above))
     whole = acceptance_check(loop, condition, xi, region)
     assert len(outside.other_equilibria) == len(found) and outside.blocking_equilibria == []
     assert all(e["in_set"] is False and e["value"] > below for e in outside.other_equilibria)

@@ -19,6 +19,7 @@ from __future__ import annotations
 import copy
 import math
 import time
+from dataclasses import dataclass
 
 import torch
 from torch import Tensor
@@ -117,33 +118,45 @@ def find_equilibria(loop: ClosedLoop, xi_samples: Tensor, delta: float, starts_p
     return found
 
 
+@dataclass(frozen=True)
+class SetAsked:
+    """What the acceptance check asks of a pair trained for the sublevel set ``{V <= level}``: the condition only at
+    the validation states with ``V <= level``, and V above ``level`` at every state of ``faces`` ``(F, n)`` (None:
+    20,000 fixed states on the box's boundary), so that the set lies inside the box; with ``face_levels`` ``(F,)``,
+    V above each face state's own level instead (``level`` is then compared with V's least value on the faces only in
+    the record)."""
+
+    level: float
+    faces: Tensor | None = None
+    face_levels: Tensor | None = None
+
+
 def acceptance_check(loop: ClosedLoop, condition: Condition, xi_samples: Tensor, region: Region,
-                     validation: Tensor | None = None, level: float | None = None, faces: Tensor | None = None,
-                     local: bool = False, face_levels: Tensor | None = None) -> AcceptanceCheck:
+                     validation: Tensor | None = None, asked: SetAsked | None = None,
+                     local: bool = False) -> AcceptanceCheck:
     """Run all three checks; ``passed`` is True only if all of them pass.
 
     ``xi_samples (N, k)``: every sample; the Jacobian and equilibrium checks run at each of them and at
     their mean (the condition uses its own samples: the baseline's only the mean). ``validation``: the
-    states of the first check (default: ``region.grid()``). ``level``: the condition is asked only of the
-    validation states with ``V <= level``, and V must exceed ``level`` at every state of ``faces`` ``(F, n)``
-    (default: 20,000 fixed states on the box's boundary), so that ``{V <= level}`` lies inside the box (with
-    ``face_levels (F,)``: V must exceed each face state's own level, and ``level`` is compared with V's least value
-    on the faces only in the record).
+    states of the first check (default: ``region.grid()``). ``asked``: the sublevel set the pair is trained for
+    (:class:`SetAsked`; None: the condition on all of the validation states, no faces).
     ``local_rates``: V's second-order decay rate at x* on each of the condition's samples
     (:func:`~drlyap.conditions.local_rates`), always reported; with ``local`` every one must be negative.
     """
+    level = None if asked is None else asked.level
     z = region.grid() if validation is None else validation
-    asked = z
+    inside = z
     boundary_min = None
-    if level is not None:
-        asked = z[(loop.value(z) <= level).to(z.device)]
+    if asked is not None:
+        inside = z[(loop.value(z) <= level).to(z.device)]
+        faces = asked.faces
         if faces is None:
             faces = region.sample_faces(20000, torch.Generator().manual_seed(12345))
         face_values = loop.value(faces)
         boundary_min = float(face_values.min())
-        above = boundary_min > level if face_levels is None else bool(
-            (face_values.double() > face_levels.to(face_values.device, torch.float64)).all())
-    residual = condition_residual(loop, condition, asked) if asked.shape[0] else torch.empty(0)
+        above = boundary_min > level if asked.face_levels is None else bool(
+            (face_values.double() > asked.face_levels.to(face_values.device, torch.float64)).all())
+    residual = condition_residual(loop, condition, inside) if inside.shape[0] else torch.empty(0)
     max_violation = float(residual.max()) if residual.numel() else -math.inf
     jac = jacobian_check(loop, xi_samples)
     equilibria = find_equilibria(loop, xi_samples, region.delta)
@@ -191,9 +204,9 @@ class PairKeeper:
                                    torch.Generator().manual_seed(12345))
             validation = torch.cat([validation, inside])
         faces = self.states.check_faces(self.loop, self.condition.xi)
-        check = acceptance_check(self.loop, self.condition, self.xi, self.region, validation=validation, level=level,
-                                 faces=None if faces is None else faces[0], local=self.local,
-                                 face_levels=None if faces is None else faces[1])
+        asked = None if level is None else SetAsked(level, *(faces or ()))
+        check = acceptance_check(self.loop, self.condition, self.xi, self.region, validation=validation, asked=asked,
+                                 local=self.local)
         check.iteration = iteration
         self.checks.append(check.summary())
         score = (*check.stability(), -check.violating_fraction, -check.max_violation)
