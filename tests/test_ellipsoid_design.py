@@ -6,13 +6,14 @@ import math
 import pytest
 import torch
 
+from drlyap.closed_loop import ClosedLoop
 from drlyap.lmi import ellipsoid_share, invariant_ellipsoid
 from drlyap.lqr import linearize, lqr_design
 from drlyap.regions import Region
 from drlyap.systems import cartpole, quadrotor2d
 from drlyap.training import TrainConfig, TrainSections
 from drlyap.training.states import descend_on_faces
-from drlyap.training.warm_start import warm_start_pair
+from drlyap.training.warm_start import Regression, warm_start_pair
 
 
 def _half(system):
@@ -91,8 +92,8 @@ def test_the_ellipsoid_warm_start_sets_the_pair_exactly_just_above_the_faces_lev
     lyapunov, controller = plan.networks.build(system)
     region = Region.of(system, cfg.delta)
     xi = system.sample_xi(3, torch.Generator().manual_seed(0))
-    warm = warm_start_pair(system, lyapunov, controller, plan.networks, 1.0, cfg.lr, region,
-                           torch.Generator().manual_seed(0), xi, 0.3)
+    warm = warm_start_pair(ClosedLoop(system, lyapunov, controller), plan.networks, 1.0, region,
+                           torch.Generator().manual_seed(0), xi, 0.3, Regression(cfg.lr))
     design = invariant_ellipsoid(system, xi, 0.3)
     assert warm["method"] == "ellipsoid" and warm["iterations"] == 0 and warm["rate"] == 0.3
     z = region.sample(2000, torch.Generator().manual_seed(1))

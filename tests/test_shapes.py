@@ -11,7 +11,7 @@ from drlyap.regions import Region
 from drlyap.systems import cartpole, quadrotor2d
 from drlyap.training import TrainConfig, TrainSections
 from drlyap.training.states import ascend, radial_states
-from drlyap.training.warm_start import warm_start_pair
+from drlyap.training.warm_start import Regression, warm_start_pair
 from handmade import plain_train, small_pendulum
 
 F64 = torch.float64
@@ -24,8 +24,8 @@ def linear_loop(system, **overrides):
     plan = TrainSections.of(cfg)
     lyapunov, controller = plan.networks.build(system)
     region = Region.of(system, cfg.delta)
-    warm = warm_start_pair(system, lyapunov, controller, plan.networks, plan.goal.level, cfg.lr, region,
-                           torch.Generator().manual_seed(0), torch.zeros(0, 2), 0.0)
+    warm = warm_start_pair(ClosedLoop(system, lyapunov, controller), plan.networks, plan.goal.level, region,
+                           torch.Generator().manual_seed(0), torch.zeros(0, 2), 0.0, Regression(cfg.lr))
     return cfg, ClosedLoop(system, lyapunov, controller), region, warm
 
 

@@ -39,7 +39,7 @@ from drlyap.training.acceptance import PairKeeper, restore, snapshot
 from drlyap.training.boxes import OpenBoxes
 from drlyap.training.reshape import grow_quadratic, quadratic_form, share
 from drlyap.training.states import TrainingStates
-from drlyap.training.warm_start import warm_start_pair
+from drlyap.training.warm_start import Regression, warm_start_pair
 from drlyap.verification.results import ConditionProof, UniformMargin
 
 LOCAL_EVERY = 4  # iterations between evaluations of the local term (second derivatives at x*: ~2x an iteration)
@@ -121,9 +121,9 @@ def fit(cfg: TrainConfig, system: UncertainSystem, progress: bool = True, init: 
                         bool(plan.condition.local_rate), growing)
     warm = None
     if plan.networks.warm_start and not init:
-        warm = warm_start_pair(system, lyapunov, controller, plan.networks, goal.level, schedule.lr, region, gen,
-                               xi_train, max(plan.condition.local_rate, plan.condition.exp_rate),
-                               n_states=min(4096, int(sampling.n_states)))
+        warm = warm_start_pair(loop, plan.networks, goal.level, region, gen, xi_train,
+                               max(plan.condition.local_rate, plan.condition.exp_rate),
+                               Regression(schedule.lr, n_states=min(4096, int(sampling.n_states))))
     states.start()
     run = _Iterations(schedule, plan.condition, goal, loop, condition, states, keeper, growing,
                       None if boxes is None or not len(boxes) else (boxes.to(device), gen))

@@ -5,12 +5,14 @@ LQR's (``warm_start = "lqr"``) or the largest invariant ellipsoid of the lineari
 
 from __future__ import annotations
 
+from dataclasses import dataclass
+
 import torch
 from torch import Tensor
 
+from drlyap.closed_loop import ClosedLoop
 from drlyap.lmi import invariant_ellipsoid
 from drlyap.lqr import lqr_design
-from drlyap.networks import Controller, Lyapunov
 from drlyap.regions import Region
 from drlyap.sections import NetworkSection
 from drlyap.systems import UncertainSystem
@@ -20,10 +22,19 @@ FACES_SCALE = {"lqr": 1.2, "ellipsoid": 1.06}
 box, the ellipsoid (which meets the faces) just above the faces' level of a growing set (1.05)."""
 
 
-def warm_start_pair(system: UncertainSystem, lyapunov: Lyapunov, controller: Controller, networks: NetworkSection,
-                    level: float | None, lr: float, region: Region, generator: torch.Generator, xi: Tensor,
-                    rate: float, iters: int = 500, n_states: int = 4096) -> dict:
-    """Fit the networks to a quadratic and a gain (in place): ``V ~ s z^T P z`` and ``varphi(z) - varphi(0) ~ -K z``,
+@dataclass(frozen=True)
+class Regression:
+    """How the warm start fits networks that cannot take the pair exactly: ``iters`` steps of Adam at step size ``lr``,
+    each on ``n_states`` states (half uniform in X_delta, half spread over the distance from x*)."""
+
+    lr: float
+    iters: int = 500
+    n_states: int = 4096
+
+
+def warm_start_pair(loop: ClosedLoop, networks: NetworkSection, level: float | None, region: Region,
+                    generator: torch.Generator, xi: Tensor, rate: float, regression: Regression) -> dict:
+    """Fit ``loop``'s networks to a quadratic and a gain (in place): ``V ~ s z^T P z`` and ``varphi(z) - varphi(0) ~ -K z``,
     exactly for a network without hidden layers or with a linear path (:meth:`~drlyap.networks.Lyapunov.set_quadratic`,
     :meth:`~drlyap.networks.Controller.set_linear`), by regression for the others.
 
@@ -31,15 +42,13 @@ def warm_start_pair(system: UncertainSystem, lyapunov: Lyapunov, controller: Con
     diagonal]``; None: Bryson's rule) on the nominal linearisation; with ``"ellipsoid"`` the largest ellipsoid in the
     box kept invariant at decay ``rate`` for the nominal linearisation and those at the training shifts ``xi (N, k)``.
     ``s`` puts the quadratic's minimum over the faces of the box at :data:`FACES_SCALE` times the training ``level``
-    (:attr:`~drlyap.sections.RegionGoal.level`; 1 without a level). The regression runs Adam at step size ``lr``;
-    states: half uniform in X_delta, half spread over the distance from x*. Returns the design's gain, the scale and
-    the final relative errors.
+    (:attr:`~drlyap.sections.RegionGoal.level`; 1 without a level). The others are fitted by the ``regression``
+    (:class:`Regression`). Returns the design's gain, the scale and the final relative errors.
     """
+    system, lyapunov, controller = loop.system, loop.lyapunov, loop.controller
+    lr, iters, n_states = regression.lr, regression.iters, regression.n_states
     kind = networks.warm_start
-    if kind == "ellipsoid":
-        design = invariant_ellipsoid(system, xi.double().cpu(), rate)
-    else:
-        design = _lqr(system, networks)
+    design = _design(system, networks, xi, rate)
     half = torch.maximum(-region.lo, region.hi)
     scale = FACES_SCALE[kind] * (level or 1.0) / float((half.square() / torch.linalg.inv(design.P).diagonal()).min())
     ref = next(lyapunov.parameters())
@@ -70,8 +79,12 @@ def warm_start_pair(system: UncertainSystem, lyapunov: Lyapunov, controller: Con
             "iterations": iters if opt else 0}
 
 
-def _lqr(system: UncertainSystem, networks: NetworkSection):
-    """The LQR design of the warm start (:func:`~drlyap.lqr.lqr_design` for ``networks.lqr_weights``)."""
+def _design(system: UncertainSystem, networks: NetworkSection, xi: Tensor, rate: float):
+    """The pair's design: the largest invariant ellipsoid (:func:`~drlyap.lmi.invariant_ellipsoid` at ``rate`` for the
+    nominal linearisation and those at ``xi (N, k)``) where ``networks.warm_start == "ellipsoid"``, else the LQR design
+    (:func:`~drlyap.lqr.lqr_design` for ``networks.lqr_weights``)."""
+    if networks.warm_start == "ellipsoid":
+        return invariant_ellipsoid(system, xi.double().cpu(), rate)
     q, r = networks.lqr_weights if networks.lqr_weights is not None else (None, None)
     try:
         return lqr_design(system, q, r)
