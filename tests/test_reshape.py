@@ -11,7 +11,7 @@ from drlyap.regions import Region
 from drlyap.sections import TrainSections
 from drlyap.systems import cartpole, quadrotor2d
 from drlyap.training import TrainConfig, fit
-from drlyap.training.reshape import _affine_structure, grow_quadratic, quadratic_form, share
+from drlyap.training.reshape import GrowthTarget, _affine_structure, grow_quadratic, quadratic_form, share
 
 
 def test_the_condition_structure_is_read_from_its_own_code():
@@ -66,7 +66,7 @@ def test_a_v_with_hidden_layers_is_left_alone():
     before = [t.clone() for t in lyapunov.state_dict().values()]
     loop = ClosedLoop(system, lyapunov, controller)
     condition = DRPointwise(0.05, 0.1, system.sample_xi(5, torch.Generator().manual_seed(0)))
-    assert grow_quadratic(loop, condition, Region.of(system, 0.1), 1.0, 1.05, 0.0, 0.0, 2,
+    assert grow_quadratic(loop, condition, Region.of(system, 0.1), GrowthTarget(1.0, 1.05), 2,
                           torch.Generator().manual_seed(0)) is None
     assert all(torch.equal(a, b) for a, b in zip(before, lyapunov.state_dict().values()))
 

@@ -27,6 +27,7 @@ from __future__ import annotations
 
 import copy
 import warnings
+from dataclasses import dataclass
 
 import numpy as np
 import torch
@@ -70,14 +71,29 @@ def _affine_structure(condition: Condition, count: int) -> tuple[Tensor, Tensor]
     return c_d, c_l
 
 
-def grow_quadratic(loop: ClosedLoop, condition: Condition, region: Region, level: float, faces_level: float,
-                   margin_rate: float, local_rate: float, steps: int, generator: torch.Generator,
-                   n_states: int = 12000, bar=None) -> dict | None:
-    """Grow the set ``{V <= level}`` of ``loop``'s quadratic V with its controller fixed (module docstring), in place
-    (V is set to the last P found). Returns a record (the shares of the box before and after, the steps taken and
-    why it stopped), or None where V is not quadratic or the condition does not combine by the maximum. ``bar``: a
-    progress reporter (:func:`drlyap.progress.progress`) told of each program solved."""
+@dataclass(frozen=True)
+class GrowthTarget:
+    """What the programs of :func:`grow_quadratic` grow and keep: the set ``{V <= level}``, V at least
+    ``faces_level`` on every face of the box, the condition with the training's margin ``margin_rate V`` and V's local
+    rate at x* at least ``local_rate`` (0: not asked)."""
+
+    level: float
+    faces_level: float
+    margin_rate: float = 0.0
+    local_rate: float = 0.0
+
+
+def grow_quadratic(loop: ClosedLoop, condition: Condition, region: Region, target: GrowthTarget, steps: int,
+                   generator: torch.Generator, n_states: int = 12000, bar=None) -> dict | None:
+    """Grow the set ``{V <= target.level}`` of ``loop``'s quadratic V with its controller fixed (module docstring), in
+    place (V is set to the last P found), by ``steps`` programs on ``n_states`` states each. Returns a record (the
+    shares of the box before and after, the steps taken and why it stopped), or None where V is not quadratic or the
+    condition does not combine by the maximum. ``bar``: a progress reporter (:func:`drlyap.progress.progress`) told
+    of each program solved."""
     import cvxpy as cp
+
+    level, faces_level = target.level, target.faces_level
+    margin_rate, local_rate = target.margin_rate, target.local_rate
 
     p = quadratic_form(loop.lyapunov)
     count = condition.xi.shape[0] if condition.xi is not None else 0

@@ -37,7 +37,7 @@ from drlyap.sections import ConditionSection, NetworkSection, RegionGoal, Schedu
 from drlyap.systems import UncertainSystem
 from drlyap.training.acceptance import PairKeeper, restore, snapshot
 from drlyap.training.boxes import OpenBoxes
-from drlyap.training.reshape import grow_quadratic, quadratic_form, share
+from drlyap.training.reshape import GrowthTarget, grow_quadratic, quadratic_form, share
 from drlyap.training.states import TrainingStates
 from drlyap.training.warm_start import Regression, warm_start_pair
 from drlyap.verification.results import ConditionProof, UniformMargin
@@ -212,9 +212,8 @@ class _Iterations:
             return {"steps": 0, "stopped": "the trained pair did not pass its acceptance check", "kept": False}
         tic = time.perf_counter()
         kept, before = snapshot(self.loop.lyapunov, self.loop.controller), quadratic_form(self.loop.lyapunov)
-        record = grow_quadratic(self.loop, self.condition, region, self.goal.level, self.goal.faces_level,
-                                self.section.margin_rate, self.section.local_rate, self.goal.reshape_steps, gen,
-                                n_states, bar)
+        target = GrowthTarget(self.goal.level, self.goal.faces_level, self.section.margin_rate, self.section.local_rate)
+        record = grow_quadratic(self.loop, self.condition, region, target, self.goal.reshape_steps, gen, n_states, bar)
         if record is None:
             return {"steps": 0, "stopped": "V is not quadratic, or the condition is not the maximum over its samples",
                     "kept": False}
