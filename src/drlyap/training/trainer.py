@@ -111,11 +111,11 @@ def fit(cfg: TrainConfig, system: UncertainSystem, progress: bool = True, init: 
     xi_train = plan.condition.training_samples(xi_all)
     condition = plan.condition.build(xi_train)
     region = sampling.region(system)
+    lyapunov, controller = _networks(system, plan.networks, init, device)
+    states = TrainingStates(sampling, goal, system, region, lyapunov, gen, device, _extra(extra_states, system, device))
+    loop = ClosedLoop(system, lyapunov, controller)  # the live networks: no float64 copy is taken of this loop
     grid = region.grid()
     system.check_finite(xi_all, system.to_user(grid))
-    lyapunov, controller = _networks(system, plan.networks, init, device)
-    loop = ClosedLoop(system, lyapunov, controller)  # the live networks: no float64 copy is taken of this loop
-    states = TrainingStates(sampling, goal, system, region, lyapunov, gen, device, _extra(extra_states, system, device))
     growing = bool(goal.grow_weight) and grow and goal.level is not None  # trains every iteration: no early stop
     keeper = PairKeeper(loop, condition, xi_all.to(device), region, grid.float().to(device), states,
                         bool(plan.condition.local_rate), growing)
@@ -124,8 +124,7 @@ def fit(cfg: TrainConfig, system: UncertainSystem, progress: bool = True, init: 
         warm = warm_start_pair(loop, plan.networks, goal.level, region, gen, xi_train,
                                max(plan.condition.local_rate, plan.condition.exp_rate),
                                Regression(schedule.lr, n_states=min(4096, int(sampling.n_states))))
-    states.start()
-    run = _Iterations(schedule, plan.condition, goal, loop, condition, states, keeper, growing,
+    run = _Iterations(schedule, plan.condition, goal, keeper,
                       None if boxes is None or not len(boxes) else (boxes.to(device), gen))
     lyapunov.requires_grad_(train_lyapunov)
     try:
@@ -146,13 +145,14 @@ def fit(cfg: TrainConfig, system: UncertainSystem, progress: bool = True, init: 
 class _Iterations:
     """A fit's iterations: Adam on the loss of :func:`_loss` until the acceptance check passes (not while the set
     grows) or ``schedule.iters``; a diverging loss restores the last good weights (a snapshot every 50 iterations).
-    Afterwards the networks hold the pair the ``keeper`` ranked best."""
+    The loop trained, its condition and states are the ``keeper``'s; afterwards its networks hold the pair the
+    ``keeper`` ranked best."""
 
-    def __init__(self, schedule: Schedule, section: ConditionSection, goal: RegionGoal, loop: ClosedLoop,
-                 condition: Condition, states: TrainingStates, keeper: PairKeeper, growing: bool,
+    def __init__(self, schedule: Schedule, section: ConditionSection, goal: RegionGoal, keeper: PairKeeper,
                  boxes: tuple[OpenBoxes, torch.Generator] | None = None) -> None:
-        self.schedule, self.section, self.goal, self.loop, self.condition = schedule, section, goal, loop, condition
-        self.states, self.keeper, self.growing, self.boxes = states, keeper, growing, boxes
+        self.schedule, self.section, self.goal, self.keeper, self.boxes = schedule, section, goal, keeper, boxes
+        # the loop trained, its condition, its states and whether its set grows: the keeper's
+        self.loop, self.condition, self.states, self.growing = keeper.loop, keeper.condition, keeper.states, keeper.growing
         self.grow_until = math.floor(GROW_SHARE * schedule.iters)  # the last iteration with the growth term
         self.history: list[dict] = []
         self.status = "iteration cap reached without passing the acceptance check"
@@ -161,8 +161,11 @@ class _Iterations:
         self.check: AcceptanceCheck | None = None
 
     def go(self, bar) -> None:
-        """Train, showing the iterations on ``bar``, and load the pair kept."""
+        """Draw the states' start (:meth:`~drlyap.training.states.TrainingStates.start`: after the warm start, whose
+        pair the states inside the set are drawn for), train, showing the iterations on ``bar``, and load the pair
+        kept."""
         lyapunov, controller = self.loop.lyapunov, self.loop.controller
+        self.states.start()
         trained = [p for p in (*lyapunov.parameters(), *controller.parameters()) if p.requires_grad]
         opt = torch.optim.Adam(trained, lr=self.schedule.lr, fused=True)
         last_good = snapshot(lyapunov, controller)
