@@ -61,7 +61,7 @@ from drlyap.render import proof_round_line, unverified_warning
 from drlyap.sections import TrainSections
 from drlyap.systems import UncertainSystem, get_system
 from drlyap.training.boxes import OpenBoxes
-from drlyap.training.resume import fit_or_resume
+from drlyap.training.resume import FitStart, fit_or_resume
 from drlyap.training.trainer import TrainResult, fit
 from drlyap.verification import (
     Budget,
@@ -263,9 +263,9 @@ def _proof_rounds(cfg: TrainConfig, system: UncertainSystem, proof: ProofConfig,
     for r in range(rounds + 1):
         tic = time.perf_counter()
         warm = init if result is None else (result.lyapunov, result.controller)
-        result = fit_or_resume(proof.compute.checkpoint_dir, round_cfg, system, progress, warm,
-                               extra.repeat(int(proof.replicate), 1) if r else None, not r, boxes,
-                               not r or proof.retrain == "pair")
+        start = FitStart(warm, extra.repeat(int(proof.replicate), 1) if r else None, not r, boxes,
+                         not r or proof.retrain == "pair")
+        result = fit_or_resume(proof.compute.checkpoint_dir, round_cfg, system, start, progress)
         train_time = time.perf_counter() - (tic if r else start)
         if not r:
             first_reshape = result.metrics.get("reshape")

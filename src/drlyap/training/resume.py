@@ -10,6 +10,7 @@ import copy
 import hashlib
 import json
 import sys
+from dataclasses import dataclass
 
 import torch
 from torch import Tensor
@@ -31,40 +32,50 @@ def _update(h, t: Tensor | None) -> None:
         update_hash(h, t)
 
 
-def fit_key(cfg: TrainConfig, system: UncertainSystem, init: tuple[Lyapunov, Controller] | None,
-            extra_states: Tensor | None, grow: bool, boxes: OpenBoxes | None, train_lyapunov: bool) -> str:
+@dataclass(frozen=True)
+class FitStart:
+    """What a fit starts from and trains on beside its config (:func:`~drlyap.training.trainer.fit`'s keywords): the
+    pair ``init`` (None: fresh networks), the local ``extra_states`` ``(E, n)`` added to every batch, whether the
+    growth term acts (``grow``), the open ``boxes`` whose verifier bound is trained on, and whether V is trained
+    (``train_lyapunov``)."""
+
+    init: tuple[Lyapunov, Controller] | None = None
+    extra_states: Tensor | None = None
+    grow: bool = True
+    boxes: OpenBoxes | None = None
+    train_lyapunov: bool = True
+
+
+def fit_key(cfg: TrainConfig, system: UncertainSystem, start: FitStart) -> str:
     """The sha256 (hex) of what a fit depends on."""
+    boxes = start.boxes
     h = hashlib.sha256(b"drlyap-fit/1")
     h.update(json.dumps(cfg.to_dict(), sort_keys=True, default=str).encode())
     h.update(json.dumps(system.describe(), sort_keys=True, default=str).encode())
-    for net in init or ():
+    for net in start.init or ():
         for name, value in sorted(net.state_dict().items()):
             h.update(name.encode())
             _update(h, value)
-    _update(h, extra_states)
+    _update(h, start.extra_states)
     _update(h, None if boxes is None else boxes.lo)
     _update(h, None if boxes is None else boxes.hi)
-    h.update(json.dumps([grow, train_lyapunov, None if boxes is None else [boxes.level, str(boxes.enclosure),
-                                                                           boxes.weight, boxes.margin, boxes.batch]],
-                        default=str).encode())
+    h.update(json.dumps([start.grow, start.train_lyapunov, None if boxes is None else [
+        boxes.level, str(boxes.enclosure), boxes.weight, boxes.margin, boxes.batch]], default=str).encode())
     return h.hexdigest()
 
 
-def fit_or_resume(folder: str | None, cfg: TrainConfig, system: UncertainSystem, progress: bool,
-                  init: tuple[Lyapunov, Controller] | None, extra_states: Tensor | None, grow: bool,
-                  boxes: OpenBoxes | None, train_lyapunov: bool) -> TrainResult:
-    """:func:`~drlyap.training.trainer.fit` with these arguments, or, where ``folder`` keeps a sealed fit of the very
-    same arguments, that fit (and torch's generator state as the fit left it); a new fit is kept in ``folder``."""
-    if folder is None:
-        return fit(cfg, system, progress=progress, init=init, extra_states=extra_states, grow=grow, boxes=boxes,
-                   train_lyapunov=train_lyapunov)
-    key = fit_key(cfg, system, init, extra_states, grow, boxes, train_lyapunov)
-    saved = load_checkpoint(folder, key)
-    if saved is not None:
+def fit_or_resume(folder: str | None, cfg: TrainConfig, system: UncertainSystem, start: FitStart,
+                  progress: bool) -> TrainResult:
+    """:func:`~drlyap.training.trainer.fit` from ``start``, or, where ``folder`` keeps a sealed fit of the very same
+    arguments, that fit (and torch's generator state as the fit left it); a new fit is kept in ``folder``."""
+    key = None if folder is None else fit_key(cfg, system, start)
+    saved = None if key is None else load_checkpoint(folder, key)
+    if saved is not None:  # the pair and the xi samples kept, torch's generator state as the fit left it
         arrays, header = saved
         plan = TrainSections.of(cfg)
-        lyapunov, controller = (copy.deepcopy(n) for n in init) if init else plan.networks.build(system)
-        lyapunov.load_state_dict({k.removeprefix("lyapunov."): v for k, v in arrays.items() if k.startswith("lyapunov.")})
+        lyapunov, controller = (copy.deepcopy(n) for n in start.init) if start.init else plan.networks.build(system)
+        lyapunov.load_state_dict({k.removeprefix("lyapunov."): v for k, v in arrays.items()
+                                  if k.startswith("lyapunov.")})
         controller.load_state_dict({k.removeprefix("controller."): v for k, v in arrays.items()
                                     if k.startswith("controller.")})
         xi_all = arrays["xi_all"]
@@ -74,8 +85,10 @@ def fit_or_resume(folder: str | None, cfg: TrainConfig, system: UncertainSystem,
             print(f"{cfg.system} {cfg.method}: this training was done before an interruption; its pair is taken "
                   "from the checkpoint, not trained again", file=sys.stderr, flush=True)
         return TrainResult(cfg, system, lyapunov, controller, xi_all, condition, header["history"], header["metrics"])
-    result = fit(cfg, system, progress=progress, init=init, extra_states=extra_states, grow=grow, boxes=boxes,
-                 train_lyapunov=train_lyapunov)
+    result = fit(cfg, system, progress=progress, init=start.init, extra_states=start.extra_states, grow=start.grow,
+                 boxes=start.boxes, train_lyapunov=start.train_lyapunov)
+    if key is None:
+        return result
     arrays = {f"lyapunov.{k}": v for k, v in result.lyapunov.state_dict().items()}
     arrays |= {f"controller.{k}": v for k, v in result.controller.state_dict().items()}
     arrays |= {"xi_all": result.xi_samples, "rng": torch.get_rng_state()}
@@ -84,3 +97,4 @@ def fit_or_resume(folder: str | None, cfg: TrainConfig, system: UncertainSystem,
     except OSError:  # no place to keep it: the fit is done again after an interruption
         pass
     return result
+
