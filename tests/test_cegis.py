@@ -10,7 +10,7 @@ from drlyap.proof_settings import Budget, ProofConfig
 from drlyap.records import ProofRound
 from drlyap.regions import Region
 from drlyap.systems import get_system
-from drlyap.training.certified import collect_counterexamples, train_cegis
+from drlyap.training.certified import CounterexampleSearch, collect_counterexamples, train_cegis
 from drlyap.verification import ProofRules, falsify, verify_condition
 from handmade import plain_train
 
@@ -37,7 +37,8 @@ def test_falsifier_and_collected_states_really_violate(tiny_config):
     assert bool((found.norm(dim=-1) >= cfg.delta).all())
     ver = verify_condition(loop, cond, region, Budget(seconds=1.0), rules=ProofRules(keep_boxes=50))
     assert ver.status != "verified"
-    got = collect_counterexamples(loop, cond, region, ver, torch.Generator().manual_seed(0), n_random=64, steps=5)
+    got = collect_counterexamples(loop, cond, region, ver, torch.Generator().manual_seed(0),
+                                  CounterexampleSearch(n_random=64, steps=5))
     cex = got["counterexamples"]
     assert cex.shape[0] > 0
     assert bool((loop.exact(cond, cex) > 0).all())  # one condition object: training's and the verifier's

@@ -122,14 +122,15 @@ def test_cegis_starts_near_x_star_where_training_does(violating_pair, monkeypatc
     loop, cond = result.loop, result.condition
     nothing = ConditionProof(condition=cond.label, status="unknown", verified_fraction=0.0, delta=region.delta)
     got = cegis.collect_counterexamples(loop, cond, region, nothing, torch.Generator().manual_seed(0),
-                                        n_random=64, steps=5, near=True)
+                                        cegis.CounterexampleSearch(n_random=64, steps=5, near=True))
     assert got["falsifier_starts"] == 64 and bool((loop.exact(cond, got["counterexamples"]) > 0).all())
     seen = []
 
-    def spy(*args, **kwargs):
-        seen.append((kwargs["n_random"], kwargs["near"]))
+    def spy(loop, condition, region, verification, generator, search):
+        seen.append((search.n_random, search.near))
         return {"counterexamples": torch.empty(0, 2, dtype=torch.float64), "neighbours": torch.empty(0, 2),
-                "box_centres": torch.empty(0, 2, dtype=torch.float64), "max_residual": None, "falsify_time_s": 0.0}
+                "box_centres": torch.empty(0, 2, dtype=torch.float64), "open_boxes": None, "max_residual": None,
+                "falsify_time_s": 0.0}
 
     monkeypatch.setattr(cegis, "collect_counterexamples", spy)
     from drlyap.training import TrainConfig

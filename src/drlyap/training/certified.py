@@ -45,6 +45,7 @@ import math
 import sys
 import time
 import warnings
+from dataclasses import dataclass
 
 import torch
 from torch import Tensor
@@ -77,34 +78,56 @@ from drlyap.verification.falsifier import box_centres, falsifier_starts, falsify
 F64 = torch.float64
 
 
+@dataclass(frozen=True)
+class CounterexampleSearch:
+    """How :func:`collect_counterexamples` searches: from ``n_random`` random states of X_delta (uniform, or with
+    ``near`` half of them spread over the distance from x*) and the centres of at most ``max_boxes`` unverified
+    boxes, ``steps`` steps of the falsifier's ascent; ``neighbours`` jittered copies of each counterexample.
+    ``level``: the claim is about ``{V <= level}`` only (region-of-attraction training), so only states there count
+    as counterexamples (None: all of X_delta). ``train_boxes``: at most so many unverified boxes are handed back
+    whole, to train the verifier's bound on (0: none)."""
+
+    n_random: int = 512
+    max_boxes: int = 200
+    steps: int = 30
+    neighbours: int = 3
+    level: float | None = None
+    near: bool = False
+    train_boxes: int = 0
+
+
 def collect_counterexamples(loop: ClosedLoop, condition: Condition, region: Region, verification: ConditionProof,
-                            generator: torch.Generator, n_random: int = 512, max_boxes: int = 200, steps: int = 30,
-                            neighbours: int = 3, level: float | None = None, near: bool = False) -> dict:
+                            generator: torch.Generator, search: CounterexampleSearch = CounterexampleSearch()) -> dict:
     """New training states from a failed verification: counterexamples (residual > 0) and unverified box centres.
 
     The falsifier starts from the verification's counterexample, the centres of its unverified boxes (user
-    coordinates there) and ``n_random`` random states of X_delta: uniform, or with ``near`` half of them spread over
-    the distance from x* (:func:`~drlyap.verification.falsifier.falsifier_starts`). Returns local states:
+    coordinates there) and the ``search``'s random states of X_delta (:class:`CounterexampleSearch`;
+    :func:`~drlyap.verification.falsifier.falsifier_starts` where they are spread near x*). Returns local states:
     ``counterexamples`` (each re-evaluated, residual > 0), ``neighbours`` (jittered copies of them, in X_delta),
-    ``box_centres`` (unverified boxes, in X_delta, any residual) and the counts. ``level``: the claim is about
-    ``{V <= level}`` only (region-of-attraction training), so only states there count as counterexamples.
+    ``box_centres`` (unverified boxes, in X_delta, any residual), ``open_boxes`` (the corners ``lo, hi (B, n)``,
+    local, of at most ``search.train_boxes`` unverified boxes; None: none) and the counts.
     """
+    n_random, max_boxes, steps, neighbours, level = (search.n_random, search.max_boxes, search.steps,
+                                                     search.neighbours, search.level)
     system = loop.system
     scale = region.scale
     cand = []
     if verification.counterexample_local is not None:
         cand.append(torch.as_tensor([verification.counterexample_local], dtype=F64))
-    centres = box_centres(system, (verification.unverified_boxes or [])[:max_boxes])
+    unverified = verification.unverified_boxes or []
+    centres = box_centres(system, unverified[:max_boxes])
+    corners = local_boxes(system, unverified[:search.train_boxes]) if search.train_boxes and unverified else None
     centres = centres[region.in_region(centres)]
     if centres.shape[0]:
         cand.append(centres)
     if n_random:
-        cand.append(falsifier_starts(region, n_random, generator) if near else region.sample(n_random, generator))
+        cand.append(falsifier_starts(region, n_random, generator) if search.near
+                    else region.sample(n_random, generator))
     starts = torch.cat(cand) if cand else torch.empty(0, system.n, dtype=F64)
     if starts.shape[0] == 0:
         empty = torch.empty(0, system.n, dtype=F64)
-        return {"counterexamples": empty, "neighbours": empty, "box_centres": centres, "max_residual": None,
-                "falsifier_starts": 0, "falsifier_violations": 0, "falsify_time_s": 0.0}
+        return {"counterexamples": empty, "neighbours": empty, "box_centres": centres, "open_boxes": corners,
+                "max_residual": None, "falsifier_starts": 0, "falsifier_violations": 0, "falsify_time_s": 0.0}
     tic = time.perf_counter()
     found, values = falsify(loop, condition, region, starts, steps=steps)
     falsify_time = time.perf_counter() - tic
@@ -118,7 +141,7 @@ def collect_counterexamples(loop: ClosedLoop, condition: Condition, region: Regi
     if neighbours and cex.shape[0]:
         noise = 0.01 * scale * torch.randn(cex.shape[0] * neighbours, system.n, generator=generator, dtype=F64)
         near = region.project(cex.repeat(neighbours, 1) + noise)
-    return {"counterexamples": cex, "neighbours": near, "box_centres": centres,
+    return {"counterexamples": cex, "neighbours": near, "box_centres": centres, "open_boxes": corners,
             "max_residual": float(res.max()),
             "falsifier_starts": int(starts.shape[0]), "falsifier_violations": int((values > 0).sum()),
             "falsify_time_s": falsify_time}
@@ -149,17 +172,21 @@ def train_cegis(cfg: TrainConfig, system: UncertainSystem, proof: ProofConfig, p
 
 class _Counterexamples:
     """Proof rounds of a per-state condition: the branch and bound on the trained condition, and for retraining the
-    falsifier's counterexamples, their neighbours and the unproved boxes' centres (:func:`collect_counterexamples`);
-    the returned pair's verdict settled by the falsifier where the proof is ``unknown``."""
+    falsifier's counterexamples, their neighbours and the unproved boxes' centres (:func:`collect_counterexamples`)
+    and at most ``train_boxes`` of the boxes it left open; the returned pair's verdict settled by the falsifier where
+    the proof is ``unknown``. ``plan``: the first run's sections (the claimed level, the share of states drawn near x*,
+    the seed, the hinge's margin)."""
 
-    def __init__(self, result: TrainResult, proof: ProofConfig, budget: Budget, region: Region) -> None:
-        cfg = result.config
-        self.condition, self.proof, self.budget, self.region, self.level = (result.condition, proof, budget, region,
-                                                                            cfg.roa_level)
-        self.near = bool(cfg.near_share)
-        self.n_random = proof.falsifier_starts if proof.falsifier_starts is not None else (2048 if self.near else 512)
-        self.seed, self.system = cfg.seed, result.system
-        self.margin = float(TrainSections.of(cfg).condition.margin)  # the open boxes' hinge margin, the states' own
+    def __init__(self, condition: Condition, proof: ProofConfig, budget: Budget, region: Region,
+                 plan: TrainSections) -> None:
+        self.condition, self.proof, self.budget, self.region = condition, proof, budget, region
+        self.level, self.seed = plan.goal.roa_level, plan.schedule.seed
+        near = bool(plan.sampling.near_share)
+        self.search = CounterexampleSearch(
+            n_random=proof.falsifier_starts if proof.falsifier_starts is not None else (2048 if near else 512),
+            max_boxes=proof.keep_boxes, steps=proof.falsifier_steps, neighbours=proof.neighbours, level=self.level,
+            near=near, train_boxes=proof.train_boxes if proof.box_weight else 0)
+        self.margin = float(plan.condition.margin)  # the open boxes' hinge margin, the states' own
 
     def prove(self, loop: ClosedLoop) -> ConditionProof:
         keep = max(self.proof.keep_boxes, self.proof.train_boxes if self.proof.box_weight else 0)
@@ -175,28 +202,22 @@ class _Counterexamples:
         """After a proof and the acceptance check: a larger proved share, then a smaller counterexample."""
         return verdict.verified_fraction, -(verdict.counterexample_value or 0.0)
 
-    def states(self, loop: ClosedLoop, verdict: ConditionProof, gen: torch.Generator, entry: ProofRound) -> Tensor:
-        """New retraining states (box centres, neighbours, counterexamples: the counterexamples last); their counts
-        go into ``entry``."""
-        proof = self.proof
-        found = collect_counterexamples(loop, self.condition, self.region, verdict, gen, n_random=self.n_random,
-                                        max_boxes=proof.keep_boxes, steps=proof.falsifier_steps,
-                                        neighbours=proof.neighbours, level=self.level, near=self.near)
+    def retraining(self, loop: ClosedLoop, verdict: ConditionProof, gen: torch.Generator,
+                   entry: ProofRound) -> tuple[Tensor, OpenBoxes | None]:
+        """New retraining states (box centres, neighbours, counterexamples: the counterexamples last), their counts
+        put into ``entry``, and at most ``train_boxes`` boxes the proof left open, to train the verifier's bound on
+        (None: none, or the term is off)."""
+        found = collect_counterexamples(loop, self.condition, self.region, verdict, gen, self.search)
         entry.added = {"counterexamples_added": int(found["counterexamples"].shape[0]),
                        "neighbours_added": int(found["neighbours"].shape[0]),
                        "box_centres_added": int(found["box_centres"].shape[0]),
                        "falsifier_max_residual": found["max_residual"], "falsify_time_s": found["falsify_time_s"]}
         entry.counterexamples = found["counterexamples"]
-        return torch.cat([found["box_centres"], found["neighbours"], found["counterexamples"]])
-
-    def open_boxes(self, verdict: ConditionProof) -> OpenBoxes | None:
-        """At most ``train_boxes`` boxes the proof left open, to train the verifier's bound on (None: none, or the
-        term is off)."""
-        proof = self.proof
-        if not (proof.box_weight and proof.train_boxes and verdict.unverified_boxes):
-            return None
-        lo, hi = local_boxes(self.system, verdict.unverified_boxes[:proof.train_boxes])
-        return OpenBoxes(lo, hi, self.level, proof.enclosure, weight=float(proof.box_weight), margin=self.margin)
+        states = torch.cat([found["box_centres"], found["neighbours"], found["counterexamples"]])
+        if found["open_boxes"] is None:
+            return states, None
+        return states, OpenBoxes(*found["open_boxes"], self.level, self.proof.enclosure,
+                                 weight=float(self.proof.box_weight), margin=self.margin)
 
     def settle(self, entry: ProofRound, loop: ClosedLoop, verdict: ConditionProof) -> ConditionProof:
         """The returned pair's verdict: an unknown proof becomes violated where the falsifier finds a certain
@@ -210,8 +231,9 @@ class _MarginPeaks:
     keeping its boxes), and for retraining the states where each component's supremum was found
     (``UniformMargin.attained_at``) with ``neighbours`` jittered copies each: the margin is made of those suprema."""
 
-    def __init__(self, result: TrainResult, proof: ProofConfig, budget: Budget, region: Region) -> None:
-        self.condition, self.proof, self.budget, self.region = result.condition, proof, budget, region
+    def __init__(self, condition: Condition, proof: ProofConfig, budget: Budget, region: Region,
+                 plan: TrainSections) -> None:
+        self.condition, self.proof, self.budget, self.region = condition, proof, budget, region
 
     def prove(self, loop: ClosedLoop) -> UniformMargin:
         return uniform_margin(loop, self.condition, self.region, self.budget, keep_partition=True)
@@ -219,26 +241,58 @@ class _MarginPeaks:
     def summary(self, verdict: UniformMargin) -> dict:
         return verdict.to_dict()
 
-    def open_boxes(self, verdict: UniformMargin) -> None:
-        """None: the uniform margin is one number over X_delta, no per-box residual to train on."""
-        return None
-
     def rank(self, verdict: UniformMargin) -> tuple:
         """After a proof and the acceptance check: a smaller margin."""
         return (-(verdict.margin_upper if verdict.margin_upper is not None else math.inf),)
 
-    def states(self, loop: ClosedLoop, verdict: UniformMargin, gen: torch.Generator, entry: ProofRound) -> Tensor:
-        """The states where the components' suprema were found, and ``neighbours`` jittered copies of each."""
+    def retraining(self, loop: ClosedLoop, verdict: UniformMargin, gen: torch.Generator,
+                   entry: ProofRound) -> tuple[Tensor, None]:
+        """The states where the components' suprema were found, and ``neighbours`` jittered copies of each; no open
+        boxes (None: the uniform margin is one number over X_delta, no per-box residual to train on)."""
         peaks = torch.as_tensor(verdict.attained_at or [], dtype=F64).reshape(-1, self.region.n)
         copies = int(self.proof.neighbours)
         noise = 0.01 * self.region.scale * torch.randn(peaks.shape[0] * copies, self.region.n, generator=gen,
                                                         dtype=F64)
         near = self.region.project(peaks.repeat(copies, 1) + noise)
         entry.added = {"peaks_added": int(peaks.shape[0]), "neighbours_added": int(near.shape[0])}
-        return torch.cat([near, peaks])
+        return torch.cat([near, peaks]), None
 
     def settle(self, entry: ProofRound, loop: ClosedLoop, verdict: UniformMargin) -> UniformMargin:
         return verdict
+
+
+class _Rounds:
+    """What the proof rounds for the resolved ``cfg`` and ``proof`` settle at the start and gather as they go: X_delta
+    (``region``), at most ``rounds`` retraining rounds of ``iters_round`` iterations each, the generator of the
+    retraining states (``gen``); every round's record (``done``), all rounds' training ``history`` (iterations and
+    seconds counted on from the first run), the best pair so far (a proof first; among unproved pairs, one that passes
+    the acceptance check, then the kind's rank), and the accumulated retraining states ``extra`` ``(E, n)``."""
+
+    def __init__(self, cfg: TrainConfig, system: UncertainSystem, proof: ProofConfig, start: float) -> None:
+        self.plan = TrainSections.of(cfg)
+        schedule = self.plan.schedule
+        self.region, self.start = Region.of(system, float(self.plan.sampling.delta)), start
+        self.rounds = int(proof.rounds)
+        self.iters_round = int(proof.iters_per_round if proof.iters_per_round is not None
+                               else max(1, schedule.iters // 2))
+        self.gen = torch.Generator().manual_seed(schedule.seed + 7919)
+        self.done: list[ProofRound] = []
+        self.history: list[dict] = []
+        self.total_iters = 0
+        self.best: tuple | None = None
+        self.extra = torch.empty(0, system.n, dtype=F64)
+
+    def judged(self, entry: ProofRound, result: TrainResult, verdict, rank: tuple) -> None:
+        """Keep the round's pair where it ranks above the best so far."""
+        # a proof first; among unproved pairs, one that passes the acceptance check (Hurwitz at x*, no other
+        # equilibrium) before a larger proved share: retraining on counterexamples of an infeasible condition
+        # can trade stability for area (measured on pendulum-u9: 0/200 stabilised instead of 170/200)
+        score = (entry.verified, *result.record.acceptance.stability(), *rank)
+        if self.best is None or score > self.best[0]:
+            self.best = (score, result, entry.round, list(self.history), verdict)
+
+    def out_of_time(self, budget: float | None) -> bool:
+        return budget is not None and time.perf_counter() - self.start > budget
 
 
 def _proof_rounds(cfg: TrainConfig, system: UncertainSystem, proof: ProofConfig, budget: Budget, progress: bool,
@@ -249,30 +303,23 @@ def _proof_rounds(cfg: TrainConfig, system: UncertainSystem, proof: ProofConfig,
     before it on the states the proof left (per-state conditions by :class:`_Counterexamples`, the DR uniform
     condition by :class:`_MarginPeaks`). Returns the best pair, the rounds and the certificate of its trained condition
     (also its ``metrics["certificate"]``)."""
-    start = time.perf_counter()
-    rounds, time_budget = int(proof.rounds), proof.total_time
-    iters_round = int(proof.iters_per_round if proof.iters_per_round is not None else max(1, cfg.iters // 2))
-    region = Region.of(system, float(cfg.delta))
-    gen = torch.Generator().manual_seed(cfg.seed + 7919)
-    extra = torch.empty(0, system.n, dtype=F64)
-    done: list[ProofRound] = []
-    best: tuple | None = None
-    history: list[dict] = []  # all rounds' training, iterations and seconds counted from the first run
-    total_iters = 0
+    gather = _Rounds(cfg, system, proof, time.perf_counter())
+    rounds, done = gather.rounds, gather.done
     round_cfg, kind, result, boxes, first_reshape = cfg, None, None, None, None
     for r in range(rounds + 1):
         tic = time.perf_counter()
         warm = init if result is None else (result.lyapunov, result.controller)
-        start = FitStart(warm, extra.repeat(int(proof.replicate), 1) if r else None, not r, boxes,
+        start = FitStart(warm, gather.extra.repeat(int(proof.replicate), 1) if r else None, not r, boxes,
                          not r or proof.retrain == "pair")
         result = fit_or_resume(proof.compute.checkpoint_dir, round_cfg, system, start, progress)
-        train_time = time.perf_counter() - (tic if r else start)
+        train_time = time.perf_counter() - (tic if r else gather.start)
         if not r:
-            first_reshape = result.metrics.get("reshape")
-        history += _continued(result.history, total_iters, history[-1]["time_s"] if history else 0.0)
-        total_iters += result.record.iterations
-        if kind is None:
-            kind = (_Counterexamples if result.condition.per_state else _MarginPeaks)(result, proof, budget, region)
+            first_reshape = result.metrics.get("reshape")  # the first fit's, which every later round starts from
+            kind = (_Counterexamples if result.condition.per_state else _MarginPeaks)(
+                result.condition, proof, budget, gather.region, gather.plan)
+        gather.history += _continued(result.history, gather.total_iters,
+                                     gather.history[-1]["time_s"] if gather.history else 0.0)
+        gather.total_iters += result.record.iterations
         tic = time.perf_counter()
         ver = kind.prove(result.loop)
         trained = result.record
@@ -280,50 +327,45 @@ def _proof_rounds(cfg: TrainConfig, system: UncertainSystem, proof: ProofConfig,
                            verified_fraction=ver.verified_fraction, verify_time_s=time.perf_counter() - tic,
                            train_time_s=train_time, train_iterations=trained.iterations,
                            acceptance_passed=trained.passed, unchanged=bool(r) and _same_pair(warm, result))
-        # a proof first; among unproved pairs, one that passes the acceptance check (Hurwitz at x*, no other
-        # equilibrium) before a larger proved share: retraining on counterexamples of an infeasible condition
-        # can trade stability for area (measured on pendulum-u9: 0/200 stabilised instead of 170/200)
-        score = (entry.verified, *trained.acceptance.stability(), *kind.rank(ver))
-        if best is None or score > best[0]:
-            best = (score, result, r, list(history), ver)
-        out_of_time = time_budget is not None and time.perf_counter() - start > time_budget
+        gather.judged(entry, result, ver, kind.rank(ver))
+        out_of_time = gather.out_of_time(proof.total_time)
         if entry.verified or r == rounds or out_of_time:
             if not entry.verified:
                 entry.stopped = ("its time budget (verify_budget) is spent" if out_of_time and r < rounds
                                  else f"its {rounds} retraining round(s) are spent")
-            done.append(entry)
-            if log is not None:
-                log(entry)
+            _logged(done, entry, log)
             break
-        new = kind.states(result.loop, ver, gen, entry)
-        boxes = kind.open_boxes(ver)
+        new, boxes = kind.retraining(result.loop, ver, gather.gen, entry)
         if boxes is not None:
             entry.added["open_boxes"] = len(boxes)
-        extra = region.distinct(torch.cat([extra, new]))[-int(proof.max_extra):]  # the newest kept
-        entry.added["extra_states"] = int(extra.shape[0])
-        entry.added.update(next_iterations=iters_round, max_rounds=rounds)
-        done.append(entry)
-        if log is not None:
-            log(entry)
-        round_cfg = dataclasses.replace(cfg, iters=iters_round, seed=cfg.seed + 1000 * (r + 1),
+        gather.extra = gather.region.distinct(torch.cat([gather.extra, new]))[-int(proof.max_extra):]  # the newest
+        entry.added.update(extra_states=int(gather.extra.shape[0]), next_iterations=gather.iters_round,
+                           max_rounds=rounds)
+        _logged(done, entry, log)
+        round_cfg = dataclasses.replace(cfg, iters=gather.iters_round, seed=cfg.seed + 1000 * (r + 1),
                                         xi_samples=result.xi_samples.tolist())
-    _, chosen, chosen_round, chosen_history, chosen_proof = best
-    metrics = dict(chosen.metrics) | {"reshape": first_reshape}  # the first fit's, which every later round starts from
+    _, chosen, chosen_round, chosen_history, chosen_proof = gather.best
     final = done[chosen_round] if chosen_round < len(done) else done[-1]
     verdict = kind.settle(final, chosen.loop, chosen_proof)
     cert = Certificate.of(verdict, float(cfg.delta), rounds=len(done) - 1)
-    metrics["cegis"] = jsonable({
-        "rounds": [e.to_dict() for e in done],
-        "final": verdict.to_dict(),
-        "verified": final.verified, "returned_round": chosen_round,
-        "retraining_rounds": len(done) - 1, "max_rounds": rounds, "iters_per_round": iters_round,
-        "total_iterations": total_iters, "extra_states": int(extra.shape[0]), "replicate": int(proof.replicate),
-        "verify_time_limit_s": budget.seconds, "verify_boxes": budget.boxes, "total_time_s": time.perf_counter() - start,
-    })
+    metrics = dict(chosen.metrics) | {"reshape": first_reshape, "cegis": jsonable({
+        "rounds": [e.to_dict() for e in done], "final": verdict.to_dict(), "verified": final.verified,
+        "returned_round": chosen_round, "retraining_rounds": len(done) - 1, "max_rounds": rounds,
+        "iters_per_round": gather.iters_round, "total_iterations": gather.total_iters,
+        "extra_states": int(gather.extra.shape[0]), "replicate": int(proof.replicate),
+        "verify_time_limit_s": budget.seconds, "verify_boxes": budget.boxes,
+        "total_time_s": time.perf_counter() - gather.start})}
     metrics["certificate"] = jsonable(cert.to_dict())
     out = dataclasses.replace(chosen, config=cfg, metrics=metrics, history=chosen_history,
                               trained_proof=chosen_proof if chosen_proof.verified else None)
     return out, done, cert
+
+
+def _logged(done: list[ProofRound], entry: ProofRound, log) -> None:
+    """Add a round's record to ``done`` and hand it to ``log`` (where there is one)."""
+    done.append(entry)
+    if log is not None:
+        log(entry)
 
 
 def _same_pair(before: tuple[Lyapunov, Controller], after: TrainResult) -> bool:
