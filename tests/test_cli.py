@@ -102,7 +102,7 @@ def test_a_level_is_never_printed_above_the_one_proved():
     from hypothesis import given
     from hypothesis import strategies as st
 
-    from drlyap.claims.words import condition_region, level_text
+    from drlyap.wording import condition_region, level_text
 
     assert level_text(0.9999999999999991) == "0.999999" and level_text(1.0) == "1" and level_text(0.3) == "0.3"
     assert "{V <= 0.999999}" in condition_region(0.9999999999999991, 0.1) and "V <= 1}" not in \

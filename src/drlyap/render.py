@@ -12,7 +12,6 @@ import math
 from pathlib import Path
 
 from drlyap.claims.band import band_sentence
-from drlyap.claims.words import decay_words, level_text, of_region
 from drlyap.io import proved_percent
 from drlyap.kinds import Status
 from drlyap.records import ProofRound, TrainingRecord
@@ -26,6 +25,7 @@ from drlyap.verification.results import (
     RunVerification,
     UniformMargin,
 )
+from drlyap.wording import decay_words, level_text, of_region
 
 
 def proved_share(result: ConditionProof, decimals: int = 4) -> str:

@@ -13,7 +13,7 @@ from pathlib import Path
 
 from drlyap.claims.kind import PREMISES
 from drlyap.claims.registry import BY_NAME, KINDS_OF
-from drlyap.claims.words import faces_rule
+from drlyap.wording import faces_rule
 
 
 def outer_missing(run_dir: Path, header: dict, positive: Callable[[dict], str] | None = None) -> list[str]:

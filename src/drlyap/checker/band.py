@@ -12,7 +12,7 @@ from torch import Tensor
 
 from drlyap.checker.arith import EPS, Iv
 from drlyap.checker.levels import boxes_below
-from drlyap.claims.words import faces_rule
+from drlyap.wording import faces_rule
 
 
 def band_floor(claim: dict) -> float | None:

@@ -71,8 +71,8 @@ from drlyap.checker.reading import (
 )
 from drlyap.claims.kind import ClaimKind
 from drlyap.claims.registry import KINDS_OF, claim_sentence, kind_of
-from drlyap.claims.words import UNREADABLE, faces_rule
 from drlyap.compute import Compute
+from drlyap.wording import UNREADABLE, faces_rule
 
 
 def check_tree(arrays: dict[str, np.ndarray], cells: int, n: int, level: float | None, core: bool = False,
@@ -260,7 +260,7 @@ def _prove_leaves(out: CheckResult, cert: Reading, kind: ClaimKind, header: dict
 
 
 def _check_faces(out: CheckResult, cert: Reading) -> None:
-    """A sublevel set's rule on the box's faces (:func:`~drlyap.claims.words.faces_rule`): V (W) above the level
+    """A sublevel set's rule on the box's faces (:func:`~drlyap.wording.faces_rule`): V (W) above the level
     there, or the flow entering the box wherever the set meets a face; inside the delta-ball the set's boundary is the
     outer proof's. Its failures and counts into ``out``."""
     claim, residual, level = cert.claim, cert.residual, cert.level

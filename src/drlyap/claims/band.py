@@ -10,14 +10,14 @@ from __future__ import annotations
 from typing import TYPE_CHECKING
 
 from drlyap.claims.kind import ClaimKind
-from drlyap.claims.words import level_text
+from drlyap.wording import level_text
 
 if TYPE_CHECKING:
     from drlyap.checker.reading import CheckResult, Leaves, Reading
 
 
 def band_sentence(what: str, low: float, high: float) -> str:
-    """A band claim in words: ``what`` (the decrease, as :func:`~drlyap.claims.words.condition_words` names it) on
+    """A band claim in words: ``what`` (the decrease, as :func:`~drlyap.wording.condition_words` names it) on
     ``low <= V <= high``, and what follows."""
     model = what.split(" (")[0].replace("decrease on ", "")
     c1, c2 = level_text(low, up=True), level_text(high)

@@ -6,7 +6,7 @@ Proved on a partition of its region; on a sublevel set, V above the level on the
 from __future__ import annotations
 
 from drlyap.claims.kind import ClaimKind
-from drlyap.claims.words import condition_region, faces_rule, of_region
+from drlyap.wording import condition_region, faces_rule, of_region
 
 
 class Condition(ClaimKind):

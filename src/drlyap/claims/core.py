@@ -6,7 +6,7 @@ entering the box there. The checker places each leaf said to lie in the core ins
 from __future__ import annotations
 
 from drlyap.claims.kind import ClaimKind
-from drlyap.claims.words import faces_rule, level_text
+from drlyap.wording import faces_rule, level_text
 
 
 def core_parts(p: list, level: float, certificate: str = "ellipsoid") -> dict:

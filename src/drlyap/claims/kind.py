@@ -98,7 +98,7 @@ class ClaimKind:
         return None
 
     def sentence(self, claim: dict, what: str) -> str:
-        """The claim in words, ``what`` being its condition's (:func:`~drlyap.claims.words.condition_words`)."""
+        """The claim in words, ``what`` being its condition's (:func:`~drlyap.wording.condition_words`)."""
         raise NotImplementedError
 
     def about(self, out: CheckResult, claim: dict, pair):

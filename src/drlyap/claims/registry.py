@@ -9,7 +9,7 @@ import pkgutil
 
 import drlyap.claims as _package
 from drlyap.claims.kind import ClaimKind
-from drlyap.claims.words import UNREADABLE, condition_words
+from drlyap.wording import UNREADABLE, condition_words
 
 
 def _gather() -> tuple[ClaimKind, ...]:

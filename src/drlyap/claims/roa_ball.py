@@ -9,7 +9,7 @@ from typing import TYPE_CHECKING
 
 from drlyap.claims.core import core_words
 from drlyap.claims.kind import ClaimKind
-from drlyap.claims.words import exact_text, level_text
+from drlyap.wording import exact_text, level_text
 
 if TYPE_CHECKING:
     from drlyap.checker.reading import CheckResult, Reading

@@ -7,7 +7,7 @@ from __future__ import annotations
 from typing import TYPE_CHECKING
 
 from drlyap.claims.kind import ClaimKind
-from drlyap.claims.words import condition_region, of_region
+from drlyap.wording import condition_region, of_region
 
 if TYPE_CHECKING:
     from drlyap.checker.reading import CheckResult, Leaves, Reading

@@ -25,11 +25,11 @@ import math
 from dataclasses import dataclass, field
 from typing import Any, ClassVar
 
-from drlyap.claims.words import condition_region
 from drlyap.kinds import Status
 from drlyap.verification.result_base import Result
 from drlyap.verification.result_base import known as _known
 from drlyap.verification.roa_steps import BandRegion, NearProof, QuadraticRegion, Strictness, near_proof_from_dict
+from drlyap.wording import condition_region
 
 STATUSES = (Status.VERIFIED, Status.VIOLATED, Status.UNKNOWN)
 

@@ -13,7 +13,6 @@ import torch
 from drlyap.claims.band import band_parts
 from drlyap.claims.practical import practical_parts
 from drlyap.claims.roa_ball import cored_parts, cube_parts
-from drlyap.claims.words import faces_part
 from drlyap.closed_loop import ClosedLoop
 from drlyap.conditions import Condition, decay_at_shift
 from drlyap.io import jsonable
@@ -33,6 +32,7 @@ from drlyap.verification import (
 )
 from drlyap.verification.band_claim import BandProof, band_region
 from drlyap.verification.roa import band_proof, ellipsoid_proof, linearisation_proofs
+from drlyap.wording import faces_part
 
 REGION_CERTIFICATES = ("roa-ball", "roa", "ellipsoid", "practical")
 """The certificates of a region of attraction: they state the region ``metrics.json`` reports
