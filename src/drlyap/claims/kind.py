@@ -85,11 +85,11 @@ class ClaimKind:
 
     @property
     def provable(self) -> bool:
-        """Whether :meth:`prove` proves the claim here (the other kinds are proved by their own routes: ``verify``,
+        """Whether :meth:`prove_on` proves the claim here (the other kinds are proved by their own routes: ``verify``,
         ``verify --roa``, ``--band``, ``--max-radius``)."""
-        return type(self).prove is not ClaimKind.prove
+        return type(self).prove_on is not ClaimKind.prove_on
 
-    def prove(self, request: ClaimRequest) -> ClaimOutcome:
+    def prove_on(self, request: ClaimRequest) -> ClaimOutcome:
         """Prove the claim of this kind for ``request``'s run and write its certificate where it is verified."""
         raise NotImplementedError(f"a {self.name} claim is proved by its own route, not by name")
 

@@ -46,4 +46,4 @@ def prove_claim(run: Run | PolicyRun, name: str, proof: ProofConfig | None = Non
     kind = BY_NAME.get(name)
     if kind is None or not kind.provable:
         raise ValueError(f"no claim {name!r} is proved by name; valid: {', '.join(provable_claims()) or 'none'}")
-    return kind.prove(claim_request(run, proof, xi))
+    return kind.prove_on(claim_request(run, proof, xi))
