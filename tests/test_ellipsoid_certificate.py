@@ -14,6 +14,7 @@ from click.testing import CliRunner
 from drlyap.checker.arith import F64, Du, Iv
 from drlyap.checker.ellipsoid import QuadraticPair, inside_box
 from drlyap.checker.model import Pair, Residual
+from drlyap.claims.ellipsoid import ellipsoid_parts
 from drlyap.cli import main
 from drlyap.proof_settings import Budget
 from drlyap.regions import Region
@@ -84,7 +85,8 @@ def test_an_ellipsoid_inside_its_jacobian_box_needs_no_partition_and_a_larger_on
     folder.mkdir()
     (folder / "weights.pt").write_bytes((run / "weights.pt").read_bytes())
     write_certificate(folder, "ellipsoid", None, proof.condition, proof.region, system, folder / "weights.pt",
-                      float(loaded.config.alpha_hat), level=proof.level, extra=proof.claim())
+                      float(loaded.config.alpha_hat), level=proof.level,
+                      extra=ellipsoid_parts(proof.p.tolist(), proof.level, proof.box.tolist(), proof.tau.tolist(), False))
     assert recheck(folder, "ellipsoid", system, run_weights(run)).ok
 
     def larger(header):

@@ -11,6 +11,8 @@ from pathlib import Path
 import torch
 
 from drlyap.claims.band import band_parts
+from drlyap.claims.core import core_parts
+from drlyap.claims.ellipsoid import ellipsoid_parts
 from drlyap.claims.practical import practical_parts
 from drlyap.claims.roa_ball import cored_parts, cube_parts
 from drlyap.closed_loop import ClosedLoop
@@ -254,7 +256,9 @@ def region_certificates(folder: Path, loop: ClosedLoop, condition: Condition, re
                                          level=level, extra=extra))
 
     def write_ellipsoid(found):
-        write("ellipsoid", found.ring, found.condition, found.region, found.level, found.claim())
+        write("ellipsoid", found.ring, found.condition, found.region, found.level,
+              ellipsoid_parts(found.p.tolist(), found.level, found.box.tolist(), found.tau.tolist(),
+                              found.ring is not None))
 
     if roa.ellipsoid_certified:
         found = ellipsoid_proof(loop, condition, region, roa.quadratic.ellipsoid(), proof.budget())
@@ -273,7 +277,7 @@ def region_certificates(folder: Path, loop: ClosedLoop, condition: Condition, re
     if roa.method == "band":
         cored = band_proof(loop, condition, region, roa.local, proof.budget())
         if cored is not None and "ellipsoid.json" in {p.name for p in written}:
-            write("roa", cored.proof, cored.condition, cored.region, extra=cored.claim())
+            write("roa", cored.proof, cored.condition, cored.region, extra=core_parts(cored.p.tolist(), cored.q_level))
         return written
     if roa.method == "linearisation":
         found = linearisation_proofs(loop, condition, region, roa.local, proof.budget())
@@ -284,7 +288,7 @@ def region_certificates(folder: Path, loop: ClosedLoop, condition: Condition, re
         if outer_name is not None:
             write_ellipsoid(ellipsoid)
             write("roa-ball", cored.proof, cored.condition, cored.region,
-                  extra=cored_parts(region.delta, outer_name, cored.claim()))
+                  extra=cored_parts(region.delta, outer_name, core_parts(cored.p.tolist(), cored.q_level)))
         return written
     if roa.ball is None:
         return written

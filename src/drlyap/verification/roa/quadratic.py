@@ -40,8 +40,6 @@ from dataclasses import dataclass, replace
 import torch
 from torch import Tensor
 
-from drlyap.claims.core import core_parts
-from drlyap.claims.ellipsoid import ellipsoid_parts
 from drlyap.closed_loop import ClosedLoop
 from drlyap.conditions import Condition, PlainDecrease
 from drlyap.enclosures import F64, REL1, round_down, round_up
@@ -405,10 +403,6 @@ class EllipsoidProof:
     region: Region
     ring: ConditionProof | None
 
-    def claim(self) -> dict:
-        """The claim's ``ellipsoid`` entry."""
-        return ellipsoid_parts(self.p.tolist(), self.level, self.box.tolist(), self.tau.tolist(), self.ring is not None)
-
 
 def ellipsoid_proof(loop: ClosedLoop, condition: Condition, region: Region, ellipsoid: EllipsoidCandidate,
                     budget: Budget) -> EllipsoidProof | None:
@@ -451,10 +445,6 @@ class CoredProof:
     proof: ConditionProof
     p: Tensor
     q_level: float
-
-    def claim(self, certificate: str = "ellipsoid") -> dict:
-        """The claim's ``core`` entry, naming the certificate of the ellipsoid."""
-        return core_parts(self.p.tolist(), self.q_level, certificate)
 
 
 def linearisation_proofs(loop: ClosedLoop, condition: Condition, region: Region, local: LinearisationProof,
