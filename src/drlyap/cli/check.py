@@ -13,11 +13,19 @@ from drlyap.claims.registry import CERTIFICATES
 from drlyap.cli.common import compute_options, compute_settings, fail, refuse_early, run_source_options, run_system_of
 
 
+def _certificate_names(ctx: click.Context, param: click.Parameter, names: tuple[str, ...]) -> tuple[str, ...]:
+    """``--name`` checked against the certificate files the kinds of claim name (a kind added adds its files)."""
+    unknown = [n for n in names if n not in CERTIFICATES]
+    if unknown:
+        raise click.BadParameter(f"{unknown[0]!r} is no certificate's name; valid: {', '.join(CERTIFICATES)}")
+    return names
+
+
 @click.command()
 @click.argument("run_dir", type=click.Path(path_type=Path))
-@click.option("--name", "names", multiple=True,
-              type=click.Choice(CERTIFICATES),
-              help="Which certificate to check (repeatable) [every one the run holds].")
+@click.option("--name", "names", multiple=True, metavar="NAME", callback=_certificate_names,
+              help="Which certificate to check (repeatable), by its file's name (trained, true-model, roa, ...: the "
+                   "error for an unknown one lists them all) [every one the run holds].")
 @click.option("--refine", type=click.IntRange(0, 40), default=30, show_default=True,
               help="Times the checker may bisect a box its own bounds do not prove (the verifier's bounds may be "
                    "tighter than the checker's); it bounds at most as many pieces as each chunk of 16,384 leaves "
