@@ -56,13 +56,13 @@ def _row(run, imported, band: tuple[float, float], workers: int, boxes: int | No
     from drlyap.runs.certificates import networks_digest, read_certificate, system_digest
     from drlyap.runs.validate import load_weights
     from drlyap.workflows.record import record_band
-    from drlyap.workflows.verify import verify_imported
+    from drlyap.workflows.verify import VerifyRequest, verify_imported
 
     system, pair = run.system, imported.info["pair"]
     proof = ProofConfig(max_boxes=boxes, time_limit=3600.0, compute=Compute(workers=workers))
     tic, cpu = time.perf_counter(), cpu_seconds()
-    found = verify_imported(pair, str(folder), proof, xi=torch.as_tensor(system.test_xi, dtype=torch.float64),
-                            band=band).band
+    found = verify_imported(pair, str(folder), proof, request=VerifyRequest(
+        xi=torch.as_tensor(system.test_xi, dtype=torch.float64), band=band)).band
     wall, cpu = time.perf_counter() - tic, cpu_seconds() - cpu
     check = None
     if found.verified:

@@ -34,7 +34,7 @@ def main(argv: list[str] | None = None) -> int:
 
     from drlyap.runs import load_run
     from drlyap.systems import resolve_system
-    from drlyap.workflows.verify import verify
+    from drlyap.workflows.verify import VerifyRequest, verify
 
     header = (f"{'run':<24} {'system':<12} {'LQR weights (Q; R)':<28} {'train s':>8} {'trained condition':<18} "
               f"{'boxes':>8} {'proof s':>8} {'true model':<10} {'region of attraction':<22} {'share':>8}")
@@ -47,7 +47,7 @@ def main(argv: list[str] | None = None) -> int:
             run = load_run(path, system)
             xi = run_shift(run, args.xi)
             tic = time.perf_counter()
-            result = verify(run, xi=xi, roa=True)
+            result = verify(run, request=VerifyRequest(xi=xi, roa=True))
             total = time.perf_counter() - tic
         except ValueError as err:
             print(f"{path:<24} error: {err}")

@@ -34,7 +34,7 @@ def main(argv: list[str] | None = None) -> int:
     from shift import run_shift
 
     from drlyap.runs import load_run
-    from drlyap.workflows.verify import run_proof, verify
+    from drlyap.workflows.verify import VerifyRequest, run_proof, verify
 
     header = f"{'run':<36} {'check':<20} {'status':<9} {'verified':>10} {'boxes':>8} {'boxes/s':>9} {'seconds':>8}"
     print(header)
@@ -46,7 +46,7 @@ def main(argv: list[str] | None = None) -> int:
             xi = run_shift(run, args.xi)
             tic = time.perf_counter()
             proof = dataclasses.replace(run_proof(run), time_limit=args.time_limit)
-            result = verify(run, proof, delta=args.delta, xi=xi, uniform=True).to_dict()
+            result = verify(run, proof, VerifyRequest(delta=args.delta, xi=xi, uniform=True)).to_dict()
             total = time.perf_counter() - tic
         except ValueError as err:
             print(f"{path:<36} error: {err}")

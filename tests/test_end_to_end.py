@@ -78,7 +78,7 @@ def test_default_mountain_car_dr_seed_1_is_proved_on_its_set_and_stabilises_at_t
     that set a certified region of attraction of the true model at the test shift, and the controller, trained on
     the rest of the box too, stabilises the test states there."""
     from drlyap.runs import load_run
-    from drlyap.workflows.verify import verify
+    from drlyap.workflows.verify import VerifyRequest, verify
 
     system = drlyap.get_system("mountain-car")
     result = drlyap.train(TrainConfig(system="mountain-car", method="dr", seed=1), progress=False, warn=False)
@@ -88,7 +88,7 @@ def test_default_mountain_car_dr_seed_1_is_proved_on_its_set_and_stabilises_at_t
     x0 = initial_states(system, 200, torch.Generator().manual_seed(7))
     res = evaluate(system, run.controller, x0, torch.tensor(system.test_xi, dtype=torch.float64))
     assert int(res["n_success"]) >= 195
-    shift = verify(run, xi=system.test_xi, roa=True)
+    shift = verify(run, request=VerifyRequest(xi=system.test_xi, roa=True))
     assert shift.true_model.verified and shift.roa.certified and shift.roa.level > 0.19
 
 

@@ -382,7 +382,7 @@ def test_an_exported_region_of_attraction_pair_imports_with_its_run_s_claim_and_
     """The export of a run trained for a region of attraction carries its claim (decay, level, delta): the imported
     pair is proved on the same {V <= level} and certifies the same region; above that level (the default), both
     certify the same larger one."""
-    from drlyap.workflows.verify import verify, verify_imported
+    from drlyap.workflows.verify import VerifyRequest, verify, verify_imported
 
     system = get_system("pendulum")
     cfg = TrainConfig(system="pendulum", roa_level=1.0, warm_start="lqr", decay_rate=0.0, exp_rate=0.3, n_states=256,
@@ -400,15 +400,15 @@ def test_an_exported_region_of_attraction_pair_imports_with_its_run_s_claim_and_
     assert (pair.level, pair.delta, pair.decay_rate, pair.exp_rate) == (1.0, run.config.delta, 0.0, 0.3)
     xi = torch.tensor(system.test_xi, dtype=F64)
     proof = dataclasses.replace(run.proof or ProofConfig(), time_limit=20.0)
-    mine = verify(run, proof, xi=xi, roa=True, reprove=True, above_level=False)
-    theirs = verify_imported(pair, str(out), proof, xi=xi, roa=True, above_level=False)
+    mine = verify(run, proof, VerifyRequest(xi=xi, roa=True, above_level=False), reprove=True)
+    theirs = verify_imported(pair, str(out), proof, request=VerifyRequest(xi=xi, roa=True, above_level=False))
     assert theirs.true_model.level == mine.true_model.level == 1.0
     assert theirs.true_model.status == mine.true_model.status
     assert theirs.true_model.boxes_processed == mine.true_model.boxes_processed
     assert mine.true_model.verified and mine.roa.limited_by == TRAINED_LEVEL and 0.99 < mine.roa.level <= 1.0
     assert theirs.roa.level == mine.roa.level and theirs.roa.share_of_box == mine.roa.share_of_box
-    above = verify_imported(pair, str(out), proof, xi=xi, roa=True)
-    run_above = verify(run, proof, xi=xi, roa=True)
+    above = verify_imported(pair, str(out), proof, request=VerifyRequest(xi=xi, roa=True))
+    run_above = verify(run, proof, VerifyRequest(xi=xi, roa=True))
     assert above.roa.level == pytest.approx(run_above.roa.level, rel=1e-9)  # V's bounds move by rounding
     assert above.roa.level > mine.roa.level  # this pair's decrease reaches past its level
     assert above.roa.share_of_box == pytest.approx(run_above.roa.share_of_box, rel=1e-6)

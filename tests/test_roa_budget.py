@@ -18,7 +18,7 @@ from drlyap.regions import Region
 from drlyap.runs import load_run
 from drlyap.verification import certified_roa
 from drlyap.verification.roa.levels import BOX_BUDGET, TIME_LIMIT
-from drlyap.workflows.verify import verify
+from drlyap.workflows.verify import VerifyRequest, verify
 from handmade import linear_pair, linear_run_dir, small_pendulum, verify_cli
 
 F64 = torch.float64
@@ -104,9 +104,9 @@ def test_the_proof_settings_budget_the_region_by_boxes_with_seconds_as_a_cap():
 def test_verify_gives_the_same_region_on_a_slow_machine_and_names_its_box_budget(tmp_path, monkeypatch):
     run = load_run(linear_run_dir(tmp_path / "run"), system=small_pendulum())
     settings = ProofConfig(time_limit=1e5)
-    fast = verify(run, settings, xi=SHIFT, roa=True, reprove=True).roa
+    fast = verify(run, settings, VerifyRequest(xi=SHIFT, roa=True), reprove=True).roa
     _slow_clock(monkeypatch)
-    slow = verify(run, settings, xi=SHIFT, roa=True, reprove=True).roa
+    slow = verify(run, settings, VerifyRequest(xi=SHIFT, roa=True), reprove=True).roa
     monkeypatch.undo()
     assert fast.certified and _same(fast, slow)
     found = verify_cli(linear_run_dir(tmp_path / "other"), SPEC, ",".join(map(str, SHIFT)), "--roa-boxes", "200")

@@ -348,13 +348,13 @@ def test_verify_on_a_uniform_run_reports_the_margin(tmp_path, tiny_config):
     from drlyap.io import jsonable
     from drlyap.runs import load_run, save_run
     from drlyap.verification import ProofConfig, UniformMargin
-    from drlyap.workflows.verify import verify
+    from drlyap.workflows.verify import VerifyRequest, verify
 
     # eps N = 2.5 > 1: the uniform condition's CVaR is not the samples' maximum, so it implies no decrease at each
     # sample and no region of attraction rests on it
     result = plain_train(tiny_config(iters=5, check_every=5, loss="uniform", risk_level=0.5), progress=False)
     save_run(tmp_path / "uni", result)
-    out = verify(load_run(tmp_path / "uni"), ProofConfig(time_limit=2, uniform_time=1), roa=True)
+    out = verify(load_run(tmp_path / "uni"), ProofConfig(time_limit=2, uniform_time=1), VerifyRequest(roa=True))
     assert out.trained == out.uniform and isinstance(out.trained, UniformMargin)
     assert out.trained.margin_lower <= out.trained.margin_upper
     assert "implies no decrease at each sample" in out.roa.error and out.status in ("verified", "violated", "unknown")

@@ -11,7 +11,7 @@ Python API::
     u = run.controller(x)      # x: (B, n) tensor in user coordinates -> (B, m)
     v = run.lyapunov(x)        # -> (B,)
     drlyap.evaluate(run.system, run.controller, x0, xi)              # simulate the true model at the shift xi
-    drlyap.verify(run, xi=xi, roa=True)                               # prove its decrease and region there
+    drlyap.verify(run, request=drlyap.VerifyRequest(xi=xi, roa=True))  # prove its decrease and region there
 
 The names above are loaded on first use. The first one used sets torch to one thread (as the command line does:
 the numbers here were measured that way, and two threads on two shared cores ran up to 45x slower), unless the
@@ -39,6 +39,7 @@ _API = {
     "check_writable": "drlyap.runs",
     "evaluate": "drlyap.simulation", "simulate": "drlyap.simulation",
     "load_policy_run": "drlyap.workflows.policies", "verify": "drlyap.workflows.verify",
+    "VerifyRequest": "drlyap.workflows.verify",
 }
 
 __all__ = sorted([*_API, "set_threads"])

@@ -142,105 +142,138 @@ def verify(run_dir: Path, delta: float | None, xi: str | None, time_limit: float
     compute = compute_settings(workers, backend, address, device)
     refuse_early(runs=[run_dir], systems=[system_spec])
 
-    from drlyap.io import jsonable
-    from drlyap.render import unwritten_region_line, verification_lines
     from drlyap.runs import load_run, read_run_kind
-    from drlyap.workflows.record import (
-        record_band,
-        record_certificates,
-        record_region,
-        record_roa,
-        record_robustness,
-    )
-    from drlyap.workflows.verify import clear_checkpoints, run_checkpoints, run_proof, run_robustness
+    from drlyap.workflows.verify import VerifyRequest, clear_checkpoints, run_checkpoints, run_proof
     from drlyap.workflows.verify import verify as prove_run
 
     try:
-        if time_limit is not None and not time_limit > 0:
-            raise ValueError(f"--time-limit must be > 0, got {time_limit}")
-        if roa_time is not None and not roa_time > 0:
-            raise ValueError(f"--roa-time must be > 0, got {roa_time}")
-        if roa_boxes is not None and not roa_boxes >= 1:
-            raise ValueError(f"--roa-boxes must be >= 1, got {roa_boxes}")
-        if roa_above_level is not None and not roa:
-            raise ValueError(f"--roa-{'above' if roa_above_level else 'at'}-level goes with --roa (where the "
-                             "region-of-attraction search may go)")
-        above_level = roa_above_level is not False
-        if not radius_tol > 0:
-            raise ValueError(f"--radius-tol must be > 0, got {radius_tol}")
-        at_shift = xi is not None or band is not None
-        if roa_rate is not None and not (at_shift and math.isfinite(roa_rate) and roa_rate > 0):
-            raise ValueError(f"--roa-rate must be > 0 and goes with --xi or --band (the decay asked at the shift), "
-                             f"got {roa_rate}" + ("" if at_shift else " without them"))
+        above_level = _checked_options(time_limit, roa_time, roa_boxes, roa, roa_above_level, radius_tol,
+                                       xi is not None or band is not None, roa_rate)
         levels = None if band is None else _band_levels(band, roa)
+        options = _ProofOptions(time_limit=time_limit, roa_time=roa_time, roa_boxes=roa_boxes, enclosure=enclosure)
+        request = VerifyRequest(delta=delta, roa=roa, uniform=uniform, above_level=above_level, roa_rate=roa_rate,
+                                band=levels)
         if read_run_kind(run_dir).get("kind") == "imported":
-            _verify_imported(run_dir, delta, xi, time_limit, roa, roa_time, enclosure, as_json, system_spec, trust_run,
-                             compute, above_level, roa_rate, roa_boxes, levels)
+            _verify_imported(run_dir, xi, options.over(ProofConfig(), compute), request, as_json, system_spec,
+                             trust_run)
             return
         run = load_run(run_dir, run_system_of(system_spec), trust_run)
-        settings = dataclasses.replace(run.proof or ProofConfig(), roa_time=roa_time, roa_boxes=roa_boxes,
-                                       enclosure=enclosure,
-                                       compute=dataclasses.replace(compute, checkpoint_dir=run_checkpoints(run)))
-        if time_limit is not None:
-            settings = dataclasses.replace(settings, time_limit=time_limit)
-        settings = run_proof(run, settings)
+        settings = run_proof(run, options.over(run.proof or ProofConfig(),
+                                               dataclasses.replace(compute, checkpoint_dir=run_checkpoints(run))))
         shift = None if xi is None else run.system.check_xi(floats(xi, "--xi"))
-        result = prove_run(run, settings, delta=delta, xi=shift, roa=roa, uniform=uniform, reprove=reprove,
-                            above_level=above_level, roa_rate=roa_rate, band=levels)
-        stored = None
-        if roa:
-            try:
-                record_region(run, result)
-                shift_args = () if xi is None else ("--xi", xi)
-                drawn = command_hint("plot", run_dir, *shift_args, source=recorded_source(run_dir, system_spec))
-                stored = f"  stored in {run.path / 'metrics.json'} (drawn by `{drawn}`)"
-            except OSError as err:
-                stored = f"  not stored: {run.path / 'metrics.json'} cannot be written ({err.strerror or err})"
-        try:
-            recheck = command_hint("check", run_dir, source=recorded_source(run_dir, system_spec))
-            paths = record_certificates(run, result) + record_roa(run, result, settings) + record_band(
-                run.path, run.system, result.band, run.path / "weights.pt", float(run.config.alpha_hat))
-            written = [f"  certificate: {p} (re-check it with `{recheck}`)" for p in paths]
-            unwritten = unwritten_region_line(result.roa, paths)
-        except OSError as err:
-            written, unwritten = [f"  no certificate written: {run.path} cannot be written ({err.strerror or err})"], None
-        if max_radius:
-            result.robustness = run_robustness(run, delta=delta, tol=radius_tol, budget=settings.budget(),
-                                               total_time=8 * settings.time_limit, trained=result.trained)
-            try:
-                written += [f"  certificate: {p} (re-check it with `{recheck}`)"
-                            for p in record_robustness(run, result.robustness)]
-            except OSError as err:
-                written.append(f"  the radius and shift box not stored: {run.path} cannot be written "
-                               f"({err.strerror or err})")
-        written += [unwritten] if unwritten else []
+        result = prove_run(run, settings, dataclasses.replace(request, xi=shift), reprove=reprove)
+        stored = _stored_region(run, result, xi, system_spec) if roa else None
+        written = _recorded(run, result, settings, system_spec, radius_tol if max_radius else None)
         clear_checkpoints(run)
     except ValueError as err:
         fail(err)
     except KeyboardInterrupt:
         _interrupted(run_dir)
+    _report(result, run.system.name, run.config.method, as_json, ([stored] if stored else []) + written)
+
+
+@dataclasses.dataclass(frozen=True)
+class _ProofOptions:
+    """The proof settings ``verify``'s options give, over the run's (None: the run's, else the system's)."""
+
+    time_limit: float | None
+    roa_time: float | None
+    roa_boxes: int | None
+    enclosure: str | None
+
+    def over(self, base: ProofConfig, compute) -> ProofConfig:
+        """``base`` with these options, bounding its boxes where ``compute`` says."""
+        settings = dataclasses.replace(base, roa_time=self.roa_time, roa_boxes=self.roa_boxes,
+                                       enclosure=self.enclosure, compute=compute)
+        if self.time_limit is not None:
+            settings = dataclasses.replace(settings, time_limit=self.time_limit)
+        return settings
+
+
+def _checked_options(time_limit: float | None, roa_time: float | None, roa_boxes: int | None, roa: bool,
+                     roa_above_level: bool | None, radius_tol: float, at_shift: bool, roa_rate: float | None) -> bool:
+    """``verify``'s numbers checked before any work (a ValueError naming the option); whether the region-of-attraction
+    search goes above the run's level."""
+    if time_limit is not None and not time_limit > 0:
+        raise ValueError(f"--time-limit must be > 0, got {time_limit}")
+    if roa_time is not None and not roa_time > 0:
+        raise ValueError(f"--roa-time must be > 0, got {roa_time}")
+    if roa_boxes is not None and not roa_boxes >= 1:
+        raise ValueError(f"--roa-boxes must be >= 1, got {roa_boxes}")
+    if roa_above_level is not None and not roa:
+        raise ValueError(f"--roa-{'above' if roa_above_level else 'at'}-level goes with --roa (where the "
+                         "region-of-attraction search may go)")
+    if not radius_tol > 0:
+        raise ValueError(f"--radius-tol must be > 0, got {radius_tol}")
+    if roa_rate is not None and not (at_shift and math.isfinite(roa_rate) and roa_rate > 0):
+        raise ValueError(f"--roa-rate must be > 0 and goes with --xi or --band (the decay asked at the shift), "
+                         f"got {roa_rate}" + ("" if at_shift else " without them"))
+    return roa_above_level is not False
+
+
+def _stored_region(run, result, xi: str | None, system_spec: str | None) -> str:
+    """The region of attraction recorded in the run's metrics.json, and the line that says where (or why not)."""
+    from drlyap.workflows.record import record_region
+
+    try:
+        record_region(run, result)
+        shift_args = () if xi is None else ("--xi", xi)
+        drawn = command_hint("plot", run.path, *shift_args, source=recorded_source(run.path, system_spec))
+        return f"  stored in {run.path / 'metrics.json'} (drawn by `{drawn}`)"
+    except OSError as err:
+        return f"  not stored: {run.path / 'metrics.json'} cannot be written ({err.strerror or err})"
+
+
+def _recorded(run, result, settings: ProofConfig, system_spec: str | None, radius_tol: float | None) -> list[str]:
+    """Write the certificates of what ``result`` proved (and with ``radius_tol``, of the largest radius and shift box,
+    searched now): the lines that name them, or say why none was written."""
+    from drlyap.render import unwritten_region_line
+    from drlyap.workflows.record import record_band, record_certificates, record_roa, record_robustness
+    from drlyap.workflows.verify import run_robustness
+
+    try:
+        recheck = command_hint("check", run.path, source=recorded_source(run.path, system_spec))
+        paths = record_certificates(run, result) + record_roa(run, result, settings) + record_band(
+            run.path, run.system, result.band, run.path / "weights.pt", float(run.config.alpha_hat))
+        written = [f"  certificate: {p} (re-check it with `{recheck}`)" for p in paths]
+        unwritten = unwritten_region_line(result.roa, paths)
+    except OSError as err:
+        written, unwritten = [f"  no certificate written: {run.path} cannot be written ({err.strerror or err})"], None
+    if radius_tol is not None:
+        result.robustness = run_robustness(run, delta=result.delta, tol=radius_tol, budget=settings.budget(),
+                                           total_time=8 * settings.time_limit, trained=result.trained)
+        try:
+            written += [f"  certificate: {p} (re-check it with `{recheck}`)"
+                        for p in record_robustness(run, result.robustness)]
+        except OSError as err:
+            written.append(f"  the radius and shift box not stored: {run.path} cannot be written "
+                           f"({err.strerror or err})")
+    return written + ([unwritten] if unwritten else [])
+
+
+def _report(result, system_name: str, method: str, as_json: bool, lines: list[str]) -> None:
+    """Print ``result`` (as one JSON object, or its sentences and then ``lines``) and exit with its outcome's status."""
     if as_json:
+        from drlyap.io import jsonable
+
         click.echo(json.dumps(jsonable(result.to_dict())))
         _exit(result)
         return
-    for line in verification_lines(result, run.system.name, run.config.method):
+    from drlyap.render import verification_lines
+
+    for line in verification_lines(result, system_name, method):
         click.echo(line)
-    if stored:
-        click.echo(stored)
-    for line in written:
+    for line in lines:
         click.echo(line)
     _exit(result)
 
 
-def _verify_imported(run_dir: Path, delta: float | None, xi: str | None, time_limit: float | None, roa: bool,
-                     roa_time: float | None, enclosure: str | None, as_json: bool, system_spec: str | None,
-                     trust_run: bool, compute, above_level: bool = True, roa_rate: float | None = None,
-                     roa_boxes: int | None = None, band: tuple[float, float] | None = None) -> None:
+def _verify_imported(run_dir: Path, xi: str | None, settings: ProofConfig, request, as_json: bool,
+                     system_spec: str | None, trust_run: bool) -> None:
     """``drlyap verify`` on an imported pair: decrease on the true model at --xi (the system's test shift by default)
-    and with --roa its region of attraction, or with ``band`` the band claim there; what is verified is written as
-    certificates."""
-    from drlyap.io import jsonable
-    from drlyap.render import unwritten_region_line, verification_lines
+    and with --roa its region of attraction, or with ``request.band`` the band claim there; what is verified is
+    written as certificates."""
+    from drlyap.render import unwritten_region_line
     from drlyap.runs import load_imported_run
     from drlyap.workflows.record import record_band, record_imported_certificates
     from drlyap.workflows.verify import verify_imported
@@ -250,16 +283,12 @@ def _verify_imported(run_dir: Path, delta: float | None, xi: str | None, time_li
     if xi is None and system.test_xi is None:
         raise ValueError(f"an imported pair has no trained condition: give --xi ({system.k} values)")
     shift = system.check_xi(floats(xi, "--xi") if xi is not None else list(system.test_xi))
-    settings = dataclasses.replace(ProofConfig(), roa_time=roa_time, roa_boxes=roa_boxes, enclosure=enclosure,
-                                   compute=compute)
-    if time_limit is not None:
-        settings = dataclasses.replace(settings, time_limit=time_limit)
     pair = run.info["pair"]
-    result = verify_imported(pair, str(run_dir), settings, xi=shift, delta=delta, roa=roa, above_level=above_level,
-                             roa_rate=roa_rate, band=band)
+    result = verify_imported(pair, str(run_dir), settings,
+                             request=dataclasses.replace(request, xi=shift, uniform=False))
     try:
         recheck = command_hint("check", run_dir, source=recorded_source(run_dir, system_spec))
-        if band is None:
+        if request.band is None:
             paths = record_imported_certificates(run_dir, pair, result, settings.resolved(system))
         else:
             paths = record_band(run_dir, system, result.band, [run_dir / "graphs.json", run_dir / "tensors.pt"], None)
@@ -267,15 +296,7 @@ def _verify_imported(run_dir: Path, delta: float | None, xi: str | None, time_li
         written += [line for line in [unwritten_region_line(result.roa, paths)] if line]
     except OSError as err:
         written = [f"  no certificate written: {run_dir} cannot be written ({err.strerror or err})"]
-    if as_json:
-        click.echo(json.dumps(jsonable(result.to_dict())))
-        _exit(result)
-        return
-    for line in verification_lines(result, system.name, "imported pair"):
-        click.echo(line)
-    for line in written:
-        click.echo(line)
-    _exit(result)
+    _report(result, system.name, "imported pair", as_json, written)
 
 
 @click.command("guarantee")

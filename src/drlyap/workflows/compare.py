@@ -46,7 +46,7 @@ from drlyap.verification import (
 )
 from drlyap.verification.roa import region_rate
 from drlyap.workflows.policies import load_policy_run
-from drlyap.workflows.verify import run_proof, run_robustness, verify
+from drlyap.workflows.verify import VerifyRequest, run_proof, run_robustness, verify
 
 
 def monotonicity(system: UncertainSystem, x: Tensor, values: Tensor, success: Tensor, rel_tol: float = 1e-4) -> dict:
@@ -115,7 +115,7 @@ def certify(run: PolicyRun, xi: Tensor, time_limit: float, compute: Compute = Co
     if run.kind == "lyapunov":
         lyap_run = run.info["run"]
         settings = run_proof(lyap_run, replace(lyap_run.proof or ProofConfig(), time_limit=time_limit).with_compute(compute))
-        result = verify(lyap_run, settings, xi=xi, roa=True)
+        result = verify(lyap_run, settings, VerifyRequest(xi=xi, roa=True))
         roa = result.roa
         robust = run_robustness(lyap_run, budget=search, total_time=4 * time_limit, trained=result.trained)
         main = result.main

@@ -20,7 +20,7 @@ from drlyap.render import region_label
 from drlyap.runs import Run, load_run
 from drlyap.simulation import Trajectories, initial_states, simulate, success_mask
 from drlyap.verification import RegionOfAttraction
-from drlyap.workflows.verify import run_proof, verify
+from drlyap.workflows.verify import VerifyRequest, run_proof, verify
 
 
 def region_to_draw(run: Run, roa: RegionOfAttraction | None, recorded: bool = False) -> dict | None:
@@ -71,7 +71,7 @@ def plot_run(run_dir: str | os.PathLike, xi: Sequence[float] | None = None, n_in
 
     if roa:
         proof = replace(run_proof(run), time_limit=time_limit, roa_time=time_limit)
-        found = verify(run, proof, xi=shift, roa=True).roa
+        found = verify(run, proof, VerifyRequest(xi=shift, roa=True)).roa
         missing = found.error or "the verifier certified no sublevel set of V (level <= 0)"
         if found.error is not None:
             found = None

@@ -28,6 +28,7 @@ from drlyap.training import TrainConfig, train
 from drlyap.verification import ProofConfig
 from drlyap.workflows.plot import region_to_draw
 from drlyap.workflows.record import record_certificates, record_region, record_roa
+from drlyap.workflows.verify import VerifyRequest
 from drlyap.workflows.verify import verify as prove_run
 
 METHODS = (Method.BASELINE, Method.DR)
@@ -110,7 +111,7 @@ def reproduce(system: str | UncertainSystem, seeds: Sequence[int], out: Path, it
                 if verify:  # what the pair proves on the true model at the test shift (the figures draw its region)
                     checks = (run.proof if verify_time is None else replace(run.proof, time_limit=verify_time)
                               ).with_compute(compute)
-                    ver = prove_run(run, checks, xi=xi_test, roa=True)
+                    ver = prove_run(run, checks, VerifyRequest(xi=xi_test, roa=True))
                     record_region(run, ver)
                     record_certificates(run, ver)  # the proofs that ended verified, re-checkable by drlyap check
                     record_roa(run, ver, checks)

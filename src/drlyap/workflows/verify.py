@@ -7,6 +7,7 @@ from __future__ import annotations
 
 import math
 from collections.abc import Sequence
+from dataclasses import dataclass
 
 from torch import Tensor
 
@@ -115,64 +116,73 @@ def confirmed_certificate(run: Run, name: str, condition, region: Region, level:
                           source="certificate", checked_at=when)
 
 
-def verify(run: Run, proof: ProofConfig | None = None, *, delta: float | None = None,
-               xi: Sequence[float] | Tensor | None = None, roa: bool = False, uniform: bool = False,
-               reprove: bool = False, above_level: bool = True, roa_rate: float | None = None,
-               band: tuple[float, float] | None = None) -> RunVerification:
-    """Verify a loaded run (:func:`drlyap.runs.load_run`) on X_delta (``delta``: the run's by default).
+@dataclass(frozen=True)
+class VerifyRequest:
+    """What :func:`verify` (or :func:`verify_imported`) is asked to prove about a run, apart from how (its
+    :class:`~drlyap.proof_settings.ProofConfig`).
+
+    ``delta``: the radius of the ball around x* left out of the region X_delta (None: the run's); ``xi``: a shift
+    ``(k,)`` of the true model at which plain decrease is proved too (None: none; an imported pair needs one);
+    ``roa``: also certify a region of attraction; ``uniform``: also bound the uniform DR margin (a trained run only);
+    ``above_level``: whether the region-of-attraction search goes above the level the run was trained for;
+    ``roa_rate``: with ``xi`` or ``band``, the decay ``alpha`` asked at the shift (None: what a region of attraction
+    needs, :func:`~drlyap.verification.roa.region_rate`); ``band``: ``(c1, c2)``, prove the band claim instead.
+    """
+
+    delta: float | None = None
+    xi: Sequence[float] | Tensor | None = None
+    roa: bool = False
+    uniform: bool = False
+    above_level: bool = True
+    roa_rate: float | None = None
+    band: tuple[float, float] | None = None
+
+
+def verify(run: Run, proof: ProofConfig | None = None, request: VerifyRequest = VerifyRequest(), *,
+           reprove: bool = False) -> RunVerification:
+    """Verify a loaded run (:func:`drlyap.runs.load_run`) on X_delta (``request.delta``: the run's by default).
 
     ``trained``: the run's own condition (pointwise / nominal by :func:`~drlyap.verification.prove_trained`, uniform by
-    :func:`~drlyap.verification.uniform_margin`); with ``uniform``, the uniform DR margin at the run's radius, risk
-    level and samples (the trained condition itself for a run trained on it); with ``xi``, ``true_model``: plain
-    decrease on the true model at that shift; with ``roa``, the certified region of attraction of the main condition
-    (the true model's when ``xi`` is given) within ``proof.roa_budget()`` (boxes, not seconds). A run trained for a
-    region of attraction (``config.roa_level``) has its trained and true-model conditions proved on ``{V <= roa_level}``
-    with V above the level on the box's faces; the region-of-attraction search goes on above that level
-    (``above_level`` False: at most that level, the claim the run was trained for). ``proof``: the settings
-    (:func:`run_proof`). A condition whose certificate file states the same claim and is confirmed by the checker is not
-    proved again (:func:`confirmed_certificate`), unless ``reprove``. ``roa_rate``: with ``xi``, the decay ``alpha`` of
-    the true model's decrease ``Vdot + alpha V <= 0`` proved there and asked of its region (None: what a region of
-    attraction needs, a strict decrease, :func:`~drlyap.verification.roa.region_rate`).
+    :func:`~drlyap.verification.uniform_margin`); with ``request.uniform``, the uniform DR margin at the run's radius,
+    risk level and samples (the trained condition itself for a run trained on it); with ``request.xi``,
+    ``true_model``: plain decrease on the true model at that shift; with ``request.roa``, the certified region of
+    attraction of the main condition (the true model's when ``xi`` is given) within ``proof.roa_budget()`` (boxes, not
+    seconds). A run trained for a region of attraction (``config.roa_level``) has its trained and true-model
+    conditions proved on ``{V <= roa_level}`` with V above the level on the box's faces; the region-of-attraction
+    search goes on above that level (``request.above_level`` False: at most that level, the claim the run was trained
+    for). ``proof``: the settings (:func:`run_proof`). A condition whose certificate file states the same claim and is
+    confirmed by the checker is not proved again (:func:`confirmed_certificate`), unless ``reprove``.
+    ``request.roa_rate``: with ``xi``, the decay ``alpha`` of the true model's decrease ``Vdot + alpha V <= 0`` proved
+    there and asked of its region (None: what a region of attraction needs, a strict decrease,
+    :func:`~drlyap.verification.roa.region_rate`).
 
-    ``band``: ``(c1, c2)``, prove the band claim there instead (:func:`band_verification`) at ``xi`` (the system's test
-    shift where None) beside the trained condition; no true-model decrease on X_delta, no region.
+    ``request.band``: ``(c1, c2)``, prove the band claim there instead (:func:`band_verification`) at ``xi`` (the
+    system's test shift where None) beside the trained condition; no true-model decrease on X_delta, no region.
     """
-    cfg, system, loop = run.config, run.system, run.loop
-    band = band_request(band, roa)
-    roa_rate = _shift_rate(roa_rate, xi is not None or band is not None, cfg)
+    _check_request(request)
+    cfg, loop, xi = run.config, run.loop, request.xi
+    band = band_request(request.band, request.roa)
+    roa_rate = _shift_rate(request.roa_rate, xi is not None or band is not None, cfg)
     proof = run_proof(run, proof)
-    region = _region(run, delta)
+    region = _region(run, request.delta)
     level = cfg.roa_level
-    budget = proof.budget()
-    trained_condition = run.condition
-    if trained_condition.name == Loss.UNIFORM:
-        trained = uniform_margin(loop, trained_condition, region, budget, keep_partition=True)
-        margin = trained
-    else:
-        trained = None if reprove or float(region.delta) != float(cfg.delta) else \
-            confirmed_certificate(run, "trained", trained_condition, region, level, proof)
-        if trained is None:
-            trained = prove_trained(loop, trained_condition, region, budget, level, falsify_starts=proof.settle_starts)
-        margin = None
-        if uniform:
-            margin = uniform_margin(loop, run.sections.condition.build(run.xi_samples, Loss.UNIFORM), region,
-                                    proof.budget(proof.uniform_time), keep_partition=True)
-    true_model, main_condition = None, trained_condition
+    own_region = not reprove and float(region.delta) == float(cfg.delta)  # a certificate file may state this claim
+    trained, margin = _trained(run, proof, region, own_region, request.uniform)
+    true_model, main_condition = None, run.condition
     if band is not None:
         found = band_verification(loop, run.true_condition, region, band, proof, xi, roa_rate)
-        return RunVerification(run_dir=str(run.path), system=system.name, method=cfg.method,
-                               loss=cfg.loss if cfg.method == Method.DR else None, delta=region.delta,
-                               enclosure=proof.enclosure, trained=trained, uniform=margin, band=found,
-                               roa_rate=found.exp_rate)
+        return _run_verification(run, region, proof, trained=trained, uniform=margin, band=found,
+                                 roa_rate=found.exp_rate)
     if xi is not None:
         main_condition = run.true_condition(xi, roa_rate)
-        true_model = None if reprove or float(region.delta) != float(cfg.delta) else \
-            confirmed_certificate(run, "true-model", main_condition, region, level, proof)
+        true_model = confirmed_certificate(run, "true-model", main_condition, region, level, proof) \
+            if own_region else None
         if true_model is None:
-            true_model = prove_trained(loop, main_condition, region, budget, level, falsify_starts=proof.settle_starts)
+            true_model = prove_trained(loop, main_condition, region, proof.budget(), level,
+                                       falsify_starts=proof.settle_starts)
         true_model.xi = main_condition.xi[0].tolist()
     region_of_attraction = None
-    if roa:
+    if request.roa:
         roa_condition = main_condition if main_condition.per_state else run.region_condition()
         outer = trained if true_model is None else true_model
         if roa_condition is None:
@@ -181,13 +191,43 @@ def verify(run: Run, proof: ProofConfig | None = None, *, delta: float | None = 
                 "maximum); no sublevel-set certificate")
         else:
             proved = outer if isinstance(outer, ConditionProof) else None
-            region_of_attraction = _region_of_attraction(loop, roa_condition, region, proof, level, proved, above_level)
+            region_of_attraction = _region_of_attraction(loop, roa_condition, region, proof, level, proved,
+                                                         request.above_level)
             if true_model is not None:
                 region_of_attraction.xi = true_model.xi
-    return RunVerification(run_dir=str(run.path), system=system.name, method=cfg.method,
+    return _run_verification(run, region, proof, trained=trained, uniform=margin, true_model=true_model,
+                             roa=region_of_attraction, roa_rate=roa_rate)
+
+
+def _check_request(request) -> None:
+    if not isinstance(request, VerifyRequest):
+        raise TypeError(f"request must be a VerifyRequest (what is proved), got {type(request).__name__}")
+
+
+def _trained(run: Run, proof: ProofConfig, region: Region, own_region: bool, uniform: bool) -> tuple:
+    """The proofs of the run's trained condition and of the uniform DR margin (None where not asked): by the
+    confirmed certificate of the same claim where ``own_region`` allows one, else proved anew."""
+    condition, loop = run.condition, run.loop
+    if condition.name == Loss.UNIFORM:
+        trained = uniform_margin(loop, condition, region, proof.budget(), keep_partition=True)
+        return trained, trained
+    level = run.config.roa_level
+    trained = confirmed_certificate(run, "trained", condition, region, level, proof) if own_region else None
+    if trained is None:
+        trained = prove_trained(loop, condition, region, proof.budget(), level, falsify_starts=proof.settle_starts)
+    margin = None
+    if uniform:
+        margin = uniform_margin(loop, run.sections.condition.build(run.xi_samples, Loss.UNIFORM), region,
+                                proof.budget(proof.uniform_time), keep_partition=True)
+    return trained, margin
+
+
+def _run_verification(run: Run, region: Region, proof: ProofConfig, **found) -> RunVerification:
+    """A trained run's :class:`RunVerification` of what was ``found`` on ``region``."""
+    cfg = run.config
+    return RunVerification(run_dir=str(run.path), system=run.system.name, method=cfg.method,
                            loss=cfg.loss if cfg.method == Method.DR else None, delta=region.delta,
-                           enclosure=proof.enclosure, trained=trained, uniform=margin, true_model=true_model,
-                           roa=region_of_attraction, roa_rate=roa_rate)
+                           enclosure=proof.enclosure, **found)
 
 
 def band_verification(loop: ClosedLoop, true_condition, region: Region, band: tuple[float, float],
@@ -222,32 +262,35 @@ def _region_of_attraction(loop: ClosedLoop, condition: Condition, region: Region
                          band_time=proof.band_time, proved=None if above_level else proved)
 
 
-def verify_imported(pair, run_dir: str, proof: ProofConfig | None = None, *, xi: Tensor, delta: float | None = None,
-                    roa: bool = False, above_level: bool = True, roa_rate: float | None = None,
-                    band: tuple[float, float] | None = None) -> RunVerification:
+def verify_imported(pair, run_dir: str, proof: ProofConfig | None = None, *, request: VerifyRequest) -> RunVerification:
     """Verify an imported pair (:class:`drlyap.runs.imported.ImportedPair`, ``drlyap import``): plain decrease on the
-    true model at the shift ``xi (k,)`` with the pair's decay, on X_delta (``delta``: the pair's, from the export of a
-    drlyap run, else the system's default), by the same proof as for a trained run's ``--xi``: on ``{V <= level}``
-    with V above the level on the box's faces for a pair exported from a run trained for a region of attraction (and
-    with ``roa`` its certified region of attraction there, above that level as for its run; ``above_level`` False: at
-    most that level). An imported pair has no trained condition (``trained`` is None). ``roa_rate``: the decay
-    ``alpha`` asked at the shift, of the decrease and of its region (None: :func:`~drlyap.verification.roa.region_rate`
-    of the pair's). ``band``: ``(c1, c2)``, prove the band claim at ``xi`` instead (:func:`band_verification`), what
-    the field's pairs claim: no decrease down to x*, no region; about V as the file gives it (not pinned at x*: the
-    levels are in its own units)."""
-    band = band_request(band, roa)
+    true model at the shift ``request.xi (k,)`` (required) with the pair's decay, on X_delta (``request.delta``: the
+    pair's, from the export of a drlyap run, else the system's default), by the same proof as for a trained run's
+    ``--xi``: on ``{V <= level}`` with V above the level on the box's faces for a pair exported from a run trained for
+    a region of attraction (and with ``request.roa`` its certified region of attraction there, above that level as for
+    its run; ``request.above_level`` False: at most that level). An imported pair has no trained condition
+    (``trained`` is None; ``request.uniform`` is refused). ``request.roa_rate``: the decay ``alpha`` asked at the
+    shift, of the decrease and of its region (None: :func:`~drlyap.verification.roa.region_rate` of the pair's).
+    ``request.band``: ``(c1, c2)``, prove the band claim at ``xi`` instead (:func:`band_verification`), what the
+    field's pairs claim: no decrease down to x*, no region; about V as the file gives it (not pinned at x*: the levels
+    are in its own units)."""
+    _check_request(request)
+    if request.xi is None or request.uniform:
+        raise ValueError("an imported pair has no trained condition: its request needs a shift xi and no uniform margin")
+    xi = request.xi
+    band = band_request(request.band, request.roa)
     if band is None and not pair.pinned:
         raise ValueError("the pair's V is not least at x* (imported as given): it claims no decrease down to x* and no "
                          "region of attraction of x*; prove the claim it can state, on a band: --band C1,C2")
-    roa_rate = _shift_rate(roa_rate, True, pair)
+    roa_rate = _shift_rate(request.roa_rate, True, pair)
     loop = pair.loop
     system = loop.system
     proof = (proof or ProofConfig()).resolved(system)
+    delta = request.delta
     if delta is None:
         delta = system.defaults.delta if pair.delta is None else pair.delta
     region = Region.of(system, float(delta))
     level = pair.level
-    budget = proof.budget()
     if band is not None:
         found = band_verification(pair.given_loop, lambda shift, rate: pair.true_condition(shift[None], rate), region,
                                   band, proof, xi, roa_rate)
@@ -255,11 +298,12 @@ def verify_imported(pair, run_dir: str, proof: ProofConfig | None = None, *, xi:
                                delta=region.delta, enclosure=proof.enclosure, trained=None, band=found,
                                roa_rate=found.exp_rate)
     condition = pair.true_condition(system.check_xi(xi)[None], roa_rate)
-    true_model = prove_trained(loop, condition, region, budget, level, falsify_starts=proof.settle_starts)
+    true_model = prove_trained(loop, condition, region, proof.budget(), level, falsify_starts=proof.settle_starts)
     true_model.xi = condition.xi[0].tolist()
     region_of_attraction = None
-    if roa:
-        region_of_attraction = _region_of_attraction(loop, condition, region, proof, level, true_model, above_level)
+    if request.roa:
+        region_of_attraction = _region_of_attraction(loop, condition, region, proof, level, true_model,
+                                                     request.above_level)
         region_of_attraction.xi = true_model.xi
     return RunVerification(run_dir=str(run_dir), system=system.name, method="imported", loss=None, delta=region.delta,
                            enclosure=proof.enclosure, trained=None, true_model=true_model, roa=region_of_attraction,

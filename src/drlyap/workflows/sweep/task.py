@@ -34,7 +34,7 @@ from drlyap.training import train
 from drlyap.verification import ProofConfig, RunVerification
 from drlyap.workflows.reproduce import evaluate_run, test_initial_states
 from drlyap.workflows.sweep.grid import RESULT_FILE, STAGING, Combination, SweepSpec
-from drlyap.workflows.verify import verify
+from drlyap.workflows.verify import VerifyRequest, verify
 
 
 def verification_row(ver: RunVerification) -> dict:
@@ -92,7 +92,7 @@ def run_combination(spec_dict: dict, combo_dict: dict, out: str, threads: int = 
         row.update({"passed_acceptance": record.passed, "iterations": record.iterations,
                     "train_time_s": record.total_time_s,
                     "violating_fraction": float(record.acceptance.violating_fraction)})
-        ver = verify(run, ProofConfig(time_limit=spec.verify_time_limit), xi=xi_test, roa=True)
+        ver = verify(run, ProofConfig(time_limit=spec.verify_time_limit), VerifyRequest(xi=xi_test, roa=True))
         row.update(verification_row(ver))
         _, x0 = test_initial_states(system, combo.seed, n_more=spec.n_init)
         success = {}
