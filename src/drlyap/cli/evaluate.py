@@ -80,14 +80,15 @@ def plot(run_dir: Path, xi: str | None, n_init: int, seed: int, roa: bool | None
     V(t) and u(t) with the input limits, and heatmaps of V and of the decrease condition."""
     refuse_early(runs=[run_dir], systems=[system_spec])
 
-    from drlyap.workflows.plot import plot_run
+    from drlyap.workflows.plot import PlotSettings, plot_run
 
     try:
         if time_limit <= 0:
             raise ValueError(f"--time-limit must be > 0, got {time_limit}")
         _writable_folder(out if out is not None else run_dir / "figures")  # checked before any work
-        result = plot_run(run_dir, xi=floats(xi, "--xi"), n_init=n_init, seed=seed, roa=roa, out=out,
-                          time_limit=time_limit, horizon=horizon, system=run_system_of(system_spec), trust=trust_run)
+        settings = PlotSettings(xi=floats(xi, "--xi"), n_init=n_init, seed=seed, roa=roa, time_limit=time_limit,
+                                horizon=horizon)
+        result = plot_run(run_dir, settings, out, system=run_system_of(system_spec), trust=trust_run)
     except ValueError as err:
         fail(err)
     if as_json:
