@@ -12,7 +12,7 @@ from drlyap.conditions import wasserstein_radius_guarantee
 from drlyap.io import jsonable
 from drlyap.runs import Run
 from drlyap.training import TrainConfig
-from drlyap.workflows.guarantee import clopper_pearson, guarantee, parse_distribution, wilson
+from drlyap.workflows.guarantee import Draws, clopper_pearson, guarantee, parse_distribution, wilson
 from drlyap.workflows.verify import run_covering
 from handmade import linear_pair, small_pendulum
 
@@ -69,7 +69,7 @@ def test_binomial_intervals_contain_the_fraction():
 # ------------------------------------------------------------------ the probability
 @pytest.mark.parametrize("method", ["sampling", "verifier"])
 def test_stable_pair_holds_at_a_point_and_broken_pair_fails(method):
-    good = guarantee(hand_run(), "point:0.1,0.05", 30, method=method, time_limit=10)
+    good = guarantee(hand_run(), Draws("point:0.1,0.05", 30), method, time_limit=10)
     assert good["holds"] == 30 and good["fraction"] == 1.0 and good["n_distinct"] == 1
     for key in ("interval_clopper_pearson", "interval_wilson"):
         lo, hi = good[key]
@@ -77,9 +77,9 @@ def test_stable_pair_holds_at_a_point_and_broken_pair_fails(method):
     assert good["bound"] == pytest.approx((1 - 0.1) * (1 - 0.05))
     assert not good["bound_applies"]  # the lemma needs the uniform condition (sup over x inside the probability)
     if method == "sampling":
-        assert guarantee(hand_run(loss="uniform"), "point:0.1,0.05", 5, method=method)["bound_applies"]
+        assert guarantee(hand_run(loss="uniform"), Draws("point:0.1,0.05", 5), method)["bound_applies"]
     assert good["worst_sup_residual"] <= 0
-    bad = guarantee(hand_run(sign=-1.0), "point:0.1,0.05", 30, method=method, time_limit=10)
+    bad = guarantee(hand_run(sign=-1.0), Draws("point:0.1,0.05", 30), method, time_limit=10)
     assert bad["holds"] == 0 and bad["fraction"] == 0.0 and bad["worst_sup_residual"] > 0
     lo, hi = bad["interval_clopper_pearson"]
     assert lo == 0.0 <= hi < 0.2
@@ -88,17 +88,17 @@ def test_stable_pair_holds_at_a_point_and_broken_pair_fails(method):
 
 def test_guarantee_under_a_spread_distribution_and_radius_constants():
     run = hand_run()
-    out = guarantee(run, "normal:0,0;0.05,0.05", 40, seed=3, eps_bar=0.1, radius_constants=(2.0, 1.0, 2.0))
+    out = guarantee(run, Draws("normal:0,0;0.05,0.05", 40, seed=3), eps_bar=0.1, radius_constants=(2.0, 1.0, 2.0))
     assert out["n_distinct"] == 40 and 0 <= out["holds"] <= 40 and out["eps_bar"] == 0.1
     rg = out["radius_guarantee"]
     assert rg["r_N"] == pytest.approx(wasserstein_radius_guarantee(2.0, 1.0, 2.0, 2, 3, 0.1))
     assert rg["radius_sufficient"] == (1e-3 >= rg["r_N"])
     with pytest.raises(ValueError, match="eps_bar"):
-        guarantee(run, "point:0,0", 5, eps_bar=1.5)
+        guarantee(run, Draws("point:0,0", 5), eps_bar=1.5)
     with pytest.raises(ValueError, match="c1 > 0"):
-        guarantee(run, "point:0,0", 5, radius_constants=(-1.0, 1.0, 2.0))
+        guarantee(run, Draws("point:0,0", 5), radius_constants=(-1.0, 1.0, 2.0))
     with pytest.raises(ValueError, match="unknown method"):
-        guarantee(run, "point:0,0", 5, method="mc")
+        guarantee(run, Draws("point:0,0", 5), method="mc")
 
 
 # ------------------------------------------------------------------ Lipschitz covering

@@ -322,6 +322,7 @@ def guarantee(run_dir: Path, dist: str, n: int, method: str, eps_bar: float, see
     refuse_early(runs=[run_dir], systems=[system_spec])
 
     from drlyap.runs import load_run
+    from drlyap.workflows.guarantee import Draws
     from drlyap.workflows.guarantee import guarantee as estimate
 
     try:
@@ -331,7 +332,7 @@ def guarantee(run_dir: Path, dist: str, n: int, method: str, eps_bar: float, see
             if len(constants) != 3:
                 raise ValueError(f"--radius-constants takes c1,c2,rho, got {radius_constants!r}")
         run = load_run(run_dir, run_system_of(system_spec), trust_run)
-        result = estimate(run, dist, n, method=method, seed=seed, eps_bar=eps_bar, time_limit=time_limit,
+        result = estimate(run, Draws(dist, n, seed), method, time_limit=time_limit, eps_bar=eps_bar,
                           radius_constants=constants)
     except ValueError as err:
         fail(err)

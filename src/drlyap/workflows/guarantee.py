@@ -23,6 +23,7 @@ from __future__ import annotations
 import math
 import time
 from collections.abc import Callable, Sequence
+from dataclasses import dataclass
 
 import torch
 from torch import Tensor
@@ -135,10 +136,18 @@ def true_model_sup(loop: ClosedLoop, section: ConditionSection, xi: Tensor, z: T
     return torch.cat(out)
 
 
-def guarantee(run: Run, dist: str, n: int, method: str = "sampling", seed: int = 0, eps_bar: float = 0.05,
-              time_limit: float = 5.0, radius_constants: Sequence[float] | None = None,
-              confidence: float = 0.95) -> dict:
-    """Fraction of ``n`` draws of xi from ``dist`` for which plain decrease holds on the true model over X_delta.
+@dataclass(frozen=True)
+class Draws:
+    """``n`` draws of xi from the distribution ``dist`` (a :func:`parse_distribution` spec), with ``seed``."""
+
+    dist: str
+    n: int
+    seed: int = 0
+
+
+def guarantee(run: Run, draws: Draws, method: str = "sampling", *, time_limit: float = 5.0, eps_bar: float = 0.05,
+              radius_constants: Sequence[float] | None = None, confidence: float = 0.95) -> dict:
+    """Fraction of the ``draws`` of xi (:class:`Draws`) for which plain decrease holds on the true model over X_delta.
 
     ``method``: ``sampling`` (dense grid, optimistic) or ``verifier`` (branch and bound per distinct draw with
     ``time_limit`` seconds each; unknown counts as failing). ``worst_sup_residual`` is the largest residual found
@@ -146,6 +155,7 @@ def guarantee(run: Run, dist: str, n: int, method: str = "sampling", seed: int =
     ``radius_constants = (c1, c2, rho)`` adds ``r_N(eps_bar)``
     (:func:`drlyap.conditions.wasserstein_radius_guarantee`) for the run's k and N. Returns a JSON-friendly dict.
     """
+    dist, n, seed = draws.dist, draws.n, draws.seed
     if method not in ("sampling", "verifier"):
         raise ValueError(f"unknown method {method!r}; valid: sampling, verifier")
     if n < 1:
@@ -156,57 +166,24 @@ def guarantee(run: Run, dist: str, n: int, method: str = "sampling", seed: int =
         raise ValueError(f"time limit must be > 0, got {time_limit}")
     start = time.perf_counter()
     cfg, system = run.config, run.system
-    radius_guarantee = None
-    if radius_constants is not None:
-        if len(radius_constants) != 3:
-            raise ValueError("radius constants are c1, c2, rho")
-        c1, c2, rho = (float(v) for v in radius_constants)
-        n_xi = int(run.xi_samples.shape[0])
-        radius_guarantee = {"c1": c1, "c2": c2, "rho": rho, "k": system.k, "N": n_xi, "eps_bar": eps_bar,
-                            "r_N": wasserstein_radius_guarantee(c1, c2, rho, system.k, n_xi, eps_bar)}
+    radius_guarantee = None if radius_constants is None else _radius_guarantee(run, radius_constants, eps_bar)
     sampler, description = parse_distribution(dist, system.k, system)
     xi = sampler(n, torch.Generator().manual_seed(seed)).to(F64).reshape(n, system.k)
     distinct, inverse = torch.unique(xi, dim=0, return_inverse=True)
     delta = float(cfg.delta)
-    unknown = 0
-    if method == "sampling":
-        z = Region.of(system, delta).grid()
-        sup = true_model_sup(run.loop, run.sections.condition, distinct, z)
-        holds_distinct = sup <= 0
-        states = int(z.shape[0])
-    else:
-        sups, flags = [], []
-        region = Region.of(system, delta)
-        for d in distinct:
-            res = verify_condition(run.loop, run.true_condition(d), region,
-                                   Budget(seconds=time_limit, enclosure=Enclosure.MEAN_VALUE),
-                                   rules=ProofRules(stop_at_counterexample=True))
-            flags.append(res.status == Status.VERIFIED)
-            unknown += res.status == Status.UNKNOWN
-            sups.append(res.sup_bounds[0] if res.sup_bounds else math.nan)
-        sup = torch.tensor(sups, dtype=F64)
-        holds_distinct = torch.tensor(flags, dtype=torch.bool)
-        states = None
+    sup, holds_distinct, states, unknown = _decide(run, Region.of(system, delta), distinct, method, time_limit)
     holds = holds_distinct[inverse]
     k_ok = int(holds.sum())
     eps = float(cfg.risk_level)
-    bound = (1 - eps) * (1 - eps_bar)
     per_draw = sup[inverse]
     finite = per_draw[torch.isfinite(per_draw)]
-    uniform = run.sections.condition.uniform
-    why = "baseline" if cfg.method == Method.BASELINE else "pointwise DR (a per-state condition)"
     out = {
         "run_dir": str(getattr(run, "path", "")), "system": system.name, "method": cfg.method,
         "distribution": dist, "distribution_parsed": description, "n": n, "n_distinct": int(distinct.shape[0]),
         "check": method, "holds": k_ok, "fraction": k_ok / n, "confidence": confidence,
         "interval_clopper_pearson": list(clopper_pearson(k_ok, n, confidence)),
         "interval_wilson": list(wilson(k_ok, n, confidence)),
-        "eps": eps, "eps_bar": eps_bar, "bound": bound,
-        "bound_applies": uniform,
-        "bound_note": ("(1 - eps)(1 - eps_bar) of lemma dr_controller_guarantee; it assumes a light-tailed true "
-                       "distribution, the Wasserstein radius r = r_N(eps_bar) of eq. wasserstein_r_guarantee and a pair "
-                       "that satisfies the uniform DR constraint (sup over x inside the probability)" + (
-                           "" if uniform else f"; this is a {why} run, so the lemma does not apply")),
+        **_lemma(run, eps, eps_bar),
         "radius": float(cfg.wasserstein_radius), "n_xi": int(run.xi_samples.shape[0]),
         "worst_sup_residual": float(finite.max()) if finite.numel() else None,
         "sup_residual_quantiles": ({q: float(finite.quantile(float(q))) for q in ("0.05", "0.5", "0.95")}
@@ -223,3 +200,42 @@ def guarantee(run: Run, dist: str, n: int, method: str = "sampling", seed: int =
         out["radius_guarantee"] = radius_guarantee
     out["time_s"] = time.perf_counter() - start
     return jsonable(out)
+
+
+def _radius_guarantee(run: Run, constants: Sequence[float], eps_bar: float) -> dict:
+    """``r_N(eps_bar)`` of the constants ``(c1, c2, rho)`` for the run's k and N."""
+    if len(constants) != 3:
+        raise ValueError("radius constants are c1, c2, rho")
+    c1, c2, rho = (float(v) for v in constants)
+    n_xi, k = int(run.xi_samples.shape[0]), run.system.k
+    return {"c1": c1, "c2": c2, "rho": rho, "k": k, "N": n_xi, "eps_bar": eps_bar,
+            "r_N": wasserstein_radius_guarantee(c1, c2, rho, k, n_xi, eps_bar)}
+
+
+def _decide(run: Run, region: Region, distinct: Tensor, method: str, time_limit: float) -> tuple:
+    """For each distinct draw ``(D, k)``: the sup of the residual found ``(D,)``, whether decrease holds ``(D,)``
+    bool, the grid's state count (sampling; None for the verifier) and the draws left unknown (verifier)."""
+    if method == "sampling":
+        z = region.grid()
+        sup = true_model_sup(run.loop, run.sections.condition, distinct, z)
+        return sup, sup <= 0, int(z.shape[0]), 0
+    sups, flags, unknown = [], [], 0
+    for d in distinct:
+        res = verify_condition(run.loop, run.true_condition(d), region,
+                               Budget(seconds=time_limit, enclosure=Enclosure.MEAN_VALUE),
+                               rules=ProofRules(stop_at_counterexample=True))
+        flags.append(res.status == Status.VERIFIED)
+        unknown += res.status == Status.UNKNOWN
+        sups.append(res.sup_bounds[0] if res.sup_bounds else math.nan)
+    return torch.tensor(sups, dtype=F64), torch.tensor(flags, dtype=torch.bool), None, unknown
+
+
+def _lemma(run: Run, eps: float, eps_bar: float) -> dict:
+    """The lemma's bound ``(1 - eps)(1 - eps_bar)`` and whether it applies to the run."""
+    uniform = run.sections.condition.uniform
+    why = "baseline" if run.config.method == Method.BASELINE else "pointwise DR (a per-state condition)"
+    return {"eps": eps, "eps_bar": eps_bar, "bound": (1 - eps) * (1 - eps_bar), "bound_applies": uniform,
+            "bound_note": ("(1 - eps)(1 - eps_bar) of lemma dr_controller_guarantee; it assumes a light-tailed true "
+                           "distribution, the Wasserstein radius r = r_N(eps_bar) of eq. wasserstein_r_guarantee and a "
+                           "pair that satisfies the uniform DR constraint (sup over x inside the probability)" + (
+                               "" if uniform else f"; this is a {why} run, so the lemma does not apply"))}
