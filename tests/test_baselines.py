@@ -19,7 +19,7 @@ from drlyap.runs import RunDirError, save_lqr_run, save_run, train_lqr
 from drlyap.simulation import evaluate, initial_states
 from drlyap.systems import get_system
 from drlyap.training import TrainConfig, TrainResult, TrainSections
-from drlyap.workflows.compare import compare_runs, monotonicity, score_run
+from drlyap.workflows.compare import CompareSettings, compare_runs, monotonicity, score_run
 from drlyap.workflows.policies import load_policy_run
 
 torch.set_num_threads(1)
@@ -201,7 +201,7 @@ def test_compare_and_evaluate_cli(tmp_path):
 
 def test_compare_runs_requires_runs():
     with pytest.raises(ValueError, match="at least one"):
-        compare_runs([], [0.0])
+        compare_runs([], CompareSettings(xi=[0.0]))
 
 
 def test_lqr_pair_is_verifiable_and_its_region_of_attraction_is_certified():

@@ -63,11 +63,11 @@ def test_train_refuses_to_overwrite(run_dir):
 
 
 def test_reproduce_end_to_end_writes_table_json_and_figures(tmp_path):
-    from drlyap.workflows.reproduce import reproduce
+    from drlyap.workflows.reproduce import ReproduceSettings, reproduce
 
     out = tmp_path / "rep"
-    report = reproduce("pendulum", [0], out, iters=2, progress=False, log=lambda s: None, n_more=4, sweep=(1, 2),
-                       verify=False, horizon=2.0)
+    settings = ReproduceSettings(seeds=[0], iters=2, n_more=4, sweep=(1, 2), verify=False, horizon=2.0)
+    report = reproduce("pendulum", settings, out, progress=False, log=lambda s: None)
     assert {r["method"] for r in report["results"]} == {"baseline", "dr"}
     for r in report["results"]:
         assert r["paper_10"]["n"] == 10 and r["more_200"]["n"] == 4 and set(r["sweep_200"]) == {1, 2}

@@ -63,9 +63,9 @@ def test_default_pendulum_dr_training_ends_verified(tmp_path):
 
 @pytest.mark.slow
 def test_pendulum_reproduction_seed_0(tmp_path):
-    from drlyap.workflows.reproduce import reproduce
+    from drlyap.workflows.reproduce import ReproduceSettings, reproduce
 
-    report = reproduce("pendulum", [0], tmp_path / "rep", progress=False, log=lambda s: None)
+    report = reproduce("pendulum", ReproduceSettings(seeds=[0]), tmp_path / "rep", progress=False, log=lambda s: None)
     rows = {r["method"]: r for r in report["results"]}
     assert rows["dr"]["certificate"] == "verified" and rows["dr"]["true_model"] == "verified"
     assert rows["dr"]["roa"].endswith("%")  # a region of attraction, as a share of the box

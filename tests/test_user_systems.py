@@ -158,10 +158,10 @@ def test_bad_systems_are_refused_when_built(over, message):
 
 def test_reproduce_needs_a_test_shift(tmp_path):
     system = UncertainSystem(**_kwargs(name="no-test", xi_sampler=lambda n, g: torch.zeros(n, 1)))
-    from drlyap.workflows.reproduce import reproduce
+    from drlyap.workflows.reproduce import ReproduceSettings, reproduce
 
     with pytest.raises(ValueError, match="declares no test_xi"):
-        reproduce(system, [0], tmp_path / "out")
+        reproduce(system, ReproduceSettings(seeds=[0]), tmp_path / "out")
     assert not (tmp_path / "out").exists()
 
 

@@ -62,7 +62,7 @@ def reproduce(system: str, seeds: str, out: Path | None, iters: int | None, devi
     refuse_early(systems=[system])
 
     from drlyap.systems import resolve_system, system_source
-    from drlyap.workflows.reproduce import format_table
+    from drlyap.workflows.reproduce import ReproduceSettings, format_table
     from drlyap.workflows.reproduce import reproduce as run_reproduce
 
     seed_list = seed_values(seeds)
@@ -82,9 +82,10 @@ def reproduce(system: str, seeds: str, out: Path | None, iters: int | None, devi
         for name, value in (("--verify-time", verify_time), ("--horizon", horizon)):
             if value is not None and not value > 0:
                 raise ValueError(f"{name} must be > 0, got {value}")
-        report = run_reproduce(sys_, seed_list, out, iters=iters, progress=True, device=device, log=log, verify=verify,
-                               verify_rounds=verify_rounds, verify_time=verify_time, source=system_source(system, sys_),
-                               horizon=horizon, compute=compute)
+        settings = ReproduceSettings(seeds=seed_list, iters=iters, device=device, horizon=horizon, verify=verify,
+                                     verify_rounds=verify_rounds, verify_time=verify_time)
+        report = run_reproduce(sys_, settings, out, source=system_source(system, sys_), compute=compute, progress=True,
+                               log=log)
     except ValueError as err:
         fail(err)
     if as_json:
@@ -125,7 +126,7 @@ def compare(run_dirs: tuple[Path, ...], xi: str, n_init: int, seed: int, horizon
     """
     refuse_early(runs=run_dirs, systems=[system_spec])
 
-    from drlyap.workflows.compare import compare_runs, format_comparison
+    from drlyap.workflows.compare import CompareSettings, compare_runs, format_comparison
 
     compute = compute_settings(workers, backend, address, device)
     try:
@@ -133,9 +134,10 @@ def compare(run_dirs: tuple[Path, ...], xi: str, n_init: int, seed: int, horizon
             raise ValueError(f"--horizon must be > 0, got {horizon}")
         if certify_time < 0:
             raise ValueError(f"--certify-time must be >= 0, got {certify_time}")
-        report = compare_runs(list(run_dirs), floats(xi, "--xi"), n_init, seed, out, horizon,
-                              certify_time if certify_time > 0 else None, progress=True,
-                              system=run_system_of(system_spec), trust=trust_run, compute=compute)
+        settings = CompareSettings(xi=floats(xi, "--xi"), n_init=n_init, seed=seed, horizon=horizon,
+                                   certify_time_limit=certify_time if certify_time > 0 else None)
+        report = compare_runs(list(run_dirs), settings, out, progress=True, system=run_system_of(system_spec),
+                              trust=trust_run, compute=compute)
     except ValueError as err:
         fail(err)
     if as_json:

@@ -12,7 +12,7 @@ import json
 import os
 import time
 from collections.abc import Sequence
-from dataclasses import replace
+from dataclasses import dataclass, replace
 from pathlib import Path
 
 import torch
@@ -185,18 +185,30 @@ def _robust_summary(radius: CertifiedRadius | None, box: CertifiedShiftBox) -> d
     return out
 
 
-def compare_runs(paths: Sequence[str | os.PathLike], xi: Sequence[float], n_init: int = 200, seed: int = 0,
-                 out: str | os.PathLike | None = None, horizon: float | None = None,
-                 certify_time_limit: float | None = 10.0, progress: bool = True, system=None,
-                 trust: bool = False, compute: Compute = Compute()) -> dict:
-    """Score every run directory at the shift ``xi`` from the same ``n_init`` initial states (drawn from
-    each system's test box with ``seed``); with ``out``, write compare.json, compare.md and figures.
+@dataclass(frozen=True)
+class CompareSettings:
+    """What :func:`compare_runs` measures: every run at the shift ``xi`` of the true model, from the same ``n_init``
+    initial states (drawn from each system's test box with ``seed``), over ``horizon`` units of simulated time (None:
+    the system's); with ``certify_time_limit`` (seconds per check of a run; None: none) what each run proves there
+    (:func:`certify`)."""
 
-    ``certify_time_limit`` (seconds per run; None skips it) runs the verifier on each run at ``xi`` (:func:`certify`).
+    xi: Sequence[float]
+    n_init: int = 200
+    seed: int = 0
+    horizon: float | None = None
+    certify_time_limit: float | None = 10.0
+
+
+def compare_runs(paths: Sequence[str | os.PathLike], settings: CompareSettings, out: str | os.PathLike | None = None,
+                 *, progress: bool = True, system=None, trust: bool = False, compute: Compute = Compute()) -> dict:
+    """Score every run directory as ``settings`` says (:class:`CompareSettings`); with ``out``, write compare.json,
+    compare.md and figures.
+
     ``system``, ``trust``: how runs whose system came from a file or module are loaded
     (:func:`drlyap.runs.load_run`). ``progress``: report scoring progress on stderr (:func:`drlyap.progress.progress`).
     ``compute``: where the proofs bound their boxes (:class:`~drlyap.compute.Compute`).
     """
+    xi, n_init, seed, horizon = settings.xi, settings.n_init, settings.seed, settings.horizon
     if not paths:
         raise ValueError("give at least one run directory")
     if n_init < 1:
@@ -210,8 +222,8 @@ def compare_runs(paths: Sequence[str | os.PathLike], xi: Sequence[float], n_init
     for run, shift in zip(runs, shifts):
         x0 = initial_states(run.system, n_init, torch.Generator().manual_seed(seed))
         row = score_run(run, x0, shift, horizon)
-        if certify_time_limit is not None:
-            row["certified"] = jsonable(certify(run, shift, certify_time_limit, compute).to_dict())
+        if settings.certify_time_limit is not None:
+            row["certified"] = jsonable(certify(run, shift, settings.certify_time_limit, compute).to_dict())
         rows.append(row)
         bar.update(1)
     bar.close()

@@ -9,7 +9,7 @@ from __future__ import annotations
 
 import json
 from collections.abc import Sequence
-from dataclasses import replace
+from dataclasses import dataclass, replace
 from pathlib import Path
 
 import torch
@@ -51,103 +51,156 @@ def summary_row(result: dict) -> dict:
     return {k: result[k] for k in ("n", "n_success", "success_rate", "worst_v_increase")}
 
 
-def reproduce(system: str | UncertainSystem, seeds: Sequence[int], out: Path, iters: int | None = None,
-              progress: bool = True, device: str = "cpu", log=print, n_more: int = 200, sweep: Sequence[int] = SWEEP,
-              verify: bool = True, verify_rounds: int = 5, verify_time: float | None = None,
-              source: dict | None = None, horizon: float | None = None, compute: Compute = Compute()) -> dict:
+@dataclass(frozen=True)
+class ReproduceSettings:
+    """What :func:`reproduce` runs: for each of ``seeds``, both pairs trained (``iters``: the iteration cap, None: the
+    system's; on ``device``), evaluated from the paper's 10 initial states and ``n_more`` others at the test shift and
+    at the multiples ``sweep`` of it, over ``horizon`` units of simulated time (None: the system's). With ``verify``,
+    counterexample-guided rounds (at most ``verify_rounds``) until the verifier proves each pair's trained condition,
+    then its decrease on the true model at the test shift and its certified region of attraction there
+    (``verify_time`` seconds per check, also the cap of each proof of the training rounds; None: the system's)."""
+
+    seeds: Sequence[int]
+    iters: int | None = None
+    device: str = "cpu"
+    n_more: int = 200
+    sweep: Sequence[int] = SWEEP
+    horizon: float | None = None
+    verify: bool = True
+    verify_rounds: int = 5
+    verify_time: float | None = None
+
+    def __post_init__(self) -> None:
+        object.__setattr__(self, "seeds", tuple(self.seeds))
+        object.__setattr__(self, "sweep", tuple(self.sweep))
+
+
+def reproduce(system: str | UncertainSystem, settings: ReproduceSettings, out: Path, *, source: dict | None = None,
+              compute: Compute = Compute(), progress: bool = True, log=print) -> dict:
     """Run the paper's experiment for ``system`` (an object, or a spec for
-    :func:`drlyap.systems.resolve_system`) and write everything under ``out`` (atomically).
+    :func:`drlyap.systems.resolve_system`) as ``settings`` says (:class:`ReproduceSettings`) and write everything
+    under ``out`` (atomically).
 
     Any system works that declares ``test_xi`` and an ``xi_sampler``. Returns a JSON-friendly dict with
-    per-seed, per-method results and the paths of the figures. Both pairs are trained as :func:`drlyap.train` does:
-    with ``verify``, counterexample-guided rounds (at most ``verify_rounds``) until the verifier proves their trained
-    condition; then each pair's decrease on the true model at the test shift and its certified region of attraction
-    there are proved (:func:`drlyap.workflows.verify.verify`, ``verify_time`` seconds per check, three times that
-    for the region; None: the run's seconds per proof, 30 or the system's) and stored in its
-    ``metrics["certificate"]``. ``verify_time`` also caps the seconds of each proof of the training rounds (None:
-    the system's cap; they are budgeted by boxes).
-    ``horizon``: simulated time of every evaluation and figure (None: the system's). ``source``
-    (:func:`drlyap.systems.system_source`) is recorded in each run directory; by default it is derived from a spec,
-    or the registry name. ``compute``: where the proofs bound their boxes (:class:`~drlyap.compute.Compute`).
+    per-seed, per-method results and the paths of the figures. Both pairs are trained as :func:`drlyap.train` does;
+    with ``settings.verify``, each pair's decrease on the true model at the test shift and its certified region of
+    attraction there are proved (:func:`drlyap.workflows.verify.verify`; None ``verify_time``: the run's seconds per
+    proof, 30 or the system's) and stored in its ``metrics["certificate"]``.
+    ``source`` (:func:`drlyap.systems.system_source`) is recorded in each run directory; by default it is derived from
+    a spec, or the registry name. ``compute``: where the proofs bound their boxes (:class:`~drlyap.compute.Compute`).
+    ``progress``: progress bars and the proof rounds' lines (through ``log``, which also gets each result's line).
     """
     if isinstance(system, str):
         spec, system = system, resolve_system(system)
         source = system_source(spec, system)
-    proof = ProofConfig(rounds=verify_rounds, time_limit=verify_time).with_compute(compute) if verify else None
+    proof = ProofConfig(rounds=settings.verify_rounds, time_limit=settings.verify_time).with_compute(compute) \
+        if settings.verify else None
     missing = [f for f in ("test_xi", "xi_sampler") if getattr(system, f) is None]
     if missing:
         raise ValueError(f"{system.name} declares no {' and no '.join(missing)}; reproduce needs a test shift "
                          "(UncertainSystem.test_xi) and a training distribution (UncertainSystem.xi_sampler)")
     check_writable(out)
-    system_name = system.name
-    if not seeds:
+    if not settings.seeds:
         raise ValueError("need at least one seed")
-    xi_test = torch.tensor(system.test_xi, dtype=torch.float64)
-    report: dict = {"system": system_name, "test_xi": list(system.test_xi), "seeds": list(seeds), "sweep": list(sweep),
-                    "verify": verify, "verify_rounds": verify_rounds, "results": []}
+    work = _Reproduction(system, settings, Path(out), proof, source, compute, progress, log)
+    atomic_dir(Path(out), work.fill, overwrite=False)
+    return work.report
 
-    def fill(tmp: Path) -> None:
-        bar = show_progress(len(seeds) * len(METHODS) * (2 + len(sweep)), f"{system_name} evaluations", progress)
-        for seed in seeds:
-            x_paper, x_more = test_initial_states(system, seed, n_more=n_more)
-            runs: dict[str, Run] = {}
-            paper_trajs, paper_ok = {}, {}
-            for method in METHODS:
-                cfg = TrainConfig(system=system_name, method=method, seed=seed, device=device)
-                if iters is not None:
-                    cfg.iters = iters
-                result = train(cfg, system, proof, progress=progress, warn=False,
-                               log=(lambda entry, m=method, s=seed: log(f"seed {s} {m}: {proof_round_line(entry)[2:]}"))
-                               if progress else None)
-                run_dir = save_run(tmp / f"seed{seed}" / method, result, source=source)
-                run = load_run(run_dir, system)
-                paper_traj = simulate(system, run.controller, x_paper, xi_test, horizon=horizon)  # drawn below too
-                paper = score(system, paper_traj, xi_test, run.lyapunov, horizon=horizon)
-                paper_trajs[method], paper_ok[method] = paper_traj, paper["success"]
-                more = evaluate_run(run, xi_test, x_more, horizon)
-                bar.update(2)
-                run.keep({"evaluations": {"paper_10": paper, "more_200": more}})
-                region = ver = None
-                if verify:  # what the pair proves on the true model at the test shift (the figures draw its region)
-                    checks = (run.proof if verify_time is None else replace(run.proof, time_limit=verify_time)
-                              ).with_compute(compute)
-                    ver = prove_run(run, checks, VerifyRequest(xi=xi_test, roa=True))
-                    record_region(run, ver)
-                    record_certificates(run, ver)  # the proofs that ended verified, re-checkable by drlyap check
-                    record_roa(run, ver, checks)
-                    region = ver.roa
-                runs[method] = run
-                swept = {}
-                for k in sweep:
-                    swept[k] = evaluate_run(run, k * xi_test, x_more, horizon)["n_success"]
-                    bar.update(1)
-                record, acc = result.record, result.acceptance
-                true_model = None if ver is None else ver.true_model
-                row = {"seed": seed, "method": method, "passed_acceptance": record.passed,
-                       "acceptance_status": record.status, "max_violation": acc.max_violation,
-                       "violating_fraction": acc.violating_fraction, "hurwitz": acc.hurwitz,
-                       "other_equilibria": len(acc.other_equilibria),
-                       "iterations": record.iterations, "train_time_s": record.total_time_s,
-                       "certificate": record.certificate_status,
-                       "true_model": None if true_model is None else true_model.status,
-                       "true_model_fraction": None if true_model is None else true_model.verified_fraction,
-                       "roa": roa_cell(region),
-                       "paper_10": summary_row(paper), "more_200": summary_row(more), "sweep_200": swept,
-                       "run_dir": str(Path(out) / f"seed{seed}" / method)}
-                report["results"].append(row)
-                log(format_row(row))
-            figures = draw_figures(system, runs, xi_test, paper_trajs, paper_ok, tmp / f"seed{seed}" / "figures", seed, horizon)
-            report.setdefault("figures", {})[str(seed)] = [str(Path(out) / f"seed{seed}" / "figures" / f.name)
-                                                          for f in figures]
+
+class _Reproduction:
+    """One :func:`reproduce` while it runs: its inputs, and the report it fills."""
+
+    def __init__(self, system: UncertainSystem, settings: ReproduceSettings, out: Path, proof: ProofConfig | None,
+                 source: dict | None, compute: Compute, progress: bool, log) -> None:
+        self.system, self.settings, self.out, self.proof = system, settings, out, proof
+        self.source, self.compute, self.progress, self.log = source, compute, progress, log
+        self.xi_test = torch.tensor(system.test_xi, dtype=torch.float64)
+        self.report: dict = {"system": system.name, "test_xi": list(system.test_xi), "seeds": list(settings.seeds),
+                             "sweep": list(settings.sweep), "verify": settings.verify,
+                             "verify_rounds": settings.verify_rounds, "results": []}
+
+    def fill(self, tmp: Path) -> None:
+        """Every seed's runs, figures and rows under ``tmp``, then the sweep figure and the report files."""
+        system, settings, report = self.system, self.settings, self.report
+        bar = show_progress(len(settings.seeds) * len(METHODS) * (2 + len(settings.sweep)),
+                            f"{system.name} evaluations", self.progress)
+        for seed in settings.seeds:
+            self._seed(tmp, seed, bar)
         bar.close()
-        report["float_kernels"] = float_kernels(device)
-        report["figures"]["sweep"] = str(Path(out) / "shift_sweep.png")
-        plotting.sweep_plot(system.name, sweep, report["results"], tmp / "shift_sweep.png", list(system.test_xi))
+        report["float_kernels"] = float_kernels(settings.device)
+        report["figures"]["sweep"] = str(self.out / "shift_sweep.png")
+        plotting.sweep_plot(system.name, settings.sweep, report["results"], tmp / "shift_sweep.png",
+                            list(system.test_xi))
         (tmp / "report.json").write_text(json.dumps(report, indent=2) + "\n")
         (tmp / "report.md").write_text(format_table(report) + "\n")
 
-    atomic_dir(Path(out), fill, overwrite=False)
-    return report
+    def _seed(self, tmp: Path, seed: int, bar) -> None:
+        """Both methods' runs of ``seed``, their rows and the seed's figures."""
+        x_paper, x_more = test_initial_states(self.system, seed, n_more=self.settings.n_more)
+        runs: dict[str, Run] = {}
+        paper_trajs, paper_ok = {}, {}
+        for method in METHODS:
+            runs[method], paper_trajs[method], paper_ok[method] = self._method(tmp, seed, method, x_paper, x_more, bar)
+        figures = draw_figures(self.system, runs, self.xi_test, paper_trajs, paper_ok, tmp / f"seed{seed}" / "figures",
+                               seed, self.settings.horizon)
+        self.report.setdefault("figures", {})[str(seed)] = [str(self.out / f"seed{seed}" / "figures" / f.name)
+                                                            for f in figures]
+
+    def _method(self, tmp: Path, seed: int, method: str, x_paper: torch.Tensor, x_more: torch.Tensor, bar) -> tuple:
+        """Train, save, evaluate and prove one pair; its row goes into the report. Returns the run, its trajectories
+        from the paper's states and which of them succeeded."""
+        system, settings, log, xi_test, horizon = self.system, self.settings, self.log, self.xi_test, self.settings.horizon
+        cfg = TrainConfig(system=system.name, method=method, seed=seed, device=settings.device)
+        if settings.iters is not None:
+            cfg.iters = settings.iters
+        result = train(cfg, system, self.proof, progress=self.progress, warn=False,
+                       log=(lambda entry, m=method, s=seed: log(f"seed {s} {m}: {proof_round_line(entry)[2:]}"))
+                       if self.progress else None)
+        run = load_run(save_run(tmp / f"seed{seed}" / method, result, source=self.source), system)
+        paper_traj = simulate(system, run.controller, x_paper, xi_test, horizon=horizon)  # drawn below too
+        paper = score(system, paper_traj, xi_test, run.lyapunov, horizon=horizon)
+        more = evaluate_run(run, xi_test, x_more, horizon)
+        bar.update(2)
+        run.keep({"evaluations": {"paper_10": paper, "more_200": more}})
+        ver = self._prove(run) if settings.verify else None
+        swept = {}
+        for k in settings.sweep:
+            swept[k] = evaluate_run(run, k * xi_test, x_more, horizon)["n_success"]
+            bar.update(1)
+        row = _result_row(result, seed, method, ver, paper, more, swept, str(self.out / f"seed{seed}" / method))
+        self.report["results"].append(row)
+        log(format_row(row))
+        return run, paper_traj, paper["success"]
+
+    def _prove(self, run: Run):
+        """What the pair proves on the true model at the test shift (the figures draw its region), recorded in its
+        run directory."""
+        verify_time = self.settings.verify_time
+        checks = (run.proof if verify_time is None else replace(run.proof, time_limit=verify_time)
+                  ).with_compute(self.compute)
+        ver = prove_run(run, checks, VerifyRequest(xi=self.xi_test, roa=True))
+        record_region(run, ver)
+        record_certificates(run, ver)  # the proofs that ended verified, re-checkable by drlyap check
+        record_roa(run, ver, checks)
+        return ver
+
+
+def _result_row(result, seed: int, method: str, ver, paper: dict, more: dict, swept: dict, run_dir: str) -> dict:
+    """The report's row of one pair: its training ``result``, what ``ver`` proved at the test shift (None: not
+    proved), its evaluations and where it is."""
+    record, acc = result.record, result.acceptance
+    true_model = None if ver is None else ver.true_model
+    return {"seed": seed, "method": method, "passed_acceptance": record.passed,
+            "acceptance_status": record.status, "max_violation": acc.max_violation,
+            "violating_fraction": acc.violating_fraction, "hurwitz": acc.hurwitz,
+            "other_equilibria": len(acc.other_equilibria),
+            "iterations": record.iterations, "train_time_s": record.total_time_s,
+            "certificate": record.certificate_status,
+            "true_model": None if true_model is None else true_model.status,
+            "true_model_fraction": None if true_model is None else true_model.verified_fraction,
+            "roa": roa_cell(None if ver is None else ver.roa),
+            "paper_10": summary_row(paper), "more_200": summary_row(more), "sweep_200": swept,
+            "run_dir": run_dir}
 
 
 def draw_figures(system: UncertainSystem, runs: dict[str, Run], xi: torch.Tensor, trajs: dict, ok: dict,
