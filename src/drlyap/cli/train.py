@@ -169,21 +169,36 @@ def train(system: str, method: str, loss: str, radius: float | None, eps: float 
                                 compute=dataclasses.replace(compute, checkpoint_dir=str(proof_checkpoints(out))))
             proof.validate()
         check_writable(out)
+        config = TrainConfig(system=system, method=method, loss=loss, wasserstein_radius=radius, risk_level=eps,
+                             decay_rate=gamma, exp_rate=exp_rate, xi_samples=samples, iters=iters, seed=seed,
+                             device=device, local_rate=local_rate, **shapes)  # system: the spec, until resolved
     except ValueError as err:
         fail(err)
 
+    sys_, source, result = _train_and_save(system, config, proof, out, quiet, warm_start)
+    checked = _check_saved(out, sys_, compute, source) if check else None
+    refused = checked is not None and not all(r.ok for r in checked)  # the verdict is never stronger than the checker's
+    _report(result, method, out, sys_, source, checked, as_json)
+    if refused:
+        sys.exit(1)
+
+
+def _train_and_save(spec: str, config: TrainConfig, proof: ProofConfig | None, out: Path, quiet: bool,
+                    warm_start: Path | None) -> tuple:
+    """Resolve the system ``spec`` and ``config`` for it, train (from the networks of ``warm_start``, if given) and
+    save the run at ``out``: the system, its source and the training result. An error or an interruption exits, with
+    ``out`` not written."""
+    from drlyap.runs.publish import proof_checkpoints
+
     try:
-        from drlyap.render import certificate_line, proof_round_line
+        from drlyap.render import proof_round_line
         from drlyap.runs import load_run, save_run
         from drlyap.systems import resolve_system, system_source
         from drlyap.training import train as train_pair
-        from drlyap.verification import Certificate
 
-        sys_ = resolve_system(system)
-        source = system_source(system, sys_)
-        cfg = TrainConfig(system=sys_.name, method=method, loss=loss, wasserstein_radius=radius, risk_level=eps,
-                          decay_rate=gamma, exp_rate=exp_rate, xi_samples=samples, iters=iters, seed=seed,
-                          device=device, local_rate=local_rate, **shapes).resolved(sys_)  # a bad one is refused here
+        sys_ = resolve_system(spec)
+        source = system_source(spec, sys_)
+        cfg = dataclasses.replace(config, system=sys_.name).resolved(sys_)  # a bad one is refused here
         if proof is not None:
             proof = proof.resolved(sys_)
         init = None
@@ -207,31 +222,33 @@ def train(system: str, method: str, loss: str, radius: float | None, eps: float 
             click.echo(f"drlyap: interrupted; nothing was saved ({out} is written only when training and its proofs "
                        "end)", err=True)
         sys.exit(130)
-    checked = _check_saved(out, sys_, compute, source) if check else None
-    refused = checked is not None and not all(r.ok for r in checked)  # the verdict is never stronger than the checker's
+    return sys_, source, result
+
+
+def _report(result, method: str, out: Path, system, source: dict | None, checked: list | None, as_json: bool) -> None:
+    """Print what training saved at ``out`` (``method``: as the command line names it): the record, the certificate's
+    verdict and the checker's ``checked``."""
+    refused = checked is not None and not all(r.ok for r in checked)
     m = result.metrics
     if as_json:
-        click.echo(json.dumps({"run_dir": str(out), "system": sys_.name, "method": method, "metrics": m,
+        click.echo(json.dumps({"run_dir": str(out), "system": system.name, "method": method, "metrics": m,
                                "check": None if checked is None else [r.to_dict() for r in checked],
                                "confirmed": None if checked is None else not refused}))
-        if refused:
-            sys.exit(1)
         return
-    from drlyap.render import check_lines, cut_set_line, training_lines
+    from drlyap.render import certificate_line, check_lines, cut_set_line, training_lines
     from drlyap.sections import TrainSections
+    from drlyap.verification import Certificate
 
-    for line in training_lines(sys_.name, method, result.record):
+    for line in training_lines(system.name, method, result.record):
         click.echo(line)
     click.echo(f"  saved {out}")
     click.echo(certificate_line(Certificate.from_dict(m["certificate"]),
                                 command_hint("verify", out, source=source), confirmed=not refused))
     for line in check_lines(checked or []):
         click.echo(f"  {line}")
-    if result.config.exit_faces and sys_.test_xi is not None and not refused:
-        click.echo(cut_set_line(TrainSections.of(result.config).goal.level, sys_.test_xi,
+    if result.config.exit_faces and system.test_xi is not None and not refused:
+        click.echo(cut_set_line(TrainSections.of(result.config).goal.level, system.test_xi,
                                 command_hint("verify", out, source=source)))
-    if refused:
-        sys.exit(1)
 
 
 def _check_saved(out: Path, system, compute: Compute, source: dict | None) -> list | None:
