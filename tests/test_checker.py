@@ -17,7 +17,15 @@ from drlyap.claims.registry import claim_kind, claim_sentence
 from drlyap.conditions import DRPointwise, TrueDecrease
 from drlyap.proof_settings import Budget
 from drlyap.regions import Region
-from drlyap.runs.certificates import condition_claim, read_certificate, sha256_file, system_digest, write_certificate
+from drlyap.runs.certificates import (
+    PairFiles,
+    Stated,
+    condition_claim,
+    read_certificate,
+    sha256_file,
+    system_digest,
+    write_certificate,
+)
 from drlyap.verification import verify_condition
 from handmade import linear_pair, recheck, small_pendulum
 
@@ -172,7 +180,8 @@ def proved(tmp_path_factory):
     folder = tmp_path_factory.mktemp("cert")
     weights = {"lyapunov": lyap.state_dict(), "controller": ctrl.state_dict()}
     torch.save(weights, folder / "weights.pt")
-    write_certificate(folder, "trained", proof, condition, region, system, folder / "weights.pt", lyap.alpha_hat)
+    write_certificate(folder, "trained", proof, Stated(condition, region), system,
+                      PairFiles(folder / "weights.pt", lyap.alpha_hat))
     return {"system": system, "folder": folder, "weights": weights, "proof": proof, "loop": loop,
             "condition": condition, "region": region}
 
@@ -285,8 +294,8 @@ def test_a_claim_proved_on_the_balls_box_alone_is_not_confirmed_for_the_whole_bo
     folder = tmp_path / "run"
     folder.mkdir()
     shutil.copy(proved["folder"] / "weights.pt", folder / "weights.pt")
-    write_certificate(folder, "trained", proof, condition, inside, system, folder / "weights.pt",
-                      loop.lyapunov.alpha_hat, extra={"ball_of": ball})
+    write_certificate(folder, "trained", proof, Stated(condition, inside, parts={"ball_of": ball}), system,
+                      PairFiles(folder / "weights.pt", loop.lyapunov.alpha_hat))
     result = recheck(folder, "trained", system, proved["weights"])
     assert not result.ok and result.claim == "(an unreadable claim)"
     assert any("make no kind of claim" in f for f in result.failures), result.failures
@@ -394,7 +403,8 @@ def test_true_model_certificate_of_a_shift(proved, tmp_path):
     assert proof.verified
     folder = tmp_path / "shift"
     shutil.copytree(proved["folder"], folder)
-    write_certificate(folder, "true-model", proof, condition, region, system, folder / "weights.pt", 1e-3)
+    write_certificate(folder, "true-model", proof, Stated(condition, region), system,
+                      PairFiles(folder / "weights.pt", 1e-3))
     header, arrays = read_certificate(folder, "true-model")
     result = check_certificate("true-model", header, arrays, system, proved["weights"],
                                sha256_file(folder / "weights.pt"), system_digest(system))
@@ -447,7 +457,8 @@ def test_a_sublevel_set_certificate_is_checked_with_its_faces(proved, tmp_path):
     assert proof.verified and proof.partition is not None and proof.partition.counts()["above level"] > 0
     folder = tmp_path / "level"
     shutil.copytree(proved["folder"], folder)
-    write_certificate(folder, "trained", proof, condition, region, system, folder / "weights.pt", 1e-3)
+    write_certificate(folder, "trained", proof, Stated(condition, region), system,
+                      PairFiles(folder / "weights.pt", 1e-3))
     result = run_check(proved, folder=folder)
     assert result.ok, result.failures
     assert result.faces_min > level and "{V <= " in result.claim

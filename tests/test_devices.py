@@ -18,7 +18,7 @@ from drlyap.conditions import DRPointwise, TrueDecrease
 from drlyap.enclosures import Interval
 from drlyap.proof_settings import Budget
 from drlyap.regions import Region
-from drlyap.runs.certificates import read_certificate, sha256_file, system_digest, write_certificate
+from drlyap.runs.certificates import PairFiles, Stated, read_certificate, sha256_file, system_digest, write_certificate
 from drlyap.systems import get_system
 from drlyap.training import TrainConfig, TrainSections
 from drlyap.verification import verify_condition
@@ -88,7 +88,8 @@ def certificate(tmp_path_factory):
     assert proof.verified
     folder = tmp_path_factory.mktemp("cert")
     torch.save({"lyapunov": lyap.state_dict(), "controller": ctrl.state_dict()}, folder / "weights.pt")
-    write_certificate(folder, "trained", proof, condition, region, system, folder / "weights.pt", lyap.alpha_hat)
+    write_certificate(folder, "trained", proof, Stated(condition, region), system,
+                      PairFiles(folder / "weights.pt", lyap.alpha_hat))
     return {"folder": folder, "system": system, "loop": loop, "condition": condition, "region": region,
             "proof": proof}
 

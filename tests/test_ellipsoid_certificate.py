@@ -19,7 +19,7 @@ from drlyap.cli import main
 from drlyap.proof_settings import Budget
 from drlyap.regions import Region
 from drlyap.runs import load_run
-from drlyap.runs.certificates import write_certificate
+from drlyap.runs.certificates import PairFiles, Stated, write_certificate
 from drlyap.verification.roa import ellipsoid_proof
 from drlyap.verification.roa_steps import QuadraticRegion
 from handmade import linear_run_dir, recheck, run_weights, small_pendulum, verify_cli
@@ -84,9 +84,9 @@ def test_an_ellipsoid_inside_its_jacobian_box_needs_no_partition_and_a_larger_on
     folder = tmp_path / "copy"
     folder.mkdir()
     (folder / "weights.pt").write_bytes((run / "weights.pt").read_bytes())
-    write_certificate(folder, "ellipsoid", None, proof.condition, proof.region, system, folder / "weights.pt",
-                      float(loaded.config.alpha_hat), level=proof.level,
-                      extra=ellipsoid_parts(proof.p.tolist(), proof.level, proof.box.tolist(), proof.tau.tolist(), False))
+    parts = ellipsoid_parts(proof.p.tolist(), proof.level, proof.box.tolist(), proof.tau.tolist(), False)
+    write_certificate(folder, "ellipsoid", None, Stated(proof.condition, proof.region, level=proof.level, parts=parts),
+                      system, PairFiles(folder / "weights.pt", float(loaded.config.alpha_hat)))
     assert recheck(folder, "ellipsoid", system, run_weights(run)).ok
 
     def larger(header):

@@ -19,7 +19,7 @@ from drlyap.networks import Controller, Lyapunov
 from drlyap.parallel import WorkerError, close_pools, pool_for
 from drlyap.proof_settings import Budget, ProofConfig
 from drlyap.regions import Region
-from drlyap.runs.certificates import read_certificate, sha256_file, system_digest, write_certificate
+from drlyap.runs.certificates import PairFiles, Stated, read_certificate, sha256_file, system_digest, write_certificate
 from drlyap.systems import resolve_system
 from drlyap.verification import ProofRules, verify_condition
 from handmade import linear_pair, small_pendulum
@@ -123,8 +123,8 @@ def test_the_checker_accepts_a_certificate_proved_by_workers_and_checks_with_wor
     proof = verify_condition(loop, condition, region, Budget(seconds=600, batch=64, compute=_up(2)))
     torch.save({"lyapunov": loop.lyapunov.state_dict(), "controller": loop.controller.state_dict()},
                tmp_path / "weights.pt")
-    write_certificate(tmp_path, "trained", proof, condition, region, loop.system, tmp_path / "weights.pt",
-                      loop.lyapunov.alpha_hat)
+    write_certificate(tmp_path, "trained", proof, Stated(condition, region), loop.system,
+                      PairFiles(tmp_path / "weights.pt", loop.lyapunov.alpha_hat))
     header, arrays = read_certificate(tmp_path, "trained")
     weights = torch.load(tmp_path / "weights.pt", weights_only=True)
     results = []
@@ -329,8 +329,8 @@ def test_ray_backend_on_two_local_workers_proves_the_same_and_the_checker_accept
     _same(wide_one, wide_two)  # every bound bit for bit
     torch.save({"lyapunov": loop.lyapunov.state_dict(), "controller": loop.controller.state_dict()},
                tmp_path / "weights.pt")
-    write_certificate(tmp_path, "trained", two, condition, region, loop.system, tmp_path / "weights.pt",
-                      loop.lyapunov.alpha_hat)
+    write_certificate(tmp_path, "trained", two, Stated(condition, region), loop.system,
+                      PairFiles(tmp_path / "weights.pt", loop.lyapunov.alpha_hat))
     header, arrays = read_certificate(tmp_path, "trained")
     res = check_certificate("trained", header, arrays, loop.system,
                             torch.load(tmp_path / "weights.pt", weights_only=True), sha256_file(tmp_path / "weights.pt"),

@@ -39,11 +39,12 @@ def _linear_loop():
 def _checker_confirms(folder, proof, condition, region, system, lyap, ctrl) -> None:
     """Write ``proof`` as a certificate of ``condition`` and have the independent checker confirm it."""
     from drlyap.checker.check import check_certificate
-    from drlyap.runs.certificates import read_certificate, sha256_file, system_digest, write_certificate
+    from drlyap.runs.certificates import PairFiles, Stated, read_certificate, sha256_file, system_digest, write_certificate
 
     weights = {"lyapunov": lyap.state_dict(), "controller": ctrl.state_dict()}
     torch.save(weights, folder / "weights.pt")
-    write_certificate(folder, "trained", proof, condition, region, system, folder / "weights.pt", lyap.alpha_hat)
+    write_certificate(folder, "trained", proof, Stated(condition, region), system,
+                      PairFiles(folder / "weights.pt", lyap.alpha_hat))
     header, arrays = read_certificate(folder, "trained")
     res = check_certificate("trained", header, arrays, system, weights, sha256_file(folder / "weights.pt"),
                             system_digest(system))

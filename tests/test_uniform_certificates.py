@@ -13,7 +13,7 @@ from drlyap.checker.model import Pair, Residual
 from drlyap.closed_loop import ClosedLoop
 from drlyap.conditions import DRUniform
 from drlyap.regions import Region
-from drlyap.runs.certificates import condition_claim, write_certificate
+from drlyap.runs.certificates import PairFiles, Stated, condition_claim, write_certificate
 from drlyap.verification import Budget, uniform_margin
 from handmade import linear_pair, linear_run_dir, recheck, small_pendulum
 
@@ -34,7 +34,8 @@ def margin(tmp_path_factory):
     folder = tmp_path_factory.mktemp("uniform")
     weights = {"lyapunov": lyap.state_dict(), "controller": ctrl.state_dict()}
     torch.save(weights, folder / "weights.pt")
-    write_certificate(folder, "uniform", found, condition, region, system, folder / "weights.pt", lyap.alpha_hat)
+    write_certificate(folder, "uniform", found, Stated(condition, region), system,
+                      PairFiles(folder / "weights.pt", lyap.alpha_hat))
     return {"system": system, "folder": folder, "weights": weights, "margin": found, "loop": loop,
             "condition": condition, "region": region}
 

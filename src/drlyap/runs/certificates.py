@@ -44,6 +44,7 @@ import hashlib
 import io
 import json
 import os
+from dataclasses import dataclass
 from pathlib import Path
 from typing import TYPE_CHECKING
 
@@ -108,26 +109,47 @@ def certificate_claim(condition: Condition | None, region: Region, level: float 
                                 "level": level, "coordinates": "local (z = x - x*)"}})
 
 
-def certificate_header(proof: ConditionProof | UniformMargin | None, condition: Condition | None, region: Region,
-                       system: UncertainSystem, weights_sha256: str, alpha_hat: float | None,
-                       arrays_file: str | None, arrays_sha256: str | None, level: float | None = None,
-                       extra: dict | None = None) -> dict:
-    """The JSON header of a certificate (see the module docstring). ``proof`` None: a claim without a partition
-    (a ``roa-ball`` certificate whose cube covers the ball), at ``level``; ``extra``: more of the claim (``cube``,
-    ``outer``, and ``ball_of`` for its region)."""
-    extra = dict(extra or {})
-    claim = certificate_claim(condition, region, proof.level if proof is not None else level)
+@dataclass(frozen=True)
+class Stated:
+    """What a certificate states: its ``condition`` (None: a claim about no condition), the ``region`` it holds on,
+    the ``level`` of its sublevel set where no proof gives one (a claim without a partition), and the other ``parts``
+    of its claim, as its kind writes them (:mod:`drlyap.claims`: ``cube``, ``outer``, ``ball_of`` for its region,
+    ...)."""
+
+    condition: Condition | None
+    region: Region
+    level: float | None = None
+    parts: dict | None = None
+
+
+@dataclass(frozen=True)
+class PairFiles:
+    """The files that hold the pair a certificate is about (``weights``: ``weights.pt``, or an imported pair's
+    ``[graphs.json, tensors.pt]``: :func:`networks_digest`) and V's ``alpha_hat`` (None for an imported pair)."""
+
+    weights: str | os.PathLike | list
+    alpha_hat: float | None
+
+
+def certificate_header(proof: ConditionProof | UniformMargin | None, stated: Stated, system: UncertainSystem,
+                       pair: PairFiles, arrays: tuple[str, str] | None) -> dict:
+    """The JSON header of a certificate (see the module docstring): ``proof`` None for a claim without a partition;
+    ``arrays``: the partition's file name and its sha256; ``pair``: the networks' digest is of its files."""
+    extra = dict(stated.parts or {})
+    claim = certificate_claim(stated.condition, stated.region, proof.level if proof is not None else stated.level)
     if "ball_of" in extra:
         claim["region"]["ball_of"] = float(extra.pop("ball_of"))
     claim |= jsonable(extra)
     part = None if proof is None else proof.partition
+    files = pair.weights if isinstance(pair.weights, list) else [pair.weights]
     return jsonable({
         "format": FORMAT, "version": VERSION,
         "claim": {"statement": claim_sentence(claim), **claim},
         "system": {"name": system.name, "description_sha256": system_digest(system)},
-        "networks": {"weights_sha256": weights_sha256, "alpha_hat": alpha_hat},
+        "networks": {"weights_sha256": networks_digest([Path(f).read_bytes() for f in files]),
+                     "alpha_hat": pair.alpha_hat},
         "partition": None if part is None else {
-            "file": arrays_file, "sha256": arrays_sha256, "grid": part.grid, "nodes": part.size,
+            "file": arrays[0], "sha256": arrays[1], "grid": part.grid, "nodes": part.size,
             "enclosure": part.enclosure, "counts": part.counts()},
         "proof": None if proof is None else {"boxes_processed": proof.boxes_processed, "time_s": proof.time_s,
                                              "faces_min_lower": proof.boundary_min_lower}
@@ -136,14 +158,11 @@ def certificate_header(proof: ConditionProof | UniformMargin | None, condition: 
 
 
 def write_certificate(folder: str | os.PathLike, name: str, proof: ConditionProof | UniformMargin | None,
-                      condition: Condition | None,
-                      region: Region, system: UncertainSystem, weights: str | os.PathLike | list,
-                      alpha_hat: float | None, level: float | None = None, extra: dict | None = None) -> Path:
-    """Write ``folder/certificates/NAME.json`` and ``.npz`` for a verified proof that kept its partition (``proof``
-    None, ``level`` and ``extra``: a ``roa-ball`` claim without one, see :func:`certificate_header`); each file is
-    written to a temporary name and renamed, the header last. ``weights``: the networks' file (``weights.pt``), or
-    an imported pair's ``[graphs.json, tensors.pt]`` (:func:`networks_digest`; ``alpha_hat`` None). Returns the
-    header's path."""
+                      stated: Stated, system: UncertainSystem, pair: PairFiles) -> Path:
+    """Write ``folder/certificates/NAME.json`` and ``.npz`` for a verified proof that kept its partition, stating
+    ``stated`` about the pair in ``pair``'s files (``proof`` None: a claim of a kind without a partition, at
+    ``stated.level``); each file is written to a temporary name and renamed, the header last. Returns the header's
+    path."""
     if name not in NAMES:
         raise ValueError(f"unknown certificate name {name!r}; valid: {', '.join(NAMES)}")
     if proof is None and not any(BY_NAME[k].without_partition for k in KINDS_OF[name]):
@@ -162,10 +181,7 @@ def write_certificate(folder: str | os.PathLike, name: str, proof: ConditionProo
         digest = hashlib.sha256(data).hexdigest()
     else:
         arrays.unlink(missing_ok=True)
-    files = weights if isinstance(weights, list) else [weights]
-    header = certificate_header(proof, condition, region, system,
-                                networks_digest([Path(f).read_bytes() for f in files]), alpha_hat,
-                                arrays.name if proof is not None else None, digest, level, extra)
+    header = certificate_header(proof, stated, system, pair, None if proof is None else (arrays.name, digest))
     path = target / f"{name}.json"
     _replace(path, (json.dumps(header, indent=1) + "\n").encode())
     (target / f"{name}.check.json").unlink(missing_ok=True)  # a checker's record of the certificate this replaces

@@ -37,7 +37,7 @@ from drlyap.networks import Controller, Lyapunov
 from drlyap.proof_settings import ProofConfig, legacy_proof
 from drlyap.records import AcceptanceCheck, TrainingRecord
 from drlyap.regions import Region
-from drlyap.runs.certificates import write_certificate
+from drlyap.runs.certificates import PairFiles, Stated, write_certificate
 from drlyap.runs.publish import RunDirError, atomic_dir, ensure_new
 from drlyap.runs.reading import read_run_json, read_run_kind, run_system
 from drlyap.runs.validate import check_config, check_samples, check_schema, load_weights
@@ -75,8 +75,9 @@ def save_run(out: Path, result: TrainResult, overwrite: bool = False,
                    tmp / "weights.pt")
         proof = result.trained_proof
         if proof is not None and proof.partition is not None:
-            write_certificate(tmp, "trained", proof, result.condition, Region.of(result.system, float(result.config.delta)),
-                              result.system, tmp / "weights.pt", float(result.config.alpha_hat))
+            write_certificate(tmp, "trained", proof,
+                              Stated(result.condition, Region.of(result.system, float(result.config.delta))),
+                              result.system, PairFiles(tmp / "weights.pt", float(result.config.alpha_hat)))
         write_json(tmp / "metrics.json", result.metrics)
         with open(tmp / "history.csv", "w", newline="") as fh:
             writer = csv.DictWriter(fh, fieldnames=["iteration", "loss", "time_s"])

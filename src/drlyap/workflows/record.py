@@ -21,7 +21,7 @@ from drlyap.io import jsonable
 from drlyap.kinds import Loss
 from drlyap.regions import Region
 from drlyap.runs import Run
-from drlyap.runs.certificates import remove_certificate, write_certificate
+from drlyap.runs.certificates import PairFiles, Stated, remove_certificate, write_certificate
 from drlyap.verification import (
     ConditionProof,
     ProofConfig,
@@ -172,16 +172,16 @@ def record_robustness(run: Run, robustness: RunRobustness) -> list[Path]:
             remove_certificate(run.path, "radius")
         else:
             condition = run.sections.condition.build(run.xi_samples, Loss.POINTWISE).with_radius(radius.radius)
-            written.append(write_certificate(run.path, "radius", radius.proof, condition, region, run.system,
-                                             run.path / "weights.pt", float(run.config.alpha_hat)))
+            written.append(write_certificate(run.path, "radius", radius.proof, Stated(condition, region), run.system,
+                                             PairFiles(run.path / "weights.pt", float(run.config.alpha_hat))))
     if box is not None and box.s is not None:
         if box.proof is None:
             remove_certificate(run.path, "shift-box")
         else:
             condition = shift_box_condition(torch.as_tensor(box.scale, dtype=torch.float64), box.s,
                                             run.config.decay_rate, run.config.exp_rate)
-            written.append(write_certificate(run.path, "shift-box", box.proof, condition, region, run.system,
-                                             run.path / "weights.pt", float(run.config.alpha_hat)))
+            written.append(write_certificate(run.path, "shift-box", box.proof, Stated(condition, region), run.system,
+                                             PairFiles(run.path / "weights.pt", float(run.config.alpha_hat))))
     return written
 
 
@@ -209,8 +209,8 @@ def record_certificates(run: Run, ver: RunVerification) -> list[Path]:
                                                                                            ver.roa_rate)),
                                    ("uniform", uniform, run.sections.condition.build(run.xi_samples, Loss.UNIFORM))):
         if proof is not None and proof.verified and proof.partition is not None:
-            written.append(write_certificate(run.path, name, proof, condition, region, run.system,
-                                             run.path / "weights.pt", float(run.config.alpha_hat)))
+            written.append(write_certificate(run.path, name, proof, Stated(condition, region), run.system,
+                                             PairFiles(run.path / "weights.pt", float(run.config.alpha_hat))))
     return written
 
 
@@ -227,12 +227,12 @@ def record_roa(run: Run, ver: RunVerification, proof: ProofConfig) -> list[Path]
     condition = run.region_condition(roa.xi, ver.roa_rate)
     outer = ("trained", ver.trained) if roa.xi is None else ("true-model", ver.true_model)
     return region_certificates(run.path, run.loop, condition, Region.of(run.system, float(ver.delta)), roa, outer,
-                               proof, run.path / "weights.pt", float(run.config.alpha_hat))
+                               proof, PairFiles(run.path / "weights.pt", float(run.config.alpha_hat)))
 
 
 def region_certificates(folder: Path, loop: ClosedLoop, condition: Condition, region: Region,
                         roa: RegionOfAttraction, outer: tuple[str, ConditionProof | None], proof: ProofConfig,
-                        weights, alpha_hat: float | None) -> list[Path]:
+                        pair: PairFiles) -> list[Path]:
     """Write into ``folder`` the certificates of a region of attraction ``roa`` of ``condition``, by its route:
 
     * V's own proofs: ``roa-ball``, V's decrease on ``{V <= c}`` inside the delta-ball (the second-order cube and the
@@ -245,15 +245,15 @@ def region_certificates(folder: Path, loop: ClosedLoop, condition: Condition, re
 
     Where the closed loop's own quadratic region is certified (``roa.quadratic``), ``ellipsoid`` states it. The proofs
     are made again with their partitions kept (``proof``'s budget); where one does not hold again, its certificates
-    are not written. Certificates of an earlier region are removed first. ``weights``, ``alpha_hat``: as
-    :func:`~drlyap.runs.certificates.write_certificate` takes them. Returns the headers' paths."""
+    are not written. Certificates of an earlier region are removed first. ``pair``: the files of the pair they are
+    about. Returns the headers' paths."""
     for name in ("roa-ball", "roa", "ellipsoid", "practical"):
         remove_certificate(folder, name)
     written: list[Path] = []
 
     def write(name, found, cond, where, level=None, extra=None):
-        written.append(write_certificate(folder, name, found, cond, where, loop.system, weights, alpha_hat,
-                                         level=level, extra=extra))
+        written.append(write_certificate(folder, name, found, Stated(cond, where, level=level, parts=extra),
+                                         loop.system, pair))
 
     def write_ellipsoid(found):
         write("ellipsoid", found.ring, found.condition, found.region, found.level,
@@ -354,22 +354,24 @@ def record_imported_certificates(run_dir: str | Path, pair, ver: RunVerification
         return []
     written = []
     if isinstance(found, ConditionProof) and found.verified and found.partition is not None:
-        written.append(write_certificate(run_dir, "true-model", found, condition, region, system, files, None))
+        written.append(write_certificate(run_dir, "true-model", found, Stated(condition, region), system,
+                                         PairFiles(files, None)))
     else:
         found = None
     if ver.roa is not None and ver.roa.error is None:
         written += region_certificates(run_dir, pair.loop, condition, region, ver.roa, ("true-model", found), proof,
-                                       files, None)
+                                       PairFiles(files, None))
     return written
 
 
 def record_band(folder: Path, system, found: BandProof | None, weights, alpha_hat: float | None) -> list[Path]:
     """Write the ``band`` certificate of ``found`` (a proof made now: its ``asked`` condition is the claim's) where it
-    is verified (``weights`` and ``alpha_hat`` as :func:`~drlyap.runs.certificates.write_certificate` takes them). The
+    is verified (``weights`` and ``alpha_hat``: as :class:`~drlyap.runs.certificates.PairFiles` holds them). The
     claim is its own (its shift, levels and decay are in the file), so nothing of ``metrics.json`` is touched, and a
     band certificate of other levels stays until a verified one replaces it. Returns the header's path, if any."""
     if found is None or not found.verified or found.decrease.partition is None:
         return []
     region = band_region(Region.of(system, 0.0))
-    return [write_certificate(folder, "band", found.decrease, found.asked, region, system, weights, alpha_hat,
-                              extra=band_parts(found.low))]
+    return [write_certificate(folder, "band", found.decrease,
+                              Stated(found.asked, region, parts=band_parts(found.low)), system,
+                              PairFiles(weights, alpha_hat))]
