@@ -19,6 +19,7 @@ of workers.
   proofs of one command share their workers); None where boxes are bounded in this process;
 * :meth:`Pool.submit` -- send a batch, get a :class:`Pending` whose :meth:`~Pending.result` waits for it;
 * :func:`run_in_chunks` -- the same chunks, bounded in this process;
+* :func:`map_chunks` -- a list of whole chunks, each one call of a job, here or on the workers, results in order;
 * :func:`close_pools` -- stop every worker (also at exit).
 
 Local workers are ``spawn``-ed processes with one torch thread each that end when this process ends, however it ends.
@@ -207,6 +208,31 @@ def run_in_chunks(job: Job, arrays: tuple, size: int | list[int]) -> dict:
     listed; the chunks a pool's ``submit(job, *arrays, chunk=size)`` deals to its workers), the results joined on axis
     0 in order: the same bits as the pool's."""
     return _join([job(*chunk) for chunk in _chunks(arrays, 1, size)])
+
+
+def map_chunks(job: Job, chunks: list[tuple], compute: Compute, done: Callable[[int], None] | None = None) -> list[dict]:
+    """``job(*chunk)`` for each of ``chunks`` (tuples of arrays, each ``(B_i, ...)``), in this process on
+    ``compute.device`` (the job's ``on(device)`` where it has one) or whole on ``compute``'s workers, two per worker
+    in flight; the results in the chunks' order, ``done(B_i)`` called as each comes back (a progress line)."""
+    pool = pool_for(compute)
+    results, flight = [], []
+    tell = done or (lambda rows: None)
+    if pool is None:
+        local = job.on(compute.device) if hasattr(job, "on") else job
+        for chunk in chunks:
+            results.append(local(*chunk))
+            tell(int(chunk[0].shape[0]))
+        return results
+    for chunk in chunks:
+        flight.append((pool.submit(job, *chunk, chunk=int(chunk[0].shape[0])), int(chunk[0].shape[0])))
+        if len(flight) > 2 * pool.workers:
+            pending, rows = flight.pop(0)
+            results.append(pending.result())
+            tell(rows)
+    for pending, rows in flight:
+        results.append(pending.result())
+        tell(rows)
+    return results
 
 
 def _start_without_main(proc) -> None:

@@ -17,7 +17,7 @@ from drlyap.checker.arith import F64, Iv
 from drlyap.checker.levels import widest_split
 from drlyap.checker.model import Residual, centre_lower, form_upper, upper_bounds, value_lower
 from drlyap.compute import Compute
-from drlyap.parallel import check_device, pool_for
+from drlyap.parallel import check_device, map_chunks
 from drlyap.progress import progress as show_progress
 
 
@@ -173,28 +173,12 @@ def prove_leaves(job: LeafJob, lo: Tensor, hi: Tensor, above: Tensor, compute: C
 def _prove_chunks(job: LeafJob, lo: Tensor, hi: Tensor, above: Tensor, allowance: Tensor, compute: Compute,
                   desc: str) -> tuple[Tensor, Tensor, int, int]:
     """One pass of :func:`prove_leaves`, each chunk bisecting within the pieces its leaves are allowed."""
-    pool = pool_for(compute)
-    starts = list(range(0, lo.shape[0], LEAF_CHUNK))
-    bar = show_progress(int(lo.shape[0]), desc, compute.progress)
-    parts, flight = [], []
-    local = job.on(compute.device) if pool is None else None
-    for i in starts:
-        part = (lo[i:i + LEAF_CHUNK], hi[i:i + LEAF_CHUNK], above[i:i + LEAF_CHUNK], allowance[i:i + LEAF_CHUNK])
-        if pool is None:
-            parts.append(local(*part))
-            bar.update(int(part[0].shape[0]))
-            continue
-        flight.append((pool.submit(job, *part, chunk=LEAF_CHUNK), int(part[0].shape[0])))  # whole, as here
-        if len(flight) > 2 * pool.workers:
-            future, count = flight.pop(0)
-            parts.append(future.result())
-            bar.update(count)
-    for future, count in flight:
-        parts.append(future.result())
-        bar.update(count)
-    bar.close()
-    if not parts:
+    if not lo.shape[0]:
         return torch.zeros(0, dtype=torch.bool), torch.zeros(0, dtype=F64), 0, 0
+    chunks = list(zip(*(torch.split(a, LEAF_CHUNK) for a in (lo, hi, above, allowance))))
+    bar = show_progress(int(lo.shape[0]), desc, compute.progress)
+    parts = map_chunks(job, chunks, compute, bar.update)
+    bar.close()
     out = {k: torch.cat([p[k] for p in parts]) for k in parts[0]}
     return out["ok"], out["centre_low"], int(out["refined"].sum()), int(out["pieces"].sum())
 
