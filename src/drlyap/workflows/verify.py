@@ -200,6 +200,7 @@ def verify(run: Run, proof: ProofConfig | None = None, request: VerifyRequest = 
 
 
 def _check_request(request) -> None:
+    """A TypeError where ``request`` is not a :class:`VerifyRequest` (say, proof settings given in its place)."""
     if not isinstance(request, VerifyRequest):
         raise TypeError(f"request must be a VerifyRequest (what is proved), got {type(request).__name__}")
 
