@@ -219,3 +219,11 @@ def test_a_slow_start_says_what_it_loads(tmp_path):
     refused = subprocess.run([sys.executable, "-c", code, "verify", str(tmp_path / "none")], capture_output=True,
                              text=True, timeout=120)
     assert "loading torch" not in refused.stderr and "does not exist" in refused.stderr
+
+
+def test_an_unknown_claim_is_refused_with_the_kinds_proved_by_name(tmp_path):
+    from drlyap.claims.registry import KINDS
+
+    out = CliRunner().invoke(main, ["verify", str(tmp_path), "--claim", "trained"])
+    assert out.exit_code == 2 and "'trained' is no claim proved by name; valid: " in out.output, out.output
+    assert all(k.name in out.output for k in KINDS if k.provable)

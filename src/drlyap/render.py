@@ -305,6 +305,16 @@ def verification_lines(ver: RunVerification, system: str, method: str) -> list[s
 
 
 # --------------------------------------------------------------------------- robustness
+def claim_lines(outcome) -> list[str]:
+    """What ``drlyap verify --claim NAME`` prints of a kind's proof (a :class:`~drlyap.claims.kind.ClaimOutcome`):
+    its verdict, the claim where it is verified, and the numbers behind it."""
+    head = f"  {outcome.name}: {str(outcome.status).upper()}"
+    head += f" - {outcome.sentence}" if outcome.status == "verified" else ""
+    numbers = ", ".join(f"{k.replace('_', ' ')} {_num(v) if isinstance(v, float) else v}"
+                        for k, v in outcome.numbers.items())
+    return [head, f"    {numbers} ({outcome.time_s:.1f} s)"]
+
+
 def _over(level: float | None) -> str:
     """What a radius or shift-box search proved over: X_delta, or its sublevel set ``{V <= level}``."""
     return "X_delta" if level is None else f"{{V <= {level_text(level)}}} of X_delta"
@@ -509,7 +519,7 @@ def check_lines(results) -> list[str]:
                              f"(its largest eigenvalue about {r.cube_bound:.3g})")
             if r.positive_min is not None:
                 lines.append(f"  V > 0 outside the ball by the checker's bisection (V's smallest lower bound there "
-                             f"{r.positive_min:.3g}, {r.positive_boxes} boxes): the decrease alpha V there is strict")
+                             f"{r.positive_min:.3g}, {r.positive_boxes} boxes)")
             if r.ball_max is not None:
                 lines.append(f"  V <= its level on the ball by the checker's bisection (V's largest upper bound there "
                              f"{r.ball_max:.6g}, {r.ball_boxes} boxes; {r.time_s:.2f} s)")

@@ -94,6 +94,10 @@ def _interrupted(run_dir: Path) -> None:
                    "C1 <= V <= C2 over the whole state box, and the flow enters the box wherever V <= C2 on its "
                    "faces: trajectories from {V <= C2} stay in it and reach {V <= C1} (practical stability, the form "
                    "the field's verifiers prove; V need not be least or zero at x*). Written as certificates/band.*.")
+@click.option("--claim", default=None, metavar="NAME", callback=lambda _ctx, _param, name: _claim_name(name),
+              help="Prove the claim of the kind NAME instead of the run's conditions, as its module in drlyap/claims/ "
+                   "proves it (an unknown NAME is refused with the list of those proved by name), at --xi where the "
+                   "kind is about a shift; written as certificates/NAME.* where verified.")
 @click.option("--uniform", is_flag=True,
               help="Also bound the uniform DR condition's margin at the run's radius, risk level and samples (a "
                    "stricter condition than the pointwise one the default pairs are trained on); a margin proved "
@@ -116,7 +120,7 @@ def _interrupted(run_dir: Path) -> None:
 @run_source_options
 def verify(run_dir: Path, delta: float | None, xi: str | None, time_limit: float | None, roa: bool,
            roa_boxes: int | None, roa_time: float | None, roa_above_level: bool | None, roa_rate: float | None,
-           band: str | None, uniform: bool,
+           band: str | None, claim: str | None, uniform: bool,
            max_radius: bool, radius_tol: float, enclosure: str | None, reprove: bool, workers: int, backend: str,
            address: str | None, device: str, as_json: bool, system_spec: str | None, trust_run: bool) -> None:
     """Prove the decrease condition of RUN_DIR on the whole state box minus the delta-ball, or find a counterexample.
@@ -151,6 +155,11 @@ def verify(run_dir: Path, delta: float | None, xi: str | None, time_limit: float
                                        xi is not None or band is not None, roa_rate)
         levels = None if band is None else _band_levels(band, roa)
         options = _ProofOptions(time_limit=time_limit, roa_time=roa_time, roa_boxes=roa_boxes, enclosure=enclosure)
+        if claim is not None:
+            if roa or band is not None or uniform or max_radius:
+                raise ValueError("--claim proves that claim alone: not with --roa, --band, --uniform or --max-radius")
+            _verify_claim(run_dir, claim, xi, options, compute, as_json, (system_spec, trust_run))
+            return
         request = VerifyRequest(delta=delta, roa=roa, uniform=uniform, above_level=above_level, roa_rate=roa_rate,
                                 band=levels)
         if read_run_kind(run_dir).get("kind") == "imported":
@@ -170,6 +179,47 @@ def verify(run_dir: Path, delta: float | None, xi: str | None, time_limit: float
     except KeyboardInterrupt:
         _interrupted(run_dir)
     _report(result, run.system.name, run.config.method, as_json, ([stored] if stored else []) + written)
+
+
+def _claim_name(name: str | None) -> str | None:
+    """``--claim NAME`` checked against the kinds of claim proved by name, before the numerical code loads."""
+    from drlyap.claims.registry import KINDS
+
+    names = [k.name for k in KINDS if k.provable]
+    if name is not None and name not in names:
+        raise click.BadParameter(f"{name!r} is no claim proved by name; valid: {', '.join(names) or 'none'}")
+    return name
+
+
+def _verify_claim(run_dir: Path, name: str, xi: str | None, options: _ProofOptions, compute, as_json: bool,
+                  source: tuple[str | None, bool]) -> None:
+    """``drlyap verify --claim NAME``: the claim of that kind proved on the run or imported pair (``source``: the
+    system spec and whether the run is trusted, as for the conditions), its certificate written where it is
+    verified; the exit status as for the conditions."""
+    from drlyap.io import jsonable
+    from drlyap.render import claim_lines
+    from drlyap.runs import load_imported_run, load_run, read_run_kind
+    from drlyap.workflows.claim import prove_claim
+
+    system_spec, trust_run = source
+    system = run_system_of(system_spec)
+    imported = read_run_kind(run_dir).get("kind") == "imported"
+    run = load_imported_run(run_dir, system, trust_run) if imported else load_run(run_dir, system, trust_run)
+    base = ProofConfig() if imported else (run.proof or ProofConfig())
+    shift = None if xi is None else run.system.check_xi(floats(xi, "--xi"))
+    outcome = prove_claim(run, name, options.over(base, compute), shift)
+    if as_json:
+        click.echo(json.dumps(jsonable({"claims": {name: outcome.to_dict()}, "outcome": outcome.status})))
+    else:
+        click.echo(f"{run.system.name}: the {name} claim")
+        for line in claim_lines(outcome):
+            click.echo(line)
+        if outcome.certificate is not None:
+            recheck = command_hint("check", run_dir, source=recorded_source(run_dir, system_spec))
+            click.echo(f"  certificate: {outcome.certificate} (re-check it with `{recheck}`)")
+    code = EXIT_CODES[str(outcome.status)]
+    if code:
+        sys.exit(code)
 
 
 @dataclasses.dataclass(frozen=True)
