@@ -20,6 +20,7 @@ from drlyap.checker.levels import outside_positive
 from drlyap.checker.quadratic import surely_semidefinite
 from drlyap.checker.reading import CertificateError, CheckResult, claim_box, pair_of
 from drlyap.checker.record import drop_record, fingerprint, write_record
+from drlyap.claims.registry import BY_NAME, KINDS_OF
 from drlyap.compute import Compute
 
 
@@ -64,7 +65,7 @@ def check_run(run_dir: str | Path, system=None, trust: bool = False, names: list
         result = check_certificate(name, header, arrays, system, weights, digest, system_sha,
                                    LeafSettings(refine, compute, pieces_per_leaf))
         result.failures += claim_mismatch(name, header, config, metrics)
-        if name in ("roa-ball", "practical") or (header.get("claim") or {}).get("outer") is not None:
+        if _rests_on_outer(name) or (header.get("claim") or {}).get("outer") is not None:
             result.failures += outer_missing(run_dir, header, _positive_outside(result, weights, header, system))
         if (header.get("claim") or {}).get("core") is not None:
             result.failures += core_missing(run_dir, header)
@@ -80,6 +81,13 @@ def check_run(run_dir: str | Path, system=None, trust: bool = False, names: list
         else:
             drop_record(run_dir, name)
     return [results[name] for name in names]
+
+
+def _rests_on_outer(name: str) -> bool:
+    """Whether every kind the file ``name`` may state rests on a decrease outside the ball (``outer``): its claim must
+    name one, checked even where it names none."""
+    kinds = KINDS_OF.get(name, ())
+    return bool(kinds) and all("outer" in BY_NAME[k].rests_on for k in kinds)
 
 
 def _premises(header: dict) -> list[str]:
