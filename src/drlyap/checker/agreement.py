@@ -12,7 +12,7 @@ from collections.abc import Callable
 from pathlib import Path
 
 from drlyap.claims.kind import PREMISES
-from drlyap.claims.registry import BY_NAME, KINDS_OF
+from drlyap.claims.registry import kinds_stating
 from drlyap.wording import faces_rule
 
 
@@ -192,7 +192,8 @@ def claim_mismatch(name: str, header: dict, config: dict, metrics: dict) -> list
     decrease on the true model with the run's decay for every shift in the box its metrics report; a ``band`` claim
     states its own shift, levels and decay (only V's ``alpha_hat`` is the run's). A certificate that
     proves a weaker condition than the run's is then not taken for the run's."""
-    if KINDS_OF.get(name) and all(BY_NAME[k].own_claim for k in KINDS_OF[name]):
+    kinds = kinds_stating(name)
+    if kinds and all(k.own_claim for k in kinds):
         # a claim of its own: what it is about is the file's (its kind's checks read it), only V's alpha_hat the run's
         same = (header.get("networks") or {}).get("alpha_hat") == config.get("alpha_hat")
         return [] if same else ["the certificate's alpha_hat is not the run's (config.json)"]

@@ -20,7 +20,7 @@ from drlyap.checker.levels import outside_positive
 from drlyap.checker.quadratic import surely_semidefinite
 from drlyap.checker.reading import CertificateError, CheckResult, claim_box, pair_of
 from drlyap.checker.record import drop_record, fingerprint, write_record
-from drlyap.claims.registry import BY_NAME, KINDS_OF
+from drlyap.claims.registry import kinds_stating
 from drlyap.compute import Compute
 
 
@@ -86,8 +86,8 @@ def check_run(run_dir: str | Path, system=None, trust: bool = False, names: list
 def _rests_on_outer(name: str) -> bool:
     """Whether every kind the file ``name`` may state rests on a decrease outside the ball (``outer``): its claim must
     name one, checked even where it names none."""
-    kinds = KINDS_OF.get(name, ())
-    return bool(kinds) and all("outer" in BY_NAME[k].rests_on for k in kinds)
+    kinds = kinds_stating(name)
+    return bool(kinds) and all("outer" in k.rests_on for k in kinds)
 
 
 def _premises(header: dict) -> list[str]:

@@ -26,15 +26,14 @@ delta-ball (``outer``) and the ellipsoid of its ``core`` (``core.certificate``).
 class ClaimRequest:
     """What a kind's proof is asked on: the pair's closed loop (:class:`~drlyap.closed_loop.ClosedLoop`; ``pinned``:
     whether its V is least at x*, False for an imported V taken as given), the run directory its certificate goes to
-    (``folder``) with the files that hold the pair (``weights``: ``weights.pt``, or an imported pair's
-    ``[graphs.json, tensors.pt]``) and V's ``alpha_hat`` (None for an imported pair), the pair's ``delta``, its proof
-    settings (:class:`~drlyap.proof_settings.ProofConfig`, resolved for the system) and a shift ``xi`` ``(k,)`` of the
-    uncertain parameters where the claim is about the true model at one (None: the kind's default)."""
+    (``folder``) with the files that hold the pair (``files``: :class:`~drlyap.runs.certificates.PairFiles`), the
+    pair's ``delta``, its proof settings (:class:`~drlyap.proof_settings.ProofConfig`, resolved for the system) and a
+    shift ``xi`` ``(k,)`` of the uncertain parameters where the claim is about the true model at one (None: the kind's
+    default)."""
 
     loop: object
     folder: Path
-    weights: Path | list[Path]
-    alpha_hat: float | None
+    files: object
     delta: float
     proof: object
     xi: tuple[float, ...] | None = None

@@ -54,7 +54,7 @@ class Positive(ClaimKind):
         where the bound is > 0 (the certificate ``positive`` is written; one written before stays otherwise), violated
         where a state of X_delta has ``V <= 0``, unknown where the budget ran out first."""
         from drlyap.regions import Domain, Region, default_grid
-        from drlyap.runs.certificates import PairFiles, Stated, write_certificate
+        from drlyap.runs.certificates import Stated, write_certificate
         from drlyap.verification.bounds import value_objective
         from drlyap.verification.branch_and_bound import maximize
 
@@ -74,7 +74,7 @@ class Positive(ClaimKind):
         if status == "verified":
             path = write_certificate(request.folder, self.name, None,
                                      Stated(None, region, parts={"positive": {"lower": lower}}), loop.system,
-                                     PairFiles(request.weights, request.alpha_hat))
+                                     request.files)
             sentence = self.sentence({"region": {"delta": region.delta}}, "")
         return ClaimOutcome(self.name, status, sentence, time.perf_counter() - start,
                             None if path is None else str(path), numbers)

@@ -43,6 +43,11 @@ MARKS: tuple[str, ...] = tuple(dict.fromkeys(p for k in KINDS for p in k.parts))
 """The parts of a claim that mark its kind (a claim with none of them states a decrease condition)."""
 
 
+def kinds_stating(name: str) -> tuple[ClaimKind, ...]:
+    """The kinds the certificate file ``name`` may state (none for a name no kind gives its files)."""
+    return tuple(BY_NAME[k] for k in KINDS_OF.get(name, ()))
+
+
 def stated_kind(claim: dict) -> ClaimKind:
     """The kind a certificate's claim is stated as, from the parts that mark it (:data:`MARKS`) and whether its
     region is the delta-ball's box (``ball_of``); a ValueError where they make no kind drlyap states (two kinds at

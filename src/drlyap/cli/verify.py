@@ -278,13 +278,14 @@ def _recorded(run, result, settings: ProofConfig, system_spec: str | None, radiu
     """Write the certificates of what ``result`` proved (and with ``radius_tol``, of the largest radius and shift box,
     searched now): the lines that name them, or say why none was written."""
     from drlyap.render import unwritten_region_line
+    from drlyap.runs.certificates import PairFiles
     from drlyap.workflows.record import record_band, record_certificates, record_roa, record_robustness
     from drlyap.workflows.verify import run_robustness
 
     try:
         recheck = command_hint("check", run.path, source=recorded_source(run.path, system_spec))
         paths = record_certificates(run, result) + record_roa(run, result, settings) + record_band(
-            run.path, run.system, result.band, run.path / "weights.pt", float(run.config.alpha_hat))
+            run.path, run.system, result.band, PairFiles.networks(run.path, run.config.alpha_hat))
         written = [f"  certificate: {p} (re-check it with `{recheck}`)" for p in paths]
         unwritten = unwritten_region_line(result.roa, paths)
     except OSError as err:
@@ -325,6 +326,7 @@ def _verify_imported(run_dir: Path, xi: str | None, settings: ProofConfig, reque
     written as certificates."""
     from drlyap.render import unwritten_region_line
     from drlyap.runs import load_imported_run
+    from drlyap.runs.certificates import PairFiles
     from drlyap.workflows.record import record_band, record_imported_certificates
     from drlyap.workflows.verify import verify_imported
 
@@ -341,7 +343,7 @@ def _verify_imported(run_dir: Path, xi: str | None, settings: ProofConfig, reque
         if request.band is None:
             paths = record_imported_certificates(run_dir, pair, result, settings.resolved(system))
         else:
-            paths = record_band(run_dir, system, result.band, [run_dir / "graphs.json", run_dir / "tensors.pt"], None)
+            paths = record_band(run_dir, system, result.band, PairFiles.imported(run_dir))
         written = [f"  certificate: {p} (re-check it with `{recheck}`)" for p in paths]
         written += [line for line in [unwritten_region_line(result.roa, paths)] if line]
     except OSError as err:

@@ -51,7 +51,7 @@ from typing import TYPE_CHECKING
 import numpy as np
 import torch
 
-from drlyap.claims.registry import BY_NAME, CERTIFICATES, KINDS, KINDS_OF, MARKS, claim_sentence, stated_kind
+from drlyap.claims.registry import CERTIFICATES, KINDS, MARKS, claim_sentence, kinds_stating, stated_kind
 from drlyap.io import jsonable
 
 if TYPE_CHECKING:  # the writing side's types; reading a certificate (the checker) loads nothing of the verifier
@@ -130,6 +130,16 @@ class PairFiles:
     weights: str | os.PathLike | list
     alpha_hat: float | None
 
+    @classmethod
+    def networks(cls, folder: str | os.PathLike, alpha_hat: float) -> PairFiles:
+        """drlyap's own pair: ``folder/weights.pt`` and V's ``alpha_hat``."""
+        return cls(Path(folder) / "weights.pt", float(alpha_hat))
+
+    @classmethod
+    def imported(cls, folder: str | os.PathLike) -> PairFiles:
+        """An imported pair: ``folder/graphs.json`` and ``folder/tensors.pt``, no ``alpha_hat``."""
+        return cls([Path(folder) / "graphs.json", Path(folder) / "tensors.pt"], None)
+
 
 def certificate_header(proof: ConditionProof | UniformMargin | None, stated: Stated, system: UncertainSystem,
                        pair: PairFiles, arrays: tuple[str, str] | None) -> dict:
@@ -165,9 +175,9 @@ def write_certificate(folder: str | os.PathLike, name: str, proof: ConditionProo
     path."""
     if name not in NAMES:
         raise ValueError(f"unknown certificate name {name!r}; valid: {', '.join(NAMES)}")
-    if proof is None and not any(BY_NAME[k].without_partition for k in KINDS_OF[name]):
+    if proof is None and not _may_lack_partition(name):
         raise ValueError(f"a {name} certificate cannot be written without a proof: "
-                         f"only {', '.join(n for n in NAMES if any(BY_NAME[k].without_partition for k in KINDS_OF[n]))}")
+                         f"only {', '.join(n for n in NAMES if _may_lack_partition(n))}")
     if proof is not None and (proof.partition is None or not proof.verified):
         raise ValueError("only a verified proof that kept its partition can be written as a certificate")
     target = Path(folder) / FOLDER
@@ -235,6 +245,11 @@ def read_certificate(run_dir: str | os.PathLike, name: str) -> tuple[dict, dict[
     except (KeyError, ValueError, OSError) as err:
         raise ValueError(f"{arrays_path} is damaged: {err}") from None
     return header, arrays
+
+
+def _may_lack_partition(name: str) -> bool:
+    """Whether a kind the file ``name`` may state may have no partition."""
+    return any(k.without_partition for k in kinds_stating(name))
 
 
 def _without_partition(claim) -> bool:

@@ -77,7 +77,7 @@ def save_run(out: Path, result: TrainResult, overwrite: bool = False,
         if proof is not None and proof.partition is not None:
             write_certificate(tmp, "trained", proof,
                               Stated(result.condition, Region.of(result.system, float(result.config.delta))),
-                              result.system, PairFiles(tmp / "weights.pt", float(result.config.alpha_hat)))
+                              result.system, PairFiles.networks(tmp, result.config.alpha_hat))
         write_json(tmp / "metrics.json", result.metrics)
         with open(tmp / "history.csv", "w", newline="") as fh:
             writer = csv.DictWriter(fh, fieldnames=["iteration", "loss", "time_s"])

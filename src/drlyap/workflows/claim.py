@@ -11,6 +11,7 @@ from drlyap.claims.kind import ClaimOutcome, ClaimRequest
 from drlyap.claims.registry import BY_NAME, KINDS
 from drlyap.proof_settings import ProofConfig
 from drlyap.runs import PolicyRun, Run
+from drlyap.runs.certificates import PairFiles
 from drlyap.workflows.verify import run_proof
 
 
@@ -27,14 +28,14 @@ def claim_request(run: Run | PolicyRun, proof: ProofConfig | None = None,
     defaults)."""
     shift = None if xi is None else tuple(float(v) for v in xi)
     if isinstance(run, Run):
-        return ClaimRequest(run.loop, run.path, run.path / "weights.pt", float(run.config.alpha_hat),
+        return ClaimRequest(run.loop, run.path, PairFiles.networks(run.path, run.config.alpha_hat),
                             float(run.config.delta), run_proof(run, proof), shift)
     pair = run.info.get("pair")
     if pair is None:
         raise ValueError(f"{run.path} holds no pair drlyap proves claims of (a policy without V)")
     system = pair.loop.system
     delta = system.defaults.delta if pair.delta is None else pair.delta
-    return ClaimRequest(pair.loop, run.path, [run.path / "graphs.json", run.path / "tensors.pt"], None, float(delta),
+    return ClaimRequest(pair.loop, run.path, PairFiles.imported(run.path), float(delta),
                         (proof or ProofConfig()).resolved(system), shift, pair.pinned)
 
 

@@ -173,7 +173,7 @@ def record_robustness(run: Run, robustness: RunRobustness) -> list[Path]:
         else:
             condition = run.sections.condition.build(run.xi_samples, Loss.POINTWISE).with_radius(radius.radius)
             written.append(write_certificate(run.path, "radius", radius.proof, Stated(condition, region), run.system,
-                                             PairFiles(run.path / "weights.pt", float(run.config.alpha_hat))))
+                                             PairFiles.networks(run.path, run.config.alpha_hat)))
     if box is not None and box.s is not None:
         if box.proof is None:
             remove_certificate(run.path, "shift-box")
@@ -181,7 +181,7 @@ def record_robustness(run: Run, robustness: RunRobustness) -> list[Path]:
             condition = shift_box_condition(torch.as_tensor(box.scale, dtype=torch.float64), box.s,
                                             run.config.decay_rate, run.config.exp_rate)
             written.append(write_certificate(run.path, "shift-box", box.proof, Stated(condition, region), run.system,
-                                             PairFiles(run.path / "weights.pt", float(run.config.alpha_hat))))
+                                             PairFiles.networks(run.path, run.config.alpha_hat)))
     return written
 
 
@@ -210,7 +210,7 @@ def record_certificates(run: Run, ver: RunVerification) -> list[Path]:
                                    ("uniform", uniform, run.sections.condition.build(run.xi_samples, Loss.UNIFORM))):
         if proof is not None and proof.verified and proof.partition is not None:
             written.append(write_certificate(run.path, name, proof, Stated(condition, region), run.system,
-                                             PairFiles(run.path / "weights.pt", float(run.config.alpha_hat))))
+                                             PairFiles.networks(run.path, run.config.alpha_hat)))
     return written
 
 
@@ -227,7 +227,7 @@ def record_roa(run: Run, ver: RunVerification, proof: ProofConfig) -> list[Path]
     condition = run.region_condition(roa.xi, ver.roa_rate)
     outer = ("trained", ver.trained) if roa.xi is None else ("true-model", ver.true_model)
     return region_certificates(run.path, run.loop, condition, Region.of(run.system, float(ver.delta)), roa, outer,
-                               proof, PairFiles(run.path / "weights.pt", float(run.config.alpha_hat)))
+                               proof, PairFiles.networks(run.path, run.config.alpha_hat))
 
 
 def region_certificates(folder: Path, loop: ClosedLoop, condition: Condition, region: Region,
@@ -251,8 +251,8 @@ def region_certificates(folder: Path, loop: ClosedLoop, condition: Condition, re
         remove_certificate(folder, name)
     written: list[Path] = []
 
-    def write(name, found, cond, where, level=None, extra=None):
-        written.append(write_certificate(folder, name, found, Stated(cond, where, level=level, parts=extra),
+    def write(name, found, cond, where, level=None, parts=None):
+        written.append(write_certificate(folder, name, found, Stated(cond, where, level=level, parts=parts),
                                          loop.system, pair))
 
     def write_ellipsoid(found):
@@ -277,7 +277,7 @@ def region_certificates(folder: Path, loop: ClosedLoop, condition: Condition, re
     if roa.method == "band":
         cored = band_proof(loop, condition, region, roa.local, proof.budget())
         if cored is not None and "ellipsoid.json" in {p.name for p in written}:
-            write("roa", cored.proof, cored.condition, cored.region, extra=core_parts(cored.p.tolist(), cored.q_level))
+            write("roa", cored.proof, cored.condition, cored.region, parts=core_parts(cored.p.tolist(), cored.q_level))
         return written
     if roa.method == "linearisation":
         found = linearisation_proofs(loop, condition, region, roa.local, proof.budget())
@@ -288,7 +288,7 @@ def region_certificates(folder: Path, loop: ClosedLoop, condition: Condition, re
         if outer_name is not None:
             write_ellipsoid(ellipsoid)
             write("roa-ball", cored.proof, cored.condition, cored.region,
-                  extra=cored_parts(region.delta, outer_name, core_parts(cored.p.tolist(), cored.q_level)))
+                  parts=cored_parts(region.delta, outer_name, core_parts(cored.p.tolist(), cored.q_level)))
         return written
     if roa.ball is None:
         return written
@@ -296,11 +296,11 @@ def region_certificates(folder: Path, loop: ClosedLoop, condition: Condition, re
     if outer_name is None:
         return written
     ball = roa.ball
-    extra = cube_parts(region.delta, ball.cube, outer_name)
+    parts = cube_parts(region.delta, ball.cube, outer_name)
     if ball.ring is None:  # the cube covers the ball: the claim is the cube's alone
-        write("roa-ball", None, condition.per_sample(), region.ball_box(region.delta), c, extra)
+        write("roa-ball", None, condition.per_sample(), region.ball_box(region.delta), c, parts)
     else:
-        write("roa-ball", ball.ring, ball.condition, ball.region, extra=extra)
+        write("roa-ball", ball.ring, ball.condition, ball.region, parts=parts)
     return written
 
 
@@ -317,7 +317,7 @@ def _outer_certificate(write, loop: ClosedLoop, condition: Condition, region: Re
     found = verify_condition(loop, condition, region, proof.budget(), level=level, rules=ProofRules(keep_partition=True))
     if not found.verified:
         return None
-    write("roa", found, condition, region, extra=faces_part(faces) or None)
+    write("roa", found, condition, region, parts=faces_part(faces) or None)
     return "roa"
 
 
@@ -339,7 +339,6 @@ def record_imported_certificates(run_dir: str | Path, pair, ver: RunVerification
     found = ver.true_model
     condition = pair.true_condition(system.check_xi(found.xi)[None], ver.roa_rate)
     region = Region.of(system, float(ver.delta))
-    files = [run_dir / "graphs.json", run_dir / "tensors.pt"]
     own = pair.delta is None or float(ver.delta) == float(pair.delta)  # the checker compares a stated delta
     metrics = json.loads((run_dir / "metrics.json").read_text())
     reported = dict(metrics.get("certificate") or {})
@@ -355,18 +354,18 @@ def record_imported_certificates(run_dir: str | Path, pair, ver: RunVerification
     written = []
     if isinstance(found, ConditionProof) and found.verified and found.partition is not None:
         written.append(write_certificate(run_dir, "true-model", found, Stated(condition, region), system,
-                                         PairFiles(files, None)))
+                                         PairFiles.imported(run_dir)))
     else:
         found = None
     if ver.roa is not None and ver.roa.error is None:
         written += region_certificates(run_dir, pair.loop, condition, region, ver.roa, ("true-model", found), proof,
-                                       PairFiles(files, None))
+                                       PairFiles.imported(run_dir))
     return written
 
 
-def record_band(folder: Path, system, found: BandProof | None, weights, alpha_hat: float | None) -> list[Path]:
+def record_band(folder: Path, system, found: BandProof | None, pair: PairFiles) -> list[Path]:
     """Write the ``band`` certificate of ``found`` (a proof made now: its ``asked`` condition is the claim's) where it
-    is verified (``weights`` and ``alpha_hat``: as :class:`~drlyap.runs.certificates.PairFiles` holds them). The
+    is verified, about the pair in ``pair``'s files. The
     claim is its own (its shift, levels and decay are in the file), so nothing of ``metrics.json`` is touched, and a
     band certificate of other levels stays until a verified one replaces it. Returns the header's path, if any."""
     if found is None or not found.verified or found.decrease.partition is None:
@@ -374,4 +373,4 @@ def record_band(folder: Path, system, found: BandProof | None, weights, alpha_ha
     region = band_region(Region.of(system, 0.0))
     return [write_certificate(folder, "band", found.decrease,
                               Stated(found.asked, region, parts=band_parts(found.low)), system,
-                              PairFiles(weights, alpha_hat))]
+                              pair)]
