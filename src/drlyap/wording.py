@@ -92,3 +92,14 @@ def faces_part(faces: str) -> dict:
     """A region claim's rule for the box's faces as its certificate writes it: nothing for V above the level there
     (the default, :func:`faces_rule`), else ``{"faces": faces}``."""
     return {} if faces == "above" else {"faces": faces}
+
+
+def model_words(what: str) -> str:
+    """The model a decrease's words (:func:`condition_words`) are about: ``what`` without "decrease on " and its
+    decay (``"the true model at xi = [0.1, 0.05]"``)."""
+    return what.split(" (")[0].replace("decrease on ", "")
+
+
+def half_widths_text(half) -> str:
+    """A box's half-widths around x* as a claim prints them: 3 significant digits each, rounded down."""
+    return ", ".join(level_text(float(h), 3) for h in half)

@@ -10,7 +10,7 @@ from __future__ import annotations
 from typing import TYPE_CHECKING
 
 from drlyap.claims.kind import ClaimKind
-from drlyap.wording import level_text
+from drlyap.wording import level_text, model_words
 
 if TYPE_CHECKING:
     from drlyap.checker.reading import CheckResult, Leaves, Reading
@@ -19,7 +19,7 @@ if TYPE_CHECKING:
 def band_sentence(what: str, low: float, high: float) -> str:
     """A band claim in words: ``what`` (the decrease, as :func:`~drlyap.wording.condition_words` names it) on
     ``low <= V <= high``, and what follows."""
-    model = what.split(" (")[0].replace("decrease on ", "")
+    model = model_words(what)
     c1, c2 = level_text(low, up=True), level_text(high)
     return (f"trajectories of {model} from {{V <= {c2}}} in the state box stay in it and reach {{V <= {c1}}}: {what} "
             f"on the band {c1} <= V <= {c2}, and the flow enters the box wherever V <= {c2} on its faces (V as the run's "

@@ -8,7 +8,7 @@ from __future__ import annotations
 from typing import TYPE_CHECKING
 
 from drlyap.claims.kind import ClaimKind
-from drlyap.wording import exact_text, level_text
+from drlyap.wording import exact_text, half_widths_text, level_text
 
 if TYPE_CHECKING:
     from drlyap.checker.reading import CheckResult, Reading
@@ -32,7 +32,7 @@ class Ellipsoid(ClaimKind):
 
     def sentence(self, claim: dict, what: str) -> str:
         r = claim["region"]
-        half = ", ".join(level_text(float(h), 3) for h in claim["ellipsoid"]["box"])
+        half = half_widths_text(claim["ellipsoid"]["box"])
         ring = "" if not claim["ellipsoid"].get("ring") else (
             f"; outside ||x - x*|| < {exact_text(float(r['delta']))}, "
             f"{what.replace('decrease', 'decrease of W', 1)} on it")

@@ -8,7 +8,7 @@ import math
 from typing import TYPE_CHECKING
 
 from drlyap.claims.kind import ClaimKind
-from drlyap.wording import exact_text, faces_part, faces_rule, level_text
+from drlyap.wording import exact_text, faces_part, faces_rule, level_text, model_words
 
 if TYPE_CHECKING:
     from drlyap.checker.reading import CheckResult, Reading
@@ -34,7 +34,7 @@ class Practical(ClaimKind):
 
     def sentence(self, claim: dict, what: str) -> str:
         r = claim["region"]
-        model = what.split(" (")[0].replace("decrease on ", "")
+        model = model_words(what)
         cut = " in the state box" if faces_rule(claim) == "inward" else ""
         return (f"trajectories of {model} from {{V <= {level_text(r.get('level'))}}}{cut} stay in it and end up in "
                 f"{{V <= {level_text(float(claim['practical']['level']), up=True)}}}: V is at most that on the ball "

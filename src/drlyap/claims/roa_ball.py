@@ -9,7 +9,7 @@ from typing import TYPE_CHECKING
 
 from drlyap.claims.core import core_words
 from drlyap.claims.kind import ClaimKind
-from drlyap.wording import exact_text, level_text
+from drlyap.wording import exact_text, half_widths_text, level_text
 
 if TYPE_CHECKING:
     from drlyap.checker.reading import CheckResult, Reading
@@ -45,7 +45,7 @@ class RoaBall(ClaimKind):
             return (f"V decreases on {{V <= {level}}} inside the ball ||x - x*|| < {ball}: {what} on the ball's box "
                     f"outside the ellipsoid {core_words(claim)}; outside the ball by the certificate "
                     f"{claim.get('outer')!r}")
-        half = ", ".join(level_text(float(h), 3) for h in claim["cube"]["half"])
+        half = half_widths_text(claim["cube"]["half"])
         rest = "" if float(r["delta"]) >= float(r["ball_of"]) else (  # no ring: the cube covers the ball
             f"; {what} on the rest of the ball's box outside ||x - x*|| < {exact_text(float(r['delta']))}")
         return (f"V decreases on {{V <= {level}}} inside the ball ||x - x*|| < {ball}: Vdot < 0 on the cube "
